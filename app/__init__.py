@@ -1,0 +1,4 @@
+"""isolume's application layer: GL contexts, renderer, viewer and the command line.
+
+Imports `volumes` and `baking` (public API only); nothing imports `app`.
+"""

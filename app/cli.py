@@ -1,0 +1,308 @@
+"""The ``isolume`` command line (DESIGN §6).
+
+Every user error (bad file, bad value, missing GL) ends in a one-line message on stderr
+and exit status 2; no tracebacks. Heavy modules are imported inside the commands so that
+``isolume info`` and ``isolume bake`` never load OpenGL.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+import volumes
+
+EXIT_USER_ERROR = 2
+
+
+class CLIError(ValueError):
+    """A bad command-line value; the message says what was expected."""
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """Exception types that mean bad input (reported in one line), not a bug."""
+    errors: list[type[BaseException]] = [CLIError, volumes.VolumeError]
+    from .images import OutputError
+
+    errors.append(OutputError)
+    try:
+        from .glcontext import GLUnavailable
+
+        errors.append(GLUnavailable)
+    except ImportError:  # moderngl missing: render commands report it themselves
+        pass
+    try:
+        from baking.errors import BakeError
+
+        errors.append(BakeError)
+    except ImportError:
+        pass
+    try:
+        from baking.environment import EnvSpecError
+
+        errors.append(EnvSpecError)
+    except ImportError:
+        pass
+    return tuple(errors)
+
+
+# -- argument helpers -------------------------------------------------------------------
+def _floats(text: str, count: int, what: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise CLIError(f"{what} {text!r}: expected {count} comma-separated numbers") from None
+    if len(values) != count or not np.isfinite(values).all():
+        raise CLIError(f"{what} {text!r}: expected {count} comma-separated finite numbers")
+    return values
+
+
+def _size(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    try:
+        w, h = (int(p) for p in parts)
+    except ValueError:
+        raise CLIError(f"--size {text!r}: expected WxH, e.g. 512x512") from None
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise CLIError(f"--size {text!r}: width and height must be between 1 and 16384")
+    return w, h
+
+
+def _load_volume(args: argparse.Namespace) -> volumes.Volume:
+    options = {}
+    if getattr(args, "dims", None):
+        options["dims"] = tuple(int(v) for v in _floats(args.dims, 3, "--dims"))
+    if getattr(args, "dtype", None):
+        options["dtype"] = args.dtype
+    if getattr(args, "spacing", None):
+        options["spacing"] = _floats(args.spacing, 3, "--spacing")
+    return volumes.load(args.volume, **options)
+
+
+def _isovalue(volume: volumes.Volume, iso: float | None) -> float:
+    """The requested isovalue, or the first suggested one."""
+    if iso is None:
+        suggested = volumes.suggest_isovalues(volume)
+        if not suggested:
+            raise CLIError(
+                f"{volume.source or volume.name}: no isovalue given and none can be suggested "
+                f"(value range {volume.value_range}); pass --iso"
+            )
+        return suggested[0]
+    return volumes.check_isovalue(volume, iso)
+
+
+def _load_lattice(path: str | None, volume: volumes.Volume):
+    """The lattice at `path` checked against `volume`, or None."""
+    if path is None:
+        return None
+    from baking.lattice import Lattice
+
+    return Lattice.load(path, volume)
+
+
+def _add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
+    p.add_argument(
+        "volume", nargs="?" if optional else None, default=None,
+        help="volume file or synthetic:NAME[:SIZE]"
+        + (f" (default {volumes.DEFAULT})" if optional else ""),
+    )
+    p.add_argument("--dims", help="X,Y,Z for raw files whose name does not say")
+    p.add_argument("--dtype", help="sample type for raw files, e.g. uint8, int16, float32")
+    p.add_argument("--spacing", help="voxel size X,Y,Z (overrides the file)")
+
+
+def _add_render_options(p: argparse.ArgumentParser) -> None:
+    from .render import SHADING_MODES, TONEMAPS
+
+    p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
+    p.add_argument("--shading", default=None,
+                   help=f"one of {', '.join(SHADING_MODES)} (default: irradiance with "
+                   "--lattice, else phong_hemi)")
+    p.add_argument("--lattice", help="illumination lattice from `isolume bake`")
+    p.add_argument("--size", default="512x512", help="WxH pixels")
+    p.add_argument("--view", default="30,30", help="AZ,EL[,DIST]: degrees, diagonals")
+    p.add_argument("--exposure", type=float, default=1.0, help="linear exposure multiplier")
+    p.add_argument("--tonemap", default="aces", choices=list(TONEMAPS))
+    p.add_argument("--albedo", default=None,
+                   help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
+    p.add_argument("--normals", default="smooth", choices=["smooth", "gradient"])
+    p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
+    p.add_argument("--gl", default="auto", choices=["auto", "egl", "osmesa"])
+
+
+def parse_albedo(text: str) -> tuple[float, float, float]:
+    """``A`` or ``R,G,B`` in [0, 1] → RGB tuple."""
+    parts = text.split(",")
+    values = _floats(text, len(parts), "--albedo") if len(parts) in (1, 3) else None
+    if values is None:
+        raise CLIError(f"--albedo {text!r}: expected A or R,G,B")
+    if len(values) == 1:
+        values = values * 3
+    if min(values) < 0 or max(values) > 1:
+        raise CLIError(f"--albedo {text!r}: reflectance must lie in [0, 1]")
+    return values
+
+
+# -- commands ---------------------------------------------------------------------------
+def cmd_info(args: argparse.Namespace) -> int:
+    """Print dimensions, spacing, value range, histogram and suggested isovalues."""
+    vol = _load_volume(args)
+    z, y, x = vol.data.shape
+    lo, hi = vol.value_range
+    print(f"volume     {vol.source or vol.name}")
+    print(f"dims       {x} x {y} x {z} (X x Y x Z), {vol.data.size:,} voxels")
+    print(f"spacing    {', '.join(f'{s:g}' for s in vol.spacing)}")
+    print(f"origin     {', '.join(f'{s:g}' for s in vol.origin)}")
+    print(f"range      {lo:g} .. {hi:g}")
+    print("histogram (log counts)")
+    for line in volumes.histogram_lines(vol):
+        print("  " + line)
+    suggested = volumes.suggest_isovalues(vol)
+    if suggested:
+        print(f"suggested isovalues: {', '.join(f'{s:.6g}' for s in suggested)}")
+    else:
+        print("suggested isovalues: none (constant volume)")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """Render the isosurface off-screen to PNG (sRGB) or EXR (linear radiance)."""
+    from .camera import parse_view
+    from .images import check_output_path, write_image
+    from .offscreen import render_volume
+    from .render import RenderSettings
+
+    out = check_output_path(args.out)
+    vol = _load_volume(args)
+    lattice = _load_lattice(args.lattice, vol)
+    shading = args.shading or ("irradiance" if lattice is not None else "phong_hemi")
+    if args.albedo is not None:
+        albedo = parse_albedo(args.albedo)
+    elif lattice is not None:
+        albedo = tuple(lattice.meta["config"]["albedo"])
+    else:
+        albedo = (0.8, 0.8, 0.8)
+    try:
+        view = parse_view(args.view)
+        settings = RenderSettings(
+            size=_size(args.size), shading=shading, exposure=args.exposure,
+            tonemap=args.tonemap, albedo=albedo,
+        )
+    except ValueError as exc:
+        raise CLIError(str(exc)) from None
+    from .render import LATTICE_MODES
+
+    if shading in LATTICE_MODES and lattice is None:
+        raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume bake)")
+    iso = _isovalue(vol, args.iso)
+    frame, mesh = render_volume(
+        vol, iso, settings, view=view, backend=args.gl,
+        normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,
+    )
+    if mesh.empty:
+        print(f"isolume: warning: {mesh.message}", file=sys.stderr)
+    write_image(out, frame.linear, frame.srgb)
+    print(f"wrote {out} ({settings.size[0]}x{settings.size[1]}, {vol.name} at iso {iso:.6g}, "
+          f"{len(mesh.faces):,} triangles, shading {settings.shading})")
+    return 0
+
+
+def _bake_config(args: argparse.Namespace):
+    from baking.config import BakeConfig
+
+    return BakeConfig(
+        mode=args.mode, sh_order=args.sh_order, samples=args.samples, bounces=args.bounces,
+        albedo=parse_albedo(args.albedo), scale=args.scale,
+        iso_range=tuple(args.iso_range) if args.iso_range else None,
+        env="" if args.env == "none" else args.env, lights=tuple(args.light or ()), seed=args.seed,
+        flip_normals=args.flip_normals,
+    )
+
+
+def cmd_bake(args: argparse.Namespace) -> int:
+    """Bake an illumination lattice (resumes when --out holds a compatible one)."""
+    from baking import bake
+    from baking.lattice import Lattice
+
+    from .images import check_output_path
+
+    out = check_output_path(args.out, (".npz",))
+    config = _bake_config(args)
+    vol = _load_volume(args)
+    try:
+        lattice = bake(vol, config, out=out, workers=args.workers, progress=True)
+    except KeyboardInterrupt:
+        if out.exists():
+            done = Lattice.load(out)
+            print(f"isolume: interrupted; {int((done.samples > 0).sum()):,} finished texels "
+                  f"saved in {out}; run the same command again to resume", file=sys.stderr)
+        return 130
+    plan, stats = lattice.meta["plan"], lattice.meta["stats"]
+    total = plan["total_texels"]
+    print(f"wrote {out}: {plan['active_texels']:,} of {total:,} texels active "
+          f"({plan['active_texels'] / total:.1%}), {len(plan['levels'])} levels, "
+          f"{stats['rays_traced']:,} rays in {stats['bake_seconds']:.1f} s "
+          f"({stats['rays_traced'] / max(stats['bake_seconds'], 1e-9) / 1e6:.2f} Mrays/s)")
+    return 0
+
+
+COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "info": cmd_info,
+    "render": cmd_render,
+    "bake": cmd_bake,
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="isolume", description="Isosurfaces with precomputed global illumination."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("info", help="describe a volume and suggest isovalues")
+    _add_volume_options(p, optional=False)
+    p = sub.add_parser("render", help="render an isosurface off-screen to PNG or EXR")
+    _add_volume_options(p, optional=True)
+    p.add_argument("--out", required=True, help="FILE.png (sRGB) or FILE.exr (linear)")
+    _add_render_options(p)
+    p = sub.add_parser("bake", help="bake an illumination lattice with Embree path tracing")
+    _add_volume_options(p, optional=False)
+    p.add_argument("--out", required=True, help="lattice file FILE.npz (resumed if present)")
+    p.add_argument("--mode", default="irradiance", choices=["irradiance", "sh"])
+    p.add_argument("--sh-order", type=int, default=5, help="SH bands (n² coefficients)")
+    p.add_argument("--samples", type=int, default=100, help="paths per texel")
+    p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (0 = direct)")
+    p.add_argument("--albedo", default="0.8", help="A or R,G,B")
+    p.add_argument("--scale", type=float, default=1.0, help="texels per voxel per axis")
+    p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"))
+    p.add_argument("--env", default="constant:1,1,1",
+                   help="constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular] | none")
+    p.add_argument("--light", action="append", metavar="SPEC",
+                   help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
+    p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``isolume`` console script; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except _user_errors() as exc:
+        message = " ".join(str(exc).split())
+        print(f"isolume: error: {message}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("isolume: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,73 @@
+"""Writing pictures: sRGB PNG (display) and linear-radiance OpenEXR (analysis)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+class OutputError(ValueError):
+    """An output path that cannot be written."""
+
+
+IMAGE_SUFFIXES = (".png", ".exr")
+
+
+def check_output_path(path: str | os.PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> Path:
+    """Validate an output path before any work is done.
+
+    Raises:
+        OutputError: wrong suffix, missing directory, or a directory that is not writable.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in suffixes:
+        expected = " or ".join(suffixes)
+        raise OutputError(f"{path}: output must end in {expected}, got {path.suffix!r}")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise OutputError(f"{path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise OutputError(f"{path}: directory {parent} is not writable")
+    return path
+
+
+def write_png(path: str | os.PathLike, srgb: np.ndarray) -> None:
+    """Write an (H, W, 3) uint8 sRGB image."""
+    from PIL import Image
+
+    Image.fromarray(np.ascontiguousarray(srgb, np.uint8), "RGB").save(path)
+
+
+def write_exr(path: str | os.PathLike, linear: np.ndarray, extra: dict | None = None) -> None:
+    """Write an (H, W, 3) float32 linear-radiance image as a ZIP-compressed float EXR.
+
+    Args:
+        extra: optional further channel groups, name -> (H, W) or (H, W, 3) float32
+            (e.g. a per-pixel standard error).
+    """
+    import OpenEXR
+
+    channels = {"RGB": np.ascontiguousarray(linear, np.float32)}
+    for name, value in (extra or {}).items():
+        channels[name] = np.ascontiguousarray(value, np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, channels) as exr:
+        exr.write(str(path))
+
+
+def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read every channel group of an EXR: name -> array ("RGB" -> (H, W, 3))."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as exr:
+        return {name: np.array(ch.pixels) for name, ch in exr.channels().items()}
+
+
+def write_image(path: str | os.PathLike, linear: np.ndarray, srgb: np.ndarray) -> None:
+    """Write `srgb` (PNG) or `linear` (EXR) according to the suffix of `path`."""
+    if Path(path).suffix.lower() == ".exr":
+        write_exr(path, linear)
+    else:
+        write_png(path, srgb)

@@ -1,0 +1,117 @@
+"""`BakeConfig`: everything that determines a lattice's values (frozen, explicit)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import BakeError
+from .lights import parse_light
+
+MODES = ("irradiance", "sh")
+
+
+@dataclass(frozen=True)
+class BakeConfig:
+    """Bake settings. Two bakes with equal configs (except `samples`) can share a file.
+
+    Attributes:
+        mode: "irradiance" (RGB E, static lights) or "sh" (transfer coefficients).
+        sh_order: SH bands n (n² coefficients) in "sh" mode.
+        samples: target Monte Carlo paths per texel.
+        bounces: diffuse interreflection bounces (0 = direct light only).
+        albedo: diffuse reflectance, linear RGB in [0, 1].
+        scale: lattice texels per voxel along each axis.
+        iso_range: (lo, hi) isovalues of interest; None = the data range.
+        env: environment spec (see `baking.environment.parse_env`); "" = none.
+        lights: point/directional light specs (see `baking.lights`).
+        seed: random seed.
+        max_move: largest Newton move onto a level surface, voxels; sets the number of
+            isovalue levels from the data's gradients.
+        max_levels: cap on the number of levels (memory and build time).
+        offset: ray-origin offset along the normal, voxels (paper Fig. 5, "offset").
+        flip_normals: normals from low to high values.
+        noise_sigmas: a lattice cell is skipped when its value span is below this many
+            noise standard deviations (flat regions carry no displayable surface).
+    """
+
+    mode: str = "irradiance"
+    sh_order: int = 5
+    samples: int = 100
+    bounces: int = 2
+    albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    scale: float = 1.0
+    iso_range: tuple[float, float] | None = None
+    env: str = "constant:1,1,1"
+    lights: tuple[str, ...] = ()
+    seed: int = 0
+    max_move: float = 0.5
+    max_levels: int = 64
+    offset: float = 0.25
+    flip_normals: bool = False
+    noise_sigmas: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise BakeError(f"--mode {self.mode!r}: expected one of {', '.join(MODES)}")
+        if not 1 <= self.sh_order <= 10:
+            raise BakeError(f"--sh-order {self.sh_order}: expected 1 to 10 bands")
+        if self.samples < 1:
+            raise BakeError(f"--samples {self.samples}: expected at least 1")
+        if not 0 <= self.bounces <= 16:
+            raise BakeError(f"--bounces {self.bounces}: expected 0 to 16")
+        albedo = tuple(float(a) for a in np.broadcast_to(self.albedo, 3))
+        if min(albedo) < 0 or max(albedo) > 1:
+            raise BakeError(f"--albedo {self.albedo}: reflectance must lie in [0, 1]")
+        object.__setattr__(self, "albedo", albedo)
+        if not 0.05 <= self.scale <= 8:
+            raise BakeError(f"--scale {self.scale:g}: expected 0.05 to 8 texels per voxel")
+        if self.iso_range is not None:
+            lo, hi = (float(v) for v in self.iso_range)
+            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+                raise BakeError(f"--iso-range {self.iso_range}: expected LO < HI")
+            object.__setattr__(self, "iso_range", (lo, hi))
+        object.__setattr__(self, "lights", tuple(self.lights))
+        for spec in self.lights:
+            parse_light(spec)
+        if self.mode == "sh" and self.lights:
+            raise BakeError(
+                "--mode sh takes only a distant environment (--env): point and directional "
+                f"lights ({', '.join(self.lights)}) are not low-frequency; bake them in "
+                "--mode irradiance"
+            )
+        if not self.env and not self.lights:
+            raise BakeError("nothing lights the scene: give --env and/or --light")
+        if not 0 < self.max_move <= 4 or not 2 <= self.max_levels <= 1024:
+            raise BakeError("max_move must lie in (0, 4] voxels and max_levels in [2, 1024]")
+        if not 0 <= self.offset <= 2:
+            raise BakeError(f"offset {self.offset:g}: expected 0 to 2 voxels")
+
+    @property
+    def gray(self) -> bool:
+        """True when the albedo is the same in every channel."""
+        return self.albedo[0] == self.albedo[1] == self.albedo[2]
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict of every field."""
+        d = dataclasses.asdict(self)
+        d["lights"] = list(self.lights)
+        d["albedo"] = list(self.albedo)
+        d["iso_range"] = None if self.iso_range is None else list(self.iso_range)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> BakeConfig:
+        """Inverse of `to_dict` (unknown keys are an error)."""
+        d = dict(d)
+        d["lights"] = tuple(d.get("lights", ()))
+        d["albedo"] = tuple(d.get("albedo", (0.8, 0.8, 0.8)))
+        if d.get("iso_range") is not None:
+            d["iso_range"] = tuple(d["iso_range"])
+        return cls(**d)
+
+    def same_result_as(self, other: BakeConfig) -> bool:
+        """True when both configs give the same per-sample estimates (samples may differ)."""
+        return dataclasses.replace(self, samples=1) == dataclasses.replace(other, samples=1)

@@ -1,0 +1,180 @@
+"""Path tracing from texel points: next-event estimation, diffuse bounces, MIS.
+
+For irradiance, a path from texel point x with normal n estimates
+E(x) = ∫ L_in(ω) cos θ dω. Each vertex v of the path adds its *direct* irradiance
+estimate weighted by c_v = albedo^v (the radiance leaving a diffuse vertex is albedo·E/π,
+and a cosine-sampled direction turns radiance into irradiance with the factor π):
+
+* point and directional lights: deterministic shadow rays (hard shadows);
+* a non-constant environment: one light sample (importance sampled) and the escaping
+  cosine-sampled continuation ray, combined with the power heuristic;
+* a constant environment: the cosine-sampled ray alone (it is already the ideal sampler).
+
+Paths end after `bounces` bounces; nothing is cut early, so the estimate of the B-bounce
+solution is unbiased (no Russian roulette is needed with a fixed, small B).
+
+In SH mode each path that escapes in direction ω adds c_v·π·Y(ω): the projection of the
+transfer function, including shadowing and every bounce, onto the SH basis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from . import rng
+from .lights import Light
+from .sampling import power_heuristic, sample_cosine_hemisphere, to_world
+
+if TYPE_CHECKING:  # embreex is imported only when a bake runs
+    from .trace import RayStats, Scene
+
+DIMS_PER_VERTEX = 4  # 2 for the cosine-sampled direction, 2 for the environment sample
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """What lights the scene.
+
+    Attributes:
+        env: the distant environment (`baking.environment.Environment`) or None.
+        sample_env: True to importance-sample the environment (next-event estimation).
+        lights: point and directional lights.
+    """
+
+    env: object | None
+    sample_env: bool
+    lights: tuple[Light, ...]
+
+
+@dataclass(frozen=True)
+class PathSettings:
+    """Per-bake path-tracing parameters.
+
+    Attributes:
+        bounces: diffuse bounces after the first vertex.
+        albedo: (3,) diffuse reflectance.
+        hit_offset: world distance by which new ray origins leave a hit surface.
+        sh_order: None for irradiance, else the SH order whose basis escapes project on.
+        rgb_transfer: SH mode with coloured albedo: keep a transfer vector per channel.
+    """
+
+    bounces: int
+    albedo: tuple[float, float, float]
+    hit_offset: float
+    sh_order: int | None = None
+    rgb_transfer: bool = False
+
+    @property
+    def channels(self) -> int:
+        """Values per texel: 3 (RGB irradiance) or n² (×3 for coloured SH transfer)."""
+        if self.sh_order is None:
+            return 3
+        return self.sh_order**2 * (3 if self.rgb_transfer else 1)
+
+
+def _direct_lights(scene: Scene, pos, n, beta, lights, stats) -> np.ndarray:
+    """(M, 3) irradiance from point/directional lights with shadow rays, times beta."""
+    out = np.zeros_like(beta)
+    for light in lights:
+        d, dist, e = light.towards(pos)
+        cos = (n * d).sum(axis=1)
+        lit = cos > 0
+        if not lit.any():
+            continue
+        blocked = scene.occluded(pos[lit], d[lit], dist[lit] * (1 - 1e-5), stats)
+        visible = np.flatnonzero(lit)[~blocked]
+        out[visible] += beta[visible] * e[visible] * cos[visible, None]
+    return out
+
+
+def _direct_env(scene: Scene, pos, n, beta, keys, dim, env, stats) -> np.ndarray:
+    """(M, 3) MIS-weighted environment light sample, times beta."""
+    out = np.zeros_like(beta)
+    d, pdf = env.sample(rng.uniform2(keys, dim))
+    cos = (n * d).sum(axis=1)
+    ok = (cos > 0) & (pdf > 0)
+    if not ok.any():
+        return out
+    idx = np.flatnonzero(ok)
+    blocked = scene.occluded(pos[idx], d[idx], None, stats)
+    idx = idx[~blocked]
+    weight = power_heuristic(pdf[idx], cos[idx] / np.pi)
+    radiance = env.radiance(d[idx])
+    out[idx] = beta[idx] * radiance * (cos[idx] * weight / pdf[idx])[:, None]
+    return out
+
+
+def _escape_sh(beta: np.ndarray, dirs: np.ndarray, settings: PathSettings) -> np.ndarray:
+    """(M, C) SH projection π·beta·Y(ω) of escaping paths."""
+    from .sh import basis
+
+    y = np.pi * basis(dirs, settings.sh_order)
+    if settings.rgb_transfer:
+        return (y[:, :, None] * beta[:, None, :]).reshape(len(dirs), -1)
+    return y * beta[:, :1]
+
+
+def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np.ndarray,
+                lighting: Lighting, settings: PathSettings,
+                stats: RayStats | None = None) -> np.ndarray:
+    """Estimate irradiance (or SH transfer) for P paths starting at texel points.
+
+    Args:
+        scene: the level surface the paths live on.
+        origins: (P, 3) start points, already offset off the surface.
+        normals: (P, 3) unit normals at the start points.
+        keys: (P,) uint32 path keys (`rng.path_keys`).
+
+    Returns:
+        (P, C) float64 per-path estimates (C = `settings.channels`).
+    """
+    count = len(origins)
+    result = np.zeros((count, settings.channels))
+    alive = np.arange(count)
+    pos, n = origins.astype(np.float64), normals.astype(np.float64)
+    beta = np.ones((count, 3))
+    albedo = np.asarray(settings.albedo)
+    irradiance = settings.sh_order is None
+    for vertex in range(settings.bounces + 1):
+        k = keys[alive]
+        dim = vertex * DIMS_PER_VERTEX
+        if irradiance and lighting.lights:
+            result[alive, :3] += _direct_lights(scene, pos, n, beta, lighting.lights, stats)
+        if irradiance and lighting.sample_env:
+            result[alive, :3] += _direct_env(scene, pos, n, beta, k, dim + 2, lighting.env,
+                                             stats)
+        local = sample_cosine_hemisphere(rng.uniform2(k, dim))
+        dirs = to_world(local, n)
+        hits = scene.intersect(pos, dirs, stats)
+        escaped = ~hits["hit"]
+        if escaped.any() and (lighting.env is not None or not irradiance):
+            esc_dirs = dirs[escaped]
+            if irradiance:
+                weight = np.pi * np.ones(len(esc_dirs))
+                if lighting.sample_env:
+                    weight *= power_heuristic(local[escaped, 2] / np.pi,
+                                              lighting.env.pdf(esc_dirs))
+                result[alive[escaped], :3] += (beta[escaped] * lighting.env.radiance(esc_dirs)
+                                               * weight[:, None])
+            else:
+                result[alive[escaped]] += _escape_sh(beta[escaped], esc_dirs, settings)
+        if vertex == settings.bounces:
+            break
+        hit = hits["hit"]
+        if not hit.any():
+            break
+        d = dirs[hit]
+        p = pos[hit] + hits["t"][hit, None] * d
+        ng = hits["ng"][hit].astype(np.float64)
+        ng *= -np.sign((ng * d).sum(axis=1, keepdims=True))  # towards the arriving ray
+        ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-30)
+        ns = scene.shading_normals(hits, hit)
+        ns *= np.where((ns * d).sum(axis=1, keepdims=True) > 0, -1.0, 1.0)
+        pos = p + settings.hit_offset * ng
+        n = ns
+        beta = beta[hit] * albedo
+        alive = alive[hit]
+    return result

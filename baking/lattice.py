@@ -1,0 +1,222 @@
+"""The illumination lattice and its file (DESIGN §4).
+
+Geometry: a lattice of scale s has ``max(2, round(n * s))`` texels along each axis of
+``n`` voxels, spanning the volume's world box (the union of voxel cells). Texel centres
+carry the values: texel t along an axis sits at ``lo + (t + 1/2) * (hi - lo) / m``, so at
+s = 1 texel centres coincide with voxel samples, and a GL texture coordinate is simply
+``(p - lo) / (hi - lo)`` (the half-texel term is built into GL's texel centres).
+
+File: one ``.npz`` holding ``values [z,y,x,C]`` float32, ``samples [z,y,x]`` uint32,
+``second [z,y,x]`` float32 (per-sample second moment of the luminance, for error
+estimates), ``active [z,y,x]`` bool, and ``meta`` (JSON). Written atomically (temporary file
+in the same folder, then rename), so an interrupted write never leaves a broken file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import BakeError
+
+FORMAT_VERSION = 1
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+@dataclass(frozen=True)
+class LatticeGeometry:
+    """Where the texels are.
+
+    Attributes:
+        shape: (Z, Y, X) texel counts.
+        lo, hi: (3,) world box corners, xyz.
+    """
+
+    shape: tuple[int, int, int]
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    @classmethod
+    def for_volume(cls, volume, scale: float) -> LatticeGeometry:
+        """Lattice of `scale` texels per voxel over `volume`'s world box."""
+        z, y, x = volume.data.shape
+        shape = tuple(max(2, round(n * scale)) for n in (z, y, x))
+        lo, hi = volume.box
+        return cls(shape, tuple(float(v) for v in lo), tuple(float(v) for v in hi))
+
+    @property
+    def texel_size(self) -> np.ndarray:
+        """(3,) xyz world size of one texel."""
+        return (np.array(self.hi) - np.array(self.lo)) / np.array(self.shape[::-1])
+
+    def centres(self, flat_ids: np.ndarray) -> np.ndarray:
+        """(N, 3) world xyz centres of texels given by (N,) flat [z,y,x] indices."""
+        k, j, i = np.unravel_index(flat_ids, self.shape)
+        idx = np.stack([i, j, k], axis=1) + 0.5
+        return np.array(self.lo) + idx * self.texel_size
+
+    def all_centres(self) -> np.ndarray:
+        """(Z, Y, X, 3) world xyz of every texel centre."""
+        axes = [np.array(self.lo[a]) + (np.arange(self.shape[2 - a]) + 0.5)
+                * self.texel_size[a] for a in range(3)]
+        z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+        return np.stack([x, y, z], axis=-1)
+
+    def to_texel_coords(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) world xyz → (N, 3) continuous texel coordinates (z, y, x); centres are
+        at integers."""
+        f = (np.asarray(points, np.float64) - np.array(self.lo)) / self.texel_size - 0.5
+        return f[:, ::-1]
+
+
+def trilinear(grid: np.ndarray, coords_zyx: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of a (Z, Y, X, C) grid at (N, 3) texel coordinates, clamped
+    to the edge texels like GL's CLAMP_TO_EDGE. Returns (N, C) float64."""
+    shape = np.array(grid.shape[:3])
+    c = np.clip(coords_zyx, 0, shape - 1)
+    base = np.minimum(np.floor(c).astype(np.int64), shape - 2).clip(0)
+    frac = c - base
+    out = np.zeros((len(c), grid.shape[3]))
+    for corner in range(8):
+        offs = np.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
+        idx = np.minimum(base + offs, shape - 1)
+        w = np.prod(np.where(offs == 1, frac, 1 - frac), axis=1)
+        out += w[:, None] * grid[idx[:, 0], idx[:, 1], idx[:, 2]]
+    return out
+
+
+@dataclass
+class Lattice:
+    """An illumination lattice.
+
+    Attributes:
+        geometry: texel placement.
+        values: (Z, Y, X, C) float32 per-texel mean estimate: irradiance E (RGB, linear,
+            C = 3) or SH transfer coefficients.
+        samples: (Z, Y, X) uint32 paths averaged into each texel (0 = not computed).
+        second: (Z, Y, X) float32 mean of the squared per-path luminance estimate.
+        active: (Z, Y, X) bool, texels the bake must fill.
+        meta: format version, kind, volume identity, bake config, statistics.
+    """
+
+    geometry: LatticeGeometry
+    values: np.ndarray
+    samples: np.ndarray
+    second: np.ndarray
+    active: np.ndarray
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, geometry: LatticeGeometry, channels: int, meta: dict) -> Lattice:
+        """A lattice with nothing computed."""
+        shape = geometry.shape
+        return cls(geometry, np.zeros((*shape, channels), np.float32),
+                   np.zeros(shape, np.uint32), np.zeros(shape, np.float32),
+                   np.zeros(shape, bool), meta)
+
+    @property
+    def kind(self) -> str:
+        return self.meta.get("kind", "irradiance")
+
+    @property
+    def computed(self) -> np.ndarray:
+        """(Z, Y, X) bool: texels with at least one sample."""
+        return self.samples > 0
+
+    def standard_error(self) -> np.ndarray:
+        """(Z, Y, X) float32 standard error of the luminance mean (inf where < 2 samples)."""
+        lum = self.values[..., :3] @ LUMINANCE if self.kind == "irradiance" else self.values[..., 0]
+        n = self.samples.astype(np.float64)
+        var = np.maximum(self.second - lum.astype(np.float64) ** 2, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            se = np.where(n > 1, np.sqrt(var * n / np.maximum(n - 1, 1) / np.maximum(n, 1)),
+                          np.inf)
+        return se.astype(np.float32)
+
+    def sample(self, points_xyz: np.ndarray, normalized: bool = False) -> np.ndarray:
+        """(N, C) trilinear lookup at (N, 3) world points, as the GPU does it.
+
+        Args:
+            normalized: weight only computed texels and renormalise (what the shader does
+                while a bake is incomplete); points with no computed neighbour get 0.
+        """
+        coords = self.geometry.to_texel_coords(points_xyz)
+        if not normalized:
+            return trilinear(self.values, coords)
+        valid = self.computed[..., None].astype(np.float32)
+        num = trilinear(self.values * valid, coords)
+        den = trilinear(valid, coords)
+        return np.divide(num, den, out=np.zeros_like(num), where=den > 1e-6)
+
+    # -- files -------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> None:
+        """Write atomically to `path` (.npz)."""
+        path = Path(path)
+        meta = dict(self.meta, format_version=FORMAT_VERSION,
+                    shape=list(self.geometry.shape), box_lo=list(self.geometry.lo),
+                    box_hi=list(self.geometry.hi))
+        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(f, values=self.values, samples=self.samples,
+                                    second=self.second, active=self.active,
+                                    meta=np.array(json.dumps(meta)))
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, volume=None) -> Lattice:
+        """Read a lattice file; with `volume`, check that it was baked for that volume.
+
+        Raises:
+            BakeError: missing/corrupt file, unknown format version, other volume.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise BakeError(f"{path}: lattice file not found")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in ("values", "samples", "second", "active", "meta")}
+            meta = json.loads(str(arrays["meta"]))
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
+            raise BakeError(f"{path}: not a readable isolume lattice ({exc})") from None
+        version = meta.get("format_version")
+        if version != FORMAT_VERSION:
+            raise BakeError(f"{path}: lattice format version {version}, this isolume reads "
+                            f"{FORMAT_VERSION}")
+        geometry = LatticeGeometry(tuple(meta["shape"]), tuple(meta["box_lo"]),
+                                   tuple(meta["box_hi"]))
+        if arrays["values"].shape[:3] != geometry.shape:
+            raise BakeError(f"{path}: values of shape {arrays['values'].shape} do not match "
+                            f"the lattice shape {geometry.shape}")
+        lattice = cls(geometry, arrays["values"], arrays["samples"], arrays["second"],
+                      arrays["active"], meta)
+        if volume is not None:
+            lattice.check_volume(volume, path)
+        return lattice
+
+    def check_volume(self, volume, path: str | os.PathLike = "lattice") -> None:
+        """Raise BakeError unless this lattice was baked for `volume`."""
+        want = self.meta.get("volume", {})
+        if want.get("hash") != volume.data_hash():
+            shape = list(volume.data.shape)
+            raise BakeError(
+                f"{path}: baked for volume {want.get('name')!r} of shape {want.get('shape')} "
+                f"(hash {str(want.get('hash'))[:12]}), not for {volume.name!r} of shape "
+                f"{shape} (hash {volume.data_hash()[:12]}); bake it for this volume"
+            )
+
+
+def volume_identity(volume) -> dict:
+    """The metadata that ties a lattice to its volume."""
+    return {"name": volume.name, "source": volume.source, "shape": list(volume.data.shape),
+            "spacing": list(volume.spacing), "origin": list(volume.origin),
+            "hash": volume.data_hash()}

@@ -1,0 +1,98 @@
+"""The only module that imports embreex: triangle scenes and batched ray queries.
+
+embreex releases the GIL inside `run`, so worker threads trace concurrently.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+_MISS = -1
+
+
+class RayStats:
+    """Counts rays and seconds spent inside Embree (thread-safe enough: += on ints)."""
+
+    def __init__(self) -> None:
+        self.rays = 0
+        self.seconds = 0.0
+
+    def add(self, rays: int, seconds: float) -> None:
+        self.rays += rays
+        self.seconds += seconds
+
+
+class Scene:
+    """One triangle mesh in an Embree scene.
+
+    Args:
+        vertices: (V, 3) world positions.
+        faces: (F, 3) vertex indices.
+        normals: optional (V, 3) per-vertex shading normals, interpolated at hits.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray,
+                 normals: np.ndarray | None = None) -> None:
+        self.empty = len(faces) == 0
+        self.normals = None if normals is None else np.asarray(normals, np.float32)
+        self.faces = np.asarray(faces, np.int32)
+        if not self.empty:
+            self._scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(self._scene, np.ascontiguousarray(vertices, np.float32),
+                         np.ascontiguousarray(self.faces))
+
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray, stats: RayStats | None = None
+                  ) -> dict[str, np.ndarray]:
+        """Closest hits of (N, 3) rays.
+
+        Returns:
+            dict with ``hit`` (N,) bool, ``t`` (N,) distance, ``prim`` (N,) triangle id,
+            ``u``, ``v`` (N,) barycentrics, ``ng`` (N, 3) unnormalised geometric normal.
+        """
+        n = len(origins)
+        if self.empty or n == 0:
+            return {"hit": np.zeros(n, bool), "t": np.full(n, np.inf),
+                    "prim": np.full(n, _MISS), "u": np.zeros(n), "v": np.zeros(n),
+                    "ng": np.zeros((n, 3))}
+        start = time.perf_counter()
+        out = self._scene.run(np.ascontiguousarray(origins, np.float32),
+                              np.ascontiguousarray(dirs, np.float32), output=1)
+        if stats is not None:
+            stats.add(n, time.perf_counter() - start)
+        prim = out["primID"]
+        return {"hit": prim != _MISS, "t": out["tfar"], "prim": prim, "u": out["u"],
+                "v": out["v"], "ng": out["Ng"]}
+
+    def occluded(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None,
+                 stats: RayStats | None = None) -> np.ndarray:
+        """(N,) bool: is anything hit before distance `tfar` (default: infinity)?"""
+        n = len(origins)
+        if self.empty or n == 0:
+            return np.zeros(n, bool)
+        dists = None
+        if tfar is not None:
+            dists = np.ascontiguousarray(np.minimum(tfar, 1e30), np.float32)
+        start = time.perf_counter()
+        out = self._scene.run(np.ascontiguousarray(origins, np.float32),
+                              np.ascontiguousarray(dirs, np.float32), dists=dists,
+                              query="OCCLUDED")
+        if stats is not None:
+            stats.add(n, time.perf_counter() - start)
+        return out != _MISS
+
+    def shading_normals(self, hits: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray:
+        """(M, 3) unit normals at the hits selected by `mask`: interpolated vertex normals
+        when the scene has them, else the geometric normal."""
+        if self.normals is None:
+            ng = hits["ng"][mask].astype(np.float64)
+        else:
+            tri = self.faces[hits["prim"][mask]]
+            u, v = hits["u"][mask, None], hits["v"][mask, None]
+            nv = self.normals
+            ng = (1 - u - v) * nv[tri[:, 0]] + u * nv[tri[:, 1]] + v * nv[tri[:, 2]]
+        length = np.linalg.norm(ng, axis=1, keepdims=True)
+        return ng / np.maximum(length, 1e-30)

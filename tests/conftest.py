@@ -1,0 +1,40 @@
+"""Shared fixtures: a headless OSMesa GL context, the optional ../shared data folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+"""``<clone>/../shared/data``: real volumes and probes, present on developer machines."""
+
+
+def shared_file(*parts: str) -> Path:
+    """Path of a file under ../shared/data, or skip the test when it is absent."""
+    path = SHARED.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"{path} not present (../shared/data is optional)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def gl():
+    """One OSMesa context for the whole session (tests run on OSMesa, as CI does)."""
+    from app.glcontext import create_headless
+
+    context = create_headless("osmesa")
+    yield context.ctx
+    context.release()
+
+
+@pytest.fixture
+def renderer(gl):
+    """A fresh SurfaceRenderer on the session context; checks GL errors around the test."""
+    from app.render import SurfaceRenderer
+
+    assert gl.error == "GL_NO_ERROR"
+    r = SurfaceRenderer(gl)
+    yield r
+    r.release()
+    assert gl.error == "GL_NO_ERROR"

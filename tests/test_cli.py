@@ -1,0 +1,108 @@
+"""The command line: outputs, and one-line errors with exit status 2 for bad input."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from app.images import read_exr
+
+
+def _run(capsys, *argv):
+    status = main(list(argv))
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_info_lists_range_and_suggestions(capsys):
+    status, out, _ = _run(capsys, "info", "synthetic:engine:48")
+    assert status == 0
+    assert "48 x 30 x 25" in out and "suggested isovalues: 0.3, 0.8" in out
+
+
+def test_render_png_and_exr(tmp_path, capsys):
+    png, exr = tmp_path / "a.png", tmp_path / "a.exr"
+    for out in (png, exr):
+        status, text, err = _run(
+            capsys, "render", "synthetic:sphere:32", "--size", "40x30", "--gl", "osmesa",
+            "--out", str(out),
+        )
+        assert status == 0, err
+        assert f"wrote {out}" in text
+    rgb = read_exr(exr)["RGB"]
+    assert rgb.shape == (30, 40, 3) and rgb.dtype == np.float32
+    assert rgb.max() > 0.1 and np.isfinite(rgb).all()
+
+
+def test_render_default_volume_and_iso(tmp_path, capsys):
+    status, text, err = _run(capsys, "render", "--size", "32x32", "--gl", "osmesa",
+                             "--out", str(tmp_path / "d.png"))
+    assert status == 0, err
+    assert "engine at iso 0.3" in text
+
+
+def _npy(tmp_path, name, data):
+    path = tmp_path / name
+    np.save(path, data)
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    ("make_args", "expected"),
+    [
+        (lambda t: ["render", "synthetic:sphere:16", "--iso", "5", "--out", str(t / "x.png")],
+         "isovalue 5 is outside the data range"),
+        (lambda t: ["render", "--out", str(t / "missing" / "x.png")], "does not exist"),
+        (lambda t: ["render", "--out", str(t / "x.jpg")], "must end in .png or .exr"),
+        (lambda t: ["render", "--size", "10", "--out", str(t / "x.png")], "expected WxH"),
+        (lambda t: ["render", "--view", "1,2,3,4", "--out", str(t / "x.png")], "AZ,EL"),
+        (lambda t: ["render", "--albedo", "2", "--out", str(t / "x.png")], "[0, 1]"),
+        (lambda t: ["render", "--shading", "toon", "--out", str(t / "x.png")], "toon"),
+        (lambda t: ["info", str(t / "nothing.raw")], "nothing.raw"),
+        (lambda t: ["info", _npy(t, "flat.npy", np.zeros((1, 3, 3)))], "smaller than 2×2×2"),
+        (lambda t: ["info", _npy(t, "nan.npy", np.full((3, 3, 3), np.nan))], "NaN"),
+        (lambda t: ["render", _npy(t, "const.npy", np.ones((3, 3, 3))), "--out",
+                    str(t / "x.png")], "none can be suggested"),
+        (lambda t: ["info", "synthetic:cube"], "unknown synthetic volume"),
+    ],
+)
+def test_bad_input_gives_one_line_and_status_2(tmp_path, capsys, make_args, expected):
+    status, _, err = _run(capsys, *make_args(tmp_path))
+    assert status == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("isolume: error:"), err
+    assert expected in lines[0]
+
+
+def test_unwritable_directory(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    import os
+
+    if os.access(locked, os.W_OK):  # running as root: permissions are not enforced
+        pytest.skip("directory permissions are not enforced for this user")
+    status, _, err = _run(capsys, "render", "--out", str(locked / "x.png"))
+    assert status == 2 and "not writable" in err
+
+
+def test_no_gl_names_the_alternatives(tmp_path, monkeypatch, capsys):
+    import app.glcontext as glc
+
+    def fail():
+        raise glc.GLUnavailable("OSMesa is not installed (libOSMesa.so.8 not found); try --gl egl")
+
+    monkeypatch.setattr(glc, "_create_osmesa", fail)
+    status, _, err = _run(capsys, "render", "synthetic:sphere:16", "--gl", "osmesa",
+                          "--out", str(tmp_path / "x.png"))
+    assert status == 2 and "--gl egl" in err
+
+
+def test_console_entry_point_reports_without_traceback(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "app.cli", "info", str(tmp_path / "absent.nrrd")],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr and "absent.nrrd" in result.stderr

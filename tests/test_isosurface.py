@@ -1,0 +1,95 @@
+"""Marching cubes in world units, against the analytic sphere."""
+
+import numpy as np
+import pytest
+
+import volumes
+from volumes import Volume, VolumeError
+from volumes.synthetic import SPHERE_RADIUS, make
+
+
+def _edge_interpolation_error(width_in_voxels: float) -> float:
+    """Worst root error (in voxels) of linear interpolation of the profile 0.5 - 0.5 tanh(s/w)
+    between two samples one voxel apart, over every offset of the surface between them.
+
+    Marching cubes places vertices at the root of that chord; edges oblique to the normal
+    see a stretched profile and do better, so grid-aligned edges bound the error.
+    """
+    worst = 0.0
+    for t in np.linspace(0.0, 1.0, 2001):
+        s0, s1 = -t, 1.0 - t  # signed distances of the two samples, voxels
+        f0, f1 = (-0.5 * np.tanh(s / width_in_voxels) for s in (s0, s1))
+        if f1 == f0:
+            continue
+        root = s0 - f0 * (s1 - s0) / (f1 - f0)
+        worst = max(worst, abs(root))
+    return worst
+
+
+@pytest.mark.parametrize("size", [32, 64])
+def test_sphere_vertices_lie_on_the_analytic_radius(size):
+    vol = make("sphere", size)
+    h = vol.spacing[0]
+    mesh = volumes.isosurface(vol, 0.5)
+    radius = np.linalg.norm(mesh.vertices - 0.0, axis=1)
+    # Tolerance: chord error of the density profile (synthetic width 1.2 voxels) plus the
+    # sag of the sphere across one cell, h^2 / (8 R), plus float32 rounding.
+    tol = _edge_interpolation_error(1.2) * h + h * h / (8 * SPHERE_RADIUS) + 1e-6
+    assert np.abs(radius - SPHERE_RADIUS).max() <= tol
+    assert np.abs(radius - SPHERE_RADIUS).max() > 0  # not trivially exact
+
+
+def test_world_units_apply_spacing_and_origin():
+    base = make("sphere", 32)
+    moved = Volume(base.data, spacing=(0.5, 1.0, 2.0), origin=(10.0, 20.0, 30.0))
+    a, b = volumes.isosurface(base, 0.5), volumes.isosurface(moved, 0.5)
+    idx = base.world_to_index(a.vertices.astype(np.float64))
+    np.testing.assert_allclose(b.vertices, moved.index_to_world(idx), rtol=1e-5)
+
+
+def _angular_errors(mesh) -> np.ndarray:
+    radial = mesh.vertices / np.linalg.norm(mesh.vertices, axis=1, keepdims=True)
+    cos = np.clip((radial * mesh.normals).sum(axis=1), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+def test_normals_point_outward_and_match_the_sphere():
+    mesh = volumes.isosurface(make("sphere", 64), 0.5)
+    errors = _angular_errors(mesh)
+    # The smoothed gradient of a smooth field: only sampling error remains (< 1 degree).
+    assert errors.max() < 1.0
+    flipped = volumes.isosurface(make("sphere", 64), 0.5, flip_normals=True)
+    assert (_angular_errors(flipped) > 179.0).all()
+
+
+def test_smoothed_normals_beat_plain_gradient_on_a_noisy_sphere():
+    """Paper §4.1.1 / Fig. 5: the B-spline-smoothed gradient suppresses noise.
+
+    Noise sigma 0.05 on a 0..1 profile; the B-spline weights [1, 4, 1]/6 on two axes cut the
+    noise variance of each gradient component by (18/36)^2 = 1/4, i.e. the angular noise
+    roughly halves. Measured: mean 3.4 vs 6.2 degrees; bound at 0.7x to allow the seed.
+    """
+    vol = make("sphere", 64)
+    rng = np.random.default_rng(0)
+    noisy = Volume(vol.data + rng.normal(0, 0.05, vol.data.shape), vol.spacing, vol.origin)
+    smooth = _angular_errors(volumes.isosurface(noisy, 0.5, normals="smooth")).mean()
+    plain = _angular_errors(volumes.isosurface(noisy, 0.5, normals="gradient")).mean()
+    assert smooth < 0.7 * plain
+
+
+def test_isovalue_outside_range_is_a_clear_error():
+    vol = make("sphere", 16)
+    with pytest.raises(VolumeError, match=r"sphere:16: isovalue 2 is outside the data range \["):
+        volumes.isosurface(vol, 2.0)
+
+
+def test_isovalue_at_extreme_gives_empty_mesh_with_message():
+    vol = make("sphere", 16)
+    mesh = volumes.isosurface(vol, vol.value_range[1])
+    assert mesh.empty and "extreme" in mesh.message
+
+
+def test_coarse_step_size_is_a_subset_resolution():
+    vol = make("torus", 48)
+    fine, coarse = volumes.isosurface(vol, 0.5), volumes.isosurface(vol, 0.5, step_size=2)
+    assert 0 < len(coarse.faces) < 0.5 * len(fine.faces)

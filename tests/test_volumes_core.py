@@ -1,0 +1,104 @@
+"""Volume conventions (DESIGN §2), validation, synthetic volumes and suggested isovalues."""
+
+import numpy as np
+import pytest
+
+import volumes
+from volumes import Volume, VolumeError
+from volumes.synthetic import NAMES, make
+
+
+def test_world_position_of_voxel_follows_convention():
+    data = np.zeros((3, 4, 5), np.float32)  # z, y, x
+    vol = Volume(data, spacing=(0.5, 2.0, 3.0), origin=(1.0, -1.0, 10.0))
+    world = vol.index_to_world(np.array([[2, 3, 4]]))  # (k, j, i)
+    np.testing.assert_allclose(world, [[1.0 + 4 * 0.5, -1.0 + 3 * 2.0, 10.0 + 2 * 3.0]])
+    np.testing.assert_allclose(vol.world_to_index(world), [[2, 3, 4]])
+    assert vol.shape_xyz == (5, 4, 3)
+    lo, hi = vol.box
+    np.testing.assert_allclose(lo, [0.75, -2.0, 8.5])
+    np.testing.assert_allclose(hi, lo + np.array([5 * 0.5, 4 * 2.0, 3 * 3.0]))
+
+
+def test_value_at_is_trilinear_and_exact_at_voxels():
+    rng = np.random.default_rng(3)
+    vol = Volume(rng.random((4, 5, 6)).astype(np.float32), spacing=(1, 2, 3), origin=(1, 2, 3))
+    idx = np.array([[1, 2, 3], [3, 4, 5]])
+    np.testing.assert_allclose(volumes.value_at(vol, vol.index_to_world(idx)),
+                               vol.data[idx[:, 0], idx[:, 1], idx[:, 2]], rtol=1e-6)
+    mid = vol.index_to_world(np.array([[1.5, 2, 3]]))
+    expected = 0.5 * (vol.data[1, 2, 3] + vol.data[2, 2, 3])
+    np.testing.assert_allclose(volumes.value_at(vol, mid), [expected], rtol=1e-6)
+
+
+def test_smoothed_gradient_of_linear_field_is_exact():
+    """The cubic B-spline reproduces linear functions, so its gradient is exact there."""
+    z, y, x = np.meshgrid(np.arange(6), np.arange(7), np.arange(8), indexing="ij")
+    data = (2.0 * x + 3.0 * y - 1.0 * z).astype(np.float32)
+    vol = Volume(data, spacing=(0.5, 1.0, 2.0))
+    points = vol.index_to_world(np.array([[2.5, 3.25, 4.75]]))  # interior
+    for smooth in (True, False):
+        g = volumes.gradient_at(vol, points, smooth=smooth)
+        np.testing.assert_allclose(g, [[2.0 / 0.5, 3.0 / 1.0, -1.0 / 2.0]], rtol=1e-5)
+    n = volumes.normals_at(vol, points)
+    expected = -np.array([4.0, 3.0, -0.5]) / np.linalg.norm([4.0, 3.0, -0.5])
+    np.testing.assert_allclose(n[0], expected, rtol=1e-5)
+    np.testing.assert_allclose(volumes.normals_at(vol, points, flip=True)[0], -expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("data", "kwargs", "match"),
+    [
+        (np.zeros((1, 4, 4)), {}, "smaller than 2×2×2"),
+        (np.zeros((4, 4)), {}, "3-D array"),
+        (np.array([[[np.nan, 0], [0, 0]], [[0, 0], [0, 0]]]), {}, "NaN/Inf"),
+        (np.zeros((2, 2, 2)), {"spacing": (1, 0, 1)}, "spacing must be positive"),
+        (np.zeros((2, 2, 2)), {"spacing": (1, 1)}, "three"),
+        (np.full((2, 2, 2), "a"), {}, "real numbers"),
+    ],
+)
+def test_bad_volumes_are_refused_with_one_line(data, kwargs, match):
+    with pytest.raises(VolumeError, match=match) as info:
+        Volume(data, source="bad.npy", **kwargs)
+    assert "\n" not in str(info.value) and "bad.npy" in str(info.value)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_synthetic_volumes_have_surfaces_at_their_isovalues(name):
+    vol = make(name, 48)
+    assert vol.data.dtype == np.float32 and vol.data.shape[2] == 48
+    assert vol.suggested_iso, "synthetic volumes know their isovalues"
+    for iso in vol.suggested_iso:
+        mesh = volumes.isosurface(vol, iso)
+        assert not mesh.empty, f"{name} at {iso}"
+        lo, hi = vol.sample_box
+        assert (mesh.vertices >= lo - 1e-5).all() and (mesh.vertices <= hi + 1e-5).all()
+
+
+def test_synthetic_volumes_are_deterministic():
+    a, b = make("mixing_layer", 24), make("mixing_layer", 24)
+    np.testing.assert_array_equal(a.data, b.data)
+    assert a.data_hash() == b.data_hash()
+
+
+@pytest.mark.parametrize("spec", ["synthetic:nope", "synthetic:sphere:abc", "synthetic:sphere:4"])
+def test_bad_synthetic_specs(spec):
+    with pytest.raises(VolumeError, match=spec.split(":")[1] if "nope" in spec else "size|SIZE"):
+        volumes.load(spec)
+
+
+def test_suggested_isovalues_separate_three_materials():
+    """Multi-Otsu on air | tissue | bone-like data puts thresholds between the plateaus."""
+    rng = np.random.default_rng(0)
+    labels = rng.integers(0, 3, size=(20, 20, 20))
+    data = np.choose(labels, [0.0, 100.0, 1000.0]) + rng.normal(0, 5, labels.shape)
+    suggested = volumes.suggest_isovalues(Volume(data.astype(np.float32)))
+    assert len(suggested) == 2
+    assert 5 < suggested[0] < 95 and 105 < suggested[1] < 995
+
+
+def test_constant_volume_has_no_suggestion_and_an_empty_surface():
+    vol = Volume(np.full((4, 4, 4), 7.0), source="flat.npy")
+    assert volumes.suggest_isovalues(vol) == ()
+    mesh = volumes.isosurface(vol, 7.0)
+    assert mesh.empty and "extreme" in mesh.message

@@ -1,0 +1,648 @@
+"""Tests for volumes/io.py: a round trip through every format, and every bad input.
+
+Every round trip writes an asymmetric (z, y, x) = (5, 7, 11) volume of distinct values
+with anisotropic spacing and a non-zero origin, so a swapped axis or a lost header field
+shows up as a failure.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import re
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import volumes.io as vio
+from volumes.core import VolumeError
+from volumes.io import load_file, parse_raw_name
+
+SHAPE = (5, 7, 11)  # z, y, x
+SPACING = (0.5, 0.75, 2.0)  # x, y, z
+ORIGIN = (-3.0, 4.5, 10.0)  # x, y, z
+INDICES = np.array([[0, 0, 0], [4, 6, 10], [2, 3, 7], [1, 5, 2]])  # (k, j, i)
+
+SHARED_VOLUMES = Path(__file__).resolve().parents[2] / "shared" / "data" / "volumes"
+CTHEAD = SHARED_VOLUMES / "CThead_256x256x113_uint16.raw.gz"
+
+
+def sample_data(dtype: str = "int16") -> np.ndarray:
+    """(5, 7, 11) array of distinct values 0..384, [z, y, x]."""
+    return np.arange(np.prod(SHAPE)).reshape(SHAPE).astype(dtype)
+
+
+def assert_volume(vol, expected, spacing=SPACING, origin=ORIGIN, name=None) -> None:
+    """Same samples in [z, y, x] order, and the world position of voxels as written."""
+    assert vol.data.shape == SHAPE
+    assert vol.data.dtype == np.float32
+    np.testing.assert_array_equal(vol.data, np.asarray(expected, np.float32))
+    world = vol.index_to_world(INDICES)
+    want = np.asarray(origin) + INDICES[:, ::-1] * np.asarray(spacing)
+    np.testing.assert_allclose(world, want, rtol=1e-6, atol=1e-9)
+    if name is not None:
+        assert vol.name == name
+
+
+def load_error(path, *fragments, **options) -> str:
+    """load_file(path) must raise a one-line VolumeError naming the file and fragments."""
+    with pytest.raises(VolumeError, match=re.escape(str(path))) as info:
+        load_file(path, **options)
+    message = str(info.value)
+    assert "\n" not in message
+    for fragment in fragments:
+        assert fragment in message, f"{fragment!r} not in {message!r}"
+    return message
+
+
+# --------------------------------------------------------------------------- raw
+
+
+def test_parse_raw_name_open_scivis_examples():
+    assert parse_raw_name("engine_zfp_256x256x128_uint8.raw.gz") == (
+        "engine_zfp",
+        (256, 256, 128),
+        np.dtype("uint8"),
+    )
+    stem, dims, dtype = parse_raw_name("CThead_256x256x113_uint16.raw.gz")
+    assert (stem, dims, dtype) == ("CThead", (256, 256, 113), np.dtype("<u2"))
+    stem, dims, dtype = parse_raw_name("/some/dir/headsq_quarter_64x64x93_int16.raw")
+    assert (stem, dims, dtype) == ("headsq_quarter", (64, 64, 93), np.dtype("<i2"))
+    assert parse_raw_name("a_2x3x4_float.raw")[2] == np.dtype("<f4")
+    assert parse_raw_name("a_2x3x4_double.raw")[2] == np.dtype("<f8")
+    assert parse_raw_name("skull.raw") is None
+    assert parse_raw_name("skull_256x256x256_uint8.nrrd") is None
+
+
+def test_parse_raw_name_unknown_dtype():
+    with pytest.raises(VolumeError, match=r"x_2x3x4_int64\.raw.*'int64'") as info:
+        parse_raw_name("x_2x3x4_int64.raw")
+    assert "uint8" in str(info.value)
+
+
+def test_raw_round_trip(tmp_path):
+    data = sample_data("int16")
+    path = tmp_path / "vol_11x7x5_int16.raw"
+    path.write_bytes(data.astype("<i2").tobytes())
+    vol = load_file(path, spacing=SPACING, origin=ORIGIN)
+    assert_volume(vol, data, name="vol")
+    assert vol.source == str(path)
+    default = load_file(path)
+    assert default.spacing == (1.0, 1.0, 1.0)
+    assert default.origin == (0.0, 0.0, 0.0)
+
+
+def test_raw_gz_round_trip(tmp_path):
+    data = sample_data("uint16") * 100
+    path = tmp_path / "engine_zfp_11x7x5_uint16.raw.gz"
+    path.write_bytes(gzip.compress(data.astype("<u2").tobytes()))
+    assert_volume(load_file(path, spacing=SPACING, origin=ORIGIN), data, name="engine_zfp")
+
+
+def test_raw_float32_writable(tmp_path):
+    data = sample_data("float32") / 7
+    path = tmp_path / "f_11x7x5_float32.raw"
+    path.write_bytes(data.astype("<f4").tobytes())
+    vol = load_file(path, spacing=SPACING, origin=ORIGIN)
+    assert_volume(vol, data)
+    assert vol.data.flags.writeable
+
+
+def test_raw_explicit_dims_dtype_and_big_endian(tmp_path):
+    data = sample_data("float64") / 3
+    path = tmp_path / "scan.dat"  # unknown extension, read as raw because both are given
+    path.write_bytes(data.astype(">f8").tobytes())
+    vol = load_file(
+        path, dims=(11, 7, 5), dtype="double", endian="big", spacing=SPACING, origin=ORIGIN
+    )
+    assert_volume(vol, data, name="scan")
+
+
+def test_raw_explicit_dims_dtype_override_name(tmp_path):
+    data = sample_data("int16")
+    path = tmp_path / "wrong_3x3x3_uint8.raw"
+    path.write_bytes(data.astype("<i2").tobytes())
+    vol = load_file(path, dims=(11, 7, 5), dtype="int16", spacing=SPACING, origin=ORIGIN)
+    assert_volume(vol, data, name="wrong")
+
+
+def test_raw_without_pattern_needs_dims_and_dtype(tmp_path):
+    path = tmp_path / "plain.raw"
+    path.write_bytes(bytes(8))
+    load_error(path, "--dims", "--dtype")
+    load_error(path, "--dims", dims=(2, 2, 2))
+
+
+def test_raw_truncated(tmp_path):
+    path = tmp_path / "vol_11x7x5_int16.raw"
+    path.write_bytes(bytes(700))
+    load_error(path, "11*7*5*2 = 770 bytes", "700", "truncated")
+
+
+def test_raw_gz_truncated(tmp_path):
+    path = tmp_path / "vol_11x7x5_int16.raw.gz"
+    path.write_bytes(gzip.compress(bytes(700)))
+    load_error(path, "11*7*5*2 = 770 bytes", "only 700 decompressed bytes")
+
+
+def test_raw_dims_in_name_do_not_match_size(tmp_path):
+    path = tmp_path / "vol_4x4x4_uint8.raw"
+    path.write_bytes(bytes(100))
+    load_error(path, "4*4*4*1 = 64 bytes", "got 100 bytes", "in the file name")
+
+
+def test_raw_unknown_dtype_in_name(tmp_path):
+    path = tmp_path / "vol_4x4x4_int64.raw"
+    path.write_bytes(bytes(512))
+    load_error(path, "'int64'", "in the file name", "float32")
+
+
+def test_raw_unknown_dtype_given(tmp_path):
+    path = tmp_path / "vol.raw"
+    path.write_bytes(bytes(64))
+    load_error(path, "'complex64'", "given", dims=(4, 4, 4), dtype="complex64")
+
+
+@pytest.mark.parametrize("dims", [(4, 0, 4), (4, -2, 4)])
+def test_raw_non_positive_dims(tmp_path, dims):
+    path = tmp_path / "vol.raw"
+    path.write_bytes(bytes(64))
+    load_error(path, "dims given", str(dims), dims=dims, dtype="uint8")
+
+
+def test_raw_zero_dims_in_name(tmp_path):
+    path = tmp_path / "vol_4x0x4_uint8.raw"
+    path.write_bytes(bytes(16))
+    load_error(path, "(4, 0, 4)", "positive")
+
+
+def test_raw_bad_dims_type_and_endian(tmp_path):
+    path = tmp_path / "vol.raw"
+    path.write_bytes(bytes(64))
+    load_error(path, "three integers", "2.5", dims=(4, 2.5, 4), dtype="uint8")
+    load_error(path, "'middle'", "little", dims=(4, 4, 4), dtype="uint8", endian="middle")
+
+
+@pytest.mark.parametrize("payload", [b"this is not gzip data at all", b"gz"])
+def test_raw_corrupt_gzip(tmp_path, payload):
+    path = tmp_path / "vol_4x4x4_uint8.raw.gz"
+    path.write_bytes(payload)
+    load_error(path, "corrupt gzip")
+
+
+def test_raw_gzip_cut_short(tmp_path):
+    path = tmp_path / "vol_4x4x4_uint8.raw.gz"
+    path.write_bytes(gzip.compress(bytes(range(64)))[:-12])
+    load_error(path, "corrupt gzip")
+
+
+def test_non_positive_spacing_names_file(tmp_path):
+    path = tmp_path / "vol_4x4x4_uint8.raw"
+    path.write_bytes(bytes(64))
+    load_error(path, "spacing", "-1.0", spacing=(1.0, -1.0, 1.0))
+    load_error(path, "spacing", "0.0", spacing=(0.0, 1.0, 1.0))
+
+
+# --------------------------------------------------------------------------- files
+
+
+def test_missing_file(tmp_path):
+    load_error(tmp_path / "nope_4x4x4_uint8.raw", "no such file")
+
+
+def test_unknown_extension_lists_supported(tmp_path):
+    path = tmp_path / "volume.xyz"
+    path.write_bytes(bytes(64))
+    load_error(path, "'.xyz'", ".nrrd", ".nii.gz", ".mhd", "DICOM", "--dims")
+
+
+def test_unreadable_file_chmod(tmp_path):
+    path = tmp_path / "vol_4x4x4_uint8.raw"
+    path.write_bytes(bytes(64))
+    path.chmod(0)
+    try:
+        if os.access(path, os.R_OK):
+            pytest.skip("running as a user who can read mode-000 files (root)")
+        load_error(path, "permission denied")
+    finally:
+        path.chmod(0o644)
+
+
+def test_unreadable_file_reported(tmp_path, monkeypatch):
+    path = tmp_path / "vol_4x4x4_uint8.raw"
+    path.write_bytes(bytes(64))
+
+    def refuse(file, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(file))
+
+    monkeypatch.setattr(vio, "open", refuse, raising=False)
+    load_error(path, "permission denied")
+
+
+def test_options_only_for_raw(tmp_path):
+    path = tmp_path / "a.npy"
+    np.save(path, sample_data())
+    load_error(path, "--dims", ".npy", dims=(11, 7, 5))
+
+
+def test_missing_optional_library(tmp_path, monkeypatch):
+    path = tmp_path / "foo.nrrd"
+    path.write_bytes(b"NRRD0004\n")
+    monkeypatch.setitem(sys.modules, "nrrd", None)
+    message = load_error(path, "needs pynrrd")
+    assert message == f'reading {path} needs pynrrd: pip install "isolume[nrrd]"'
+
+
+# --------------------------------------------------------------------------- NRRD
+
+
+def nrrd_header() -> dict:
+    return {
+        "space": "left-posterior-superior",
+        "space directions": np.diag(SPACING),
+        "space origin": np.array(ORIGIN),
+    }
+
+
+def test_nrrd_round_trip(tmp_path):
+    nrrd = pytest.importorskip("nrrd")
+    data = sample_data("int16")
+    path = tmp_path / "head.nrrd"
+    nrrd.write(str(path), data, nrrd_header(), index_order="C")
+    assert_volume(load_file(path), data, name="head")
+
+
+def test_nhdr_detached_round_trip(tmp_path):
+    nrrd = pytest.importorskip("nrrd")
+    data = sample_data("float32") * 0.25
+    path = tmp_path / "head.nhdr"
+    nrrd.write(str(path), data, nrrd_header(), index_order="C", detached_header=True)
+    assert len(list(tmp_path.iterdir())) == 2  # header + separate data file
+    assert_volume(load_file(path), data, name="head")
+
+
+def test_nrrd_spacings_field(tmp_path):
+    nrrd = pytest.importorskip("nrrd")
+    data = sample_data("uint8")
+    path = tmp_path / "plain.nrrd"
+    nrrd.write(str(path), data, {"spacings": np.array(SPACING)}, index_order="C")
+    assert_volume(load_file(path, origin=ORIGIN), data)
+
+
+def test_nrrd_corrupt_header(tmp_path):
+    pytest.importorskip("nrrd")
+    path = tmp_path / "bad.nrrd"
+    path.write_bytes(
+        b"NRRD0004\ntype: banana\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\n" + bytes(8)
+    )
+    load_error(path, "not a valid NRRD file", "banana")
+    path.write_bytes(b"definitely not nrrd\n")
+    load_error(path, "not a valid NRRD file")
+
+
+def test_nrrd_not_3d(tmp_path):
+    nrrd = pytest.importorskip("nrrd")
+    path = tmp_path / "flat.nrrd"
+    nrrd.write(str(path), np.zeros((4, 5), np.uint8), index_order="C")
+    load_error(path, "3-D", "dimension 2")
+
+
+# --------------------------------------------------------------------------- MetaImage
+
+
+def write_metaimage(
+    path: Path,
+    data: np.ndarray,
+    *,
+    data_file: str = "LOCAL",
+    compressed: bool = False,
+    msb: bool = False,
+    spacing_key: str = "ElementSpacing",
+    origin_key: str = "Offset",
+) -> None:
+    """Write a MetaImage header (+ LOCAL or separate raw data) for int16 ``data``."""
+    payload = data.astype(">i2" if msb else "<i2").tobytes()
+    if compressed:
+        payload = zlib.compress(payload)
+    z, y, x = data.shape
+    lines = [
+        "ObjectType = Image",
+        "NDims = 3",
+        f"DimSize = {x} {y} {z}",
+        "ElementType = MET_SHORT",
+        f"{spacing_key} = {' '.join(map(str, SPACING))}",
+        f"{origin_key} = {' '.join(map(str, ORIGIN))}",
+        f"BinaryDataByteOrderMSB = {msb}",
+        f"CompressedData = {compressed}",
+    ]
+    if compressed:
+        lines.append(f"CompressedDataSize = {len(payload)}")
+    lines.append(f"ElementDataFile = {data_file}")
+    header = ("\n".join(lines) + "\n").encode()
+    if data_file == "LOCAL":
+        path.write_bytes(header + payload)
+    else:
+        path.write_bytes(header)
+        (path.parent / data_file).write_bytes(payload)
+
+
+def test_mhd_with_raw_round_trip(tmp_path):
+    data = sample_data("int16") - 50
+    path = tmp_path / "ct.mhd"
+    write_metaimage(path, data, data_file="ct.raw")
+    assert_volume(load_file(path), data, name="ct")
+
+
+def test_mha_local_big_endian_round_trip(tmp_path):
+    data = sample_data("int16")
+    path = tmp_path / "ct.mha"
+    write_metaimage(path, data, msb=True, spacing_key="ElementSize", origin_key="Origin")
+    assert_volume(load_file(path), data, name="ct")
+
+
+def test_mha_compressed_round_trip(tmp_path):
+    data = sample_data("int16")
+    path = tmp_path / "ct.mha"
+    write_metaimage(path, data, compressed=True)
+    assert_volume(load_file(path), data)
+
+
+def test_mha_corrupt_compressed_data(tmp_path):
+    path = tmp_path / "ct.mha"
+    write_metaimage(path, sample_data(), compressed=True)
+    content = path.read_bytes()
+    path.write_bytes(content[: content.index(b"LOCAL\n") + 6] + b"garbage" * 20)
+    load_error(path, "corrupt compressed MetaImage data")
+
+
+def test_mhd_missing_data_file(tmp_path):
+    path = tmp_path / "ct.mhd"
+    write_metaimage(path, sample_data(), data_file="ct.raw")
+    (tmp_path / "ct.raw").unlink()
+    load_error(path, "'ct.raw' not found")
+
+
+def test_mhd_short_data_file(tmp_path):
+    path = tmp_path / "ct.mhd"
+    write_metaimage(path, sample_data(), data_file="ct.raw")
+    (tmp_path / "ct.raw").write_bytes(bytes(10))
+    with pytest.raises(VolumeError, match=re.escape(str(tmp_path / "ct.raw"))) as info:
+        load_file(path)
+    assert "11*7*5*2 = 770 bytes" in str(info.value)
+    assert "got 10 bytes" in str(info.value)
+
+
+def test_mhd_bad_header_values(tmp_path):
+    path = tmp_path / "ct.mhd"
+    write_metaimage(path, sample_data(), data_file="ct.raw")
+    header = path.read_text()
+    path.write_text(header.replace("MET_SHORT", "MET_BANANA"))
+    load_error(path, "'MET_BANANA'", "MET_USHORT")
+    path.write_text(
+        header.replace("NDims = 3", "NDims = 2").replace("DimSize = 11 7 5", "DimSize = 11 7")
+    )
+    load_error(path, "NDims = 2", "3-D")
+    path.write_text(header.replace("ElementDataFile = ct.raw\n", ""))
+    load_error(path, "no ElementDataFile")
+    path.write_text("this is not a header\n")
+    load_error(path, "'this is not a header'", "Key = Value")
+
+
+# --------------------------------------------------------------------------- NIfTI
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz"])
+def test_nifti_round_trip(tmp_path, suffix):
+    nib = pytest.importorskip("nibabel")
+    data = sample_data("int16")
+    affine = np.diag([*SPACING, 1.0])
+    affine[:3, 3] = ORIGIN
+    path = tmp_path / f"brain{suffix}"
+    nib.save(nib.Nifti1Image(data.transpose(2, 1, 0), affine), str(path))  # [i, j, k] = [x, y, z]
+    assert_volume(load_file(path), data, name="brain")
+
+
+def test_nifti_corrupt(tmp_path):
+    pytest.importorskip("nibabel")
+    path = tmp_path / "brain.nii"
+    path.write_bytes(b"not a nifti file" * 30)
+    load_error(path, "NIfTI")
+
+
+# --------------------------------------------------------------------------- NumPy
+
+
+def test_npy_round_trip(tmp_path):
+    data = sample_data("float64") / 5
+    path = tmp_path / "field.npy"
+    np.save(path, data)
+    assert_volume(load_file(path, spacing=SPACING, origin=ORIGIN), data, name="field")
+    default = load_file(path)
+    assert default.spacing == (1.0, 1.0, 1.0) and default.origin == (0.0, 0.0, 0.0)
+
+
+def test_npz_round_trip(tmp_path):
+    data = sample_data("uint16")
+    path = tmp_path / "field.npz"
+    np.savez(path, data=data, spacing=np.array(SPACING), origin=np.array(ORIGIN))
+    assert_volume(load_file(path), data, name="field")
+    only = tmp_path / "only.npz"
+    np.savez_compressed(only, density=data)
+    assert_volume(load_file(only, spacing=SPACING, origin=ORIGIN), data)
+
+
+def test_npy_not_3d(tmp_path):
+    path = tmp_path / "flat.npy"
+    np.save(path, np.zeros((4, 5)))
+    load_error(path, "3-D", "(4, 5)")
+
+
+def test_npy_corrupt_and_npz_ambiguous(tmp_path):
+    path = tmp_path / "junk.npy"
+    path.write_bytes(b"junk" * 10)
+    load_error(path, "not a .npy array file", "junk")
+    bad_zip = tmp_path / "junk.npz"
+    bad_zip.write_bytes(b"junk" * 10)
+    load_error(bad_zip, "not a .npz (zip) archive")
+    npz = tmp_path / "two.npz"
+    np.savez(npz, a=sample_data(), b=sample_data())
+    load_error(npz, "['a', 'b']", "'data'")
+
+
+# --------------------------------------------------------------------------- TIFF
+
+
+def test_tiff_multipage_round_trip(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    data = sample_data("uint16")
+    path = tmp_path / "stack.tif"
+    with tifffile.TiffWriter(path) as tw:
+        for page in data:  # one 2-D page per z slice
+            tw.write(page)
+    assert_volume(load_file(path, spacing=SPACING, origin=ORIGIN), data, name="stack")
+
+
+def test_tiff_imagej_spacing(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    data = sample_data("uint16")
+    path = tmp_path / "stack.tiff"
+    tifffile.imwrite(
+        path,
+        data,
+        imagej=True,
+        resolution=(1 / SPACING[0], 1 / SPACING[1]),
+        metadata={"spacing": SPACING[2], "unit": "um", "axes": "ZYX"},
+    )
+    vol = load_file(path, origin=ORIGIN)
+    np.testing.assert_allclose(vol.spacing, SPACING, rtol=1e-5)
+    assert_volume(vol, data, spacing=vol.spacing)
+
+
+def test_tiff_single_page_refused(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    path = tmp_path / "flat.tif"
+    tifffile.imwrite(path, np.zeros((7, 11), np.uint8))
+    load_error(path, "(7, 11)", "stack")
+
+
+def test_tiff_folder_natural_order(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    data = sample_data("uint16")
+    folder = tmp_path / "slices"
+    folder.mkdir()
+    # Lexicographic order would put slice10 before slice2.
+    for number, page in zip([1, 2, 3, 9, 10], data, strict=True):
+        tifffile.imwrite(folder / f"slice{number}.tif", page)
+    (folder / "notes.txt").write_text("not a slice")
+    assert_volume(load_file(folder, spacing=SPACING, origin=ORIGIN), data, name="slices")
+
+
+def test_tiff_folder_mismatched_slice(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    folder = tmp_path / "slices"
+    folder.mkdir()
+    tifffile.imwrite(folder / "s1.tif", np.zeros((7, 11), np.uint8))
+    tifffile.imwrite(folder / "s2.tif", np.zeros((7, 12), np.uint8))
+    with pytest.raises(VolumeError, match=re.escape(str(folder / "s2.tif"))) as info:
+        load_file(folder)
+    assert "(7, 12)" in str(info.value) and "(7, 11)" in str(info.value)
+
+
+# --------------------------------------------------------------------------- folders, DICOM
+
+
+def test_folder_with_neither_dicom_nor_tiff(tmp_path):
+    folder = tmp_path / "stuff"
+    folder.mkdir()
+    (folder / "readme.txt").write_text("hello")
+    load_error(folder, "neither DICOM", "TIFF", "readme.txt")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    load_error(empty, "neither DICOM", "0 file(s)")
+
+
+def test_dicom_folder_without_pydicom(tmp_path, monkeypatch):
+    folder = tmp_path / "series"
+    folder.mkdir()
+    (folder / "IM0001.dcm").write_bytes(bytes(128) + b"DICM" + bytes(64))
+    monkeypatch.setitem(sys.modules, "pydicom", None)
+    load_error(folder, 'needs pydicom: pip install "isolume[dicom]"')
+
+
+CT_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.2"
+
+
+def write_dicom_series(
+    folder: Path,
+    data: np.ndarray,
+    *,
+    prefix: str = "IM",
+    with_positions: bool = True,
+    slope: float = 2.0,
+    intercept: float = -100.0,
+    seed: int = 0,
+) -> None:
+    """One CT file per z slice, written in shuffled order, raw int16 pixels."""
+    pytest.importorskip("pydicom")
+    from pydicom.dataset import FileDataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    series_uid, study_uid = generate_uid(), generate_uid()
+    depth = data.shape[0]
+    order = np.random.default_rng(seed).permutation(depth)
+    for n, k in enumerate(order):
+        uid = generate_uid()
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = CT_IMAGE_STORAGE
+        meta.MediaStorageSOPInstanceUID = uid
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        path = folder / f"{prefix}{n:03d}"
+        ds = FileDataset(str(path), {}, file_meta=meta, preamble=b"\0" * 128)
+        ds.SOPClassUID = CT_IMAGE_STORAGE
+        ds.SOPInstanceUID = uid
+        ds.StudyInstanceUID = study_uid
+        ds.SeriesInstanceUID = series_uid
+        ds.Modality = "CT"
+        ds.Rows, ds.Columns = data.shape[1], data.shape[2]
+        ds.SamplesPerPixel = 1
+        ds.PhotometricInterpretation = "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
+        ds.PixelRepresentation = 1
+        ds.PixelSpacing = [SPACING[1], SPACING[0]]  # row spacing (y), column spacing (x)
+        ds.RescaleSlope = slope
+        ds.RescaleIntercept = intercept
+        if with_positions:
+            ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+            ds.ImagePositionPatient = [ORIGIN[0], ORIGIN[1], ORIGIN[2] + int(k) * SPACING[2]]
+            ds.InstanceNumber = depth - int(k)  # reversed on purpose: positions must win
+        else:
+            ds.InstanceNumber = int(k) + 1
+            ds.SliceThickness = SPACING[2]
+        ds.PixelData = data[k].astype("<i2").tobytes()
+        ds.save_as(path, enforce_file_format=True)
+
+
+def test_dicom_series_round_trip(tmp_path):
+    data = sample_data("int16")
+    folder = tmp_path / "series"
+    folder.mkdir()
+    write_dicom_series(folder, data)
+    write_dicom_series(folder, data[:2], prefix="SCOUT", seed=1)  # smaller series: ignored
+    (folder / "notes.txt").write_text("not DICOM")
+    vol = load_file(folder)
+    assert_volume(vol, data * 2.0 - 100.0, name="series")
+
+
+def test_dicom_series_instance_number_fallback(tmp_path):
+    data = sample_data("int16")
+    folder = tmp_path / "series"
+    folder.mkdir()
+    write_dicom_series(folder, data, with_positions=False, slope=1.0, intercept=0.0)
+    assert_volume(load_file(folder, origin=ORIGIN), data)
+
+
+def test_dicom_missing_slice(tmp_path):
+    folder = tmp_path / "series"
+    folder.mkdir()
+    write_dicom_series(folder, sample_data("int16"))
+    files = sorted(folder.iterdir())
+    import pydicom
+
+    middle = next(f for f in files if pydicom.dcmread(f).ImagePositionPatient[2] == ORIGIN[2] + 4)
+    middle.unlink()
+    load_error(folder, "not evenly spaced")
+
+
+# --------------------------------------------------------------------------- shared data
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not CTHEAD.exists(), reason=f"{CTHEAD} not present (../shared is optional)")
+def test_shared_cthead():
+    vol = load_file(CTHEAD)
+    assert vol.data.shape == (113, 256, 256)
+    assert vol.value_range == (0.0, 3272.0)
+    assert vol.name == "CThead"

@@ -1,0 +1,52 @@
+"""Volumes: loading, synthetic fields, sampling and isosurfaces. No GL, no ray tracing.
+
+Public API::
+
+    volumes.load(spec) -> Volume          # file path or "synthetic:NAME[:SIZE]"
+    volumes.isosurface(volume, iso) -> Mesh
+    volumes.suggest_isovalues(volume) -> tuple[float, ...]
+"""
+
+from __future__ import annotations
+
+import os
+
+from .core import Volume, VolumeError
+from .field import gradient_at, gradient_grid, normals_at, value_at
+from .mesh import Mesh, check_isovalue, isosurface
+from .stats import histogram_lines, suggest_isovalues
+from .synthetic import DEFAULT
+
+__all__ = [
+    "DEFAULT",
+    "Mesh",
+    "Volume",
+    "VolumeError",
+    "check_isovalue",
+    "gradient_at",
+    "gradient_grid",
+    "histogram_lines",
+    "isosurface",
+    "load",
+    "normals_at",
+    "suggest_isovalues",
+    "value_at",
+]
+
+
+def load(spec: str | os.PathLike | None = None, **options) -> Volume:
+    """Load a volume from a file path or build ``synthetic:NAME[:SIZE]``.
+
+    Args:
+        spec: path or synthetic spec; None gives the built-in default (`DEFAULT`).
+        **options: for files, ``dims``, ``dtype``, ``spacing``, ``origin`` (see
+            `volumes.io.load_file`).
+    """
+    spec = DEFAULT if spec is None else spec
+    if isinstance(spec, str) and spec.startswith("synthetic:"):
+        from .synthetic import parse
+
+        return parse(spec)
+    from .io import load_file
+
+    return load_file(spec, **options)
