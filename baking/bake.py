@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -93,6 +94,11 @@ class _Accumulator:
         self.second[positions] += second
         self.n[positions] += n
 
+    def clear(self, positions: np.ndarray) -> None:
+        self.sum[positions] = 0
+        self.second[positions] = 0
+        self.n[positions] = 0
+
 
 def _commit(lattice: Lattice, plan: Plan, acc: _Accumulator, positions: np.ndarray) -> None:
     """Merge the pass sums of texels `positions` into the lattice's running means."""
@@ -108,9 +114,7 @@ def _commit(lattice: Lattice, plan: Plan, acc: _Accumulator, positions: np.ndarr
     values[flat] = ((values[flat] * old[:, None] + acc.sum[positions]) / new[:, None])
     second[flat] = (second[flat] * old + acc.second[positions]) / new
     samples[flat] = new.astype(np.uint32)
-    acc.sum[positions] = 0
-    acc.second[positions] = 0
-    acc.n[positions] = 0
+    acc.clear(positions)
 
 
 def _luminance(estimates: np.ndarray, irradiance: bool) -> np.ndarray:
@@ -129,20 +133,30 @@ def _chunks(positions: np.ndarray, remaining: np.ndarray):
         start = stop
 
 
-def _load_or_create(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
-                    out: Path | None, channels: int) -> Lattice:
-    """Resume from `out` when it holds a compatible lattice, else start empty."""
+def _new_lattice(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
+                 channels: int) -> Lattice:
+    """An empty lattice with the metadata that identifies the volume and the bake."""
     meta = {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
             "scale": config.scale, "volume": volume_identity(volume),
             "config": config.to_dict(), "channels": channels}
+    return Lattice.empty(geometry, channels, meta)
+
+
+def _load_existing(volume: volumes.Volume, config: BakeConfig, out: Path | None
+                   ) -> Lattice | None:
+    """The lattice in `out` when it can be resumed with `config`, None when there is none.
+
+    Raises:
+        BakeError: `out` holds a lattice of another volume or other settings.
+    """
     if out is None or not out.exists():
-        return Lattice.empty(geometry, channels, meta)
+        return None
     lattice = Lattice.load(out, volume)
     previous = BakeConfig.from_dict(lattice.meta["config"])
     if not previous.same_result_as(config):
         raise BakeError(f"{out}: holds a bake with other settings ({previous}); to resume, "
                         "repeat them, or write to a new --out file")
-    lattice.meta.update(meta)
+    lattice.meta["config"] = config.to_dict()
     return lattice
 
 
@@ -151,6 +165,143 @@ def _progress(total: int, enabled: bool):
 
     return tqdm(total=total, unit="path", unit_scale=True, disable=not enabled,
                 dynamic_ncols=True, smoothing=0.1, desc="baking")
+
+
+class Baker:
+    """A lattice being baked: the plan, the lighting, a thread pool and the lattice.
+
+    `run` brings any subset of the active texels up to a sample count, level by level, so
+    the same machinery serves a full bake (all texels to `config.samples`) and a lazy,
+    progressive one (the texels around the displayed isosurface first, a few samples at a
+    time). Level scenes are cached (least recently used first out), which pays off when
+    successive runs touch the same few levels.
+
+    Args:
+        lattice: an existing lattice to extend (resume); None starts empty.
+        workers: threads tracing concurrently; the result does not depend on it.
+        scene_cache: how many level scenes to keep alive.
+    """
+
+    def __init__(self, volume: volumes.Volume, config: BakeConfig, *,
+                 lattice: Lattice | None = None, workers: int | None = None,
+                 scene_cache: int = 1) -> None:
+        self.volume, self.config = volume, config
+        self.settings = path_settings(volume, config)
+        self.geometry = LatticeGeometry.for_volume(volume, config.scale)
+        self.lattice = lattice or _new_lattice(volume, config, self.geometry,
+                                               self.settings.channels)
+        self.lighting = make_lighting(config)
+        self.plan = make_plan(volume, self.geometry, config)
+        self.lattice.active = self.plan.active
+        self.stats = BakeStats()
+        self.previous = dict(self.lattice.meta.get("stats", {}))
+        self._acc = _Accumulator(len(self.plan.ids), self.settings.channels)
+        self._pool = ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1))
+        self._scenes: OrderedDict[int, object] = OrderedDict()
+        self._scene_cache = max(1, scene_cache)
+        _finish_meta(self.lattice, self.plan, self.stats, self.previous)
+
+    def samples_done(self, positions: np.ndarray | None = None) -> np.ndarray:
+        """(N,) paths already averaged into the texels at plan `positions` (all if None)."""
+        ids = self.plan.ids if positions is None else self.plan.ids[positions]
+        return self.lattice.samples.reshape(-1)[ids].astype(np.int64)
+
+    def run(self, positions: np.ndarray | None = None, target: int | np.ndarray | None = None,
+            *, bar=None, after_level=None) -> None:
+        """Bring the texels at plan `positions` (all if None) up to `target` paths each
+        (default `config.samples`).
+
+        Texels are committed to the lattice as soon as their upper level is done, and
+        `after_level(committed_positions)` is called then (to upload them, or to save a
+        checkpoint). On KeyboardInterrupt committed texels stay and the cut pass of the
+        others is dropped whole.
+        """
+        plan = self.plan
+        positions = np.arange(len(plan.ids)) if positions is None else np.unique(positions)
+        target = self.config.samples if target is None else target
+        done = np.zeros(len(plan.ids), np.int64)
+        remaining = np.zeros(len(plan.ids), np.int64)
+        done[positions] = self.samples_done(positions)
+        remaining[positions] = np.maximum(np.asarray(target) - done[positions], 0)
+        busy = positions[remaining[positions] > 0]
+        if len(busy) == 0:
+            return
+        first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
+        try:
+            for level in range(first, last + 1):
+                self._bake_level(level, done, remaining, bar)
+                # a texel's pass is complete once its upper level is done
+                complete = busy[plan.lower[busy] + 1 <= level]
+                complete = complete[self._acc.n[complete] > 0]
+                if len(complete):
+                    _commit(self.lattice, plan, self._acc, complete)
+                    if after_level is not None:
+                        after_level(complete)
+        except KeyboardInterrupt:
+            self._acc.clear(busy)
+            raise
+        finally:
+            _finish_meta(self.lattice, plan, self.stats, self.previous)
+
+    def close(self) -> None:
+        """Stop the worker threads and drop the cached scenes."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._scenes.clear()
+
+    def _scene(self, level: int):
+        if level in self._scenes:
+            self._scenes.move_to_end(level)
+            return self._scenes[level]
+        while len(self._scenes) >= self._scene_cache:
+            self._scenes.popitem(last=False)
+        scene = _level_scene(self.volume, float(self.plan.levels[level]), self.config)
+        self._scenes[level] = scene
+        return scene
+
+    def _bake_level(self, level: int, done: np.ndarray, remaining: np.ndarray, bar) -> None:
+        """Trace every pending path assigned to isovalue level `level`."""
+        plan = self.plan
+        involved = np.flatnonzero(((plan.lower == level) | (plan.lower + 1 == level))
+                                  & (remaining > 0))
+        if len(involved) == 0:
+            return
+        counts = _paths_on_level(plan, involved, done, remaining, level)
+        involved, counts = involved[counts > 0], counts[counts > 0]
+        if len(involved) == 0:
+            return
+        iso = float(plan.levels[level])
+        t0 = time.perf_counter()
+        scene = self._scene(level)
+        centres = self.geometry.centres(plan.ids[involved])
+        origins, normals = start_points(self.volume, centres, iso, self.config)
+        self.stats.scene_seconds += time.perf_counter() - t0
+        jobs = []
+        for chunk in _chunks(involved, counts):
+            rows = np.searchsorted(involved, chunk)
+            jobs.append(self._pool.submit(
+                _trace_chunk, scene, plan, chunk, origins[rows], normals[rows], done,
+                remaining, level, self.lighting, self.settings, self.config.seed))
+        try:
+            for job in jobs:
+                self._collect(job.result(), level, bar)
+        except BaseException:
+            for job in jobs:
+                job.cancel()
+            raise
+
+    def _collect(self, result, level: int, bar) -> None:
+        positions, sums, second, n, rays, seconds = result
+        self._acc.add(positions, sums, second, n)
+        self.stats.add_rays(rays, seconds)
+        self.stats.paths += int(n.sum())
+        if bar is not None:
+            bar.update(int(n.sum()))
+            elapsed = time.perf_counter() - self.stats.started
+            done = int((self.lattice.samples > 0).sum())
+            bar.set_postfix_str(
+                f"texels {done:,}/{len(self.plan.ids):,} level {level + 1}/"
+                f"{len(self.plan.levels)} {self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} "
+                "Mrays/s", refresh=False)
 
 
 def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike | None = None,
@@ -163,93 +314,37 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
             resumes and brings every active texel up to `config.samples` paths.
         workers: threads tracing concurrently (default: CPU count). The result does not
             depend on it.
-        progress: show a progress bar on stderr.
+        progress: show a progress bar (texels, rays per second) on stderr.
         checkpoint_seconds: save finished texels to `out` at least this often.
 
     Returns:
-        The lattice (also written to `out`).
+        The lattice (also written to `out`; on Ctrl-C the finished texels are saved
+        before KeyboardInterrupt propagates).
     """
     out = Path(out) if out is not None else None
-    workers = max(1, workers or os.cpu_count() or 1)
-    settings = path_settings(volume, config)
-    geometry = LatticeGeometry.for_volume(volume, config.scale)
-    lattice = _load_or_create(volume, config, geometry, out, settings.channels)
-    lighting = make_lighting(config)
-    plan = make_plan(volume, geometry, config)
-    lattice.active = plan.active
-    done = lattice.samples.reshape(-1)[plan.ids].astype(np.int64)
-    remaining = np.maximum(config.samples - done, 0)
-    stats = BakeStats()
-    acc = _Accumulator(len(plan.ids), settings.channels)
-    bar = _progress(int(remaining.sum()), progress)
-    last_save = time.perf_counter()
-    previous = lattice.meta.get("stats", {})
-    pool = ThreadPoolExecutor(max_workers=workers)
+    existing = _load_existing(volume, config, out)
+    baker = Baker(volume, config, lattice=existing, workers=workers)
+    pending = np.maximum(config.samples - baker.samples_done(), 0)
+    bar = _progress(int(pending.sum()), progress)
+    last_save = [time.perf_counter()]
+
+    def checkpoint(_committed: np.ndarray) -> None:
+        if out is not None and time.perf_counter() - last_save[0] > checkpoint_seconds:
+            baker.lattice.save(out)
+            last_save[0] = time.perf_counter()
+
     try:
-        for level in range(len(plan.levels)):
-            _bake_level(volume, config, plan, level, done, remaining, lighting, settings,
-                        pool, acc, stats, bar)
-            # a texel's pass is complete once its upper level is done
-            _commit(lattice, plan, acc, np.flatnonzero(plan.lower + 1 <= level))
-            if out is not None and time.perf_counter() - last_save > checkpoint_seconds:
-                _finish_meta(lattice, plan, stats, previous)
-                lattice.save(out)
-                last_save = time.perf_counter()
-        _commit(lattice, plan, acc, np.arange(len(plan.ids)))
+        baker.run(bar=bar, after_level=checkpoint)
     except KeyboardInterrupt:
-        # Texels committed so far are kept; the cut pass of the others is dropped whole.
-        pool.shutdown(wait=True, cancel_futures=True)
         if out is not None:
-            _finish_meta(lattice, plan, stats, previous)
-            lattice.save(out)
+            baker.lattice.save(out)
         raise
     finally:
-        pool.shutdown(wait=True)
+        baker.close()
         bar.close()
-    _finish_meta(lattice, plan, stats, previous)
     if out is not None:
-        lattice.save(out)
-    return lattice
-
-
-def _bake_level(volume, config, plan, level, done, remaining, lighting, settings, pool, acc,
-                stats, bar) -> None:
-    """Trace every path assigned to isovalue level `level`."""
-    involved = np.flatnonzero(((plan.lower == level) | (plan.lower + 1 == level))
-                              & (remaining > 0))
-    if len(involved) == 0:
-        return
-    counts = _paths_on_level(plan, involved, done, remaining, level)
-    involved, counts = involved[counts > 0], counts[counts > 0]
-    if len(involved) == 0:
-        return
-    iso = float(plan.levels[level])
-    t0 = time.perf_counter()
-    scene = _level_scene(volume, iso, config)
-    origins, normals = start_points(volume, plan_centres(plan, volume, config, involved),
-                                    iso, config)
-    stats.scene_seconds += time.perf_counter() - t0
-    jobs = []
-    for chunk in _chunks(involved, counts):
-        rows = np.searchsorted(involved, chunk)
-        jobs.append(pool.submit(_trace_chunk, scene, plan, chunk, origins[rows],
-                                normals[rows], done, remaining, level, lighting, settings,
-                                config.seed))
-    for job in jobs:
-        positions, sums, second, n, rays, seconds = job.result()
-        acc.add(positions, sums, second, n)
-        stats.add_rays(rays, seconds)
-        stats.paths += int(n.sum())
-        bar.update(int(n.sum()))
-        elapsed = time.perf_counter() - stats.started
-        bar.set_postfix_str(f"level {level + 1}/{len(plan.levels)} "
-                            f"{stats.rays / max(elapsed, 1e-9) / 1e6:.2f} Mrays/s", refresh=False)
-
-
-def plan_centres(plan: Plan, volume, config, positions: np.ndarray) -> np.ndarray:
-    """(N, 3) world centres of the texels at `positions` in the plan."""
-    geometry = LatticeGeometry.for_volume(volume, config.scale)
-    return geometry.centres(plan.ids[positions])
+        baker.lattice.save(out)
+    return baker.lattice
 
 
 def _paths_on_level(plan: Plan, positions: np.ndarray, done, remaining, level) -> np.ndarray:
@@ -296,7 +391,7 @@ def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):
     lo, hi = volume.value_range
     iso = min(max(iso, lo), hi)
     mesh = volumes.isosurface(volume, iso, flip_normals=config.flip_normals)
-    return Scene(mesh.vertices, mesh.faces, mesh.normals)
+    return Scene(mesh.vertices, mesh.faces)
 
 
 def _finish_meta(lattice: Lattice, plan: Plan, stats: BakeStats, previous: dict) -> None:

@@ -168,13 +168,14 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
             break
         d = dirs[hit]
         p = pos[hit] + hits["t"][hit, None] * d
+        # Bounce vertices use the facet normal, turned towards the arriving ray: a smoothed
+        # normal would send some directions into the facet at grazing angles, where rays
+        # starting this close to it can slip between triangles and leak out.
         ng = hits["ng"][hit].astype(np.float64)
-        ng *= -np.sign((ng * d).sum(axis=1, keepdims=True))  # towards the arriving ray
+        ng *= -np.sign((ng * d).sum(axis=1, keepdims=True))
         ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-30)
-        ns = scene.shading_normals(hits, hit)
-        ns *= np.where((ns * d).sum(axis=1, keepdims=True) > 0, -1.0, 1.0)
         pos = p + settings.hit_offset * ng
-        n = ns
+        n = ng
         beta = beta[hit] * albedo
         alive = alive[hit]
     return result

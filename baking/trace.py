@@ -32,13 +32,10 @@ class Scene:
     Args:
         vertices: (V, 3) world positions.
         faces: (F, 3) vertex indices.
-        normals: optional (V, 3) per-vertex shading normals, interpolated at hits.
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray,
-                 normals: np.ndarray | None = None) -> None:
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         self.empty = len(faces) == 0
-        self.normals = None if normals is None else np.asarray(normals, np.float32)
         self.faces = np.asarray(faces, np.int32)
         if not self.empty:
             self._scene = rtcore_scene.EmbreeScene()
@@ -83,16 +80,3 @@ class Scene:
         if stats is not None:
             stats.add(n, time.perf_counter() - start)
         return out != _MISS
-
-    def shading_normals(self, hits: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray:
-        """(M, 3) unit normals at the hits selected by `mask`: interpolated vertex normals
-        when the scene has them, else the geometric normal."""
-        if self.normals is None:
-            ng = hits["ng"][mask].astype(np.float64)
-        else:
-            tri = self.faces[hits["prim"][mask]]
-            u, v = hits["u"][mask, None], hits["v"][mask, None]
-            nv = self.normals
-            ng = (1 - u - v) * nv[tri[:, 0]] + u * nv[tri[:, 1]] + v * nv[tri[:, 2]]
-        length = np.linalg.norm(ng, axis=1, keepdims=True)
-        return ng / np.maximum(length, 1e-30)

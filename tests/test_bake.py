@@ -1,0 +1,334 @@
+"""The irradiance baker against analytic answers (tolerances derived, not guessed)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import volumes
+from baking import BakeConfig, BakeError, Lattice, bake
+from baking.lattice import LatticeGeometry
+from volumes import Volume
+from volumes.synthetic import SPHERE_RADIUS, make
+
+
+def _sdf_volume(sdf, size=48, extent=1.0, name="test"):
+    """Volume of density 0.5 - 0.5 tanh(sdf / w) on a cube of `extent`, w = 1.2 voxels."""
+    h = extent / (size - 1)
+    axis = (np.arange(size) - (size - 1) / 2) * h
+    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")
+    data = 0.5 - 0.5 * np.tanh(sdf(x, y, z) / (1.2 * h))
+    return Volume(data.astype(np.float32), (h, h, h), (axis[0],) * 3, name=name, source=name)
+
+
+def _baked(lattice: Lattice):
+    """(N, 3) world centres and (N, C) values of the computed texels."""
+    ids = np.flatnonzero(lattice.samples > 0)
+    centres = lattice.geometry.centres(ids)
+    return centres, lattice.values.reshape(-1, lattice.values.shape[-1])[ids]
+
+
+def _surface_points(lattice: Lattice, volume: Volume, iso: float = 0.5):
+    """Texels whose own isovalue is near `iso` (their surface is the one we know)."""
+    centres, values = _baked(lattice)
+    rho = volumes.value_at(volume, centres)
+    near = np.abs(rho - iso) < 0.2
+    return centres[near], values[near]
+
+
+def test_unoccluded_convex_surface_sees_pi_times_sky():
+    """Every texel on a convex surface under a uniform sky L: E = πL exactly, whatever the
+    bounce count (no path can hit the surface again). Cosine sampling of a constant sky
+    has zero variance, so any shortfall would be self-shadowing from the ray offset."""
+    sky = np.array([1.0, 0.5, 0.25])
+    config = BakeConfig(samples=16, bounces=2, env="constant:1,0.5,0.25")
+    lattice = bake(make("sphere", 32), config, workers=2)
+    _, values = _baked(lattice)
+    assert len(values) > 1000
+    np.testing.assert_allclose(values, np.broadcast_to(np.pi * sky, values.shape), rtol=1e-5)
+
+
+def test_directional_light_cosine_and_shadow():
+    """E = E0 max(0, n.l) on a sphere, and zero in the umbra of a second sphere.
+
+    Hard shadows have no noise (one shadow ray per light). The texel normal is the
+    smoothed gradient, within 1 degree of the analytic normal (test_isosurface), so
+    |dE| <= E0 sin(1 deg) = 0.0175 E0 away from the terminator.
+    """
+    big, small = (0.0, 0.0, -0.1), (0.0, 0.0, 0.28)
+
+    def sdf(x, y, z):
+        d1 = np.sqrt((x - big[0]) ** 2 + (y - big[1]) ** 2 + (z - big[2]) ** 2) - 0.25
+        d2 = np.sqrt((x - small[0]) ** 2 + (y - small[1]) ** 2 + (z - small[2]) ** 2) - 0.06
+        return np.minimum(d1, d2)
+
+    vol = _sdf_volume(sdf, size=64)
+    e0 = 2.0
+    config = BakeConfig(samples=2, bounces=0, env="", lights=("dir:0,0,1:2,2,2",))
+    lattice = bake(vol, config, workers=2)
+    points, values = _surface_points(lattice, vol)
+    on_big = np.linalg.norm(points - big, axis=1) < 0.25 + 0.1
+    points, values = points[on_big], values[on_big, 0]
+    radial = (points - big) / np.linalg.norm(points - big, axis=1, keepdims=True)
+    cos = radial[:, 2]
+    # umbra: the small sphere's shadow cylinder (radius 0.06) along z, with a margin of the
+    # texel offset and 1.5 voxels for the polygonal silhouettes
+    h = vol.spacing[0]
+    axis_dist = np.hypot(points[:, 0] - small[0], points[:, 1] - small[1])
+    umbra = (axis_dist < 0.06 - 1.5 * h) & (cos > 0)
+    lit = (axis_dist > 0.06 + 2.5 * h) & (cos > 0.2)
+    assert umbra.sum() > 5 and lit.sum() > 100
+    assert np.all(values[umbra] == 0.0)
+    np.testing.assert_allclose(values[lit], e0 * cos[lit], atol=0.0175 * e0)
+    assert np.all(values[cos < -0.2] == 0.0)  # facing away from the light
+
+
+def test_point_light_inverse_square_and_cosine_on_a_plane():
+    """Plane z = 0 (material below), point light I at height d: E = I (d - z) / r^3.
+
+    A texel's paths start on its two bracketing level planes z(L) = w atanh(1 - 2L) (the
+    field is 0.5 - 0.5 tanh(z / w)) plus the 0.25-voxel offset; the expected value mixes the
+    two planes with the texel's own sample split. Tolerance: the trilinear field places a
+    level within 0.02 voxel of the analytic plane (test_isosurface), and
+    |d ln E / dz| <= 3 / (d - z) = 10 / world unit here, so 0.5 %; 1 % for the worst texel.
+    """
+    from baking.plan import make_plan
+
+    vol = _sdf_volume(lambda x, y, z: z, size=40)
+    d, intensity, samples = 0.3, 0.5, 32
+    config = BakeConfig(samples=samples, bounces=0, env="",
+                        lights=(f"point:0,0,{d}:{intensity},{intensity},{intensity}",),
+                        iso_range=(0.3, 0.7))
+    lattice = bake(vol, config, workers=2)
+    plan = make_plan(vol, lattice.geometry, config)
+    h, width = vol.spacing[0], 1.2 * vol.spacing[0]
+    centres = lattice.geometry.centres(plan.ids)
+    values = lattice.values.reshape(-1, 3)[plan.ids, 0]
+
+    def irradiance_on_level(level):
+        z = width * np.arctanh(1 - 2 * level) + 0.25 * h
+        r = np.sqrt(centres[:, 0] ** 2 + centres[:, 1] ** 2 + (d - z) ** 2)
+        return intensity * (d - z) / r**3
+
+    expected = _level_mix(plan, samples, irradiance_on_level)
+    inner = np.abs(plan.rho - 0.5) < 0.4  # away from the flat tanh tails
+    assert inner.sum() > 500
+    relative = np.abs(values[inner] / expected[inner] - 1)
+    assert np.median(relative) < 5e-3 and relative.max() < 1e-2
+    assert expected[inner].max() / expected[inner].min() > 3  # falloff is really tested
+
+
+def _level_mix(plan, samples, value_on_level):
+    """Expected texel values: each texel's stratified sample split between its two levels,
+    applied to `value_on_level(levels (T,)) -> (T,)`."""
+    positions = np.arange(len(plan.ids))
+    upper = sum(plan.on_upper(positions, np.full(len(positions), j)).astype(float)
+                for j in range(samples)) / samples
+    return ((1 - upper) * value_on_level(plan.levels[plan.lower])
+            + upper * value_on_level(plan.levels[plan.lower + 1]))
+
+
+@pytest.mark.parametrize("bounces", [0, 1, 3])
+def test_closed_cavity_follows_the_geometric_series(bounces):
+    """White-furnace-style: a point light I at the centre of a closed spherical cavity.
+
+    A path starts on its level sphere of radius r_L (offset 0.25 voxel inwards) and sees
+    the light at normal incidence: I / (r_L - 0.25 h)^2. Every bounce lands on the same
+    closed sphere and again sees the light head-on: a^k I / r_L^2 for bounce k. So
+    E_B = I/(r_L - 0.25h)^2 + I/r_L^2 * sum_{k=1..B} a^k, with no noise at all. Errors:
+    level spheres within 0.02 voxel (test_isosurface) and Newton steps stopped within
+    0.1 level spacing <= 0.05 voxel (max_move 0.5): 2 * 0.07 h / R = 0.6 % for the start
+    point, and again 2 * 0.02 h / R = 0.2 % for each bounce vertex on the mesh: 1 % at worst.
+    """
+    from baking.plan import make_plan
+
+    radius, albedo, intensity, samples = 0.3, 0.7, 0.09, 8
+    vol = _sdf_volume(lambda x, y, z: radius - np.sqrt(x * x + y * y + z * z), size=48)
+    config = BakeConfig(samples=samples, bounces=bounces, albedo=(albedo,) * 3, env="",
+                        lights=(f"point:0,0,0:{intensity},{intensity},{intensity}",),
+                        iso_range=(0.4, 0.6))
+    lattice = bake(vol, config, workers=2)
+    plan = make_plan(vol, lattice.geometry, config)
+    h, width = vol.spacing[0], 1.2 * vol.spacing[0]
+    values = lattice.values.reshape(-1, 3)[plan.ids, 0]
+    series = sum(albedo**k for k in range(1, bounces + 1))
+
+    def on_level(level):
+        r_level = radius - width * np.arctanh(1 - 2 * level)
+        return intensity / (r_level - 0.25 * h) ** 2 + series * intensity / r_level**2
+
+    expected = _level_mix(plan, samples, on_level)
+    inner = np.abs(plan.rho - 0.5) < 0.3
+    relative = np.abs(values[inner] / expected[inner] - 1)
+    assert np.median(relative) < 5e-3 and np.percentile(relative, 99) < 1e-2
+    # and the series itself: mean over texels against I/R^2 (1 + a + ... + a^B)
+    total = intensity / radius**2 * (1 + series)
+    assert abs(np.median(values[inner]) / total - 1) < 0.05
+
+
+def test_determinism_across_worker_counts():
+    config = BakeConfig(samples=24, bounces=1, env="sky:sun=3")
+    vol = make("torus", 28)
+    one = bake(vol, config, workers=1)
+    two = bake(vol, config, workers=2)
+    np.testing.assert_array_equal(one.values, two.values)
+    np.testing.assert_array_equal(one.samples, two.samples)
+    other_seed = bake(vol, dataclasses.replace(config, seed=1), workers=2)
+    assert not np.array_equal(one.values, other_seed.values)
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    config = BakeConfig(samples=40, bounces=1, env="constant:1,1,1")
+    vol = make("shells", 32)
+    whole = bake(vol, config, workers=2)
+    path = tmp_path / "l.npz"
+    bake(vol, dataclasses.replace(config, samples=15), out=path, workers=2)
+    resumed = bake(vol, config, out=path, workers=1)
+    assert (resumed.samples[whole.samples > 0] == 40).all()
+    np.testing.assert_allclose(resumed.values, whole.values, rtol=2e-6, atol=1e-6)
+    again = Lattice.load(path, vol)
+    np.testing.assert_array_equal(again.values, resumed.values)
+    assert again.meta["rays_traced"] == whole.meta["rays_traced"]
+
+
+def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypatch):
+    import sys
+
+    bake_module = sys.modules["baking.bake"]
+
+    config = BakeConfig(samples=20, bounces=1, env="constant:1,1,1")
+    vol = make("shells", 32)
+    whole = bake(vol, config, workers=2)
+    original = bake_module.Baker._bake_level
+    calls = {"n": 0}
+
+    def interrupting(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 6:
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(bake_module.Baker, "_bake_level", interrupting)
+    path = tmp_path / "cut.npz"
+    with pytest.raises(KeyboardInterrupt):
+        bake(vol, config, out=path, workers=2)
+    cut = Lattice.load(path, vol)
+    finished = cut.samples > 0
+    assert 0 < finished.sum() < (whole.samples > 0).sum()
+    assert (cut.samples[finished] == 20).all()  # only whole texels were kept
+    np.testing.assert_allclose(cut.values[finished], whole.values[finished], rtol=1e-6)
+    monkeypatch.setattr(bake_module.Baker, "_bake_level", original)
+    done = bake(vol, config, out=path, workers=2)
+    np.testing.assert_allclose(done.values, whole.values, rtol=2e-6, atol=1e-6)
+
+
+def test_level_approximation_error_shrinks_with_more_levels():
+    """Against each texel's exact isosurface (one mesh per texel), the level scheme's error
+    falls as levels are added, down to the Monte Carlo noise of the comparison.
+
+    The noise of (lattice - exact) is sqrt(2) standard errors per texel (independent
+    estimates of equal variance); the finest scheme must come within 3x that.
+    """
+    from baking.bake import make_lighting, path_settings, start_points
+    from baking.integrator import trace_paths
+    from baking.plan import make_plan
+    from baking.rng import path_keys
+    from baking.trace import Scene
+
+    vol = make("shells", 40)
+    samples = 256
+    base = BakeConfig(samples=samples, bounces=1, env="constant:1,1,1")
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    plan = make_plan(vol, geometry, base)
+    rng = np.random.default_rng(5)
+    pick = np.sort(rng.choice(len(plan.ids), 16, replace=False))
+    exact, stderr = [], []
+    lighting, settings = make_lighting(base), path_settings(vol, base)
+    for pos in pick:
+        iso = float(plan.rho[pos])
+        mesh = volumes.isosurface(vol, iso)
+        scene = Scene(mesh.vertices, mesh.faces)
+        centre = geometry.centres(plan.ids[[pos]])
+        origin, normal = start_points(vol, centre, iso, base)
+        keys = path_keys(99, np.full(samples, plan.ids[pos]), np.arange(samples))
+        est = trace_paths(scene, np.repeat(origin, samples, 0), np.repeat(normal, samples, 0),
+                          keys, lighting, settings)[:, 0]
+        exact.append(est.mean())
+        stderr.append(est.std() / np.sqrt(samples))
+    exact, stderr = np.array(exact), np.array(stderr)
+    noise = np.sqrt(np.mean(2 * stderr**2)) / exact.mean()
+    errors = []
+    for levels in (2, 6, 48):
+        config = dataclasses.replace(base, max_levels=levels, max_move=0.01)
+        lattice = bake(vol, config, workers=2)
+        got = lattice.values.reshape(-1, 3)[plan.ids[pick], 0]
+        errors.append(np.sqrt(np.mean((got - exact) ** 2)) / exact.mean())
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[0] > 3 * noise  # the coarse scheme's error is real, not noise
+    assert errors[2] < 3 * noise
+
+
+def test_lattice_file_refuses_another_volume(tmp_path):
+    path = tmp_path / "s.npz"
+    bake(make("sphere", 24), BakeConfig(samples=4, bounces=0), out=path)
+    with pytest.raises(BakeError, match=r"baked for volume 'sphere'.*not for 'torus'"):
+        Lattice.load(path, make("torus", 24))
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(BakeError, match="junk.npz: not a readable isolume lattice"):
+        Lattice.load(tmp_path / "junk.npz")
+
+
+def test_lattice_metadata(tmp_path):
+    path = tmp_path / "s.npz"
+    vol = make("sphere", 24)
+    config = BakeConfig(samples=4, bounces=1)
+    bake(vol, config, out=path)
+    lattice = Lattice.load(path, vol)
+    meta = lattice.meta
+    assert meta["format_version"] == 1 and meta["kind"] == "irradiance"
+    assert meta["volume"]["shape"] == [24, 24, 24] and meta["volume"]["hash"] == vol.data_hash()
+    assert BakeConfig.from_dict(meta["config"]) == config
+    assert meta["rays_traced"] > 0 and meta["trace_seconds"] > 0
+    assert lattice.values.shape == (24, 24, 24, 3) and lattice.samples.dtype == np.uint32
+    assert not list(tmp_path.glob("*.tmp"))  # atomic write left no temporary
+
+
+def test_lattice_sample_is_trilinear_at_texel_centres():
+    vol = make("sphere", 16)
+    geometry = LatticeGeometry.for_volume(vol, 0.5)
+    assert geometry.shape == (8, 8, 8)
+    values = np.random.default_rng(1).random((*geometry.shape, 3)).astype(np.float32)
+    lattice = Lattice(geometry, values, np.ones(geometry.shape, np.uint32),
+                      np.zeros(geometry.shape, np.float32), np.ones(geometry.shape, bool))
+    ids = np.array([0, 9, 100, 511])
+    np.testing.assert_allclose(lattice.sample(geometry.centres(ids)),
+                               values.reshape(-1, 3)[ids], rtol=1e-6)
+    a, b = geometry.centres(np.array([9])), geometry.centres(np.array([10]))
+    mid = lattice.sample(0.5 * (a + b))
+    np.testing.assert_allclose(mid[0], 0.5 * (values.reshape(-1, 3)[9] + values.reshape(-1, 3)[10]),
+                               rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"lights": ("spot:1,2,3:1,1,1",)}, "expected point"),
+        ({"lights": ("dir:0,0,0:1,1,1",)}, "direction must not be zero"),
+        ({"mode": "sh", "lights": ("dir:0,0,1:1,1,1",)}, "not low-frequency"),
+        ({"env": "", "lights": ()}, "nothing lights"),
+        ({"albedo": (1.5, 0.5, 0.5)}, r"\[0, 1\]"),
+        ({"samples": 0}, "at least 1"),
+    ],
+)
+def test_bad_bake_config(kwargs, match):
+    with pytest.raises(BakeError, match=match):
+        BakeConfig(**kwargs)
+
+
+def test_iso_range_outside_data():
+    with pytest.raises(BakeError, match="does not overlap the data range"):
+        bake(make("sphere", 16), BakeConfig(samples=1, iso_range=(2.0, 3.0)))
+
+
+def test_sphere_radius_constant_is_what_the_volume_uses():
+    assert SPHERE_RADIUS == pytest.approx(0.35)
