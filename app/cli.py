@@ -256,6 +256,25 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "bake": cmd_bake,
 }
 
+COMMAND_MODULES = {
+    "view": "app.viewer",
+    "reference": "app.reference",
+    "chart": "app.charts",
+    "bench": "app.bench",
+}
+"""Commands that live in their own modules. Each module provides ``HELP`` (one line),
+``add_arguments(parser)`` and ``run(args) -> int``, and is imported only when present."""
+
+
+def _command_module(name: str):
+    import importlib
+    import importlib.util
+
+    module = COMMAND_MODULES[name]
+    if importlib.util.find_spec(module) is None:
+        return None
+    return importlib.import_module(module)
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
@@ -286,6 +305,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
     p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
+    for name in COMMAND_MODULES:
+        module = _command_module(name)
+        if module is not None:
+            p = sub.add_parser(name, help=module.HELP)
+            module.add_arguments(p)
     return parser
 
 
@@ -293,8 +317,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``isolume`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    command = COMMANDS.get(args.command) or _command_module(args.command).run
     try:
-        return COMMANDS[args.command](args)
+        return command(args)
     except _user_errors() as exc:
         message = " ".join(str(exc).split())
         print(f"isolume: error: {message}", file=sys.stderr)
