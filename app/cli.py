@@ -29,6 +29,12 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
     errors.append(OutputError)
     try:
+        from .render import RenderError
+
+        errors.append(RenderError)
+    except ImportError:
+        pass
+    try:
         from .glcontext import GLUnavailable
 
         errors.append(GLUnavailable)
@@ -104,6 +110,17 @@ def _load_lattice(path: str | None, volume: volumes.Volume):
     return Lattice.load(path, volume)
 
 
+def _environment_coefficients(spec: str | None, lattice, window: str):
+    """(n², 3) SH coefficients of the display environment for an SH lattice."""
+    from baking import sh
+    from baking.environment import parse_env
+
+    spec = spec or lattice.meta["config"].get("env") or "constant:1,1,1"
+    order = int(lattice.meta["sh_order"])
+    return sh.project_environment(parse_env(spec), order,
+                                  window=None if window == "none" else window)
+
+
 def _add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
     p.add_argument(
         "volume", nargs="?" if optional else None, default=None,
@@ -123,6 +140,12 @@ def _add_render_options(p: argparse.ArgumentParser) -> None:
                    help=f"one of {', '.join(SHADING_MODES)} (default: irradiance with "
                    "--lattice, else phong_hemi)")
     p.add_argument("--lattice", help="illumination lattice from `isolume bake`")
+    p.add_argument("--env", default=None,
+                   help="environment for --shading sh (default: the one the lattice was "
+                   "baked with): constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular]")
+    p.add_argument("--env-rotation", default="0,0", help="AZ,EL degrees (--shading sh)")
+    p.add_argument("--sh-window", default="none", choices=["none", "hanning", "lanczos"],
+                   help="window against ringing of the environment's SH projection")
     p.add_argument("--size", default="512x512", help="WxH pixels")
     p.add_argument("--view", default="30,30", help="AZ,EL[,DIST]: degrees, diagonals")
     p.add_argument("--exposure", type=float, default=1.0, help="linear exposure multiplier")
@@ -179,7 +202,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = check_output_path(args.out)
     vol = _load_volume(args)
     lattice = _load_lattice(args.lattice, vol)
-    shading = args.shading or ("irradiance" if lattice is not None else "phong_hemi")
+    shading = args.shading or (lattice.kind if lattice is not None else "phong_hemi")
     if args.albedo is not None:
         albedo = parse_albedo(args.albedo)
     elif lattice is not None:
@@ -191,9 +214,13 @@ def cmd_render(args: argparse.Namespace) -> int:
         settings = RenderSettings(
             size=_size(args.size), shading=shading, exposure=args.exposure,
             tonemap=args.tonemap, albedo=albedo,
+            env_rotation=_floats(args.env_rotation, 2, "--env-rotation"),
         )
     except ValueError as exc:
         raise CLIError(str(exc)) from None
+    env_coeffs = None
+    if shading == "sh" and lattice is not None:
+        env_coeffs = _environment_coefficients(args.env, lattice, args.sh_window)
     from .render import LATTICE_MODES
 
     if shading in LATTICE_MODES and lattice is None:
@@ -202,6 +229,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     frame, mesh = render_volume(
         vol, iso, settings, view=view, backend=args.gl,
         normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,
+        env_coeffs=env_coeffs,
     )
     if mesh.empty:
         print(f"isolume: warning: {mesh.message}", file=sys.stderr)

@@ -1,5 +1,11 @@
 """Illumination lattices as 3-D textures.
 
+SH transfer: ⌈n²/4⌉ RGBA16F textures holding τ·valid, four coefficients each (three such
+groups for coloured transfer, one per channel), plus the same `valid` texture. The shader
+forms E = Σ τ_i ℓ_i with the environment's coefficients ℓ (rotated on the CPU) as uniforms.
+GL 3.3 guarantees 16 texture units in a fragment shader: gray transfer up to order 7,
+coloured up to order 4.
+
 Irradiance: one GL_RGB9_E5 texture (4 bytes per texel, shared exponent: relative error
 ≤ 2⁻⁹ of the brightest channel) holding E·valid, plus one R8 texture holding `valid`
 (1 where the texel has samples). Both are filtered trilinearly by the hardware; the shader
@@ -20,20 +26,56 @@ from baking.lattice import Lattice
 
 from .glcontext import store_rgb9e5
 
+MAX_TEXTURE_UNITS = 16  # guaranteed by GL 3.3 for fragment shaders
+SH_FIRST_UNIT = 2  # units 0: HDR resolve input, 1: valid mask
+
+
+def sh_layout(order: int, rgb: bool) -> tuple[int, int]:
+    """(textures per colour group, groups) for SH transfer of `order` bands.
+
+    Raises:
+        ValueError: when the textures would not fit the fragment shader's units.
+    """
+    per_group = -(-order * order // 4)
+    groups = 3 if rgb else 1
+    if SH_FIRST_UNIT + per_group * groups > MAX_TEXTURE_UNITS:
+        limit = "7" if not rgb else "4"
+        raise ValueError(f"SH order {order} needs {per_group * groups} textures; the renderer "
+                         f"draws {'coloured' if rgb else 'gray'} transfer up to order {limit}")
+    return per_group, groups
+
 
 class LatticeTextures:
-    """GL textures of one lattice, with the uniforms that map world → texture space."""
+    """GL textures of one lattice, with the uniforms that map world → texture space.
+
+    Attributes:
+        kind: "irradiance" or "sh".
+        sh_order, sh_groups, sh_textures: SH layout (order, 1 or 3 colour groups, textures
+            per group); zeros for irradiance.
+    """
 
     def __init__(self, ctx: moderngl.Context, lattice: Lattice) -> None:
-        if lattice.kind != "irradiance":
-            raise ValueError(f"lattice kind {lattice.kind!r}: only irradiance is drawn here")
         self.ctx = ctx
         self.lattice = lattice
+        self.kind = lattice.kind
         z, y, x = lattice.geometry.shape
-        self.irradiance = ctx.texture3d((x, y, z), 3, dtype="f4")
-        store_rgb9e5(ctx, self.irradiance, self._premultiplied(lattice.values, lattice.samples))
         self.valid = ctx.texture3d((x, y, z), 1, self._valid_bytes(lattice.samples), dtype="f1")
-        for tex in (self.irradiance, self.valid):
+        self.sh_order = self.sh_groups = self.sh_textures = 0
+        if self.kind == "irradiance":
+            self.irradiance = ctx.texture3d((x, y, z), 3, dtype="f4")
+            store_rgb9e5(ctx, self.irradiance,
+                         self._premultiplied(lattice.values, lattice.samples))
+            self.textures = [self.irradiance]
+        elif self.kind == "sh":
+            self.sh_order = int(lattice.meta["sh_order"])
+            rgb = lattice.values.shape[-1] != self.sh_order**2
+            self.sh_textures, self.sh_groups = sh_layout(self.sh_order, rgb)
+            self.textures = [ctx.texture3d((x, y, z), 4, dtype="f2")
+                             for _ in range(self.sh_textures * self.sh_groups)]
+            self._write_sh(0, z)
+        else:
+            raise ValueError(f"lattice kind {self.kind!r} is not drawable")
+        for tex in (*self.textures, self.valid):
             tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
             tex.repeat_x = tex.repeat_y = tex.repeat_z = False  # clamp to edge
         lo, hi = np.array(lattice.geometry.lo), np.array(lattice.geometry.hi)
@@ -41,7 +83,27 @@ class LatticeTextures:
 
     @staticmethod
     def _premultiplied(values: np.ndarray, samples: np.ndarray) -> np.ndarray:
-        return np.where(samples[..., None] > 0, values[..., :3], 0).astype(np.float32)
+        return np.where(samples[..., None] > 0, values, 0).astype(np.float32)
+
+    def _sh_groups(self, z0: int, z1: int) -> list[np.ndarray]:
+        """(z, y, x, 4) float16 arrays, one per texture: τ·valid, four coefficients each."""
+        lat = self.lattice
+        values = self._premultiplied(lat.values[z0:z1], lat.samples[z0:z1])
+        n2 = self.sh_order**2
+        values = values.reshape(*values.shape[:3], n2, -1)  # (..., n², 1 or 3)
+        padded = np.zeros((*values.shape[:3], self.sh_textures * 4, values.shape[-1]),
+                          np.float16)
+        padded[..., :n2, :] = values
+        out = []
+        for channel in range(self.sh_groups):
+            for t in range(self.sh_textures):
+                out.append(np.ascontiguousarray(padded[..., 4 * t:4 * t + 4, channel]))
+        return out
+
+    def _write_sh(self, z0: int, z1: int) -> None:
+        _, y, x = self.lattice.geometry.shape
+        for tex, data in zip(self.textures, self._sh_groups(z0, z1), strict=True):
+            tex.write(data.tobytes(), viewport=(0, 0, z0, x, y, z1 - z0))
 
     @staticmethod
     def _valid_bytes(samples: np.ndarray) -> bytes:
@@ -51,21 +113,55 @@ class LatticeTextures:
         """Re-upload slabs z0 ≤ z < z1 of the lattice (after a lazy bake filled them)."""
         lat = self.lattice
         _, y, x = lat.geometry.shape
-        values = self._premultiplied(lat.values[z0:z1], lat.samples[z0:z1])
         viewport = (0, 0, z0, x, y, z1 - z0)
-        self.irradiance.write(values.tobytes(), viewport=viewport)
+        if self.kind == "irradiance":
+            values = self._premultiplied(lat.values[z0:z1], lat.samples[z0:z1])
+            self.irradiance.write(values.tobytes(), viewport=viewport)
+        else:
+            self._write_sh(z0, z1)
         self.valid.write(self._valid_bytes(lat.samples[z0:z1]), viewport=viewport)
 
-    def bind(self, program: moderngl.Program, first_unit: int = 1) -> None:
-        """Bind the textures to units first_unit.. and set the mapping uniforms."""
-        self.irradiance.use(location=first_unit)
-        self.valid.use(location=first_unit + 1)
-        values = {"u_irradiance": first_unit, "u_valid": first_unit + 1,
-                  "u_box_lo": tuple(self.box_lo), "u_box_size": tuple(self.box_size)}
+    def bind(self, program: moderngl.Program) -> None:
+        """Bind the textures (valid on unit 1, the rest from unit 2) and set the uniforms
+        that map world positions to texture coordinates."""
+        self.valid.use(location=1)
+        values = {"u_valid": 1, "u_box_lo": tuple(self.box_lo),
+                  "u_box_size": tuple(self.box_size)}
+        for i, tex in enumerate(self.textures):
+            tex.use(location=SH_FIRST_UNIT + i)
+            values["u_irradiance" if self.kind == "irradiance" else f"u_sh{i}"] = (
+                SH_FIRST_UNIT + i)
         for name, value in values.items():
             if name in program:
                 program[name].value = value
 
+    def sh_defines(self) -> tuple[tuple[str, object], ...]:
+        """Shader defines that declare and sum the SH textures (GLSL 3.3 cannot index
+        sampler arrays with loop variables, so the sum is unrolled here).
+
+        ``SH_DECLARE`` declares ``u_sh0..``; ``SH_IRRADIANCE(tc)`` is the RGB sum
+        Σ_j dot(texture(u_sh_j, tc), u_light[j]) per colour, with ``u_light`` holding the
+        environment's coefficients packed four per vec4, red group first.
+        """
+        n = self.sh_textures
+        declare = " ".join(f"uniform sampler3D u_sh{i};" for i in range(n * self.sh_groups))
+        channels = []
+        for c in range(3):
+            group = c if self.sh_groups == 3 else 0
+            terms = [f"dot(texture(u_sh{group * n + j}, tc), u_light[{c * n + j}])"
+                     for j in range(n)]
+            channels.append(" + ".join(terms))
+        return (("SH_TEXTURES", n), ("SH_DECLARE", declare),
+                ("SH_IRRADIANCE(tc)", f"vec3({', '.join(channels)})"))
+
+    def light_uniform(self, coeffs: np.ndarray) -> np.ndarray:
+        """(3 * textures, 4) float32: (n², 3) environment coefficients packed for
+        ``u_light`` (zero-padded to a multiple of four)."""
+        n = self.sh_textures
+        packed = np.zeros((3, n * 4), np.float32)
+        packed[:, : coeffs.shape[0]] = np.asarray(coeffs, np.float32).T
+        return packed.reshape(3 * n, 4)
+
     def release(self) -> None:
-        self.irradiance.release()
-        self.valid.release()
+        for tex in (*self.textures, self.valid):
+            tex.release()

@@ -18,10 +18,12 @@ def render_volume(
     normals: str = "smooth",
     flip_normals: bool = False,
     lattice=None,
+    env_coeffs=None,
 ) -> tuple[Frame, volumes.Mesh]:
     """Extract the isosurface at `iso` and render it in a fresh headless context.
 
-    `lattice` (a `baking.Lattice`) is needed by the lattice shading modes.
+    `lattice` (a `baking.Lattice`) is needed by the lattice shading modes, `env_coeffs`
+    ((n², 3) SH coefficients of the environment) by "sh".
 
     Returns:
         (frame, mesh): the picture and the mesh that was drawn.
@@ -32,6 +34,7 @@ def render_volume(
         renderer = SurfaceRenderer(gl.ctx)
         renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces)
         renderer.set_lattice(lattice)
+        renderer.set_environment(env_coeffs)
         frame = renderer.render(default_camera(volume, view), settings)
         renderer.release()
     finally:

@@ -21,11 +21,15 @@ from .lattice_gl import LatticeTextures
 
 LOCAL_MODES = {"lambert": 1, "phong": 2, "lambert_hemi": 3, "phong_hemi": 4}
 """Local shading models: name -> SHADING define in ``surface.frag``."""
-LATTICE_MODES = {"irradiance": 5}
+LATTICE_MODES = {"irradiance": 5, "sh": 6}
 """Modes that read an illumination lattice."""
 SHADING_MODES = {**LOCAL_MODES, **LATTICE_MODES}
 """Every user-facing shading mode."""
 _DEBUG_MODES = {"position": 9}  # world position in the HDR target (tests, picking)
+
+
+class RenderError(ValueError):
+    """A frame that cannot be drawn as asked (mode without its lattice or environment)."""
 
 TONEMAPS = {"clamp": 0, "reinhard": 1, "aces": 2}
 
@@ -49,6 +53,8 @@ class RenderSettings:
         key_irradiance, head_irradiance: key light and headlight.
         sky_irradiance, ground_irradiance: hemisphere ambient for normals facing +z / −z.
         shininess, specular: Blinn–Phong exponent and specular albedo (phong modes).
+        env_rotation: (azimuth, elevation) degrees of the environment in "sh" mode
+            (`baking.sh.rotation_from_az_el`); (0, 0) leaves it as loaded.
     """
 
     size: tuple[int, int] = (512, 512)
@@ -64,6 +70,7 @@ class RenderSettings:
     ground_irradiance: tuple[float, float, float] = (0.25, 0.22, 0.2)
     shininess: float = 40.0
     specular: float = 0.12
+    env_rotation: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.shading not in SHADING_MODES and self.shading not in _DEBUG_MODES:
@@ -129,6 +136,7 @@ class SurfaceRenderer:
         self._triangles = 0
         self._targets: _Targets | None = None
         self.lattice: LatticeTextures | None = None
+        self._env_coeffs: np.ndarray | None = None
         # Framebuffer 0 is always valid to bind; parking on it before freeing our targets
         # keeps moderngl from re-binding a deleted framebuffer (GL_INVALID_OPERATION).
         self._default_fbo = ctx.screen or ctx.detect_framebuffer(0)
@@ -167,14 +175,33 @@ class SurfaceRenderer:
         if lattice is not None:
             self.lattice = LatticeTextures(self.ctx, lattice)
 
+    def set_environment(self, coeffs: np.ndarray | None) -> None:
+        """(n², 3) SH coefficients ℓ of the environment radiance for "sh" mode (as projected
+        by `baking.sh.project_environment`; rotated every frame by `env_rotation`)."""
+        self._env_coeffs = None if coeffs is None else np.asarray(coeffs, np.float64)
+
+    def _sh_light(self, settings: RenderSettings) -> np.ndarray:
+        """(n², 3) environment coefficients rotated by the settings' env_rotation."""
+        from baking import sh
+
+        if self._env_coeffs is None:
+            raise RenderError("shading 'sh' needs an environment (--env SPEC)")
+        order = self.lattice.sh_order
+        coeffs = self._env_coeffs[: order * order]
+        if coeffs.shape[0] < order * order:
+            raise RenderError(f"environment has {coeffs.shape[0]} SH coefficients, the lattice "
+                             f"needs {order * order}")
+        r = sh.rotation_from_az_el(*settings.env_rotation)
+        return sh.rotation(r, order) @ coeffs
+
     def _mesh_vao(self, program: moderngl.Program) -> moderngl.VertexArray | None:
         if not self._mesh_objects:
             return None
         vbo, ibo = self._vertex_buffers
-        vao = self.ctx.vertex_array(
-            program, [(vbo, "3f 3f", "in_position", "in_normal")], index_buffer=ibo,
-            index_element_size=4,
-        )
+        # a shader may not use the normal (the position pass): skip those 12 bytes then
+        layout = ((vbo, "3f 3f", "in_position", "in_normal") if "in_normal" in program
+                  else (vbo, "3f 12x", "in_position"))
+        vao = self.ctx.vertex_array(program, [layout], index_buffer=ibo, index_element_size=4)
         self._mesh_objects.append(vao)
         return vao
 
@@ -227,19 +254,33 @@ class SurfaceRenderer:
             else:
                 prog[name].value = value
 
+    def _surface_program(self, shading: str) -> moderngl.Program:
+        """The compiled surface program for `shading` (checks the lattice it needs)."""
+        defines: tuple = (("SHADING", {**SHADING_MODES, **_DEBUG_MODES}[shading]),)
+        if shading in LATTICE_MODES:
+            if self.lattice is None:
+                raise RenderError(f"shading {shading!r} needs a lattice (--lattice FILE)")
+            want = "sh" if shading == "sh" else "irradiance"
+            if self.lattice.kind != want:
+                raise RenderError(f"shading {shading!r} needs an {want} lattice, this one holds "
+                                  f"{self.lattice.kind}")
+            if shading == "sh":
+                defines += self.lattice.sh_defines()
+        return self._program("surface", defines)
+
     def draw_hdr(self, camera: Camera, settings: RenderSettings) -> _Targets:
         """Draw the mesh in linear radiance into the HDR target (alpha 1 on the surface)."""
         targets = self._ensure_targets(settings.size)
         targets.hdr.use()
         self.ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         if self._triangles:
-            mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
-            prog = self._program("surface", (("SHADING", mode),))
+            prog = self._surface_program(settings.shading)
             self._set_uniforms(prog, camera, settings)
             if settings.shading in LATTICE_MODES:
-                if self.lattice is None:
-                    raise ValueError(f"shading {settings.shading!r} needs a lattice (--lattice)")
                 self.lattice.bind(prog)
+            if settings.shading == "sh":
+                light = self.lattice.light_uniform(self._sh_light(settings))
+                prog["u_light"].write(light.tobytes())
             vao = self._mesh_vao(prog)
             self.ctx.enable(moderngl.DEPTH_TEST)
             self.ctx.disable(moderngl.CULL_FACE)

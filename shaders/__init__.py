@@ -17,7 +17,7 @@ from importlib import resources
 from pathlib import Path
 
 _INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"\s*$')
-_IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\([A-Za-z_][A-Za-z0-9_, ]*\))?$")
 
 
 class ShaderError(ValueError):
@@ -61,7 +61,7 @@ def _define_lines(defines: dict[str, object]) -> list[str]:
     lines = []
     for key, value in defines.items():
         if not _IDENT.match(key):
-            raise ShaderError(f"define name {key!r} is not a GLSL identifier")
+            raise ShaderError(f"define name {key!r} is not a GLSL identifier or NAME(args)")
         if isinstance(value, bool):
             value = int(value)
         if isinstance(value, float):

@@ -1,9 +1,10 @@
 #version 330 core
 // Shades the isosurface into a linear HDR target. SHADING selects the model:
 //   1 lambert, 2 phong, 3 lambert + hemisphere ambient, 4 phong + hemisphere ambient,
-//   5 lattice irradiance (albedo E / pi), 9 world position (for tests and picking).
+//   5 lattice irradiance (albedo E / pi), 6 lattice SH transfer under a rotating
+//   environment, 9 world position (for tests and picking).
 #include "lighting.glsl"
-#if SHADING == 5
+#if SHADING == 5 || SHADING == 6
 #include "lattice.glsl"
 #endif
 
@@ -24,7 +25,7 @@ void main() {
     vec3 n = normalize(v_normal);
     // Local models light both sides of the surface: turn the normal towards the eye.
     if (dot(n, v) < 0.0) n = -n;
-#if SHADING == 5
+#if SHADING == 5 || SHADING == 6
     frag_color = vec4(lattice_radiance(v_world, n, u_albedo), 1.0);
     return;
 #endif

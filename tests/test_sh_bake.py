@@ -1,0 +1,139 @@
+"""SH transfer bake mode and SH shading under a rotating environment."""
+
+import numpy as np
+import pytest
+
+from app.render import RenderSettings, default_camera
+from baking import BakeConfig, BakeError, bake, sh
+from baking.environment import parse_env, rotated
+from volumes.synthetic import make
+
+import volumes
+
+
+def _path_sd(normal: np.ndarray, order: int) -> np.ndarray:
+    """(order²,) standard deviation of one path's estimate pi Y(w), w ~ cos/pi about
+    `normal`: sqrt(integral cos/pi (pi Y)^2 dw - tau^2), by quadrature."""
+    dirs, weights = sh.sphere_quadrature(64)
+    cos = np.clip(dirs @ normal, 0, None)
+    y = sh.basis(dirs, order)
+    second = ((weights * cos * np.pi)[:, None] * y**2).sum(0)
+    tau = ((weights * cos)[:, None] * y).sum(0)
+    return np.sqrt(np.maximum(second - tau**2, 0))
+
+
+def test_unoccluded_transfer_is_the_clamped_cosine_lobe():
+    """On a convex sphere nothing is ever hit: tau_lm = A_l Y_lm(n) (A = pi, 2pi/3, pi/4,
+    0, -pi/24). Each coefficient is a mean of N paths pi Y_lm(w); its standard error is
+    sd/sqrt(N) with sd from quadrature (the largest over test normals). 5 sigma over
+    25 coefficients x ~3000 texels keeps false alarms below 1e-3."""
+    order, samples = 5, 256
+    config = BakeConfig(mode="sh", sh_order=order, samples=samples, bounces=1)
+    vol = make("sphere", 32)
+    lattice = bake(vol, config, workers=2)
+    assert lattice.values.shape == (32, 32, 32, order * order)
+    ids = np.flatnonzero(lattice.samples > 0)
+    centres = lattice.geometry.centres(ids)
+    normals = volumes.normals_at(vol, centres).astype(np.float64)
+    tau = lattice.values.reshape(-1, order * order)[ids]
+    a_hat = sh.clamped_cosine_coefficients(order)
+    band = np.repeat(np.arange(order), 2 * np.arange(order) + 1)
+    expected = sh.basis(normals, order) * a_hat[band]
+    sd = np.max([_path_sd(n, order) for n in normals[:: max(1, len(normals) // 40)]], axis=0)
+    # the normal used by the bake is taken on the texel's level surface, within a degree
+    # of the one at the centre: allow |dY/dn| * 1 deg on top
+    slack = 0.02 * np.abs(a_hat[band]) * np.sqrt((2 * band + 1) / (4 * np.pi)) * (band + 1)
+    assert np.mean(np.abs(tau - expected) <= 5 * sd / np.sqrt(samples) + slack) > 0.999
+    # the DC term is exact: Y_00 is constant, so pi Y_00 has no variance
+    np.testing.assert_allclose(tau[:, 0], np.pi * sh.basis(normals, 1)[:, 0], rtol=1e-5)
+
+
+def test_sh_mode_refuses_point_lights():
+    with pytest.raises(BakeError, match="not low-frequency"):
+        BakeConfig(mode="sh", lights=("point:0,0,1:1,1,1",))
+
+
+def test_coloured_albedo_keeps_a_transfer_per_channel():
+    config = BakeConfig(mode="sh", sh_order=3, samples=8, bounces=1, albedo=(0.9, 0.5, 0.1))
+    lattice = bake(make("torus", 24), config, workers=2)
+    assert lattice.values.shape[-1] == 9 * 3
+
+
+@pytest.fixture(scope="module")
+def shells_sh():
+    vol = make("shells", 40)
+    config = BakeConfig(mode="sh", sh_order=4, samples=32, bounces=1)
+    return vol, bake(vol, config, workers=2)
+
+
+def _render_sh(gl, vol, lattice, coeffs, rotation=(0.0, 0.0), size=(96, 96)):
+    from app.render import SurfaceRenderer
+
+    renderer = SurfaceRenderer(gl)
+    mesh = volumes.isosurface(vol, 0.5)
+    renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces)
+    renderer.set_lattice(lattice)
+    renderer.set_environment(coeffs)
+    settings = RenderSettings(size=size, shading="sh", tonemap="clamp", env_rotation=rotation)
+    frame = renderer.render(default_camera(vol, (30, 30, 1.6)), settings)
+    renderer.release()
+    return frame
+
+
+def test_env_rotation_equals_rotating_the_environment_itself(gl, shells_sh):
+    """Rotating l on the CPU (Ivanic-Ruedenberg) = re-projecting the rotated image."""
+    vol, lattice = shells_sh
+    pixels = np.zeros((32, 64, 3))
+    pixels[4:10, 10:16] = 40.0  # a bright patch: rotation visibly moves the shading
+    pixels += 0.2
+    from baking.environment import image_from_array
+
+    env = image_from_array(pixels, "latlong")
+    order = 4
+    az, el = 70.0, 25.0
+    r = sh.rotation_from_az_el(az, el)
+    by_rotation = _render_sh(gl, vol, lattice, sh.project_environment(env, order), (az, el))
+    by_image = _render_sh(gl, vol, lattice, sh.project_environment(rotated(env, r), order))
+    unrotated = _render_sh(gl, vol, lattice, sh.project_environment(env, order))
+    mask = by_rotation.mask & by_image.mask
+    diff = np.abs(by_rotation.linear - by_image.linear)[mask]
+    scale = by_image.linear[mask].max()
+    # the two differ only by float32 uniform rounding and RGBA16F is shared: 1e-4 of peak
+    assert diff.max() <= 1e-4 * scale + 1e-6
+    assert np.abs(unrotated.linear - by_image.linear)[mask].max() > 0.05 * scale
+
+
+def test_sh_shading_matches_lattice_sum_at_surface_points(gl, shells_sh):
+    """Pixel radiance = albedo/pi * sum_i tau_i(x) l_i with tau trilinear at the pixel's
+    world position (read back with the position pass); tolerance: RGBA16F storage of tau
+    (relative 2^-11 per coefficient) summed over 16 coefficients."""
+    from app.render import SurfaceRenderer
+
+    vol, lattice = shells_sh
+    env = parse_env("sky:sun=3")
+    coeffs = sh.project_environment(env, 4)
+    frame = _render_sh(gl, vol, lattice, coeffs)
+    renderer = SurfaceRenderer(gl)
+    mesh = volumes.isosurface(vol, 0.5)
+    renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces)
+    pos = renderer.render(default_camera(vol, (30, 30, 1.6)),
+                          RenderSettings(size=(96, 96), shading="position", tonemap="clamp"))
+    renderer.release()
+    mask = frame.mask & pos.mask
+    points = pos.linear[mask]
+    tau = lattice.sample(points, normalized=True)
+    expected = 0.8 * np.clip(tau @ coeffs, 0, None) / np.pi
+    got = frame.linear[mask]
+    err = np.abs(got - expected)
+    tol = 2.0**-10 * np.abs(tau) @ np.abs(coeffs) * 0.8 / np.pi + 1e-4
+    assert np.mean(err <= tol) > 0.99
+
+
+def test_bytes_per_texel_of_sh_textures():
+    from app.lattice_gl import sh_layout
+
+    # half floats, four coefficients per RGBA texture, plus the 1-byte valid mask
+    sizes = {order: sh_layout(order, False)[0] * 4 * 2 + 1 for order in (3, 4, 5)}
+    assert sizes == {3: 25, 4: 33, 5: 57}
+    with pytest.raises(ValueError, match="up to order 7"):
+        sh_layout(8, False)
