@@ -121,16 +121,17 @@ def _luminance(estimates: np.ndarray, irradiance: bool) -> np.ndarray:
     return estimates[:, :3] @ LUMINANCE if irradiance else estimates[:, 0]
 
 
-def _chunks(positions: np.ndarray, remaining: np.ndarray):
-    """Split texel positions into runs of whole texels with about PATHS_PER_CHUNK paths."""
-    cum = np.cumsum(remaining)
-    start = 0
-    while start < len(positions):
-        base = cum[start - 1] if start else 0
-        stop = int(np.searchsorted(cum, base + PATHS_PER_CHUNK, side="right"))
-        stop = max(stop, start + 1)
-        yield positions[start:stop]
-        start = stop
+def _chunk_bounds(pos: np.ndarray):
+    """(lo, hi) slices of the sorted path array `pos` with about PATHS_PER_CHUNK paths
+    each, cut only where the texel changes (a texel's paths stay in one chunk, so its sum
+    is added in sample order whatever the number of workers)."""
+    lo, n = 0, len(pos)
+    while lo < n:
+        hi = min(lo + PATHS_PER_CHUNK, n)
+        if hi < n:  # extend to the end of the texel at the cut
+            hi = int(np.searchsorted(pos, pos[hi - 1], side="right"))
+        yield lo, hi
+        lo = hi
 
 
 def _new_lattice(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
@@ -227,9 +228,10 @@ class Baker:
         if len(busy) == 0:
             return
         first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
+        carry = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         try:
             for level in range(first, last + 1):
-                self._bake_level(level, done, remaining, bar)
+                carry = self._bake_level(level, busy, done, remaining, carry, bar)
                 # a texel's pass is complete once its upper level is done
                 complete = busy[plan.lower[busy] + 1 <= level]
                 complete = complete[self._acc.n[complete] > 0]
@@ -258,29 +260,44 @@ class Baker:
         self._scenes[level] = scene
         return scene
 
-    def _bake_level(self, level: int, done: np.ndarray, remaining: np.ndarray, bar) -> None:
-        """Trace every pending path assigned to isovalue level `level`."""
+    def _bake_level(self, level: int, busy: np.ndarray, done: np.ndarray,
+                    remaining: np.ndarray, carry: tuple, bar) -> tuple:
+        """Trace every pending path assigned to isovalue level `level`.
+
+        The pending samples of the texels whose lower level is `level` are expanded here,
+        once; those assigned to the upper level are handed on to the next level, and
+        `carry` holds the ones the previous level handed on.
+
+        Returns:
+            (positions, samples): the paths that go to level + 1.
+        """
         plan = self.plan
-        involved = np.flatnonzero(((plan.lower == level) | (plan.lower + 1 == level))
-                                  & (remaining > 0))
-        if len(involved) == 0:
-            return
-        counts = _paths_on_level(plan, involved, done, remaining, level)
-        involved, counts = involved[counts > 0], counts[counts > 0]
-        if len(involved) == 0:
-            return
+        pos, samples = _pending_samples(busy[plan.lower[busy] == level], done, remaining)
+        upper = plan.on_upper(pos, samples)
+        handed_on = (pos[upper], samples[upper])
+        pos = np.concatenate([carry[0], pos[~upper]])
+        samples = np.concatenate([carry[1], samples[~upper]])
+        if len(pos):
+            order = np.argsort(pos, kind="stable")  # group paths by texel, samples ascending
+            self._trace_level(level, pos[order], samples[order], bar)
+        return handed_on
+
+    def _trace_level(self, level: int, pos: np.ndarray, samples: np.ndarray, bar) -> None:
+        """Trace the paths (texel positions `pos`, sorted, and sample indices) on `level`."""
+        plan = self.plan
         iso = float(plan.levels[level])
         t0 = time.perf_counter()
         scene = self._scene(level)
-        centres = self.geometry.centres(plan.ids[involved])
+        texels = np.unique(pos)
+        centres = self.geometry.centres(plan.ids[texels])
         origins, normals = start_points(self.volume, centres, iso, self.config)
         self.stats.scene_seconds += time.perf_counter() - t0
         jobs = []
-        for chunk in _chunks(involved, counts):
-            rows = np.searchsorted(involved, chunk)
+        for lo, hi in _chunk_bounds(pos):
+            rows = np.searchsorted(texels, pos[lo:hi])
             jobs.append(self._pool.submit(
-                _trace_chunk, scene, plan, chunk, origins[rows], normals[rows], done,
-                remaining, level, self.lighting, self.settings, self.config.seed))
+                _trace_chunk, scene, plan, pos[lo:hi], samples[lo:hi], origins[rows],
+                normals[rows], self.lighting, self.settings, self.config.seed))
         try:
             for job in jobs:
                 self._collect(job.result(), level, bar)
@@ -347,13 +364,6 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
     return baker.lattice
 
 
-def _paths_on_level(plan: Plan, positions: np.ndarray, done, remaining, level) -> np.ndarray:
-    """(N,) number of pending samples of each texel that fall on `level`."""
-    pos, samples = _pending_samples(positions, done, remaining)
-    on = plan.level_of(pos, samples) == level
-    return np.bincount(np.searchsorted(positions, pos[on]), minlength=len(positions))
-
-
 def _pending_samples(positions, done, remaining) -> tuple[np.ndarray, np.ndarray]:
     """Repeat each texel position for its pending sample indices [done, done + remaining)."""
     reps = remaining[positions]
@@ -362,26 +372,25 @@ def _pending_samples(positions, done, remaining) -> tuple[np.ndarray, np.ndarray
     return pos, starts + np.arange(len(pos))
 
 
-def _trace_chunk(scene, plan, chunk, origins, normals, done, remaining, level, lighting,
-                 settings, seed):
-    """Worker: trace the pending paths of texels `chunk` on `level`; per-texel sums."""
+def _trace_chunk(scene, plan, pos, samples, origins, normals, lighting, settings, seed):
+    """Worker: trace paths (sorted texel positions `pos`, sample indices) from their start
+    points; return per-texel sums.
+
+    Returns:
+        (texel positions (T,), sums (T, C), second moments (T,), counts (T,), rays,
+        seconds inside Embree).
+    """
     from .trace import RayStats
 
-    pos, samples = _pending_samples(chunk, done, remaining)
-    keep = plan.level_of(pos, samples) == level
-    pos, samples = pos[keep], samples[keep]
-    local = np.searchsorted(chunk, pos)
     keys = rng.path_keys(seed, plan.ids[pos], samples)
     ray_stats = RayStats()
-    estimates = trace_paths(scene, origins[local], normals[local], keys, lighting, settings,
-                            ray_stats)
+    estimates = trace_paths(scene, origins, normals, keys, lighting, settings, ray_stats)
     lum = _luminance(estimates, settings.sh_order is None)
-    size = len(chunk)
-    sums = np.stack([np.bincount(local, estimates[:, c], minlength=size)
-                     for c in range(estimates.shape[1])], axis=1)
-    second = np.bincount(local, lum * lum, minlength=size)
-    n = np.bincount(local, minlength=size)
-    return chunk, sums, second, n, ray_stats.rays, ray_stats.seconds
+    starts = np.flatnonzero(np.r_[True, pos[1:] != pos[:-1]])
+    sums = np.add.reduceat(estimates, starts, axis=0)
+    second = np.add.reduceat(lum * lum, starts)
+    counts = np.diff(np.r_[starts, len(pos)])
+    return pos[starts], sums, second, counts, ray_stats.rays, ray_stats.seconds
 
 
 def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):

@@ -134,10 +134,12 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     count = len(origins)
     result = np.zeros((count, settings.channels))
     alive = np.arange(count)
-    pos, n = origins.astype(np.float64), normals.astype(np.float64)
-    beta = np.ones((count, 3))
-    albedo = np.asarray(settings.albedo)
+    # float32 like Embree itself: no conversions on every query
+    pos, n = origins.astype(np.float32), normals.astype(np.float32)
+    beta = np.ones((count, 3), np.float32)
+    albedo = np.asarray(settings.albedo, np.float32)
     irradiance = settings.sh_order is None
+    constant_env = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
     for vertex in range(settings.bounces + 1):
         k = keys[alive]
         dim = vertex * DIMS_PER_VERTEX
@@ -146,13 +148,15 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
         if irradiance and lighting.sample_env:
             result[alive, :3] += _direct_env(scene, pos, n, beta, k, dim + 2, lighting.env,
                                              stats)
-        local = sample_cosine_hemisphere(rng.uniform2(k, dim))
+        local = sample_cosine_hemisphere(rng.uniform2(k, dim).astype(np.float32))
         dirs = to_world(local, n)
         hits = scene.intersect(pos, dirs, stats)
         escaped = ~hits["hit"]
         if escaped.any() and (lighting.env is not None or not irradiance):
             esc_dirs = dirs[escaped]
-            if irradiance:
+            if irradiance and constant_env is not None:  # cosine sampling is ideal here
+                result[alive[escaped], :3] += beta[escaped] * (np.pi * np.asarray(constant_env))
+            elif irradiance:
                 weight = np.pi * np.ones(len(esc_dirs))
                 if lighting.sample_env:
                     weight *= power_heuristic(local[escaped, 2] / np.pi,
@@ -167,13 +171,13 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
         if not hit.any():
             break
         d = dirs[hit]
-        p = pos[hit] + hits["t"][hit, None] * d
+        p = pos[hit] + hits["t"][hit, None] * d  # float32, like Embree's own hit
         # Bounce vertices use the facet normal, turned towards the arriving ray: a smoothed
         # normal would send some directions into the facet at grazing angles, where rays
         # starting this close to it can slip between triangles and leak out.
-        ng = hits["ng"][hit].astype(np.float64)
-        ng *= -np.sign((ng * d).sum(axis=1, keepdims=True))
-        ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-30)
+        ng = hits["ng"][hit]
+        flip = np.where((ng * d).sum(axis=1, keepdims=True) > 0, -1.0, 1.0).astype(np.float32)
+        ng = ng * (flip / np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-30))
         pos = p + settings.hit_offset * ng
         n = ng
         beta = beta[hit] * albedo

@@ -37,10 +37,11 @@ class Scene:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         self.empty = len(faces) == 0
         self.faces = np.asarray(faces, np.int32)
+        self.vertices = np.ascontiguousarray(vertices, np.float32)
+        self.recorder: list | None = None  # benchmarks: (query, origins, dirs, tfar) per call
         if not self.empty:
             self._scene = rtcore_scene.EmbreeScene()
-            TriangleMesh(self._scene, np.ascontiguousarray(vertices, np.float32),
-                         np.ascontiguousarray(self.faces))
+            TriangleMesh(self._scene, self.vertices, np.ascontiguousarray(self.faces))
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, stats: RayStats | None = None
                   ) -> dict[str, np.ndarray]:
@@ -55,9 +56,12 @@ class Scene:
             return {"hit": np.zeros(n, bool), "t": np.full(n, np.inf),
                     "prim": np.full(n, _MISS), "u": np.zeros(n), "v": np.zeros(n),
                     "ng": np.zeros((n, 3))}
+        origins = np.ascontiguousarray(origins, np.float32)
+        dirs = np.ascontiguousarray(dirs, np.float32)
+        if self.recorder is not None:
+            self.recorder.append(("INTERSECT", origins, dirs, None))
         start = time.perf_counter()
-        out = self._scene.run(np.ascontiguousarray(origins, np.float32),
-                              np.ascontiguousarray(dirs, np.float32), output=1)
+        out = self._scene.run(origins, dirs, output=1)
         if stats is not None:
             stats.add(n, time.perf_counter() - start)
         prim = out["primID"]
@@ -73,10 +77,41 @@ class Scene:
         dists = None
         if tfar is not None:
             dists = np.ascontiguousarray(np.minimum(tfar, 1e30), np.float32)
+        origins = np.ascontiguousarray(origins, np.float32)
+        dirs = np.ascontiguousarray(dirs, np.float32)
+        if self.recorder is not None:
+            self.recorder.append(("OCCLUDED", origins, dirs, dists))
         start = time.perf_counter()
-        out = self._scene.run(np.ascontiguousarray(origins, np.float32),
-                              np.ascontiguousarray(dirs, np.float32), dists=dists,
-                              query="OCCLUDED")
+        out = self._scene.run(origins, dirs, dists=dists, query="OCCLUDED")
         if stats is not None:
             stats.add(n, time.perf_counter() - start)
         return out != _MISS
+
+
+def replay(vertices: np.ndarray, faces: np.ndarray, batches: list,
+           workers: int) -> tuple[int, float]:
+    """Trace recorded ray batches with bare embreex (a fresh scene, the same query kinds,
+    `workers` threads) and time it: the baseline the baker's throughput is compared with.
+
+    Returns:
+        (rays, seconds of wall time for the tracing alone).
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32),
+                 np.ascontiguousarray(faces, np.int32))
+    scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # build the BVH
+
+    def trace(batch) -> int:
+        query, origins, dirs, dists = batch
+        if query == "INTERSECT":
+            scene.run(origins, dirs, output=1)
+        else:
+            scene.run(origins, dirs, dists=dists, query="OCCLUDED")
+        return len(origins)
+
+    start = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        rays = sum(pool.map(trace, batches))
+    return rays, time.perf_counter() - start

@@ -1,0 +1,117 @@
+"""``isolume bench``: benchmarks that print figures (never timed assertions).
+
+* ``bench bake``: the baker's rays per second against bare embreex on the same meshes and
+  rays, measured in the same run (the rays the baker traced are recorded and replayed on
+  a fresh scene with the same thread count), and the full-bake figures (time, active
+  texels, levels, rays).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+HELP = "benchmarks: baker throughput against bare embreex, frame times, lazy GI"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="bench", required=True)
+    p = sub.add_parser("bake", help="baker rays/s against bare embreex, full-bake figures")
+    p.add_argument("volume", nargs="?", default="synthetic:engine",
+                   help="volume (default synthetic:engine)")
+    p.add_argument("--samples", type=int, default=32)
+    p.add_argument("--bounces", type=int, default=2)
+    p.add_argument("--env", default="constant:1,1,1")
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--json", help="also write the figures to this JSON file")
+    for name, module in _VIEW_BENCHES.items():
+        bench = _view_module()
+        if bench is not None and hasattr(bench, f"add_{name}_arguments"):
+            getattr(bench, f"add_{name}_arguments")(sub.add_parser(name, help=module))
+
+
+_VIEW_BENCHES = {"frames": "frame time per shading mode (llvmpipe, EGL)",
+                 "lazy": "lazy GI: time to a first estimate and to 5 % error"}
+
+
+def _view_module():
+    import importlib.util
+
+    if importlib.util.find_spec("app.bench_view") is None:
+        return None
+    import app.bench_view
+
+    return app.bench_view
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.bench == "bake":
+        return bench_bake(args)
+    return getattr(_view_module(), args.bench)(args)
+
+
+def bench_bake(args: argparse.Namespace) -> int:
+    """Bake with every ray recorded, replay the rays on bare embreex, print both rates."""
+    import os
+
+    import numpy as np
+
+    import volumes
+    from baking.bake import Baker
+    from baking.config import BakeConfig
+    from baking.trace import replay
+
+    vol = volumes.load(args.volume)
+    config = BakeConfig(samples=args.samples, bounces=args.bounces, env=args.env)
+    workers = args.workers or os.cpu_count() or 1
+    baker = Baker(vol, config, workers=workers)
+    recorded: dict[int, tuple] = {}
+    original_scene = baker._scene
+
+    def recording_scene(level):
+        scene = original_scene(level)
+        if scene.recorder is None and not scene.empty:
+            scene.recorder = []
+            recorded[level] = (scene.vertices, scene.faces, scene.recorder)
+        return scene
+
+    baker._scene = recording_scene
+    start = time.perf_counter()
+    baker.run()
+    wall = time.perf_counter() - start
+    baker.close()
+    stats = baker.stats
+    tracing_wall = wall - stats.scene_seconds  # the baker's own loop, scenes excluded
+    bare_rays, bare_seconds = 0, 0.0
+    for vertices, faces, batches in recorded.values():
+        rays, seconds = replay(vertices, faces, batches, workers)
+        bare_rays += rays
+        bare_seconds += seconds
+    baker_rate = stats.rays / tracing_wall
+    bare_rate = bare_rays / bare_seconds
+    plan = baker.lattice.meta["plan"]
+    figures = {
+        "volume": vol.source or vol.name, "shape": list(vol.data.shape),
+        "samples": args.samples, "bounces": args.bounces, "workers": workers,
+        "active_texels": plan["active_texels"], "total_texels": plan["total_texels"],
+        "levels": len(plan["levels"]), "rays": stats.rays, "bake_seconds": wall,
+        "scene_seconds": stats.scene_seconds, "baker_rays_per_s": baker_rate,
+        "bare_embreex_rays_per_s": bare_rate, "ratio": baker_rate / bare_rate,
+        "texels_per_s": plan["active_texels"] / wall,
+    }
+    assert stats.rays == bare_rays, "replay must trace exactly the baker's rays"
+    print(f"volume {figures['volume']} {vol.data.shape[::-1]} (x,y,z), {args.samples} paths/texel, "
+          f"{args.bounces} bounces, {workers} workers")
+    print(f"active texels {plan['active_texels']:,} of {plan['total_texels']:,} "
+          f"({plan['active_texels'] / plan['total_texels']:.1%}), {len(plan['levels'])} levels")
+    print(f"bake {wall:.1f} s ({stats.scene_seconds:.1f} s building level scenes), "
+          f"{stats.rays:,} rays")
+    print(f"baker       {baker_rate / 1e6:.3f} Mrays/s (tracing loop, scenes excluded)")
+    print(f"bare embree {bare_rate / 1e6:.3f} Mrays/s (same meshes and rays, {workers} threads)")
+    print(f"ratio       {figures['ratio']:.2f} (goal >= 0.8)")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(figures, f, indent=1)
+    np.seterr(all="warn")
+    return 0

@@ -1,0 +1,408 @@
+"""Lazy, progressive baking for the isosurface on screen.
+
+The paper (§4) suggests to "lazily perform computations as needed, assuming the display of
+some uncomputed illumination is acceptable until computations are complete". This module
+decides *which* texels to bake next and *how many* paths each gets; it knows nothing of GL,
+windows or threads (`serve` is the loop a worker thread or process runs).
+
+Which texels. A point p on the displayed isosurface ρ = iso is shaded by trilinear
+interpolation of the 8 texels at the corners of the lattice cell that contains p. The texels
+the picture needs are therefore the corners of the lattice cells whose corner values
+straddle iso ("surface texels"); among them, those of the cells under visible pixels
+("visible texels", found by the renderer from a world-position pass) come first. Within
+each group the texels nearest the eye come first, so the front of the surface fills in
+before the back.
+
+How many paths. Rounds of growing targets (4, 16, 64, ... up to the bake's sample count):
+every texel of a group gets a first estimate before any gets refined. The stage order is
+visible@4, surface@4, visible@16, surface@16, ...
+
+Re-targeting. A new view (isovalue, eye, visible cells) rebuilds the stages; texels already
+at a stage's target are skipped, so finished work is kept — a texel's value holds for its
+own isosurface whatever isovalue is displayed, which is the point of the method.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .lattice import LUMINANCE, LatticeGeometry
+from .plan import Plan
+
+FIRST_TARGET = 4
+"""Paths per texel of the first round: enough for a recognisable estimate."""
+TARGET_FACTOR = 4
+"""Each round multiplies the target by this (halves the noise)."""
+BATCH_PATHS = 32768
+"""Paths per batch: about 0.1–0.5 s of tracing, so a new view is picked up quickly."""
+
+
+# -- geometry of the texels the display needs ---------------------------------------------
+def corner_offsets(shape: tuple[int, int, int]) -> np.ndarray:
+    """(8,) int64 flat-index offsets of a cell's 8 corner texels from its (0, 0, 0) corner
+    in a (Z, Y, X) lattice."""
+    _, ny, nx = shape
+    return np.array([dz * ny * nx + dy * nx + dx
+                     for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], np.int64)
+
+
+@dataclass(frozen=True)
+class CellIndex:
+    """Lattice cells whose 8 corners are all active texels, with their corner-value spans.
+
+    Attributes:
+        base: (M,) int64 flat texel id of each cell's (0, 0, 0) corner.
+        lo, hi: (M,) float32 smallest and largest corner value (field units).
+        offsets: (8,) int64 flat offsets of the corners from `base`.
+    """
+
+    base: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    offsets: np.ndarray
+
+
+def cell_index(plan: Plan, shape: tuple[int, int, int]) -> CellIndex:
+    """Index the cells of a (Z, Y, X) lattice whose corners are all active in `plan`.
+
+    A cell with an inactive corner cannot be shaded from the lattice alone, and every cell
+    the bake selected has all its corners active, so nothing the bake covers is lost.
+    """
+    z, y, x = shape
+    active = np.zeros(z * y * x, bool)
+    active[plan.ids] = True
+    active = active.reshape(shape)
+    inner = active[:-1, :-1, :-1].copy()
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                inner &= active[dz:z - 1 + dz, dy:y - 1 + dy, dx:x - 1 + dx]
+    k, j, i = np.nonzero(inner)
+    base = (k.astype(np.int64) * y + j) * x + i
+    offsets = corner_offsets(shape)
+    rho = np.full(z * y * x, np.nan, np.float32)
+    rho[plan.ids] = plan.rho
+    corners = rho[base[:, None] + offsets[None, :]]
+    return CellIndex(base, corners.min(axis=1), corners.max(axis=1), offsets)
+
+
+def positions_of(plan: Plan, flat_ids: np.ndarray) -> np.ndarray:
+    """(K,) sorted unique plan positions (indices into ``plan.ids``) of the active texels
+    among (N,) flat lattice ids; inactive ids are dropped."""
+    flat = np.unique(np.asarray(flat_ids, np.int64))
+    pos = np.searchsorted(plan.ids, flat)
+    pos = np.minimum(pos, len(plan.ids) - 1)
+    return pos[plan.ids[pos] == flat]
+
+
+def surface_positions(plan: Plan, cells: CellIndex, iso: float) -> np.ndarray:
+    """(K,) plan positions of the corners of the cells whose corner values straddle `iso`."""
+    crossing = cells.base[(cells.lo <= iso) & (cells.hi >= iso)]
+    return positions_of(plan, (crossing[:, None] + cells.offsets[None, :]).reshape(-1))
+
+
+def visible_cells(geometry: LatticeGeometry, points: np.ndarray) -> np.ndarray:
+    """(K,) unique flat ids of the (0, 0, 0) corners of the lattice cells that trilinear
+    lookups at (N, 3) world `points` read (the cell containing each point, clamped to the
+    lattice like GL's CLAMP_TO_EDGE)."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    shape = np.array(geometry.shape)
+    coords = geometry.to_texel_coords(np.asarray(points, np.float64))
+    base = np.clip(np.floor(coords).astype(np.int64), 0, shape - 2)
+    flat = (base[:, 0] * shape[1] + base[:, 1]) * shape[2] + base[:, 2]
+    return np.unique(flat)
+
+
+def footprint_positions(plan: Plan, shape: tuple[int, int, int],
+                        cells: np.ndarray) -> np.ndarray:
+    """(K,) plan positions of the active corner texels of cells given by (N,) flat base
+    ids (from `visible_cells`)."""
+    cells = np.asarray(cells, np.int64)
+    return positions_of(plan, (cells[:, None] + corner_offsets(shape)[None, :]).reshape(-1))
+
+
+def by_distance(plan: Plan, geometry: LatticeGeometry, positions: np.ndarray,
+                eye: np.ndarray) -> np.ndarray:
+    """(K,) `positions` sorted by the distance of their texel centres from `eye` (3,),
+    nearest first (stable, so ties keep lattice order)."""
+    if len(positions) == 0:
+        return positions
+    d = np.linalg.norm(geometry.centres(plan.ids[positions]) - np.asarray(eye, np.float64),
+                       axis=1)
+    return positions[np.argsort(d, kind="stable")]
+
+
+def sample_targets(max_samples: int, first: int = FIRST_TARGET,
+                   factor: int = TARGET_FACTOR) -> tuple[int, ...]:
+    """Paths per texel of the successive rounds: first, first·factor, ... capped at (and
+    ending with) `max_samples`. E.g. 100 → (4, 16, 64, 100)."""
+    if max_samples < 1:
+        raise ValueError(f"max_samples must be at least 1, got {max_samples}")
+    targets, t = [], max(1, first)
+    while t < max_samples:
+        targets.append(t)
+        t *= max(2, factor)
+    targets.append(int(max_samples))
+    return tuple(targets)
+
+
+def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """(N,) estimated relative standard error of texel means: SE(luminance) / luminance.
+
+    Args:
+        values: (N, C) running means (irradiance RGB: luminance from C = 3; else channel 0).
+        second: (N,) mean squared per-path luminance.
+        samples: (N,) paths averaged.
+
+    Returns:
+        (N,) float64; inf where fewer than 2 samples (no variance estimate yet).
+    """
+    lum = values[:, :3] @ LUMINANCE if values.shape[1] >= 3 else values[:, 0]
+    lum = lum.astype(np.float64)
+    n = samples.astype(np.float64)
+    var = np.maximum(second - lum * lum, 0.0) * n / np.maximum(n - 1, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        se = np.sqrt(var / np.maximum(n, 1)) / np.maximum(np.abs(lum), 1e-12)
+    return np.where(n > 1, se, np.inf)
+
+
+# -- the scheduler -------------------------------------------------------------------------
+@dataclass
+class Stage:
+    """One round of one texel group: bring `positions` (in priority order) to `target`."""
+
+    group: str
+    target: int
+    positions: np.ndarray
+    cursor: int = 0
+
+
+@dataclass(frozen=True)
+class Batch:
+    """Work for one `Baker.run` call: plan positions and the paths each should reach."""
+
+    positions: np.ndarray
+    target: int
+    group: str
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Where the lazy bake stands for the current view.
+
+    Attributes:
+        visible, visible_started: visible texels, and how many have ≥ 1 path.
+        surface, surface_started: surface texels, and how many have ≥ 1 path.
+        visible_min_samples: fewest paths of any visible texel (0 when none).
+        stage: (group, target) being worked on, or None when the view is done.
+        iso: isovalue of the view.
+    """
+
+    visible: int = 0
+    visible_started: int = 0
+    surface: int = 0
+    surface_started: int = 0
+    visible_min_samples: int = 0
+    stage: tuple[str, int] | None = None
+    iso: float | None = None
+
+    @property
+    def visible_fraction(self) -> float:
+        """Share of visible texels with a first estimate (1 when there are none)."""
+        return self.visible_started / self.visible if self.visible else 1.0
+
+    @property
+    def surface_fraction(self) -> float:
+        """Share of surface texels with a first estimate (1 when there are none)."""
+        return self.surface_started / self.surface if self.surface else 1.0
+
+    @property
+    def near_fraction(self) -> float:
+        """Share of the texels near the displayed surface (visible ∪ surface) with a first
+        estimate: what ``wait-bake`` waits for."""
+        total = self.surface + self.visible
+        return (self.surface_started + self.visible_started) / total if total else 1.0
+
+
+class LazyScheduler:
+    """Chooses the next batch of texels for the view on screen.
+
+    Args:
+        plan, geometry: the bake's plan and lattice geometry.
+        samples: (Z·Y·X,) flat view of the lattice's per-texel sample counts; the baker
+            writes into it, the scheduler only reads it.
+        max_samples: the last round's target (the bake's `samples`).
+        batch_paths: paths per batch.
+    """
+
+    def __init__(self, plan: Plan, geometry: LatticeGeometry, samples: np.ndarray, *,
+                 max_samples: int, batch_paths: int = BATCH_PATHS) -> None:
+        self.plan, self.geometry, self.samples = plan, geometry, samples
+        self.targets = sample_targets(max_samples)
+        self.batch_paths = max(1, int(batch_paths))
+        self.cells = cell_index(plan, geometry.shape)
+        self.stages: list[Stage] = []
+        self.visible = np.zeros(0, np.int64)
+        self.surface = np.zeros(0, np.int64)
+        self.iso: float | None = None
+        self._stage = 0
+
+    def samples_at(self, positions: np.ndarray) -> np.ndarray:
+        """(N,) paths done at plan `positions`."""
+        return self.samples[self.plan.ids[positions]]
+
+    def set_view(self, iso: float, eye: np.ndarray,
+                 visible: np.ndarray | None = None) -> None:
+        """Re-target the work: isovalue on screen, eye position (3,) world, and the flat
+        base ids (K,) of the lattice cells under visible pixels (None: unknown)."""
+        self.iso = float(iso)
+        self.surface = by_distance(self.plan, self.geometry,
+                                   surface_positions(self.plan, self.cells, iso), eye)
+        if visible is not None and len(visible):
+            vis = footprint_positions(self.plan, self.geometry.shape, visible)
+            self.visible = by_distance(self.plan, self.geometry, vis, eye)
+        else:
+            self.visible = np.zeros(0, np.int64)
+        self.stages = []
+        for target in self.targets:
+            if len(self.visible):
+                self.stages.append(Stage("visible", target, self.visible))
+            self.stages.append(Stage("surface", target, self.surface))
+        self._stage = 0
+
+    def next_batch(self) -> Batch | None:
+        """The next texels to bake (priority order) and their target, or None when every
+        stage of the current view is done."""
+        while self._stage < len(self.stages):
+            stage = self.stages[self._stage]
+            window = stage.positions[stage.cursor:stage.cursor + self.batch_paths]
+            if len(window) == 0:
+                self._stage += 1
+                continue
+            remaining = np.maximum(stage.target - self.samples_at(window).astype(np.int64), 0)
+            cum = np.cumsum(remaining)
+            take = max(1, int(np.searchsorted(cum, self.batch_paths, side="right")))
+            chosen = window[:take][remaining[:take] > 0]
+            stage.cursor += take
+            if len(chosen):
+                return Batch(chosen, stage.target, stage.group)
+        return None
+
+    def progress(self) -> Progress:
+        """Counts for the current view (cheap: reads the sample counts once)."""
+        vis = self.samples_at(self.visible) if len(self.visible) else np.zeros(0, np.uint32)
+        surf = self.samples_at(self.surface) if len(self.surface) else np.zeros(0, np.uint32)
+        stage = None
+        if self._stage < len(self.stages):
+            stage = (self.stages[self._stage].group, self.stages[self._stage].target)
+        return Progress(
+            visible=len(vis), visible_started=int((vis > 0).sum()),
+            surface=len(surf), surface_started=int((surf > 0).sum()),
+            visible_min_samples=int(vis.min()) if len(vis) else 0,
+            stage=stage, iso=self.iso,
+        )
+
+
+# -- the loop a worker runs -----------------------------------------------------------------
+@dataclass(frozen=True)
+class View:
+    """A message to the lazy baker: what is on screen.
+
+    Attributes:
+        iso: displayed isovalue.
+        eye: (3,) world eye position.
+        visible: (K,) flat base ids of the lattice cells under visible pixels, or None.
+    """
+
+    iso: float
+    eye: tuple[float, float, float]
+    visible: np.ndarray | None = None
+
+
+@dataclass
+class ServeStats:
+    """What the loop did: batches, paths, seconds tracing, per-message counters."""
+
+    batches: int = 0
+    paths: int = 0
+    seconds: float = 0.0
+    views: int = 0
+    started: float = field(default_factory=time.perf_counter)
+
+
+def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
+          send: Callable[[tuple], None], *, stop_when_done: bool = False) -> ServeStats:
+    """Bake lazily until told to stop.
+
+    Messages in (from `receive(block)`, which returns None when nothing is waiting and
+    `block` is False): a `View` re-targets the work; ``"pause"``/``"resume"`` hold and
+    release it; ``"stop"`` (or None while blocking: the sender is gone) ends the loop.
+
+    Messages out (through `send`): ``("texels", flat_ids)`` after texels were committed to
+    the lattice (the renderer re-uploads them), ``("progress", Progress, stats_dict)`` after
+    every batch and when a view is done.
+
+    Args:
+        baker: a `baking.bake.Baker` whose lattice the display reads.
+        stop_when_done: return when the current view is finished (tests, benchmarks).
+    """
+    stats = ServeStats()
+    paused = False
+    ids = baker.plan.ids
+
+    def committed(positions: np.ndarray) -> None:
+        send(("texels", ids[positions]))
+
+    def report() -> None:
+        send(("progress", scheduler.progress(), _stats_dict(baker, stats)))
+
+    def handle(message) -> bool:
+        """Apply one message; False means stop."""
+        nonlocal paused
+        if message is None or message == "stop":
+            return False
+        if message == "pause":
+            paused = True
+        elif message == "resume":
+            paused = False
+        elif isinstance(message, View):
+            scheduler.set_view(message.iso, np.asarray(message.eye), message.visible)
+            stats.views += 1
+            report()
+        return True
+
+    while True:
+        message = receive(False)
+        while message is not None:  # drain: only the latest view matters, but apply all
+            if not handle(message):
+                return stats
+            message = receive(False)
+        batch = None if paused or scheduler.iso is None else scheduler.next_batch()
+        if batch is None:
+            if scheduler.iso is not None and not paused:
+                report()
+                if stop_when_done:
+                    return stats
+            if not handle(receive(True)):
+                return stats
+            continue
+        t0 = time.perf_counter()
+        before = int(baker.samples_done(batch.positions).sum())
+        baker.run(batch.positions, batch.target, after_level=committed)
+        stats.paths += int(baker.samples_done(batch.positions).sum()) - before
+        stats.seconds += time.perf_counter() - t0
+        stats.batches += 1
+        report()
+
+
+def _stats_dict(baker, stats: ServeStats) -> dict:
+    """JSON-ready counters for the progress display."""
+    return {"batches": stats.batches, "paths": stats.paths, "seconds": stats.seconds,
+            "rays": int(baker.stats.rays), "trace_seconds": float(baker.stats.trace_seconds),
+            "scene_seconds": float(baker.stats.scene_seconds),
+            "elapsed": time.perf_counter() - stats.started}
