@@ -646,3 +646,19 @@ def test_shared_cthead():
     assert vol.data.shape == (113, 256, 256)
     assert vol.value_range == (0.0, 3272.0)
     assert vol.name == "CThead"
+
+
+def test_raw_spacing_from_a_manifest_beside_the_file(tmp_path):
+    """Open SciVis-style collections keep voxel sizes in manifest.json next to the files."""
+    import json
+
+    data = np.arange(2 * 3 * 4, dtype=np.uint8).reshape(2, 3, 4)
+    raw = tmp_path / "part_4x3x2_uint8.raw"
+    data.tofile(raw)
+    assert load_file(raw).spacing == (1.0, 1.0, 1.0)
+    record = {"file": raw.name, "spacing_xyz": [0.5, 0.5, 2.0]}
+    (tmp_path / "manifest.json").write_text(json.dumps([{"file": "other.raw"}, record]))
+    assert load_file(raw).spacing == (0.5, 0.5, 2.0)
+    assert load_file(raw, spacing=(1, 2, 3)).spacing == (1.0, 2.0, 3.0)  # explicit wins
+    (tmp_path / "manifest.json").write_text("{not json")
+    assert load_file(raw).spacing == (1.0, 1.0, 1.0)

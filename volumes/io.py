@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import gzip
 import importlib
+import json
 import operator
 import os
 import re
@@ -201,6 +202,7 @@ def load_file(
     try:
         if kind == "raw":
             data, spacing0, origin0 = _load_raw(path, dims_xyz, raw_dtype, byteorder)
+            spacing0 = _manifest_spacing(path)
         else:
             data, spacing0, origin0 = _LOADERS[kind](path)
     except VolumeError:
@@ -1044,3 +1046,29 @@ _LOADERS: dict[str, Callable[[Path], _Loaded]] = {
     "tiff": _load_tiff_file,
     "folder": _load_folder,
 }
+
+
+def _manifest_spacing(path: Path) -> tuple[float, float, float] | None:
+    """Voxel size (x, y, z) of a raw file from a ``manifest.json`` beside it, if it lists it.
+
+    Raw files carry no header; collections of them (Open SciVis style) keep the voxel size
+    in a JSON list of records ``{"file": NAME, "spacing_xyz": [x, y, z], ...}``. A missing
+    or unreadable manifest, or no record for this file, leaves the spacing at (1, 1, 1).
+    """
+    manifest = path.parent / "manifest.json"
+    if not manifest.is_file():
+        return None
+    try:
+        records = json.loads(manifest.read_text())
+    except (OSError, ValueError):
+        return None
+    for record in records if isinstance(records, list) else []:
+        if isinstance(record, dict) and record.get("file") == path.name:
+            spacing = record.get("spacing_xyz")
+            try:
+                values = tuple(float(v) for v in spacing)
+            except (TypeError, ValueError):
+                return None
+            ok = len(values) == 3 and all(np.isfinite(v) and v > 0 for v in values)
+            return values if ok else None
+    return None
