@@ -3,12 +3,11 @@
 import numpy as np
 import pytest
 
+import volumes
 from app.render import RenderSettings, default_camera
 from baking import BakeConfig, BakeError, bake, sh
 from baking.environment import parse_env, rotated
 from volumes.synthetic import make
-
-import volumes
 
 
 def _path_sd(normal: np.ndarray, order: int) -> np.ndarray:
