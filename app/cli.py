@@ -247,7 +247,8 @@ def _bake_config(args: argparse.Namespace):
         albedo=parse_albedo(args.albedo), scale=args.scale,
         iso_range=tuple(args.iso_range) if args.iso_range else None,
         env="" if args.env == "none" else args.env, lights=tuple(args.light or ()), seed=args.seed,
-        flip_normals=args.flip_normals,
+        flip_normals=args.flip_normals, target_error=args.target_error,
+        max_samples=max(args.max_samples, args.samples),
     )
 
 
@@ -321,7 +322,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="lattice file FILE.npz (resumed if present)")
     p.add_argument("--mode", default="irradiance", choices=["irradiance", "sh"])
     p.add_argument("--sh-order", type=int, default=5, help="SH bands (n² coefficients)")
-    p.add_argument("--samples", type=int, default=100, help="paths per texel")
+    p.add_argument("--samples", type=int, default=100,
+                   help="paths per texel (the minimum, with --target-error)")
+    p.add_argument("--target-error", type=float, default=None, metavar="E",
+                   help="sample each texel until its relative standard error is below E")
+    p.add_argument("--max-samples", type=int, default=4096,
+                   help="cap on paths per texel with --target-error")
     p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (0 = direct)")
     p.add_argument("--albedo", default="0.8", help="A or R,G,B")
     p.add_argument("--scale", type=float, default=1.0, help="texels per voxel per axis")

@@ -352,6 +352,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
 
     try:
         baker.run(bar=bar, after_level=checkpoint)
+        if config.target_error is not None:
+            _refine_to_target(baker, bar, checkpoint)
     except KeyboardInterrupt:
         if out is not None:
             baker.lattice.save(out)
@@ -362,6 +364,28 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
     if out is not None:
         baker.lattice.save(out)
     return baker.lattice
+
+
+def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
+    """Give more samples to texels whose relative standard error exceeds the target.
+
+    The error falls as 1/sqrt(n), so a texel with error e after n paths needs about
+    n (e / target)² in all; each pass asks for 1.2 times that (at most 8 n, at most
+    `max_samples`), so a few passes — each rebuilding the level scenes — suffice.
+    """
+    config = baker.config
+    for _ in range(passes):
+        error = baker.lattice.relative_error().reshape(-1)[baker.plan.ids]
+        done = baker.samples_done()
+        todo = np.flatnonzero((error > config.target_error) & (done < config.max_samples))
+        if len(todo) == 0:
+            return
+        need = 1.2 * done[todo] * (error[todo] / config.target_error) ** 2
+        target = np.minimum(np.clip(np.ceil(need), done[todo] + 1, 8 * done[todo]),
+                            config.max_samples).astype(np.int64)
+        if bar is not None:
+            bar.total += int((target - done[todo]).sum())
+        baker.run(todo, target, bar=bar, after_level=checkpoint)
 
 
 def _pending_samples(positions, done, remaining) -> tuple[np.ndarray, np.ndarray]:

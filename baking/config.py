@@ -35,6 +35,11 @@ class BakeConfig:
         flip_normals: normals from low to high values.
         noise_sigmas: a lattice cell is skipped when its value span is below this many
             noise standard deviations (flat regions carry no displayable surface).
+        target_error: None for a fixed `samples` per texel; else keep doubling the samples
+            of each texel whose relative standard error (of its luminance, or of the SH DC
+            term) exceeds this, from `samples` up to `max_samples` ("model no more than a
+            scene needs": easy texels stop early).
+        max_samples: cap on paths per texel with `target_error`.
     """
 
     mode: str = "irradiance"
@@ -52,6 +57,8 @@ class BakeConfig:
     offset: float = 0.25
     flip_normals: bool = False
     noise_sigmas: float = 3.0
+    target_error: float | None = None
+    max_samples: int = 4096
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -86,6 +93,12 @@ class BakeConfig:
             raise BakeError("nothing lights the scene: give --env and/or --light")
         if not 0 < self.max_move <= 4 or not 2 <= self.max_levels <= 1024:
             raise BakeError("max_move must lie in (0, 4] voxels and max_levels in [2, 1024]")
+        if self.target_error is not None and not 0 < self.target_error < 1:
+            raise BakeError(f"--target-error {self.target_error:g}: expected a relative "
+                            "standard error between 0 and 1, e.g. 0.02")
+        if self.max_samples < self.samples:
+            raise BakeError(f"--max-samples {self.max_samples} is below --samples "
+                            f"{self.samples}")
         if not 0 <= self.offset <= 2:
             raise BakeError(f"offset {self.offset:g}: expected 0 to 2 voxels")
 
@@ -114,4 +127,7 @@ class BakeConfig:
 
     def same_result_as(self, other: BakeConfig) -> bool:
         """True when both configs give the same per-sample estimates (samples may differ)."""
-        return dataclasses.replace(self, samples=1) == dataclasses.replace(other, samples=1)
+        def core(c: BakeConfig) -> BakeConfig:
+            return dataclasses.replace(c, samples=1, target_error=None, max_samples=4096)
+
+        return core(self) == core(other)

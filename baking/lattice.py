@@ -139,6 +139,17 @@ class Lattice:
                           np.inf)
         return se.astype(np.float32)
 
+    def relative_error(self, floor_fraction: float = 0.01) -> np.ndarray:
+        """(Z, Y, X) standard error / mean of the luminance (SH: of the DC term).
+
+        The mean is floored at `floor_fraction` of the median computed texel, so texels in
+        deep shadow are judged against the scene's light level, not against ~0.
+        """
+        lum = self.values[..., :3] @ LUMINANCE if self.kind == "irradiance" else self.values[..., 0]
+        computed = self.samples > 0
+        typical = float(np.median(np.abs(lum[computed]))) if computed.any() else 1.0
+        return self.standard_error() / np.maximum(np.abs(lum), floor_fraction * typical)
+
     def sample(self, points_xyz: np.ndarray, normalized: bool = False) -> np.ndarray:
         """(N, C) trilinear lookup at (N, 3) world points, as the GPU does it.
 

@@ -332,3 +332,19 @@ def test_iso_range_outside_data():
 
 def test_sphere_radius_constant_is_what_the_volume_uses():
     assert SPHERE_RADIUS == pytest.approx(0.35)
+
+
+def test_target_error_spends_samples_where_they_are_needed():
+    """At about the same number of rays, sampling to an error budget leaves fewer texels
+    above the target than a fixed count: unoccluded texels (zero variance) stop at the
+    minimum and the samples go to shadowed, noisy ones."""
+    vol = make("shells", 32)
+    budget = bake(vol, BakeConfig(samples=8, target_error=0.05, max_samples=256), workers=2)
+    rays = budget.meta["rays_traced"]
+    per_texel = round(float(budget.samples[budget.samples > 0].mean()))
+    fixed = bake(vol, BakeConfig(samples=per_texel), workers=2)
+    assert 0.7 < fixed.meta["rays_traced"] / rays < 1.3
+    above = [(lat.relative_error()[lat.samples > 0] > 0.05).mean() for lat in (budget, fixed)]
+    assert above[0] < 0.7 * above[1]
+    counts = budget.samples[budget.samples > 0]
+    assert counts.min() == 8 and counts.max() > 2 * per_texel
