@@ -76,7 +76,8 @@ def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
     """
     h = float(np.mean(volume.spacing))
     on_level = project_to_level(volume, centres, level, max_move=4 * config.max_move * h)
-    normals = volumes.normals_at(volume, on_level, flip=config.flip_normals).astype(np.float64)
+    normals = volumes.normals_at(volume, on_level, smooth=config.normals == "smooth",
+                                 flip=config.flip_normals).astype(np.float64)
     return on_level + config.offset * h * normals, normals
 
 

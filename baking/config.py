@@ -32,6 +32,8 @@ class BakeConfig:
             isovalue levels from the data's gradients.
         max_levels: cap on the number of levels (memory and build time).
         offset: ray-origin offset along the normal, voxels (paper Fig. 5, "offset").
+        normals: "smooth" (cubic-B-spline-smoothed gradient, the paper's) or "gradient"
+            (plain central differences, paper Fig. 5 left) for the texel normals.
         flip_normals: normals from low to high values.
         noise_sigmas: a lattice cell is skipped when its value span is below this many
             noise standard deviations (flat regions carry no displayable surface).
@@ -55,6 +57,7 @@ class BakeConfig:
     max_move: float = 0.5
     max_levels: int = 64
     offset: float = 0.25
+    normals: str = "smooth"
     flip_normals: bool = False
     noise_sigmas: float = 3.0
     target_error: float | None = None
@@ -99,6 +102,8 @@ class BakeConfig:
         if self.max_samples < self.samples:
             raise BakeError(f"--max-samples {self.max_samples} is below --samples "
                             f"{self.samples}")
+        if self.normals not in ("smooth", "gradient"):
+            raise BakeError(f"normals {self.normals!r}: expected 'smooth' or 'gradient'")
         if not 0 <= self.offset <= 2:
             raise BakeError(f"offset {self.offset:g}: expected 0 to 2 voxels")
 

@@ -134,8 +134,11 @@ def texel_values(volume: volumes.Volume, geometry: LatticeGeometry) -> np.ndarra
 
 def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig) -> Plan:
     """Choose active texels and levels for `config` (see the module docstring)."""
-    rho = texel_values(volume, geometry)
     vmin, vmax = volume.value_range
+    if vmax <= vmin:
+        raise BakeError(f"{volume.source or volume.name}: the volume is constant ({vmin:g}); "
+                        "there is no isosurface to bake")
+    rho = texel_values(volume, geometry)
     lo, hi = config.iso_range if config.iso_range is not None else default_iso_range(volume)
     if hi <= vmin or lo >= vmax:
         raise BakeError(

@@ -5,7 +5,8 @@ is traced once against the marching-cubes mesh of the displayed isosurface. At t
 point the pixel's outgoing radiance albedo·E/π is estimated with the baker's own
 integrator (`integrator.trace_paths`: next-event estimation, MIS, diffuse bounces), from a
 start point prepared like a texel's (`bake.start_points`): the smoothed-gradient normal of
-the volume, turned towards the eye, and the origin moved `config.offset` voxels along it.
+the volume, turned towards the eye (to the side of the hit triangle the ray comes from),
+and the origin moved `config.offset` voxels along it.
 Lattice and reference therefore estimate the same quantity; they differ only in where it
 is evaluated (interpolated from texels, or exactly at the visible point).
 
@@ -13,12 +14,11 @@ Randomness: sample s of pixel p uses the key ``rng.path_keys(seed, p, s)`` (p = 
 index, row-major from the top-left), so the image does not depend on the number of
 workers, on how the work was split into jobs, or on interruptions and resumption.
 
-Statistics: per pixel the sample count n, the sum Σx and the centred sum of squares
-m2 = Σ(x − x̄)² of the radiance samples x (RGB, float64). Jobs merge by the pairwise
-formula of Chan, Golub & LeVeque (1979), which stays exact where the variance vanishes
-(a uniform sky on a convex surface), unlike Σx² − n·x̄². The standard error of a pixel is
-sqrt(m2 / (n − 1) / n). The state (`PixelStats` plus metadata) lives in an ``.npz`` file,
-so a reference can be refined later: more samples, exact statistics.
+Statistics (`PixelStats`): per pixel the sample count and the sums of the radiance
+samples and of their squares (RGB, float64), taken about the pixel's first sample so that
+the standard error sqrt(m2 / (n − 1) / n) stays exact where the variance is zero. The
+state lives in an ``.npz`` file, so a reference can be refined later with exact
+statistics.
 """
 
 from __future__ import annotations
@@ -28,8 +28,11 @@ import hashlib
 import json
 import os
 import tempfile
+import threading
 import time
 import zipfile
+from collections import deque
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +42,7 @@ import numpy as np
 import volumes
 
 from . import rng
-from .bake import make_lighting, path_settings
+from .bake import _pending_samples, make_lighting, path_settings
 from .config import BakeConfig
 from .errors import BakeError
 from .integrator import Lighting, PathSettings, trace_paths
@@ -55,46 +58,52 @@ SAMPLES_PER_PASS = 16
 
 @dataclass
 class PixelStats:
-    """Running per-pixel statistics of the radiance samples.
+    """Running per-pixel sums of the radiance samples, about a per-pixel shift.
+
+    Sums about a shift c (the pixel's first sample) keep the variance accurate, Σ(x − c)²
+    − (Σ(x − c))²/n, and exactly 0 where every sample is equal (a uniform sky on a convex
+    surface), which plain Σx² − n·x̄² would bury in rounding noise. Batches merge by
+    moving their sums to the stored shift, so adding samples later keeps them exact.
 
     Attributes:
         count: (N,) int64 samples per pixel.
-        sum: (N, 3) float64 Σx, linear radiance (RGB).
-        m2: (N, 3) float64 Σ(x − mean)², radiance².
+        shift: (N, 3) float64 c, linear radiance (RGB).
+        s1: (N, 3) float64 Σ(x − c).
+        s2: (N, 3) float64 Σ(x − c)², radiance².
     """
 
     count: np.ndarray
-    sum: np.ndarray
-    m2: np.ndarray
+    shift: np.ndarray
+    s1: np.ndarray
+    s2: np.ndarray
 
     @classmethod
     def empty(cls, pixels: int) -> PixelStats:
         """Statistics of `pixels` pixels with no samples."""
-        return cls(np.zeros(pixels, np.int64), np.zeros((pixels, 3)), np.zeros((pixels, 3)))
+        return cls(np.zeros(pixels, np.int64), *(np.zeros((pixels, 3)) for _ in range(3)))
 
-    def merge(self, idx: np.ndarray, count: np.ndarray, sums: np.ndarray,
-              m2: np.ndarray) -> None:
-        """Add the statistics of a batch: (M,) pixel indices (unique), (M,) counts,
-        (M, 3) sums and (M, 3) centred sums of squares (Chan et al.'s pairwise update)."""
-        n_a = self.count[idx].astype(np.float64)[:, None]
-        n_b = count.astype(np.float64)[:, None]
-        n = n_a + n_b
-        safe_a, safe_n = np.maximum(n_a, 1), np.maximum(n, 1)
-        delta = sums / np.maximum(n_b, 1) - self.sum[idx] / safe_a
-        self.m2[idx] += m2 + np.where(n_a > 0, delta * delta * n_a * n_b / safe_n, 0.0)
-        self.sum[idx] += sums
+    def merge(self, idx: np.ndarray, count: np.ndarray, shift: np.ndarray, s1: np.ndarray,
+              s2: np.ndarray) -> None:
+        """Add a batch: (M,) unique pixel indices, (M,) counts, and its (M, 3) shift and
+        sums about it."""
+        fresh = self.count[idx] == 0
+        self.shift[idx[fresh]] = shift[fresh]
+        d = shift - self.shift[idx]  # move the batch's sums to the stored shift
+        n = count.astype(np.float64)[:, None]
+        self.s2[idx] += s2 + 2 * d * s1 + n * d * d
+        self.s1[idx] += s1 + n * d
         self.count[idx] += count
 
     def mean(self) -> np.ndarray:
         """(N, 3) mean radiance (0 where there is no sample)."""
         n = np.maximum(self.count, 1)[:, None]
-        return np.where(self.count[:, None] > 0, self.sum / n, 0.0)
+        return np.where(self.count[:, None] > 0, self.shift + self.s1 / n, 0.0)
 
     def stderr(self) -> np.ndarray:
         """(N, 3) standard error of the mean radiance; inf where fewer than 2 samples."""
         n = self.count.astype(np.float64)[:, None]
-        var = self.m2 / np.maximum(n - 1, 1)
-        return np.where(n > 1, np.sqrt(np.maximum(var, 0.0) / np.maximum(n, 1)), np.inf)
+        m2 = np.maximum(self.s2 - self.s1 * self.s1 / np.maximum(n, 1), 0.0)
+        return np.where(n > 1, np.sqrt(m2 / np.maximum(n - 1, 1) / np.maximum(n, 1)), np.inf)
 
 
 @dataclass(frozen=True)
@@ -152,6 +161,11 @@ def _to_visible_side(normals: np.ndarray, facet: np.ndarray, dirs: np.ndarray) -
     return normals * np.where((normals * facet).sum(axis=1, keepdims=True) < 0, -1.0, 1.0)
 
 
+def _stopped(stop: threading.Event | None) -> bool:
+    """True when `stop` is given and set."""
+    return stop is not None and stop.is_set()
+
+
 def rotated_lighting(lighting: Lighting, rotation: np.ndarray | None) -> Lighting:
     """`lighting` with its environment turned by the (3, 3) `rotation` (None: unchanged)."""
     if rotation is None or lighting.env is None:
@@ -191,26 +205,23 @@ class _Job:
         return int(self.n.sum())
 
 
-def _plan_jobs(done: np.ndarray, target: int) -> list[_Job]:
-    """Jobs that bring hit pixels with `done` (M,) samples to `target`, in commit order.
+def _plan_jobs(done: np.ndarray, target: int) -> Iterator[tuple[_Job, bool]]:
+    """(job, last job of its pass) that bring hit pixels with `done` (M,) samples to
+    `target`, in commit order, generated lazily (memory stays bounded at any spp).
 
     Pass k covers sample indices [16k, 16k + 16); within a pass, blocks of 1024 hit pixels
     in scan order. Committing in this order keeps each pixel's sample indices contiguous.
     """
-    jobs = []
     if len(done) == 0 or done.min() >= target:
-        return jobs
+        return
     for lo in range(int(done.min()) // SAMPLES_PER_PASS * SAMPLES_PER_PASS, target,
                     SAMPLES_PER_PASS):
         first = np.maximum(done, lo)
         n = np.maximum(np.minimum(target, lo + SAMPLES_PER_PASS) - first, 0)
-        for start in range(0, len(done), PIXELS_PER_BLOCK):
-            block = slice(start, start + PIXELS_PER_BLOCK)
-            rows = np.arange(start, min(start + PIXELS_PER_BLOCK, len(done)))
-            keep = n[block] > 0
-            if keep.any():
-                jobs.append(_Job(rows[keep], first[block][keep], n[block][keep]))
-    return jobs
+        rows = np.flatnonzero(n)
+        for start in range(0, len(rows), PIXELS_PER_BLOCK):
+            block = rows[start:start + PIXELS_PER_BLOCK]
+            yield _Job(block, first[block], n[block]), start + PIXELS_PER_BLOCK >= len(rows)
 
 
 def _trace_job(scene, hits: PrimaryHits, job: _Job, lighting: Lighting,
@@ -218,24 +229,32 @@ def _trace_job(scene, hits: PrimaryHits, job: _Job, lighting: Lighting,
     """Worker: trace one job's paths.
 
     Returns:
-        (rows (K,), count (K,), sums (K, 3), m2 (K, 3), rays, seconds in Embree).
+        (rows (K,), count (K,), shift, s1, s2 (K, 3) as in `PixelStats`, rays, seconds
+        inside Embree).
     """
     from .trace import RayStats
 
-    local = np.repeat(np.arange(len(job.rows)), job.n)
-    starts = np.repeat(job.first - np.concatenate([[0], np.cumsum(job.n)[:-1]]), job.n)
-    samples = starts + np.arange(len(local))
+    local, samples = _pending_samples(np.arange(len(job.rows)), job.first, job.n)
     rows = job.rows[local]
     keys = rng.path_keys(seed, hits.pixels[rows], samples)
     stats = RayStats()
     irradiance = trace_paths(scene, hits.origins[rows], hits.normals[rows], keys, lighting,
                              settings, stats)
     radiance = irradiance * (np.asarray(settings.albedo) / np.pi)
-    k = len(job.rows)
-    sums = np.stack([np.bincount(local, radiance[:, c], minlength=k) for c in range(3)], 1)
-    dev = radiance - (sums / job.n[:, None])[local]
-    m2 = np.stack([np.bincount(local, dev[:, c] ** 2, minlength=k) for c in range(3)], 1)
-    return job.rows, job.n, sums, m2, stats.rays, stats.seconds
+    shift, s1, s2 = _moments(radiance, local, job.n)
+    return job.rows, job.n, shift, s1, s2, stats.rays, stats.seconds
+
+
+def _moments(x: np.ndarray, local: np.ndarray, n: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pixel shift c (first sample), Σ(x − c) and Σ(x − c)² of (P, 3) samples `x` of
+    pixels `local` (P,), grouped in order, `n` (K,) samples each. Each (K, 3)."""
+    k = len(n)
+    shift = x[np.concatenate([[0], np.cumsum(n)[:-1]])]
+    d = x - shift[local]
+    s1 = np.stack([np.bincount(local, d[:, c], minlength=k) for c in range(3)], 1)
+    s2 = np.stack([np.bincount(local, d[:, c] ** 2, minlength=k) for c in range(3)], 1)
+    return shift, s1, s2
 
 
 @dataclass
@@ -257,17 +276,28 @@ class ReferenceImage:
 
 @dataclass
 class TraceCounters:
-    """What this process traced (rays include primary and shadow rays)."""
+    """What a tracer did in this process.
 
+    Attributes:
+        primary_rays: one per pixel, traced when the tracer is made.
+        rays: rays of the paths (continuation and shadow rays) traced by `run`.
+        paths: paths traced by `run`.
+        setup_seconds: wall time to make the tracer (mesh, Embree scene, primary hits).
+        run_seconds: wall time inside `run`.
+        embree_seconds: time inside Embree, summed over threads.
+    """
+
+    primary_rays: int = 0
     rays: int = 0
-    embree_seconds: float = 0.0
     paths: int = 0
-    started: float = dataclasses.field(default_factory=time.perf_counter)
+    setup_seconds: float = 0.0
+    run_seconds: float = 0.0
+    embree_seconds: float = 0.0
 
     @property
-    def seconds(self) -> float:
-        """Wall seconds since the tracer was made."""
-        return time.perf_counter() - self.started
+    def rays_per_second(self) -> float:
+        """Path rays per wall second of `run`."""
+        return self.rays / max(self.run_seconds, 1e-9)
 
 
 class ReferenceTracer:
@@ -295,16 +325,17 @@ class ReferenceTracer:
         origins, dirs = np.asarray(origins, np.float64), np.asarray(dirs, np.float64)
         if origins.shape != dirs.shape or origins.ndim != 2 or origins.shape[1] != 3:
             raise ValueError(f"origins {origins.shape} and dirs {dirs.shape}: expected (N, 3)")
+        started = time.perf_counter()
         self.volume, self.iso, self.config, self.smooth = volume, float(iso), config, smooth
         self.counters = TraceCounters()
+        self.lighting = rotated_lighting(make_lighting(config), env_rotation)  # bad specs first
+        self.settings = path_settings(volume, config)
         self.mesh = volumes.isosurface(volume, iso, normals="smooth" if smooth else "gradient",
                                        flip_normals=config.flip_normals)
         self.scene = Scene(self.mesh.vertices, self.mesh.faces)
-        self.lighting = rotated_lighting(make_lighting(config), env_rotation)
-        self.settings = path_settings(volume, config)
         self.pixels = len(origins)
         self.hits = primary_hits(self.scene, volume, origins, dirs, config, smooth)
-        self.counters.rays += self.pixels
+        self.counters.primary_rays = self.pixels
         self.background = background(self.lighting, dirs)
         self.identity = {
             "version": STATE_VERSION, "volume": volume_identity(volume), "iso": self.iso,
@@ -313,14 +344,17 @@ class ReferenceTracer:
             "env_rotation": None if env_rotation is None else np.asarray(env_rotation).tolist(),
             "config": dataclasses.replace(config, samples=1).to_dict(),
         }
-        self._pool = ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1))
+        threads = max(1, workers or os.cpu_count() or 1)
+        self._pool = ThreadPoolExecutor(max_workers=threads)
+        self._max_in_flight = 2 * threads + 2  # keeps every thread busy, memory bounded
+        self.counters.setup_seconds = time.perf_counter() - started
 
     def pending_paths(self, stats: PixelStats, spp: int) -> int:
         """Paths still to trace to bring every hit pixel to `spp` samples."""
         return int(np.maximum(spp - stats.count[self.hits.pixels], 0).sum())
 
     def run(self, stats: PixelStats, spp: int | None = None, *, bar=None,
-            after_pass=None) -> None:
+            after_pass=None, stop: threading.Event | None = None) -> bool:
         """Add samples to `stats` until every hit pixel has `spp` (default
         ``config.samples``).
 
@@ -328,37 +362,53 @@ class ReferenceTracer:
             bar: a tqdm-like progress bar (``update``, ``set_postfix_str``), or None.
             after_pass: called with no arguments after each pass of 16 sample indices (a
                 consistent state: save a checkpoint there).
+            stop: when set (e.g. by a SIGINT handler), return after the job being
+                committed; `stats` then holds whole jobs in order, and a later run
+                continues exactly where this one stopped.
 
-        On KeyboardInterrupt the jobs committed so far stay in `stats` (whole jobs, in
-        order, so a later run resumes exactly) and the exception propagates.
+        Returns:
+            True when every hit pixel has `spp` samples, False when stopped early.
         """
         spp = self.config.samples if spp is None else int(spp)
         if spp < 1:
             raise BakeError(f"--spp {spp}: expected at least 1 sample per pixel")
-        jobs = _plan_jobs(stats.count[self.hits.pixels], spp)
-        futures = [self._pool.submit(_trace_job, self.scene, self.hits, job, self.lighting,
-                                     self.settings, self.config.seed) for job in jobs]
+        in_flight: deque = deque()
+        planned_all = True
+        started = time.perf_counter()
         try:
-            for i, future in enumerate(futures):
-                self._commit(stats, future.result(), bar, spp)
-                last_of_pass = i + 1 == len(jobs) or jobs[i + 1].rows[0] <= jobs[i].rows[0]
-                if after_pass is not None and last_of_pass:
-                    after_pass()
+            for job, last_of_pass in _plan_jobs(stats.count[self.hits.pixels], spp):
+                if _stopped(stop):
+                    planned_all = False
+                    break
+                in_flight.append((self._pool.submit(
+                    _trace_job, self.scene, self.hits, job, self.lighting, self.settings,
+                    self.config.seed), last_of_pass))
+                if len(in_flight) > self._max_in_flight:
+                    self._commit(stats, *in_flight.popleft(), bar, spp, started, after_pass)
+            while in_flight and not _stopped(stop):
+                self._commit(stats, *in_flight.popleft(), bar, spp, started, after_pass)
+            return planned_all and not in_flight
         finally:
-            for future in futures:
+            for future, _ in in_flight:
                 future.cancel()
+            self.counters.run_seconds += time.perf_counter() - started
 
-    def _commit(self, stats: PixelStats, result, bar, spp: int) -> None:
-        rows, count, sums, m2, rays, seconds = result
-        stats.merge(self.hits.pixels[rows], count, sums, m2)
+    def _commit(self, stats: PixelStats, future, last_of_pass: bool, bar, spp: int,
+                started: float, after_pass) -> None:
+        """Merge one job's result into `stats` (main thread, in job order)."""
+        rows, count, shift, s1, s2, rays, seconds = future.result()
+        stats.merge(self.hits.pixels[rows], count, shift, s1, s2)
         self.counters.rays += rays
         self.counters.embree_seconds += seconds
         self.counters.paths += int(count.sum())
         if bar is not None:
             bar.update(int(count.sum()))
-            done = int(stats.count[self.hits.pixels].min()) if len(self.hits.pixels) else spp
-            rate = self.counters.rays / max(self.counters.seconds, 1e-9) / 1e6
+            done = int(stats.count[self.hits.pixels].min())
+            elapsed = self.counters.run_seconds + time.perf_counter() - started
+            rate = self.counters.rays / max(elapsed, 1e-9) / 1e6
             bar.set_postfix_str(f"spp {done}/{spp} {rate:.2f} Mrays/s", refresh=False)
+        if last_of_pass and after_pass is not None:
+            after_pass()
 
     def image(self, stats: PixelStats) -> ReferenceImage:
         """The picture of `stats`: mean radiance on the surface, background elsewhere."""
@@ -397,18 +447,25 @@ def render_reference(volume: volumes.Volume, iso: float, origins: np.ndarray,
 
 
 # -- the state file ---------------------------------------------------------------------
-def save_state(path: str | os.PathLike, stats: PixelStats, meta: dict) -> None:
-    """Write `stats` and JSON-ready `meta` atomically to `path` (.npz)."""
+def atomic_write(path: str | os.PathLike, write) -> None:
+    """Call ``write(tmp)`` on a temporary file next to `path`, then rename it to `path`:
+    an interrupted write never leaves a broken file."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, count=stats.count, sum=stats.sum, m2=stats.m2,
-                                meta=np.array(json.dumps(meta)))
+        write(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def save_state(path: str | os.PathLike, stats: PixelStats, meta: dict) -> None:
+    """Write `stats` and JSON-ready `meta` atomically to `path` (.npz)."""
+    atomic_write(path, lambda tmp: np.savez_compressed(
+        tmp, count=stats.count, shift=stats.shift, s1=stats.s1, s2=stats.s2,
+        meta=np.array(json.dumps(meta))))
 
 
 def load_state(path: str | os.PathLike) -> tuple[PixelStats, dict]:
@@ -420,7 +477,7 @@ def load_state(path: str | os.PathLike) -> tuple[PixelStats, dict]:
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
-            stats = PixelStats(z["count"].astype(np.int64), z["sum"], z["m2"])
+            stats = PixelStats(z["count"].astype(np.int64), z["shift"], z["s1"], z["s2"])
             meta = json.loads(str(z["meta"]))
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
         raise BakeError(f"{path}: not a readable isolume reference state ({exc})") from None
