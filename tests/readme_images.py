@@ -19,7 +19,7 @@ from baking import BakeConfig, bake, sh
 from baking.environment import parse_env
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "images"
-SKY = "sky:sun=3,sun_az=60,sun_el=35,sun_radius=2"
+SKY = "sky:zenith=0.12,0.2,0.45,horizon=0.35,ground=0.15,sun=10,sun_az=60,sun_el=35,sun_radius=1"
 
 
 def _label(image: np.ndarray, text: str) -> Image.Image:
@@ -42,7 +42,7 @@ def engine_comparison() -> None:
                    progress=True)
     view = (35.0, 35.0, 1.7)
     gi, _ = render_volume(vol, 0.3, RenderSettings(size=(448, 448), shading="irradiance",
-                                                    exposure=0.8), view=view, lattice=lattice)
+                                                    exposure=0.6), view=view, lattice=lattice)
     local, _ = render_volume(vol, 0.3, RenderSettings(size=(448, 448), shading="phong_hemi"),
                              view=view)
     _row([_label(gi.srgb, "lattice irradiance (sky + sun, 2 bounces)"),
@@ -51,11 +51,13 @@ def engine_comparison() -> None:
 
 def sh_rotation() -> None:
     vol = volumes.load("synthetic:engine:96")
-    lattice = bake(vol, BakeConfig(mode="sh", sh_order=5, samples=256, bounces=1), progress=True)
-    coeffs = sh.project_environment(parse_env(SKY), 5)
+    lattice = bake(vol, BakeConfig(mode="sh", sh_order=5, samples=512, bounces=1), progress=True)
+    # a broad sun suits five SH bands; the Hanning window tames ringing and noise
+    sky = SKY.replace("sun_radius=1", "sun_radius=8")
+    coeffs = sh.project_environment(parse_env(sky), 5, window="hanning")
     pictures = []
     for az in (0, 90, 180, 270):
-        settings = RenderSettings(size=(256, 256), shading="sh", exposure=0.6,
+        settings = RenderSettings(size=(256, 256), shading="sh", exposure=0.5,
                                   env_rotation=(az, 0.0))
         frame, _ = render_volume(vol, 0.3, settings, view=(35.0, 35.0, 1.7), lattice=lattice,
                                  env_coeffs=coeffs)
@@ -64,6 +66,11 @@ def sh_rotation() -> None:
 
 
 if __name__ == "__main__":
+    import sys
+
     OUT.mkdir(parents=True, exist_ok=True)
-    engine_comparison()
-    sh_rotation()
+    wanted = sys.argv[1:] or ["engine", "sh"]
+    if "engine" in wanted:
+        engine_comparison()
+    if "sh" in wanted:
+        sh_rotation()
