@@ -11,7 +11,9 @@ Irradiance: one GL_RGB9_E5 texture (4 bytes per texel, shared exponent: relative
 (1 where the texel has samples). Both are filtered trilinearly by the hardware; the shader
 divides the two, which interpolates over computed texels only, and falls back to local
 shading where no neighbour is computed yet. Sub-regions can be re-uploaded while a lazy
-bake fills the lattice.
+bake fills the lattice. Optionally a third, R32F texture holds each texel's own isovalue
+ρ(x_t), for the closest-isovalue lookup (paper Fig. 6a); it depends on the volume only,
+so a bake never changes it.
 
 numpy (z, y, x, c) arrays map to GL (width, height, depth) = (x, y, z): x varies fastest
 in memory, as GL expects.
@@ -27,7 +29,7 @@ from baking.lattice import Lattice
 from .glcontext import store_rgb9e5
 
 MAX_TEXTURE_UNITS = 16  # guaranteed by GL 3.3 for fragment shaders
-SH_FIRST_UNIT = 2  # units 0: HDR resolve input, 1: valid mask
+SH_FIRST_UNIT = 2  # units 0: HDR resolve input or shadow map, 1: valid mask
 
 
 def sh_layout(order: int, rgb: bool) -> tuple[int, int]:
@@ -52,9 +54,17 @@ class LatticeTextures:
         kind: "irradiance" or "sh".
         sh_order, sh_groups, sh_textures: SH layout (order, 1 or 3 colour groups, textures
             per group); zeros for irradiance.
+        texel_iso: R32F texture of the texel isovalues ρ(x_t), or None (not given, or an
+            SH lattice: the lookup variants read irradiance lattices only).
     """
 
-    def __init__(self, ctx: moderngl.Context, lattice: Lattice) -> None:
+    def __init__(self, ctx: moderngl.Context, lattice: Lattice,
+                 texel_isovalues: np.ndarray | None = None) -> None:
+        """Upload `lattice`; `texel_isovalues` is (Z, Y, X) ρ at the texel centres (value
+        units, `baking.plan.texel_values`) for the closest-isovalue lookup."""
+        if texel_isovalues is not None and np.shape(texel_isovalues) != lattice.geometry.shape:
+            raise ValueError(f"texel isovalues of shape {np.shape(texel_isovalues)}, the "
+                             f"lattice has {lattice.geometry.shape}")
         self.ctx = ctx
         self.lattice = lattice
         self.kind = lattice.kind
@@ -78,8 +88,19 @@ class LatticeTextures:
         for tex in (*self.textures, self.valid):
             tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
             tex.repeat_x = tex.repeat_y = tex.repeat_z = False  # clamp to edge
+        self.texel_iso = None
+        if texel_isovalues is not None and self.kind == "irradiance":
+            self.texel_iso = self._texel_iso_texture(texel_isovalues)
         lo, hi = np.array(lattice.geometry.lo), np.array(lattice.geometry.hi)
         self.box_lo, self.box_size = lo, hi - lo
+
+    def _texel_iso_texture(self, rho: np.ndarray) -> moderngl.Texture3D:
+        """R32F texture of (Z, Y, X) texel isovalues, read with texelFetch only."""
+        z, y, x = self.lattice.geometry.shape
+        data = np.ascontiguousarray(rho, np.float32).tobytes()
+        tex = self.ctx.texture3d((x, y, z), 1, data, dtype="f4")
+        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        return tex
 
     @staticmethod
     def _premultiplied(values: np.ndarray, samples: np.ndarray) -> np.ndarray:
@@ -110,7 +131,8 @@ class LatticeTextures:
         return np.where(samples > 0, 255, 0).astype(np.uint8).tobytes()
 
     def update(self, z0: int, z1: int) -> None:
-        """Re-upload slabs z0 ≤ z < z1 of the lattice (after a lazy bake filled them)."""
+        """Re-upload slabs z0 ≤ z < z1 of the lattice (after a lazy bake filled them); the
+        texel isovalues do not change with the bake and stay as uploaded."""
         lat = self.lattice
         _, y, x = lat.geometry.shape
         viewport = (0, 0, z0, x, y, z1 - z0)
@@ -122,8 +144,8 @@ class LatticeTextures:
         self.valid.write(self._valid_bytes(lat.samples[z0:z1]), viewport=viewport)
 
     def bind(self, program: moderngl.Program) -> None:
-        """Bind the textures (valid on unit 1, the rest from unit 2) and set the uniforms
-        that map world positions to texture coordinates."""
+        """Bind the textures (valid on unit 1, the rest from unit 2, texel isovalues last)
+        and set the uniforms that map world positions to texture coordinates."""
         self.valid.use(location=1)
         values = {"u_valid": 1, "u_box_lo": tuple(self.box_lo),
                   "u_box_size": tuple(self.box_size)}
@@ -131,6 +153,10 @@ class LatticeTextures:
             tex.use(location=SH_FIRST_UNIT + i)
             values["u_irradiance" if self.kind == "irradiance" else f"u_sh{i}"] = (
                 SH_FIRST_UNIT + i)
+        if self.texel_iso is not None:
+            unit = SH_FIRST_UNIT + len(self.textures)
+            self.texel_iso.use(location=unit)
+            values["u_texel_iso"] = unit
         for name, value in values.items():
             if name in program:
                 program[name].value = value
@@ -165,3 +191,5 @@ class LatticeTextures:
     def release(self) -> None:
         for tex in (*self.textures, self.valid):
             tex.release()
+        if self.texel_iso is not None:
+            self.texel_iso.release()

@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 import volumes
 
 from .glcontext import create_headless
-from .render import Frame, RenderSettings, SurfaceRenderer, default_camera
+from .render import SHADING_MODES, Frame, RenderSettings, SurfaceRenderer, default_camera
+
+
+def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarray | None:
+    """(Z, Y, X) field values at the lattice's texel centres when `shading` reads them."""
+    mode = SHADING_MODES.get(shading)
+    if lattice is None or mode is None or mode.lookup != "closest":
+        return None
+    from baking.plan import texel_values
+
+    return texel_values(volume, lattice.geometry)
 
 
 def render_volume(
@@ -23,7 +35,9 @@ def render_volume(
     """Extract the isosurface at `iso` and render it in a fresh headless context.
 
     `lattice` (a `baking.Lattice`) is needed by the lattice shading modes, `env_coeffs`
-    ((n², 3) SH coefficients of the environment) by "sh".
+    ((n², 3) SH coefficients of the environment) by "sh". The shadow map and the fog are
+    fitted to the volume's world box; "irradiance_closest" gets the texel isovalues
+    computed from `volume` here.
 
     Returns:
         (frame, mesh): the picture and the mesh that was drawn.
@@ -32,8 +46,9 @@ def render_volume(
     gl = create_headless(backend)
     try:
         renderer = SurfaceRenderer(gl.ctx)
-        renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces)
-        renderer.set_lattice(lattice)
+        renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
+        renderer.set_bounds(*volume.box)
+        renderer.set_lattice(lattice, _texel_isovalues(volume, lattice, settings.shading))
         renderer.set_environment(env_coeffs)
         frame = renderer.render(default_camera(volume, view), settings)
         renderer.release()

@@ -1,10 +1,22 @@
 """Drawing isosurface meshes with moderngl into a linear HDR target, then to display.
 
 `SurfaceRenderer` owns the GL objects for one context: shader programs (one per shading
-mode, compiled on first use), the mesh buffers and the framebuffers. Each frame is drawn
-in linear radiance into an RGBA32F target (alpha marks surface pixels), then exposure,
-tone curve and sRGB encoding are applied in a full-screen pass. Everything here works the
-same in a glfw window and off-screen.
+mode, compiled on first use), the mesh buffers, the framebuffers and the key light's
+shadow map. Each frame is drawn in linear radiance into an RGBA32F target (alpha marks
+surface pixels), then exposure, tone curve and sRGB encoding are applied in a full-screen
+pass. Everything here works the same in a glfw window and off-screen.
+
+Shading modes (paper Figs. 1, 6, 8–10), all on the same mesh and camera:
+
+* local: ``lambert`` (key light + headlight), ``phong`` (plus a Blinn–Phong lobe),
+  ``lambert_hemi`` / ``phong_hemi`` (plus hemisphere ambient varying with the normal),
+  ``lambert_shadow`` / ``phong_shadow`` (the key light shadow-mapped),
+  ``lambert_fog`` (fading to the background with eye distance);
+* lattice: ``irradiance`` (albedo·E/π, trilinear), its lookup variants of Fig. 6
+  ``irradiance_closest`` / ``irradiance_nearest`` / ``irradiance_bspline``, ``sh``
+  (transfer under a rotating environment), and from a constant-sky, no-bounce bake
+  ``vicinity`` (albedo·E/π) and ``ao`` (E/(π·L_sky) as an occlusion factor on
+  hemisphere-ambient Lambert).
 """
 
 from __future__ import annotations
@@ -19,13 +31,74 @@ import shaders
 from .camera import Camera
 from .lattice_gl import LatticeTextures
 
-LOCAL_MODES = {"lambert": 1, "phong": 2, "lambert_hemi": 3, "phong_hemi": 4}
-"""Local shading models: name -> SHADING define in ``surface.frag``."""
-LATTICE_MODES = {"irradiance": 5, "sh": 6}
+LOOKUPS = {"trilinear": 0, "nearest": 1, "closest": 2, "bspline": 3}
+"""Irradiance lattice lookups (paper Fig. 6) -> LOOKUP define in ``lattice.glsl``."""
+
+
+@dataclass(frozen=True)
+class ShadingMode:
+    """How ``surface.frag`` draws one shading mode.
+
+    Attributes:
+        shading: the SHADING define (radiance model, see ``surface.frag``).
+        lattice: what the mode reads: None (local model), "irradiance", "sh", or
+            "occlusion" (an irradiance lattice baked under a constant sky with no bounces
+            and no lights, see `occlusion_sky`).
+        lookup: a key of `LOOKUPS`, how an irradiance lattice is read.
+        shadow: the key light is shadow-mapped.
+        fog: the radiance fades to the background with eye distance.
+    """
+
+    shading: int
+    lattice: str | None = None
+    lookup: str = "trilinear"
+    shadow: bool = False
+    fog: bool = False
+
+    def defines(self) -> tuple[tuple[str, int], ...]:
+        """(name, value) shader defines of this mode."""
+        return (("SHADING", self.shading), ("SHADOW", int(self.shadow)),
+                ("FOG", int(self.fog)), ("LOOKUP", LOOKUPS[self.lookup]))
+
+
+SHADING_MODES = {
+    "lambert": ShadingMode(1),  # key light + headlight, albedo·E/π
+    "phong": ShadingMode(2),  # lambert + energy-normalised Blinn–Phong lobes
+    "lambert_hemi": ShadingMode(3),  # lambert + hemisphere ambient varying with n
+    "phong_hemi": ShadingMode(4),  # phong + hemisphere ambient
+    "irradiance": ShadingMode(5, "irradiance"),  # albedo·E/π, E trilinear from the lattice
+    "sh": ShadingMode(6, "sh"),  # albedo·(Σ τᵢ ℓᵢ)/π under the rotated environment
+    "lambert_shadow": ShadingMode(1, shadow=True),  # lambert, key light shadow-mapped
+    "phong_shadow": ShadingMode(2, shadow=True),  # phong, key light (and its lobe) shadowed
+    "lambert_fog": ShadingMode(1, fog=True),  # lambert fading to the background with depth
+    # vicinity shading: the lattice's own radiance, albedo·E/π, of a constant sky L seen
+    # past nearby occluders — the GI picture for that sky with no bounces (paper Fig. 10)
+    "vicinity": ShadingMode(5, "occlusion"),
+    # ambient occlusion: A = E/(π·L) ∈ [0, 1], the sky fraction, is only a factor on
+    # another light, here hemisphere ambient: albedo·A·E_hemi(n)/π; no key light, no head
+    "ao": ShadingMode(7, "occlusion"),
+    # Fig. 6 lookups of E (shown as albedo·E/π): of the 8 texels around the point, the one
+    # whose isovalue ρ(x_t) is closest to the mesh's, the nearest one, and (above) their
+    # trilinear blend; the uniform cubic B-spline of the 4×4×4 around it
+    "irradiance_closest": ShadingMode(5, "irradiance", lookup="closest"),
+    "irradiance_nearest": ShadingMode(5, "irradiance", lookup="nearest"),
+    "irradiance_bspline": ShadingMode(5, "irradiance", lookup="bspline"),
+}
+"""Every user-facing shading mode (the long-standing six first: the viewer's keys 1–6)."""
+LOCAL_MODES = {name: m for name, m in SHADING_MODES.items() if m.lattice is None}
+"""Local shading models (no lattice)."""
+LATTICE_MODES = {name: m for name, m in SHADING_MODES.items() if m.lattice is not None}
 """Modes that read an illumination lattice."""
-SHADING_MODES = {**LOCAL_MODES, **LATTICE_MODES}
-"""Every user-facing shading mode."""
-_DEBUG_MODES = {"position": 9}  # world position in the HDR target (tests, picking)
+_DEBUG_MODES = {"position": ShadingMode(9)}  # world position in the HDR target (tests, picking)
+
+SHADOW_BIAS_TEXELS = (0.5, 2.5)
+"""Shadow-map depth bias, in shadow texels of world depth: constant + slope × tan θ (θ the
+angle between facet and key light). The PCF footprint reaches 1 + √2 ≈ 2.41 texels from
+the looked-up point (a diagonal tap plus its bilinear neighbours), across which a surface
+of slope tan θ changes depth by 2.41 tan θ texels; the constant covers depth rounding and
+curvature. Less slope bias shows as acne (tests/test_render_modes.py fails at 2.3)."""
+SHADOW_MARGIN = 1.01
+"""The light's view spans this many scene-sphere radii (surfaces on the sphere stay in)."""
 
 
 class RenderError(ValueError):
@@ -43,7 +116,7 @@ class RenderSettings:
 
     Attributes:
         size: (width, height) pixels.
-        shading: a key of `LOCAL_MODES`.
+        shading: a key of `SHADING_MODES`.
         exposure: linear multiplier applied before the tone curve.
         tonemap: a key of `TONEMAPS`.
         background: linear RGB shown where there is no surface.
@@ -55,6 +128,13 @@ class RenderSettings:
         shininess, specular: Blinn–Phong exponent and specular albedo (phong modes).
         env_rotation: (azimuth, elevation) degrees of the environment in "sh" mode
             (`baking.sh.rotation_from_az_el`); (0, 0) leaves it as loaded.
+        shadow_resolution: side of the key light's square shadow map, texels (shadow
+            modes).
+        fog_density: fog extinction per scene diagonal ("lambert_fog"): a fraction
+            T = exp(−fog_density · s / diagonal) of the surface's radiance reaches the eye,
+            s the eye distance beyond the near side of the scene's bounding sphere (see
+            `SurfaceRenderer.set_bounds`); the rest is fog of radiance background /
+            exposure, so distant surfaces fade into the displayed background.
     """
 
     size: tuple[int, int] = (512, 512)
@@ -71,6 +151,8 @@ class RenderSettings:
     shininess: float = 40.0
     specular: float = 0.12
     env_rotation: tuple[float, float] = (0.0, 0.0)
+    shadow_resolution: int = 2048
+    fog_density: float = 1.5
 
     def __post_init__(self) -> None:
         if self.shading not in SHADING_MODES and self.shading not in _DEBUG_MODES:
@@ -85,6 +167,11 @@ class RenderSettings:
             raise ValueError(f"image size {w}x{h} must be between 1 and 16384 per side")
         if not self.exposure > 0:
             raise ValueError(f"exposure must be positive, got {self.exposure:g}")
+        if not 16 <= self.shadow_resolution <= 16384:
+            raise ValueError(f"shadow resolution {self.shadow_resolution} must be between 16 "
+                             "and 16384 texels")
+        if not self.fog_density >= 0:
+            raise ValueError(f"fog density must be ≥ 0, got {self.fog_density:g}")
 
 
 def key_direction(camera: Camera, settings: RenderSettings) -> np.ndarray:
@@ -95,6 +182,53 @@ def key_direction(camera: Camera, settings: RenderSettings) -> np.ndarray:
     view = camera.view_matrix()[:3, :3]  # rows: right, up, back
     d = view.T @ np.array([-0.45, 0.6, 0.65])  # from above-left of the eye
     return d / np.linalg.norm(d)
+
+
+def light_view_proj(direction: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """(4, 4) world → clip transform of an orthographic view along −`direction` (unit,
+    towards the light) that encloses the sphere (`centre` (3,), `radius` world units).
+
+    Clip x, y span the sphere's silhouette; clip z runs from −1 at the sphere's point
+    nearest the light to +1 at the farthest, so depth is linear in world distance.
+    """
+    back = np.asarray(direction, np.float64)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(back[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    right = np.cross(helper, back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    view = np.eye(4)
+    view[0, :3], view[1, :3], view[2, :3] = right, up, back
+    view[:3, 3] = -view[:3, :3] @ np.asarray(centre, np.float64)
+    ortho = np.diag([1.0 / radius, 1.0 / radius, -1.0 / radius, 1.0])
+    return ortho @ view
+
+
+def occlusion_sky(lattice) -> np.ndarray:
+    """(3,) radiance L of the constant sky an occlusion lattice was baked under.
+
+    "vicinity" and "ao" read lattices baked with a constant sky, no bounces and no lights
+    (``isolume bake VOLUME --env constant:1,1,1 --bounces 0``): then E/(π·L) is the
+    cosine-weighted fraction of the sky a point sees, and albedo·E/π is vicinity shading.
+
+    Raises:
+        RenderError: for any other lattice.
+    """
+    config = lattice.meta.get("config") or {}
+    env, bounces, lights = config.get("env", ""), config.get("bounces"), config.get("lights")
+    constant = env.split(":", 1)[0] == "constant"
+    if lattice.kind != "irradiance" or not constant or bounces != 0 or lights:
+        raise RenderError(
+            "vicinity shading and ambient occlusion need an irradiance lattice baked under a "
+            "constant sky with no bounces and no lights (isolume bake VOLUME --env "
+            f"constant:1,1,1 --bounces 0); this one holds {lattice.kind} baked with env "
+            f"{env or 'none'!r}, bounces {bounces}, lights {list(lights or [])}")
+    from baking.environment import parse_env
+
+    sky = np.asarray(parse_env(env).rgb, np.float64)
+    if not (sky > 0).all():
+        raise RenderError(f"the lattice's sky {env!r} is black in some channel: no occlusion "
+                          "can be read from it")
+    return sky
 
 
 @dataclass
@@ -125,6 +259,25 @@ class _Targets:
             obj.release()
 
 
+@dataclass
+class _ShadowMap:
+    """The key light's depth map and what it was drawn for (`key`: mesh generation, light
+    direction, scene sphere)."""
+
+    depth: moderngl.Texture
+    fbo: moderngl.Framebuffer
+    view_proj: np.ndarray | None = None
+    key: tuple | None = None
+
+    @property
+    def resolution(self) -> int:
+        return self.depth.size[0]
+
+    def release(self) -> None:
+        self.fbo.release()
+        self.depth.release()
+
+
 class SurfaceRenderer:
     """Renders one isosurface mesh with the shading modes of this module."""
 
@@ -132,9 +285,13 @@ class SurfaceRenderer:
         self.ctx = ctx
         self._programs: dict[tuple[str, tuple], moderngl.Program] = {}
         self._mesh_objects: list = []
-        self._vao: moderngl.VertexArray | None = None
         self._triangles = 0
+        self._mesh_generation = 0
+        self._mesh_box: tuple[np.ndarray, np.ndarray] | None = None
+        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
+        self._iso: float | None = None
         self._targets: _Targets | None = None
+        self._shadow: _ShadowMap | None = None
         self.lattice: LatticeTextures | None = None
         self._env_coeffs: np.ndarray | None = None
         # Framebuffer 0 is always valid to bind; parking on it before freeing our targets
@@ -148,32 +305,56 @@ class SurfaceRenderer:
             d = dict(defines)
             if kind == "tonemap":
                 vs, fs = shaders.source("fullscreen.vert"), shaders.source("tonemap.frag", d)
+            elif kind == "shadow":
+                vs, fs = shaders.source("shadow.vert"), shaders.source("shadow.frag")
             else:
                 vs, fs = shaders.source("surface.vert"), shaders.source("surface.frag", d)
             self._programs[key] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
         return self._programs[key]
 
-    def set_mesh(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> None:
-        """Upload a mesh: (V, 3) float32 world positions, (V, 3) normals, (F, 3) indices."""
+    def set_mesh(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray,
+                 iso: float | None = None) -> None:
+        """Upload a mesh: (V, 3) float32 world positions, (V, 3) normals, (F, 3) indices;
+        `iso` is the isovalue it was extracted at (needed by "irradiance_closest")."""
         for obj in self._mesh_objects:
             obj.release()
-        self._mesh_objects, self._vao, self._triangles = [], None, len(faces)
+        self._mesh_objects, self._triangles = [], len(faces)
+        self._mesh_generation += 1
+        self._iso = None if iso is None else float(iso)
         if len(faces) == 0:
+            self._mesh_box = None
             return
+        self._mesh_box = (vertices.min(axis=0).astype(np.float64),
+                          vertices.max(axis=0).astype(np.float64))
         interleaved = np.hstack([vertices, normals]).astype(np.float32)
         vbo = self.ctx.buffer(interleaved.tobytes())
         ibo = self.ctx.buffer(np.ascontiguousarray(faces, np.uint32).tobytes())
         self._mesh_objects = [vbo, ibo]
         self._vertex_buffers = (vbo, ibo)
 
-    def set_lattice(self, lattice) -> None:
+    def set_bounds(self, lo, hi) -> None:
+        """Scene box (lo, hi), each (3,) world xyz, usually the volume's `box`: the shadow
+        map is fitted to its bounding sphere and fog starts at that sphere's near side and
+        is measured in its diagonal. Until set (or after `set_bounds(None, None)`), the
+        mesh's own bounding box is used, which changes with the isovalue."""
+        self._bounds = None if lo is None else (np.asarray(lo, np.float64),
+                                                np.asarray(hi, np.float64))
+
+    def scene_sphere(self) -> tuple[np.ndarray, float]:
+        """(centre (3,), radius) world units of the sphere around the scene box."""
+        lo, hi = self._bounds if self._bounds is not None else self._mesh_box
+        return (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+
+    def set_lattice(self, lattice, texel_isovalues: np.ndarray | None = None) -> None:
         """Upload an illumination lattice (`baking.Lattice`) for the lattice modes; None
-        removes it."""
+        removes it. `texel_isovalues` (Z, Y, X): the field value at each texel centre
+        (`baking.plan.texel_values(volume, lattice.geometry)`), needed by
+        "irradiance_closest"."""
         if self.lattice is not None:
             self.lattice.release()
             self.lattice = None
         if lattice is not None:
-            self.lattice = LatticeTextures(self.ctx, lattice)
+            self.lattice = LatticeTextures(self.ctx, lattice, texel_isovalues)
 
     def set_environment(self, coeffs: np.ndarray | None) -> None:
         """(n², 3) SH coefficients ℓ of the environment radiance for "sh" mode (as projected
@@ -184,13 +365,8 @@ class SurfaceRenderer:
         """(n², 3) environment coefficients rotated by the settings' env_rotation."""
         from baking import sh
 
-        if self._env_coeffs is None:
-            raise RenderError("shading 'sh' needs an environment (--env SPEC)")
         order = self.lattice.sh_order
         coeffs = self._env_coeffs[: order * order]
-        if coeffs.shape[0] < order * order:
-            raise RenderError(f"environment has {coeffs.shape[0]} SH coefficients, the lattice "
-                             f"needs {order * order}")
         r = sh.rotation_from_az_el(*settings.env_rotation)
         return sh.rotation(r, order) @ coeffs
 
@@ -204,6 +380,15 @@ class SurfaceRenderer:
         vao = self.ctx.vertex_array(program, [layout], index_buffer=ibo, index_element_size=4)
         self._mesh_objects.append(vao)
         return vao
+
+    def _draw_mesh(self, program: moderngl.Program) -> None:
+        """Draw the mesh's triangles with `program` (depth test on, both faces)."""
+        vao = self._mesh_vao(program)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        vao.render(moderngl.TRIANGLES)
+        self._mesh_objects.remove(vao)
+        vao.release()
 
     def _ensure_targets(self, size: tuple[int, int]) -> _Targets:
         if self._targets is not None and self._targets.size == size:
@@ -220,23 +405,96 @@ class SurfaceRenderer:
         self._targets = _Targets(size, hdr, color, ldr, [hdr, color, depth, ldr, ldr_color])
         return self._targets
 
+    def _ensure_shadow_map(self, resolution: int) -> _ShadowMap:
+        if self._shadow is not None and self._shadow.resolution == resolution:
+            return self._shadow
+        if self._shadow is not None:
+            self._default_fbo.use()
+            self._shadow.release()
+        depth = self.ctx.depth_texture((resolution, resolution))
+        depth.compare_func = "<="  # texture() returns the fraction with reference ≤ stored
+        depth.filter = (moderngl.LINEAR, moderngl.LINEAR)  # bilinear 2×2 comparisons
+        depth.repeat_x = depth.repeat_y = False
+        self._shadow = _ShadowMap(depth, self.ctx.framebuffer(depth_attachment=depth))
+        return self._shadow
+
     def release(self) -> None:
         """Free every GL object this renderer made."""
         for obj in self._mesh_objects:
             obj.release()
         self.set_lattice(None)
+        self._default_fbo.use()
         if self._targets is not None:
-            self._default_fbo.use()
             self._targets.release()
+        if self._shadow is not None:
+            self._shadow.release()
         for prog in self._programs.values():
             prog.release()
 
+    # -- modes -------------------------------------------------------------------------
+    def check_mode(self, shading: str) -> None:
+        """Raise RenderError unless `shading` can be drawn with what has been set (its
+        lattice, environment, texel isovalues and mesh isovalue)."""
+        mode = {**SHADING_MODES, **_DEBUG_MODES}[shading]
+        if mode.lattice is None:
+            return
+        if self.lattice is None:
+            raise RenderError(f"shading {shading!r} needs a lattice (--lattice FILE)")
+        want = "sh" if mode.lattice == "sh" else "irradiance"
+        if self.lattice.kind != want:
+            raise RenderError(f"shading {shading!r} needs an {want} lattice, this one holds "
+                              f"{self.lattice.kind}")
+        if mode.lattice == "occlusion":
+            occlusion_sky(self.lattice.lattice)
+        if mode.lookup == "closest" and (self.lattice.texel_iso is None or self._iso is None):
+            raise RenderError(f"shading {shading!r} needs the texel isovalues "
+                              "(set_lattice(..., texel_isovalues=...)) and the mesh's "
+                              "isovalue (set_mesh(..., iso=...))")
+        if shading == "sh":
+            self._check_environment()
+
+    def _check_environment(self) -> None:
+        if self._env_coeffs is None:
+            raise RenderError("shading 'sh' needs an environment (--env SPEC)")
+        order = self.lattice.sh_order
+        if self._env_coeffs.shape[0] < order * order:
+            raise RenderError(f"environment has {self._env_coeffs.shape[0]} SH coefficients, "
+                              f"the lattice needs {order * order}")
+
+    def _surface_program(self, shading: str) -> moderngl.Program:
+        """The compiled surface program for `shading` (checks what it needs)."""
+        self.check_mode(shading)
+        defines = {**SHADING_MODES, **_DEBUG_MODES}[shading].defines()
+        if shading == "sh":
+            defines += self.lattice.sh_defines()
+        return self._program("surface", defines)
+
     # -- drawing -----------------------------------------------------------------------
-    def _set_uniforms(self, prog: moderngl.Program, camera: Camera, s: RenderSettings) -> None:
+    def _draw_shadow_map(self, camera: Camera, settings: RenderSettings) -> _ShadowMap:
+        """The key light's depth map for this mesh, light and scene (redrawn on change)."""
+        shadow = self._ensure_shadow_map(settings.shadow_resolution)
+        centre, radius = self.scene_sphere()
+        light = key_direction(camera, settings)
+        key = (self._mesh_generation, tuple(light), tuple(centre), radius)
+        if shadow.key == key:
+            return shadow
+        shadow.view_proj = light_view_proj(light, centre, SHADOW_MARGIN * radius)
+        prog = self._program("shadow", ())
+        prog["u_light_view_proj"].write(shadow.view_proj.T.astype("f4").tobytes())
+        shadow.fbo.use()
+        self.ctx.clear(depth=1.0)
+        self._draw_mesh(prog)
+        shadow.key = key
+        return shadow
+
+    def _uniforms(self, camera: Camera, s: RenderSettings) -> dict:
+        """Uniform values of the surface shaders (each program takes those it declares)."""
         w, h = s.size
-        values = {
+        eye = np.asarray(camera.eye, np.float64)
+        centre, radius = self.scene_sphere()
+        return {
             "u_view_proj": camera.view_proj(w / h).T.astype("f4").tobytes(),
-            "u_eye": tuple(camera.eye),
+            "u_eye": tuple(eye),
             "u_albedo": s.albedo,
             "u_key_dir": tuple(key_direction(camera, s)),
             "u_key_irradiance": s.key_irradiance,
@@ -245,7 +503,15 @@ class SurfaceRenderer:
             "u_ground_irradiance": s.ground_irradiance,
             "u_shininess": s.shininess,
             "u_specular": s.specular,
+            "u_fog_density": s.fog_density / (2 * radius),
+            "u_fog_start": max(float(np.linalg.norm(centre - eye)) - radius, 0.0),
+            # the resolve pass shows the background unexposed: fog fades to what shows
+            "u_fog_color": tuple(np.asarray(s.background) / s.exposure),
+            "u_iso": self._iso if self._iso is not None else 0.0,
         }
+
+    @staticmethod
+    def _set_uniforms(prog: moderngl.Program, values: dict) -> None:
         for name, value in values.items():
             if name not in prog:
                 continue
@@ -254,39 +520,44 @@ class SurfaceRenderer:
             else:
                 prog[name].value = value
 
-    def _surface_program(self, shading: str) -> moderngl.Program:
-        """The compiled surface program for `shading` (checks the lattice it needs)."""
-        defines: tuple = (("SHADING", {**SHADING_MODES, **_DEBUG_MODES}[shading]),)
-        if shading in LATTICE_MODES:
-            if self.lattice is None:
-                raise RenderError(f"shading {shading!r} needs a lattice (--lattice FILE)")
-            want = "sh" if shading == "sh" else "irradiance"
-            if self.lattice.kind != want:
-                raise RenderError(f"shading {shading!r} needs an {want} lattice, this one holds "
-                                  f"{self.lattice.kind}")
-            if shading == "sh":
-                defines += self.lattice.sh_defines()
-        return self._program("surface", defines)
+    def _bind_shadow_map(self, prog: moderngl.Program, camera: Camera,
+                         settings: RenderSettings) -> None:
+        """Draw (if needed) and bind the key light's shadow map on texture unit 0."""
+        shadow = self._draw_shadow_map(camera, settings)
+        shadow.depth.use(location=0)
+        texel = 1.0 / shadow.resolution  # depth spans 2 radii over 2 radii of map: 1 texel
+        self._set_uniforms(prog, {
+            "u_shadow_map": 0,
+            "u_light_view_proj": shadow.view_proj.T.astype("f4").tobytes(),
+            "u_shadow_bias": (SHADOW_BIAS_TEXELS[0] * texel, SHADOW_BIAS_TEXELS[1] * texel),
+        })
+
+    def _prepared_program(self, camera: Camera, settings: RenderSettings) -> moderngl.Program:
+        """The surface program of the settings' mode with its uniforms set and its textures
+        bound (the shadow map drawn first if the mode needs it)."""
+        mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
+        prog = self._surface_program(settings.shading)
+        self._set_uniforms(prog, self._uniforms(camera, settings))
+        if mode.shadow:
+            self._bind_shadow_map(prog, camera, settings)
+        if mode.lattice is not None:
+            self.lattice.bind(prog)
+        if mode.lattice == "occlusion":
+            sky = occlusion_sky(self.lattice.lattice)
+            self._set_uniforms(prog, {"u_sky_radiance": tuple(sky)})  # "ao" reads it
+        if settings.shading == "sh":
+            light = self.lattice.light_uniform(self._sh_light(settings))
+            prog["u_light"].write(light.tobytes())
+        return prog
 
     def draw_hdr(self, camera: Camera, settings: RenderSettings) -> _Targets:
         """Draw the mesh in linear radiance into the HDR target (alpha 1 on the surface)."""
+        prog = self._prepared_program(camera, settings) if self._triangles else None
         targets = self._ensure_targets(settings.size)
         targets.hdr.use()
         self.ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        if self._triangles:
-            prog = self._surface_program(settings.shading)
-            self._set_uniforms(prog, camera, settings)
-            if settings.shading in LATTICE_MODES:
-                self.lattice.bind(prog)
-            if settings.shading == "sh":
-                light = self.lattice.light_uniform(self._sh_light(settings))
-                prog["u_light"].write(light.tobytes())
-            vao = self._mesh_vao(prog)
-            self.ctx.enable(moderngl.DEPTH_TEST)
-            self.ctx.disable(moderngl.CULL_FACE)
-            vao.render(moderngl.TRIANGLES)
-            self._mesh_objects.remove(vao)
-            vao.release()
+        if prog is not None:
+            self._draw_mesh(prog)
         return targets
 
     def resolve(self, targets: _Targets, settings: RenderSettings, fbo=None) -> None:

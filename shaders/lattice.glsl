@@ -1,8 +1,9 @@
-// Lattice lookup: world position -> texture coordinate -> hardware trilinear filtering.
+// Lattice lookup: world position -> texture coordinate -> the stored illumination.
 // The lattice spans the volume's world box [u_box_lo, u_box_lo + u_box_size]; GL places
 // texel centres at (i + 0.5) / n, exactly where the lattice's texel centres are, so the
 // mapping needs no half-texel correction. Textures hold values * valid; dividing by the
-// interpolated `valid` interpolates over computed texels only.
+// matching lookup of `valid` interpolates over computed texels only (every lookup below
+// returns the pair (value * w, w) for that reason).
 uniform sampler3D u_valid;       // 1 where the texel has been computed
 uniform vec3 u_box_lo;
 uniform vec3 u_box_size;
@@ -13,21 +14,136 @@ vec3 lattice_coord(vec3 world) {
     return (world - u_box_lo) / u_box_size;
 }
 
-// Baked radiance where the lattice is computed; elsewhere hemisphere-ambient Lambert with
-// a cool tint shows through, so unbaked regions are visible but still readable.
-vec3 lattice_blend(float w, vec3 irradiance_times_w, vec3 n, vec3 albedo) {
-    vec3 baked = albedo * max(irradiance_times_w / max(w, 1e-4), 0.0) / PI;
+// Baked radiance where the lattice is computed (w: weight of computed texels in the
+// lookup); elsewhere hemisphere-ambient Lambert with a cool tint shows through, so unbaked
+// regions are visible but still readable.
+vec3 lattice_blend(float w, vec3 baked, vec3 n, vec3 albedo) {
     vec3 fallback = UNBAKED_TINT * albedo * (hemisphere_irradiance(n) + 0.5 * u_key_irradiance
                     * max(dot(n, u_key_dir), 0.0)) / PI;
     return mix(fallback, baked, smoothstep(0.0, 0.25, w));
 }
 
-#if SHADING == 5
+#if SHADING == 5 || SHADING == 7
 uniform sampler3D u_irradiance;  // E * valid, GL_RGB9_E5
 
+// Continuous texel coordinates of `tc` (texel centres at integers, x y z order) and the
+// lower corner of the 2x2x2 texels around it, clamped like GL's CLAMP_TO_EDGE filtering.
+vec3 texel_coord(vec3 tc) {
+    return tc * vec3(textureSize(u_valid, 0)) - 0.5;
+}
+
+ivec3 cell_base(vec3 c) {
+    return clamp(ivec3(floor(c)), ivec3(0), textureSize(u_valid, 0) - 2);
+}
+
+ivec3 cell_corner(ivec3 base, int k) {  // corner k = x + 2 y + 4 z of the cell
+    return base + ivec3(k & 1, (k >> 1) & 1, (k >> 2) & 1);
+}
+
+// (E * w, w) of one texel.
+vec4 texel_pair(ivec3 t) {
+    return vec4(texelFetch(u_irradiance, t, 0).rgb, texelFetch(u_valid, t, 0).r);
+}
+
+#if LOOKUP == 0
+// Hardware trilinear filtering.
+vec4 irradiance_lookup(vec3 tc) {
+    return vec4(texture(u_irradiance, tc).rgb, texture(u_valid, tc).r);
+}
+#elif LOOKUP == 1
+// The computed texel, of the 8 around the point, whose centre is nearest (world distance).
+vec4 irradiance_lookup(vec3 tc) {
+    vec3 c = texel_coord(tc);
+    ivec3 base = cell_base(c);
+    vec3 texel_size = u_box_size / vec3(textureSize(u_valid, 0));
+    vec4 best = vec4(0.0);
+    float best_d2 = 1e30;
+    for (int k = 0; k < 8; ++k) {
+        ivec3 t = cell_corner(base, k);
+        vec4 pair = texel_pair(t);
+        vec3 d = (c - vec3(t)) * texel_size;
+        if (pair.w > 0.5 && dot(d, d) < best_d2) {
+            best = pair;
+            best_d2 = dot(d, d);
+        }
+    }
+    return best;
+}
+#elif LOOKUP == 2
+// The computed texel, of the 8 around the point, whose own isovalue rho(x_t) is closest to
+// the displayed isovalue (ties: the first in corner order x + 2 y + 4 z).
+uniform sampler3D u_texel_iso;  // rho at each texel centre, R32F
+uniform float u_iso;            // displayed isovalue
+
+vec4 irradiance_lookup(vec3 tc) {
+    ivec3 base = cell_base(texel_coord(tc));
+    vec4 best = vec4(0.0);
+    float best_gap = 1e30;
+    for (int k = 0; k < 8; ++k) {
+        ivec3 t = cell_corner(base, k);
+        vec4 pair = texel_pair(t);
+        float gap = abs(texelFetch(u_texel_iso, t, 0).r - u_iso);
+        if (pair.w > 0.5 && gap < best_gap) {
+            best = pair;
+            best_gap = gap;
+        }
+    }
+    return best;
+}
+#elif LOOKUP == 3
+// Uniform cubic B-spline of the texels (approximating, C2), as 8 trilinear fetches
+// (Sigg & Hadwiger, GPU Gems 2 ch. 20): along each axis the four weights w0..w3 of
+// texels i-1..i+2 pair up into two linear fetches of weight g0 = w0 + w1 at i - 1 +
+// w1 / g0 and g1 = w2 + w3 at i + 1 + w3 / g1. Texels past the edge repeat the edge
+// texel (GL's CLAMP_TO_EDGE), as in the 64-texel sum with clamped indices.
+vec4 irradiance_lookup(vec3 tc) {
+    vec3 size = vec3(textureSize(u_valid, 0));
+    vec3 c = texel_coord(tc);
+    vec3 i = floor(c);
+    vec3 a = c - i;
+    vec3 w0 = (1.0 - a) * (1.0 - a) * (1.0 - a) / 6.0;
+    vec3 w1 = (4.0 - 6.0 * a * a + 3.0 * a * a * a) / 6.0;
+    vec3 w3 = a * a * a / 6.0;
+    vec3 w2 = 1.0 - w0 - w1 - w3;
+    vec3 g[2] = vec3[2](w0 + w1, w2 + w3);
+    vec3 h[2] = vec3[2]((i - 1.0 + w1 / g[0] + 0.5) / size, (i + 1.0 + w3 / g[1] + 0.5) / size);
+    vec4 sum = vec4(0.0);
+    for (int k = 0; k < 8; ++k) {
+        ivec3 s = ivec3(k & 1, (k >> 1) & 1, (k >> 2) & 1);
+        vec3 p = vec3(h[s.x].x, h[s.y].y, h[s.z].z);
+        float weight = g[s.x].x * g[s.y].y * g[s.z].z;
+        sum += weight * vec4(texture(u_irradiance, p).rgb, texture(u_valid, p).r);
+    }
+    return sum;
+}
+#endif
+
+// E over the computed texels of the lookup, and their weight w.
+vec3 lattice_irradiance(vec3 world, out float w) {
+    vec4 pair = irradiance_lookup(lattice_coord(world));
+    w = pair.w;
+    return max(pair.rgb / max(w, 1e-4), 0.0);
+}
+#endif
+
+#if SHADING == 5
 vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
-    vec3 tc = lattice_coord(world);
-    return lattice_blend(texture(u_valid, tc).r, texture(u_irradiance, tc).rgb, n, albedo);
+    float w;
+    vec3 e = lattice_irradiance(world, w);
+    return lattice_blend(w, albedo * e / PI, n, albedo);
+}
+#endif
+
+#if SHADING == 7
+// Ambient occlusion: the lattice was baked under a constant sky of radiance u_sky_radiance
+// with no bounces, so A = E / (pi L_sky) is the cosine-weighted visible fraction of the
+// sky, in [0, 1]. It scales hemisphere-ambient Lambert (no key light, no headlight).
+uniform vec3 u_sky_radiance;
+
+vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
+    float w;
+    vec3 occlusion = lattice_irradiance(world, w) / (PI * u_sky_radiance);
+    return lattice_blend(w, albedo * occlusion * hemisphere_irradiance(n) / PI, n, albedo);
 }
 #endif
 
@@ -39,6 +155,8 @@ uniform vec4 u_light[3 * SH_TEXTURES];
 
 vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
     vec3 tc = lattice_coord(world);
-    return lattice_blend(texture(u_valid, tc).r, SH_IRRADIANCE(tc), n, albedo);
+    float w = texture(u_valid, tc).r;
+    vec3 e = max(SH_IRRADIANCE(tc) / max(w, 1e-4), 0.0);
+    return lattice_blend(w, albedo * e / PI, n, albedo);
 }
 #endif

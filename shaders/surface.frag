@@ -1,15 +1,32 @@
 #version 330 core
 // Shades the isosurface into a linear HDR target. SHADING selects the model:
 //   1 lambert, 2 phong, 3 lambert + hemisphere ambient, 4 phong + hemisphere ambient,
-//   5 lattice irradiance (albedo E / pi), 6 lattice SH transfer under a rotating
-//   environment, 9 world position (for tests and picking).
+//   5 lattice irradiance (albedo E / pi; also vicinity shading), 6 lattice SH transfer
+//   under a rotating environment, 7 ambient occlusion (lattice E / (pi L_sky) times
+//   hemisphere-ambient Lambert), 9 world position (for tests and picking).
+// Feature switches of the local models (1-4): SHADOW 1 shadow-maps the key light,
+// FOG 1 fades to the fog colour with eye distance. LOOKUP picks how irradiance lattices
+// (5, 7) are read: 0 trilinear, 1 nearest texel, 2 closest-isovalue texel, 3 B-spline.
+#ifndef SHADOW
+#define SHADOW 0
+#endif
+#ifndef FOG
+#define FOG 0
+#endif
+#ifndef LOOKUP
+#define LOOKUP 0
+#endif
 #include "lighting.glsl"
-#if SHADING == 5 || SHADING == 6
+#if SHADOW
+#include "shadow.glsl"
+#endif
+#if SHADING >= 5 && SHADING <= 7
 #include "lattice.glsl"
 #endif
 
 uniform vec3 u_eye;
 uniform vec3 u_albedo;
+uniform vec3 u_fog_color;  // radiance the fog fades to (the background before exposure)
 
 in vec3 v_world;
 in vec3 v_normal;
@@ -25,17 +42,26 @@ void main() {
     vec3 n = normalize(v_normal);
     // Local models light both sides of the surface: turn the normal towards the eye.
     if (dot(n, v) < 0.0) n = -n;
-#if SHADING == 5 || SHADING == 6
+#if SHADING >= 5 && SHADING <= 7
     frag_color = vec4(lattice_radiance(v_world, n, u_albedo), 1.0);
     return;
 #endif
-    vec3 e = lambert_irradiance(n, v);
+#if SHADOW
+    vec3 facet = normalize(cross(dFdx(v_world), dFdy(v_world)));
+    float visibility = key_visibility(v_world, facet);
+#else
+    float visibility = 1.0;
+#endif
+    vec3 e = lambert_irradiance(n, v, visibility);
 #if SHADING == 3 || SHADING == 4
     e += hemisphere_irradiance(n);
 #endif
     vec3 radiance = u_albedo * e / PI;
 #if SHADING == 2 || SHADING == 4
-    radiance += phong_radiance(n, v);
+    radiance += phong_radiance(n, v, visibility);
+#endif
+#if FOG
+    radiance = mix(u_fog_color, radiance, fog_transmittance(length(u_eye - v_world)));
 #endif
     frag_color = vec4(radiance, 1.0);
 }

@@ -100,20 +100,21 @@ def test_hemisphere_ambient_brightens_the_unlit_side(renderer):
     assert (hemi.linear[hemi.mask].mean()) > plain.linear[plain.mask].mean() + 0.05
 
 
-def _cli_render(tmp_path, backend):
+def _cli_render(tmp_path, backend, shading):
     out = tmp_path / f"{backend}.png"
     cmd = [sys.executable, "-m", "app.cli", "render", "synthetic:torus:40", "--size", "96x72",
-           "--gl", backend, "--out", str(out)]
+           "--gl", backend, "--shading", shading, "--out", str(out)]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     return result, out
 
 
-def test_egl_and_osmesa_agree(tmp_path):
+@pytest.mark.parametrize("shading", ["phong_hemi", "phong_shadow"])
+def test_egl_and_osmesa_agree(tmp_path, shading):
     """Same scene through EGL and OSMesa (both Mesa llvmpipe): at most 1/255 apart."""
-    egl, egl_png = _cli_render(tmp_path, "egl")
+    egl, egl_png = _cli_render(tmp_path, "egl", shading)
     if egl.returncode != 0:
         pytest.skip(f"EGL unavailable here: {egl.stderr.strip()}")
-    osm, osm_png = _cli_render(tmp_path, "osmesa")
+    osm, osm_png = _cli_render(tmp_path, "osmesa", shading)
     assert osm.returncode == 0, osm.stderr
     a = np.asarray(Image.open(egl_png), np.int16)
     b = np.asarray(Image.open(osm_png), np.int16)
