@@ -236,12 +236,12 @@ def test_level_approximation_error_shrinks_with_more_levels():
     from baking.trace import Scene
 
     vol = make("shells", 40)
-    samples = 256
+    samples = 128
     base = BakeConfig(samples=samples, bounces=1, env="constant:1,1,1")
     geometry = LatticeGeometry.for_volume(vol, 1.0)
     plan = make_plan(vol, geometry, base)
     rng = np.random.default_rng(5)
-    pick = np.sort(rng.choice(len(plan.ids), 16, replace=False))
+    pick = np.sort(rng.choice(len(plan.ids), 12, replace=False))
     exact, stderr = [], []
     lighting, settings = make_lighting(base), path_settings(vol, base)
     for pos in pick:
