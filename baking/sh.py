@@ -149,13 +149,7 @@ def _azimuthal_factors(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
     return out
 
 
-def _as_dirs(dirs: np.ndarray) -> np.ndarray:
-    d = np.asarray(dirs, dtype=np.float64)
-    if d.ndim == 1:
-        d = d[None, :]
-    if d.ndim != 2 or d.shape[1] != 3:
-        raise ValueError(f"directions must have shape (N, 3), got {d.shape}")
-    return d
+_as_dirs = _env._as_dirs  # one validation of (N, 3) direction arrays for both modules
 
 
 def basis(dirs: np.ndarray, order: int) -> np.ndarray:
