@@ -367,4 +367,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # run the imported module's main, so that command modules and this entry point share
+    # one set of error classes (under `python -m`, this file is a second copy, __main__)
+    from app.cli import main as _main
+
+    sys.exit(_main())

@@ -17,6 +17,14 @@ How many paths. Rounds of growing targets (4, 16, 64, ... up to the bake's sampl
 every texel of a group gets a first estimate before any gets refined. The stage order is
 visible@4, surface@4, visible@16, surface@16, ...
 
+Batches and level scenes. Each texel traces paths on its own isovalue's level surfaces
+(`baking.plan`), and the texels around one isosurface use almost every level: their values
+span the data's edge profile. A batch is one `Baker.run`, which sweeps the levels its
+texels use, building each level's scene once; batches are therefore large, and the bake
+keeps every level scene it can afford (`scene_cache_size`) so that later batches and rounds
+build none. Texels are committed level by level within a batch (and shown at once), and a
+new view interrupts a batch between two levels.
+
 Re-targeting. A new view (isovalue, eye, visible cells) rebuilds the stages; texels already
 at a stage's target are skipped, so finished work is kept — a texel's value holds for its
 own isosurface whatever isovalue is displayed, which is the point of the method.
@@ -37,8 +45,12 @@ FIRST_TARGET = 4
 """Paths per texel of the first round: enough for a recognisable estimate."""
 TARGET_FACTOR = 4
 """Each round multiplies the target by this (halves the noise)."""
-BATCH_PATHS = 32768
-"""Paths per batch: about 0.1–0.5 s of tracing, so a new view is picked up quickly."""
+BATCH_PATHS = 1 << 18
+"""Paths per batch (one `Baker.run`, a sweep over the isovalue levels its texels use).
+Large, because every batch visits every level it touches; a new view still interrupts a
+batch between two levels."""
+SCENE_BYTES_PER_TRIANGLE = 100
+"""Rough memory of one triangle of a level scene (mesh arrays and Embree's BVH)."""
 
 
 # -- geometry of the texels the display needs ---------------------------------------------
@@ -169,6 +181,22 @@ def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) 
     with np.errstate(divide="ignore", invalid="ignore"):
         se = np.sqrt(var / np.maximum(n, 1)) / np.maximum(np.abs(lum), 1e-12)
     return np.where(n > 1, se, np.inf)
+
+
+def scene_cache_size(volume, iso: float, levels: int, budget_bytes: float) -> int:
+    """How many level scenes a lazy bake may keep alive: all `levels` if they fit in
+    `budget_bytes`, else as many as fit (at least 4).
+
+    The texels around one isosurface use almost every level (their values span the edge
+    profile of the data), so a lazy bake that revisits them round after round should not
+    rebuild scenes. A level's scene is estimated from the displayed surface: two triangles
+    per voxel face crossed by ρ = iso.
+    """
+    data = volume.data
+    inside = data > iso
+    crossed = sum(int(np.count_nonzero(np.diff(inside, axis=a))) for a in range(3))
+    per_scene = max(1, 2 * crossed) * SCENE_BYTES_PER_TRIANGLE
+    return int(np.clip(budget_bytes // per_scene, 4, max(4, levels)))
 
 
 # -- the scheduler -------------------------------------------------------------------------
@@ -332,6 +360,7 @@ class ServeStats:
     paths: int = 0
     seconds: float = 0.0
     views: int = 0
+    interrupted: int = 0
     started: float = field(default_factory=time.perf_counter)
 
 
@@ -345,7 +374,8 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
 
     Messages out (through `send`): ``("texels", flat_ids)`` after texels were committed to
     the lattice (the renderer re-uploads them), ``("progress", Progress, stats_dict)`` after
-    every batch and when a view is done.
+    every batch and when a view is done, ``("paused", bool)`` acknowledging a pause/resume
+    (nothing is written to the lattice between a ``("paused", True)`` and the next resume).
 
     Args:
         baker: a `baking.bake.Baker` whose lattice the display reads.
@@ -354,9 +384,18 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
     stats = ServeStats()
     paused = False
     ids = baker.plan.ids
+    waiting: list = []  # messages that arrived during a batch
 
     def committed(positions: np.ndarray) -> None:
         send(("texels", ids[positions]))
+        message = receive(False)
+        if message is not None:
+            waiting.append(message)
+            if message == "stop" or isinstance(message, View) or message == "pause":
+                raise _Retarget  # Baker.run drops the unfinished pass of the batch
+
+    def next_message(block: bool):
+        return waiting.pop(0) if waiting else receive(block)
 
     def report() -> None:
         send(("progress", scheduler.progress(), _stats_dict(baker, stats)))
@@ -366,10 +405,9 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
         nonlocal paused
         if message is None or message == "stop":
             return False
-        if message == "pause":
-            paused = True
-        elif message == "resume":
-            paused = False
+        if message in ("pause", "resume"):
+            paused = message == "pause"
+            send(("paused", paused))
         elif isinstance(message, View):
             scheduler.set_view(message.iso, np.asarray(message.eye), message.visible)
             stats.views += 1
@@ -377,32 +415,49 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
         return True
 
     while True:
-        message = receive(False)
-        while message is not None:  # drain: only the latest view matters, but apply all
-            if not handle(message):
+        waiting_now = []
+        message = next_message(False)
+        while message is not None:
+            waiting_now.append(message)
+            message = next_message(False)
+        # control messages in order; of several views only the latest matters
+        views = [m for m in waiting_now if isinstance(m, View)]
+        for message in waiting_now:
+            if not isinstance(message, View) and not handle(message):
                 return stats
-            message = receive(False)
+        if views and not handle(views[-1]):
+            return stats
         batch = None if paused or scheduler.iso is None else scheduler.next_batch()
         if batch is None:
             if scheduler.iso is not None and not paused:
                 report()
                 if stop_when_done:
                     return stats
-            if not handle(receive(True)):
+            if not handle(next_message(True)):
                 return stats
             continue
         t0 = time.perf_counter()
         before = int(baker.samples_done(batch.positions).sum())
-        baker.run(batch.positions, batch.target, after_level=committed)
+        try:
+            baker.run(batch.positions, batch.target, after_level=committed)
+        except _Retarget:
+            stats.interrupted += 1
         stats.paths += int(baker.samples_done(batch.positions).sum()) - before
         stats.seconds += time.perf_counter() - t0
         stats.batches += 1
         report()
 
 
+class _Retarget(KeyboardInterrupt):
+    """Raised from `Baker.run`'s commit callback when a message needs the loop: the baker
+    treats it as an interrupt (committed texels stay, the cut pass of the others is
+    dropped whole), and `serve` picks up the message."""
+
+
 def _stats_dict(baker, stats: ServeStats) -> dict:
     """JSON-ready counters for the progress display."""
     return {"batches": stats.batches, "paths": stats.paths, "seconds": stats.seconds,
+            "interrupted": stats.interrupted,
             "rays": int(baker.stats.rays), "trace_seconds": float(baker.stats.trace_seconds),
             "scene_seconds": float(baker.stats.scene_seconds),
             "elapsed": time.perf_counter() - stats.started}

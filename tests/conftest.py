@@ -19,13 +19,21 @@ def shared_file(*parts: str) -> Path:
 
 
 @pytest.fixture(scope="session")
-def gl():
+def _gl_session():
     """One OSMesa context for the whole session (tests run on OSMesa, as CI does)."""
     from app.glcontext import create_headless
 
     context = create_headless("osmesa")
-    yield context.ctx
+    yield context
     context.release()
+
+
+@pytest.fixture
+def gl(_gl_session):
+    """The session's OSMesa context, current on this thread (a test may have made its own
+    context current, e.g. through the CLI)."""
+    _gl_session.make_current()
+    return _gl_session.ctx
 
 
 @pytest.fixture

@@ -1,0 +1,246 @@
+"""Lazy baking: which texels first (geometry), in what order, how many paths, re-targeting."""
+
+import queue
+
+import numpy as np
+import pytest
+
+import volumes
+from baking.config import BakeConfig
+from baking.lattice import LatticeGeometry
+from baking.lazy import (
+    LazyScheduler,
+    View,
+    by_distance,
+    cell_index,
+    corner_offsets,
+    footprint_positions,
+    positions_of,
+    relative_error,
+    sample_targets,
+    serve,
+    surface_positions,
+    visible_cells,
+)
+from baking.plan import make_plan
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    """A 24³ sphere (iso 0.5, radius 0.35 around the origin), its lattice and plan."""
+    vol = volumes.load("synthetic:sphere:24")
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    plan = make_plan(vol, geometry, BakeConfig(samples=8))
+    return vol, geometry, plan
+
+
+def _brute_surface_texels(plan, shape, iso):
+    """Flat ids of active corners of cells (all corners active) whose values straddle iso,
+    by looping over every cell."""
+    z, y, x = shape
+    rho = np.full(z * y * x, np.nan)
+    rho[plan.ids] = plan.rho
+    rho = rho.reshape(shape)
+    out = set()
+    for k in range(z - 1):
+        for j in range(y - 1):
+            for i in range(x - 1):
+                corners = rho[k:k + 2, j:j + 2, i:i + 2]
+                if np.isnan(corners).any():
+                    continue
+                if corners.min() <= iso <= corners.max():
+                    for dk in (0, 1):
+                        for dj in (0, 1):
+                            for di in (0, 1):
+                                out.add(((k + dk) * y + j + dj) * x + i + di)
+    return np.array(sorted(out))
+
+
+def test_sample_targets_grow_and_end_at_the_bake_samples():
+    assert sample_targets(100) == (4, 16, 64, 100)
+    assert sample_targets(256) == (4, 16, 64, 256)
+    assert sample_targets(4) == (4,)
+    assert sample_targets(1) == (1,)
+    with pytest.raises(ValueError):
+        sample_targets(0)
+
+
+def test_corner_offsets_address_the_cell_corners():
+    shape = (3, 4, 5)
+    grid = np.arange(60).reshape(shape)
+    assert sorted(corner_offsets(shape) + grid[1, 2, 3]) == sorted(grid[1:3, 2:4, 3:5].ravel())
+
+
+def test_surface_texels_are_the_corners_of_cells_straddling_the_isovalue(sphere):
+    _, geometry, plan = sphere
+    cells = cell_index(plan, geometry.shape)
+    for iso in (0.3, 0.5, 0.7):
+        got = plan.ids[surface_positions(plan, cells, iso)]
+        want = _brute_surface_texels(plan, geometry.shape, iso)
+        np.testing.assert_array_equal(got, want)
+
+
+def test_surface_texels_surround_the_sphere(sphere):
+    """Every surface texel lies within one texel diagonal of the iso 0.5 sphere (r = 0.35)."""
+    _, geometry, plan = sphere
+    pos = surface_positions(plan, cell_index(plan, geometry.shape), 0.5)
+    r = np.linalg.norm(geometry.centres(plan.ids[pos]), axis=1)
+    diag = np.linalg.norm(geometry.texel_size)
+    assert len(pos) > 500
+    assert np.abs(r - 0.35).max() < diag
+
+
+def test_visible_footprint_holds_the_trilinear_corners(sphere):
+    """The texels a lookup at p reads are the corners of the cell containing p."""
+    _, geometry, plan = sphere
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(200, 3))
+    points = 0.35 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    cells = visible_cells(geometry, points)
+    pos = footprint_positions(plan, geometry.shape, cells)
+    got = set(plan.ids[pos].tolist())
+    coords = geometry.to_texel_coords(points)  # (z, y, x), centres at integers
+    for c in coords:
+        base = np.floor(c).astype(int)
+        for corner in np.ndindex(2, 2, 2):
+            k, j, i = base + np.array(corner)
+            flat = (k * geometry.shape[1] + j) * geometry.shape[2] + i
+            assert flat in got or len(positions_of(plan, np.array([flat]))) == 0
+
+
+def test_by_distance_sorts_nearest_first(sphere):
+    _, geometry, plan = sphere
+    pos = surface_positions(plan, cell_index(plan, geometry.shape), 0.5)
+    eye = np.array([0.0, -2.0, 0.5])
+    ordered = by_distance(plan, geometry, pos, eye)
+    d = np.linalg.norm(geometry.centres(plan.ids[ordered]) - eye, axis=1)
+    assert np.all(np.diff(d) >= 0)
+    assert sorted(ordered) == sorted(pos)
+
+
+class FakeBaker:
+    """Stands in for `Baker.run`: sets the sample counts of a batch to its target."""
+
+    def __init__(self, plan, samples):
+        self.plan, self.samples = plan, samples
+
+    def bake(self, batch):
+        flat = self.plan.ids[batch.positions]
+        self.samples[flat] = np.maximum(self.samples[flat], batch.target)
+
+
+def _scheduler(sphere, max_samples=16, batch_paths=400):
+    _, geometry, plan = sphere
+    samples = np.zeros(int(np.prod(geometry.shape)), np.uint32)
+    sched = LazyScheduler(plan, geometry, samples, max_samples=max_samples,
+                          batch_paths=batch_paths)
+    return sched, FakeBaker(plan, samples), samples
+
+
+def test_scheduler_bakes_visible_then_surface_nearest_first_in_rounds(sphere):
+    _, geometry, plan = sphere
+    sched, baker, _ = _scheduler(sphere)
+    eye = np.array([0.0, -2.0, 0.0])
+    # visible: the hemisphere facing the eye
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    front = 0.35 * d[d[:, 1] < -0.3]
+    sched.set_view(0.5, eye, visible_cells(geometry, front))
+    assert 0 < len(sched.visible) < len(sched.surface)
+    batches, paths = [], []
+    while (batch := sched.next_batch()) is not None:
+        batches.append(batch)
+        paths.append(int((batch.target - sched.samples_at(batch.positions)).sum()))
+        baker.bake(batch)
+    groups = [(b.group, b.target) for b in batches]
+    # stage order, each stage contiguous
+    stages = list(dict.fromkeys(groups))
+    assert stages == [("visible", 4), ("surface", 4), ("visible", 16), ("surface", 16)]
+    # within the first stage, texels come nearest first
+    first = np.concatenate([b.positions for b in batches if b.group == "visible"
+                            and b.target == 4])
+    d = np.linalg.norm(geometry.centres(plan.ids[first]) - eye, axis=1)
+    assert np.all(np.diff(d) >= -1e-12)
+    # the surface round skips what the visible round already did
+    surface4 = np.concatenate([b.positions for b in batches if (b.group, b.target)
+                               == ("surface", 4)])
+    assert not np.isin(surface4, first).any()
+    # batches respect the path budget (one texel may exceed it alone)
+    for b, n in zip(batches, paths, strict=True):
+        assert n <= 400 or len(b.positions) == 1
+    progress = sched.progress()
+    assert progress.visible_fraction == 1.0 and progress.surface_fraction == 1.0
+    assert progress.stage is None and progress.visible_min_samples == 16
+
+
+def test_retargeting_keeps_finished_texels(sphere):
+    """Move the isovalue: texels shared by both surfaces are not baked again."""
+    _, _, plan = sphere
+    sched, baker, samples = _scheduler(sphere, max_samples=4)
+    eye = np.array([2.0, 0.0, 0.0])
+    sched.set_view(0.5, eye)
+    while (batch := sched.next_batch()) is not None:
+        baker.bake(batch)
+    done_before = samples.copy()
+    sched.set_view(0.45, eye)
+    redone = []
+    while (batch := sched.next_batch()) is not None:
+        redone.append(plan.ids[batch.positions])
+        baker.bake(batch)
+    redone = np.concatenate(redone)
+    assert (done_before[redone] == 0).all()
+    shared = np.intersect1d(plan.ids[sched.surface], np.flatnonzero(done_before))
+    assert len(shared) > 0 and not np.isin(shared, redone).any()
+
+
+def test_relative_error_matches_the_standard_error_formula():
+    values = np.array([[1.0, 1.0, 1.0], [2.0, 2.0, 2.0], [1.0, 1.0, 1.0]])
+    # per-path luminance samples with variance known: mean 1, second moment 1.25 -> var .25
+    second = np.array([1.25, 4.0, 1.0])
+    n = np.array([101, 10, 1])
+    err = relative_error(values, second, n)
+    assert err[0] == pytest.approx(np.sqrt(0.25 * 101 / 100 / 101), rel=1e-9)
+    assert err[1] == 0.0
+    assert np.isinf(err[2])
+
+
+def test_serve_bakes_the_view_with_the_real_baker(sphere):
+    """End to end on a tiny volume: every surface texel reaches the target, texels come
+    nearer-first, and committed ids are announced."""
+    from baking.bake import Baker
+
+    vol, geometry, _ = sphere
+    config = BakeConfig(samples=4, bounces=0)
+    baker = Baker(vol, config, workers=2, scene_cache=64)
+    plan = baker.plan
+    sched = LazyScheduler(plan, geometry, baker.lattice.samples.reshape(-1), max_samples=4,
+                          batch_paths=600)
+    inbox, sent = queue.Queue(), []
+    eye = (0.0, -2.0, 0.3)
+    inbox.put(View(0.5, eye, None))
+
+    def receive(block):
+        try:
+            return inbox.get(block=block, timeout=5 if block else None)
+        except queue.Empty:
+            return None
+
+    try:
+        stats = serve(baker, sched, receive, sent.append, stop_when_done=True)
+    finally:
+        baker.close()
+    samples = baker.lattice.samples.reshape(-1)
+    surface = plan.ids[sched.surface]
+    assert (samples[surface] >= 4).all()
+    texels = [m[1] for m in sent if m[0] == "texels"]
+    announced = np.concatenate(texels)
+    assert np.isin(surface, announced).all()
+    # the first announced texels are nearer the eye than the last ones
+    d_first = np.linalg.norm(geometry.centres(texels[0]) - eye, axis=1).mean()
+    d_last = np.linalg.norm(geometry.centres(texels[-1]) - eye, axis=1).mean()
+    assert d_first < d_last
+    assert stats.batches >= 2 and stats.paths >= 4 * len(surface)
+    final = [m for m in sent if m[0] == "progress"][-1][1]
+    assert final.surface_fraction == 1.0 and final.stage is None
+    assert (baker.lattice.values.reshape(-1, 3)[surface] > 0).all()

@@ -1,0 +1,329 @@
+"""The interactive viewer: scripted sessions in a real window under Xvfb, surfaces off the
+render thread, lazy-bake uploads equal to the lattice, controls."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import volumes
+from app.images import read_exr
+
+ROOT = Path(__file__).resolve().parents[1]
+RGB9E5_RELATIVE = 2.0**-9
+"""RGB9_E5 keeps 9 mantissa bits of the largest channel: rounding error ≤ 2⁻⁹ of it."""
+
+
+# -- a display for the window -------------------------------------------------------------
+def _free_display() -> int:
+    for n in range(90, 200):
+        if not Path(f"/tmp/.X{n}-lock").exists() and not Path(f"/tmp/.X11-unix/X{n}").exists():
+            return n
+    raise RuntimeError("no free X display number in :90-:199")
+
+
+@pytest.fixture(scope="module")
+def display():
+    """DISPLAY of an Xvfb server started for these tests (skipped when Xvfb cannot run)."""
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        pytest.skip("Xvfb is not installed (Debian: apt-get install xvfb)")
+    n = _free_display()
+    proc = subprocess.Popen([xvfb, f":{n}", "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    socket = Path(f"/tmp/.X11-unix/X{n}")
+    for _ in range(100):
+        if socket.exists() or proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    if not socket.exists():
+        proc.kill()
+        err = proc.stderr.read().decode(errors="replace")[-300:] if proc.stderr else ""
+        pytest.skip(f"Xvfb :{n} did not start: {err.strip()}")
+    yield f":{n}"
+    proc.terminate()
+    proc.wait(5)
+
+
+def _view(args, env_display, cwd, timeout=120):
+    """Run ``isolume view ARGS`` in a subprocess (as the console script does)."""
+    env = dict(os.environ)
+    env.pop("WAYLAND_DISPLAY", None)
+    if env_display is None:
+        env.pop("DISPLAY", None)
+    else:
+        env["DISPLAY"] = env_display
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    cmd = [sys.executable, "-c", "import sys; from app.cli import main; sys.exit(main())",
+           "view", *args]
+    return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def _png(path) -> np.ndarray:
+    return np.asarray(Image.open(path), float)
+
+
+def _surface(path):
+    """(linear RGB (H, W, 3), mask (H, W)) of a screenshot's EXR (0 off the surface)."""
+    rgb = read_exr(path)["RGB"]
+    return rgb, rgb.max(axis=-1) > 0
+
+
+# -- scripted sessions in a real window ---------------------------------------------------
+SESSION = """
+wait-mesh
+screenshot base.png
+exposure 2.5
+screenshot bright.png
+exposure 1
+light 200 -30
+screenshot light.png
+light camera
+iso 0.7
+wait-mesh
+screenshot iso.png
+iso 0.3
+wait-mesh
+mode irradiance
+wait-bake 1.0 60
+check-lattice
+screenshot irradiance.png
+window-shot window.png
+quit
+"""
+
+
+def test_scripted_session_changes_what_it_should(display, tmp_path):
+    (tmp_path / "s.txt").write_text(SESSION)
+    run = _view(["synthetic:engine:48", "--shading", "phong_hemi", "--size", "320x240",
+                 "--bake-samples", "4", "--script", "s.txt", "--stats", "stats.json",
+                 "--lattice", "lazy.npz"], display, tmp_path)
+    assert run.returncode == 0, run.stderr
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    base, mask = _surface(tmp_path / "base.exr")
+    assert (tmp_path / "base.png").exists() and mask.mean() > 0.1
+    # exposure scales the displayed image, not the linear radiance
+    srgb = {n: _png(tmp_path / f"{n}.png") for n in ("base", "bright")}
+    assert srgb["bright"][mask].mean() > srgb["base"][mask].mean() + 20
+    np.testing.assert_allclose(_surface(tmp_path / "bright.exr")[0], base, atol=1e-6)
+    # a light from below-behind darkens what the camera light lit
+    lit, lit_mask = _surface(tmp_path / "light.exr")
+    assert (lit_mask == mask).all()
+    assert lit[mask].mean() < 0.8 * base[mask].mean()
+    # another isovalue, another silhouette
+    _, iso_mask = _surface(tmp_path / "iso.exr")
+    union, inter = (mask | iso_mask).sum(), (mask & iso_mask).sum()
+    assert inter / union < 0.97
+    # global illumination from the lazily baked lattice differs from local shading and
+    # the uploaded textures hold the lattice's values
+    gi, gi_mask = _surface(tmp_path / "irradiance.exr")
+    assert (gi_mask == mask).all()
+    assert np.abs(gi[mask] - base[mask]).mean() > 0.05
+    (check,) = stats["checks"]
+    assert check["texels"] > 0 and check["valid_mismatch"] == 0
+    assert check["max_rel_error"] <= RGB9E5_RELATIVE and check["uncomputed_nonzero"] == 0
+    progress = stats["bake"]["progress"]
+    assert progress["surface_started"] == progress["surface"] > 0
+    # the panel is drawn over the picture in the window, not in the screenshots
+    window, shot = _png(tmp_path / "window.png"), _png(tmp_path / "irradiance.png")
+    assert window.shape == shot.shape
+    assert np.abs(window[:60, :120] - shot[:60, :120]).mean() > 10
+    # the lattice was saved on exit; shown again from the file, it gives the same picture
+    from baking.lattice import Lattice
+
+    saved = Lattice.load(tmp_path / "lazy.npz", volumes.load("synthetic:engine:48"))
+    assert (saved.samples > 0).sum() == check["texels"]
+    assert saved.active.sum() > check["texels"]  # the plan's active texels, for resuming
+    again = _view(["synthetic:engine:48", "--lattice", "lazy.npz", "--no-bake", "--no-ui",
+                   "--size", "320x240", "--frames", "1", "--screenshot", "again.png"],
+                  display, tmp_path)
+    assert again.returncode == 0, again.stderr
+    np.testing.assert_array_equal(_surface(tmp_path / "again.exr")[0], gi)
+
+
+def test_frames_keep_coming_while_the_full_surface_is_extracted(display, tmp_path):
+    """A 160³ volume: the isovalue change shows a preview first, and frames are drawn
+    until the full-resolution surface replaces it."""
+    (tmp_path / "s.txt").write_text("wait-mesh\niso 0.42\nwait-mesh\nquit\n")
+    run = _view(["synthetic:sphere:160", "--no-bake", "--size", "256x192", "--script", "s.txt",
+                 "--stats", "stats.json"], display, tmp_path)
+    assert run.returncode == 0, run.stderr
+    change = json.loads((tmp_path / "stats.json").read_text())["extractions"][-1]
+    assert change["iso"] == pytest.approx(0.42)
+    assert change["coarse_s"] < change["full_s"]
+    assert change["frames"] >= 3, change
+    assert change["max_gap_ms"] < 1000 * change["full_s"], change
+
+
+def test_no_display_names_the_off_screen_alternative(monkeypatch, capsys):
+    from app.cli import main
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["view", "synthetic:sphere:16", "--frames", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "isolume render" in err and err.count("\n") == 1
+
+
+def test_bad_script_fails_before_a_window_opens(tmp_path, monkeypatch, capsys):
+    from app.cli import main
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    (tmp_path / "s.txt").write_text("iso 0.5\nmode toon\n")
+    assert main(["view", "synthetic:sphere:16", "--script", str(tmp_path / "s.txt")]) == 2
+    assert "s.txt:2: unknown shading mode 'toon'" in capsys.readouterr().err
+
+
+# -- surfaces off the render thread -------------------------------------------------------
+def test_slab_extraction_matches_whole_volume_marching_cubes():
+    from app.viewer import extract_surface
+
+    vol = volumes.load("synthetic:engine:64")
+    for step in (1, 2):
+        whole = volumes.isosurface(vol, 0.3, step_size=step)
+        slabs = extract_surface(vol, 0.3, step=step)
+
+        def triangles(mesh):
+            t = np.sort(np.round(mesh.vertices[mesh.faces].reshape(-1, 9), 5), axis=0)
+            return t[np.lexsort(t.T[::-1])]
+
+        assert len(slabs.faces) == len(whole.faces)
+        np.testing.assert_allclose(triangles(slabs), triangles(whole), atol=1e-5)
+    # smooth normals as volumes computes them, and cheap mesh normals agreeing with them
+    n = volumes.normals_at(vol, slabs.vertices)
+    np.testing.assert_allclose(slabs.normals, n, atol=1e-6)
+    coarse = extract_surface(vol, 0.3, step=2, normals="mesh")
+    smooth = volumes.normals_at(vol, coarse.vertices)
+    assert np.median((coarse.normals * smooth).sum(axis=1)) > 0.95
+    assert extract_surface(vol, 0.3, cancelled=lambda: True) is None
+    assert extract_surface(vol, 0.0).empty
+
+
+def test_preview_step_grows_with_the_surface():
+    from app.viewer import PREVIEW_TARGET_TRIANGLES, preview_step
+
+    assert preview_step(None) == 2 and preview_step(1000) == 2
+    assert preview_step(9 * PREVIEW_TARGET_TRIANGLES) == 3
+    assert preview_step(100 * PREVIEW_TARGET_TRIANGLES) == 4
+
+
+def test_mesh_worker_drops_stale_isovalues():
+    from app.viewer import MeshWorker
+
+    worker = MeshWorker(volumes.load("synthetic:shells:96"))
+    try:
+        worker.request(0.3)
+        worker.request(0.6)
+        results = []
+        deadline = time.time() + 30
+        while time.time() < deadline and not any(r.stage == "full" for r in results):
+            results += worker.poll()
+            time.sleep(0.01)
+    finally:
+        worker.close()
+    assert results and all(r.iso == 0.6 for r in results)
+    assert [r.stage for r in results][-1] == "full"
+
+
+# -- uploads of lazily baked texels -------------------------------------------------------
+def test_uploaded_regions_equal_the_lattice(gl):
+    """Texels changed after the upload reach the GL textures block by block, within the
+    RGB9_E5 precision; untouched and uncomputed texels stay as they were."""
+    from app.lattice_gl import LatticeTextures
+    from app.viewer import TexelUploader, check_textures
+    from baking.lattice import Lattice, LatticeGeometry
+
+    geometry = LatticeGeometry((13, 17, 21), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    lattice = Lattice.empty(geometry, 3, {"kind": "irradiance"})
+    rng = np.random.default_rng(3)
+    textures = LatticeTextures(gl, lattice)
+    uploader = TexelUploader(textures)
+    flat = rng.choice(lattice.samples.size, 900, replace=False)
+    values = lattice.values.reshape(-1, 3)
+    values[flat] = rng.uniform(0.01, 4.0, (900, 3)) * rng.uniform(0.1, 10.0, (900, 1))
+    lattice.samples.reshape(-1)[flat] = rng.integers(1, 64, 900)
+    uploader.mark(flat)
+    assert uploader.pending > 0
+    while uploader.pending:
+        uploader.upload(budget_s=0.0)  # one block per call
+    result = check_textures(textures)
+    assert result["texels"] == 900 and result["valid_mismatch"] == 0
+    assert result["max_rel_error"] <= RGB9E5_RELATIVE
+    assert result["uncomputed_nonzero"] == 0
+    # a texel changed but not marked is not re-uploaded
+    values[flat[0]] *= 2
+    assert check_textures(textures)["max_rel_error"] > 0.4
+    textures.release()
+    assert gl.error == "GL_NO_ERROR"
+
+
+# -- controls ------------------------------------------------------------------------------
+def test_camera_and_light_controls():
+    from app.camera import Camera
+    from app.ui import (
+        angles_from_direction,
+        direction_from_angles,
+        drag_target,
+        orbit,
+        pan,
+        zoom,
+    )
+
+    cam = Camera(azimuth=10, elevation=80)
+    assert orbit(cam, 20, 30).elevation == 89.5 and orbit(cam, 355, 0).azimuth == 5
+    assert zoom(cam, 2).distance == pytest.approx(cam.distance / 2)
+    assert zoom(cam, 1e-6).distance == 20.0
+    assert pan(cam, 0.1, -0.2).pan == (0.1, -0.2)
+    for az, el in [(0, 0), (45, 30), (200, -60)]:
+        assert angles_from_direction(direction_from_angles(az, el)) == pytest.approx(
+            (az if az <= 180 else az - 360, el))
+    # the light at the camera's angles points to the eye
+    cam = Camera(azimuth=45, elevation=30)
+    eye_dir = (cam.eye - cam.center) / np.linalg.norm(cam.eye - cam.center)
+    np.testing.assert_allclose(direction_from_angles(45, 30), eye_dir, atol=1e-12)
+    assert drag_target(0, False, False) == "rotate"
+    assert drag_target(0, True, False) == "pan" and drag_target(2, False, False) == "pan"
+    assert drag_target(0, False, True) == "light" and drag_target(1, False, False) == "light"
+    assert drag_target(5, False, False) is None
+
+
+def test_keys_map_to_actions():
+    import glfw
+
+    from app.ui import Action, key_action
+
+    modes = ("lambert", "phong", "irradiance")
+    assert key_action(glfw, glfw.KEY_RIGHT, 0, modes) == Action("iso_step", 1)
+    assert key_action(glfw, glfw.KEY_LEFT, glfw.MOD_SHIFT, modes) == Action("iso_step", -10)
+    assert key_action(glfw, glfw.KEY_3, 0, modes) == Action("mode", "irradiance")
+    assert key_action(glfw, glfw.KEY_4, 0, modes) is None
+    assert key_action(glfw, glfw.KEY_F12, 0, modes) == Action("screenshot")
+    assert key_action(glfw, glfw.KEY_P, 0, modes) == Action("screenshot")
+    assert key_action(glfw, glfw.KEY_R, 0, modes) == Action("reset_camera")
+    assert key_action(glfw, glfw.KEY_EQUAL, 0, modes) == Action("exposure_by", 1.25)
+    assert key_action(glfw, glfw.KEY_ESCAPE, 0, modes) == Action("quit")
+    assert key_action(glfw, glfw.KEY_Z, 0, modes) is None
+
+
+def test_interactive_quality_backs_off_then_recovers():
+    from app.viewer import INTERACTIVE_MS, RENDER_SCALES, Quality
+
+    q = Quality()
+    q.adapt(5 * INTERACTIVE_MS, full_triangles=500_000)
+    assert q.coarse and q.scale == 1.0  # the preview mesh first
+    for _ in range(10):
+        q.adapt(5 * INTERACTIVE_MS, full_triangles=500_000)
+    assert q.scale == RENDER_SCALES[-1]
+    q.adapt(0.1 * INTERACTIVE_MS, full_triangles=500_000)
+    assert q.scale == RENDER_SCALES[-2]
+    small = Quality()
+    small.adapt(5 * INTERACTIVE_MS, full_triangles=1000)
+    assert not small.coarse and small.scale < 1.0  # a small mesh gains nothing from it
