@@ -892,9 +892,9 @@ def _figure(ncols: int = 1):
 
 def _subtitle(record: dict) -> str:
     s, r = record["settings"], record["reference"]
-    return (f"{s['volume']} iso {s['iso']:.4g}, {s['env']}, {s['bounces']} bounces, "
-            f"{s['size'][0]}x{s['size'][1]} px; reference {r['spp']} spp, noise "
-            f"{r['noise']:.2%}")
+    return (f"{Path(s['volume']).name} iso {s['iso']:.4g}, {s['env']}, {s['bounces']} bounces, "
+            f"albedo {s['albedo']:g}\n{s['size'][0]}x{s['size'][1]} px; reference {r['spp']} "
+            f"spp, noise {r['noise']:.2%} ({'meets' if r['holds'] else 'misses'} the 1/4 rule)")
 
 
 def _finish(plt, fig, record: dict, path: Path) -> None:
@@ -909,11 +909,13 @@ def _noise_line(ax, record: dict) -> None:
                label="reference noise")
 
 
-def _plain_log_ticks(ax) -> None:
-    """Log axes labelled 0.1, 1, 10 (not 10⁻¹ ...), without minor labels."""
-    from matplotlib.ticker import FuncFormatter, NullFormatter
+def _plain_log_ticks(ax, axes: str = "xy") -> None:
+    """Log axes ticked at 1, 2, 5 × 10ⁿ and labelled 0.1, 0.2, 0.5 (not 10⁻¹ ...)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    for axis in (ax.xaxis, ax.yaxis):
+    for name in axes:
+        axis = ax.xaxis if name == "x" else ax.yaxis
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=30))
         axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
         axis.set_minor_formatter(NullFormatter())
 
@@ -1019,6 +1021,7 @@ def plot_shading_modes(record: dict, path: Path) -> None:
     floor = 1e-6  # exact images (error 0) still get a visible bar on the log axis
     ax.barh(rows, [max(m["error"], floor) for m in modes], color=colours)
     ax.set_xscale("log")
+    _plain_log_ticks(ax, "x")
     ax.set_yticks(rows, [m["mode"] for m in modes], fontsize=8)
     for r, m in zip(rows, modes, strict=True):
         ax.annotate(_percent(m["error"]), (max(m["error"], floor), r), fontsize=7,
