@@ -446,6 +446,22 @@ def texture_bytes(lattice, lookup: str = "trilinear") -> int:
     return texels * (8 * per_group * groups + 1)
 
 
+def lattice_coverage(lattice, mesh) -> dict:
+    """How much of the displayed surface `lattice` covers, from the trilinear weight w of
+    its computed texels at the (V, 3) mesh vertices (what the shader divides by):
+    "surface_uncovered" is the fraction with w < 0.25, where the shader shows mostly its
+    local fallback (``lattice_blend`` in ``lattice.glsl``), "surface_partly_covered" the
+    fraction with some uncomputed neighbour (w < 1)."""
+    from baking.lattice import trilinear
+
+    if mesh.empty:
+        return {"surface_uncovered": None, "surface_partly_covered": None}
+    valid = lattice.computed[..., None].astype(np.float32)
+    w = trilinear(valid, lattice.geometry.to_texel_coords(mesh.vertices))[:, 0]
+    return {"surface_uncovered": float(np.mean(w < 0.25)),
+            "surface_partly_covered": float(np.mean(w < 0.999))}
+
+
 # -- GL ---------------------------------------------------------------------------------
 class GLScene:
     """One headless context, renderer, mesh and camera for every image of a run."""
@@ -664,6 +680,16 @@ class Run:
         """The lattice of the base config with `changes` (e.g. samples, mode, scale)."""
         return self.store.get(dataclasses.replace(self.config, **changes))
 
+    def summary(self, baked: Baked) -> dict:
+        """`Baked.summary` plus how much of the displayed surface the lattice covers."""
+        coverage = lattice_coverage(baked.lattice, self.gl.mesh)
+        if (coverage["surface_uncovered"] or 0) > 0.01:
+            config = baked.lattice.meta["config"]
+            _say(f"warning: the {config['mode']} lattice x{config['scale']:g} leaves "
+                 f"{coverage['surface_uncovered']:.1%} of the surface's vertices without "
+                 "computed texels (the renderer shows its local fallback there)")
+        return {**baked.summary(), **coverage}
+
     def render(self, key: str, shading: str, lattice=None) -> str:
         """Render `shading` into ``images[key]``; returns `key`."""
         self.images[key] = self.gl.render(shading, lattice)
@@ -702,7 +728,7 @@ def chart_bake_time(run: Run) -> Chart:
             shading = "sh" if changes["mode"] == "sh" else "irradiance"
             key = run.render(f"bake_time/{label}/{n}", shading, baked.lattice)
             points.append({"samples": n, "seconds": baked.seconds, "image": key,
-                           **baked.summary()})
+                           **run.summary(baked)})
         series[label] = points
     targets = [(f"{label}@{p['samples']}", p["seconds"])
                for label, points in series.items() for p in points]
@@ -718,7 +744,7 @@ def chart_resolution(run: Run) -> Chart:
         baked = run.lattice(samples=run.plan.chart_samples, scale=scale)
         key = run.render(f"resolution/{scale:g}", "irradiance", baked.lattice)
         points.append({"scale": scale, "memory_bytes": texture_bytes(baked.lattice),
-                       "image": key, **baked.summary()})
+                       "image": key, **run.summary(baked)})
     return Chart("chart2_resolution", "error and memory against lattice resolution "
                  "(paper Fig. 12)", {"points": points, "samples": run.plan.chart_samples})
 
@@ -738,11 +764,11 @@ def chart_lookup_normals(run: Run) -> Chart:
     for label, changes in NORMAL_SCHEMES.items():
         baked = run.lattice(samples=run.plan.chart_samples, **changes)
         key = run.render(f"normals/{label}", "irradiance", baked.lattice)
-        normals.append({"scheme": label, **changes, "image": key, **baked.summary()})
+        normals.append({"scheme": label, **changes, "image": key, **run.summary(baked)})
     return Chart("chart3_lookup_normals", "error per lattice lookup (paper Fig. 6) and per "
                  "normal scheme (paper Fig. 5)",
                  {"lookups": lookups, "normals": normals, "samples": run.plan.chart_samples,
-                  "bake": base.summary()})
+                  "bake": run.summary(base)})
 
 
 def _mode_lattice(run: Run, mode) -> Baked | None:
@@ -776,7 +802,7 @@ def chart_shading_modes(run: Run) -> Chart:
             "frame_ms_std": 1e3 * float(seconds.std()), "draws": len(seconds),
             "memory_bytes": 0 if lattice is None else texture_bytes(lattice, mode.lookup),
             "lattice": None if baked is None else {
-                "config": lattice.meta["config"], **baked.summary()},
+                "config": lattice.meta["config"], **run.summary(baked)},
         })
     return Chart("chart4_shading_modes", "error and frame time of every shading mode "
                  "(paper Table 2)", {
@@ -958,12 +984,15 @@ def plot_resolution(record: dict, path: Path) -> None:
     mem.plot(scales, [p["memory_bytes"] / 2**20 for p in pts], "s-", color="C1")
     mem.set_yscale("log")
     mem.set_ylabel("GL texture memory, MiB (RGB9_E5 + valid mask)")
-    for p in pts:
-        ax.annotate(_percent(p["error"]), (p["scale"], p["error"]), fontsize=8,
-                    xytext=(4, 4), textcoords="offset points")
+    for i, p in enumerate(pts):
+        last = i == len(pts) - 1  # label the rightmost point on its left: stays inside
+        where = {"xytext": (-4 if last else 4, 4), "textcoords": "offset points",
+                 "ha": "right" if last else "left", "fontsize": 8}
+        uncovered = p.get("surface_uncovered") or 0.0
+        note = f"\n({uncovered:.0%} of the surface uncovered)" if uncovered > 0.01 else ""
+        ax.annotate(_percent(p["error"]) + note, (p["scale"], p["error"]), **where)
         mem.annotate(f"{p['memory_bytes'] / 2**20:.3g} MiB, bake {p['bake_seconds']:.3g} s",
-                     (p["scale"], p["memory_bytes"] / 2**20), fontsize=8, xytext=(4, 4),
-                     textcoords="offset points")
+                     (p["scale"], p["memory_bytes"] / 2**20), **where)
     for a in (ax, mem):
         a.set_xscale("log", base=2)
         a.set_xticks(scales, [f"{s:g}x" for s in scales])

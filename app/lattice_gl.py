@@ -69,12 +69,12 @@ class LatticeTextures:
         self.lattice = lattice
         self.kind = lattice.kind
         z, y, x = lattice.geometry.shape
-        self.valid = ctx.texture3d((x, y, z), 1, self._valid_bytes(lattice.samples), dtype="f1")
+        shown = lattice.shown()
+        self.valid = ctx.texture3d((x, y, z), 1, self._valid_bytes(shown), dtype="f1")
         self.sh_order = self.sh_groups = self.sh_textures = 0
         if self.kind == "irradiance":
             self.irradiance = ctx.texture3d((x, y, z), 3, dtype="f4")
-            store_rgb9e5(ctx, self.irradiance,
-                         self._premultiplied(lattice.values, lattice.samples))
+            store_rgb9e5(ctx, self.irradiance, self._premultiplied(lattice.values, shown))
             self.textures = [self.irradiance]
         elif self.kind == "sh":
             self.sh_order = int(lattice.meta["sh_order"])
@@ -103,13 +103,14 @@ class LatticeTextures:
         return tex
 
     @staticmethod
-    def _premultiplied(values: np.ndarray, samples: np.ndarray) -> np.ndarray:
-        return np.where(samples[..., None] > 0, values, 0).astype(np.float32)
+    def _premultiplied(values: np.ndarray, shown: np.ndarray) -> np.ndarray:
+        """(…, C) float32 values times the (…) bool mask of texels shown."""
+        return np.where(shown[..., None], values, 0).astype(np.float32)
 
     def _sh_groups(self, z0: int, z1: int) -> list[np.ndarray]:
         """(z, y, x, 4) float16 arrays, one per texture: τ·valid, four coefficients each."""
         lat = self.lattice
-        values = self._premultiplied(lat.values[z0:z1], lat.samples[z0:z1])
+        values = self._premultiplied(lat.values[z0:z1], lat.shown(np.s_[z0:z1]))
         n2 = self.sh_order**2
         values = values.reshape(*values.shape[:3], n2, -1)  # (..., n², 1 or 3)
         padded = np.zeros((*values.shape[:3], self.sh_textures * 4, values.shape[-1]),
@@ -127,8 +128,8 @@ class LatticeTextures:
             tex.write(data.tobytes(), viewport=(0, 0, z0, x, y, z1 - z0))
 
     @staticmethod
-    def _valid_bytes(samples: np.ndarray) -> bytes:
-        return np.where(samples > 0, 255, 0).astype(np.uint8).tobytes()
+    def _valid_bytes(shown: np.ndarray) -> bytes:
+        return np.where(shown, 255, 0).astype(np.uint8).tobytes()
 
     def update(self, z0: int, z1: int) -> None:
         """Re-upload slabs z0 ≤ z < z1 of the lattice (after a lazy bake filled them); the
@@ -136,12 +137,13 @@ class LatticeTextures:
         lat = self.lattice
         _, y, x = lat.geometry.shape
         viewport = (0, 0, z0, x, y, z1 - z0)
+        shown = lat.shown(np.s_[z0:z1])
         if self.kind == "irradiance":
-            values = self._premultiplied(lat.values[z0:z1], lat.samples[z0:z1])
+            values = self._premultiplied(lat.values[z0:z1], shown)
             self.irradiance.write(values.tobytes(), viewport=viewport)
         else:
             self._write_sh(z0, z1)
-        self.valid.write(self._valid_bytes(lat.samples[z0:z1]), viewport=viewport)
+        self.valid.write(self._valid_bytes(shown), viewport=viewport)
 
     def bind(self, program: moderngl.Program) -> None:
         """Bind the textures (valid on unit 1, the rest from unit 2, texel isovalues last)

@@ -393,13 +393,12 @@ class SharedLattice:
     def __init__(self, lattice, blocks: list, owner: bool) -> None:
         self.lattice, self.blocks, self.owner = lattice, blocks, owner
 
-    ARRAYS = ("values", "samples", "second", "active")
-
     @staticmethod
     def _layout(geometry, channels: int) -> dict[str, tuple[tuple, str]]:
         shape = tuple(geometry.shape)
         return {"values": ((*shape, channels), "float32"), "samples": (shape, "uint32"),
-                "second": (shape, "float32"), "active": (shape, "bool")}
+                "second": (shape, "float32"), "active": (shape, "bool"),
+                "first": (shape, "uint8")}
 
     @classmethod
     def create(cls, geometry, channels: int, meta: dict, source=None) -> SharedLattice:
@@ -414,10 +413,11 @@ class SharedLattice:
             block = shared_memory.SharedMemory(create=True, size=size)
             blocks.append(block)
             arr = np.ndarray(shape, dtype, buffer=block.buf)
-            arr[...] = 0 if source is None else getattr(source, name)
+            copied = None if source is None else getattr(source, name)
+            arr[...] = 0 if copied is None else copied
             arrays[name] = arr
         lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                          arrays["active"], dict(meta))
+                          arrays["active"], dict(meta), first=arrays["first"])
         return cls(lattice, blocks, owner=True)
 
     def describe(self) -> dict:
@@ -446,7 +446,7 @@ class SharedLattice:
             blocks.append(block)
             arrays[name] = np.ndarray(shape, dtype, buffer=block.buf)
         lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                          arrays["active"], dict(description["meta"]))
+                          arrays["active"], dict(description["meta"]), first=arrays["first"])
         return cls(lattice, blocks, owner=False)
 
     def snapshot(self):
@@ -454,8 +454,10 @@ class SharedLattice:
         from baking.lattice import Lattice
 
         lat = self.lattice
-        return Lattice(lat.geometry, lat.values.copy(), lat.samples.copy(), lat.second.copy(),
-                       lat.active.copy(), json.loads(json.dumps(lat.meta)))
+        samples = lat.samples.copy()
+        values = np.where(samples[..., None] > 0, lat.values, 0).astype(np.float32)
+        return Lattice(lat.geometry, values, samples, lat.second.copy(), lat.active.copy(),
+                       json.loads(json.dumps(lat.meta)))
 
     def close(self) -> None:
         """Drop the arrays and release (and, as owner, unlink) the blocks."""
@@ -507,23 +509,12 @@ def _bake_main(job: dict, inbox, outbox) -> None:
     try:
         from baking.bake import Baker
         from baking.config import BakeConfig
-        from baking.lazy import LazyScheduler, scene_cache_size, serve
+        from baking.lazy import LazyScheduler, View, scene_cache_size, serve
+        from baking.preview import drop_inactive, first_estimates
 
         shared = SharedLattice.attach(job["lattice"])
         volume = volumes.Volume(**job["volume"])
         config = BakeConfig.from_dict(job["config"])
-        t0 = time.perf_counter()
-        cache = scene_cache_size(volume, job["iso"], config.max_levels, scene_budget())
-        active = shared.lattice.active  # the Baker replaces the lattice's attribute
-        baker = Baker(volume, config, lattice=shared.lattice, workers=job["workers"],
-                      scene_cache=cache)
-        active[...] = baker.plan.active
-        baker.lattice.active = active
-        outbox.put(("ready", {"seconds": time.perf_counter() - t0,
-                              "active": len(baker.plan.ids), "levels": len(baker.plan.levels),
-                              "scene_cache": cache, "meta": baker.lattice.meta}))
-        scheduler = LazyScheduler(baker.plan, baker.geometry, shared.lattice.samples.reshape(-1),
-                                  max_samples=config.samples, batch_paths=job["batch_paths"])
         parent = multiprocessing.parent_process()
 
         def receive(block: bool):
@@ -536,8 +527,56 @@ def _bake_main(job: dict, inbox, outbox) -> None:
                     if parent is not None and not parent.is_alive():
                         return "stop"
 
+        def first_light(view) -> None:
+            """First estimates of the visible texels on the displayed surface."""
+            if view.visible is None or not len(view.visible):
+                return
+            t = time.perf_counter()
+            flat = first_estimates(volume, config, shared.lattice, view.iso, view.visible,
+                                   workers=job["workers"] or os.cpu_count() or 1,
+                                   only_active=planned)
+            if len(flat):
+                outbox.put(("texels", flat))
+            outbox.put(("first", {"iso": view.iso, "texels": len(flat),
+                                  "seconds": time.perf_counter() - t}))
+
+        # the first view's visible texels get first estimates before the plan is made
+        planned = False
+        early = []
+        message = receive(True)
+        while message is not None and not isinstance(message, View) and message != "stop":
+            early.append(message)
+            message = receive(True)
+        if message is None or message == "stop":
+            return
+        early.append(message)
+        first_light(message)
+        t0 = time.perf_counter()
+        cache = scene_cache_size(volume, job["iso"], config.max_levels, scene_budget())
+        active = shared.lattice.active  # the Baker replaces the lattice's attribute
+        baker = Baker(volume, config, lattice=shared.lattice, workers=job["workers"],
+                      scene_cache=cache)
+        active[...] = baker.plan.active
+        baker.lattice.active = active
+        planned = True
+        stale = drop_inactive(shared.lattice)
+        if len(stale):
+            outbox.put(("texels", stale))
+        outbox.put(("ready", {"seconds": time.perf_counter() - t0,
+                              "active": len(baker.plan.ids), "levels": len(baker.plan.levels),
+                              "scene_cache": cache, "meta": baker.lattice.meta}))
+        scheduler = LazyScheduler(baker.plan, baker.geometry, shared.lattice.samples.reshape(-1),
+                                  max_samples=config.samples, batch_paths=job["batch_paths"])
+
+        def receive_early_first(block: bool):
+            return early.pop(0) if early else receive(block)
+
+        def on_view(view) -> None:
+            if view is not message:  # the first view has had its first estimates
+                first_light(view)
+
         try:
-            serve(baker, scheduler, receive, outbox.put)
+            serve(baker, scheduler, receive_early_first, outbox.put, on_view=on_view)
         finally:
             baker.close()
     except Exception as exc:
@@ -577,6 +616,7 @@ class BakeLink:
         self.paused = False
         self.paused_ack = False
         self.history: list[tuple[float, object]] = []
+        self.first: list[tuple[float, dict]] = []  # (seconds since start, figures) per pass
 
     def send_view(self, view) -> None:
         self.inbox.put(view)
@@ -605,6 +645,8 @@ class BakeLink:
                 self.ready = message[1]
             elif kind == "paused":
                 self.paused_ack = message[1]
+            elif kind == "first":
+                self.first.append((time.perf_counter() - self.started, message[1]))
             elif kind == "error":
                 self.error = message[1]
         if self.error is None and self.ready is None and not self.process.is_alive():
@@ -632,10 +674,10 @@ def upload_box(textures, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> 
     (irradiance premultiplied by validity, and validity), as `LatticeTextures` stores them."""
     lat = textures.lattice
     (z0, y0, x0), (z1, y1, x1) = lo, hi
-    samples = lat.samples[z0:z1, y0:y1, x0:x1]
+    shown = lat.shown(np.s_[z0:z1, y0:y1, x0:x1])
     values = lat.values[z0:z1, y0:y1, x0:x1, :3]
-    premultiplied = np.where(samples[..., None] > 0, values, 0).astype(np.float32)
-    valid = np.where(samples > 0, 255, 0).astype(np.uint8)
+    premultiplied = np.where(shown[..., None], values, 0).astype(np.float32)
+    valid = np.where(shown, 255, 0).astype(np.uint8)
     viewport = (x0, y0, z0, x1 - x0, y1 - y0, z1 - z0)
     textures.irradiance.write(premultiplied.tobytes(), viewport=viewport, alignment=4)
     textures.valid.write(valid.tobytes(), viewport=viewport, alignment=1)
@@ -694,17 +736,20 @@ def check_textures(textures) -> dict:
     """Read the GL textures back and compare them with the lattice.
 
     Returns:
-        {"texels": computed texels, "max_rel_error": largest |GL − lattice| / max(RGB) over
-        computed texels (RGB9_E5 keeps 9 mantissa bits: ≤ 2⁻⁹ when rounding),
-        "valid_mismatch": texels whose validity differs, "uncomputed_nonzero": uncomputed
-        texels with a non-zero value}; SH lattices: the validity only.
+        {"texels": texels shown (computed or with a first estimate), "computed": texels
+        with samples, "max_rel_error":
+        largest |GL − lattice| / max(RGB) over those texels (RGB9_E5 keeps 9 mantissa
+        bits: ≤ 2⁻⁹ when rounding),
+        "valid_mismatch": texels whose validity differs, "uncomputed_nonzero": texels not
+        shown with a non-zero value}; SH lattices: the validity only.
     """
     lat = textures.lattice
     z, y, x = lat.geometry.shape
     gl_valid = np.frombuffer(textures.valid.read(), np.uint8).reshape(z, y, x)
-    computed = lat.samples > 0
+    computed = lat.shown()
     if textures.kind != "irradiance":  # SH packing is LatticeTextures' own: validity only
-        return {"texels": int(computed.sum()), "max_rel_error": None,
+        return {"texels": int(computed.sum()), "computed": int((lat.samples > 0).sum()),
+                "max_rel_error": None,
                 "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
                 "uncomputed_nonzero": None}
     gl_rgb = np.frombuffer(textures.irradiance.read(), np.float32).reshape(z, y, x, 3)
@@ -712,7 +757,7 @@ def check_textures(textures) -> dict:
     got = gl_rgb[computed].astype(np.float64)
     scale = np.maximum(want.max(axis=1, keepdims=True), 1e-30)
     rel = np.abs(got - want) / scale
-    return {"texels": int(computed.sum()),
+    return {"texels": int(computed.sum()), "computed": int((lat.samples > 0).sum()),
             "max_rel_error": float(rel.max()) if len(rel) else 0.0,
             "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
             "uncomputed_nonzero": int((gl_rgb[~computed] != 0).any(axis=-1).sum())}

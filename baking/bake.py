@@ -10,6 +10,7 @@ running the same bake again resumes where it stopped.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import time
@@ -22,7 +23,7 @@ import numpy as np
 
 import volumes
 
-from . import rng
+from . import kernels, rng
 from .config import BakeConfig
 from .errors import BakeError
 from .integrator import Lighting, PathSettings, trace_paths
@@ -101,11 +102,15 @@ class _Accumulator:
         self.n[positions] = 0
 
 
-def _commit(lattice: Lattice, plan: Plan, acc: _Accumulator, positions: np.ndarray) -> None:
-    """Merge the pass sums of texels `positions` into the lattice's running means."""
+def _commit(lattice: Lattice, plan: Plan, acc: _Accumulator, positions: np.ndarray) -> int:
+    """Merge the pass sums of texels `positions` into the lattice's running means.
+
+    Returns:
+        how many of them had no sample before.
+    """
     positions = positions[acc.n[positions] > 0]
     if len(positions) == 0:
-        return
+        return 0
     flat = plan.ids[positions]
     values = lattice.values.reshape(-1, lattice.values.shape[-1])
     samples = lattice.samples.reshape(-1)
@@ -116,10 +121,18 @@ def _commit(lattice: Lattice, plan: Plan, acc: _Accumulator, positions: np.ndarr
     second[flat] = (second[flat] * old + acc.second[positions]) / new
     samples[flat] = new.astype(np.uint32)
     acc.clear(positions)
+    return int(np.count_nonzero(old == 0))
 
 
-def _luminance(estimates: np.ndarray, irradiance: bool) -> np.ndarray:
-    return estimates[:, :3] @ LUMINANCE if irradiance else estimates[:, 0]
+def _luminance_weights(channels: int, irradiance: bool) -> np.ndarray:
+    """(C,) weights of the brightness whose variance the error estimates use: luminance
+    of RGB irradiance, the DC coefficient of SH transfer."""
+    weights = np.zeros(channels)
+    if irradiance:
+        weights[:3] = LUMINANCE
+    else:
+        weights[0] = 1.0
+    return weights
 
 
 def _chunk_bounds(pos: np.ndarray):
@@ -195,7 +208,9 @@ class Baker:
         self.lighting = make_lighting(config)
         self.plan = make_plan(volume, self.geometry, config)
         self.lattice.active = self.plan.active
+        kernels.warm_up()
         self.stats = BakeStats()
+        self.texels_done = int(np.count_nonzero(self.samples_done()))
         self.previous = dict(self.lattice.meta.get("stats", {}))
         self._acc = _Accumulator(len(self.plan.ids), self.settings.channels)
         self._pool = ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1))
@@ -229,18 +244,28 @@ class Baker:
         if len(busy) == 0:
             return
         first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
-        carry = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        by_lower = _group_by(plan.lower[busy], busy, first, last)
+        jobs: list = []
         try:
+            # Pipelined: while the workers trace one level, this thread lays out the paths
+            # and start points of the next; only the level scene is built in between.
+            work, carry = self._prepare_level(first, by_lower[0], done, remaining, None)
             for level in range(first, last + 1):
-                carry = self._bake_level(level, busy, done, remaining, carry, bar)
+                jobs = self._submit_level(work)
+                if level < last:
+                    work, carry = self._prepare_level(level + 1, by_lower[level + 1 - first],
+                                                      done, remaining, carry)
+                self._collect(jobs, level, bar)
+                jobs = []
                 # a texel's pass is complete once its upper level is done
-                complete = busy[plan.lower[busy] + 1 <= level]
+                complete = by_lower[level - first - 1] if level > first else busy[:0]
                 complete = complete[self._acc.n[complete] > 0]
                 if len(complete):
-                    _commit(self.lattice, plan, self._acc, complete)
+                    self.texels_done += _commit(self.lattice, plan, self._acc, complete)
                     if after_level is not None:
                         after_level(complete)
-        except KeyboardInterrupt:
+        except BaseException:
+            _cancel(jobs)
             self._acc.clear(busy)
             raise
         finally:
@@ -261,65 +286,81 @@ class Baker:
         self._scenes[level] = scene
         return scene
 
-    def _bake_level(self, level: int, busy: np.ndarray, done: np.ndarray,
-                    remaining: np.ndarray, carry: tuple, bar) -> tuple:
-        """Trace every pending path assigned to isovalue level `level`.
+    def _prepare_level(self, level: int, lower_here: np.ndarray, done: np.ndarray,
+                       remaining: np.ndarray, carry: tuple | None):
+        """Lay out every pending path of isovalue level `level`, sorted by texel, with
+        the start points of its texels.
 
-        The pending samples of the texels whose lower level is `level` are expanded here,
-        once; those assigned to the upper level are handed on to the next level, and
-        `carry` holds the ones the previous level handed on.
+        The pending samples of the texels whose lower level is `level` (`lower_here`) are
+        expanded here, once; those assigned to the upper level are handed on to the next
+        level, and `carry` holds the ones the previous level handed on.
 
         Returns:
-            (positions, samples): the paths that go to level + 1.
+            (the level's `_LevelWork`, (positions, samples) of the paths for level + 1).
         """
         plan = self.plan
-        pos, samples = _pending_samples(busy[plan.lower[busy] == level], done, remaining)
+        pos, samples = _pending_samples(lower_here, done, remaining)
         upper = plan.on_upper(pos, samples)
         handed_on = (pos[upper], samples[upper])
-        pos = np.concatenate([carry[0], pos[~upper]])
-        samples = np.concatenate([carry[1], samples[~upper]])
-        if len(pos):
-            order = np.argsort(pos, kind="stable")  # group paths by texel, samples ascending
-            self._trace_level(level, pos[order], samples[order], bar)
-        return handed_on
+        if carry is not None:
+            pos = np.concatenate([carry[0], pos[~upper]])
+            samples = np.concatenate([carry[1], samples[~upper]])
+        else:
+            pos, samples = pos[~upper], samples[~upper]
+        order = np.argsort(pos, kind="stable")  # group paths by texel, samples ascending
+        pos, samples = pos[order], samples[order]
+        texels = pos[_texel_starts(pos)]
+        origins, normals = start_points(self.volume, self.geometry.centres(plan.ids[texels]),
+                                        float(plan.levels[level]), self.config)
+        start = _PathStarts(texels, origins.astype(np.float32), normals.astype(np.float32))
+        return _LevelWork(level, pos, samples, start), handed_on
 
-    def _trace_level(self, level: int, pos: np.ndarray, samples: np.ndarray, bar) -> None:
-        """Trace the paths (texel positions `pos`, sorted, and sample indices) on `level`."""
-        plan = self.plan
-        iso = float(plan.levels[level])
+    def _submit_level(self, work: _LevelWork) -> list:
+        """Build the level's scene (timed as scene time) and queue its chunks of paths.
+
+        Workers add their per-texel sums straight into the pass accumulator: the chunks
+        of one level hold disjoint texels, and a texel is committed only after its last
+        level has been collected.
+        """
+        if len(work.pos) == 0:
+            return []
         t0 = time.perf_counter()
-        scene = self._scene(level)
-        texels = np.unique(pos)
-        centres = self.geometry.centres(plan.ids[texels])
-        origins, normals = start_points(self.volume, centres, iso, self.config)
+        scene = self._scene(work.level)
         self.stats.scene_seconds += time.perf_counter() - t0
-        jobs = []
-        for lo, hi in _chunk_bounds(pos):
-            rows = np.searchsorted(texels, pos[lo:hi])
-            jobs.append(self._pool.submit(
-                _trace_chunk, scene, plan, pos[lo:hi], samples[lo:hi], origins[rows],
-                normals[rows], self.lighting, self.settings, self.config.seed))
-        try:
-            for job in jobs:
-                self._collect(job.result(), level, bar)
-        except BaseException:
-            for job in jobs:
-                job.cancel()
-            raise
+        return [self._pool.submit(_trace_chunk, scene, self.plan, work.pos[lo:hi],
+                                  work.samples[lo:hi], work.start, self.lighting,
+                                  self.settings, self.config.seed, self._acc)
+                for lo, hi in _chunk_bounds(work.pos)]
 
-    def _collect(self, result, level: int, bar) -> None:
-        positions, sums, second, n, rays, seconds = result
-        self._acc.add(positions, sums, second, n)
-        self.stats.add_rays(rays, seconds)
-        self.stats.paths += int(n.sum())
-        if bar is not None:
-            bar.update(int(n.sum()))
-            elapsed = time.perf_counter() - self.stats.started
-            done = int((self.lattice.samples > 0).sum())
-            bar.set_postfix_str(
-                f"texels {done:,}/{len(self.plan.ids):,} level {level + 1}/"
-                f"{len(self.plan.levels)} {self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} "
-                "Mrays/s", refresh=False)
+    def _collect(self, jobs: list, level: int, bar) -> None:
+        """Wait for the chunks of `level`; count their paths and rays."""
+        for job in jobs:
+            paths, rays, seconds = job.result()
+            self.stats.add_rays(rays, seconds)
+            self.stats.paths += paths
+            if bar is not None:
+                bar.update(paths)
+                elapsed = time.perf_counter() - self.stats.started
+                bar.set_postfix_str(
+                    f"texels {self.texels_done:,}/{len(self.plan.ids):,} "
+                    f"level {level + 1}/{len(self.plan.levels)} "
+                    f"{self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} Mrays/s", refresh=False)
+
+
+def _cancel(jobs: list) -> None:
+    """Cancel queued chunks and wait for running ones (they add to the accumulator)."""
+    for job in jobs:
+        job.cancel()
+    for job in jobs:
+        if not job.cancelled():
+            job.exception()
+
+
+def _group_by(keys: np.ndarray, values: np.ndarray, first: int, last: int) -> list:
+    """[values with key k for k in first..last]: one stable sort instead of a scan per k."""
+    order = np.argsort(keys, kind="stable")
+    bounds = np.searchsorted(keys[order], np.arange(first, last + 2))
+    return [values[order[lo:hi]] for lo, hi in itertools.pairwise(bounds)]
 
 
 def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike | None = None,
@@ -397,25 +438,54 @@ def _pending_samples(positions, done, remaining) -> tuple[np.ndarray, np.ndarray
     return pos, starts + np.arange(len(pos))
 
 
-def _trace_chunk(scene, plan, pos, samples, origins, normals, lighting, settings, seed):
+@dataclass(frozen=True)
+class _LevelWork:
+    """The pending paths of one level: texel positions (P,) sorted, sample indices (P,),
+    and the start points of their texels."""
+
+    level: int
+    pos: np.ndarray
+    samples: np.ndarray
+    start: _PathStarts
+
+
+@dataclass(frozen=True)
+class _PathStarts:
+    """Where the paths of one level start: per texel, sorted by texel position.
+
+    Attributes:
+        texels: (T,) sorted texel positions (indices into the plan).
+        origins: (T, 3) float32 start points (world), normals: (T, 3) float32 unit.
+    """
+
+    texels: np.ndarray
+    origins: np.ndarray
+    normals: np.ndarray
+
+
+def _texel_starts(pos: np.ndarray) -> np.ndarray:
+    """(T,) indices where a new texel begins in the sorted (P,) positions `pos`."""
+    return np.flatnonzero(np.r_[len(pos) > 0, pos[1:] != pos[:-1]])
+
+
+def _trace_chunk(scene, plan, pos, samples, start: _PathStarts, lighting, settings, seed,
+                 acc: _Accumulator) -> tuple[int, int, float]:
     """Worker: trace paths (sorted texel positions `pos`, sample indices) from their start
-    points; return per-texel sums.
+    points and add the per-texel sums to `acc`.
 
     Returns:
-        (texel positions (T,), sums (T, C), second moments (T,), counts (T,), rays,
-        seconds inside Embree).
+        (paths, rays, seconds inside Embree).
     """
     from .trace import RayStats
 
-    keys = rng.path_keys(seed, plan.ids[pos], samples)
+    keys, origins, normals = kernels.path_starts(
+        np.uint64(rng.seed_key(seed)), plan.ids, pos, samples, start.texels, start.origins,
+        start.normals)
     ray_stats = RayStats()
     estimates = trace_paths(scene, origins, normals, keys, lighting, settings, ray_stats)
-    lum = _luminance(estimates, settings.sh_order is None)
-    starts = np.flatnonzero(np.r_[True, pos[1:] != pos[:-1]])
-    sums = np.add.reduceat(estimates, starts, axis=0)
-    second = np.add.reduceat(lum * lum, starts)
-    counts = np.diff(np.r_[starts, len(pos)])
-    return pos[starts], sums, second, counts, ray_stats.rays, ray_stats.seconds
+    acc.add(*kernels.texel_sums(
+        pos, estimates, _luminance_weights(estimates.shape[1], settings.sh_order is None)))
+    return len(pos), ray_stats.rays, ray_stats.seconds
 
 
 def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):
@@ -424,7 +494,7 @@ def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):
 
     lo, hi = volume.value_range
     iso = min(max(iso, lo), hi)
-    mesh = volumes.isosurface(volume, iso, flip_normals=config.flip_normals)
+    mesh = volumes.isosurface(volume, iso, normals="none")
     return Scene(mesh.vertices, mesh.faces)
 
 

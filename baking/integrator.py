@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import rng
+from . import kernels, rng
 from .lights import Light
-from .sampling import power_heuristic, sample_cosine_hemisphere, to_world
+from .sampling import power_heuristic
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from .trace import RayStats, Scene
@@ -135,7 +135,8 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     result = np.zeros((count, settings.channels))
     alive = np.arange(count)
     # float32 like Embree itself: no conversions on every query
-    pos, n = origins.astype(np.float32), normals.astype(np.float32)
+    pos, n = np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(normals, np.float32)
+    keys = np.ascontiguousarray(keys, np.uint32)
     beta = np.ones((count, 3), np.float32)
     albedo = np.asarray(settings.albedo, np.float32)
     irradiance = settings.sh_order is None
@@ -148,38 +149,38 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
         if irradiance and lighting.sample_env:
             result[alive, :3] += _direct_env(scene, pos, n, beta, k, dim + 2, lighting.env,
                                              stats)
-        local = sample_cosine_hemisphere(rng.uniform2(k, dim).astype(np.float32))
-        dirs = to_world(local, n)
+        dirs = kernels.cosine_directions(k, dim, n)
         hits = scene.intersect(pos, dirs, stats)
-        escaped = ~hits["hit"]
-        if escaped.any() and (lighting.env is not None or not irradiance):
-            esc_dirs = dirs[escaped]
-            if irradiance and constant_env is not None:  # cosine sampling is ideal here
-                result[alive[escaped], :3] += beta[escaped] * (np.pi * np.asarray(constant_env))
-            elif irradiance:
-                weight = np.pi * np.ones(len(esc_dirs))
-                if lighting.sample_env:
-                    weight *= power_heuristic(local[escaped, 2] / np.pi,
-                                              lighting.env.pdf(esc_dirs))
-                result[alive[escaped], :3] += (beta[escaped] * lighting.env.radiance(esc_dirs)
-                                               * weight[:, None])
-            else:
-                result[alive[escaped]] += _escape_sh(beta[escaped], esc_dirs, settings)
+        prim = hits["prim"]
+        if irradiance and constant_env is not None:  # cosine sampling is ideal here
+            kernels.add_escaped(result, alive, prim, beta, np.pi * np.asarray(constant_env))
+        elif lighting.env is not None or not irradiance:
+            _add_escaped(result, alive, prim < 0, beta, dirs, n, lighting, settings)
         if vertex == settings.bounces:
             break
-        hit = hits["hit"]
-        if not hit.any():
+        rows, pos, n, beta = kernels.next_vertices(pos, dirs, hits["t"], hits["ng"], prim,
+                                                   beta, albedo, settings.hit_offset)
+        if len(rows) == 0:
             break
-        d = dirs[hit]
-        p = pos[hit] + hits["t"][hit, None] * d  # float32, like Embree's own hit
-        # Bounce vertices use the facet normal, turned towards the arriving ray: a smoothed
-        # normal would send some directions into the facet at grazing angles, where rays
-        # starting this close to it can slip between triangles and leak out.
-        ng = hits["ng"][hit]
-        flip = np.where((ng * d).sum(axis=1, keepdims=True) > 0, -1.0, 1.0).astype(np.float32)
-        ng = ng * (flip / np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-30))
-        pos = p + settings.hit_offset * ng
-        n = ng
-        beta = beta[hit] * albedo
-        alive = alive[hit]
+        alive = alive[rows]
     return result
+
+
+def _add_escaped(result: np.ndarray, alive: np.ndarray, escaped: np.ndarray,
+                 beta: np.ndarray, dirs: np.ndarray, n: np.ndarray, lighting: Lighting,
+                 settings: PathSettings) -> None:
+    """Add what the cosine-sampled rays that `escaped` (M,) bring back from a
+    non-constant environment (MIS-weighted against its light sample), or their SH
+    projection."""
+    if not escaped.any():
+        return
+    esc_dirs = dirs[escaped].astype(np.float64)
+    if settings.sh_order is not None:
+        result[alive[escaped]] += _escape_sh(beta[escaped], esc_dirs, settings)
+        return
+    weight = np.full(len(esc_dirs), np.pi)
+    if lighting.sample_env:
+        cos = (n[escaped] * dirs[escaped]).sum(axis=1)
+        weight *= power_heuristic(cos / np.pi, lighting.env.pdf(esc_dirs))
+    result[alive[escaped], :3] += (beta[escaped] * lighting.env.radiance(esc_dirs)
+                                   * weight[:, None])

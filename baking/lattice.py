@@ -103,6 +103,10 @@ class Lattice:
         second: (Z, Y, X) float32 mean of the squared per-path luminance estimate.
         active: (Z, Y, X) bool, texels the bake must fill.
         meta: format version, kind, volume identity, bake config, statistics.
+        first: None, or (Z, Y, X) uint8, non-zero where a texel with no sample holds a
+            first estimate in `values` (the lazy viewer's preview pass,
+            `baking.preview`); shown until the texel's own samples replace it, never
+            saved.
     """
 
     geometry: LatticeGeometry
@@ -111,6 +115,7 @@ class Lattice:
     second: np.ndarray
     active: np.ndarray
     meta: dict = field(default_factory=dict)
+    first: np.ndarray | None = None
 
     @classmethod
     def empty(cls, geometry: LatticeGeometry, channels: int, meta: dict) -> Lattice:
@@ -128,6 +133,14 @@ class Lattice:
     def computed(self) -> np.ndarray:
         """(Z, Y, X) bool: texels with at least one sample."""
         return self.samples > 0
+
+    def shown(self, region: tuple = (...,)) -> np.ndarray:
+        """Bool mask of the texels a display uses in `region` (a tuple of slices of
+        (Z, Y, X)): those computed, and those holding a first estimate."""
+        mask = self.samples[region] > 0
+        if self.first is not None:
+            mask |= self.first[region] > 0
+        return mask
 
     def standard_error(self) -> np.ndarray:
         """(Z, Y, X) float32 standard error of the luminance mean (inf where < 2 samples)."""

@@ -365,7 +365,8 @@ class ServeStats:
 
 
 def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
-          send: Callable[[tuple], None], *, stop_when_done: bool = False) -> ServeStats:
+          send: Callable[[tuple], None], *, stop_when_done: bool = False,
+          on_view: Callable[[View], None] | None = None) -> ServeStats:
     """Bake lazily until told to stop.
 
     Messages in (from `receive(block)`, which returns None when nothing is waiting and
@@ -380,6 +381,8 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
     Args:
         baker: a `baking.bake.Baker` whose lattice the display reads.
         stop_when_done: return when the current view is finished (tests, benchmarks).
+        on_view: called with each new `View` before the work is re-targeted (the viewer's
+            first estimates, `baking.preview`).
     """
     stats = ServeStats()
     paused = False
@@ -409,6 +412,8 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
             paused = message == "pause"
             send(("paused", paused))
         elif isinstance(message, View):
+            if on_view is not None:
+                on_view(message)
             scheduler.set_view(message.iso, np.asarray(message.eye), message.visible)
             stats.views += 1
             report()

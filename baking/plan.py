@@ -236,25 +236,15 @@ def default_iso_range(volume: volumes.Volume) -> tuple[float, float]:
 
 
 def project_to_level(volume: volumes.Volume, points: np.ndarray, level,
-                     max_move: float, iterations: int = 4) -> np.ndarray:
+                     max_move: float, iterations: int = 4, smooth: bool = True) -> np.ndarray:
     """(N, 3) points moved onto ρ = level (a scalar or (N,) values) by Newton steps along
-    the smoothed gradient.
+    the smoothed gradient (the plain one if not `smooth`).
 
     Each step moves by (level − ρ) ∇ρ / |∇ρ|²; the total move is clamped to `max_move`
     world units (where the gradient is tiny the level is far and the texel is poor
     anyway).
     """
-    start = np.asarray(points, np.float64)
-    p = start.copy()
-    for _ in range(iterations):
-        rho = volumes.value_at(volume, p)
-        g = volumes.gradient_at(volume, p).astype(np.float64)
-        g2 = np.maximum((g * g).sum(axis=1), 1e-30)
-        p = p + ((level - rho) / g2)[:, None] * g
-        delta = p - start
-        dist = np.linalg.norm(delta, axis=1, keepdims=True)
-        p = start + delta * np.minimum(1.0, max_move / np.maximum(dist, 1e-30))
-    return p
+    return volumes.newton_to_level(volume, points, level, max_move, iterations, smooth)
 
 
 def _reaches(volume: volumes.Volume, points: np.ndarray, levels: np.ndarray, reach: float,

@@ -32,10 +32,14 @@ def path_keys(seed: int, texels: np.ndarray, samples: np.ndarray) -> np.ndarray:
         texels: (N,) integer texel ids (flat lattice index).
         samples: (N,) integer sample index within the texel.
     """
-    s = np.uint32(seed & 0xFFFFFFFF)
     with np.errstate(over="ignore"):
-        h = pcg_hash(texels.astype(np.uint32) ^ pcg_hash(np.full(1, s, np.uint32)))
+        h = pcg_hash(texels.astype(np.uint32) ^ np.uint32(seed_key(seed)))
         return pcg_hash(h + samples.astype(np.uint32) * _GOLDEN)
+
+
+def seed_key(seed: int) -> int:
+    """The hash of the low 32 bits of `seed` that every path key of a bake starts from."""
+    return int(pcg_hash(np.full(1, seed & 0xFFFFFFFF, np.uint32))[0])
 
 
 def uniform(keys: np.ndarray, dim: int) -> np.ndarray:

@@ -42,6 +42,7 @@ class Scene:
         if not self.empty:
             self._scene = rtcore_scene.EmbreeScene()
             TriangleMesh(self._scene, self.vertices, np.ascontiguousarray(self.faces))
+            _build_bvh(self._scene)
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, stats: RayStats | None = None
                   ) -> dict[str, np.ndarray]:
@@ -88,6 +89,12 @@ class Scene:
         return out != _MISS
 
 
+def _build_bvh(scene) -> None:
+    """Commit `scene` now (embreex builds the BVH on the first query): the build is part of
+    making the scene, not of tracing."""
+    scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))
+
+
 def replay(vertices: np.ndarray, faces: np.ndarray, batches: list,
            workers: int) -> tuple[int, float]:
     """Trace recorded ray batches with bare embreex (a fresh scene, the same query kinds,
@@ -101,7 +108,7 @@ def replay(vertices: np.ndarray, faces: np.ndarray, batches: list,
     scene = rtcore_scene.EmbreeScene()
     TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32),
                  np.ascontiguousarray(faces, np.int32))
-    scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # build the BVH
+    _build_bvh(scene)
 
     def trace(batch) -> int:
         query, origins, dirs, dists = batch

@@ -199,7 +199,7 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
     config = BakeConfig(samples=20, bounces=1, env="constant:1,1,1")
     vol = make("shells", 32)
     whole = bake(vol, config, workers=2)
-    original = bake_module.Baker._bake_level
+    original = bake_module.Baker._submit_level
     calls = {"n": 0}
 
     def interrupting(self, *args, **kwargs):
@@ -208,7 +208,7 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
             raise KeyboardInterrupt
         return original(self, *args, **kwargs)
 
-    monkeypatch.setattr(bake_module.Baker, "_bake_level", interrupting)
+    monkeypatch.setattr(bake_module.Baker, "_submit_level", interrupting)
     path = tmp_path / "cut.npz"
     with pytest.raises(KeyboardInterrupt):
         bake(vol, config, out=path, workers=2)
@@ -217,7 +217,7 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
     assert 0 < finished.sum() < (whole.samples > 0).sum()
     assert (cut.samples[finished] == 20).all()  # only whole texels were kept
     np.testing.assert_allclose(cut.values[finished], whole.values[finished], rtol=1e-6)
-    monkeypatch.setattr(bake_module.Baker, "_bake_level", original)
+    monkeypatch.setattr(bake_module.Baker, "_submit_level", original)
     done = bake(vol, config, out=path, workers=2)
     np.testing.assert_allclose(done.values, whole.values, rtol=2e-6, atol=1e-6)
 

@@ -125,6 +125,7 @@ def test_chart_numbers_are_consistent(sphere):
     assert [p["scale"] for p in points] == [0.5, 1.0, 2.0]
     for p in points:  # RGB9_E5 (4 B) + valid mask (1 B) per texel
         assert p["memory_bytes"] == 5 * p["texels"] == 5 * math.prod(p["shape_zyx"])
+        assert p["surface_uncovered"] == p["surface_partly_covered"] == 0
     assert points[2]["texels"] == 8 * points[1]["texels"] == 64 * points[0]["texels"]
     lookups = {e["mode"] for e in records["chart3_lookup_normals"]["lookups"]}
     assert lookups == {n for n, m in SHADING_MODES.items() if m.lattice == "irradiance"}

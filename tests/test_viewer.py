@@ -140,7 +140,7 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
     from baking.lattice import Lattice
 
     saved = Lattice.load(tmp_path / "lazy.npz", volumes.load("synthetic:engine:48"))
-    assert (saved.samples > 0).sum() == check["texels"]
+    assert (saved.samples > 0).sum() == check["computed"] > 0
     assert saved.active.sum() > check["texels"]  # the plan's active texels, for resuming
     again = _view(["synthetic:engine:48", "--lattice", "lazy.npz", "--no-bake", "--no-ui",
                    "--size", "320x240", "--frames", "1", "--screenshot", "again.png"],

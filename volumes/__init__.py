@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 
 from .core import Volume, VolumeError
-from .field import gradient_at, gradient_grid, normals_at, value_at
+from .field import gradient_at, gradient_grid, newton_to_level, normals_at, value_at
 from .mesh import Mesh, check_isovalue, isosurface
 from .stats import histogram_lines, suggest_isovalues
 from .synthetic import DEFAULT
@@ -28,6 +28,7 @@ __all__ = [
     "histogram_lines",
     "isosurface",
     "load",
+    "newton_to_level",
     "normals_at",
     "suggest_isovalues",
     "value_at",

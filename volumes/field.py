@@ -14,6 +14,7 @@ the material is denser than its surroundings); ``flip=True`` reverses them.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy import ndimage
 
@@ -49,16 +50,101 @@ def gradient_grid(volume: Volume, smooth: bool = True) -> np.ndarray:
     return volume._cache[key]
 
 
+@numba.njit(nogil=True, cache=True)
+def _axis_weights(c: float, n: int) -> tuple[int, int, float]:
+    """Lower index, upper index and upper weight of fractional index c on an axis of n
+    samples, clamped to the edge samples (``map_coordinates(order=1, mode="nearest")``)."""
+    c = min(max(c, 0.0), n - 1.0)
+    lo = min(int(c), max(n - 2, 0))
+    return lo, min(lo + 1, n - 1), c - lo
+
+
+@numba.njit(nogil=True, cache=True)
+def _lerp3(grid: np.ndarray, z: float, y: float, x: float, out: np.ndarray) -> None:
+    """out[:] = trilinear interpolation of the (Z, Y, X, C) grid at index (z, y, x)."""
+    nz, ny, nx, nc = grid.shape
+    z0, z1, fz = _axis_weights(z, nz)
+    y0, y1, fy = _axis_weights(y, ny)
+    x0, x1, fx = _axis_weights(x, nx)
+    for c in range(nc):
+        a = (1 - fx) * grid[z0, y0, x0, c] + fx * grid[z0, y0, x1, c]
+        b = (1 - fx) * grid[z0, y1, x0, c] + fx * grid[z0, y1, x1, c]
+        d = (1 - fx) * grid[z1, y0, x0, c] + fx * grid[z1, y0, x1, c]
+        e = (1 - fx) * grid[z1, y1, x0, c] + fx * grid[z1, y1, x1, c]
+        out[c] = (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
+
+
+@numba.njit(nogil=True, cache=True)
+def _trilinear(grid: np.ndarray, index_zyx: np.ndarray, out: np.ndarray) -> None:
+    """out[i] = trilinear interpolation of the (Z, Y, X, C) grid at index_zyx[i] (N, 3);
+    NaN where an index is NaN."""
+    for i in range(index_zyx.shape[0]):
+        z, y, x = index_zyx[i, 0], index_zyx[i, 1], index_zyx[i, 2]
+        if z != z or y != y or x != x:
+            out[i, :] = np.nan
+        else:
+            _lerp3(grid, z, y, x, out[i])
+
+
+@numba.njit(nogil=True, cache=True)
+def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
+            points: np.ndarray, levels: np.ndarray, max_move: float, iterations: int,
+            out: np.ndarray) -> None:
+    """Newton steps p += (level − ρ(p)) ∇ρ / |∇ρ|² from each (N, 3) world point, the
+    total move clamped to `max_move`; stops early once a step is below 1e-6 voxel."""
+    value = np.empty(1)
+    g = np.empty(3)
+    tiny = 1e-6 * min(spacing[0], spacing[1], spacing[2])
+    for i in range(points.shape[0]):
+        sx, sy, sz = points[i, 0], points[i, 1], points[i, 2]
+        px, py, pz = sx, sy, sz
+        for _ in range(iterations):
+            zi, yi, xi = ((pz - origin[2]) / spacing[2], (py - origin[1]) / spacing[1],
+                          (px - origin[0]) / spacing[0])
+            _lerp3(data, zi, yi, xi, value)
+            _lerp3(grad, zi, yi, xi, g)
+            g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
+            step = (levels[i] - value[0]) / g2
+            qx, qy, qz = px + step * g[0], py + step * g[1], pz + step * g[2]
+            dx, dy, dz = qx - sx, qy - sy, qz - sz
+            dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if dist > max_move:
+                scale = max_move / dist
+                qx, qy, qz = sx + dx * scale, sy + dy * scale, sz + dz * scale
+            moved = abs(qx - px) + abs(qy - py) + abs(qz - pz)
+            px, py, pz = qx, qy, qz
+            if moved < tiny:
+                break
+        out[i, 0], out[i, 1], out[i, 2] = px, py, pz
+
+
+def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
+                    max_move: float, iterations: int = 4, smooth: bool = True) -> np.ndarray:
+    """(N, 3) world points moved onto ρ = levels (N,) by Newton steps along the gradient
+    (smoothed unless not `smooth`), the total move clamped to `max_move` world units.
+
+    One compiled pass per point (value and gradient read together, no temporaries, no
+    GIL): the bake does this for every texel on each of its levels."""
+    points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
+    levels = np.ascontiguousarray(np.broadcast_to(levels, (len(points),)), np.float64)
+    out = np.empty_like(points)
+    _newton(volume.data[..., None], gradient_grid(volume, smooth),
+            np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64),
+            points, levels, float(max_move), int(iterations), out)
+    return out
+
+
 def _interpolate(grid: np.ndarray, index_zyx: np.ndarray) -> np.ndarray:
-    """Trilinear interpolation of a (Z, Y, X[, C]) grid at (N, 3) fractional indices."""
-    coords = index_zyx.T
-    if grid.ndim == 3:
-        return ndimage.map_coordinates(grid, coords, order=1, mode="nearest")
-    return np.stack(
-        [ndimage.map_coordinates(grid[..., c], coords, order=1, mode="nearest")
-         for c in range(grid.shape[-1])],
-        axis=-1,
-    )
+    """Trilinear interpolation of a (Z, Y, X[, C]) grid at (N, 3) fractional indices,
+    clamped at the border: (N[, C]) in the grid's dtype. A compiled loop: the same result
+    as ``scipy.ndimage.map_coordinates(order=1, mode="nearest")``, an order of magnitude
+    faster, and without the GIL (bake workers keep tracing meanwhile)."""
+    scalar = grid.ndim == 3
+    cube = grid[..., None] if scalar else grid
+    index = np.ascontiguousarray(index_zyx, np.float64).reshape(-1, 3)
+    out = np.empty((len(index), cube.shape[-1]), grid.dtype)
+    _trilinear(cube, index, out)
+    return out[:, 0] if scalar else out
 
 
 def value_at(volume: Volume, points_xyz: np.ndarray) -> np.ndarray:

@@ -18,7 +18,8 @@ class Mesh:
     Attributes:
         vertices: (V, 3) float32 world xyz.
         faces: (F, 3) uint32 vertex indices.
-        normals: (V, 3) float32 unit normals, high → low values (see `volumes.field`).
+        normals: (V, 3) float32 unit normals, high → low values (see `volumes.field`);
+            (0, 3) when extracted with ``normals="none"`` (ray-tracing scenes need none).
         iso: the isovalue it was extracted at.
         message: why the mesh is empty, or "".
     """
@@ -68,8 +69,8 @@ def isosurface(
     Args:
         volume: the scalar field.
         iso: isovalue; must lie in the data range (else VolumeError).
-        normals: "smooth" (tricubic-B-spline gradient, the paper's) or "gradient" (plain
-            central differences).
+        normals: "smooth" (tricubic-B-spline gradient, the paper's), "gradient" (plain
+            central differences) or "none" (no normals: a mesh for ray tracing only).
         flip_normals: reverse the normals (for data whose material is less dense).
         step_size: marching-cubes step in voxels (2 gives a fast coarse preview).
 
@@ -77,8 +78,8 @@ def isosurface(
         Mesh in world units; an empty mesh with a message when the surface is empty
         (e.g. iso equal to the minimum or maximum, or a constant volume).
     """
-    if normals not in ("smooth", "gradient"):
-        raise ValueError(f"normals must be 'smooth' or 'gradient', got {normals!r}")
+    if normals not in ("smooth", "gradient", "none"):
+        raise ValueError(f"normals must be 'smooth', 'gradient' or 'none', got {normals!r}")
     iso = check_isovalue(volume, iso)
     lo, hi = volume.value_range
     if not lo < iso < hi:
@@ -92,6 +93,9 @@ def isosurface(
     if len(faces) == 0:
         return Mesh.empty_at(iso, f"no surface at isovalue {iso:g}")
     world = volume.index_to_world(verts)
-    grad = gradient_at(volume, world, smooth=normals == "smooth")
-    n, _ = normals_from_gradient(grad, flip=flip_normals)
+    if normals == "none":
+        n = np.zeros((0, 3), np.float32)
+    else:
+        n, _ = normals_from_gradient(gradient_at(volume, world, smooth=normals == "smooth"),
+                                     flip=flip_normals)
     return Mesh(world.astype(np.float32), faces.astype(np.uint32), n, iso)
