@@ -290,7 +290,6 @@ def lazy(args) -> int:
                          | (lat.first.reshape(-1)[corners] > 0))
                 if shown.all():
                     figures["first_estimate_s"] = time.perf_counter() - t0
-                    figures["first_pass"] = link.first[0][1] if link.first else None
                     print(f"  every visible texel ({len(corners):,}) shows an estimate after "
                           f"{figures['first_estimate_s']:.1f} s (first estimates on the "
                           "displayed surface)")
@@ -329,6 +328,15 @@ def lazy(args) -> int:
         figures["stats"] = link.stats
     finally:
         link.stop()
+    figures["first_passes"] = [{"at_s": at, **f} for at, f in link.first]
+    if link.first:
+        at, f = link.first[0]
+        warm = link.warm["seconds"] if link.warm else float("nan")
+        figures["process_start_s"] = warm
+        print(f"  first-estimate pass: {f['texels']:,} texels in {f['seconds']:.2f} s, done "
+              f"{at:.1f} s after the bake process was started ({warm:.1f} s of which "
+              "starting it: imports, kernels, gradient grid — the viewer starts it with "
+              "its window)")
     if args.reference and subset is not None and len(subset):
         _reference_figures(args, volume, config, subset, trace, subset_lum, figures)
     figures["trace"] = trace[:: max(1, len(trace) // 200)]

@@ -43,7 +43,7 @@ SLAB_VOXELS = 1 << 19
 """Voxels per marching-cubes call (a GIL hold of ~25 ms on one core)."""
 COARSE_STEP = 2
 """Smallest marching-cubes step of the preview surface."""
-PREVIEW_TARGET_TRIANGLES = 50_000
+PREVIEW_TARGET_TRIANGLES = 35_000
 """The preview's step grows (to at most 4) so that it has about this many triangles."""
 BRICK = 8
 """Texels per side of the blocks re-uploaded after the bake commits texels."""
@@ -502,7 +502,7 @@ def _bake_main(job: dict, inbox, outbox) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the viewer's to handle
     try:
-        os.nice(5)  # the render thread of the viewer comes first
+        os.nice(19)  # idle priority: the viewer (and llvmpipe's threads) come first
     except (AttributeError, OSError):
         pass
     shared = None
@@ -511,6 +511,7 @@ def _bake_main(job: dict, inbox, outbox) -> None:
         from baking.config import BakeConfig
         from baking.lazy import LazyScheduler, View, scene_cache_size, serve
         from baking.preview import drop_inactive, first_estimates
+        from baking.preview import warm_up as preview_warm_up
 
         shared = SharedLattice.attach(job["lattice"])
         volume = volumes.Volume(**job["volume"])
@@ -540,6 +541,8 @@ def _bake_main(job: dict, inbox, outbox) -> None:
             outbox.put(("first", {"iso": view.iso, "texels": len(flat),
                                   "seconds": time.perf_counter() - t}))
 
+        preview_warm_up(volume)  # while the viewer opens its window
+        outbox.put(("started", {"seconds": time.time() - job["started"]}))
         # the first view's visible texels get first estimates before the plan is made
         planned = False
         early = []
@@ -603,7 +606,7 @@ class BakeLink:
                        "name": volume.name, "source": volume.source,
                        "suggested_iso": volume.suggested_iso},
             "config": config.to_dict(), "workers": workers, "iso": float(iso),
-            "batch_paths": batch_paths or BATCH_PATHS,
+            "batch_paths": batch_paths or BATCH_PATHS, "started": time.time(),
         }
         self.started = time.perf_counter()
         self.process = ctx.Process(target=_bake_main, args=(job, self.inbox, self.outbox),
@@ -617,6 +620,7 @@ class BakeLink:
         self.paused_ack = False
         self.history: list[tuple[float, object]] = []
         self.first: list[tuple[float, dict]] = []  # (seconds since start, figures) per pass
+        self.warm: dict | None = None  # the process is ready for views (its start-up time)
 
     def send_view(self, view) -> None:
         self.inbox.put(view)
@@ -645,6 +649,8 @@ class BakeLink:
                 self.ready = message[1]
             elif kind == "paused":
                 self.paused_ack = message[1]
+            elif kind == "started":
+                self.warm = message[1]
             elif kind == "first":
                 self.first.append((time.perf_counter() - self.started, message[1]))
             elif kind == "error":

@@ -297,6 +297,7 @@ class ScriptRunner:
             simple[name]()
         elif name in ("orbit", "zoom", "pan", "light"):
             self._camera_or_light(name, args, viewer)
+            viewer._moved()  # like a drag: interactive quality applies
         else:
             self._start_wait(command, viewer, now)
         viewer._touch()

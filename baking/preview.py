@@ -135,3 +135,11 @@ def drop_inactive(lattice: Lattice) -> np.ndarray:
     stale = np.flatnonzero((lattice.first.reshape(-1) > 0) & ~lattice.active.reshape(-1))
     lattice.first.reshape(-1)[stale] = 0
     return stale
+
+
+def warm_up(volume: volumes.Volume) -> None:
+    """Do ahead of the first view what `first_estimates` would otherwise do on it: load
+    the compiled kernels and build the plain gradient grid (together ~1 s on a CT scan)."""
+    kernels.warm_up()
+    centre = np.mean(volume.sample_box, axis=0)[None, :]
+    project_to_level(volume, centre, float(volume.data.mean()), 0.0, smooth=False)
