@@ -364,8 +364,9 @@ def _reference_figures(args, volume, config, subset, trace, subset_lum, figures)
     ref = reference_values(volume, config, subset, args.reference_samples, args.workers)
     seconds = time.perf_counter() - t
     rms = []
-    for lum in subset_lum:
-        rel = (lum - ref) / np.maximum(np.abs(ref), 1e-12)
+    floor = 0.01 * float(np.median(np.abs(ref)))  # as `Lattice.relative_error`: deep
+    for lum in subset_lum:  # shadow is judged against the scene's light level, not ~0
+        rel = (lum - ref) / np.maximum(np.abs(ref), floor)
         rms.append(float(np.sqrt(np.mean(rel**2))))
     for (now, _, _), e in zip(trace, rms, strict=True):
         trace_err = e

@@ -15,7 +15,9 @@ before the back.
 
 How many paths. Rounds of growing targets (4, 16, 64, ... up to the bake's sample count):
 every texel of a group gets a first estimate before any gets refined. The stage order is
-visible@4, surface@4, visible@16, surface@16, ...
+visible@4, visible@16, ..., then surface@4, surface@16, ...: what is on screen converges
+first (the visible texels already show first estimates traced on the displayed surface,
+`baking.preview`, and so do those of every new view).
 
 Batches and level scenes. Each texel traces paths on its own isovalue's level surfaces
 (`baking.plan`), and the texels around one isosurface use almost every level: their values
@@ -296,11 +298,12 @@ class LazyScheduler:
             self.visible = by_distance(self.plan, self.geometry, vis, eye)
         else:
             self.visible = np.zeros(0, np.int64)
-        self.stages = []
-        for target in self.targets:
-            if len(self.visible):
-                self.stages.append(Stage("visible", target, self.visible))
-            self.stages.append(Stage("surface", target, self.surface))
+        # what is on screen converges first; the rest of the surface (seen once the camera
+        # turns, when the new view's texels get first estimates at once, `baking.preview`)
+        # follows in rounds of its own
+        self.stages = [Stage("visible", t, self.visible) for t in self.targets
+                       if len(self.visible)]
+        self.stages += [Stage("surface", t, self.surface) for t in self.targets]
         self._stage = 0
 
     def next_batch(self) -> Batch | None:

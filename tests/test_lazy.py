@@ -137,7 +137,7 @@ def _scheduler(sphere, max_samples=16, batch_paths=400):
     return sched, FakeBaker(plan, samples), samples
 
 
-def test_scheduler_bakes_visible_then_surface_nearest_first_in_rounds(sphere):
+def test_scheduler_bakes_visible_rounds_then_surface_rounds_nearest_first(sphere):
     _, geometry, plan = sphere
     sched, baker, _ = _scheduler(sphere)
     eye = np.array([0.0, -2.0, 0.0])
@@ -156,7 +156,7 @@ def test_scheduler_bakes_visible_then_surface_nearest_first_in_rounds(sphere):
     groups = [(b.group, b.target) for b in batches]
     # stage order, each stage contiguous
     stages = list(dict.fromkeys(groups))
-    assert stages == [("visible", 4), ("surface", 4), ("visible", 16), ("surface", 16)]
+    assert stages == [("visible", 4), ("visible", 16), ("surface", 4), ("surface", 16)]
     # within the first stage, texels come nearest first
     first = np.concatenate([b.positions for b in batches if b.group == "visible"
                             and b.target == 4])

@@ -132,3 +132,40 @@ def test_shown_mask_and_saved_copy_exclude_first_estimates(tmp_path, sphere):
         assert (copy.values[1, 1, 1] == 0).all() and (copy.values[0, 0, 0] == 1).all()
     finally:
         shared.close()
+
+
+def test_the_bake_process_shows_first_estimates_before_its_plan(tmp_path):
+    """The viewer's bake process: the first view's visible texels get first estimates
+    (flagged, no samples) and are announced, then the plan withdraws those outside the
+    active set, and the lazy bake's own samples follow."""
+    import time
+
+    from app.viewer import BakeLink, SharedLattice, lattice_meta
+    from baking.lazy import View
+
+    vol = volumes.load("synthetic:sphere:24")
+    config = BakeConfig(samples=4, bounces=0, env="constant:1")
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    meta = lattice_meta(vol, config)
+    shared = SharedLattice.create(geometry, meta["channels"], meta)
+    mesh = volumes.isosurface(vol, 0.5)
+    cells = visible_cells(geometry, mesh.vertices[mesh.vertices[:, 1] < 0])  # the front
+    link = BakeLink(vol, config, shared, 1, 0.5)
+    try:
+        link.send_view(View(0.5, (0.0, -2.0, 0.0), cells))
+        announced, deadline = [], time.monotonic() + 120
+        while not link.first and time.monotonic() < deadline and link.error is None:
+            announced += link.poll()
+            time.sleep(0.05)
+        assert link.error is None and link.first
+        assert link.first[0][1]["texels"] == len(cell_corners(geometry.shape, cells))
+        while (shared.lattice.samples > 0).sum() == 0 and time.monotonic() < deadline:
+            announced += link.poll()
+            time.sleep(0.05)
+    finally:
+        link.stop()
+    lat = shared.lattice
+    first = lat.first.reshape(-1) > 0
+    assert first.any() and not (first & ~lat.active.reshape(-1)).any()  # inactive withdrawn
+    assert np.isin(np.flatnonzero(first), np.concatenate(announced)).all()
+    shared.close()
