@@ -128,7 +128,7 @@ def test_compiled_trilinear_equals_scipy_map_coordinates():
 
 def test_newton_projection_matches_the_plain_iteration():
     """`newton_to_level` against the same four Newton steps written with scipy lookups
-    (it may stop early once converged: the points agree to 1e-5 voxel)."""
+    (it stops once a step moves less than 1e-4 voxel: the points agree to 2e-4 voxel)."""
     vol = make("torus", 40)
     grad = volumes.gradient_grid(vol)
     r = np.random.default_rng(3)
@@ -145,4 +145,4 @@ def test_newton_projection_matches_the_plain_iteration():
         dist = np.linalg.norm(d, axis=1, keepdims=True)
         p = start + d * np.minimum(1.0, max_move / np.maximum(dist, 1e-30))
     got = volumes.newton_to_level(vol, start, levels, max_move)
-    np.testing.assert_allclose(got, p, atol=1e-5 * min(vol.spacing))
+    np.testing.assert_allclose(got, p, atol=2e-4 * min(vol.spacing))

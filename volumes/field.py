@@ -91,10 +91,11 @@ def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.
             points: np.ndarray, levels: np.ndarray, max_move: float, iterations: int,
             out: np.ndarray) -> None:
     """Newton steps p += (level − ρ(p)) ∇ρ / |∇ρ|² from each (N, 3) world point, the
-    total move clamped to `max_move`; stops early once a step is below 1e-6 voxel."""
+    total move clamped to `max_move`; stops once a step moved less than 1e-4 voxel (Newton
+    converges quadratically where the gradient is regular)."""
     value = np.empty(1)
     g = np.empty(3)
-    tiny = 1e-6 * min(spacing[0], spacing[1], spacing[2])
+    tiny = 1e-4 * min(spacing[0], spacing[1], spacing[2])
     for i in range(points.shape[0]):
         sx, sy, sz = points[i, 0], points[i, 1], points[i, 2]
         px, py, pz = sx, sy, sz
