@@ -248,7 +248,7 @@ def _bake_config(args: argparse.Namespace):
         iso_range=tuple(args.iso_range) if args.iso_range else None,
         env="" if args.env == "none" else args.env, lights=tuple(args.light or ()), seed=args.seed,
         flip_normals=args.flip_normals, target_error=args.target_error,
-        max_samples=max(args.max_samples, args.samples),
+        max_samples=max(args.max_samples, args.samples), max_levels=args.max_levels,
     )
 
 
@@ -337,6 +337,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--light", action="append", metavar="SPEC",
                    help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-levels", type=int, default=64, metavar="K",
+                   help="cap on isovalue levels (fewer: faster, texels move farther onto "
+                   "their levels)")
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
     p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
     for name in COMMAND_MODULES:

@@ -103,6 +103,10 @@ def add_arguments(parser) -> None:
                         help="paths per texel the lazy bake refines up to (new lattices)")
     parser.add_argument("--bake-workers", type=int, default=None,
                         help="tracing threads of the lazy bake (default: all cores)")
+    parser.add_argument("--bake-max-levels", type=int, default=64, metavar="K",
+                        help="isovalue levels of a new lazy lattice (fewer: the first sweep "
+                        "builds fewer scenes and converges sooner, texels move farther "
+                        "onto their levels and a few come out wrong; default 64)")
     parser.add_argument("--no-ui", action="store_true", help="no control panel")
     parser.add_argument("--normals", default="smooth", choices=["smooth", "gradient"])
     parser.add_argument("--flip-normals", action="store_true",
@@ -125,6 +129,7 @@ class Options:
     bake_env: str
     bake_samples: int
     bake_workers: int | None
+    bake_max_levels: int
     ui: bool
     normals: str
     flip_normals: bool
@@ -148,6 +153,8 @@ def _options(args) -> Options:
         raise CLIError(f"--bake-samples {args.bake_samples}: expected at least 1")
     if args.bake_workers is not None and args.bake_workers < 1:
         raise CLIError(f"--bake-workers {args.bake_workers}: expected at least 1")
+    if not 2 <= args.bake_max_levels <= 1024:
+        raise CLIError(f"--bake-max-levels {args.bake_max_levels}: expected 2 to 1024")
     if not args.no_bake:
         from baking.environment import parse_env
 
@@ -161,8 +168,8 @@ def _options(args) -> Options:
         frames=args.frames, screenshot=screenshot, script=script, stats=stats,
         bake=not args.no_bake, bake_mode=args.bake_mode, bake_env=args.bake_env,
         bake_samples=args.bake_samples, bake_workers=args.bake_workers,
-        ui=not args.no_ui, normals=args.normals, flip_normals=args.flip_normals,
-        lattice_path=lattice,
+        bake_max_levels=args.bake_max_levels, ui=not args.no_ui, normals=args.normals,
+        flip_normals=args.flip_normals, lattice_path=lattice,
     )
 
 
@@ -957,7 +964,8 @@ class Viewer:
             return
         if config is None:
             config = BakeConfig(mode=self.options.bake_mode, env=self.options.bake_env,
-                                samples=self.options.bake_samples)
+                                samples=self.options.bake_samples,
+                                max_levels=self.options.bake_max_levels)
         from baking.lattice import LatticeGeometry
 
         geometry = LatticeGeometry.for_volume(self.volume, config.scale)

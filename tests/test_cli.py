@@ -66,6 +66,9 @@ def _npy(tmp_path, name, data):
         (lambda t: ["render", _npy(t, "const.npy", np.ones((3, 3, 3))), "--out",
                     str(t / "x.png")], "none can be suggested"),
         (lambda t: ["info", "synthetic:cube"], "unknown synthetic volume"),
+        (lambda t: ["bake", "synthetic:sphere:16", "--max-levels", "1", "--out",
+                    str(t / "l.npz")], "max_levels in [2, 1024]"),
+        (lambda t: ["view", "--bake-max-levels", "0"], "--bake-max-levels 0"),
     ],
 )
 def test_bad_input_gives_one_line_and_status_2(tmp_path, capsys, make_args, expected):
