@@ -502,9 +502,9 @@ def scene_budget() -> float:
 
 
 def _bake_main(job: dict, inbox, outbox) -> None:
-    """Entry point of the bake process: plan, then `baking.lazy.serve` until stopped."""
-    import multiprocessing
-    import queue
+    """Entry point of the bake process: first estimates for the first view, the plan
+    (while later views still get first estimates), then `baking.lazy.serve` until
+    stopped."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the viewer's to handle
@@ -512,88 +512,145 @@ def _bake_main(job: dict, inbox, outbox) -> None:
         os.nice(19)  # idle priority: the viewer (and llvmpipe's threads) come first
     except (AttributeError, OSError):
         pass
-    shared = None
+    process = None
     try:
-        from baking.bake import Baker
-        from baking.config import BakeConfig
-        from baking.lazy import LazyScheduler, View, scene_cache_size, serve
-        from baking.preview import drop_inactive, first_estimates
-        from baking.preview import warm_up as preview_warm_up
-
-        shared = SharedLattice.attach(job["lattice"])
-        volume = volumes.Volume(**job["volume"])
-        config = BakeConfig.from_dict(job["config"])
-        parent = multiprocessing.parent_process()
-
-        def receive(block: bool):
-            while True:
-                try:
-                    return inbox.get(block=block, timeout=0.5 if block else None)
-                except queue.Empty:
-                    if not block:
-                        return None
-                    if parent is not None and not parent.is_alive():
-                        return "stop"
-
-        def first_light(view) -> None:
-            """First estimates of the visible texels on the displayed surface."""
-            if view.visible is None or not len(view.visible):
-                return
-            t = time.perf_counter()
-            flat = first_estimates(volume, config, shared.lattice, view.iso, view.visible,
-                                   workers=job["workers"] or os.cpu_count() or 1,
-                                   only_active=planned)
-            if len(flat):
-                outbox.put(("texels", flat))
-            outbox.put(("first", {"iso": view.iso, "texels": len(flat),
-                                  "seconds": time.perf_counter() - t}))
-
-        preview_warm_up(volume)  # while the viewer opens its window
-        outbox.put(("started", {"seconds": time.time() - job["started"]}))
-        # the first view's visible texels get first estimates before the plan is made
-        planned = False
-        early = []
-        message = receive(True)
-        while message is not None and not isinstance(message, View) and message != "stop":
-            early.append(message)
-            message = receive(True)
-        if message is None or message == "stop":
-            return
-        early.append(message)
-        first_light(message)
-        t0 = time.perf_counter()
-        cache = scene_cache_size(volume, job["iso"], config.max_levels, scene_budget())
-        active = shared.lattice.active  # the Baker replaces the lattice's attribute
-        baker = Baker(volume, config, lattice=shared.lattice, workers=job["workers"],
-                      scene_cache=cache)
-        active[...] = baker.plan.active
-        baker.lattice.active = active
-        planned = True
-        stale = drop_inactive(shared.lattice)
-        if len(stale):
-            outbox.put(("texels", stale))
-        outbox.put(("ready", {"seconds": time.perf_counter() - t0,
-                              "active": len(baker.plan.ids), "levels": len(baker.plan.levels),
-                              "scene_cache": cache, "meta": baker.lattice.meta}))
-        scheduler = LazyScheduler(baker.plan, baker.geometry, shared.lattice.samples.reshape(-1),
-                                  max_samples=config.samples, batch_paths=job["batch_paths"])
-
-        def receive_early_first(block: bool):
-            return early.pop(0) if early else receive(block)
-
-        def on_view(view) -> None:
-            if view is not message:  # the first view has had its first estimates
-                first_light(view)
-
-        try:
-            serve(baker, scheduler, receive_early_first, outbox.put, on_view=on_view)
-        finally:
-            baker.close()
+        process = _BakeProcess(job, inbox, outbox)
+        process.run()
     except Exception as exc:
         outbox.put(("error", f"{exc.__class__.__name__}: {exc}"))
     finally:
-        if shared is not None:
-            shared.close()
+        if process is not None:
+            process.shared.close()
+
+
+class _BakeProcess:
+    """The lazy bake's side of the link (runs in the spawned process)."""
+
+    def __init__(self, job: dict, inbox, outbox) -> None:
+        import multiprocessing
+
+        from baking.config import BakeConfig
+
+        self.job, self.inbox, self.outbox = job, inbox, outbox
+        self.shared = SharedLattice.attach(job["lattice"])
+        self.volume = volumes.Volume(**job["volume"])
+        self.config = BakeConfig.from_dict(job["config"])
+        self.parent = multiprocessing.parent_process()
+        self.workers = job["workers"] or os.cpu_count() or 1
+        self.planned = False
+        self.lit: set[int] = set()  # ids of the views that had their first estimates
+        self.waiting: list = []  # messages for `serve`, in order
+
+    def receive(self, block: bool, timeout: float = 0.5):
+        """The next message; None when none came (not blocking, or within `timeout`
+        while `block` is "once"); "stop" when the viewer is gone."""
+        import queue
+
+        while True:
+            try:
+                return self.inbox.get(block=bool(block), timeout=timeout if block else None)
+            except queue.Empty:
+                if self.parent is not None and not self.parent.is_alive():
+                    return "stop"
+                if not block or block == "once":
+                    return None
+
+    def first_light(self, view) -> None:
+        """First estimates of the visible texels of `view` on its displayed surface."""
+        from baking.preview import first_estimates
+
+        if id(view) in self.lit or view.visible is None or not len(view.visible):
+            return
+        self.lit.add(id(view))
+        t = time.perf_counter()
+        flat = first_estimates(self.volume, self.config, self.shared.lattice, view.iso,
+                               view.visible, workers=self.workers, only_active=self.planned)
+        if len(flat):
+            self.outbox.put(("texels", flat))
+        self.outbox.put(("first", {"iso": view.iso, "texels": len(flat),
+                                   "seconds": time.perf_counter() - t}))
+
+    def _keep(self, message) -> bool:
+        """Queue `message` for `serve`, lighting views at once; False on "stop"."""
+        from baking.lazy import View
+
+        if message == "stop":
+            return False
+        if isinstance(message, View):
+            self.first_light(message)
+        self.waiting.append(message)
+        return True
+
+    def _plan(self):
+        """Make the Baker (its plan takes seconds to tens of seconds) on a thread while
+        every new view still gets first estimates; None when told to stop."""
+        import threading
+
+        from baking.bake import Baker
+        from baking.lazy import scene_cache_size
+
+        made: dict = {}
+
+        def make() -> None:
+            try:
+                made["baker"] = Baker(self.volume, self.config, lattice=self.shared.lattice,
+                                      workers=self.job["workers"], scene_cache=made["cache"])
+            except BaseException as exc:  # re-raised below, in this thread
+                made["error"] = exc
+
+        made["cache"] = scene_cache_size(self.volume, self.job["iso"], self.config.max_levels,
+                                         scene_budget())
+        planner = threading.Thread(target=make, name="isolume-plan", daemon=True)
+        planner.start()
+        while planner.is_alive():
+            message = self.receive("once", timeout=0.1)
+            if message is not None and not self._keep(message):
+                return None
+        if "error" in made:
+            raise made["error"]
+        return made["baker"], made["cache"]
+
+    def run(self) -> None:
+        from baking.lazy import LazyScheduler, View, serve
+        from baking.preview import drop_inactive
+        from baking.preview import warm_up as preview_warm_up
+
+        preview_warm_up(self.volume)  # while the viewer opens its window
+        self.outbox.put(("started", {"seconds": time.time() - self.job["started"]}))
+        message = self.receive(True)  # the first view gets first estimates before the plan
+        while not isinstance(message, View):
+            if not self._keep(message):
+                return
+            message = self.receive(True)
+        self._keep(message)
+        t0 = time.perf_counter()
+        active = self.shared.lattice.active  # the Baker replaces the lattice's attribute
+        made = self._plan()
+        if made is None:
+            return
+        baker, cache = made
+        active[...] = baker.plan.active
+        baker.lattice.active = active
+        self.planned = True
+        stale = drop_inactive(self.shared.lattice)
+        if len(stale):
+            self.outbox.put(("texels", stale))
+        self.outbox.put(("ready", {"seconds": time.perf_counter() - t0,
+                                   "active": len(baker.plan.ids),
+                                   "levels": len(baker.plan.levels),
+                                   "scene_cache": cache, "meta": baker.lattice.meta}))
+        scheduler = LazyScheduler(baker.plan, baker.geometry,
+                                  self.shared.lattice.samples.reshape(-1),
+                                  max_samples=self.config.samples,
+                                  batch_paths=self.job["batch_paths"])
+
+        def receive(block: bool):
+            return self.waiting.pop(0) if self.waiting else self.receive(block)
+
+        try:
+            serve(baker, scheduler, receive, self.outbox.put, on_view=self.first_light)
+        finally:
+            baker.close()
 
 
 class BakeLink:
