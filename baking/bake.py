@@ -214,6 +214,7 @@ class Baker:
         self.previous = dict(self.lattice.meta.get("stats", {}))
         self._acc = _Accumulator(len(self.plan.ids), self.settings.channels)
         self._pool = ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1))
+        self._helper = ThreadPoolExecutor(max_workers=1)  # lays out the next level
         self._scenes: OrderedDict[int, object] = OrderedDict()
         self._scene_cache = max(1, scene_cache)
         _finish_meta(self.lattice, self.plan, self.stats, self.previous)
@@ -247,16 +248,21 @@ class Baker:
         by_lower = _group_by(plan.lower[busy], busy, first, last)
         jobs: list = []
         try:
-            # Pipelined: while the workers trace one level, this thread lays out the paths
-            # and start points of the next; only the level scene is built in between.
+            # Pipelined: a helper thread lays out the paths and start points of the next
+            # level while this one builds the level scene (marching cubes and embreex's
+            # mesh copy leave a core idle) and the workers trace it.
             work, carry = self._prepare_level(first, by_lower[0], done, remaining, None)
             for level in range(first, last + 1):
-                jobs = self._submit_level(work)
+                upcoming = None
                 if level < last:
-                    work, carry = self._prepare_level(level + 1, by_lower[level + 1 - first],
-                                                      done, remaining, carry)
+                    upcoming = self._helper.submit(self._prepare_level, level + 1,
+                                                   by_lower[level + 1 - first], done,
+                                                   remaining, carry)
+                jobs = self._submit_level(work)
                 self._collect(jobs, level, bar)
                 jobs = []
+                if upcoming is not None:
+                    work, carry = upcoming.result()
                 # a texel's pass is complete once its upper level is done
                 complete = by_lower[level - first - 1] if level > first else busy[:0]
                 complete = complete[self._acc.n[complete] > 0]
@@ -274,6 +280,7 @@ class Baker:
     def close(self) -> None:
         """Stop the worker threads and drop the cached scenes."""
         self._pool.shutdown(wait=True, cancel_futures=True)
+        self._helper.shutdown(wait=True, cancel_futures=True)
         self._scenes.clear()
 
     def _scene(self, level: int):
