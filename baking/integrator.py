@@ -7,7 +7,8 @@ and a cosine-sampled direction turns radiance into irradiance with the factor π
 
 * point and directional lights: deterministic shadow rays (hard shadows);
 * a non-constant environment: one light sample (importance sampled) and the escaping
-  cosine-sampled continuation ray, combined with the power heuristic;
+  cosine-sampled continuation ray, combined with the power heuristic (compiled for the
+  procedural sky, `baking.kernels`; numpy for the others);
 * a constant environment: the cosine-sampled ray alone (it is already the ideal sampler).
 
 Paths end after `bounces` bounces; nothing is cut early, so the estimate of the B-bounce
@@ -25,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import kernels, rng
+from .environment import SkyEnvironment
 from .lights import Light
 from .sampling import power_heuristic
 
@@ -107,6 +109,15 @@ def _direct_env(scene: Scene, pos, n, beta, keys, dim, env, stats) -> np.ndarray
     return out
 
 
+def _direct_sky(scene: Scene, result, alive, pos, n, beta, keys, dim, sky, stats) -> None:
+    """`_direct_env` for the procedural sky with the compiled sampler: adds the
+    MIS-weighted light sample of each vertex to ``result[alive]``."""
+    dirs, contrib, useful = kernels.sky_light_samples(sky, keys, dim, n)
+    idx = np.flatnonzero(useful)
+    idx = idx[~scene.occluded(pos[idx], dirs[idx], None, stats)]
+    result[alive[idx], :3] += beta[idx] * contrib[idx]
+
+
 def _escape_sh(beta: np.ndarray, dirs: np.ndarray, settings: PathSettings) -> np.ndarray:
     """(M, C) SH projection π·beta·Y(ω) of escaping paths."""
     from .sh import basis
@@ -141,12 +152,15 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     albedo = np.asarray(settings.albedo, np.float32)
     irradiance = settings.sh_order is None
     constant_env = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
+    sky = kernels.sky_params(lighting.env) if type(lighting.env) is SkyEnvironment else None
     for vertex in range(settings.bounces + 1):
         k = keys[alive]
         dim = vertex * DIMS_PER_VERTEX
         if irradiance and lighting.lights:
             result[alive, :3] += _direct_lights(scene, pos, n, beta, lighting.lights, stats)
-        if irradiance and lighting.sample_env:
+        if irradiance and sky is not None:
+            _direct_sky(scene, result, alive, pos, n, beta, k, dim + 2, sky, stats)
+        elif irradiance and lighting.sample_env:
             result[alive, :3] += _direct_env(scene, pos, n, beta, k, dim + 2, lighting.env,
                                              stats)
         dirs = kernels.cosine_directions(k, dim, n)
@@ -154,6 +168,8 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
         prim = hits["prim"]
         if irradiance and constant_env is not None:  # cosine sampling is ideal here
             kernels.add_escaped(result, alive, prim, beta, np.pi * np.asarray(constant_env))
+        elif irradiance and sky is not None:
+            kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n)
         elif lighting.env is not None or not irradiance:
             _add_escaped(result, alive, prim < 0, beta, dirs, n, lighting, settings)
         if vertex == settings.bounces:

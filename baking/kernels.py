@@ -207,6 +207,124 @@ def texel_sums(pos: np.ndarray, estimates: np.ndarray, weights: np.ndarray):
     return positions, sums, second, counts
 
 
+
+# -- the procedural sky (`baking.environment.SkyEnvironment`), compiled --------------------
+SKY_PARAMS = 19
+"""Length of `sky_params`: zenith, horizon, ground (3 each), sin(horizon blur), sun
+direction (3), cos(sun radius), sun radiance (3), sun probability, 1/(sun cone solid
+angle)."""
+
+
+def sky_params(env) -> np.ndarray:
+    """(SKY_PARAMS,) float64 description of a `SkyEnvironment` for the sky kernels."""
+    cone = 2.0 * math.pi * (1.0 - env.sun_cos_radius)
+    return np.concatenate([
+        env.zenith, env.horizon, env.ground, [math.sin(math.radians(env.horizon_blur))],
+        env.sun_direction, [env.sun_cos_radius], env.sun_radiance, [env.sun_probability],
+        [1.0 / cone if cone > 0 else 0.0],
+    ]).astype(np.float64)
+
+
+@numba.njit(**_JIT)
+def _sky_pdf(p: np.ndarray, x: float, y: float, z: float) -> float:
+    """Density (1/sr) of the sky's sampler at unit direction (x, y, z)."""
+    pdf = (1.0 - p[17]) / (4.0 * math.pi)
+    if p[17] > 0 and x * p[10] + y * p[11] + z * p[12] >= p[13]:
+        pdf += p[17] * p[18]
+    return pdf
+
+
+@numba.njit(**_JIT)
+def _sky_radiance(p: np.ndarray, x: float, y: float, z: float, out: np.ndarray) -> None:
+    """out[:3] = sky radiance arriving from unit direction (x, y, z)."""
+    h = p[9]
+    if h <= 0:
+        g = 1.0 if z >= 0 else 0.0
+    else:
+        t = min(max((z + h) / (2 * h), 0.0), 1.0)
+        g = t * t * (3.0 - 2.0 * t)
+    sun = p[17] > 0 and x * p[10] + y * p[11] + z * p[12] >= p[13]
+    for c in range(3):
+        up = p[3 + c] + (p[c] - p[3 + c]) * max(z, 0.0)
+        out[c] = g * up + (1.0 - g) * p[6 + c] + (p[14 + c] if sun else 0.0)
+
+
+@numba.njit(**_JIT)
+def _sky_sample(p: np.ndarray, u0: float, u1: float, out: np.ndarray) -> None:
+    """out[:3] = the sky sampler's direction for uniforms (u0, u1): the sun cone with
+    probability p_sun, else the whole sphere (`SkyEnvironment.sample`)."""
+    p_sun, phi = p[17], 2.0 * math.pi * u1
+    if u0 < p_sun:
+        cos_t = 1.0 - (u0 / p_sun) * (1.0 - p[13])
+        sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
+        ax, ay, az = p[10], p[11], p[12]
+        sign = math.copysign(1.0, az)
+        a = -1.0 / (sign + az)
+        b = ax * ay * a
+        tx, ty, tz = 1.0 + sign * ax * ax * a, sign * b, -sign * ax
+        bx, by, bz = b, sign + ay * ay * a, -ay
+        cx, cy = sin_t * math.cos(phi), sin_t * math.sin(phi)
+        out[0] = cx * tx + cy * bx + cos_t * ax
+        out[1] = cx * ty + cy * by + cos_t * ay
+        out[2] = cx * tz + cy * bz + cos_t * az
+    else:
+        v = min((u0 - p_sun) / (1.0 - p_sun), 1.0 - 2.0**-53)
+        z = 1.0 - 2.0 * v
+        rho = math.sqrt(max(0.0, 1.0 - z * z))
+        out[0], out[1], out[2] = rho * math.cos(phi), rho * math.sin(phi), z
+
+
+@numba.njit(**_JIT)
+def sky_light_samples(p: np.ndarray, keys: np.ndarray, dim: int, normals: np.ndarray):
+    """One importance-sampled sky direction per path vertex, MIS-weighted against cosine
+    sampling (power heuristic), as `integrator._direct_env` does with numpy.
+
+    Returns:
+        dirs (M, 3) float32, contributions (M, 3) float64 = L·cos·w/pdf (to be multiplied
+        by the throughput where the shadow ray is not blocked), and useful (M,) bool
+        (cos > 0 and pdf > 0).
+    """
+    k0, k1 = dimension_key(dim), dimension_key(dim + 1)
+    m = len(keys)
+    dirs = np.empty((m, 3), np.float32)
+    contrib = np.zeros((m, 3))
+    useful = np.zeros(m, np.bool_)
+    d = np.empty(3)
+    radiance = np.empty(3)
+    for i in range(m):
+        _sky_sample(p, uniform(keys[i], k0), uniform(keys[i], k1), d)
+        dirs[i, 0], dirs[i, 1], dirs[i, 2] = d[0], d[1], d[2]
+        cos = normals[i, 0] * d[0] + normals[i, 1] * d[1] + normals[i, 2] * d[2]
+        pdf = _sky_pdf(p, d[0], d[1], d[2])
+        if cos <= 0 or pdf <= 0:
+            continue
+        useful[i] = True
+        other = cos / math.pi
+        weight = pdf * pdf / (pdf * pdf + other * other)
+        _sky_radiance(p, d[0], d[1], d[2], radiance)
+        for c in range(3):
+            contrib[i, c] = radiance[c] * cos * weight / pdf
+    return dirs, contrib, useful
+
+
+@numba.njit(**_JIT)
+def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: np.ndarray,
+                    beta: np.ndarray, dirs: np.ndarray, normals: np.ndarray) -> None:
+    """result[alive[i], :3] += beta[i]·L(dir)·π·w for every cosine-sampled ray i that
+    escaped (prim < 0), w the power-heuristic weight against the sky's light sample."""
+    radiance = np.empty(3)
+    for i in range(len(prim)):
+        if prim[i] >= 0:
+            continue
+        x, y, z = float(dirs[i, 0]), float(dirs[i, 1]), float(dirs[i, 2])
+        cos = normals[i, 0] * dirs[i, 0] + normals[i, 1] * dirs[i, 1] + normals[i, 2] * dirs[i, 2]
+        own, pdf = cos / math.pi, _sky_pdf(p, x, y, z)
+        total = own * own + pdf * pdf
+        weight = math.pi * (own * own / total if total > 0 else 0.0)
+        _sky_radiance(p, x, y, z, radiance)
+        for c in range(3):
+            result[alive[i], c] += beta[i, c] * radiance[c] * weight
+
 def warm_up() -> None:
     """Load (or compile, the first time on a machine) every kernel for the argument types
     the path tracer uses, so that the first bake's timings measure tracing only."""
@@ -220,3 +338,6 @@ def warm_up() -> None:
     texel_sums(np.zeros(1, np.int64), np.zeros((1, 3)), np.ones(3))
     index = np.zeros(1, np.int64)
     path_starts(np.uint64(0), index, index, index, index, vec, vec)
+    sky = np.zeros(SKY_PARAMS)
+    sky_light_samples(sky, keys, 0, vec)
+    sky_add_escaped(sky, np.zeros((1, 3)), index, prim, vec, vec, vec)

@@ -107,3 +107,52 @@ def test_texel_sums_match_reduceat():
     np.testing.assert_allclose(second, np.add.reduceat((est @ LUMINANCE) ** 2, starts),
                                rtol=1e-12)
     np.testing.assert_array_equal(counts, np.diff(np.r_[starts, len(pos)]))
+
+
+SKIES = ["sky:sun=3", "sky:sun=5,sun_el=10,sun_radius=2,horizon_blur=0", "sky"]
+
+
+@pytest.mark.parametrize("spec", SKIES)
+def test_sky_light_samples_match_the_environment(spec, normals):
+    """The compiled sky sampler against `SkyEnvironment.sample/pdf/radiance` and the
+    MIS weighting of `integrator._direct_env`, on the same uniforms."""
+    from baking.environment import parse_env
+    from baking.sampling import power_heuristic
+
+    env = parse_env(spec)
+    assert len(kernels.sky_params(env)) == kernels.SKY_PARAMS
+    keys = rng.path_keys(5, np.arange(len(normals)), np.zeros(len(normals), np.int64))
+    dirs, contrib, useful = kernels.sky_light_samples(kernels.sky_params(env), keys, 2,
+                                                      normals)
+    d, pdf = env.sample(rng.uniform2(keys, 2))
+    np.testing.assert_allclose(dirs, d, atol=1e-6)
+    cos = (normals * d).sum(axis=1)
+    np.testing.assert_array_equal(useful, (cos > 0) & (pdf > 0))
+    w = power_heuristic(pdf[useful], cos[useful] / np.pi)
+    want = env.radiance(d[useful]) * (cos[useful] * w / pdf[useful])[:, None]
+    np.testing.assert_allclose(contrib[useful], want, rtol=1e-9, atol=1e-12)
+    assert (contrib[~useful] == 0).all()
+    if env.sun_probability > 0:  # the sun cone is sampled, and weighted as such
+        in_sun = d @ env.sun_direction >= env.sun_cos_radius
+        assert 0.05 < in_sun.mean() < 0.95
+
+
+@pytest.mark.parametrize("spec", SKIES)
+def test_sky_escaped_rays_match_the_environment(spec, normals):
+    from baking.environment import parse_env
+    from baking.integrator import Lighting, PathSettings, _add_escaped
+
+    env = parse_env(spec)
+    r = np.random.default_rng(8)
+    m = len(normals)
+    dirs = r.normal(size=(m, 3))
+    dirs = (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)).astype(np.float32)
+    dirs[:50] = env.sun_direction  # some straight into the sun
+    prim = np.where(r.uniform(size=m) < 0.5, -1, 3).astype(np.int32)
+    beta = r.uniform(size=(m, 3)).astype(np.float32)
+    alive = r.permutation(m)
+    got, want = np.zeros((m, 3)), np.zeros((m, 3))
+    kernels.sky_add_escaped(kernels.sky_params(env), got, alive, prim, beta, dirs, normals)
+    _add_escaped(want, alive, prim < 0, beta, dirs, normals, Lighting(env, True, ()),
+                 PathSettings(bounces=0, albedo=(1, 1, 1), hit_offset=0.0))
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
