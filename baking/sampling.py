@@ -1,7 +1,6 @@
-"""Sampling functions with their densities and inverses; no scene types here.
-
-Densities are per steradian. The random numbers are arguments, so each function can be
-tested by a round trip (sample → invert → same u).
+"""Sampling in numpy: the reference the compiled kernels are tested against
+(`baking.kernels.cosine_directions` = `sample_cosine_hemisphere` + `to_world`), and the
+MIS power heuristic. Random numbers are arguments; no scene types here.
 """
 
 from __future__ import annotations
@@ -27,26 +26,6 @@ def sample_cosine_hemisphere(u: np.ndarray) -> np.ndarray:
     r = np.sqrt(u[:, 0])
     phi = 2 * np.pi * u[:, 1]
     z = np.sqrt(np.maximum(0.0, 1 - u[:, 0]))
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def cosine_hemisphere_pdf(cos_theta: np.ndarray) -> np.ndarray:
-    """Density (1/sr) of `sample_cosine_hemisphere` at directions with these cosines."""
-    return np.maximum(cos_theta, 0.0) / np.pi
-
-
-def invert_cosine_hemisphere(w: np.ndarray) -> np.ndarray:
-    """(N, 2) uniforms that `sample_cosine_hemisphere` maps to the (N, 3) local dirs `w`."""
-    u0 = w[:, 0] ** 2 + w[:, 1] ** 2
-    u1 = np.mod(np.arctan2(w[:, 1], w[:, 0]), 2 * np.pi) / (2 * np.pi)
-    return np.stack([u0, u1], axis=1)
-
-
-def sample_uniform_sphere(u: np.ndarray) -> np.ndarray:
-    """(N, 3) unit directions with density 1/(4π), from (N, 2) uniforms."""
-    z = 1 - 2 * u[:, 0]
-    r = np.sqrt(np.maximum(0.0, 1 - z * z))
-    phi = 2 * np.pi * u[:, 1]
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
