@@ -32,6 +32,7 @@ from .lights import parse_light
 from .plan import Plan, make_plan, project_to_level
 
 PATHS_PER_CHUNK = 16384
+MIN_PATHS_PER_CHUNK = 2048
 
 
 @dataclass
@@ -135,13 +136,19 @@ def _luminance_weights(channels: int, irradiance: bool) -> np.ndarray:
     return weights
 
 
-def _chunk_bounds(pos: np.ndarray):
-    """(lo, hi) slices of the sorted path array `pos` with about PATHS_PER_CHUNK paths
-    each, cut only where the texel changes (a texel's paths stay in one chunk, so its sum
-    is added in sample order whatever the number of workers)."""
+def _chunk_bounds(pos: np.ndarray, workers: int):
+    """(lo, hi) slices of the sorted path array `pos`, cut only where the texel changes (a
+    texel's paths stay in one chunk, so its sum is added in sample order whatever the
+    number of workers).
+
+    Guided sizes: each chunk takes 1/(2·workers) of the paths left, between
+    MIN_PATHS_PER_CHUNK and PATHS_PER_CHUNK, so a level ends with small chunks and no
+    worker waits long for the last one.
+    """
     lo, n = 0, len(pos)
     while lo < n:
-        hi = min(lo + PATHS_PER_CHUNK, n)
+        size = min(PATHS_PER_CHUNK, max(MIN_PATHS_PER_CHUNK, (n - lo) // (2 * workers)))
+        hi = min(lo + size, n)
         if hi < n:  # extend to the end of the texel at the cut
             hi = int(np.searchsorted(pos, pos[hi - 1], side="right"))
         yield lo, hi
@@ -213,7 +220,8 @@ class Baker:
         self.texels_done = int(np.count_nonzero(self.samples_done()))
         self.previous = dict(self.lattice.meta.get("stats", {}))
         self._acc = _Accumulator(len(self.plan.ids), self.settings.channels)
-        self._pool = ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1))
+        self.workers = max(1, workers or os.cpu_count() or 1)
+        self._pool = ThreadPoolExecutor(max_workers=self.workers)
         self._helper = ThreadPoolExecutor(max_workers=1)  # lays out the next level
         self._scenes: OrderedDict[int, object] = OrderedDict()
         self._scene_cache = max(1, scene_cache)
@@ -337,7 +345,7 @@ class Baker:
         return [self._pool.submit(_trace_chunk, scene, self.plan, work.pos[lo:hi],
                                   work.samples[lo:hi], work.start, self.lighting,
                                   self.settings, self.config.seed, self._acc)
-                for lo, hi in _chunk_bounds(work.pos)]
+                for lo, hi in _chunk_bounds(work.pos, self.workers)]
 
     def _collect(self, jobs: list, level: int, bar) -> None:
         """Wait for the chunks of `level`; count their paths and rays."""
