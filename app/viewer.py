@@ -541,19 +541,25 @@ class _BakeProcess:
         self.lit: set[int] = set()  # ids of the views that had their first estimates
         self.waiting: list = []  # messages for `serve`, in order
 
-    def receive(self, block: bool, timeout: float = 0.5):
-        """The next message; None when none came (not blocking, or within `timeout`
-        while `block` is "once"); "stop" when the viewer is gone."""
+    def receive(self, block: bool):
+        """The next message (waiting for one if `block`); None when none is waiting and
+        not `block`; "stop" when the viewer is gone."""
+        while True:
+            message = self.receive_within(0.5 if block else None)
+            if message is not None or not block:
+                return message
+
+    def receive_within(self, timeout: float | None):
+        """The next message within `timeout` seconds (None: only one already waiting), or
+        None; "stop" when the viewer is gone."""
         import queue
 
-        while True:
-            try:
-                return self.inbox.get(block=bool(block), timeout=timeout if block else None)
-            except queue.Empty:
-                if self.parent is not None and not self.parent.is_alive():
-                    return "stop"
-                if not block or block == "once":
-                    return None
+        try:
+            return self.inbox.get(block=timeout is not None, timeout=timeout)
+        except queue.Empty:
+            if self.parent is not None and not self.parent.is_alive():
+                return "stop"
+            return None
 
     def first_light(self, view) -> None:
         """First estimates of the visible texels of `view` on its displayed surface."""
@@ -603,7 +609,7 @@ class _BakeProcess:
         planner = threading.Thread(target=make, name="isolume-plan", daemon=True)
         planner.start()
         while planner.is_alive():
-            message = self.receive("once", timeout=0.1)
+            message = self.receive_within(0.1)
             if message is not None and not self._keep(message):
                 return None
         if "error" in made:
