@@ -31,13 +31,18 @@ def _default_volume() -> str:
     return str(ENGINE) if ENGINE.exists() else "synthetic:engine"
 
 
-# -- frames --------------------------------------------------------------------------------
-def add_frames_arguments(parser) -> None:
-    """Options of ``isolume bench frames``."""
+def _add_volume_and_iso(parser) -> None:
+    """The VOLUME argument and --iso option every view benchmark takes."""
     parser.add_argument("volume", nargs="?", default=None,
                         help="volume (default: the engine from ../shared/data, else "
                         "synthetic:engine)")
     parser.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
+
+
+# -- frames --------------------------------------------------------------------------------
+def add_frames_arguments(parser) -> None:
+    """Options of ``isolume bench frames``."""
+    _add_volume_and_iso(parser)
     parser.add_argument("--size", default="512x512", help="WxH pixels")
     parser.add_argument("--gl", default="egl", choices=["egl", "osmesa", "auto"])
     parser.add_argument("--frames", type=int, default=20, help="timed frames per mode")
@@ -162,10 +167,7 @@ def frames(args) -> int:
 # -- lazy ------------------------------------------------------------------------------------
 def add_lazy_arguments(parser) -> None:
     """Options of ``isolume bench lazy``."""
-    parser.add_argument("volume", nargs="?", default=None,
-                        help="volume (default: the engine from ../shared/data, else "
-                        "synthetic:engine)")
-    parser.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
+    _add_volume_and_iso(parser)
     parser.add_argument("--size", default="512x512", help="view WxH (visible texels)")
     parser.add_argument("--target", type=float, default=0.05,
                         help="visible error to reach (relative, default 0.05)")

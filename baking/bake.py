@@ -52,11 +52,12 @@ class BakeStats:
 
 def make_lighting(config: BakeConfig) -> Lighting:
     """Parse the environment and lights of `config`."""
-    from .environment import ConstantEnvironment, parse_env
+    from .environment import ConstantEnvironment, SkyEnvironment, parse_env
 
     env = parse_env(config.env) if config.env else None
     sample_env = env is not None and not isinstance(env, ConstantEnvironment)
-    return Lighting(env, sample_env, tuple(parse_light(s) for s in config.lights))
+    sky = kernels.sky_params(env) if type(env) is SkyEnvironment else None
+    return Lighting(env, sample_env, tuple(parse_light(s) for s in config.lights), sky)
 
 
 def path_settings(volume: volumes.Volume, config: BakeConfig) -> PathSettings:

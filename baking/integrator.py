@@ -25,8 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import kernels, rng
-from .environment import SkyEnvironment
+from . import kernels
 from .lights import Light
 from .sampling import power_heuristic
 
@@ -44,11 +43,14 @@ class Lighting:
         env: the distant environment (`baking.environment.Environment`) or None.
         sample_env: True to importance-sample the environment (next-event estimation).
         lights: point and directional lights.
+        sky: `kernels.sky_params` of a procedural sky (sampled by compiled kernels), or
+            None for the numpy path of any other environment.
     """
 
     env: object | None
     sample_env: bool
     lights: tuple[Light, ...]
+    sky: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -95,7 +97,7 @@ def _direct_lights(scene: Scene, pos, n, beta, lights, stats) -> np.ndarray:
 def _direct_env(scene: Scene, pos, n, beta, keys, dim, env, stats) -> np.ndarray:
     """(M, 3) MIS-weighted environment light sample, times beta."""
     out = np.zeros_like(beta)
-    d, pdf = env.sample(rng.uniform2(keys, dim))
+    d, pdf = env.sample(kernels.uniform2(keys, dim))
     cos = (n * d).sum(axis=1)
     ok = (cos > 0) & (pdf > 0)
     if not ok.any():
@@ -152,7 +154,7 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     albedo = np.asarray(settings.albedo, np.float32)
     irradiance = settings.sh_order is None
     constant_env = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
-    sky = kernels.sky_params(lighting.env) if type(lighting.env) is SkyEnvironment else None
+    sky = lighting.sky
     for vertex in range(settings.bounces + 1):
         k = keys[alive]
         dim = vertex * DIMS_PER_VERTEX

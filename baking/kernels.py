@@ -61,6 +61,16 @@ def uniform2(keys: np.ndarray, dim: int) -> np.ndarray:
 
 
 @numba.njit(**_JIT)
+def _frame(nx, ny, nz):
+    """Tangents (tx, ty, tz), (bx, by, bz) completing the unit normal n to a right-handed
+    frame (Duff et al. 2017, branchless; `baking.sampling.orthonormal_basis`)."""
+    sign = 1.0 if nz >= 0 else -1.0
+    a = -1.0 / (sign + nz)
+    b = nx * ny * a
+    return 1.0 + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
+
+
+@numba.njit(**_JIT)
 def path_starts(seed_key: np.uint64, ids: np.ndarray, pos: np.ndarray, samples: np.ndarray,
                 texels: np.ndarray, origins: np.ndarray, normals: np.ndarray):
     """Keys, origins and normals of P paths (texel positions `pos`, sorted, and sample
@@ -107,11 +117,7 @@ def cosine_directions(keys: np.ndarray, dim: int, normals: np.ndarray) -> np.nda
         r, phi = np.sqrt(u0), two_pi * u1
         lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(max(np.float32(0.0), one - u0))
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        sign = one if nz >= 0 else -one
-        a = -one / (sign + nz)
-        b = nx * ny * a
-        tx, ty, tz = one + sign * nx * nx * a, sign * b, -sign * nx
-        bx, by, bz = b, sign + ny * ny * a, -ny
+        tx, ty, tz, bx, by, bz = _frame(nx, ny, nz)
         out[i, 0] = lx * tx + ly * bx + lz * nx
         out[i, 1] = lx * ty + ly * by + lz * ny
         out[i, 2] = lx * tz + ly * bz + lz * nz
@@ -258,11 +264,7 @@ def _sky_sample(p: np.ndarray, u0: float, u1: float, out: np.ndarray) -> None:
         cos_t = 1.0 - (u0 / p_sun) * (1.0 - p[13])
         sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
         ax, ay, az = p[10], p[11], p[12]
-        sign = math.copysign(1.0, az)
-        a = -1.0 / (sign + az)
-        b = ax * ay * a
-        tx, ty, tz = 1.0 + sign * ax * ax * a, sign * b, -sign * ax
-        bx, by, bz = b, sign + ay * ay * a, -ay
+        tx, ty, tz, bx, by, bz = _frame(ax, ay, az)
         cx, cy = sin_t * math.cos(phi), sin_t * math.sin(phi)
         out[0] = cx * tx + cy * bx + cos_t * ax
         out[1] = cx * ty + cy * by + cos_t * ay

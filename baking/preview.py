@@ -32,6 +32,7 @@ from .bake import make_lighting, path_settings
 from .config import BakeConfig
 from .integrator import trace_paths
 from .lattice import Lattice
+from .lazy import corner_offsets
 from .plan import project_to_level
 
 PATHS = 4
@@ -53,10 +54,7 @@ CHUNK = 16384
 def cell_corners(shape: tuple[int, int, int], cells: np.ndarray) -> np.ndarray:
     """(K,) sorted unique flat ids of the 8 corner texels of (N,) cells given by the flat
     id of their (0, 0, 0) corner."""
-    _, ny, nx = shape
-    offsets = np.array([dz * ny * nx + dy * nx + dx
-                        for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], np.int64)
-    flat = (np.asarray(cells, np.int64)[:, None] + offsets[None, :]).reshape(-1)
+    flat = (np.asarray(cells, np.int64)[:, None] + corner_offsets(shape)[None, :]).reshape(-1)
     return np.unique(flat[flat < int(np.prod(shape))])
 
 

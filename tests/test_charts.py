@@ -225,14 +225,3 @@ def test_bad_options_are_one_line_errors(tmp_path, capsys):
         status = main(["chart", "synthetic:sphere:16", "--out", str(tmp_path), *argv])
         _, err = capsys.readouterr()
         assert status == 2 and err.startswith("isolume: error:") and err.count("\n") == 1
-
-
-def test_importing_the_command_loads_no_gl_plotting_or_ray_tracing():
-    import subprocess
-    import sys
-
-    code = ("import sys, app.charts; print([m for m in ('moderngl', 'matplotlib', 'embreex') "
-            "if m in sys.modules])")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
-    assert out.stdout.strip() == "[]"

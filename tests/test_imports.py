@@ -14,6 +14,8 @@ CHECK = "import sys, {mods}; bad = [m for m in {forbidden!r} if m in sys.modules
         ("volumes", ["moderngl", "glfw", "embreex", "baking", "app"]),
         ("baking", ["moderngl", "glfw", "embreex", "app"]),
         ("app, app.cli, app.render, app.glcontext", ["embreex"]),
+        ("app.charts", ["moderngl", "matplotlib", "embreex"]),  # loaded when a chart runs
+        ("app.reference", ["embreex", "moderngl"]),
     ],
 )
 def test_import_direction(modules, forbidden):

@@ -277,14 +277,3 @@ def test_bad_input_gives_one_line_and_status_2(tmp_path, capsys, make_args, expe
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("isolume: error:"), err
     assert expected in lines[0]
-
-
-def test_reference_module_imports_no_embree_or_gl():
-    import subprocess
-    import sys
-
-    code = ("import sys, app.reference; "
-            "print([m for m in ('embreex', 'moderngl') if m in sys.modules])")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
-    assert out.stdout.strip() == "[]"
