@@ -7,10 +7,14 @@
   its lattice lookups cheaper than Phong with shadows). Lattices are filled with constant
   values: a frame's cost does not depend on them.
 * lazy: the viewer's lazy bake (the same process and scheduler) on one view: seconds until
-  every visible texel has a first estimate, and until the visible texels' error falls
-  below a target. The error is the RMS over visible texels of the relative standard error
-  of each texel's mean, estimated from its samples (per-texel second moments); with
-  ``--reference N`` also against N visible texels baked to convergence separately.
+  every visible texel shows an estimate, and until the visible error falls below a target.
+  The visible error is that of the picture: the RMS over visible pixels (a random subset)
+  of the relative difference between the radiance the lattice shows there (previews
+  included, looked up as the shader does) and per-pixel path tracing of the displayed
+  surface (`baking.reference`, traced before the bake starts). Also reported: when the
+  visible texels' *own* samples reach the target (the RMS of each texel's relative
+  standard error, from its second moment), and with ``--reference N`` the own values of N
+  visible texels against the same texels baked to convergence separately.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -171,6 +176,10 @@ def add_lazy_arguments(parser) -> None:
     parser.add_argument("--size", default="512x512", help="view WxH (visible texels)")
     parser.add_argument("--target", type=float, default=0.05,
                         help="visible error to reach (relative, default 0.05)")
+    parser.add_argument("--pixels", type=int, default=3000,
+                        help="visible pixels the picture's error is measured at")
+    parser.add_argument("--pixel-paths", type=int, default=2048,
+                        help="paths per pixel of their path-traced reference")
     parser.add_argument("--samples", type=int, default=256, help="the bake's last round")
     parser.add_argument("--max-levels", type=int, default=None,
                         help="cap on isovalue levels (fewer scenes to build, larger moves; "
@@ -185,12 +194,11 @@ def add_lazy_arguments(parser) -> None:
     parser.add_argument("--json", help="also write the figures to this JSON file")
 
 
-def visible_cells_headless(volume, iso: float, size: tuple[int, int], backend: str,
-                           geometry):
-    """Flat base ids of the lattice cells under visible pixels of the default view, and
-    the camera (rendered off-screen with the position pass, as the viewer does)."""
+def visible_pixels_headless(volume, iso: float, size: tuple[int, int], backend: str):
+    """World positions (M, 3) of the visible pixels of the default view, their flat pixel
+    indices (M,) (row 0 at the top), and the camera (rendered off-screen with the
+    position pass, as the viewer does)."""
     import volumes
-    from baking.lazy import visible_cells
 
     from .glcontext import create_headless
     from .render import RenderSettings, SurfaceRenderer, default_camera
@@ -205,7 +213,59 @@ def visible_cells_headless(volume, iso: float, size: tuple[int, int], backend: s
         renderer.release()
     finally:
         gl.release()
-    return visible_cells(geometry, frame.linear[frame.mask]), camera
+    return frame.linear[frame.mask][:, :3], np.flatnonzero(frame.mask.reshape(-1)), camera
+
+
+@dataclass(frozen=True)
+class PixelTruth:
+    """Path-traced radiance at visible pixels: what the picture should show there.
+
+    Attributes:
+        points: (P, 3) world points where the pixels' rays meet the displayed mesh.
+        luminance: (P,) mean radiance luminance; noise: (P,) its standard error.
+        albedo: (3,) the surface albedo (radiance = albedo·E/π).
+    """
+
+    points: np.ndarray
+    luminance: np.ndarray
+    noise: np.ndarray
+    albedo: np.ndarray
+
+    def error(self, lattice) -> float:
+        """RMS over the pixels of the relative difference between the luminance `lattice`
+        shows there (`Lattice.sample`, normalized like the shader) and the truth; the
+        truth is floored at 1 % of its median, as `Lattice.relative_error` does."""
+        shown = lattice.sample(self.points, normalized=True)[:, :3] * self.albedo / np.pi
+        rel = (_luminance(shown) - self.luminance) / self._floored()
+        return float(np.sqrt(np.mean(rel**2)))
+
+    def own_noise(self) -> float:
+        """RMS relative standard error of the truth itself (the error's floor)."""
+        return float(np.sqrt(np.mean((self.noise / self._floored()) ** 2)))
+
+    def _floored(self) -> np.ndarray:
+        return np.maximum(self.luminance, 0.01 * float(np.median(self.luminance)))
+
+
+def pixel_truth(volume, config, iso: float, camera, size: tuple[int, int],
+                pixels: np.ndarray, paths: int, workers: int | None) -> PixelTruth:
+    """Trace `paths` paths at each of the (P,) flat `pixels` of `camera`'s view (of `size`)
+    on the displayed isosurface, with the bake's lighting (`baking.reference`)."""
+    from dataclasses import replace
+
+    from baking.lattice import LUMINANCE
+    from baking.reference import PixelStats, ReferenceTracer
+
+    origins, dirs = camera.primary_rays(*size)
+    with ReferenceTracer(volume, iso, origins[pixels], dirs[pixels],
+                         replace(config, samples=paths), workers=workers) as tracer:
+        stats = PixelStats.empty(tracer.pixels)
+        tracer.run(stats)
+        image, hit = tracer.image(stats), tracer.hits.pixels
+        # the channels share their paths: the luminance's standard error is at most the
+        # weighted sum of theirs
+        return PixelTruth(tracer.hits.points, image.radiance[hit] @ LUMINANCE,
+                          image.stderr[hit] @ LUMINANCE, np.array(config.albedo))
 
 
 def visible_error(lattice, flat: np.ndarray) -> float:
@@ -255,7 +315,7 @@ def lazy(args) -> int:
     import volumes
     from baking.config import BakeConfig
     from baking.lattice import LatticeGeometry
-    from baking.lazy import View
+    from baking.lazy import View, visible_cells
     from baking.preview import cell_corners
 
     from .cli import _isovalue, _size
@@ -267,16 +327,27 @@ def lazy(args) -> int:
     if args.max_levels is not None:
         config = replace(config, max_levels=args.max_levels)
     geometry = LatticeGeometry.for_volume(volume, config.scale)
-    cells, camera = visible_cells_headless(volume, iso, _size(args.size), args.gl, geometry)
-    meta = lattice_meta(volume, config)
-    shared = SharedLattice.create(geometry, meta["channels"], meta)
+    size = _size(args.size)
+    points, pixels, camera = visible_pixels_headless(volume, iso, size, args.gl)
+    cells = visible_cells(geometry, points)
     workers = args.workers or os.cpu_count() or 1
     print(f"lazy GI: {volume.name} at iso {iso:.6g}, {args.size} view, {workers} workers, "
           f"target {args.target:.0%}")
+    t = time.perf_counter()
+    probe = np.sort(np.random.default_rng(0).choice(pixels, min(args.pixels, len(pixels)),
+                                                    replace=False))
+    truth = pixel_truth(volume, config, iso, camera, size, probe, args.pixel_paths, workers)
+    figures = {"volume": volume.name, "iso": iso, "workers": workers, "size": args.size,
+               "pixels": len(truth.points), "pixel_paths": args.pixel_paths,
+               "pixel_truth_noise": truth.own_noise()}
+    print(f"  reference: {len(truth.points):,} visible pixels path-traced to "
+          f"{args.pixel_paths} paths in {time.perf_counter() - t:.1f} s (its own noise: "
+          f"{truth.own_noise():.2%} RMS)")
+    meta = lattice_meta(volume, config)
+    shared = SharedLattice.create(geometry, meta["channels"], meta)
     t0 = time.perf_counter()
     link = BakeLink(volume, config, shared, workers, iso)
     link.send_view(View(iso, tuple(float(v) for v in camera.eye), cells))
-    figures = {"volume": volume.name, "iso": iso, "workers": workers, "size": args.size}
     visible_flat = subset = None
     trace, subset_lum = [], []
     corners = cell_corners(geometry.shape, cells)  # every texel the picture reads
@@ -286,62 +357,50 @@ def lazy(args) -> int:
             link.poll()
             if link.error:
                 raise RuntimeError(link.error)
-            if "first_estimate_s" not in figures:
-                lat = shared.lattice
-                shown = ((lat.samples.reshape(-1)[corners] > 0)
-                         | (lat.first.reshape(-1)[corners] > 0))
-                if shown.all():
-                    figures["first_estimate_s"] = time.perf_counter() - t0
-                    print(f"  every visible texel ({len(corners):,}) shows an estimate after "
-                          f"{figures['first_estimate_s']:.1f} s (first estimates on the "
-                          "displayed surface)")
+            now = time.perf_counter() - t0
+            lat = shared.lattice
+            _first_shown(figures, lat, corners, now)
+            image_err = truth.error(lat)
+            if image_err <= args.target and "target_s" not in figures:
+                figures["target_s"] = now
+                print(f"  the picture is within {image_err:.1%} RMS of the path-traced one "
+                      f"after {now:.1f} s")
             if link.ready is not None and "ready_s" not in figures:
-                figures["ready_s"] = time.perf_counter() - t0
+                figures["ready_s"] = now
                 figures["active_texels"] = link.ready["active"]
                 figures["levels"] = link.ready["levels"]
-                print(f"  plan ready after {figures['ready_s']:.1f} s "
-                      f"({link.ready['active']:,} active texels, {link.ready['levels']} levels)")
+                print(f"  plan ready after {now:.1f} s ({link.ready['active']:,} active "
+                      f"texels, {link.ready['levels']} levels)")
             p = link.progress
             if p is not None and p.visible and visible_flat is None:
-                visible_flat = _visible_flat(shared.lattice, geometry, cells)
+                visible_flat = _visible_flat(lat, geometry, cells)
                 figures["visible_texels"] = len(visible_flat)
                 rng = np.random.default_rng(0)
                 subset = np.sort(rng.choice(visible_flat, min(args.reference,
                                                               len(visible_flat)),
                                             replace=False))
+            own_err = float("inf")
             if visible_flat is not None:
-                now = time.perf_counter() - t0
-                started = int((shared.lattice.samples.reshape(-1)[visible_flat] > 0).sum())
-                err = visible_error(shared.lattice, visible_flat)
-                trace.append((now, started, err))
-                values = shared.lattice.values.reshape(-1, shared.lattice.values.shape[-1])
-                subset_lum.append(_luminance(values[subset]))
-                if started == len(visible_flat) and "bake_estimate_s" not in figures:
-                    figures["bake_estimate_s"] = now
-                    print(f"  every visible active texel ({started:,}) has samples of its "
-                          f"own after {now:.1f} s")
-                if err <= args.target:
-                    figures["target_s"] = now
-                    print(f"  visible error {err:.3f} <= {args.target} after {now:.1f} s")
-                    break
+                own_err = _own_progress(figures, lat, visible_flat, now)
+                values = lat.values.reshape(-1, lat.values.shape[-1])
+                subset_lum.append((now, _luminance(values[subset])))
+            trace.append((now, image_err, own_err))
+            if own_err <= args.target:
+                figures["own_target_s"] = now
+                print(f"  the visible texels' own samples: error {own_err:.3f} <= "
+                      f"{args.target} after {now:.1f} s")
+                break
             time.sleep(0.25)
         else:
             print(f"  stopped after {args.timeout:.0f} s")
         figures["stats"] = link.stats
     finally:
         link.stop()
-    figures["first_passes"] = [{"at_s": at, **f} for at, f in link.first]
-    if link.first:
-        at, f = link.first[0]
-        warm = link.warm["seconds"] if link.warm else float("nan")
-        figures["process_start_s"] = warm
-        print(f"  first-estimate pass: {f['texels']:,} texels in {f['seconds']:.2f} s, done "
-              f"{at:.1f} s after the bake process was started ({warm:.1f} s of which "
-              "starting it: imports, kernels, gradient grid — the viewer starts it with "
-              "its window)")
+    _preview_figures(figures, link)
     if args.reference and subset is not None and len(subset):
-        _reference_figures(args, volume, config, subset, trace, subset_lum, figures)
-    figures["trace"] = trace[:: max(1, len(trace) // 200)]
+        _reference_figures(args, volume, config, subset, subset_lum, figures)
+    figures["trace"] = [{"s": now, "picture_error": image, "own_error": own}
+                        for now, image, own in trace[:: max(1, len(trace) // 200)]]
     shared.close()
     print(f"  bake: {figures['stats'].get('rays', 0):,} rays, "
           f"{figures['stats'].get('scene_seconds', 0):.1f} s building level scenes, "
@@ -349,6 +408,36 @@ def lazy(args) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=1, default=float))
     return 0
+
+
+def _first_shown(figures: dict, lattice, corners: np.ndarray, now: float) -> None:
+    """Note when every texel the picture reads first shows an estimate."""
+    if "first_estimate_s" not in figures and lattice.shown().reshape(-1)[corners].all():
+        figures["first_estimate_s"] = now
+        print(f"  every visible texel ({len(corners):,}) shows an estimate after {now:.1f} s "
+              "(previews traced on the displayed surface)")
+
+
+def _own_progress(figures: dict, lattice, visible_flat: np.ndarray, now: float) -> float:
+    """The visible texels' own-sample error (`visible_error`); notes when all have some."""
+    started = int((lattice.samples.reshape(-1)[visible_flat] > 0).sum())
+    if started == len(visible_flat) and "bake_estimate_s" not in figures:
+        figures["bake_estimate_s"] = now
+        print(f"  every visible active texel ({started:,}) has samples of its own after "
+              f"{now:.1f} s")
+    return visible_error(lattice, visible_flat)
+
+
+def _preview_figures(figures: dict, link) -> None:
+    """The preview passes the bake process reported, and its start-up time."""
+    figures["preview_passes"] = [{"at_s": at, **f} for at, f in link.first]
+    warm = link.warm["seconds"] if link.warm else float("nan")
+    figures["process_start_s"] = warm
+    for at, f in link.first:
+        print(f"  preview pass: {f['paths']} paths on {f['texels']:,} texels in "
+              f"{f['seconds']:.2f} s, done {at:.1f} s after the bake process was started")
+    print(f"  ({warm:.1f} s of that is starting the process: imports, kernels, gradient "
+          "grid — the viewer starts it with its window)")
 
 
 def _visible_flat(lattice, geometry, cells: np.ndarray) -> np.ndarray:
@@ -359,22 +448,20 @@ def _visible_flat(lattice, geometry, cells: np.ndarray) -> np.ndarray:
     return flat[lattice.active.reshape(-1)[flat]]
 
 
-def _reference_figures(args, volume, config, subset, trace, subset_lum, figures) -> None:
-    """Error of the lazy lattice's visible texels (a subset) against a converged bake, at
-    every trace point; the time it first falls below the target."""
+def _reference_figures(args, volume, config, subset, subset_lum, figures) -> None:
+    """Error of the lazy lattice's visible texels (a subset; `subset_lum` holds (seconds,
+    (N,) luminance) along the run) against a converged bake; the time it first falls
+    below the target."""
     t = time.perf_counter()
     ref = reference_values(volume, config, subset, args.reference_samples, args.workers)
     seconds = time.perf_counter() - t
     rms = []
     floor = 0.01 * float(np.median(np.abs(ref)))  # as `Lattice.relative_error`: deep
-    for lum in subset_lum:  # shadow is judged against the scene's light level, not ~0
+    for now, lum in subset_lum:  # shadow is judged against the scene's light level, not ~0
         rel = (lum - ref) / np.maximum(np.abs(ref), floor)
         rms.append(float(np.sqrt(np.mean(rel**2))))
-    for (now, _, _), e in zip(trace, rms, strict=True):
-        trace_err = e
-        if trace_err <= args.target:
+        if rms[-1] <= args.target and "reference_target_s" not in figures:
             figures["reference_target_s"] = now
-            break
     figures["reference"] = {"texels": len(subset), "samples": args.reference_samples,
                             "seconds": seconds, "rms_rel_error": rms[:: max(1, len(rms) // 200)],
                             "rms_rel_error_at_end": rms[-1] if rms else None}

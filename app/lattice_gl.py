@@ -74,7 +74,7 @@ class LatticeTextures:
         self.sh_order = self.sh_groups = self.sh_textures = 0
         if self.kind == "irradiance":
             self.irradiance = ctx.texture3d((x, y, z), 3, dtype="f4")
-            store_rgb9e5(ctx, self.irradiance, self._premultiplied(lattice.values, shown))
+            store_rgb9e5(ctx, self.irradiance, lattice.displayed()[..., :3])
             self.textures = [self.irradiance]
         elif self.kind == "sh":
             self.sh_order = int(lattice.meta["sh_order"])
@@ -102,15 +102,10 @@ class LatticeTextures:
         tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         return tex
 
-    @staticmethod
-    def _premultiplied(values: np.ndarray, shown: np.ndarray) -> np.ndarray:
-        """(…, C) float32 values times the (…) bool mask of texels shown."""
-        return np.where(shown[..., None], values, 0).astype(np.float32)
-
     def _sh_groups(self, z0: int, z1: int) -> list[np.ndarray]:
         """(z, y, x, 4) float16 arrays, one per texture: τ·valid, four coefficients each."""
         lat = self.lattice
-        values = self._premultiplied(lat.values[z0:z1], lat.shown(np.s_[z0:z1]))
+        values = lat.displayed(np.s_[z0:z1])  # zero where nothing is shown
         n2 = self.sh_order**2
         values = values.reshape(*values.shape[:3], n2, -1)  # (..., n², 1 or 3)
         padded = np.zeros((*values.shape[:3], self.sh_textures * 4, values.shape[-1]),
@@ -139,7 +134,7 @@ class LatticeTextures:
         viewport = (0, 0, z0, x, y, z1 - z0)
         shown = lat.shown(np.s_[z0:z1])
         if self.kind == "irradiance":
-            values = self._premultiplied(lat.values[z0:z1], shown)
+            values = np.ascontiguousarray(lat.displayed(np.s_[z0:z1])[..., :3])
             self.irradiance.write(values.tobytes(), viewport=viewport)
         else:
             self._write_sh(z0, z1)

@@ -405,7 +405,7 @@ class SharedLattice:
         shape = tuple(geometry.shape)
         return {"values": ((*shape, channels), "float32"), "samples": (shape, "uint32"),
                 "second": (shape, "float32"), "active": (shape, "bool"),
-                "first": (shape, "uint8")}
+                "preview": ((*shape, channels), "float32"), "preview_paths": (shape, "uint16")}
 
     @classmethod
     def create(cls, geometry, channels: int, meta: dict, source=None) -> SharedLattice:
@@ -424,7 +424,8 @@ class SharedLattice:
             arr[...] = 0 if copied is None else copied
             arrays[name] = arr
         lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                          arrays["active"], dict(meta), first=arrays["first"])
+                          arrays["active"], dict(meta), preview=arrays["preview"],
+                          preview_paths=arrays["preview_paths"])
         return cls(lattice, blocks, owner=True)
 
     def describe(self) -> dict:
@@ -453,7 +454,8 @@ class SharedLattice:
             blocks.append(block)
             arrays[name] = np.ndarray(shape, dtype, buffer=block.buf)
         lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                          arrays["active"], dict(description["meta"]), first=arrays["first"])
+                          arrays["active"], dict(description["meta"]),
+                          preview=arrays["preview"], preview_paths=arrays["preview_paths"])
         return cls(lattice, blocks, owner=False)
 
     def snapshot(self):
@@ -530,6 +532,7 @@ class _BakeProcess:
         import multiprocessing
 
         from baking.config import BakeConfig
+        from baking.preview import Previewer
 
         self.job, self.inbox, self.outbox = job, inbox, outbox
         self.shared = SharedLattice.attach(job["lattice"])
@@ -537,8 +540,9 @@ class _BakeProcess:
         self.config = BakeConfig.from_dict(job["config"])
         self.parent = multiprocessing.parent_process()
         self.workers = job["workers"] or os.cpu_count() or 1
-        self.planned = False
-        self.lit: set[int] = set()  # ids of the views that had their first estimates
+        self.previewer = Previewer(self.volume, self.config, self.shared.lattice,
+                                   self.workers)
+        self.lit: set[int] = set()  # ids of the views that had their first preview pass
         self.waiting: list = []  # messages for `serve`, in order
 
     def receive(self, block: bool):
@@ -562,19 +566,26 @@ class _BakeProcess:
             return None
 
     def first_light(self, view) -> None:
-        """First estimates of the visible texels of `view` on its displayed surface."""
-        from baking.preview import first_estimates
-
+        """The first preview pass of `view` (a few paths per visible texel, traced on its
+        displayed surface); the others follow through `preview_step`."""
         if id(view) in self.lit or view.visible is None or not len(view.visible):
             return
         self.lit.add(id(view))
-        t = time.perf_counter()
-        flat = first_estimates(self.volume, self.config, self.shared.lattice, view.iso,
-                               view.visible, workers=self.workers, only_active=self.planned)
+        self._announce(self.previewer.set_view(view.iso, view.visible))
+
+    def preview_step(self) -> bool:
+        """A slice of the queued preview passes; False when there was none."""
+        if not self.previewer.busy:
+            return False
+        self._announce(self.previewer.step())
+        return True
+
+    def _announce(self, flat: np.ndarray) -> None:
+        """Tell the viewer which texels changed, and which preview passes finished."""
         if len(flat):
             self.outbox.put(("texels", flat))
-        self.outbox.put(("first", {"iso": view.iso, "texels": len(flat),
-                                   "seconds": time.perf_counter() - t}))
+        while self.previewer.done:
+            self.outbox.put(("first", self.previewer.done.pop(0)))
 
     def _keep(self, message) -> bool:
         """Queue `message` for `serve`, lighting views at once; False on "stop"."""
@@ -609,9 +620,10 @@ class _BakeProcess:
         planner = threading.Thread(target=make, name="isolume-plan", daemon=True)
         planner.start()
         while planner.is_alive():
-            message = self.receive_within(0.1)
+            message = self.receive_within(None if self.previewer.busy else 0.1)
             if message is not None and not self._keep(message):
                 return None
+            self.preview_step()
         if "error" in made:
             raise made["error"]
         return made["baker"], made["cache"]
@@ -637,7 +649,7 @@ class _BakeProcess:
         baker, cache = made
         active[...] = baker.plan.active
         baker.lattice.active = active
-        self.planned = True
+        self.previewer.only_active = True
         stale = drop_inactive(self.shared.lattice)
         if len(stale):
             self.outbox.put(("texels", stale))
@@ -654,7 +666,8 @@ class _BakeProcess:
             return self.waiting.pop(0) if self.waiting else self.receive(block)
 
         try:
-            serve(baker, scheduler, receive, self.outbox.put, on_view=self.first_light)
+            serve(baker, scheduler, receive, self.outbox.put, on_view=self.first_light,
+                  before_batch=self.preview_step)
         finally:
             baker.close()
 
@@ -750,10 +763,9 @@ def upload_box(textures, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> 
     (irradiance premultiplied by validity, and validity), as `LatticeTextures` stores them."""
     lat = textures.lattice
     (z0, y0, x0), (z1, y1, x1) = lo, hi
-    shown = lat.shown(np.s_[z0:z1, y0:y1, x0:x1])
-    values = lat.values[z0:z1, y0:y1, x0:x1, :3]
-    premultiplied = np.where(shown[..., None], values, 0).astype(np.float32)
-    valid = np.where(shown, 255, 0).astype(np.uint8)
+    region = np.s_[z0:z1, y0:y1, x0:x1]
+    premultiplied = np.ascontiguousarray(lat.displayed(region)[..., :3])  # 0 where not shown
+    valid = np.where(lat.shown(region), 255, 0).astype(np.uint8)
     viewport = (x0, y0, z0, x1 - x0, y1 - y0, z1 - z0)
     textures.irradiance.write(premultiplied.tobytes(), viewport=viewport, alignment=4)
     textures.valid.write(valid.tobytes(), viewport=viewport, alignment=1)
@@ -812,7 +824,7 @@ def check_textures(textures) -> dict:
     """Read the GL textures back and compare them with the lattice.
 
     Returns:
-        {"texels": texels shown (computed or with a first estimate), "computed": texels
+        {"texels": texels shown (computed or previewed), "computed": texels
         with samples, "max_rel_error":
         largest |GL − lattice| / max(RGB) over those texels (RGB9_E5 keeps 9 mantissa
         bits: ≤ 2⁻⁹ when rounding),
@@ -829,7 +841,7 @@ def check_textures(textures) -> dict:
                 "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
                 "uncomputed_nonzero": None}
     gl_rgb = np.frombuffer(textures.irradiance.read(), np.float32).reshape(z, y, x, 3)
-    want = lat.values[..., :3][computed].astype(np.float64)
+    want = lat.displayed()[..., :3][computed].astype(np.float64)
     got = gl_rgb[computed].astype(np.float64)
     scale = np.maximum(want.max(axis=1, keepdims=True), 1e-30)
     rel = np.abs(got - want) / scale
@@ -1572,18 +1584,25 @@ class Viewer:
             return None, ()
         if self.bake.error:
             return None, (f"error: {self.bake.error}",)
+        preview = self._preview_line()
         if self.bake.ready is None:
-            return None, (f"planning the bake... {time.perf_counter() - self.bake.started:.0f} s",)
+            return None, (f"planning the bake... {time.perf_counter() - self.bake.started:.0f} s",
+                          preview)
         p, s = self.bake.progress, self.bake.stats
         if p is None:
-            return None, ("waiting for the surface",)
+            return None, ("waiting for the surface", preview)
         stage = "done for this view" if p.stage is None else f"{p.stage[0]} to {p.stage[1]} paths"
         if p.surface == 0:
             stage = "this isovalue lies outside the baked range"
         rate = s.get("paths", 0) / max(s.get("seconds", 0.0), 1e-9)
-        lines = (f"{stage}, {rate:,.0f} paths/s",
+        lines = (preview, f"{stage}, {rate:,.0f} paths/s",
                  f"{p.visible:,} visible / {p.surface:,} surface texels")
         return (p.visible_fraction, p.surface_fraction), lines
+
+    def _preview_line(self) -> str:
+        """The last preview pass done for the isovalue on screen ("" when none)."""
+        done = [f for _, f in self.bake.first if f["iso"] == self.state.iso]
+        return f"preview: {done[-1]['paths']} paths/texel on this surface" if done else ""
 
     # -- figures and shutdown ------------------------------------------------------------
     def figures(self) -> dict:
@@ -1594,6 +1613,7 @@ class Viewer:
             p = self.bake.progress
             bake = {"ready": {k: v for k, v in (self.bake.ready or {}).items() if k != "meta"},
                     "progress": asdict(p) if p is not None else None,
+                    "previews": [{"at_s": at, **f} for at, f in self.bake.first],
                     "stats": self.bake.stats, "error": self.bake.error,
                     "blocks_uploaded": self.uploader.uploaded if self.uploader else 0}
         cam = self.camera

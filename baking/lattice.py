@@ -75,20 +75,31 @@ class LatticeGeometry:
         return f[:, ::-1]
 
 
-def trilinear(grid: np.ndarray, coords_zyx: np.ndarray) -> np.ndarray:
-    """Trilinear interpolation of a (Z, Y, X, C) grid at (N, 3) texel coordinates, clamped
-    to the edge texels like GL's CLAMP_TO_EDGE. Returns (N, C) float64."""
-    shape = np.array(grid.shape[:3])
+def trilinear_corners(shape: tuple[int, int, int], coords_zyx: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The texels a trilinear lookup at (N, 3) texel coordinates reads in a (Z, Y, X)
+    grid, clamped to the edge texels like GL's CLAMP_TO_EDGE.
+
+    Returns:
+        (N, 8, 3) int64 z, y, x indices of the corners and (N, 8) float64 weights.
+    """
+    shape = np.array(shape)
     c = np.clip(coords_zyx, 0, shape - 1)
     base = np.minimum(np.floor(c).astype(np.int64), shape - 2).clip(0)
     frac = c - base
-    out = np.zeros((len(c), grid.shape[3]))
-    for corner in range(8):
-        offs = np.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
-        idx = np.minimum(base + offs, shape - 1)
-        w = np.prod(np.where(offs == 1, frac, 1 - frac), axis=1)
-        out += w[:, None] * grid[idx[:, 0], idx[:, 1], idx[:, 2]]
-    return out
+    offs = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)])
+    idx = np.minimum(base[:, None, :] + offs[None], shape - 1)
+    weights = np.prod(np.where(offs[None] == 1, frac[:, None, :], 1 - frac[:, None, :]),
+                      axis=2)
+    return idx, weights
+
+
+def trilinear(grid: np.ndarray, coords_zyx: np.ndarray) -> np.ndarray:
+    """Trilinear interpolation of a (Z, Y, X, C) grid at (N, 3) texel coordinates, clamped
+    to the edge texels like GL's CLAMP_TO_EDGE. Returns (N, C) float64."""
+    idx, w = trilinear_corners(grid.shape[:3], coords_zyx)
+    corners = grid[idx[..., 0], idx[..., 1], idx[..., 2]].astype(np.float64)  # (N, 8, C)
+    return np.einsum("nk,nkc->nc", w, corners)
 
 
 @dataclass
@@ -103,10 +114,11 @@ class Lattice:
         second: (Z, Y, X) float32 mean of the squared per-path luminance estimate.
         active: (Z, Y, X) bool, texels the bake must fill.
         meta: format version, kind, volume identity, bake config, statistics.
-        first: None, or (Z, Y, X) uint8, non-zero where a texel with no sample holds a
-            first estimate in `values` (the lazy viewer's preview pass,
-            `baking.preview`); shown until the texel's own samples replace it, never
-            saved.
+        preview: None, or (Z, Y, X, C) float32 estimates traced on the *displayed*
+            isosurface (the lazy viewer's preview passes, `baking.preview`); never saved.
+        preview_paths: None, or (Z, Y, X) uint16 paths behind each preview (0 = none).
+            A display shows the preview while the texel has fewer samples of its own
+            than that, and the texel's own mean from then on (`displayed`).
     """
 
     geometry: LatticeGeometry
@@ -115,7 +127,8 @@ class Lattice:
     second: np.ndarray
     active: np.ndarray
     meta: dict = field(default_factory=dict)
-    first: np.ndarray | None = None
+    preview: np.ndarray | None = None
+    preview_paths: np.ndarray | None = None
 
     @classmethod
     def empty(cls, geometry: LatticeGeometry, channels: int, meta: dict) -> Lattice:
@@ -136,11 +149,27 @@ class Lattice:
 
     def shown(self, region: tuple = (...,)) -> np.ndarray:
         """Bool mask of the texels a display uses in `region` (a tuple of slices of
-        (Z, Y, X)): those computed, and those holding a first estimate."""
+        (Z, Y, X)): those computed, and those holding a preview."""
         mask = self.samples[region] > 0
-        if self.first is not None:
-            mask |= self.first[region] > 0
+        if self.preview_paths is not None:
+            mask |= self.preview_paths[region] > 0
         return mask
+
+    def previewed(self, region: tuple = (...,)) -> np.ndarray:
+        """Bool mask of the texels in `region` whose preview is shown: it rests on more
+        paths than the texel's own samples."""
+        if self.preview_paths is None:
+            return np.zeros(self.samples[region].shape, bool)
+        return self.preview_paths[region] > self.samples[region]
+
+    def displayed(self, region: tuple = (...,)) -> np.ndarray:
+        """(…, C) float32 values a display shows in `region`: the preview where
+        `previewed`, else the texel's own mean (0 where neither exists)."""
+        own = np.where(self.samples[region][..., None] > 0, self.values[region], 0)
+        if self.preview is None:
+            return own.astype(np.float32)
+        return np.where(self.previewed(region)[..., None], self.preview[region],
+                        own).astype(np.float32)
 
     def standard_error(self) -> np.ndarray:
         """(Z, Y, X) float32 standard error of the luminance mean (inf where < 2 samples)."""
@@ -167,15 +196,18 @@ class Lattice:
         """(N, C) trilinear lookup at (N, 3) world points, as the GPU does it.
 
         Args:
-            normalized: weight only computed texels and renormalise (what the shader does
-                while a bake is incomplete); points with no computed neighbour get 0.
+            normalized: what the shader does while a bake is incomplete: weight only the
+                texels shown (`shown`, with the values `displayed`) and renormalise;
+                points with no such neighbour get 0.
         """
         coords = self.geometry.to_texel_coords(points_xyz)
         if not normalized:
             return trilinear(self.values, coords)
-        valid = self.computed[..., None].astype(np.float32)
-        num = trilinear(self.values * valid, coords)
-        den = trilinear(valid, coords)
+        idx, w = trilinear_corners(self.geometry.shape, coords)
+        region = (idx[..., 0], idx[..., 1], idx[..., 2])
+        w = w * self.shown(region)
+        num = np.einsum("nk,nkc->nc", w, self.displayed(region).astype(np.float64))
+        den = w.sum(axis=1, keepdims=True)
         return np.divide(num, den, out=np.zeros_like(num), where=den > 1e-6)
 
     # -- files -------------------------------------------------------------------------

@@ -16,8 +16,9 @@ before the back.
 How many paths. Rounds of growing targets (4, 16, 64, ... up to the bake's sample count):
 every texel of a group gets a first estimate before any gets refined. The stage order is
 visible@4, visible@16, ..., then surface@4, surface@16, ...: what is on screen converges
-first (the visible texels already show first estimates traced on the displayed surface,
-`baking.preview`, and so do those of every new view).
+first. Before any of it, the visible texels of every new view get previews traced on the
+displayed surface (`baking.preview`): the picture is right within seconds, and the
+texels' own values replace the previews once they rest on as many paths.
 
 Batches and level scenes. Each texel traces paths on its own isovalue's level surfaces
 (`baking.plan`), and the texels around one isosurface use almost every level: their values
@@ -369,7 +370,8 @@ class ServeStats:
 
 def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
           send: Callable[[tuple], None], *, stop_when_done: bool = False,
-          on_view: Callable[[View], None] | None = None) -> ServeStats:
+          on_view: Callable[[View], None] | None = None,
+          before_batch: Callable[[], bool] | None = None) -> ServeStats:
     """Bake lazily until told to stop.
 
     Messages in (from `receive(block)`, which returns None when nothing is waiting and
@@ -385,7 +387,10 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
         baker: a `baking.bake.Baker` whose lattice the display reads.
         stop_when_done: return when the current view is finished (tests, benchmarks).
         on_view: called with each new `View` before the work is re-targeted (the viewer's
-            first estimates, `baking.preview`).
+            first preview pass, `baking.preview`).
+        before_batch: work that goes before each batch of the bake (the viewer's further preview
+            passes); returns True when it did some, and the loop then reads its messages
+            before going on.
     """
     stats = ServeStats()
     paused = False
@@ -435,6 +440,8 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
                 return stats
         if views and not handle(views[-1]):
             return stats
+        if not paused and before_batch is not None and before_batch():
+            continue
         batch = None if paused or scheduler.iso is None else scheduler.next_batch()
         if batch is None:
             if scheduler.iso is not None and not paused:

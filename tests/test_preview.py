@@ -1,5 +1,7 @@
 """First estimates on the displayed surface (`baking.preview`) and how they are shown."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -8,7 +10,7 @@ from baking.bake import Baker
 from baking.config import BakeConfig
 from baking.lattice import Lattice, LatticeGeometry
 from baking.lazy import visible_cells
-from baking.preview import cell_corners, first_estimates
+from baking.preview import Previewer, cell_corners, pass_plan
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +23,18 @@ def sphere():
 def _empty(vol, config):
     geometry = LatticeGeometry.for_volume(vol, config.scale)
     lat = Lattice.empty(geometry, 3, {"kind": "irradiance"})
-    lat.first = np.zeros(geometry.shape, np.uint8)
+    lat.preview = np.zeros_like(lat.values)
+    lat.preview_paths = np.zeros(geometry.shape, np.uint16)
     return lat
+
+
+def _preview_all(vol, config, lat, iso, cells, workers=1):
+    """Every preview pass of one view; returns the flat ids written by each."""
+    previewer = Previewer(vol, config, lat, workers)
+    written = [previewer.set_view(iso, cells)]
+    while previewer.busy:
+        written.append(previewer.step())
+    return written, previewer
 
 
 def test_cell_corners_are_the_eight_corners():
@@ -35,59 +47,92 @@ def test_cell_corners_are_the_eight_corners():
     assert got == want
 
 
+def test_pass_plan_grows_and_stops_at_the_bake_samples():
+    assert pass_plan(1000) == [(4, True), (64, False), (256, False)]
+    assert pass_plan(100) == [(4, True), (64, False), (100, False)]
+    assert pass_plan(4) == [(4, True)]
+    assert pass_plan(2) == [(2, True)]
+
+
 @pytest.mark.parametrize("coarse", [False, True])
-def test_first_estimates_on_a_convex_surface_under_a_uniform_sky_are_exact(sphere, coarse,
-                                                                          monkeypatch):
+def test_previews_on_a_convex_surface_under_a_uniform_sky_are_exact(sphere, coarse,
+                                                                    monkeypatch):
     """Unoccluded convex surface, constant sky L: every path returns πL (cosine sampling
-    is the zero-variance estimator), so the first estimates equal πL exactly: the offset
-    causes no self-shadowing, on the full surface and on the step-2 one of large
-    volumes."""
+    is the zero-variance estimator), so every pass's previews equal πL exactly: the
+    offset causes no self-shadowing, on the full surface and on the step-2 one of large
+    volumes (the first pass's)."""
     if coarse:
         monkeypatch.setattr("baking.preview.COARSE_VOXELS", 0)
     vol, mesh = sphere
-    config = BakeConfig(env="constant:0.5,1,2", bounces=1)
+    config = BakeConfig(env="constant:0.5,1,2", bounces=1, samples=16)
     lat = _empty(vol, config)
     cells = visible_cells(lat.geometry, mesh.vertices)
-    flat = first_estimates(vol, config, lat, 0.5, cells, workers=2)
-    assert len(flat) == len(cell_corners(lat.geometry.shape, cells))
-    values = lat.values.reshape(-1, 3)[flat]
+    previewer = Previewer(vol, config, lat, workers=2)
+    first = previewer.set_view(0.5, cells)
+    assert len(first) == len(cell_corners(lat.geometry.shape, cells))
+    assert (lat.preview_paths.reshape(-1)[first] == 4).all() and previewer.busy
+    while previewer.busy:
+        previewer.step()
+    values = lat.preview.reshape(-1, 3)[first]
     np.testing.assert_allclose(values, np.broadcast_to(np.pi * np.array([0.5, 1, 2]), values.shape),
                                rtol=1e-5)
     assert (lat.samples == 0).all()  # nothing counted as a sample
-    assert lat.first.reshape(-1)[flat].all() and lat.first.sum() == len(flat)
-    assert lat.shown().sum() == len(flat)
+    assert (lat.preview_paths.reshape(-1)[first] == 16).all()
+    assert lat.shown().sum() == len(first) == lat.previewed().sum()
+    assert [(d["paths"], d["texels"]) for d in previewer.done] == [(4, len(first)),
+                                                                    (16, len(first))]
 
 
-def test_first_estimates_leave_computed_texels_alone(sphere):
+def test_a_view_is_previewed_once_per_isovalue(sphere):
+    """The same isovalue seen again costs nothing; another one redoes the previews."""
     vol, mesh = sphere
-    config = BakeConfig(env="constant:1", bounces=0)
+    config = BakeConfig(env="constant:1", bounces=0, samples=8)
+    lat = _empty(vol, config)
+    cells = visible_cells(lat.geometry, mesh.vertices)
+    written, previewer = _preview_all(vol, config, lat, 0.5, cells)
+    assert all(len(w) for w in written)
+    assert len(previewer.set_view(0.5, cells)) == 0 and not len(previewer.step())
+    assert len(previewer.set_view(0.45, cells)) > 0
+
+
+def test_texels_with_enough_samples_of_their_own_get_no_preview(sphere):
+    vol, mesh = sphere
+    config = BakeConfig(env="constant:1", bounces=0, samples=16)
     lat = _empty(vol, config)
     cells = visible_cells(lat.geometry, mesh.vertices)
     corners = cell_corners(lat.geometry.shape, cells)
-    done = corners[::3]
-    lat.samples.reshape(-1)[done] = 7
-    lat.values.reshape(-1, 3)[done] = 42.0
-    flat = first_estimates(vol, config, lat, 0.5, cells)
-    assert not np.isin(done, flat).any()
-    assert (lat.values.reshape(-1, 3)[done] == 42.0).all()
-    assert not lat.first.reshape(-1)[done].any()
+    done, some = corners[::3], corners[1::3]
+    lat.samples.reshape(-1)[done] = 16
+    lat.samples.reshape(-1)[some] = 8
+    lat.values.reshape(-1, 3)[np.concatenate([done, some])] = 42.0
+    written, _ = _preview_all(vol, config, lat, 0.5, cells)
+    assert not np.isin(done, np.concatenate(written)).any()
+    assert not lat.preview_paths.reshape(-1)[done].any()
+    # 8 own samples: previewed at 4 paths no, at 16 yes — and shown until the bake has 16
+    assert not np.isin(some, written[0]).any() and np.isin(some, written[1]).all()
+    shown = lat.displayed().reshape(-1, 3)
+    assert (shown[done] == 42.0).all() and (shown[some] != 42.0).all()
+    lat.samples.reshape(-1)[some] = 16
+    assert (lat.displayed().reshape(-1, 3)[some] == 42.0).all()
 
 
-def test_first_estimates_agree_with_the_bake_where_the_surface_is_one_level():
+def test_previews_agree_with_the_bake_where_the_surface_is_one_level():
     """Shells under a sky with the sun: where a texel's own isovalue is the displayed
-    one the two estimates differ by Monte Carlo noise only. With PATHS paths per first
-    estimate and 64 per bake the mean relative difference over hundreds of texels is
-    noise of ~1 %; the bound (4 %) catches a wrong scene (the step-2 mesh of this small
-    volume: 11 %), a wrong normal or a missing factor."""
+    one the two estimates differ by Monte Carlo noise only. With 16 paths per preview
+    and 64 per bake the mean relative difference over hundreds of texels is noise of
+    ~1 %; the bound (4 %) catches a wrong scene (the step-2 mesh of this small volume:
+    11 %), a wrong normal or a missing factor."""
     vol = volumes.load("synthetic:shells:32")
     iso = vol.suggested_iso[0] if isinstance(vol.suggested_iso, tuple) else vol.suggested_iso
-    config = BakeConfig(env="sky:sun=2", bounces=1, samples=64)
+    config = BakeConfig(env="sky:sun=2", bounces=1, samples=16)
     lat = _empty(vol, config)
     mesh = volumes.isosurface(vol, iso)
     cells = visible_cells(lat.geometry, mesh.vertices)
-    flat = first_estimates(vol, config, lat, iso, cells, workers=2, paths=16)
-    first = lat.values.reshape(-1, 3)[flat].copy()
-    baker = Baker(vol, config, workers=2)
+    written, _ = _preview_all(vol, config, lat, iso, cells, workers=2)
+    flat = written[0]
+    assert (lat.preview_paths.reshape(-1)[flat] == 16).all()
+    first = lat.preview.reshape(-1, 3)[flat].copy()
+    baker = Baker(vol, replace(config, samples=64), workers=2)
     try:
         ids = baker.plan.ids
         pos = np.minimum(np.searchsorted(ids, flat), len(ids) - 1)
@@ -109,11 +154,14 @@ def test_nothing_to_do_at_the_data_extreme(sphere):
     lat = _empty(vol, config)
     cells = visible_cells(lat.geometry, mesh.vertices)
     lo, _ = vol.value_range
-    assert len(first_estimates(vol, config, lat, lo, cells)) == 0
-    assert lat.first.sum() == 0
+    written, previewer = _preview_all(vol, config, lat, lo, cells)
+    assert sum(len(w) for w in written) == 0 and not previewer.busy
+    assert lat.preview_paths.sum() == 0
 
 
-def test_shown_mask_and_saved_copy_exclude_first_estimates(tmp_path, sphere):
+def test_shown_displayed_sampled_and_saved(tmp_path, sphere):
+    """A display shows a preview while it rests on more paths than the texel's own
+    samples, and looks it up like any value; a saved copy has no previews."""
     from app.viewer import SharedLattice
 
     vol, _ = sphere
@@ -123,28 +171,34 @@ def test_shown_mask_and_saved_copy_exclude_first_estimates(tmp_path, sphere):
         lat = shared.lattice
         lat.samples[0, 0, 0] = 3
         lat.values[0, 0, 0] = 1.0
-        lat.first[1, 1, 1] = 1
-        lat.values[1, 1, 1] = 2.0
-        assert lat.shown().sum() == 2
+        lat.preview_paths[1, 1, 1] = 4
+        lat.preview[1, 1, 1] = 2.0
+        assert lat.shown().sum() == 2 and lat.previewed().sum() == 1
         assert lat.shown(np.s_[1:2, 1:2, 1:2]).all()
+        assert (lat.displayed()[1, 1, 1] == 2.0).all() and (lat.displayed()[0, 0, 0] == 1).all()
+        centre = geometry.centres(np.array([np.ravel_multi_index((1, 1, 1), geometry.shape)]))
+        np.testing.assert_allclose(lat.sample(centre, normalized=True), [[2.0, 2.0, 2.0]])
+        lat.samples[1, 1, 1], lat.values[1, 1, 1] = 4, 5.0  # the bake caught up
+        assert (lat.displayed()[1, 1, 1] == 5.0).all()
         copy = shared.snapshot()
-        assert copy.first is None
-        assert (copy.values[1, 1, 1] == 0).all() and (copy.values[0, 0, 0] == 1).all()
+        assert copy.preview is None and copy.preview_paths is None
+        lat.samples[1, 1, 1] = 0
+        assert (shared.snapshot().values[1, 1, 1] == 0).all()
     finally:
         shared.close()
 
 
-def test_the_bake_process_shows_first_estimates_before_its_plan(tmp_path):
-    """The viewer's bake process: the first view's visible texels get first estimates
-    (flagged, no samples) and are announced, then the plan withdraws those outside the
-    active set, and the lazy bake's own samples follow."""
+def test_the_bake_process_shows_previews_before_its_plan(tmp_path):
+    """The viewer's bake process: the first view's visible texels get previews (no
+    samples) in passes of growing path counts, announced as they come; the plan
+    withdraws those outside the active set, and the lazy bake's own samples follow."""
     import time
 
     from app.viewer import BakeLink, SharedLattice, lattice_meta
     from baking.lazy import View
 
     vol = volumes.load("synthetic:sphere:24")
-    config = BakeConfig(samples=4, bounces=0, env="constant:1")
+    config = BakeConfig(samples=16, bounces=0, env="constant:1")
     geometry = LatticeGeometry.for_volume(vol, 1.0)
     meta = lattice_meta(vol, config)
     shared = SharedLattice.create(geometry, meta["channels"], meta)
@@ -165,7 +219,8 @@ def test_the_bake_process_shows_first_estimates_before_its_plan(tmp_path):
     finally:
         link.stop()
     lat = shared.lattice
-    first = lat.first.reshape(-1) > 0
+    first = lat.preview_paths.reshape(-1) > 0
     assert first.any() and not (first & ~lat.active.reshape(-1)).any()  # inactive withdrawn
     assert np.isin(np.flatnonzero(first), np.concatenate(announced)).all()
+    assert [f["paths"] for _, f in link.first] == [4, 16]
     shared.close()
