@@ -105,25 +105,16 @@ class _Accumulator:
 
 
 def _commit(lattice: Lattice, plan: Plan, acc: _Accumulator, positions: np.ndarray) -> int:
-    """Merge the pass sums of texels `positions` into the lattice's running means.
+    """Merge the pass sums of texels `positions` into the lattice's running means
+    (`kernels.commit_means`: compiled, and the GIL stays free for the tracing threads).
 
     Returns:
         how many of them had no sample before.
     """
-    positions = positions[acc.n[positions] > 0]
-    if len(positions) == 0:
-        return 0
-    flat = plan.ids[positions]
-    values = lattice.values.reshape(-1, lattice.values.shape[-1])
-    samples = lattice.samples.reshape(-1)
-    second = lattice.second.reshape(-1)
-    old = samples[flat].astype(np.float64)
-    new = old + acc.n[positions]
-    values[flat] = ((values[flat] * old[:, None] + acc.sum[positions]) / new[:, None])
-    second[flat] = (second[flat] * old + acc.second[positions]) / new
-    samples[flat] = new.astype(np.uint32)
-    acc.clear(positions)
-    return int(np.count_nonzero(old == 0))
+    return kernels.commit_means(plan.ids, np.asarray(positions, np.int64),
+                                lattice.values.reshape(-1, lattice.values.shape[-1]),
+                                lattice.samples.reshape(-1), lattice.second.reshape(-1),
+                                acc.sum, acc.second, acc.n)
 
 
 def _luminance_weights(channels: int, irradiance: bool) -> np.ndarray:

@@ -115,9 +115,9 @@ def _direct_sky(scene: Scene, result, alive, pos, n, beta, keys, dim, sky, stats
     """`_direct_env` for the procedural sky with the compiled sampler: adds the
     MIS-weighted light sample of each vertex to ``result[alive]``."""
     dirs, contrib, useful = kernels.sky_light_samples(sky, keys, dim, n)
-    idx = np.flatnonzero(useful)
-    idx = idx[~scene.occluded(pos[idx], dirs[idx], None, stats)]
-    result[alive[idx], :3] += beta[idx] * contrib[idx]
+    idx, origins, shadow_dirs = kernels.shadow_rays(useful, pos, dirs)
+    blocked = scene.occluded(origins, shadow_dirs, None, stats)
+    kernels.add_unblocked(result, alive, idx, blocked, beta, contrib)
 
 
 def _escape_sh(beta: np.ndarray, dirs: np.ndarray, settings: PathSettings) -> np.ndarray:

@@ -95,30 +95,24 @@ def _build_bvh(scene) -> None:
     scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))
 
 
-def replay(vertices: np.ndarray, faces: np.ndarray, batches: list,
-           workers: int) -> tuple[int, float]:
-    """Trace recorded ray batches with bare embreex (a fresh scene, the same query kinds,
-    `workers` threads) and time it: the baseline the baker's throughput is compared with.
+def replay(scene: Scene, batches: list, pool) -> tuple[int, float]:
+    """Trace recorded ray batches again on `scene`'s Embree scene, straight through
+    embreex (the same query kinds, on the threads of `pool`, a ThreadPoolExecutor) and
+    time it: the baseline the baker's throughput is compared with.
 
     Returns:
         (rays, seconds of wall time for the tracing alone).
     """
-    from concurrent.futures import ThreadPoolExecutor
-
-    scene = rtcore_scene.EmbreeScene()
-    TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32),
-                 np.ascontiguousarray(faces, np.int32))
-    _build_bvh(scene)
+    embree = scene._scene
 
     def trace(batch) -> int:
         query, origins, dirs, dists = batch
         if query == "INTERSECT":
-            scene.run(origins, dirs, output=1)
+            embree.run(origins, dirs, output=1)
         else:
-            scene.run(origins, dirs, dists=dists, query="OCCLUDED")
+            embree.run(origins, dirs, dists=dists, query="OCCLUDED")
         return len(origins)
 
     start = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        rays = sum(pool.map(trace, batches))
+    rays = sum(pool.map(trace, batches))
     return rays, time.perf_counter() - start

@@ -112,6 +112,71 @@ def test_texel_sums_match_reduceat():
 SKIES = ["sky:sun=3", "sky:sun=5,sun_el=10,sun_radius=2,horizon_blur=0", "sky"]
 
 
+def test_sincos_turns_matches_libm():
+    """|error| ≤ 3e-7: float32 rounding of the result (the series are exact to 3e-8)."""
+    u = np.random.default_rng(3).random(20000).astype(np.float32)
+    u = np.concatenate([u, np.float32([0, 0.125, 0.25, 0.5, 0.75, 1 - 2**-24])])
+    got = np.array([kernels.sincos_turns(x) for x in u])
+    angle = 2 * np.pi * u.astype(np.float64)
+    np.testing.assert_allclose(got[:, 0], np.cos(angle), atol=3e-7)
+    np.testing.assert_allclose(got[:, 1], np.sin(angle), atol=3e-7)
+
+
+def test_commit_means_matches_numpy_running_means():
+    """Bit for bit the float64 expression the numpy commit used; merged sums cleared,
+    texels with no pass sample untouched."""
+    gen = np.random.default_rng(5)
+    values = gen.random((50, 3)).astype(np.float32)
+    samples = gen.integers(0, 4, 50).astype(np.uint32)
+    second = gen.random(50).astype(np.float32)
+    ids = np.sort(gen.choice(50, 20, replace=False)).astype(np.int64)
+    acc_sum, acc_second = gen.random((20, 3)), gen.random(20)
+    acc_n = gen.integers(0, 3, 20).astype(np.int64)
+    acc_sum[acc_n == 0], acc_second[acc_n == 0] = 0, 0  # no sample, no sum
+    positions = np.arange(0, 20, 2)
+    merged = positions[acc_n[positions] > 0]
+    flat = ids[merged]
+    old = samples[flat].astype(np.float64)
+    new = old + acc_n[merged]
+    want_values = values.copy()
+    want_values[flat] = (values[flat] * old[:, None] + acc_sum[merged]) / new[:, None]
+    want_second = second.copy()
+    want_second[flat] = (second[flat] * old + acc_second[merged]) / new
+    want_samples = samples.copy()
+    want_samples[flat] = new.astype(np.uint32)
+    fresh = kernels.commit_means(ids, positions, values, samples, second, acc_sum,
+                                 acc_second, acc_n)
+    assert fresh == int(np.count_nonzero(old == 0))
+    np.testing.assert_array_equal(values, want_values)
+    np.testing.assert_array_equal(second, want_second)
+    np.testing.assert_array_equal(samples, want_samples)
+    assert not acc_n[positions].any() and not acc_sum[positions].any()
+    assert acc_n[1::2].any()  # the others are kept
+
+
+
+def test_shadow_rays_and_unblocked_sums_match_numpy():
+    gen = np.random.default_rng(9)
+    m = 200
+    useful = gen.random(m) < 0.6
+    pos = gen.random((m, 3)).astype(np.float32)
+    dirs = gen.random((m, 3)).astype(np.float32)
+    idx, origins, out = kernels.shadow_rays(useful, pos, dirs)
+    np.testing.assert_array_equal(idx, np.flatnonzero(useful))
+    np.testing.assert_array_equal(origins, pos[idx])
+    np.testing.assert_array_equal(out, dirs[idx])
+    alive = np.sort(gen.choice(500, m, replace=False))
+    beta, contrib = gen.random((m, 3)).astype(np.float32), gen.random((m, 3))
+    blocked = gen.random(len(idx)) < 0.3
+    result = gen.random((500, 3))
+    want = result.copy()
+    kept = idx[~blocked]
+    want[alive[kept]] += beta[kept] * contrib[kept]
+    kernels.add_unblocked(result, alive, idx, blocked, beta, contrib)
+    np.testing.assert_allclose(result, want, rtol=1e-15)
+
+
+
 @pytest.mark.parametrize("spec", SKIES)
 def test_sky_light_samples_match_the_environment(spec, normals):
     """The compiled sky sampler against `SkyEnvironment.sample/pdf/radiance` and the
