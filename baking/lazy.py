@@ -48,6 +48,8 @@ FIRST_TARGET = 4
 """Paths per texel of the first round: enough for a recognisable estimate."""
 TARGET_FACTOR = 4
 """Each round multiplies the target by this (halves the noise)."""
+REPORT_S = 1.0
+"""Seconds between progress reports within a batch."""
 BATCH_PATHS = 1 << 18
 """Paths per batch (one `Baker.run`, a sweep over the isovalue levels its texels use).
 Large, because every batch visits every level it touches; a new view still interrupts a
@@ -380,8 +382,9 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
 
     Messages out (through `send`): ``("texels", flat_ids)`` after texels were committed to
     the lattice (the renderer re-uploads them), ``("progress", Progress, stats_dict)`` after
-    every batch and when a view is done, ``("paused", bool)`` acknowledging a pause/resume
-    (nothing is written to the lattice between a ``("paused", True)`` and the next resume).
+    every batch, every `REPORT_S` seconds within one, and when a view is done,
+    ``("paused", bool)`` acknowledging a pause/resume (nothing is written to the lattice
+    between a ``("paused", True)`` and the next resume).
 
     Args:
         baker: a `baking.bake.Baker` whose lattice the display reads.
@@ -397,8 +400,12 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
     ids = baker.plan.ids
     waiting: list = []  # messages that arrived during a batch
 
+    last_report = [0.0]
+
     def committed(positions: np.ndarray) -> None:
         send(("texels", ids[positions]))
+        if time.perf_counter() - last_report[0] > REPORT_S:  # a batch can take minutes
+            report()
         message = receive(False)
         if message is not None:
             waiting.append(message)
@@ -409,6 +416,7 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
         return waiting.pop(0) if waiting else receive(block)
 
     def report() -> None:
+        last_report[0] = time.perf_counter()
         send(("progress", scheduler.progress(), _stats_dict(baker, stats)))
 
     def handle(message) -> bool:

@@ -49,9 +49,9 @@ COARSE_OFFSET_VOXELS = 0.5
 """Start-point offset on a step-2 surface: that mesh sits up to (2 voxels)²/(8 R) off the
 true surface in concave regions of radius R, so the bake's 0.25 voxels would let concave
 texels start behind a facet for R < 2 voxels."""
-PATHS_PER_STEP = 1 << 19
-"""Paths traced per `Previewer.step` (~0.5 s on 2 cores): the bake process checks its
-messages between steps."""
+PATHS_PER_STEP = 1 << 17
+"""Paths traced per `Previewer.step` (~0.15 s on 2 cores, idle): the bake process reads
+its messages between steps, so a new view waits about that long for its first pass."""
 SEED_SALT = 0x5EED_F1A5
 """Mixed into the bake seed: previews use paths of their own."""
 CHUNK = 16384
