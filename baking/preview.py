@@ -29,7 +29,7 @@ import numpy as np
 import volumes
 
 from . import kernels, rng
-from .bake import make_lighting, path_settings
+from .bake import make_lighting, path_settings, start_points
 from .config import BakeConfig
 from .integrator import trace_paths
 from .lattice import Lattice
@@ -78,14 +78,24 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
              flat: np.ndarray, scene, step: int, *, paths: int, workers: int = 1) -> None:
     """Trace `paths` paths from each texel `flat` (K,) projected onto the surface ρ = `iso`
     (whose `scene` has the given marching-cubes `step`) and store the means as the
-    texels' previews (``lattice.preview`` and ``preview_paths``, which must be set)."""
-    h = float(np.mean(volume.spacing))
-    on_surface = project_to_level(volume, lattice.geometry.centres(flat), iso,
-                                  max_move=4 * config.max_move * h, smooth=False)
-    normals = volumes.normals_at(volume, on_surface, smooth=False, flip=config.flip_normals)
-    offset = COARSE_OFFSET_VOXELS if step == 2 else config.offset
-    origins = (on_surface + offset * h * normals).astype(np.float32)
-    sums = _trace(scene, volume, config, flat, origins, normals, workers, paths)
+    texels' previews (``lattice.preview`` and ``preview_paths``, which must be set).
+
+    On the full surface the start points are the bake's own (`bake.start_points`:
+    smoothed-gradient projection and normals); on a step-2 surface, the first pass's,
+    plain-gradient ones (no smoothed grid to wait for) and a larger offset.
+    """
+    centres = lattice.geometry.centres(flat)
+    if step == 1:
+        origins, normals = start_points(volume, centres, iso, config)
+    else:
+        h = float(np.mean(volume.spacing))
+        on_surface = project_to_level(volume, centres, iso, max_move=4 * config.max_move * h,
+                                      smooth=False)
+        normals = volumes.normals_at(volume, on_surface, smooth=False,
+                                     flip=config.flip_normals)
+        origins = on_surface + COARSE_OFFSET_VOXELS * h * normals
+    sums = _trace(scene, volume, config, flat, origins.astype(np.float32),
+                  normals.astype(np.float32), workers, paths)
     lattice.preview.reshape(-1, lattice.preview.shape[-1])[flat] = sums / paths
     lattice.preview_paths.reshape(-1)[flat] = paths
 

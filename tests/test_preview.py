@@ -224,3 +224,26 @@ def test_the_bake_process_shows_previews_before_its_plan(tmp_path):
     assert np.isin(np.flatnonzero(first), np.concatenate(announced)).all()
     assert [f["paths"] for _, f in link.first] == [4, 16]
     shared.close()
+
+
+def test_full_surface_previews_start_where_the_bake_starts(sphere, monkeypatch):
+    """On the full surface a preview's paths leave from the bake's own start point at level
+    ρ = iso (smoothed-gradient projection and normal, `bake.start_points`): with plain-
+    gradient starts, texels at the tops of the synthetic engine's thin posts (ρ = 0.5)
+    began inside the material and showed as black marks."""
+    import baking.preview as preview
+    from baking.bake import start_points
+
+    vol, mesh = sphere
+    config = BakeConfig(env="constant:1", bounces=0, samples=8)
+    lat = _empty(vol, config)
+    seen = []
+    real = preview._trace
+    monkeypatch.setattr(preview, "_trace", lambda scene, volume, cfg, flat, origins, normals,
+                        workers, paths: seen.append((flat, origins, normals))
+                        or real(scene, volume, cfg, flat, origins, normals, workers, paths))
+    _preview_all(vol, config, lat, 0.5, visible_cells(lat.geometry, mesh.vertices))
+    flat, origins, normals = seen[-1]  # the last pass: full surface
+    want_o, want_n = start_points(vol, lat.geometry.centres(flat), 0.5, config)
+    np.testing.assert_allclose(origins, want_o, atol=1e-5)
+    np.testing.assert_allclose(normals, want_n, atol=1e-6)

@@ -14,11 +14,15 @@ the material is denser than its surroundings); ``flip=True`` reverses them.
 
 from __future__ import annotations
 
+import threading
+
 import numba
 import numpy as np
 from scipy import ndimage
 
 from .core import Volume
+
+_GRID_LOCK = threading.Lock()
 
 _BSPLINE = np.array([1.0, 4.0, 1.0]) / 6.0
 _CENTRAL = np.array([-0.5, 0.0, 0.5])  # correlate1d: out[i] = (f[i+1] - f[i-1]) / 2
@@ -45,9 +49,10 @@ def gradient_grid(volume: Volume, smooth: bool = True) -> np.ndarray:
             plain central differences (paper Fig. 5, left).
     """
     key = "grad_smooth" if smooth else "grad_plain"
-    if key not in volume._cache:
-        volume._cache[key] = _gradient_grid(volume, smooth)
-    return volume._cache[key]
+    with _GRID_LOCK:  # threads asking at once (the lazy bake's plan and previews) wait
+        if key not in volume._cache:
+            volume._cache[key] = _gradient_grid(volume, smooth)
+        return volume._cache[key]
 
 
 @numba.njit(nogil=True, cache=True)
