@@ -29,7 +29,7 @@ import numpy as np
 import volumes
 
 from . import kernels, rng
-from .bake import make_lighting, path_settings, start_points
+from .bake import make_lighting, path_settings
 from .config import BakeConfig
 from .integrator import trace_paths
 from .lattice import Lattice
@@ -80,24 +80,43 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
     (whose `scene` has the given marching-cubes `step`) and store the means as the
     texels' previews (``lattice.preview`` and ``preview_paths``, which must be set).
 
-    On the full surface the start points are the bake's own (`bake.start_points`:
-    smoothed-gradient projection and normals); on a step-2 surface, the first pass's,
-    plain-gradient ones (no smoothed grid to wait for) and a larger offset.
+    The texel centres move onto the surface (up to 2 voxels) by Newton steps along the
+    smoothed gradient, then along the plain one, which lands them on the raw field's
+    surface that the mesh shows; they start from there along the bake's (smoothed)
+    normal. Measured on the engine CT's 112 k visible texels at 64 paths against per-pixel
+    path tracing: plain steps and normals 3.2 % (and black marks on the synthetic
+    engine's thin posts), smoothed steps and normals 4.2 % (593 texels stalled short of the
+    surface, inside the material: black), both in turn 3.0 % (none). Texels whose start
+    would still be inside get no preview (`_outside`). A step-2 surface (the first pass
+    on large volumes) takes plain steps and normals (no smoothed grid to wait for) and a
+    larger offset.
     """
-    centres = lattice.geometry.centres(flat)
-    if step == 1:
-        origins, normals = start_points(volume, centres, iso, config)
-    else:
-        h = float(np.mean(volume.spacing))
-        on_surface = project_to_level(volume, centres, iso, max_move=4 * config.max_move * h,
+    h = float(np.mean(volume.spacing))
+    smooth = step == 1 and config.normals == "smooth"
+    on_surface = project_to_level(volume, lattice.geometry.centres(flat), iso,
+                                  max_move=4 * config.max_move * h, smooth=smooth)
+    if smooth:  # finish on the raw field's surface
+        on_surface = project_to_level(volume, on_surface, iso, max_move=config.max_move * h,
                                       smooth=False)
-        normals = volumes.normals_at(volume, on_surface, smooth=False,
-                                     flip=config.flip_normals)
-        origins = on_surface + COARSE_OFFSET_VOXELS * h * normals
-    sums = _trace(scene, volume, config, flat, origins.astype(np.float32),
-                  normals.astype(np.float32), workers, paths)
-    lattice.preview.reshape(-1, lattice.preview.shape[-1])[flat] = sums / paths
-    lattice.preview_paths.reshape(-1)[flat] = paths
+    normals = volumes.normals_at(volume, on_surface, smooth=smooth, flip=config.flip_normals)
+    offset = COARSE_OFFSET_VOXELS if step == 2 else config.offset
+    origins = on_surface + offset * h * normals
+    outside = _outside(volume, origins, iso, config.flip_normals)
+    if outside.any():  # values first: another process may be displaying them
+        sums = _trace(scene, volume, config, flat[outside], origins[outside].astype(np.float32),
+                      normals[outside].astype(np.float32), workers, paths)
+        lattice.preview.reshape(-1, lattice.preview.shape[-1])[flat[outside]] = sums / paths
+    lattice.preview_paths.reshape(-1)[flat] = np.where(outside, paths, 0)
+
+
+def _outside(volume: volumes.Volume, origins: np.ndarray, iso: float, flip: bool) -> np.ndarray:
+    """(N,) bool: the start points lie on the side of ρ = iso that the normals point to
+    (lower values, higher if `flip`). Elsewhere — a thin feature whose two faces the
+    smoothed gradient blurs into one direction, a Newton path that ended across it — the
+    paths would start inside the material and come back black: such texels get no
+    preview, and the display interpolates their neighbours instead."""
+    rho = volumes.value_at(volume, origins)
+    return rho >= iso if flip else rho <= iso
 
 
 def pass_plan(samples: int) -> list[tuple[int, bool]]:
