@@ -14,10 +14,11 @@ its own (`Lattice.displayed`), so the picture never gets noisier when the bake's
 samples arrive. Previews are never saved.
 
 Their error, measured on the engine CT at its default view against per-pixel path tracing
-of the displayed surface (`isolume bench lazy`): RMS over visible pixels 5.4 % at 16
-paths, 3.3 % at 64, 2.4 % at 256 — the lattice baked level by level, 128 paths per texel,
-shows 2.9 % (its level and interpolation error) after 110 s. What previews cannot do is
-serve another isovalue: each texel's own value stays the bake's job.
+of the displayed surface (`isolume bench lazy`): RMS over visible pixels 11.5 % at 4
+paths (step-2 mesh), 3.0 % at 64, 2.2 % at 256 — the lattice baked level by level shows
+3.6 % at 64 paths per texel and 2.9 % at 128 (its level and interpolation error), after
+90–110 s. What previews cannot do is serve another isovalue: each texel's own value stays
+the bake's job.
 """
 from __future__ import annotations
 
