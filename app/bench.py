@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 _VIEW_BENCHES = {"frames": "frame time per shading mode (llvmpipe, EGL)",
-                 "lazy": "lazy GI: time to a first estimate and to 5 % error"}
+                 "lazy": "lazy GI: time to a first estimate and to a picture within 5 %"}
 
 
 def _view_module():

@@ -430,10 +430,10 @@ def _own_progress(figures: dict, lattice, visible_flat: np.ndarray, now: float) 
 
 def _preview_figures(figures: dict, link) -> None:
     """The preview passes the bake process reported, and its start-up time."""
-    figures["preview_passes"] = [{"at_s": at, **f} for at, f in link.first]
+    figures["preview_passes"] = [{"at_s": at, **f} for at, f in link.previews]
     warm = link.warm["seconds"] if link.warm else float("nan")
     figures["process_start_s"] = warm
-    for at, f in link.first:
+    for at, f in link.previews:
         print(f"  preview pass: {f['paths']} paths on {f['texels']:,} texels in "
               f"{f['seconds']:.2f} s, done {at:.1f} s after the bake process was started")
     print(f"  ({warm:.1f} s of that is starting the process: imports, kernels, gradient "

@@ -117,7 +117,7 @@ class PanelModel:
         light: (azimuth, elevation) degrees, or None for the camera-fixed light.
         light_note: shown under the light controls (e.g. the lattice's light is fixed).
         bake_lines: status lines of the lazy bake ("" entries are skipped).
-        bake_fractions: (visible, surface) shares with a first estimate, or None.
+        bake_fractions: (visible, surface) shares with samples of their own, or None.
         bake_paused: whether the lazy bake is on hold; can_bake: a lazy bake exists.
         can_save: a lattice can be saved; frame_ms: mean frame time; size: framebuffer.
         message: last status or error message.

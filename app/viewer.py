@@ -504,9 +504,8 @@ def scene_budget() -> float:
 
 
 def _bake_main(job: dict, inbox, outbox) -> None:
-    """Entry point of the bake process: first estimates for the first view, the plan
-    (while later views still get first estimates), then `baking.lazy.serve` until
-    stopped."""
+    """Entry point of the bake process: previews for the first view, the plan (while the
+    previews go on and later views get theirs), then `baking.lazy.serve` until stopped."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the viewer's to handle
@@ -585,7 +584,7 @@ class _BakeProcess:
         if len(flat):
             self.outbox.put(("texels", flat))
         while self.previewer.done:
-            self.outbox.put(("first", self.previewer.done.pop(0)))
+            self.outbox.put(("preview", self.previewer.done.pop(0)))
 
     def _keep(self, message) -> bool:
         """Queue `message` for `serve`, lighting views at once; False on "stop"."""
@@ -599,8 +598,8 @@ class _BakeProcess:
         return True
 
     def _plan(self):
-        """Make the Baker (its plan takes seconds to tens of seconds) on a thread while
-        every new view still gets first estimates; None when told to stop."""
+        """Make the Baker (its plan takes seconds to tens of seconds) on a thread while the
+        preview passes go on and every new view gets its own; None when told to stop."""
         import threading
 
         from baking.bake import Baker
@@ -635,7 +634,7 @@ class _BakeProcess:
 
         preview_warm_up(self.volume)  # while the viewer opens its window
         self.outbox.put(("started", {"seconds": time.time() - self.job["started"]}))
-        message = self.receive(True)  # the first view gets first estimates before the plan
+        message = self.receive(True)  # the first view gets its first preview before the plan
         while not isinstance(message, View):
             if not self._keep(message):
                 return
@@ -702,7 +701,7 @@ class BakeLink:
         self.paused = False
         self.paused_ack = False
         self.history: list[tuple[float, object]] = []
-        self.first: list[tuple[float, dict]] = []  # (seconds since start, figures) per pass
+        self.previews: list[tuple[float, dict]] = []  # (seconds since start, figures) per pass
         self.warm: dict | None = None  # the process is ready for views (its start-up time)
 
     def send_view(self, view) -> None:
@@ -734,8 +733,8 @@ class BakeLink:
                 self.paused_ack = message[1]
             elif kind == "started":
                 self.warm = message[1]
-            elif kind == "first":
-                self.first.append((time.perf_counter() - self.started, message[1]))
+            elif kind == "preview":
+                self.previews.append((time.perf_counter() - self.started, message[1]))
             elif kind == "error":
                 self.error = message[1]
         if self.error is None and self.ready is None and not self.process.is_alive():
@@ -1601,7 +1600,7 @@ class Viewer:
 
     def _preview_line(self) -> str:
         """The last preview pass done for the isovalue on screen ("" when none)."""
-        done = [f for _, f in self.bake.first if f["iso"] == self.state.iso]
+        done = [f for _, f in self.bake.previews if f["iso"] == self.state.iso]
         return f"preview: {done[-1]['paths']} paths/texel on this surface" if done else ""
 
     # -- figures and shutdown ------------------------------------------------------------
@@ -1613,7 +1612,7 @@ class Viewer:
             p = self.bake.progress
             bake = {"ready": {k: v for k, v in (self.bake.ready or {}).items() if k != "meta"},
                     "progress": asdict(p) if p is not None else None,
-                    "previews": [{"at_s": at, **f} for at, f in self.bake.first],
+                    "previews": [{"at_s": at, **f} for at, f in self.bake.previews],
                     "stats": self.bake.stats, "error": self.bake.error,
                     "blocks_uploaded": self.uploader.uploaded if self.uploader else 0}
         cam = self.camera

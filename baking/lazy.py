@@ -14,7 +14,7 @@ each group the texels nearest the eye come first, so the front of the surface fi
 before the back.
 
 How many paths. Rounds of growing targets (4, 16, 64, ... up to the bake's sample count):
-every texel of a group gets a first estimate before any gets refined. The stage order is
+every texel of a group gets samples before any gets refined. The stage order is
 visible@4, visible@16, ..., then surface@4, surface@16, ...: what is on screen converges
 first. Before any of it, the visible texels of every new view get previews traced on the
 displayed surface (`baking.preview`): the picture is right within seconds, and the
@@ -246,18 +246,18 @@ class Progress:
 
     @property
     def visible_fraction(self) -> float:
-        """Share of visible texels with a first estimate (1 when there are none)."""
+        """Share of visible texels with samples of their own (1 when there are none)."""
         return self.visible_started / self.visible if self.visible else 1.0
 
     @property
     def surface_fraction(self) -> float:
-        """Share of surface texels with a first estimate (1 when there are none)."""
+        """Share of surface texels with samples of their own (1 when there are none)."""
         return self.surface_started / self.surface if self.surface else 1.0
 
     @property
     def near_fraction(self) -> float:
-        """Share of the texels near the displayed surface (visible ∪ surface) with a first
-        estimate: what ``wait-bake`` waits for."""
+        """Share of the texels near the displayed surface (visible ∪ surface) with samples
+        of their own: what ``wait-bake`` waits for."""
         total = self.surface + self.visible
         return (self.surface_started + self.visible_started) / total if total else 1.0
 
@@ -302,7 +302,7 @@ class LazyScheduler:
         else:
             self.visible = np.zeros(0, np.int64)
         # what is on screen converges first; the rest of the surface (seen once the camera
-        # turns, when the new view's texels get first estimates at once, `baking.preview`)
+        # turns, when the new view's texels get previews at once, `baking.preview`)
         # follows in rounds of its own
         self.stages = [Stage("visible", t, self.visible) for t in self.targets
                        if len(self.visible)]

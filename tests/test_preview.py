@@ -210,11 +210,11 @@ def test_the_bake_process_shows_previews_before_its_plan(tmp_path):
     try:
         link.send_view(View(0.5, (0.0, -2.0, 0.0), cells))
         announced, deadline = [], time.monotonic() + 120
-        while not link.first and time.monotonic() < deadline and link.error is None:
+        while not link.previews and time.monotonic() < deadline and link.error is None:
             announced += link.poll()
             time.sleep(0.05)
-        assert link.error is None and link.first
-        assert link.first[0][1]["texels"] == len(cell_corners(geometry.shape, cells))
+        assert link.error is None and link.previews
+        assert link.previews[0][1]["texels"] == len(cell_corners(geometry.shape, cells))
         while (shared.lattice.samples > 0).sum() == 0 and time.monotonic() < deadline:
             announced += link.poll()
             time.sleep(0.05)
@@ -224,7 +224,7 @@ def test_the_bake_process_shows_previews_before_its_plan(tmp_path):
     first = lat.preview_paths.reshape(-1) > 0
     assert first.any() and not (first & ~lat.active.reshape(-1)).any()  # inactive withdrawn
     assert np.isin(np.flatnonzero(first), np.concatenate(announced)).all()
-    assert [f["paths"] for _, f in link.first] == [4, 16]
+    assert [f["paths"] for _, f in link.previews] == [4, 16]
     shared.close()
 
 
