@@ -373,7 +373,7 @@ def lazy(args) -> int:
                       f"texels, {link.ready['levels']} levels)")
             p = link.progress
             if p is not None and p.visible and visible_flat is None:
-                visible_flat = _visible_flat(lat, geometry, cells)
+                visible_flat = corners[lat.active.reshape(-1)[corners]]  # active ones
                 figures["visible_texels"] = len(visible_flat)
                 rng = np.random.default_rng(0)
                 subset = np.sort(rng.choice(visible_flat, min(args.reference,
@@ -412,7 +412,8 @@ def lazy(args) -> int:
 
 def _first_shown(figures: dict, lattice, corners: np.ndarray, now: float) -> None:
     """Note when every texel the picture reads first shows an estimate."""
-    if "first_estimate_s" not in figures and lattice.shown().reshape(-1)[corners].all():
+    region = np.unravel_index(corners, lattice.geometry.shape)
+    if "first_estimate_s" not in figures and lattice.shown(region).all():
         figures["first_estimate_s"] = now
         print(f"  every visible texel ({len(corners):,}) shows an estimate after {now:.1f} s "
               "(previews traced on the displayed surface)")
@@ -438,14 +439,6 @@ def _preview_figures(figures: dict, link) -> None:
               f"{f['seconds']:.2f} s, done {at:.1f} s after the bake process was started")
     print(f"  ({warm:.1f} s of that is starting the process: imports, kernels, gradient "
           "grid — the viewer starts it with its window)")
-
-
-def _visible_flat(lattice, geometry, cells: np.ndarray) -> np.ndarray:
-    """Flat ids of the active texels at the corners of the visible cells."""
-    from baking.lazy import corner_offsets
-
-    flat = np.unique((cells[:, None] + corner_offsets(geometry.shape)[None, :]).reshape(-1))
-    return flat[lattice.active.reshape(-1)[flat]]
 
 
 def _reference_figures(args, volume, config, subset, subset_lum, figures) -> None:

@@ -541,7 +541,7 @@ class _BakeProcess:
         self.workers = job["workers"] or os.cpu_count() or 1
         self.previewer = Previewer(self.volume, self.config, self.shared.lattice,
                                    self.workers)
-        self.lit: set[int] = set()  # ids of the views that had their first preview pass
+        self.lit = None  # the last view given its first preview pass (held: not an id)
         self.waiting: list = []  # messages for `serve`, in order
 
     def receive(self, block: bool):
@@ -567,9 +567,9 @@ class _BakeProcess:
     def first_light(self, view) -> None:
         """The first preview pass of `view` (a few paths per visible texel, traced on its
         displayed surface); the others follow through `preview_step`."""
-        if id(view) in self.lit or view.visible is None or not len(view.visible):
+        if view is self.lit or view.visible is None or not len(view.visible):
             return
-        self.lit.add(id(view))
+        self.lit = view
         self._announce(self.previewer.set_view(view.iso, view.visible))
 
     def preview_step(self) -> bool:

@@ -400,11 +400,11 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
     ids = baker.plan.ids
     waiting: list = []  # messages that arrived during a batch
 
-    last_report = [0.0]
+    last_report = 0.0
 
     def committed(positions: np.ndarray) -> None:
         send(("texels", ids[positions]))
-        if time.perf_counter() - last_report[0] > REPORT_S:  # a batch can take minutes
+        if time.perf_counter() - last_report > REPORT_S:  # a batch can take minutes
             report()
         message = receive(False)
         if message is not None:
@@ -416,7 +416,8 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
         return waiting.pop(0) if waiting else receive(block)
 
     def report() -> None:
-        last_report[0] = time.perf_counter()
+        nonlocal last_report
+        last_report = time.perf_counter()
         send(("progress", scheduler.progress(), _stats_dict(baker, stats)))
 
     def handle(message) -> bool:

@@ -65,14 +65,19 @@ def cell_corners(shape: tuple[int, int, int], cells: np.ndarray) -> np.ndarray:
     return np.unique(flat[flat < int(np.prod(shape))])
 
 
-def surface_scene(volume: volumes.Volume, iso: float, coarse: bool):
-    """(Embree scene of the isosurface ρ = `iso`, step size) or (None, step) when it is
-    empty; a step-2 mesh when `coarse` and the volume is above `COARSE_VOXELS`."""
+def mesh_step(volume: volumes.Volume, coarse: bool) -> int:
+    """Marching-cubes step of a preview surface: 2 when `coarse` is allowed and the volume
+    is above `COARSE_VOXELS`, else 1."""
+    return 2 if coarse and volume.data.size > COARSE_VOXELS else 1
+
+
+def surface_scene(volume: volumes.Volume, iso: float, step: int):
+    """Embree scene of the isosurface ρ = `iso` extracted with `step`, or None when it is
+    empty."""
     from .trace import Scene
 
-    step = 2 if coarse and volume.data.size > COARSE_VOXELS else 1
     mesh = volumes.isosurface(volume, iso, step_size=step, normals="none")
-    return (None if mesh.empty else Scene(mesh.vertices, mesh.faces)), step
+    return None if mesh.empty else Scene(mesh.vertices, mesh.faces)
 
 
 def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: float,
@@ -151,7 +156,7 @@ class Previewer:
         self._iso_of = np.full(lattice.samples.size, np.nan, np.float32)  # of each preview
         self._corners = np.zeros(0, np.int64)
         self._queue: list[list] = []  # [paths, coarse, texels still to do or None]
-        self._scenes: dict[bool, tuple] = {}
+        self._scenes: dict[int, object] = {}  # by marching-cubes step
         self._started, self._pass_texels = 0.0, 0  # of the pass under way
 
     @property
@@ -189,7 +194,8 @@ class Previewer:
         take = len(todo) if whole else max(1, PATHS_PER_STEP // paths)
         flat, self._queue[0][2] = todo[:take], todo[take:]
         if len(flat):
-            scene, step = self._scene(coarse)
+            step = mesh_step(self.volume, coarse)
+            scene = self._scene(step)
             if scene is None:  # no surface at this isovalue
                 self._queue.clear()
                 return flat[:0]
@@ -211,11 +217,11 @@ class Previewer:
             self.lattice.preview_paths.reshape(-1)[flat] >= paths)
         return flat[~fresh]
 
-    def _scene(self, coarse: bool) -> tuple:
-        coarse = coarse and self.volume.data.size > COARSE_VOXELS
-        if coarse not in self._scenes:
-            self._scenes[coarse] = surface_scene(self.volume, self.iso, coarse)
-        return self._scenes[coarse]
+    def _scene(self, step: int):
+        """The displayed surface's scene at marching-cubes `step`, made once per isovalue."""
+        if step not in self._scenes:
+            self._scenes[step] = surface_scene(self.volume, self.iso, step)
+        return self._scenes[step]
 
 
 def _trace(scene, volume, config, flat, origins, normals, workers, paths) -> np.ndarray:

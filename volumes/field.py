@@ -49,10 +49,13 @@ def gradient_grid(volume: Volume, smooth: bool = True) -> np.ndarray:
             plain central differences (paper Fig. 5, left).
     """
     key = "grad_smooth" if smooth else "grad_plain"
-    with _GRID_LOCK:  # threads asking at once (the lazy bake's plan and previews) wait
-        if key not in volume._cache:
-            volume._cache[key] = _gradient_grid(volume, smooth)
-        return volume._cache[key]
+    grid = volume._cache.get(key)
+    if grid is None:
+        with _GRID_LOCK:  # built once even when threads ask at once (the lazy bake's plan
+            if key not in volume._cache:  # and its previews)
+                volume._cache[key] = _gradient_grid(volume, smooth)
+            grid = volume._cache[key]
+    return grid
 
 
 @numba.njit(nogil=True, cache=True)
