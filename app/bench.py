@@ -64,7 +64,7 @@ def bench_bake(args: argparse.Namespace) -> int:
     import volumes
     from baking.bake import Baker
     from baking.config import BakeConfig
-    from baking.trace import replay
+    from baking.trace import RayRecorder, replay
 
     vol = volumes.load(args.volume)
     config = BakeConfig(samples=args.samples, bounces=args.bounces, env=args.env)
@@ -72,22 +72,24 @@ def bench_bake(args: argparse.Namespace) -> int:
     baker = Baker(vol, config, workers=workers)
     bare = {"rays": 0, "seconds": 0.0, "wall": 0.0}
     original_scene, original_collect = baker._scene, baker._collect
+    recorder = RayRecorder()
 
     def recording_scene(level):
         scene = original_scene(level)
-        if scene.recorder is None and not scene.empty:
-            scene.recorder = []
+        if not scene.empty:
+            scene.recorder = recorder
         return scene
 
     def collect_then_replay(jobs, level, bar):
         original_collect(jobs, level, bar)
         start = time.perf_counter()
         scene = baker._scenes.get(level)
-        if scene is not None and scene.recorder:
-            rays, seconds = replay(scene, scene.recorder, pool)
+        batches = recorder.batches()
+        if scene is not None and batches:
+            rays, seconds = replay(scene, batches, pool)
             bare["rays"] += rays
             bare["seconds"] += seconds
-            scene.recorder = []
+        recorder.clear()
         bare["wall"] += time.perf_counter() - start
 
     baker._scene, baker._collect = recording_scene, collect_then_replay

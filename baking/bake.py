@@ -29,7 +29,7 @@ from .errors import BakeError
 from .integrator import Lighting, PathSettings, trace_paths
 from .lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
 from .lights import parse_light
-from .plan import Plan, make_plan, project_to_level
+from .plan import GOLDEN_FRACTION, Plan, make_plan, project_to_level
 
 PATHS_PER_CHUNK = 16384
 MIN_PATHS_PER_CHUNK = 2048
@@ -91,12 +91,6 @@ class _Accumulator:
         self.sum = np.zeros((count, channels))
         self.second = np.zeros(count)
         self.n = np.zeros(count, np.int64)
-
-    def add(self, positions: np.ndarray, sums: np.ndarray, second: np.ndarray,
-            n: np.ndarray) -> None:
-        self.sum[positions] += sums
-        self.second[positions] += second
-        self.n[positions] += n
 
     def clear(self, positions: np.ndarray) -> None:
         self.sum[positions] = 0
@@ -249,20 +243,20 @@ class Baker:
         jobs: list = []
         try:
             # Pipelined: a helper thread lays out the paths and start points of the next
-            # level while this one builds the level scene (marching cubes and embreex's
-            # mesh copy leave a core idle) and the workers trace it.
-            work, carry = self._prepare_level(first, by_lower[0], done, remaining, None)
+            # level (compiled, GIL-free: it overlaps the scene build, which holds the GIL)
+            # while this one builds the level scene and the workers trace it.
+            work = self._prepare_level(first, by_lower[0], busy[:0], done, remaining)
             for level in range(first, last + 1):
                 upcoming = None
                 if level < last:
                     upcoming = self._helper.submit(self._prepare_level, level + 1,
-                                                   by_lower[level + 1 - first], done,
-                                                   remaining, carry)
+                                                   by_lower[level + 1 - first],
+                                                   by_lower[level - first], done, remaining)
                 jobs = self._submit_level(work)
                 self._collect(jobs, level, bar)
                 jobs = []
                 if upcoming is not None:
-                    work, carry = upcoming.result()
+                    work = upcoming.result()
                 # a texel's pass is complete once its upper level is done
                 complete = by_lower[level - first - 1] if level > first else busy[:0]
                 complete = complete[self._acc.n[complete] > 0]
@@ -293,34 +287,19 @@ class Baker:
         self._scenes[level] = scene
         return scene
 
-    def _prepare_level(self, level: int, lower_here: np.ndarray, done: np.ndarray,
-                       remaining: np.ndarray, carry: tuple | None):
+    def _prepare_level(self, level: int, here: np.ndarray, below: np.ndarray,
+                       done: np.ndarray, remaining: np.ndarray) -> _LevelWork:
         """Lay out every pending path of isovalue level `level`, sorted by texel, with
-        the start points of its texels.
-
-        The pending samples of the texels whose lower level is `level` (`lower_here`) are
-        expanded here, once; those assigned to the upper level are handed on to the next
-        level, and `carry` holds the ones the previous level handed on.
-
-        Returns:
-            (the level's `_LevelWork`, (positions, samples) of the paths for level + 1).
-        """
+        the start points of its texels: the lower-level samples of the texels whose
+        lower level it is (`here`), and the upper-level samples of those whose lower
+        level is the one below (`below`)."""
         plan = self.plan
-        pos, samples = _pending_samples(lower_here, done, remaining)
-        upper = plan.on_upper(pos, samples)
-        handed_on = (pos[upper], samples[upper])
-        if carry is not None:
-            pos = np.concatenate([carry[0], pos[~upper]])
-            samples = np.concatenate([carry[1], samples[~upper]])
-        else:
-            pos, samples = pos[~upper], samples[~upper]
-        order = np.argsort(pos, kind="stable")  # group paths by texel, samples ascending
-        pos, samples = pos[order], samples[order]
-        texels = pos[_texel_starts(pos)]
+        pos, samples, texels = kernels.level_paths(here, below, done, remaining, plan.phase,
+                                                   plan.weight, GOLDEN_FRACTION)
         origins, normals = start_points(self.volume, self.geometry.centres(plan.ids[texels]),
                                         float(plan.levels[level]), self.config)
         start = _PathStarts(texels, origins.astype(np.float32), normals.astype(np.float32))
-        return _LevelWork(level, pos, samples, start), handed_on
+        return _LevelWork(level, pos, samples, start)
 
     def _submit_level(self, work: _LevelWork) -> list:
         """Build the level's scene (timed as scene time) and queue its chunks of paths.
@@ -470,11 +449,6 @@ class _PathStarts:
     normals: np.ndarray
 
 
-def _texel_starts(pos: np.ndarray) -> np.ndarray:
-    """(T,) indices where a new texel begins in the sorted (P,) positions `pos`."""
-    return np.flatnonzero(np.r_[len(pos) > 0, pos[1:] != pos[:-1]])
-
-
 def _trace_chunk(scene, plan, pos, samples, start: _PathStarts, lighting, settings, seed,
                  acc: _Accumulator) -> tuple[int, int, float]:
     """Worker: trace paths (sorted texel positions `pos`, sample indices) from their start
@@ -485,13 +459,15 @@ def _trace_chunk(scene, plan, pos, samples, start: _PathStarts, lighting, settin
     """
     from .trace import RayStats
 
-    keys, origins, normals = kernels.path_starts(
+    keys, origins, normals, dirs = kernels.path_starts(
         np.uint64(rng.seed_key(seed)), plan.ids, pos, samples, start.texels, start.origins,
         start.normals)
     ray_stats = RayStats()
-    estimates = trace_paths(scene, origins, normals, keys, lighting, settings, ray_stats)
-    acc.add(*kernels.texel_sums(
-        pos, estimates, _luminance_weights(estimates.shape[1], settings.sh_order is None)))
+    estimates = trace_paths(scene, origins.T, normals.T, keys, lighting, settings, ray_stats,
+                            dirs.T)
+    kernels.accumulate(pos, estimates, _luminance_weights(settings.channels,
+                                                          settings.sh_order is None),
+                       acc.sum, acc.second, acc.n)
     return len(pos), ray_stats.rays, ray_stats.seconds
 
 

@@ -80,8 +80,10 @@ class PathSettings:
 
 
 def _direct_lights(scene: Scene, pos, n, beta, lights, stats) -> np.ndarray:
-    """(M, 3) irradiance from point/directional lights with shadow rays, times beta."""
-    out = np.zeros_like(beta)
+    """(M, 3) irradiance from point/directional lights with shadow rays, times beta.
+
+    pos, n, beta: (M, 3) arrays (views of the tracer's (3, M) rows)."""
+    out = np.zeros(beta.shape)
     for light in lights:
         d, dist, e = light.towards(pos)
         cos = (n * d).sum(axis=1)
@@ -95,8 +97,9 @@ def _direct_lights(scene: Scene, pos, n, beta, lights, stats) -> np.ndarray:
 
 
 def _direct_env(scene: Scene, pos, n, beta, keys, dim, env, stats) -> np.ndarray:
-    """(M, 3) MIS-weighted environment light sample, times beta."""
-    out = np.zeros_like(beta)
+    """(M, 3) MIS-weighted environment light sample, times beta (arguments as
+    `_direct_lights`)."""
+    out = np.zeros(beta.shape)
     d, pdf = env.sample(kernels.uniform2(keys, dim))
     cos = (n * d).sum(axis=1)
     ok = (cos > 0) & (pdf > 0)
@@ -113,10 +116,10 @@ def _direct_env(scene: Scene, pos, n, beta, keys, dim, env, stats) -> np.ndarray
 
 def _direct_sky(scene: Scene, result, alive, pos, n, beta, keys, dim, sky, stats) -> None:
     """`_direct_env` for the procedural sky with the compiled sampler: adds the
-    MIS-weighted light sample of each vertex to ``result[alive]``."""
+    MIS-weighted light sample of each vertex to ``result[alive]`` (pos, n, beta: (3, M))."""
     dirs, contrib, useful = kernels.sky_light_samples(sky, keys, dim, n)
     idx, origins, shadow_dirs = kernels.shadow_rays(useful, pos, dirs)
-    blocked = scene.occluded(origins, shadow_dirs, None, stats)
+    blocked = scene.occluded(origins.T, shadow_dirs.T, None, stats)
     kernels.add_unblocked(result, alive, idx, blocked, beta, contrib)
 
 
@@ -131,15 +134,18 @@ def _escape_sh(beta: np.ndarray, dirs: np.ndarray, settings: PathSettings) -> np
 
 
 def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np.ndarray,
-                lighting: Lighting, settings: PathSettings,
-                stats: RayStats | None = None) -> np.ndarray:
+                lighting: Lighting, settings: PathSettings, stats: RayStats | None = None,
+                dirs: np.ndarray | None = None) -> np.ndarray:
     """Estimate irradiance (or SH transfer) for P paths starting at texel points.
 
     Args:
         scene: the level surface the paths live on.
         origins: (P, 3) start points, already offset off the surface.
-        normals: (P, 3) unit normals at the start points.
+        normals: (P, 3) unit normals at the start points. Both are used as (3, P) float32
+            rows: the transposes of such arrays (`kernels.path_starts`) are not copied.
         keys: (P,) uint32 path keys (`rng.path_keys`).
+        dirs: (P, 3) first directions if already drawn (`kernels.path_starts` draws
+            them), else `kernels.cosine_directions` (keys, 0, normals) is drawn here.
 
     Returns:
         (P, C) float64 per-path estimates (C = `settings.channels`).
@@ -147,40 +153,44 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     count = len(origins)
     result = np.zeros((count, settings.channels))
     alive = np.arange(count)
-    # float32 like Embree itself: no conversions on every query
-    pos, n = np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(normals, np.float32)
+    pos = np.ascontiguousarray(np.transpose(origins), np.float32)
+    n = np.ascontiguousarray(np.transpose(normals), np.float32)
     keys = np.ascontiguousarray(keys, np.uint32)
-    beta = np.ones((count, 3), np.float32)
+    beta = np.ones((3, count), np.float32)
     albedo = np.asarray(settings.albedo, np.float32)
     irradiance = settings.sh_order is None
     constant_env = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
+    constant = irradiance and constant_env is not None  # cosine sampling is ideal here
+    escaped_radiance = np.pi * np.asarray(constant_env if constant else (0, 0, 0), np.float64)
     sky = lighting.sky
+    if dirs is None:
+        dirs = kernels.cosine_directions(keys, 0, n)
+    else:
+        dirs = np.ascontiguousarray(np.transpose(dirs), np.float32)
     for vertex in range(settings.bounces + 1):
-        k = keys[alive]
         dim = vertex * DIMS_PER_VERTEX
         if irradiance and lighting.lights:
-            result[alive, :3] += _direct_lights(scene, pos, n, beta, lighting.lights, stats)
+            result[alive, :3] += _direct_lights(scene, pos.T, n.T, beta.T, lighting.lights,
+                                                stats)
         if irradiance and sky is not None:
-            _direct_sky(scene, result, alive, pos, n, beta, k, dim + 2, sky, stats)
+            _direct_sky(scene, result, alive, pos, n, beta, keys, dim + 2, sky, stats)
         elif irradiance and lighting.sample_env:
-            result[alive, :3] += _direct_env(scene, pos, n, beta, k, dim + 2, lighting.env,
-                                             stats)
-        dirs = kernels.cosine_directions(k, dim, n)
-        hits = scene.intersect(pos, dirs, stats)
-        prim = hits["prim"]
-        if irradiance and constant_env is not None:  # cosine sampling is ideal here
-            kernels.add_escaped(result, alive, prim, beta, np.pi * np.asarray(constant_env))
-        elif irradiance and sky is not None:
-            kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n)
-        elif lighting.env is not None or not irradiance:
-            _add_escaped(result, alive, prim < 0, beta, dirs, n, lighting, settings)
+            result[alive, :3] += _direct_env(scene, pos.T, n.T, beta.T, keys, dim + 2,
+                                             lighting.env, stats)
+        hits = scene.intersect(pos.T, dirs.T, stats)
+        if irradiance and sky is not None:
+            kernels.sky_add_escaped(sky, result, alive, hits["prim"], beta, dirs, n)
+        elif not constant and (lighting.env is not None or not irradiance):
+            _add_escaped(result, alive, hits["prim"] < 0, beta.T, dirs.T, n.T, lighting,
+                         settings)
         if vertex == settings.bounces:
+            kernels.add_escaped(result, alive, hits["prim"], beta, escaped_radiance)
             break
-        rows, pos, n, beta = kernels.next_vertices(pos, dirs, hits["t"], hits["ng"], prim,
-                                                   beta, albedo, settings.hit_offset)
-        if len(rows) == 0:
+        pos, n, beta, dirs, keys, alive = kernels.next_vertices(
+            pos, dirs, hits["t"], hits["ng"], hits["prim"], beta, keys, alive, albedo,
+            settings.hit_offset, result, escaped_radiance, dim + DIMS_PER_VERTEX)
+        if len(alive) == 0:
             break
-        alive = alive[rows]
     return result
 
 

@@ -29,7 +29,7 @@ _BSPLINE = np.array([1.0, 4.0, 1.0]) / 6.0
 # Residual of the separable B-spline smoother on white noise: var(x - k*x) / sigma^2 =
 # 1 - 2 k0 + sum k^2 with k0 = (4/6)^3, sum k^2 = (18/36)^3.
 _RESIDUAL_VARIANCE = 1 - 2 * (4 / 6) ** 3 + (18 / 36) ** 3
-_GOLDEN_FRACTION = 0.6180339887498949
+GOLDEN_FRACTION = 0.6180339887498949
 MAX_REACH = 4.0
 """Newton moves onto a level are limited to MAX_REACH × max_move voxels."""
 CONVERGED_FRACTION = 0.1
@@ -97,7 +97,7 @@ class Plan:
         """(N,) bool: does sample `samples[i]` of texel `ids[positions[i]]` use the upper
         level? A golden-ratio sequence per texel, so any prefix of N samples puts
         w·N ± O(log N) of them on the upper level (stratified, not random)."""
-        x = np.mod(self.phase[positions] + samples * _GOLDEN_FRACTION, 1.0)
+        x = np.mod(self.phase[positions] + samples * GOLDEN_FRACTION, 1.0)
         return x < self.weight[positions]
 
     def level_of(self, positions: np.ndarray, samples: np.ndarray) -> np.ndarray:

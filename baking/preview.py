@@ -235,9 +235,9 @@ def _trace(scene, volume, config, flat, origins, normals, workers, paths) -> np.
         hi = min(lo + per_chunk, len(flat))
         pos = np.repeat(texels[lo:hi], paths)
         samples = np.tile(np.arange(paths, dtype=np.int64), hi - lo)
-        keys, o, n = kernels.path_starts(seed_key, flat, pos, samples, texels[lo:hi],
-                                         origins[lo:hi], normals[lo:hi])
-        estimates = trace_paths(scene, o, n, keys, lighting, settings)
+        keys, o, n, dirs = kernels.path_starts(seed_key, flat, pos, samples, texels[lo:hi],
+                                               origins[lo:hi], normals[lo:hi])
+        estimates = trace_paths(scene, o.T, n.T, keys, lighting, settings, dirs=dirs.T)
         return estimates.reshape(hi - lo, paths, -1).sum(axis=1)
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:

@@ -133,7 +133,7 @@ def primary_hits(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.nd
         smooth: smoothed-gradient normals (the paper's) or plain central differences.
     """
     hits = scene.intersect(origins, dirs)
-    pixels = np.flatnonzero(hits["hit"])
+    pixels = np.flatnonzero(hits["prim"] >= 0)
     d = np.asarray(dirs, np.float64)[pixels]
     points = np.asarray(origins, np.float64)[pixels] + hits["t"][pixels, None] * d
     normals = volumes.normals_at(volume, points, smooth=smooth,

@@ -21,24 +21,73 @@ def test_uniforms_equal_numpy_bit_for_bit():
         np.testing.assert_array_equal(kernels.uniform2(keys, dim), rng.uniform2(keys, dim))
 
 
-def test_path_starts_gather_and_keys():
+def test_uniform_f32_is_the_uniform_in_single_precision_and_below_one():
+    keys = rng.path_keys(11, np.arange(20000), np.arange(20000) % 7)
+    k0 = kernels.dimension_key(3)
+    got = np.array([kernels.uniform_f32(k, k0) for k in keys], np.float64)
+    np.testing.assert_allclose(got, rng.uniform(keys, 3), rtol=2**-23, atol=2**-31)
+    assert got.max() < 1.0 and got.min() >= 0.0
+    # a key whose hash is within 2^7 of 2^32, where rounding to float32 would give 1
+    for start in range(0, 2**32, 2**24):
+        x = np.arange(start, start + 2**24, dtype=np.uint32)
+        near_one = x[rng.pcg_hash(x) >= np.uint32(2**32 - 128)]
+        if len(near_one):
+            break
+    assert kernels.uniform_f32(near_one[0], np.uint64(0)) == np.float32(1 - 2**-24)
+
+
+def test_path_starts_gather_keys_and_first_directions():
     ids = np.array([3, 17, 99, 4_000_000_000 % 2**32, 12], np.int64)
     pos = np.array([0, 0, 1, 3, 3, 3, 4], np.int64)
     samples = np.array([0, 1, 7, 2, 3, 4, 9], np.int64)
     texels = np.array([0, 1, 3, 4], np.int64)
     origins = np.arange(12, dtype=np.float32).reshape(4, 3)
-    normals = -origins
-    keys, o, n = kernels.path_starts(np.uint64(rng.seed_key(42)), ids, pos, samples, texels,
-                                     origins, normals)
+    normals = np.array([[0, 0, 1], [0, 1, 0], [0.6, 0, -0.8], [-1, 0, 0]], np.float32)
+    keys, o, n, dirs = kernels.path_starts(np.uint64(rng.seed_key(42)), ids, pos, samples,
+                                           texels, origins, normals)
     np.testing.assert_array_equal(keys, rng.path_keys(42, ids[pos], samples))
     rows = np.searchsorted(texels, pos)
-    np.testing.assert_array_equal(o, origins[rows])
-    np.testing.assert_array_equal(n, normals[rows])
+    assert o.shape == n.shape == dirs.shape == (3, len(pos))
+    np.testing.assert_array_equal(o.T, origins[rows])
+    np.testing.assert_array_equal(n.T, normals[rows])
+    np.testing.assert_array_equal(dirs, kernels.cosine_directions(keys, 0, n))
+
+
+def test_level_paths_match_the_numpy_expansion():
+    """The pending paths of each level: as `_pending_samples` and `Plan.on_upper` lay them
+    out (expand every texel's pending samples, keep those on this level, sort by texel)."""
+    from baking.bake import _pending_samples
+    from baking.plan import GOLDEN_FRACTION
+
+    gen = np.random.default_rng(4)
+    count = 300
+    lower = gen.integers(0, 5, count)
+    phase, weight = gen.random(count), gen.random(count)
+    weight[:20] = 0.0  # texels with one level only
+    done = gen.integers(0, 40, count)
+    remaining = gen.integers(0, 9, count)
+    positions = np.arange(count)
+    for level in range(6):
+        here = positions[lower == level]
+        below = positions[lower == level - 1]
+        pos, samples, texels = kernels.level_paths(here, below, done, remaining, phase,
+                                                   weight, GOLDEN_FRACTION)
+        want_pos, want_samples = [], []
+        for group, on_upper in ((here, False), (below, True)):
+            p, s = _pending_samples(group, done, remaining)
+            upper = np.mod(phase[p] + s * GOLDEN_FRACTION, 1.0) < weight[p]
+            want_pos.append(p[upper == on_upper])
+            want_samples.append(s[upper == on_upper])
+        p, s = np.concatenate(want_pos), np.concatenate(want_samples)
+        order = np.argsort(p, kind="stable")
+        np.testing.assert_array_equal(pos, p[order])
+        np.testing.assert_array_equal(samples, s[order])
+        np.testing.assert_array_equal(texels, np.unique(p))
 
 
 def test_cosine_directions_match_numpy_reference(normals):
     keys = rng.path_keys(3, np.arange(len(normals)), np.zeros(len(normals), np.int64))
-    got = kernels.cosine_directions(keys, 4, normals)
+    got = kernels.cosine_directions(keys, 4, np.ascontiguousarray(normals.T)).T
     local = sample_cosine_hemisphere(rng.uniform2(keys, 4))
     expected = to_world(local, normals.astype(np.float64))
     # single-precision trigonometry of an angle up to 2π: a few ulps of 2π
@@ -46,12 +95,24 @@ def test_cosine_directions_match_numpy_reference(normals):
     np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=5e-6)
 
 
+def test_cosine_directions_do_not_depend_on_the_split(normals):
+    """The loop runs in SIMD lanes with a scalar remainder: both must give the same bits,
+    or a bake would depend on how its paths were cut into chunks (its worker count)."""
+    keys = rng.path_keys(9, np.arange(len(normals)), np.zeros(len(normals), np.int64))
+    rows = np.ascontiguousarray(normals.T)
+    whole = kernels.cosine_directions(keys, 2, rows)
+    parts = [kernels.cosine_directions(keys[i:i + 37], 2, np.ascontiguousarray(rows[:, i:i + 37]))
+             for i in range(0, len(keys), 37)]
+    np.testing.assert_array_equal(whole, np.concatenate(parts, axis=1))
+
+
 def test_cosine_directions_are_cosine_distributed(normals):
     """E[cos θ] = 2/3 and E[cos² θ] = 1/2 under p = cos θ/π; tolerance 5 standard errors
     (Var cos θ = 1/2 − 4/9 = 1/18)."""
     n = np.repeat(normals[:1], 200000, axis=0)
     keys = rng.path_keys(0, np.arange(len(n)), np.zeros(len(n), np.int64))
-    cos = kernels.cosine_directions(keys, 0, n).astype(np.float64) @ n[0]
+    cos = kernels.cosine_directions(keys, 0, np.ascontiguousarray(n.T)).T.astype(
+        np.float64) @ n[0]
     assert cos.min() >= -1e-6
     se = np.sqrt(1 / 18 / len(cos))
     assert abs(cos.mean() - 2 / 3) < 5 * se
@@ -76,12 +137,24 @@ def test_next_vertices_match_numpy_reference():
     prim = np.where(r.uniform(size=m) < 0.6, r.integers(0, 99, m), -1).astype(np.int32)
     beta = r.uniform(size=(m, 3)).astype(np.float32)
     albedo = np.array([0.2, 0.5, 0.9], np.float32)
-    got = kernels.next_vertices(pos, dirs, t, ng, prim, beta, albedo, 1e-3)
-    expected = _next_vertices_numpy(pos, dirs, t, ng, prim, beta, albedo, 1e-3)
-    np.testing.assert_array_equal(got[0], expected[0])
-    for a, b in zip(got[1:], expected[1:], strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
-    facing = (got[2] * dirs[got[0]]).sum(axis=1)
+    keys = rng.path_keys(1, np.arange(m), np.zeros(m, np.int64))
+    alive = np.sort(r.choice(3 * m, m, replace=False))
+    result = r.random((3 * m, 3))
+    want_result = result.copy()
+    radiance = np.array([1.0, 2.0, 3.0])
+    escaped = prim < 0
+    want_result[alive[escaped]] += beta[escaped] * radiance
+    new_pos, new_n, new_beta, new_dirs, new_keys, new_alive = kernels.next_vertices(
+        *(np.ascontiguousarray(a.T) for a in (pos, dirs)), t, ng, prim,
+        np.ascontiguousarray(beta.T), keys, alive, albedo, 1e-3, result, radiance, 8)
+    rows, p, g, b = _next_vertices_numpy(pos, dirs, t, ng, prim, beta, albedo, 1e-3)
+    np.testing.assert_array_equal(new_alive, alive[rows])
+    np.testing.assert_array_equal(new_keys, keys[rows])
+    for a, want in ((new_pos, p), (new_n, g), (new_beta, b)):
+        np.testing.assert_allclose(a.T, want, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(result, want_result, rtol=1e-15)
+    np.testing.assert_array_equal(new_dirs, kernels.cosine_directions(new_keys, 8, new_n))
+    facing = (new_n.T * dirs[rows]).sum(axis=1)
     assert np.all(facing <= 0)  # turned towards the arriving ray
 
 
@@ -90,23 +163,30 @@ def test_add_escaped_adds_only_escaped_rays():
     alive = np.array([3, 1, 0], np.int64)
     prim = np.array([-1, 5, -1], np.int32)
     beta = np.array([[1, 2, 3], [4, 5, 6], [0.5, 0.5, 0.5]], np.float32)
-    kernels.add_escaped(result, alive, prim, beta, np.array([1.0, 10.0, 100.0]))
+    kernels.add_escaped(result, alive, prim, np.ascontiguousarray(beta.T),
+                        np.array([1.0, 10.0, 100.0]))
+    np.testing.assert_allclose(result, [[0.5, 5, 50], [0, 0, 0], [0, 0, 0], [1, 20, 300]])
+    kernels.add_escaped(result, alive, prim, np.ascontiguousarray(beta.T), np.zeros(3))
     np.testing.assert_allclose(result, [[0.5, 5, 50], [0, 0, 0], [0, 0, 0], [1, 20, 300]])
 
 
-def test_texel_sums_match_reduceat():
+def test_accumulate_adds_texel_sums_like_reduceat():
     r = np.random.default_rng(2)
     pos = np.sort(r.integers(0, 50, 3000))
     est = r.uniform(size=(3000, 3))
     weights = np.zeros(3)
     weights[:3] = LUMINANCE
-    positions, sums, second, counts = kernels.texel_sums(pos, est, weights)
+    acc_sum, acc_second, acc_n = r.random((60, 3)), r.random(60), r.integers(0, 5, 60)
+    want = acc_sum.copy(), acc_second.copy(), acc_n.copy()
+    kernels.accumulate(pos, est, weights, acc_sum, acc_second, acc_n)
     starts = np.flatnonzero(np.r_[True, pos[1:] != pos[:-1]])
-    np.testing.assert_array_equal(positions, pos[starts])
-    np.testing.assert_allclose(sums, np.add.reduceat(est, starts, axis=0), rtol=1e-12)
-    np.testing.assert_allclose(second, np.add.reduceat((est @ LUMINANCE) ** 2, starts),
-                               rtol=1e-12)
-    np.testing.assert_array_equal(counts, np.diff(np.r_[starts, len(pos)]))
+    texels = pos[starts]
+    want[0][texels] += np.add.reduceat(est, starts, axis=0)
+    want[1][texels] += np.add.reduceat((est @ LUMINANCE) ** 2, starts)
+    want[2][texels] += np.diff(np.r_[starts, len(pos)])
+    np.testing.assert_allclose(acc_sum, want[0], rtol=1e-12)
+    np.testing.assert_allclose(acc_second, want[1], rtol=1e-12)
+    np.testing.assert_array_equal(acc_n, want[2])
 
 
 SKIES = ["sky:sun=3", "sky:sun=5,sun_el=10,sun_radius=2,horizon_blur=0", "sky"]
@@ -161,10 +241,11 @@ def test_shadow_rays_and_unblocked_sums_match_numpy():
     useful = gen.random(m) < 0.6
     pos = gen.random((m, 3)).astype(np.float32)
     dirs = gen.random((m, 3)).astype(np.float32)
-    idx, origins, out = kernels.shadow_rays(useful, pos, dirs)
+    idx, origins, out = kernels.shadow_rays(useful, np.ascontiguousarray(pos.T),
+                                            np.ascontiguousarray(dirs.T))
     np.testing.assert_array_equal(idx, np.flatnonzero(useful))
-    np.testing.assert_array_equal(origins, pos[idx])
-    np.testing.assert_array_equal(out, dirs[idx])
+    np.testing.assert_array_equal(origins.T, pos[idx])
+    np.testing.assert_array_equal(out.T, dirs[idx])
     alive = np.sort(gen.choice(500, m, replace=False))
     beta, contrib = gen.random((m, 3)).astype(np.float32), gen.random((m, 3))
     blocked = gen.random(len(idx)) < 0.3
@@ -172,9 +253,9 @@ def test_shadow_rays_and_unblocked_sums_match_numpy():
     want = result.copy()
     kept = idx[~blocked]
     want[alive[kept]] += beta[kept] * contrib[kept]
-    kernels.add_unblocked(result, alive, idx, blocked, beta, contrib)
+    kernels.add_unblocked(result, alive, idx, blocked, np.ascontiguousarray(beta.T),
+                          np.ascontiguousarray(contrib.T))
     np.testing.assert_allclose(result, want, rtol=1e-15)
-
 
 
 @pytest.mark.parametrize("spec", SKIES)
@@ -188,7 +269,8 @@ def test_sky_light_samples_match_the_environment(spec, normals):
     assert len(kernels.sky_params(env)) == kernels.SKY_PARAMS
     keys = rng.path_keys(5, np.arange(len(normals)), np.zeros(len(normals), np.int64))
     dirs, contrib, useful = kernels.sky_light_samples(kernels.sky_params(env), keys, 2,
-                                                      normals)
+                                                      np.ascontiguousarray(normals.T))
+    dirs, contrib = dirs.T, contrib.T
     d, pdf = env.sample(rng.uniform2(keys, 2))
     np.testing.assert_allclose(dirs, d, atol=1e-6)
     cos = (normals * d).sum(axis=1)
@@ -217,7 +299,8 @@ def test_sky_escaped_rays_match_the_environment(spec, normals):
     beta = r.uniform(size=(m, 3)).astype(np.float32)
     alive = r.permutation(m)
     got, want = np.zeros((m, 3)), np.zeros((m, 3))
-    kernels.sky_add_escaped(kernels.sky_params(env), got, alive, prim, beta, dirs, normals)
+    kernels.sky_add_escaped(kernels.sky_params(env), got, alive, prim,
+                            *(np.ascontiguousarray(a.T) for a in (beta, dirs, normals)))
     _add_escaped(want, alive, prim < 0, beta, dirs, normals, Lighting(env, True, ()),
                  PathSettings(bounces=0, albedo=(1, 1, 1), hit_offset=0.0))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)

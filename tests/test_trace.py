@@ -1,0 +1,86 @@
+"""`baking.trace`: the Embree scene against embreex used plainly, and the ray recorder of
+``isolume bench bake``."""
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+import volumes
+from baking.trace import RayRecorder, Scene, replay
+
+
+def _rays(mesh, count: int, seed: int):
+    gen = np.random.default_rng(seed)
+    centre = mesh.vertices.mean(axis=0)
+    spread = mesh.vertices.std(axis=0)
+    origins = (centre + gen.normal(size=(count, 3)) * spread).astype(np.float32)
+    dirs = gen.normal(size=(count, 3)).astype(np.float32)
+    return origins, dirs
+
+
+def test_scene_answers_exactly_as_embreex_given_numpy_arrays():
+    """The mesh reaches Embree through object arrays (a faster copy): every hit, distance,
+    barycentric and normal must equal those of a scene built from the numpy arrays."""
+    mesh = volumes.isosurface(volumes.load("synthetic:engine:48"), 0.3, normals="none")
+    scene = Scene(mesh.vertices, mesh.faces)
+    plain = rtcore_scene.EmbreeScene()
+    TriangleMesh(plain, np.ascontiguousarray(mesh.vertices, np.float32),
+                 np.ascontiguousarray(mesh.faces, np.int32))
+    origins, dirs = _rays(mesh, 20000, 1)
+    got = scene.intersect(origins, dirs)
+    want = plain.run(origins, dirs, output=1)
+    assert 0.2 < np.mean(got["prim"] >= 0) < 0.95  # both hits and misses are compared
+    for key, theirs in (("prim", "primID"), ("t", "tfar"), ("u", "u"), ("v", "v"),
+                        ("ng", "Ng")):
+        np.testing.assert_array_equal(got[key], want[theirs])
+    np.testing.assert_array_equal(scene.occluded(origins, dirs),
+                                  plain.run(origins, dirs, query="OCCLUDED") != -1)
+
+
+def test_strided_rays_are_traced_as_contiguous_ones():
+    """The path tracer hands Embree transposed (3, N) rows: the same answers."""
+    mesh = volumes.isosurface(volumes.load("synthetic:torus:32"), 0.5, normals="none")
+    scene = Scene(mesh.vertices, mesh.faces)
+    origins, dirs = _rays(mesh, 5000, 2)
+    rows_o, rows_d = np.ascontiguousarray(origins.T), np.ascontiguousarray(dirs.T)
+    got, want = scene.intersect(rows_o.T, rows_d.T), scene.intersect(origins, dirs)
+    for key in ("prim", "t", "ng"):
+        np.testing.assert_array_equal(got[key], want[key])
+
+
+def test_recorder_keeps_exact_copies_from_every_thread_and_replays_them():
+    mesh = volumes.isosurface(volumes.load("synthetic:torus:32"), 0.5, normals="none")
+    scene = Scene(mesh.vertices, mesh.faces)
+    recorder = RayRecorder()
+    scene.recorder = recorder
+    batches = [_rays(mesh, n, seed) for seed, n in enumerate((700, 1300, 50, 2000))]
+    dists = np.linspace(0.1, 3.0, 1300).astype(np.float32)
+
+    def trace(i):
+        origins, dirs = batches[i]
+        if i == 1:
+            scene.occluded(np.ascontiguousarray(origins.T).T, dirs, dists)
+        else:
+            scene.intersect(origins, dirs)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        list(pool.map(trace, range(len(batches))))
+        recorded = recorder.batches()
+        assert sorted(len(b[1]) for b in recorded) == [50, 700, 1300, 2000]
+        for query, origins, dirs, d in recorded:
+            i = [len(b[0]) for b in batches].index(len(origins))
+            np.testing.assert_array_equal(origins, batches[i][0])
+            np.testing.assert_array_equal(dirs, batches[i][1])
+            assert query == ("OCCLUDED" if i == 1 else "INTERSECT")
+            if i == 1:  # the distance limit is kept (clamped as Scene.occluded does)
+                np.testing.assert_array_equal(d, dists)
+            else:
+                assert d is None
+        rays, seconds = replay(scene, recorded, pool)
+        assert rays == 4050 and seconds > 0
+    recorder.clear()
+    assert recorder.batches() == []
+    scene.intersect(*batches[2])  # buffers are reused after clear
+    assert [len(b[1]) for b in recorder.batches()] == [50]
