@@ -49,7 +49,7 @@ def dimension_key(dim: int) -> np.uint64:
 @numba.njit(**_JIT)
 def uniform(key: np.uint32, dim_key: np.uint64) -> float:
     """The uniform in [0, 1) of a path key and a dimension key (`baking.rng.uniform`)."""
-    return float(pcg_hash(np.uint64(key) ^ dim_key)) * _INV_2_32
+    return float(np.int64(pcg_hash(np.uint64(key) ^ dim_key))) * _INV_2_32  # signed: one instruction
 
 
 @numba.njit(**_JIT)
@@ -416,7 +416,16 @@ def sky_params(env) -> np.ndarray:
 
 
 @numba.njit(**_JIT)
-def _sky_pdf(p: np.ndarray, x: float, y: float, z: float) -> float:
+def _sky_tuple(p: np.ndarray) -> tuple:
+    """The (SKY_PARAMS,) array as a tuple: helpers called per ray take it by value (an
+    array argument costs reference counting on every call, ten times the helper's
+    arithmetic)."""
+    return (p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10], p[11], p[12],
+            p[13], p[14], p[15], p[16], p[17], p[18])
+
+
+@numba.njit(**_JIT)
+def _sky_pdf(p: tuple, x: float, y: float, z: float) -> float:
     """Density (1/sr) of the sky's sampler at unit direction (x, y, z)."""
     pdf = (1.0 - p[17]) / (4.0 * math.pi)
     if p[17] > 0 and x * p[10] + y * p[11] + z * p[12] >= p[13]:
@@ -425,39 +434,41 @@ def _sky_pdf(p: np.ndarray, x: float, y: float, z: float) -> float:
 
 
 @numba.njit(**_JIT)
-def _sky_radiance(p: np.ndarray, x: float, y: float, z: float, out: np.ndarray) -> None:
-    """out[:3] = sky radiance arriving from unit direction (x, y, z)."""
+def _sky_radiance(p: tuple, x: float, y: float, z: float):
+    """(r, g, b) sky radiance arriving from unit direction (x, y, z)."""
     h = p[9]
     if h <= 0:
         g = 1.0 if z >= 0 else 0.0
     else:
         t = min(max((z + h) / (2 * h), 0.0), 1.0)
         g = t * t * (3.0 - 2.0 * t)
-    sun = p[17] > 0 and x * p[10] + y * p[11] + z * p[12] >= p[13]
-    for c in range(3):
-        up = p[3 + c] + (p[c] - p[3 + c]) * max(z, 0.0)
-        out[c] = g * up + (1.0 - g) * p[6 + c] + (p[14 + c] if sun else 0.0)
+    sun = 1.0 if p[17] > 0 and x * p[10] + y * p[11] + z * p[12] >= p[13] else 0.0
+    up = max(z, 0.0)
+    return (g * (p[3] + (p[0] - p[3]) * up) + (1.0 - g) * p[6] + sun * p[14],
+            g * (p[4] + (p[1] - p[4]) * up) + (1.0 - g) * p[7] + sun * p[15],
+            g * (p[5] + (p[2] - p[5]) * up) + (1.0 - g) * p[8] + sun * p[16])
 
 
 @numba.njit(**_JIT)
-def _sky_sample(p: np.ndarray, u0: float, u1: float, out: np.ndarray) -> None:
-    """out[:3] = the sky sampler's direction for uniforms (u0, u1): the sun cone with
-    probability p_sun, else the whole sphere (`SkyEnvironment.sample`)."""
-    p_sun, phi = p[17], 2.0 * math.pi * u1
+def _sky_sample(p: tuple, sun_frame: tuple, u0: float, u1: np.float32):
+    """The sky sampler's unit direction (x, y, z) for uniforms (u0, u1): the sun cone
+    with probability p_sun, else the whole sphere (`SkyEnvironment.sample`); `sun_frame`
+    is `_frame` of the sun direction, the angle's sine and cosine come from
+    `sincos_turns` (u1 in single precision, below 1)."""
+    p_sun = p[17]
+    c32, s32 = sincos_turns(u1)
+    cos_phi, sin_phi = float(c32), float(s32)
     if u0 < p_sun:
         cos_t = 1.0 - (u0 / p_sun) * (1.0 - p[13])
         sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
-        ax, ay, az = p[10], p[11], p[12]
-        tx, ty, tz, bx, by, bz = _frame(ax, ay, az)
-        cx, cy = sin_t * math.cos(phi), sin_t * math.sin(phi)
-        out[0] = cx * tx + cy * bx + cos_t * ax
-        out[1] = cx * ty + cy * by + cos_t * ay
-        out[2] = cx * tz + cy * bz + cos_t * az
-    else:
-        v = min((u0 - p_sun) / (1.0 - p_sun), 1.0 - 2.0**-53)
-        z = 1.0 - 2.0 * v
-        rho = math.sqrt(max(0.0, 1.0 - z * z))
-        out[0], out[1], out[2] = rho * math.cos(phi), rho * math.sin(phi), z
+        tx, ty, tz, bx, by, bz = sun_frame
+        cx, cy = sin_t * cos_phi, sin_t * sin_phi
+        return (cx * tx + cy * bx + cos_t * p[10], cx * ty + cy * by + cos_t * p[11],
+                cx * tz + cy * bz + cos_t * p[12])
+    v = min((u0 - p_sun) / (1.0 - p_sun), 1.0 - 2.0**-53)
+    z = 1.0 - 2.0 * v
+    rho = math.sqrt(max(0.0, 1.0 - z * z))
+    return rho * cos_phi, rho * sin_phi, z
 
 
 @numba.njit(**_JIT)
@@ -478,21 +489,20 @@ def sky_light_samples(p: np.ndarray, keys: np.ndarray, dim: int, normals: np.nda
     dirs = np.empty((3, m), np.float32)
     contrib = np.zeros((3, m))
     useful = np.zeros(m, np.bool_)
-    d = np.empty(3)
-    radiance = np.empty(3)
+    sun_frame = _frame(p[10], p[11], p[12])
+    p = _sky_tuple(p)
     for i in range(m):
-        _sky_sample(p, uniform(keys[i], k0), uniform(keys[i], k1), d)
-        dirs[0, i], dirs[1, i], dirs[2, i] = d[0], d[1], d[2]
-        cos = normals[0, i] * d[0] + normals[1, i] * d[1] + normals[2, i] * d[2]
-        pdf = _sky_pdf(p, d[0], d[1], d[2])
+        x, y, z = _sky_sample(p, sun_frame, uniform(keys[i], k0), uniform_f32(keys[i], k1))
+        dirs[0, i], dirs[1, i], dirs[2, i] = x, y, z
+        cos = normals[0, i] * x + normals[1, i] * y + normals[2, i] * z
+        pdf = _sky_pdf(p, x, y, z)
         if cos <= 0 or pdf <= 0:
             continue
         useful[i] = True
         other = cos / math.pi
-        weight = pdf * pdf / (pdf * pdf + other * other)
-        _sky_radiance(p, d[0], d[1], d[2], radiance)
-        for c in range(3):
-            contrib[c, i] = radiance[c] * cos * weight / pdf
+        scale = cos * pdf / (pdf * pdf + other * other)  # L·cos·w/pdf = L·cos·pdf/(pdf²+o²)
+        r, g, b = _sky_radiance(p, x, y, z)
+        contrib[0, i], contrib[1, i], contrib[2, i] = r * scale, g * scale, b * scale
     return dirs, contrib, useful
 
 
@@ -530,7 +540,7 @@ def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: 
     """result[alive[i], :3] += beta[:, i]·L(dir)·π·w for every cosine-sampled ray i that
     escaped (prim < 0), w the power-heuristic weight against the sky's light sample
     (beta, dirs, normals: (3, M))."""
-    radiance = np.empty(3)
+    p = _sky_tuple(p)
     for i in range(len(prim)):
         if prim[i] >= 0:
             continue
@@ -539,9 +549,10 @@ def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: 
         own, pdf = cos / math.pi, _sky_pdf(p, x, y, z)
         total = own * own + pdf * pdf
         weight = math.pi * (own * own / total if total > 0 else 0.0)
-        _sky_radiance(p, x, y, z, radiance)
+        radiance = _sky_radiance(p, x, y, z)
+        row = alive[i]
         for c in range(3):
-            result[alive[i], c] += beta[c, i] * radiance[c] * weight
+            result[row, c] += beta[c, i] * radiance[c] * weight
 
 
 def warm_up() -> None:

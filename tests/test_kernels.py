@@ -272,12 +272,20 @@ def test_sky_light_samples_match_the_environment(spec, normals):
                                                       np.ascontiguousarray(normals.T))
     dirs, contrib = dirs.T, contrib.T
     d, pdf = env.sample(rng.uniform2(keys, 2))
+    # the angle's sine and cosine in single precision (`sincos_turns`): within 3e-7
     np.testing.assert_allclose(dirs, d, atol=1e-6)
+    # contributions: the environment's own formulas at the kernel's directions, away
+    # from where a rounding of the direction decides (cos = 0, the sun disk's rim)
+    d = dirs.astype(np.float64)
+    pdf = env.pdf(d)
     cos = (normals * d).sum(axis=1)
-    np.testing.assert_array_equal(useful, (cos > 0) & (pdf > 0))
-    w = power_heuristic(pdf[useful], cos[useful] / np.pi)
-    want = env.radiance(d[useful]) * (cos[useful] * w / pdf[useful])[:, None]
-    np.testing.assert_allclose(contrib[useful], want, rtol=1e-9, atol=1e-12)
+    clear = (np.abs(cos) > 1e-6) & (np.abs(d @ env.sun_direction - env.sun_cos_radius) > 1e-6)
+    assert clear.mean() > 0.98
+    np.testing.assert_array_equal(useful[clear], ((cos > 0) & (pdf > 0))[clear])
+    ok = useful & clear
+    w = power_heuristic(pdf[ok], cos[ok] / np.pi)
+    want = env.radiance(d[ok]) * (cos[ok] * w / pdf[ok])[:, None]
+    np.testing.assert_allclose(contrib[ok], want, rtol=1e-5, atol=1e-6)
     assert (contrib[~useful] == 0).all()
     if env.sun_probability > 0:  # the sun cone is sampled, and weighted as such
         in_sun = d @ env.sun_direction >= env.sun_cos_radius
