@@ -49,7 +49,7 @@ def dimension_key(dim: int) -> np.uint64:
 @numba.njit(**_JIT)
 def uniform(key: np.uint32, dim_key: np.uint64) -> float:
     """The uniform in [0, 1) of a path key and a dimension key (`baking.rng.uniform`)."""
-    return float(np.int64(pcg_hash(np.uint64(key) ^ dim_key))) * _INV_2_32  # signed: one instruction
+    return float(pcg_hash(np.uint64(key) ^ dim_key)) * _INV_2_32
 
 
 @numba.njit(**_JIT)
