@@ -12,7 +12,9 @@ and a cosine-sampled direction turns radiance into irradiance with the factor π
 * a constant environment: the cosine-sampled ray alone (it is already the ideal sampler).
 
 Paths end after `bounces` bounces; nothing is cut early, so the estimate of the B-bounce
-solution is unbiased (no Russian roulette is needed with a fixed, small B).
+solution is unbiased (no Russian roulette is needed with a fixed, small B). The last
+vertex's continuation ray only has to tell whether it escapes: an occlusion query, about
+half the cost of a closest hit (and none at all when nothing lights escaping rays).
 
 In SH mode each path that escapes in direction ω adds c_v·π·Y(ω): the projection of the
 transfer function, including shadowing and every bounce, onto the SH basis.
@@ -162,6 +164,7 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     constant_env = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
     constant = irradiance and constant_env is not None  # cosine sampling is ideal here
     escaped_radiance = np.pi * np.asarray(constant_env if constant else (0, 0, 0), np.float64)
+    sees_env = lighting.env is not None or not irradiance  # escaping rays bring something
     sky = lighting.sky
     if dirs is None:
         dirs = kernels.cosine_directions(keys, 0, n)
@@ -177,17 +180,23 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
         elif irradiance and lighting.sample_env:
             result[alive, :3] += _direct_env(scene, pos.T, n.T, beta.T, keys, dim + 2,
                                              lighting.env, stats)
-        hits = scene.intersect(pos.T, dirs.T, stats)
+        last = vertex == settings.bounces
+        if last and not sees_env:  # nothing comes back along the last ray
+            break
+        if last:  # only whether the ray escapes matters: an occlusion query (half the cost)
+            prim = scene.occluded(pos.T, dirs.T, None, stats).astype(np.int32) - 1
+        else:
+            hits = scene.intersect(pos.T, dirs.T, stats)
+            prim = hits["prim"]
         if irradiance and sky is not None:
-            kernels.sky_add_escaped(sky, result, alive, hits["prim"], beta, dirs, n)
-        elif not constant and (lighting.env is not None or not irradiance):
-            _add_escaped(result, alive, hits["prim"] < 0, beta.T, dirs.T, n.T, lighting,
-                         settings)
-        if vertex == settings.bounces:
-            kernels.add_escaped(result, alive, hits["prim"], beta, escaped_radiance)
+            kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n)
+        elif not constant and sees_env:
+            _add_escaped(result, alive, prim < 0, beta.T, dirs.T, n.T, lighting, settings)
+        if last:
+            kernels.add_escaped(result, alive, prim, beta, escaped_radiance)
             break
         pos, n, beta, dirs, keys, alive = kernels.next_vertices(
-            pos, dirs, hits["t"], hits["ng"], hits["prim"], beta, keys, alive, albedo,
+            pos, dirs, hits["t"], hits["ng"], prim, beta, keys, alive, albedo,
             settings.hit_offset, result, escaped_radiance, dim + DIMS_PER_VERTEX)
         if len(alive) == 0:
             break
