@@ -15,7 +15,7 @@ import math
 import os
 import time
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +33,8 @@ from .plan import GOLDEN_FRACTION, Plan, make_plan, project_to_level
 
 PATHS_PER_CHUNK = 16384
 MIN_PATHS_PER_CHUNK = 2048
+REPORT_S = 0.5
+"""Seconds between progress-bar updates while a level is traced."""
 
 
 @dataclass
@@ -315,17 +317,26 @@ class Baker:
         self.stats.scene_seconds += time.perf_counter() - t0
         return [self._pool.submit(_trace_chunk, scene, self.plan, work.pos[lo:hi],
                                   work.samples[lo:hi], work.start, self.lighting,
-                                  self.settings, self.config.seed, self._acc)
+                                  self.settings, np.uint64(rng.seed_key(self.config.seed)),
+                                  self._acc)
                 for lo, hi in _chunk_bounds(work.pos, self.workers)]
 
     def _collect(self, jobs: list, level: int, bar) -> None:
-        """Wait for the chunks of `level`; count their paths and rays."""
-        for job in jobs:
-            paths, rays, seconds = job.result()
-            self.stats.add_rays(rays, seconds)
-            self.stats.paths += paths
+        """Wait for the chunks of `level`; count their paths and rays.
+
+        The progress bar moves every `REPORT_S` seconds and at the end: waking up for
+        every finished chunk would take the GIL from the workers a hundred times a level.
+        """
+        pending = set(jobs)
+        while pending:
+            finished, pending = wait(pending, timeout=REPORT_S)
+            for job in finished:
+                paths, rays, seconds = job.result()
+                self.stats.add_rays(rays, seconds)
+                self.stats.paths += paths
+                if bar is not None:
+                    bar.update(paths)
             if bar is not None:
-                bar.update(paths)
                 elapsed = time.perf_counter() - self.stats.started
                 bar.set_postfix_str(
                     f"texels {self.texels_done:,}/{len(self.plan.ids):,} "
@@ -449,8 +460,8 @@ class _PathStarts:
     normals: np.ndarray
 
 
-def _trace_chunk(scene, plan, pos, samples, start: _PathStarts, lighting, settings, seed,
-                 acc: _Accumulator) -> tuple[int, int, float]:
+def _trace_chunk(scene, plan, pos, samples, start: _PathStarts, lighting, settings,
+                 seed_key: np.uint64, acc: _Accumulator) -> tuple[int, int, float]:
     """Worker: trace paths (sorted texel positions `pos`, sample indices) from their start
     points and add the per-texel sums to `acc`.
 
@@ -460,7 +471,7 @@ def _trace_chunk(scene, plan, pos, samples, start: _PathStarts, lighting, settin
     from .trace import RayStats
 
     keys, origins, normals, dirs = kernels.path_starts(
-        np.uint64(rng.seed_key(seed)), plan.ids, pos, samples, start.texels, start.origins,
+        seed_key, plan.ids, pos, samples, start.texels, start.origins,
         start.normals)
     ray_stats = RayStats()
     estimates = trace_paths(scene, origins.T, normals.T, keys, lighting, settings, ray_stats,
