@@ -75,11 +75,13 @@ def uniform2(keys: np.ndarray, dim: int) -> np.ndarray:
 @numba.njit(**_JIT)
 def _frame(nx, ny, nz):
     """Tangents (tx, ty, tz), (bx, by, bz) completing the unit normal n to a right-handed
-    frame (Duff et al. 2017, branchless; `baking.sampling.orthonormal_basis`)."""
-    sign = 1.0 if nz >= 0 else -1.0
-    a = -1.0 / (sign + nz)
+    frame (Duff et al. 2017, branchless; `baking.sampling.orthonormal_basis`), in the
+    precision of n (float32 normals stay float32 inside vectorised loops)."""
+    one = np.float32(1.0)
+    sign = one if nz >= 0 else -one
+    a = -one / (sign + nz)
     b = nx * ny * a
-    return 1.0 + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
+    return one + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
 
 
 @numba.njit(**_JIT)
@@ -224,7 +226,7 @@ def _fill_cosine_directions(keys: np.ndarray, dim: int, normals: np.ndarray,
     for i in range(len(keys)):
         lx, ly, lz = _cosine_local(keys[i], k0, k1)
         nx, ny, nz = normals[0, i], normals[1, i], normals[2, i]
-        tx, ty, tz, bx, by, bz = _frame32(nx, ny, nz)
+        tx, ty, tz, bx, by, bz = _frame(nx, ny, nz)
         out[0, i] = lx * tx + ly * bx + lz * nx
         out[1, i] = lx * ty + ly * by + lz * ny
         out[2, i] = lx * tz + ly * bz + lz * nz
@@ -238,16 +240,6 @@ def _cosine_local(key: np.uint32, k0: np.uint64, k1: np.uint64):
     r = np.sqrt(u0)
     c, si = sincos_turns(u1)
     return r * c, r * si, np.sqrt(np.float32(1.0) - u0)
-
-
-@numba.njit(**_JIT)
-def _frame32(nx, ny, nz):
-    """`_frame` in float32 (no promotion to double inside vectorised loops)."""
-    one = np.float32(1.0)
-    sign = one if nz >= 0 else -one
-    a = -one / (sign + nz)
-    b = nx * ny * a
-    return one + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
 
 
 @numba.njit(**_JIT)
@@ -277,7 +269,7 @@ def next_vertices(pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, ng: np.ndarr
         positions, unit normals, throughputs and `cosine_directions` (3, H) float32, keys
         (H,) uint32 and result rows (H,) int64 of the H rays that hit.
     """
-    add = escaped_radiance[0] != 0 or escaped_radiance[1] != 0 or escaped_radiance[2] != 0
+    add_escaped(result, alive, prim, beta, escaped_radiance)
     hits = 0
     for i in range(len(prim)):
         hits += prim[i] >= 0
@@ -289,9 +281,6 @@ def next_vertices(pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, ng: np.ndarr
     j = 0
     for i in range(len(prim)):
         if prim[i] < 0:
-            if add:
-                for c in range(3):
-                    result[alive[i], c] += beta[c, i] * escaped_radiance[c]
             continue
         gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
         facing = gx * dirs[0, i] + gy * dirs[1, i] + gz * dirs[2, i]
