@@ -21,11 +21,13 @@ def test_uniforms_equal_numpy_bit_for_bit():
         np.testing.assert_array_equal(kernels.uniform2(keys, dim), rng.uniform2(keys, dim))
 
 
-def test_uniform_f32_is_the_uniform_in_single_precision_and_below_one():
+def test_31_bit_and_single_precision_uniforms_match_the_uniform():
     keys = rng.path_keys(11, np.arange(20000), np.arange(20000) % 7)
     k0 = kernels.dimension_key(3)
     got = np.array([kernels.uniform_f32(k, k0) for k in keys], np.float64)
     np.testing.assert_allclose(got, rng.uniform(keys, 3), rtol=2**-23, atol=2**-31)
+    got31 = np.array([kernels.uniform31(k, k0) for k in keys])
+    assert np.all((rng.uniform(keys, 3) - got31 >= 0) & (rng.uniform(keys, 3) - got31 < 2**-31))
     assert got.max() < 1.0 and got.min() >= 0.0
     # a key whose hash is within 2^7 of 2^32, where rounding to float32 would give 1
     for start in range(0, 2**32, 2**24):
