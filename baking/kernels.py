@@ -538,18 +538,21 @@ def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: 
     escaped (prim < 0), w the power-heuristic weight against the sky's light sample
     (beta, dirs, normals: (3, M))."""
     p = _sky_tuple(p)
-    for i in range(len(prim)):
-        if prim[i] >= 0:
-            continue
+    m = len(prim)
+    added = np.empty((3, m))
+    for i in range(m):  # without branches, in SIMD lanes; hits get zero
         x, y, z = float(dirs[0, i]), float(dirs[1, i]), float(dirs[2, i])
         cos = normals[0, i] * x + normals[1, i] * y + normals[2, i] * z
         own, pdf = cos / math.pi, _sky_pdf(p, x, y, z)
         total = own * own + pdf * pdf
-        weight = math.pi * (own * own / total if total > 0 else 0.0)
-        radiance = _sky_radiance(p, x, y, z)
-        row = alive[i]
-        for c in range(3):
-            result[row, c] += beta[c, i] * radiance[c] * weight
+        weight = math.pi * own * own / total if (total > 0) & (prim[i] < 0) else 0.0
+        r, g, b = _sky_radiance(p, x, y, z)
+        added[0, i], added[1, i], added[2, i] = r * weight, g * weight, b * weight
+    for i in range(m):
+        if prim[i] < 0:
+            row = alive[i]
+            for c in range(3):
+                result[row, c] += beta[c, i] * added[c, i]
 
 
 def warm_up() -> None:
