@@ -208,6 +208,10 @@ class Baker:
         self.texels_done = int(np.count_nonzero(self.samples_done()))
         self.previous = dict(self.lattice.meta.get("stats", {}))
         self._acc = _Accumulator(len(self.plan.ids), self.settings.channels)
+        self._tracing = _Tracing(
+            self.plan.ids, self.lighting, self.settings, np.uint64(rng.seed_key(config.seed)),
+            _luminance_weights(self.settings.channels, self.settings.sh_order is None),
+            self._acc)
         self.workers = max(1, workers or os.cpu_count() or 1)
         self._pool = ThreadPoolExecutor(max_workers=self.workers)
         self._helper = ThreadPoolExecutor(max_workers=1)  # lays out the next level
@@ -315,10 +319,8 @@ class Baker:
         t0 = time.perf_counter()
         scene = self._scene(work.level)
         self.stats.scene_seconds += time.perf_counter() - t0
-        return [self._pool.submit(_trace_chunk, scene, self.plan, work.pos[lo:hi],
-                                  work.samples[lo:hi], work.start, self.lighting,
-                                  self.settings, np.uint64(rng.seed_key(self.config.seed)),
-                                  self._acc)
+        return [self._pool.submit(_trace_chunk, scene, self._tracing, work.pos[lo:hi],
+                                  work.samples[lo:hi], work.start)
                 for lo, hi in _chunk_bounds(work.pos, self.workers)]
 
     def _collect(self, jobs: list, level: int, bar) -> None:
@@ -460,10 +462,29 @@ class _PathStarts:
     normals: np.ndarray
 
 
-def _trace_chunk(scene, plan, pos, samples, start: _PathStarts, lighting, settings,
-                 seed_key: np.uint64, acc: _Accumulator) -> tuple[int, int, float]:
+@dataclass(frozen=True)
+class _Tracing:
+    """What every chunk of a bake traces with, made once per bake.
+
+    Attributes:
+        ids: (A,) flat lattice ids of the plan's texels.
+        seed_key: ``pcg_hash(seed)``, the start of every path key.
+        weights: (C,) `_luminance_weights` of the second moments.
+        acc: the pass sums the chunks add to.
+    """
+
+    ids: np.ndarray
+    lighting: Lighting
+    settings: PathSettings
+    seed_key: np.uint64
+    weights: np.ndarray
+    acc: _Accumulator
+
+
+def _trace_chunk(scene, tracing: _Tracing, pos, samples,
+                 start: _PathStarts) -> tuple[int, int, float]:
     """Worker: trace paths (sorted texel positions `pos`, sample indices) from their start
-    points and add the per-texel sums to `acc`.
+    points and add the per-texel sums to the pass sums.
 
     Returns:
         (paths, rays, seconds inside Embree).
@@ -471,14 +492,13 @@ def _trace_chunk(scene, plan, pos, samples, start: _PathStarts, lighting, settin
     from .trace import RayStats
 
     keys, origins, normals, dirs = kernels.path_starts(
-        seed_key, plan.ids, pos, samples, start.texels, start.origins,
+        tracing.seed_key, tracing.ids, pos, samples, start.texels, start.origins,
         start.normals)
     ray_stats = RayStats()
-    estimates = trace_paths(scene, origins.T, normals.T, keys, lighting, settings, ray_stats,
-                            dirs.T)
-    kernels.accumulate(pos, estimates, _luminance_weights(settings.channels,
-                                                          settings.sh_order is None),
-                       acc.sum, acc.second, acc.n)
+    estimates = trace_paths(scene, origins.T, normals.T, keys, tracing.lighting,
+                            tracing.settings, ray_stats, dirs.T)
+    acc = tracing.acc
+    kernels.accumulate(pos, estimates, tracing.weights, acc.sum, acc.second, acc.n)
     return len(pos), ray_stats.rays, ray_stats.seconds
 
 

@@ -155,8 +155,7 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     count = len(origins)
     result = np.zeros((count, settings.channels))
     alive = np.arange(count)
-    pos = np.ascontiguousarray(np.transpose(origins), np.float32)
-    n = np.ascontiguousarray(np.transpose(normals), np.float32)
+    pos, n = _rows(origins), _rows(normals)
     keys = np.ascontiguousarray(keys, np.uint32)
     beta = np.ones((3, count), np.float32)
     albedo = np.asarray(settings.albedo, np.float32)
@@ -166,10 +165,7 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     escaped_radiance = np.pi * np.asarray(constant_env if constant else (0, 0, 0), np.float64)
     sees_env = lighting.env is not None or not irradiance  # escaping rays bring something
     sky = lighting.sky
-    if dirs is None:
-        dirs = kernels.cosine_directions(keys, 0, n)
-    else:
-        dirs = np.ascontiguousarray(np.transpose(dirs), np.float32)
+    dirs = kernels.cosine_directions(keys, 0, n) if dirs is None else _rows(dirs)
     for vertex in range(settings.bounces + 1):
         dim = vertex * DIMS_PER_VERTEX
         if irradiance and lighting.lights:
@@ -201,6 +197,12 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
         if len(alive) == 0:
             break
     return result
+
+
+def _rows(vectors: np.ndarray) -> np.ndarray:
+    """(3, N) float32 C-contiguous rows of (N, 3) vectors; no copy when `vectors` is the
+    transpose of such rows."""
+    return np.ascontiguousarray(np.transpose(vectors), np.float32)
 
 
 def _add_escaped(result: np.ndarray, alive: np.ndarray, escaped: np.ndarray,

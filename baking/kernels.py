@@ -63,8 +63,7 @@ def uniform31(key: np.uint32, dim_key: np.uint64) -> float:
 def uniform_f32(key: np.uint32, dim_key: np.uint64) -> np.float32:
     """`uniform31` in single precision, strictly below 1 (clamped to the largest float32
     below 1, where rounding would reach 1)."""
-    word = np.int32(pcg_hash(np.uint64(key) ^ dim_key) >> np.uint64(1))
-    return min(np.float32(word) * np.float32(2.0**-31), np.float32(1.0 - 2.0**-24))
+    return min(np.float32(uniform31(key, dim_key)), np.float32(1.0 - 2.0**-24))
 
 
 @numba.njit(**_JIT)
