@@ -26,7 +26,15 @@ import volumes
 from . import kernels, rng
 from .config import BakeConfig
 from .errors import BakeError
-from .integrator import Lighting, PathSettings, trace_paths
+from .integrator import (
+    Lighting,
+    PathSettings,
+    RayStats,
+    WholePaths,
+    trace_paths,
+    trace_whole_paths,
+    whole_paths,
+)
 from .lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
 from .lights import parse_light
 from .plan import GOLDEN_FRACTION, Plan, make_plan, project_to_level
@@ -209,9 +217,9 @@ class Baker:
         self.previous = dict(self.lattice.meta.get("stats", {}))
         self._acc = _Accumulator(len(self.plan.ids), self.settings.channels)
         self._tracing = _Tracing(
-            self.plan.ids, self.lighting, self.settings, np.uint64(rng.seed_key(config.seed)),
+            self.plan.ids, self.lighting, self.settings, np.uint32(rng.seed_key(config.seed)),
             _luminance_weights(self.settings.channels, self.settings.sh_order is None),
-            self._acc)
+            self._acc, whole_paths(self.lighting, self.settings))
         self.workers = max(1, workers or os.cpu_count() or 1)
         self._pool = ThreadPoolExecutor(max_workers=self.workers)
         self._helper = ThreadPoolExecutor(max_workers=1)  # lays out the next level
@@ -471,14 +479,17 @@ class _Tracing:
         seed_key: ``pcg_hash(seed)``, the start of every path key.
         weights: (C,) `_luminance_weights` of the second moments.
         acc: the pass sums the chunks add to.
+        whole: parameters of the compiled whole-path loop where it covers the bake's
+            lighting, else None (`integrator.whole_paths`).
     """
 
     ids: np.ndarray
     lighting: Lighting
     settings: PathSettings
-    seed_key: np.uint64
+    seed_key: np.uint32
     weights: np.ndarray
     acc: _Accumulator
+    whole: WholePaths | None
 
 
 def _trace_chunk(scene, tracing: _Tracing, pos, samples,
@@ -489,16 +500,17 @@ def _trace_chunk(scene, tracing: _Tracing, pos, samples,
     Returns:
         (paths, rays, seconds inside Embree).
     """
-    from .trace import RayStats
-
-    keys, origins, normals, dirs = kernels.path_starts(
-        tracing.seed_key, tracing.ids, pos, samples, start.texels, start.origins,
-        start.normals)
+    starts = (tracing.seed_key, tracing.ids, pos, samples, start.texels, start.origins,
+              start.normals)
     ray_stats = RayStats()
-    estimates = trace_paths(scene, origins.T, normals.T, keys, tracing.lighting,
-                            tracing.settings, ray_stats, dirs.T)
     acc = tracing.acc
-    kernels.accumulate(pos, estimates, tracing.weights, acc.sum, acc.second, acc.n)
+    if tracing.whole is not None and scene.calls is not None:
+        trace_whole_paths(scene, tracing.whole, starts, tracing.weights, acc, ray_stats)
+    else:
+        keys, origins, normals, dirs = kernels.path_starts(*starts)
+        estimates = trace_paths(scene, origins.T, normals.T, keys, tracing.lighting,
+                                tracing.settings, ray_stats, dirs.T)
+        kernels.accumulate(pos, estimates, tracing.weights, acc.sum, acc.second, acc.n)
     return len(pos), ray_stats.rays, ray_stats.seconds
 
 

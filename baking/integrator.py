@@ -11,6 +11,12 @@ and a cosine-sampled direction turns radiance into irradiance with the factor π
   procedural sky, `baking.kernels`; numpy for the others);
 * a constant environment: the cosine-sampled ray alone (it is already the ideal sampler).
 
+Irradiance under a constant environment or the procedural sky, without point or
+directional lights — the common bake — is traced by `trace_whole_paths`: one compiled
+loop per chunk of paths that calls Embree itself for every ray (`kernels.trace_chunk`),
+with the same arithmetic, so the same estimates to the bit. Everything else goes through
+`trace_paths`, a vertex at a time over all paths, one embreex batch per step.
+
 Paths end after `bounces` bounces; nothing is cut early, so the estimate of the B-bounce
 solution is unbiased (no Russian roulette is needed with a fixed, small B). The last
 vertex's continuation ray only has to tell whether it escapes: an occlusion query, about
@@ -22,6 +28,7 @@ transfer function, including shadowing and every bounce, onto the SH basis.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -32,9 +39,22 @@ from .lights import Light
 from .sampling import power_heuristic
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
-    from .trace import RayStats, Scene
+    from .trace import Scene
 
-DIMS_PER_VERTEX = 4  # 2 for the cosine-sampled direction, 2 for the environment sample
+DIMS_PER_VERTEX = kernels.DIMS_PER_VERTEX
+
+
+class RayStats:
+    """Counts rays and seconds spent tracing them: inside Embree, or inside a compiled
+    loop that calls Embree per ray (thread-safe enough: += on ints)."""
+
+    def __init__(self) -> None:
+        self.rays = 0
+        self.seconds = 0.0
+
+    def add(self, rays: int, seconds: float) -> None:
+        self.rays += rays
+        self.seconds += seconds
 
 
 @dataclass(frozen=True)
@@ -197,6 +217,65 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
         if len(alive) == 0:
             break
     return result
+
+
+@dataclass(frozen=True)
+class WholePaths:
+    """The parameters of `kernels.trace_chunk` for one bake (`whole_paths`)."""
+
+    bounces: int
+    albedo: np.ndarray
+    offset: float
+    escaped_radiance: np.ndarray
+    sky: np.ndarray
+    use_sky: bool
+
+
+def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None:
+    """`WholePaths` where the compiled whole-path loop covers the lighting (irradiance,
+    a constant environment or the procedural sky, no point or directional lights), else
+    None."""
+    constant = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
+    covered = settings.sh_order is None and not lighting.lights and (
+        constant is not None or lighting.sky is not None)
+    if not covered:
+        return None
+    use_sky = lighting.sky is not None
+    return WholePaths(
+        settings.bounces, np.asarray(settings.albedo, np.float32), settings.hit_offset,
+        np.pi * np.asarray((0, 0, 0) if use_sky else constant, np.float64),
+        lighting.sky if use_sky else np.zeros(kernels.SKY_PARAMS), use_sky)
+
+
+def trace_whole_paths(scene: Scene, params: WholePaths, starts: tuple, weights: np.ndarray,
+                      acc, stats: RayStats | None = None) -> None:
+    """`kernels.path_starts`, `trace_paths` and `kernels.accumulate` in one compiled loop
+    that calls Embree per ray (needs ``scene.calls``).
+
+    Args:
+        starts: the arguments of `kernels.path_starts` after the seed key's: (seed_key,
+            ids, pos, samples, texels, origins, normals).
+        weights: (C,) brightness weights; acc: the pass sums (``sum`` (A, 3),
+            ``second`` (A,), ``n`` (A,)) the paths add to.
+        stats: the seconds added are the loop's: Embree's and the arithmetic between
+            its calls.
+    """
+    recorder = scene.recorder
+    if recorder is None:
+        record = _NO_RECORD
+    else:
+        record = recorder.reserve(2 * (params.bounces + 1) * len(starts[2]))
+    start = time.perf_counter()
+    rays = kernels.trace_chunk(tuple(scene.calls), *starts, params.bounces, params.albedo,
+                               params.offset, params.escaped_radiance, params.sky,
+                               params.use_sky, weights, acc.sum, acc.second, acc.n, record)
+    if stats is not None:
+        stats.add(rays, time.perf_counter() - start)
+    if recorder is not None:
+        recorder.commit(rays)
+
+
+_NO_RECORD = np.empty((0, kernels.RAY_RECORD_ROWS), np.float32)
 
 
 def _rows(vectors: np.ndarray) -> np.ndarray:

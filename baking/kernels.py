@@ -21,49 +21,66 @@ import math
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 _JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
+DIMS_PER_VERTEX = 4  # 2 for the cosine-sampled direction, 2 for the light sample
 
-_MASK = np.uint64(0xFFFFFFFF)
-_MULT = np.uint64(747796405)
-_INC = np.uint64(2891336453)
-_M2 = np.uint64(277803737)
-_GOLDEN = np.uint64(0x9E3779B9)
+_MULT = np.uint32(747796405)
+_INC = np.uint32(2891336453)
+_M2 = np.uint32(277803737)
+_GOLDEN = np.uint32(0x9E3779B9)
 _INV_2_32 = 1.0 / 4294967296.0
 
 
 @numba.njit(**_JIT)
-def pcg_hash(x: np.uint64) -> np.uint64:
-    """PCG-RXS-M-XS hash of a 32-bit word held in a uint64 (`baking.rng.pcg_hash`)."""
-    state = (x * _MULT + _INC) & _MASK
-    word = (((state >> ((state >> np.uint64(28)) + np.uint64(4))) ^ state) * _M2) & _MASK
-    return (word >> np.uint64(22)) ^ word
+def pcg_hash(x: np.uint32) -> np.uint32:
+    """PCG-RXS-M-XS hash of a 32-bit word (`baking.rng.pcg_hash`).
+
+    numba widens integer arithmetic to 64 bits; truncating every product and sum back to
+    32 bits lets LLVM keep the hash in 32-bit lanes, eight to a vector register (the
+    64-bit form, masked, vectorised four wide with emulated multiplies: 2.7× slower).
+    """
+    state = np.uint32(x * _MULT + _INC)
+    shift = np.uint32((state >> np.uint32(28)) + np.uint32(4))
+    word = np.uint32(np.uint32((state >> shift) ^ state) * _M2)
+    return np.uint32((word >> np.uint32(22)) ^ word)
 
 
 @numba.njit(**_JIT)
-def dimension_key(dim: int) -> np.uint64:
+def dimension_key(dim: int) -> np.uint32:
     """The hash that selects random dimension `dim` (`baking.rng.uniform`)."""
-    return pcg_hash((np.uint64(dim) + _GOLDEN) & _MASK)
+    return pcg_hash(np.uint32(np.uint32(dim) + _GOLDEN))
 
 
 @numba.njit(**_JIT)
-def uniform(key: np.uint32, dim_key: np.uint64) -> float:
+def uniform(key: np.uint32, dim_key: np.uint32) -> float:
     """The uniform in [0, 1) of a path key and a dimension key (`baking.rng.uniform`)."""
-    return float(pcg_hash(np.uint64(key) ^ dim_key)) * _INV_2_32
+    return float(pcg_hash(np.uint32(key ^ dim_key))) * _INV_2_32
 
 
 @numba.njit(**_JIT)
-def uniform31(key: np.uint32, dim_key: np.uint64) -> float:
-    """`uniform` from the hash's top 31 bits: through a signed 32-bit conversion, which
-    vectorises (an unsigned 64-bit one does not), within 2^-32 of `uniform`."""
-    return float(np.int32(pcg_hash(np.uint64(key) ^ dim_key) >> np.uint64(1))) * 2.0**-31
+def _top31(key: np.uint32, dim_key: np.uint32) -> np.int32:
+    """The hash's top 31 bits as a signed 32-bit integer: it converts to floating point
+    in vector lanes (an unsigned 64-bit one does not)."""
+    return np.int32(pcg_hash(np.uint32(key ^ dim_key)) >> np.uint32(1))
 
 
 @numba.njit(**_JIT)
-def uniform_f32(key: np.uint32, dim_key: np.uint64) -> np.float32:
+def uniform31(key: np.uint32, dim_key: np.uint32) -> float:
+    """`uniform` from the hash's top 31 bits, within 2^-32 of `uniform`."""
+    return float(_top31(key, dim_key)) * 2.0**-31
+
+
+@numba.njit(**_JIT)
+def uniform_f32(key: np.uint32, dim_key: np.uint32) -> np.float32:
     """`uniform31` in single precision, strictly below 1 (clamped to the largest float32
-    below 1, where rounding would reach 1)."""
-    return min(np.float32(uniform31(key, dim_key)), np.float32(1.0 - 2.0**-24))
+    below 1, where rounding would reach 1). Converted to float32 directly: one rounding
+    of the same exact value as through float64."""
+    return min(np.float32(_top31(key, dim_key)) * np.float32(2.0**-31),
+               np.float32(1.0 - 2.0**-24))
 
 
 @numba.njit(**_JIT)
@@ -90,7 +107,7 @@ def _frame(nx, ny, nz):
 
 
 @numba.njit(**_JIT)
-def path_starts(seed_key: np.uint64, ids: np.ndarray, pos: np.ndarray, samples: np.ndarray,
+def path_starts(seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray, samples: np.ndarray,
                 texels: np.ndarray, origins: np.ndarray, normals: np.ndarray):
     """Keys, origins, normals and first directions of P paths (texel positions `pos`,
     sorted, and sample indices), from the per-texel start points of one level.
@@ -117,9 +134,9 @@ def path_starts(seed_key: np.uint64, ids: np.ndarray, pos: np.ndarray, samples: 
         end = i + 1
         while end < count and pos[end] == pos[i]:
             end += 1
-        h = pcg_hash(np.uint64(np.uint32(ids[pos[i]])) ^ seed_key)
+        h = pcg_hash(np.uint32(np.uint32(ids[pos[i]]) ^ seed_key))
         for k in range(i, end):
-            keys[k] = np.uint32(pcg_hash((h + np.uint64(samples[k]) * _GOLDEN) & _MASK))
+            keys[k] = pcg_hash(np.uint32(h + np.uint32(samples[k]) * _GOLDEN))
         for c in range(3):
             out_o[c, i:end] = origins[j, c]
             out_n[c, i:end] = normals[j, c]
@@ -190,8 +207,9 @@ def sincos_turns(u):
     cheaper than the libm calls, which were most of a cosine-sampled direction's cost.
     """
     quarter = np.float32(4.0) * u
-    q = np.int64(quarter)
-    x = (quarter - np.float32(q) - np.float32(0.5)) * np.float32(0.5 * math.pi)
+    q = np.floor(quarter)  # the quarter, 0 … 3, kept in floating point: integer
+    # conversions leave vector lanes (numba widens them to 64 bits, which AVX2 lacks)
+    x = (quarter - q - np.float32(0.5)) * np.float32(0.5 * math.pi)
     x2 = x * x
     s = x * (np.float32(1.0) + x2 * (np.float32(-1.0 / 6) + x2 * (np.float32(1.0 / 120) + x2 * (
         np.float32(-1.0 / 5040) + x2 * np.float32(1.0 / 362880)))))
@@ -201,8 +219,9 @@ def sincos_turns(u):
     cq, sq = half * (c - s), half * (c + s)  # cos, sin of the angle within the quarter
     # turned by q quarters without branches (they mispredict: q is random): odd quarters
     # swap the pair, the second half-turn negates it
-    odd = np.float32(q & 1)
-    sign = np.float32(1 - 2 * (q >> 1))
+    half_turns = np.floor(np.float32(0.5) * q)
+    odd = q - np.float32(2.0) * half_turns
+    sign = np.float32(1.0) - np.float32(2.0) * half_turns
     return sign * (cq - odd * (sq + cq)), sign * (sq + odd * (cq - sq))
 
 
@@ -238,7 +257,7 @@ def _fill_cosine_directions(keys: np.ndarray, dim: int, normals: np.ndarray,
 
 
 @numba.njit(**_JIT)
-def _cosine_local(key: np.uint32, k0: np.uint64, k1: np.uint64):
+def _cosine_local(key: np.uint32, k0: np.uint32, k1: np.uint32):
     """The cosine-distributed direction of a key (dimension keys k0, k1) in the frame
     whose z axis is the normal (Malley's method), float32."""
     u0, u1 = uniform_f32(key, k0), uniform_f32(key, k1)
@@ -275,18 +294,18 @@ def next_vertices(pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, ng: np.ndarr
         (H,) uint32 and result rows (H,) int64 of the H rays that hit.
     """
     add_escaped(result, alive, prim, beta, escaped_radiance)
-    hits = 0
+    rows = np.empty(len(prim) + 1, np.int64)  # the rays that hit, listed without branches
+    hits = 0  # (a branch on a random hit or miss mispredicts half the time)
     for i in range(len(prim)):
+        rows[hits] = i
         hits += prim[i] >= 0
     new_pos = np.empty((3, hits), np.float32)
     new_n = np.empty((3, hits), np.float32)
     new_beta = np.empty((3, hits), np.float32)
     new_keys = np.empty(hits, np.uint32)
     new_alive = np.empty(hits, np.int64)
-    j = 0
-    for i in range(len(prim)):
-        if prim[i] < 0:
-            continue
+    for j in range(hits):
+        i = rows[j]
         gx, gy, gz = ng[i, 0], ng[i, 1], ng[i, 2]
         facing = gx * dirs[0, i] + gy * dirs[1, i] + gz * dirs[2, i]
         scale = np.float32(-1.0 if facing > 0 else 1.0) / max(
@@ -298,7 +317,6 @@ def next_vertices(pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, ng: np.ndarr
             new_beta[c, j] = beta[c, i] * albedo[c]
         new_keys[j] = keys[i]
         new_alive[j] = alive[i]
-        j += 1
     new_dirs = np.empty((3, hits), np.float32)
     _fill_cosine_directions(new_keys, dim, new_n, new_dirs)
     return new_pos, new_n, new_beta, new_dirs, new_keys, new_alive
@@ -312,11 +330,11 @@ def add_escaped(result: np.ndarray, alive: np.ndarray, prim: np.ndarray,
     `radiance` (3,) is π·L (nothing to do when it is zero); beta (3, M)."""
     if radiance[0] == 0 and radiance[1] == 0 and radiance[2] == 0:
         return
-    for i in range(len(prim)):
-        if prim[i] < 0:
-            row = alive[i]
-            for c in range(3):
-                result[row, c] += beta[c, i] * radiance[c]
+    for i in range(len(prim)):  # without branches: rays that hit add exactly 0
+        escaped = np.float64(prim[i] < 0)
+        row = alive[i]
+        for c in range(3):
+            result[row, c] += beta[c, i] * radiance[c] * escaped
 
 
 @numba.njit(**_JIT)
@@ -554,6 +572,174 @@ def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: 
                 result[row, c] += beta[c, i] * added[c, i]
 
 
+# -- whole paths in one compiled loop, Embree called per ray -------------------------------
+_INVALID_ID = np.uint32(0xFFFFFFFF)  # RTC_INVALID_GEOMETRY_ID
+RAY_RECORD_ROWS = 7
+"""Columns of a recording of traced rays: origin (3), direction (3), 1 for an occlusion
+query (0: closest hit)."""
+
+
+@intrinsic
+def _call_embree(typingctx, function, scene, ray):
+    """Call ``void function(RTCScene scene, RTCRay(Hit)* ray, NULL)``: `rtcIntersect1` or
+    `rtcOccluded1` at address `function` (all three arguments are 64-bit integers)."""
+    if not all(isinstance(t, types.Integer) and t.bitwidth == 64
+               for t in (function, scene, ray)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        pointer = ir.IntType(8).as_pointer()
+        callee = ir.FunctionType(ir.VoidType(), [pointer, pointer, pointer])
+        target = builder.inttoptr(args[0], callee.as_pointer())
+        builder.call(target, [builder.inttoptr(args[1], pointer),
+                              builder.inttoptr(args[2], pointer), pointer(None)])
+        return context.get_dummy_value()
+
+    return types.void(function, scene, ray), codegen
+
+
+@numba.njit(**_JIT, inline="always")
+def _set_ray(ray, bits, ox, oy, oz, dx, dy, dz) -> None:
+    """Fill an RTCRayHit (`ray` float32, `bits` its uint32 view) for a query from (ox, oy,
+    oz) towards (dx, dy, dz), distances 0 … ∞, no hit yet."""
+    ray[0], ray[1], ray[2], ray[3] = ox, oy, oz, np.float32(0.0)
+    ray[4], ray[5], ray[6], ray[7] = dx, dy, dz, np.float32(0.0)
+    ray[8] = np.float32(np.inf)
+    bits[9], bits[10], bits[11] = _INVALID_ID, np.uint32(0), np.uint32(0)
+    bits[18], bits[19] = _INVALID_ID, _INVALID_ID  # geomID, instID[0]
+
+
+@numba.njit(**_JIT)
+def _ray_buffer():
+    """An RTCRayHit (at most 96 bytes) on a 16-byte boundary: its float32 words, the same
+    words as uint32, and its address."""
+    storage = np.empty(40, np.float32)
+    first = (16 - storage.ctypes.data % 16) % 16 // 4
+    ray = storage[first:first + 24]
+    return ray, ray.view(np.uint32), ray.ctypes.data
+
+
+@numba.njit(**_JIT)
+def _record(record: np.ndarray, recorded: int, kind: float, pos: np.ndarray,
+            dirs: np.ndarray) -> int:
+    """Append the (3, M) rays to `record` (capacity, RAY_RECORD_ROWS) with their kind
+    (1: occlusion, 0: closest hit) unless it has no rows; returns the new count."""
+    if len(record) == 0:
+        return recorded
+    if recorded + pos.shape[1] > len(record):
+        raise ValueError("ray record too small for the rays traced")
+    for i in range(pos.shape[1]):
+        for c in range(3):
+            record[recorded + i, c] = pos[c, i]
+            record[recorded + i, 3 + c] = dirs[c, i]
+        record[recorded + i, 6] = kind
+    return recorded + pos.shape[1]
+
+
+@numba.njit(**_JIT)
+def intersect_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray):
+    """Closest hits of (3, M) float32 rays (distances 0 … ∞), Embree called per ray
+    (`trace.EmbreeCalls`).
+
+    Returns:
+        t (M,) float32 distances, prim (M,) int32 triangle ids (-1: no hit), ng (M, 3)
+        float32 unnormalised facet normals — as embreex's ``run(..., output=1)``.
+    """
+    scene, intersect, _ = calls
+    ray, bits, address = _ray_buffer()
+    m = pos.shape[1]
+    t = np.empty(m, np.float32)
+    prim = np.empty(m, np.int32)
+    ng = np.empty((m, 3), np.float32)
+    for i in range(m):
+        _set_ray(ray, bits, pos[0, i], pos[1, i], pos[2, i], dirs[0, i], dirs[1, i],
+                 dirs[2, i])
+        _call_embree(intersect, scene, address)
+        t[i] = ray[8]
+        prim[i] = -1 if bits[18] == _INVALID_ID else np.int32(bits[17])
+        ng[i, 0], ng[i, 1], ng[i, 2] = ray[12], ray[13], ray[14]
+    return t, prim, ng
+
+
+@numba.njit(**_JIT)
+def occluded_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(M,) bool: does anything block the (3, M) float32 rays (distances 0 … ∞)?"""
+    scene, _, occluded = calls
+    ray, bits, address = _ray_buffer()
+    m = pos.shape[1]
+    blocked = np.empty(m, np.bool_)
+    for i in range(m):
+        _set_ray(ray, bits, pos[0, i], pos[1, i], pos[2, i], dirs[0, i], dirs[1, i],
+                 dirs[2, i])
+        _call_embree(occluded, scene, address)
+        blocked[i] = ray[8] < 0  # tfar becomes -inf when something is hit
+    return blocked
+
+
+@numba.njit(**_JIT)
+def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
+                samples: np.ndarray, texels: np.ndarray, origins: np.ndarray,
+                normals: np.ndarray, bounces: int, albedo: np.ndarray, offset: float,
+                escaped_radiance: np.ndarray, sky: np.ndarray, use_sky: bool,
+                weights: np.ndarray, acc_sum: np.ndarray, acc_second: np.ndarray,
+                acc_n: np.ndarray, record: np.ndarray) -> int:
+    """`path_starts`, `integrator.trace_paths` and `accumulate` of a chunk of paths in one
+    compiled call, for irradiance under a constant environment or the procedural sky (no
+    point or directional lights): the same kernels, vertex by vertex over all the paths,
+    with Embree called per ray from compiled code (`intersect_rays`, `occluded_rays`)
+    instead of one embreex batch per step — no Python, no GIL between a chunk's rays —
+    so the pass sums are the same to the bit (tested).
+
+    Args:
+        calls: (scene handle, rtcIntersect1 address, rtcOccluded1 address).
+        seed_key, ids, pos, samples, texels, origins, normals: as `path_starts` (P paths
+            sorted by texel position; (T, 3) float32 start points and unit normals).
+        albedo: (3,) float32; offset: world distance hit points leave the surface by.
+        escaped_radiance: (3,) π·L of a constant environment (zero under the sky).
+        sky: (SKY_PARAMS,) `sky_params` (any values when not `use_sky`).
+        weights, acc_sum, acc_second, acc_n: as `accumulate` (acc_sum (A, 3)).
+        record: (capacity, RAY_RECORD_ROWS) float32 for benchmarks (every ray traced is
+            appended; capacity P·2·(bounces + 1) suffices), or (0, RAY_RECORD_ROWS).
+
+    Returns:
+        rays traced.
+    """
+    keys, at, n, dirs = path_starts(seed_key, ids, pos, samples, texels, origins, normals)
+    result = np.zeros((len(pos), 3))
+    alive = np.arange(len(pos))
+    beta = np.ones((3, len(pos)), np.float32)
+    rays, recorded = 0, 0
+    for vertex in range(bounces + 1):
+        dim = vertex * DIMS_PER_VERTEX
+        if use_sky:
+            light, contrib, useful = sky_light_samples(sky, keys, dim + 2, n)
+            idx, shadow_at, shadow_dirs = shadow_rays(useful, at, light)
+            blocked = occluded_rays(calls, shadow_at, shadow_dirs)
+            recorded = _record(record, recorded, 1.0, shadow_at, shadow_dirs)
+            rays += len(idx)
+            add_unblocked(result, alive, idx, blocked, beta, contrib)
+        last = vertex == bounces
+        if last:  # only whether the ray escapes matters
+            prim = np.where(occluded_rays(calls, at, dirs), np.int32(0), np.int32(-1))
+            t, ng = np.empty(0, np.float32), np.empty((0, 3), np.float32)
+        else:
+            t, prim, ng = intersect_rays(calls, at, dirs)
+        recorded = _record(record, recorded, 1.0 if last else 0.0, at, dirs)
+        rays += len(prim)
+        if use_sky:
+            sky_add_escaped(sky, result, alive, prim, beta, dirs, n)
+        if last:
+            add_escaped(result, alive, prim, beta, escaped_radiance)
+            break
+        at, n, beta, dirs, keys, alive = next_vertices(
+            at, dirs, t, ng, prim, beta, keys, alive, albedo, offset, result,
+            escaped_radiance, dim + DIMS_PER_VERTEX)
+        if len(alive) == 0:
+            break
+    accumulate(pos, result, weights, acc_sum, acc_second, acc_n)
+    return rays
+
+
 def warm_up() -> None:
     """Load (or compile, the first time on a machine) every kernel for the argument types
     the path tracer uses, so that the first bake's timings measure tracing only."""
@@ -567,9 +753,13 @@ def warm_up() -> None:
                   np.ones(3, np.float32), 1e-3, result, np.ones(3), 4)
     add_escaped(result, index, prim, vec, np.ones(3))
     accumulate(index, result, np.ones(3), np.zeros((1, 3)), np.zeros(1), index.copy())
-    path_starts(np.uint64(0), index, index, index, index, vec.T.copy(), vec.T.copy())
+    path_starts(np.uint32(0), index, index, index, index, vec.T.copy(), vec.T.copy())
     level_paths(index, index, index, index, np.zeros(1), np.zeros(1), 0.5)
     sky = np.zeros(SKY_PARAMS)
+    trace_chunk((0, 0, 0), np.uint32(0), index, index[:0], index[:0], index, vec.T.copy(),
+                vec.T.copy(), 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, True,
+                np.ones(3), np.zeros((1, 3)), np.zeros(1), index.copy(),
+                np.empty((0, RAY_RECORD_ROWS), np.float32))
     _, contrib, useful = sky_light_samples(sky, keys, 0, vec)
     idx, _, _ = shadow_rays(useful, vec, vec)
     add_unblocked(result, index, idx, np.zeros(len(idx), np.bool_), vec, contrib)

@@ -227,7 +227,7 @@ class Previewer:
 def _trace(scene, volume, config, flat, origins, normals, workers, paths) -> np.ndarray:
     """(K, C) sums of `paths` path estimates per texel, traced on `workers` threads."""
     lighting, settings = make_lighting(config), path_settings(volume, config)
-    seed_key = np.uint64(rng.seed_key(config.seed ^ SEED_SALT))
+    seed_key = np.uint32(rng.seed_key(config.seed ^ SEED_SALT))
     texels = np.arange(len(flat), dtype=np.int64)
     per_chunk = max(1, CHUNK // paths)
 

@@ -232,7 +232,7 @@ def _trace_job(scene, hits: PrimaryHits, job: _Job, lighting: Lighting,
         (rows (K,), count (K,), shift, s1, s2 (K, 3) as in `PixelStats`, rays, seconds
         inside Embree).
     """
-    from .trace import RayStats
+    from .integrator import RayStats
 
     local, samples = _pending_samples(np.arange(len(job.rows)), job.first, job.n)
     rows = job.rows[local]

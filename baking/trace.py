@@ -1,40 +1,42 @@
 """The only module that imports embreex: triangle scenes and batched ray queries.
 
 embreex releases the GIL inside `run`, so worker threads trace concurrently.
+
+Every scene is built by embreex. For the baker's compiled path loop (`kernels.trace_chunk`)
+a scene also offers its Embree handle and the addresses of ``rtcIntersect1`` and
+``rtcOccluded1`` in the Embree library embreex loaded (`EmbreeCalls`): the loop then
+calls Embree per ray itself, with no Python between a path's rays. The handle is the
+``scene_i`` field that embreex declares in its published Cython interface
+(``embreex/rtcore_scene.pxd``); it is read only after the object's layout has been checked
+against that declaration, and a scene whose layout does not match offers no handle (the
+path tracer then uses `run`, as everywhere else).
 """
 
 from __future__ import annotations
 
+import ctypes
 import gc
 import threading
 import time
+from typing import NamedTuple
 
 import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
+from .integrator import RayStats
+
 _MISS = -1
 
 
-class RayStats:
-    """Counts rays and seconds spent inside Embree (thread-safe enough: += on ints)."""
-
-    def __init__(self) -> None:
-        self.rays = 0
-        self.seconds = 0.0
-
-    def add(self, rays: int, seconds: float) -> None:
-        self.rays += rays
-        self.seconds += seconds
-
-
 class RayRecorder:
-    """Benchmarks: a copy of every ray batch a scene traces, to trace again on bare embreex.
+    """Benchmarks: a copy of every ray a scene traces, to trace again on bare embreex.
 
     Copies go into buffers of each tracing thread that are reused from level to level
     (`clear`): holding on to the tracer's own arrays instead would keep the allocator from
     reusing their memory, and the tracer would pay page faults on fresh memory that a
-    real bake never pays.
+    real bake never pays. A compiled path loop writes its rays straight into the buffer
+    (`reserve`, `commit`).
     """
 
     def __init__(self) -> None:
@@ -42,15 +44,28 @@ class RayRecorder:
         self._buffers: list[_RecordBuffer] = []
         self._lock = threading.Lock()
 
-    def add(self, query: str, origins: np.ndarray, dirs: np.ndarray,
-            dists: np.ndarray | None) -> None:
-        """Copy one batch: (N, 3) float32 origins and directions, (N,) distances or None."""
+    def _buffer(self) -> _RecordBuffer:
         buffer = getattr(self._local, "buffer", None)
         if buffer is None:
             buffer = self._local.buffer = _RecordBuffer()
             with self._lock:
                 self._buffers.append(buffer)
-        buffer.add(query, origins, dirs, dists)
+        return buffer
+
+    def add(self, query: str, origins: np.ndarray, dirs: np.ndarray,
+            dists: np.ndarray | None) -> None:
+        """Copy one batch: (N, 3) float32 origins and directions, (N,) distances or None."""
+        self._buffer().add(query, origins, dirs, dists)
+
+    def reserve(self, count: int) -> np.ndarray:
+        """Room for `count` rays of this thread: (count, `kernels.RAY_RECORD_ROWS`)
+        float32 rows (origin, direction, 1 for an occlusion query, 0 for a closest hit)
+        to be filled, then kept with `commit`."""
+        return self._buffer().reserve(count)
+
+    def commit(self, count: int) -> None:
+        """Keep the first `count` rays written since this thread's last `reserve`."""
+        self._buffer().commit(count)
 
     def batches(self) -> list[tuple]:
         """Every batch recorded since `clear`: (query, origins, dirs, dists or None)."""
@@ -63,32 +78,111 @@ class RayRecorder:
 
 
 class _RecordBuffer:
-    """One thread's recorded rays, one row per axis as the path tracer holds them:
-    growing (7, capacity) float32 rows of origin, direction and distance, and the (query,
-    start, stop, has distances) of each batch."""
+    """One thread's recorded rays: growing (capacity, 7) float32 rows of origin,
+    direction and distance (or query kind), and the (query, start, stop, has distances)
+    of each batch — query "TRACED" for the mixed rays of a compiled path loop, whose
+    last column tells their kind."""
 
     def __init__(self) -> None:
-        self.rows = np.empty((7, 0), np.float32)
+        self.rows = np.empty((0, 7), np.float32)
         self.used = 0
         self.spans: list[tuple[str, int, int, bool]] = []
 
+    def reserve(self, n: int) -> np.ndarray:
+        if self.used + n > len(self.rows):
+            grown = np.empty((max(2 * len(self.rows), self.used + n), 7), np.float32)
+            grown[:self.used] = self.rows[:self.used]
+            self.rows = grown
+        return self.rows[self.used:self.used + n]
+
+    def commit(self, n: int) -> None:
+        self.spans.append(("TRACED", self.used, self.used + n, False))
+        self.used += n
+
     def add(self, query: str, origins, dirs, dists) -> None:
         n = len(origins)
-        if self.used + n > self.rows.shape[1]:
-            grown = np.empty((7, max(2 * self.rows.shape[1], self.used + n)), np.float32)
-            grown[:, :self.used] = self.rows[:, :self.used]
-            self.rows = grown
-        rows = self.rows[:, self.used:self.used + n]
-        rows[0:3], rows[3:6] = origins.T, dirs.T
+        rows = self.reserve(n)
+        rows[:, 0:3], rows[:, 3:6] = origins, dirs
         if dists is not None:
-            rows[6] = dists
+            rows[:, 6] = dists
         self.spans.append((query, self.used, self.used + n, dists is not None))
         self.used += n
 
     def batches(self) -> list[tuple]:
-        return [(query, self.rows[0:3, lo:hi].T, self.rows[3:6, lo:hi].T,
-                 self.rows[6, lo:hi] if has_dists else None)
-                for query, lo, hi, has_dists in self.spans]
+        out = []
+        for query, lo, hi, has_dists in self.spans:
+            rows = self.rows[lo:hi]
+            if query != "TRACED":
+                out.append((query, rows[:, 0:3], rows[:, 3:6],
+                            rows[:, 6] if has_dists else None))
+                continue
+            for kind, traced in ((0, "INTERSECT"), (1, "OCCLUDED")):
+                chosen = rows[rows[:, 6] == kind]
+                if len(chosen):
+                    out.append((traced, chosen[:, 0:3], chosen[:, 3:6], None))
+        return out
+
+
+class EmbreeCalls(NamedTuple):
+    """What compiled code needs to trace rays in one committed scene: its ``RTCScene``
+    handle and the addresses of ``rtcIntersect1`` and ``rtcOccluded1`` (integers)."""
+
+    scene: int
+    intersect: int
+    occluded: int
+
+
+def _embree_functions() -> tuple[int, int] | None:
+    """Addresses of ``rtcIntersect1`` and ``rtcOccluded1`` in the Embree library that
+    embreex loaded into this process (found in /proc/self/maps: the very instance that
+    built the scenes), or None where it cannot be found."""
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = {line.split()[-1] for line in maps if "libembree" in line}
+    except OSError:
+        return None
+    if len(paths) != 1:
+        return None
+    lib = ctypes.CDLL(paths.pop())  # already loaded: the same handle, nothing re-read
+    return (ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value,
+            ctypes.cast(lib.rtcOccluded1, ctypes.c_void_p).value)
+
+
+_FUNCTIONS: list = []  # cached `_embree_functions()`
+
+
+def _scene_handle(embree) -> int | None:
+    """The ``RTCScene`` of an embreex ``EmbreeScene``, or None if its layout is not the
+    one embreex declares: ``scene_i`` (a pointer), then ``public int is_committed``, then
+    the device, right after the object header. Checked twice: the instance size, and the
+    int after the pointer following the public attribute as it is set to two values."""
+    header = object.__basicsize__  # reference count and type
+    pointer = ctypes.sizeof(ctypes.c_void_p)
+    if type(embree).__basicsize__ != header + 3 * pointer:
+        return None
+    field = ctypes.c_int.from_address(id(embree) + header + pointer)
+    committed = embree.is_committed
+    try:
+        for value in (0x5A17, 0x0C3D):
+            embree.is_committed = value
+            if field.value != value:
+                return None
+    finally:
+        embree.is_committed = committed
+    return ctypes.c_void_p.from_address(id(embree) + header).value
+
+
+def embree_calls(scene: Scene) -> EmbreeCalls | None:
+    """`EmbreeCalls` of a committed, non-empty `Scene`, or None (empty scene, or an
+    embreex whose scene layout or library could not be verified)."""
+    if scene.empty:
+        return None
+    if not _FUNCTIONS:
+        _FUNCTIONS.append(_embree_functions())
+    functions, handle = _FUNCTIONS[0], _scene_handle(scene._scene)
+    if functions is None or not handle:
+        return None
+    return EmbreeCalls(handle, *functions)
 
 
 class Scene:
@@ -108,6 +202,9 @@ class Scene:
             self._scene = rtcore_scene.EmbreeScene()
             _attach_mesh(self._scene, self.vertices, self.faces)
             _build_bvh(self._scene)
+        self.calls = embree_calls(self)
+        """`EmbreeCalls` for compiled path loops, or None (then only `intersect` and
+        `occluded` trace)."""
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, stats: RayStats | None = None
                   ) -> dict[str, np.ndarray]:

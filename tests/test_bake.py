@@ -1,6 +1,7 @@
 """The irradiance baker against analytic answers (tolerances derived, not guessed)."""
 
 import dataclasses
+import importlib
 
 import numpy as np
 import pytest
@@ -175,6 +176,30 @@ def test_determinism_across_worker_counts():
     np.testing.assert_array_equal(one.samples, two.samples)
     other_seed = bake(vol, dataclasses.replace(config, seed=1), workers=2)
     assert not np.array_equal(one.values, other_seed.values)
+
+
+@pytest.mark.parametrize("env, albedo", [("constant:1,0.6,0.3", (0.8, 0.5, 0.3)),
+                                         ("sky:sun=3", (0.7, 0.7, 0.7))])
+def test_whole_path_loop_equals_the_vertex_by_vertex_tracer(monkeypatch, env, albedo):
+    """The compiled whole-path loop (Embree called per ray from compiled code) gives the
+    lattice of the vertex-by-vertex tracer (one embreex batch per step) to the bit, and
+    traces as many rays."""
+    baking_bake = importlib.import_module("baking.bake")  # `baking.bake` is the function
+    config = BakeConfig(samples=12, bounces=2, env=env, albedo=albedo)
+    vol = make("engine", 40)
+    used = []
+    loop = baking_bake.trace_whole_paths
+    monkeypatch.setattr(baking_bake, "trace_whole_paths",
+                        lambda *args: used.append(1) or loop(*args))
+    whole = bake(vol, config, workers=2)
+    assert used, "the whole-path loop should cover this bake"
+    monkeypatch.setattr(baking_bake, "whole_paths", lambda lighting, settings: None)
+    stepwise = bake(vol, config, workers=2)
+    assert np.count_nonzero(whole.samples) > 1000
+    np.testing.assert_array_equal(whole.values, stepwise.values)
+    np.testing.assert_array_equal(whole.second, stepwise.second)
+    np.testing.assert_array_equal(whole.samples, stepwise.samples)
+    assert whole.meta["rays_traced"] == stepwise.meta["rays_traced"]
 
 
 def test_resume_equals_uninterrupted(tmp_path):

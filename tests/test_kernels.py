@@ -35,7 +35,7 @@ def test_31_bit_and_single_precision_uniforms_match_the_uniform():
         near_one = x[rng.pcg_hash(x) >= np.uint32(2**32 - 128)]
         if len(near_one):
             break
-    assert kernels.uniform_f32(near_one[0], np.uint64(0)) == np.float32(1 - 2**-24)
+    assert kernels.uniform_f32(near_one[0], np.uint32(0)) == np.float32(1 - 2**-24)
 
 
 def test_path_starts_gather_keys_and_first_directions():
@@ -45,7 +45,7 @@ def test_path_starts_gather_keys_and_first_directions():
     texels = np.array([0, 1, 3, 4], np.int64)
     origins = np.arange(12, dtype=np.float32).reshape(4, 3)
     normals = np.array([[0, 0, 1], [0, 1, 0], [0.6, 0, -0.8], [-1, 0, 0]], np.float32)
-    keys, o, n, dirs = kernels.path_starts(np.uint64(rng.seed_key(42)), ids, pos, samples,
+    keys, o, n, dirs = kernels.path_starts(np.uint32(rng.seed_key(42)), ids, pos, samples,
                                            texels, origins, normals)
     np.testing.assert_array_equal(keys, rng.path_keys(42, ids[pos], samples))
     rows = np.searchsorted(texels, pos)

@@ -1,5 +1,5 @@
-"""`baking.trace`: the Embree scene against embreex used plainly, and the ray recorder of
-``isolume bench bake``."""
+"""`baking.trace`: the Embree scene against embreex used plainly, the compiled loop's own
+Embree calls, and the ray recorder of ``isolume bench bake``."""
 
 from concurrent.futures import ThreadPoolExecutor
 
@@ -8,7 +8,8 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 import volumes
-from baking.trace import RayRecorder, Scene, replay
+from baking import kernels
+from baking.trace import RayRecorder, Scene, _scene_handle, replay
 
 
 def _rays(mesh, count: int, seed: int):
@@ -84,3 +85,46 @@ def test_recorder_keeps_exact_copies_from_every_thread_and_replays_them():
     assert recorder.batches() == []
     scene.intersect(*batches[2])  # buffers are reused after clear
     assert [len(b[1]) for b in recorder.batches()] == [50]
+
+
+def test_scenes_offer_embree_calls_that_answer_as_embreex():
+    """The compiled loop's own Embree calls (the handle read from embreex's scene, the
+    functions of the library embreex loaded) give embreex's answers, hits and misses."""
+    mesh = volumes.isosurface(volumes.load("synthetic:engine:48"), 0.3, normals="none")
+    scene = Scene(mesh.vertices, mesh.faces)
+    assert scene.calls is not None, "this embreex's scene layout should be recognised"
+    assert scene._scene.is_committed == 1  # the layout check leaves the attribute as it was
+    origins, dirs = _rays(mesh, 20000, 3)
+    calls = tuple(scene.calls)
+    rows_o, rows_d = np.ascontiguousarray(origins.T), np.ascontiguousarray(dirs.T)
+    t, prim, ng = kernels.intersect_rays(calls, rows_o, rows_d)
+    want = scene._scene.run(origins, dirs, output=1)
+    assert 0.2 < np.mean(prim >= 0) < 0.95
+    np.testing.assert_array_equal(prim, want["primID"])
+    hit = prim >= 0
+    np.testing.assert_array_equal(t[hit], want["tfar"][hit])
+    np.testing.assert_array_equal(ng[hit], want["Ng"][hit])
+    np.testing.assert_array_equal(kernels.occluded_rays(calls, rows_o, rows_d),
+                                  scene._scene.run(origins, dirs, query="OCCLUDED") != -1)
+
+
+def test_scene_handle_is_refused_for_another_layout():
+    """Only an object laid out as embreex declares EmbreeScene gives a handle."""
+
+    class Lookalike:  # the public attribute, but a dict and weak references after it
+        is_committed = 1
+
+    assert _scene_handle(Lookalike()) is None
+    assert Scene(np.zeros((0, 3)), np.zeros((0, 3), np.int32)).calls is None  # empty
+
+
+def test_recorder_splits_a_compiled_loop_s_rays_by_query():
+    recorder = RayRecorder()
+    rows = recorder.reserve(5)
+    rows[:, :6] = np.arange(30, dtype=np.float32).reshape(5, 6)
+    rows[:, 6] = [0, 1, 1, 0, 1]
+    recorder.commit(4)  # the fifth was reserved but not traced
+    batches = {query: (o, d, dist) for query, o, d, dist in recorder.batches()}
+    np.testing.assert_array_equal(batches["INTERSECT"][0], rows[[0, 3], 0:3])
+    np.testing.assert_array_equal(batches["OCCLUDED"][1], rows[[1, 2], 3:6])
+    assert batches["OCCLUDED"][2] is None
