@@ -10,6 +10,10 @@ threads queue for it. These numba kernels do it in one pass per stage without th
 Per-ray vectors are held one row per axis, (3, N) float32: the loops then run eight
 lanes wide, and Embree reads the transposed view, an (N, 3) array with strides, as it is.
 
+`trace_chunk` strings the kernels together for a whole chunk of paths and calls Embree
+itself, per ray (`intersect_rays`, `occluded_rays`, through the addresses in
+`trace.EmbreeCalls`): no Python, and so no wait for the GIL, between a chunk's rays.
+
 They mirror, and are tested against, the numpy reference functions: `pcg_hash` and
 `uniform` against `baking.rng` (bit for bit), `cosine_directions` against
 `baking.sampling.sample_cosine_hemisphere` + `to_world`.
@@ -540,12 +544,11 @@ def add_unblocked(result: np.ndarray, alive: np.ndarray, idx: np.ndarray,
                   blocked: np.ndarray, beta: np.ndarray, contrib: np.ndarray) -> None:
     """result[alive[idx[j]], :3] += beta[:, idx[j]]·contrib[:, idx[j]] for every shadow
     ray j that is not `blocked` (beta, contrib: (3, M))."""
-    for j in range(len(idx)):
-        if blocked[j]:
-            continue
+    for j in range(len(idx)):  # without branches: blocked rays add exactly 0
         i = idx[j]
+        seen = np.float64(not blocked[j])
         for c in range(3):
-            result[alive[i], c] += beta[c, i] * contrib[c, i]
+            result[alive[i], c] += beta[c, i] * contrib[c, i] * seen
 
 
 @numba.njit(**_JIT)
@@ -565,11 +568,10 @@ def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: 
         weight = math.pi * own * own / total if (total > 0) & (prim[i] < 0) else 0.0
         r, g, b = _sky_radiance(p, x, y, z)
         added[0, i], added[1, i], added[2, i] = r * weight, g * weight, b * weight
-    for i in range(m):
-        if prim[i] < 0:
-            row = alive[i]
-            for c in range(3):
-                result[row, c] += beta[c, i] * added[c, i]
+    for i in range(m):  # without branches: `added` is 0 for rays that hit
+        row = alive[i]
+        for c in range(3):
+            result[row, c] += beta[c, i] * added[c, i]
 
 
 # -- whole paths in one compiled loop, Embree called per ray -------------------------------
