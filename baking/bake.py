@@ -94,8 +94,9 @@ def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
     return on_level + config.offset * h * normals, normals
 
 
-class _Accumulator:
-    """Per-texel sums of one pass over the active texels (float64)."""
+class PassSums:
+    """Per-texel sums of one pass over some texels (float64): ``sum`` (A, C), ``second``
+    (A,) (squared brightness) and ``n`` (A,) (paths)."""
 
     def __init__(self, count: int, channels: int) -> None:
         self.sum = np.zeros((count, channels))
@@ -108,7 +109,7 @@ class _Accumulator:
         self.n[positions] = 0
 
 
-def _commit(lattice: Lattice, plan: Plan, acc: _Accumulator, positions: np.ndarray) -> int:
+def _commit(lattice: Lattice, plan: Plan, acc: PassSums, positions: np.ndarray) -> int:
     """Merge the pass sums of texels `positions` into the lattice's running means
     (`kernels.commit_means`: compiled, and the GIL stays free for the tracing threads).
 
@@ -215,8 +216,8 @@ class Baker:
         self.stats = BakeStats()
         self.texels_done = int(np.count_nonzero(self.samples_done()))
         self.previous = dict(self.lattice.meta.get("stats", {}))
-        self._acc = _Accumulator(len(self.plan.ids), self.settings.channels)
-        self._tracing = _Tracing(
+        self._acc = PassSums(len(self.plan.ids), self.settings.channels)
+        self._tracing = Tracing(
             self.plan.ids, self.lighting, self.settings, np.uint32(rng.seed_key(config.seed)),
             _luminance_weights(self.settings.channels, self.settings.sh_order is None),
             self._acc, whole_paths(self.lighting, self.settings))
@@ -312,7 +313,7 @@ class Baker:
                                                    plan.weight, GOLDEN_FRACTION)
         origins, normals = start_points(self.volume, self.geometry.centres(plan.ids[texels]),
                                         float(plan.levels[level]), self.config)
-        start = _PathStarts(texels, origins.astype(np.float32), normals.astype(np.float32))
+        start = PathStarts(texels, origins.astype(np.float32), normals.astype(np.float32))
         return _LevelWork(level, pos, samples, start)
 
     def _submit_level(self, work: _LevelWork) -> list:
@@ -327,7 +328,7 @@ class Baker:
         t0 = time.perf_counter()
         scene = self._scene(work.level)
         self.stats.scene_seconds += time.perf_counter() - t0
-        return [self._pool.submit(_trace_chunk, scene, self._tracing, work.pos[lo:hi],
+        return [self._pool.submit(trace_chunk, scene, self._tracing, work.pos[lo:hi],
                                   work.samples[lo:hi], work.start)
                 for lo, hi in _chunk_bounds(work.pos, self.workers)]
 
@@ -453,11 +454,11 @@ class _LevelWork:
     level: int
     pos: np.ndarray
     samples: np.ndarray
-    start: _PathStarts
+    start: PathStarts
 
 
 @dataclass(frozen=True)
-class _PathStarts:
+class PathStarts:
     """Where the paths of one level start: per texel, sorted by texel position.
 
     Attributes:
@@ -471,7 +472,7 @@ class _PathStarts:
 
 
 @dataclass(frozen=True)
-class _Tracing:
+class Tracing:
     """What every chunk of a bake traces with, made once per bake.
 
     Attributes:
@@ -479,7 +480,7 @@ class _Tracing:
         seed_key: ``pcg_hash(seed)``, the start of every path key.
         weights: (C,) `_luminance_weights` of the second moments.
         acc: the pass sums the chunks add to.
-        whole: parameters of the compiled whole-path loop where it covers the bake's
+        whole: parameters of `integrator.trace_whole_paths` where it covers the bake's
             lighting, else None (`integrator.whole_paths`).
     """
 
@@ -488,17 +489,17 @@ class _Tracing:
     settings: PathSettings
     seed_key: np.uint32
     weights: np.ndarray
-    acc: _Accumulator
+    acc: PassSums
     whole: WholePaths | None
 
 
-def _trace_chunk(scene, tracing: _Tracing, pos, samples,
-                 start: _PathStarts) -> tuple[int, int, float]:
+def trace_chunk(scene, tracing: Tracing, pos, samples,
+                 start: PathStarts) -> tuple[int, int, float]:
     """Worker: trace paths (sorted texel positions `pos`, sample indices) from their start
     points and add the per-texel sums to the pass sums.
 
     Returns:
-        (paths, rays, seconds inside Embree).
+        (paths, rays, seconds tracing: inside Embree, or in the compiled call that calls it).
     """
     starts = (tracing.seed_key, tracing.ids, pos, samples, start.texels, start.origins,
               start.normals)

@@ -11,11 +11,12 @@ and a cosine-sampled direction turns radiance into irradiance with the factor π
   procedural sky, `baking.kernels`; numpy for the others);
 * a constant environment: the cosine-sampled ray alone (it is already the ideal sampler).
 
-Irradiance under a constant environment or the procedural sky, without point or
-directional lights — the common bake — is traced by `trace_whole_paths`: one compiled
-loop per chunk of paths that calls Embree itself for every ray (`kernels.trace_chunk`),
-with the same arithmetic, so the same estimates to the bit. Everything else goes through
-`trace_paths`, a vertex at a time over all paths, one embreex batch per step.
+`trace_paths` goes a vertex at a time over all the paths, with one embreex batch per
+step. Irradiance under a constant environment or the procedural sky, without point or
+directional lights — the common bake — is traced by `trace_whole_paths` instead: the
+same kernels in the same order, in one compiled call per chunk of paths that calls
+Embree itself for every ray (`kernels.trace_chunk`), so the same estimates to the bit
+with no Python between the chunk's rays.
 
 Paths end after `bounces` bounces; nothing is cut early, so the estimate of the B-bounce
 solution is unbiased (no Russian roulette is needed with a fixed, small B). The last
@@ -232,7 +233,7 @@ class WholePaths:
 
 
 def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None:
-    """`WholePaths` where the compiled whole-path loop covers the lighting (irradiance,
+    """`WholePaths` where `trace_whole_paths` covers the lighting (irradiance,
     a constant environment or the procedural sky, no point or directional lights), else
     None."""
     constant = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
@@ -249,15 +250,15 @@ def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None
 
 def trace_whole_paths(scene: Scene, params: WholePaths, starts: tuple, weights: np.ndarray,
                       acc, stats: RayStats | None = None) -> None:
-    """`kernels.path_starts`, `trace_paths` and `kernels.accumulate` in one compiled loop
+    """`kernels.path_starts`, `trace_paths` and `kernels.accumulate` in one compiled call
     that calls Embree per ray (needs ``scene.calls``).
 
     Args:
-        starts: the arguments of `kernels.path_starts` after the seed key's: (seed_key,
-            ids, pos, samples, texels, origins, normals).
+        starts: the arguments of `kernels.path_starts`: (seed_key, ids, pos, samples,
+            texels, origins, normals).
         weights: (C,) brightness weights; acc: the pass sums (``sum`` (A, 3),
             ``second`` (A,), ``n`` (A,)) the paths add to.
-        stats: the seconds added are the loop's: Embree's and the arithmetic between
+        stats: the seconds added are the call's: Embree's and the arithmetic between
             its calls.
     """
     recorder = scene.recorder

@@ -30,9 +30,9 @@ import numpy as np
 import volumes
 
 from . import kernels, rng
-from .bake import make_lighting, path_settings
+from .bake import PassSums, PathStarts, Tracing, make_lighting, path_settings, trace_chunk
 from .config import BakeConfig
-from .integrator import trace_paths
+from .integrator import whole_paths
 from .lattice import Lattice
 from .lazy import corner_offsets
 from .plan import project_to_level
@@ -225,24 +225,25 @@ class Previewer:
 
 
 def _trace(scene, volume, config, flat, origins, normals, workers, paths) -> np.ndarray:
-    """(K, C) sums of `paths` path estimates per texel, traced on `workers` threads."""
+    """(K, C) sums of `paths` path estimates per texel, traced on `workers` threads as the
+    bake traces its chunks (`bake.trace_chunk`: one compiled call per chunk where the
+    lighting allows)."""
     lighting, settings = make_lighting(config), path_settings(volume, config)
-    seed_key = np.uint32(rng.seed_key(config.seed ^ SEED_SALT))
-    texels = np.arange(len(flat), dtype=np.int64)
+    sums = PassSums(len(flat), settings.channels)
+    tracing = Tracing(flat, lighting, settings, np.uint32(rng.seed_key(config.seed ^ SEED_SALT)),
+                      np.zeros(settings.channels), sums, whole_paths(lighting, settings))
+    start = PathStarts(np.arange(len(flat), dtype=np.int64), origins, normals)
     per_chunk = max(1, CHUNK // paths)
 
-    def run(lo: int) -> np.ndarray:
+    def run(lo: int) -> None:
         hi = min(lo + per_chunk, len(flat))
-        pos = np.repeat(texels[lo:hi], paths)
+        pos = np.repeat(start.texels[lo:hi], paths)
         samples = np.tile(np.arange(paths, dtype=np.int64), hi - lo)
-        keys, o, n, dirs = kernels.path_starts(seed_key, flat, pos, samples, texels[lo:hi],
-                                               origins[lo:hi], normals[lo:hi])
-        estimates = trace_paths(scene, o.T, n.T, keys, lighting, settings, dirs=dirs.T)
-        return estimates.reshape(hi - lo, paths, -1).sum(axis=1)
+        trace_chunk(scene, tracing, pos, samples, start)
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        parts = list(pool.map(run, range(0, len(flat), per_chunk)))
-    return np.concatenate(parts)
+        list(pool.map(run, range(0, len(flat), per_chunk)))
+    return sums.sum
 
 
 def drop_inactive(lattice: Lattice) -> np.ndarray:

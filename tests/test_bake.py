@@ -181,9 +181,9 @@ def test_determinism_across_worker_counts():
 @pytest.mark.parametrize("env, albedo", [("constant:1,0.6,0.3", (0.8, 0.5, 0.3)),
                                          ("sky:sun=3", (0.7, 0.7, 0.7))])
 def test_whole_path_loop_equals_the_vertex_by_vertex_tracer(monkeypatch, env, albedo):
-    """The compiled whole-path loop (Embree called per ray from compiled code) gives the
-    lattice of the vertex-by-vertex tracer (one embreex batch per step) to the bit, and
-    traces as many rays."""
+    """Chunks traced in one compiled call (Embree called per ray from compiled code) give
+    the lattice of the tracer that calls embreex once per step, to the bit, and trace as
+    many rays."""
     baking_bake = importlib.import_module("baking.bake")  # `baking.bake` is the function
     config = BakeConfig(samples=12, bounces=2, env=env, albedo=albedo)
     vol = make("engine", 40)
