@@ -574,8 +574,9 @@ def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: 
             result[row, c] += beta[c, i] * added[c, i]
 
 
-# -- whole paths in one compiled loop, Embree called per ray -------------------------------
+# -- a chunk of paths in one compiled call, Embree called per ray --------------------------
 _INVALID_ID = np.uint32(0xFFFFFFFF)  # RTC_INVALID_GEOMETRY_ID
+_ALL_GEOMETRY = np.uint32(0xFFFFFFFF)  # a ray mask that every geometry passes
 RAY_RECORD_ROWS = 7
 """Columns of a recording of traced rays: origin (3), direction (3), 1 for an occlusion
 query (0: closest hit)."""
@@ -607,7 +608,7 @@ def _set_ray(ray, bits, ox, oy, oz, dx, dy, dz) -> None:
     ray[0], ray[1], ray[2], ray[3] = ox, oy, oz, np.float32(0.0)
     ray[4], ray[5], ray[6], ray[7] = dx, dy, dz, np.float32(0.0)
     ray[8] = np.float32(np.inf)
-    bits[9], bits[10], bits[11] = _INVALID_ID, np.uint32(0), np.uint32(0)
+    bits[9], bits[10], bits[11] = _ALL_GEOMETRY, np.uint32(0), np.uint32(0)  # mask, id, flags
     bits[18], bits[19] = _INVALID_ID, _INVALID_ID  # geomID, instID[0]
 
 
