@@ -438,14 +438,6 @@ def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
         baker.run(todo, target, bar=bar, after_level=checkpoint)
 
 
-def _pending_samples(positions, done, remaining) -> tuple[np.ndarray, np.ndarray]:
-    """Repeat each texel position for its pending sample indices [done, done + remaining)."""
-    reps = remaining[positions]
-    pos = np.repeat(positions, reps)
-    starts = np.repeat(done[positions] - np.concatenate([[0], np.cumsum(reps)[:-1]]), reps)
-    return pos, starts + np.arange(len(pos))
-
-
 @dataclass(frozen=True)
 class _LevelWork:
     """The pending paths of one level: texel positions (P,) sorted, sample indices (P,),

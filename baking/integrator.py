@@ -181,9 +181,9 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     beta = np.ones((3, count), np.float32)
     albedo = np.asarray(settings.albedo, np.float32)
     irradiance = settings.sh_order is None
-    constant_env = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
-    constant = irradiance and constant_env is not None  # cosine sampling is ideal here
-    escaped_radiance = np.pi * np.asarray(constant_env if constant else (0, 0, 0), np.float64)
+    constant_radiance = _constant_radiance(lighting, settings)
+    constant = constant_radiance is not None  # cosine sampling is ideal here
+    escaped_radiance = constant_radiance if constant else np.zeros(3)
     sees_env = lighting.env is not None or not irradiance  # escaping rays bring something
     sky = lighting.sky
     dirs = kernels.cosine_directions(keys, 0, n) if dirs is None else _rows(dirs)
@@ -236,16 +236,25 @@ def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None
     """`WholePaths` where `trace_whole_paths` covers the lighting (irradiance,
     a constant environment or the procedural sky, no point or directional lights), else
     None."""
-    constant = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
+    constant_radiance = _constant_radiance(lighting, settings)
+    use_sky = lighting.sky is not None
     covered = settings.sh_order is None and not lighting.lights and (
-        constant is not None or lighting.sky is not None)
+        constant_radiance is not None or use_sky)
     if not covered:
         return None
-    use_sky = lighting.sky is not None
     return WholePaths(
         settings.bounces, np.asarray(settings.albedo, np.float32), settings.hit_offset,
-        np.pi * np.asarray((0, 0, 0) if use_sky else constant, np.float64),
+        np.zeros(3) if use_sky else constant_radiance,
         lighting.sky if use_sky else np.zeros(kernels.SKY_PARAMS), use_sky)
+
+
+def _constant_radiance(lighting: Lighting, settings: PathSettings) -> np.ndarray | None:
+    """(3,) π·L that a cosine-sampled ray escaping to a constant environment brings, in
+    an irradiance bake (where cosine sampling alone is the ideal sampler); else None."""
+    rgb = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None
+    if settings.sh_order is not None or rgb is None:
+        return None
+    return np.pi * np.asarray(rgb, np.float64)
 
 
 def trace_whole_paths(scene: Scene, params: WholePaths, starts: tuple, weights: np.ndarray,

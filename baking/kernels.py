@@ -131,7 +131,8 @@ def path_starts(seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray, samples: 
     out_o = np.empty((3, count), np.float32)
     out_n = np.empty((3, count), np.float32)
     dirs = np.empty((3, count), np.float32)
-    i, j = 0, 0
+    i = 0
+    j = np.searchsorted(texels, pos[0]) if count else 0  # a chunk's texels may start late
     while i < count:  # one texel's paths at a time: the inner loop vectorises
         while texels[j] < pos[i]:  # both sorted: one merge pass
             j += 1

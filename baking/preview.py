@@ -22,6 +22,7 @@ the bake's job.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -81,10 +82,12 @@ def surface_scene(volume: volumes.Volume, iso: float, step: int):
 
 
 def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: float,
-             flat: np.ndarray, scene, step: int, *, paths: int, workers: int = 1) -> None:
+             flat: np.ndarray, scene, step: int, *, paths: int, tracing: Tracing,
+             workers: int = 1) -> None:
     """Trace `paths` paths from each texel `flat` (K,) projected onto the surface ρ = `iso`
     (whose `scene` has the given marching-cubes `step`) and store the means as the
-    texels' previews (``lattice.preview`` and ``preview_paths``, which must be set).
+    texels' previews (``lattice.preview`` and ``preview_paths``, which must be set);
+    `tracing` is `preview_tracing` (volume, config).
 
     The texel centres move onto the surface (up to 2 voxels) by Newton steps along the
     smoothed gradient, then along the plain one, which lands them on the raw field's
@@ -109,7 +112,7 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
     origins = on_surface + offset * h * normals
     outside = _outside(volume, origins, iso, config.flip_normals)
     if outside.any():  # values first: another process may be displaying them
-        sums = _trace(scene, volume, config, flat[outside], origins[outside].astype(np.float32),
+        sums = _trace(scene, tracing, flat[outside], origins[outside].astype(np.float32),
                       normals[outside].astype(np.float32), workers, paths)
         lattice.preview.reshape(-1, lattice.preview.shape[-1])[flat[outside]] = sums / paths
     lattice.preview_paths.reshape(-1)[flat] = np.where(outside, paths, 0)
@@ -158,6 +161,7 @@ class Previewer:
         self._queue: list[list] = []  # [paths, coarse, texels still to do or None]
         self._scenes: dict[int, object] = {}  # by marching-cubes step
         self._started, self._pass_texels = 0.0, 0  # of the pass under way
+        self._tracing = preview_tracing(volume, config)
 
     @property
     def busy(self) -> bool:
@@ -200,7 +204,7 @@ class Previewer:
                 self._queue.clear()
                 return flat[:0]
             estimate(self.volume, self.config, self.lattice, self.iso, flat, scene, step,
-                     paths=paths, workers=self.workers)
+                     paths=paths, tracing=self._tracing, workers=self.workers)
             self._iso_of[flat] = self.iso
         if take >= len(todo):
             self._queue.pop(0)
@@ -224,14 +228,23 @@ class Previewer:
         return self._scenes[step]
 
 
-def _trace(scene, volume, config, flat, origins, normals, workers, paths) -> np.ndarray:
-    """(K, C) sums of `paths` path estimates per texel, traced on `workers` threads as the
-    bake traces its chunks (`bake.trace_chunk`: one compiled call per chunk where the
-    lighting allows)."""
+def preview_tracing(volume: volumes.Volume, config: BakeConfig) -> Tracing:
+    """What the previews trace with (lighting parsed once: an HDR map is read and its
+    sampler built here, not at every preview step); `_trace` fills in the texels and
+    their sums. Previews take their own random numbers (`SEED_SALT`)."""
     lighting, settings = make_lighting(config), path_settings(volume, config)
-    sums = PassSums(len(flat), settings.channels)
-    tracing = Tracing(flat, lighting, settings, np.uint32(rng.seed_key(config.seed ^ SEED_SALT)),
-                      np.zeros(settings.channels), sums, whole_paths(lighting, settings))
+    return Tracing(np.zeros(0, np.int64), lighting, settings,
+                   np.uint32(rng.seed_key(config.seed ^ SEED_SALT)),
+                   np.zeros(settings.channels), PassSums(0, settings.channels),
+                   whole_paths(lighting, settings))
+
+
+def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths) -> np.ndarray:
+    """(K, C) sums of `paths` path estimates per texel `flat` (K,), traced on `workers`
+    threads as the bake traces its chunks (`bake.trace_chunk`: one compiled call per chunk
+    where the lighting allows)."""
+    sums = PassSums(len(flat), tracing.settings.channels)
+    tracing = dataclasses.replace(tracing, ids=flat, acc=sums)
     start = PathStarts(np.arange(len(flat), dtype=np.int64), origins, normals)
     per_chunk = max(1, CHUNK // paths)
 

@@ -42,10 +42,10 @@ import numpy as np
 import volumes
 
 from . import rng
-from .bake import _pending_samples, make_lighting, path_settings
+from .bake import make_lighting, path_settings
 from .config import BakeConfig
 from .errors import BakeError
-from .integrator import Lighting, PathSettings, trace_paths
+from .integrator import Lighting, PathSettings, RayStats, trace_paths
 from .lattice import volume_identity
 
 STATE_VERSION = 1
@@ -224,6 +224,14 @@ def _plan_jobs(done: np.ndarray, target: int) -> Iterator[tuple[_Job, bool]]:
             yield _Job(block, first[block], n[block]), start + PIXELS_PER_BLOCK >= len(rows)
 
 
+def pending_samples(positions, done, remaining) -> tuple[np.ndarray, np.ndarray]:
+    """Repeat each texel position for its pending sample indices [done, done + remaining)."""
+    reps = remaining[positions]
+    pos = np.repeat(positions, reps)
+    starts = np.repeat(done[positions] - np.concatenate([[0], np.cumsum(reps)[:-1]]), reps)
+    return pos, starts + np.arange(len(pos))
+
+
 def _trace_job(scene, hits: PrimaryHits, job: _Job, lighting: Lighting,
                settings: PathSettings, seed: int):
     """Worker: trace one job's paths.
@@ -232,9 +240,7 @@ def _trace_job(scene, hits: PrimaryHits, job: _Job, lighting: Lighting,
         (rows (K,), count (K,), shift, s1, s2 (K, 3) as in `PixelStats`, rays, seconds
         inside Embree).
     """
-    from .integrator import RayStats
-
-    local, samples = _pending_samples(np.arange(len(job.rows)), job.first, job.n)
+    local, samples = pending_samples(np.arange(len(job.rows)), job.first, job.n)
     rows = job.rows[local]
     keys = rng.path_keys(seed, hits.pixels[rows], samples)
     stats = RayStats()

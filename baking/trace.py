@@ -2,10 +2,10 @@
 
 embreex releases the GIL inside `run`, so worker threads trace concurrently.
 
-Every scene is built by embreex. For the baker's compiled path loop (`kernels.trace_chunk`)
+Every scene is built by embreex. For the baker's compiled chunk call (`kernels.trace_chunk`)
 a scene also offers its Embree handle and the addresses of ``rtcIntersect1`` and
-``rtcOccluded1`` in the Embree library embreex loaded (`EmbreeCalls`): the loop then
-calls Embree per ray itself, with no Python between a path's rays. The handle is the
+``rtcOccluded1`` in the Embree library embreex loaded (`EmbreeCalls`): the call then
+calls Embree per ray itself, with no Python between a chunk's rays. The handle is the
 ``scene_i`` field that embreex declares in its published Cython interface
 (``embreex/rtcore_scene.pxd``); it is read only after the object's layout has been checked
 against that declaration, and a scene whose layout does not match offers no handle (the
@@ -15,6 +15,7 @@ path tracer then uses `run`, as everywhere else).
 from __future__ import annotations
 
 import ctypes
+import functools
 import gc
 import threading
 import time
@@ -35,7 +36,7 @@ class RayRecorder:
     Copies go into buffers of each tracing thread that are reused from level to level
     (`clear`): holding on to the tracer's own arrays instead would keep the allocator from
     reusing their memory, and the tracer would pay page faults on fresh memory that a
-    real bake never pays. A compiled path loop writes its rays straight into the buffer
+    real bake never pays. A compiled chunk call writes its rays straight into the buffer
     (`reserve`, `commit`).
     """
 
@@ -80,7 +81,7 @@ class RayRecorder:
 class _RecordBuffer:
     """One thread's recorded rays: growing (capacity, 7) float32 rows of origin,
     direction and distance (or query kind), and the (query, start, stop, has distances)
-    of each batch — query "TRACED" for the mixed rays of a compiled path loop, whose
+    of each batch — query "TRACED" for the mixed rays of a compiled chunk call, whose
     last column tells their kind."""
 
     def __init__(self) -> None:
@@ -132,6 +133,7 @@ class EmbreeCalls(NamedTuple):
     occluded: int
 
 
+@functools.cache
 def _embree_functions() -> tuple[int, int] | None:
     """Addresses of ``rtcIntersect1`` and ``rtcOccluded1`` in the Embree library that
     embreex loaded into this process (found in /proc/self/maps: the very instance that
@@ -146,9 +148,6 @@ def _embree_functions() -> tuple[int, int] | None:
     lib = ctypes.CDLL(paths.pop())  # already loaded: the same handle, nothing re-read
     return (ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value,
             ctypes.cast(lib.rtcOccluded1, ctypes.c_void_p).value)
-
-
-_FUNCTIONS: list = []  # cached `_embree_functions()`
 
 
 def _scene_handle(embree) -> int | None:
@@ -177,9 +176,7 @@ def embree_calls(scene: Scene) -> EmbreeCalls | None:
     embreex whose scene layout or library could not be verified)."""
     if scene.empty:
         return None
-    if not _FUNCTIONS:
-        _FUNCTIONS.append(_embree_functions())
-    functions, handle = _FUNCTIONS[0], _scene_handle(scene._scene)
+    functions, handle = _embree_functions(), _scene_handle(scene._scene)
     if functions is None or not handle:
         return None
     return EmbreeCalls(handle, *functions)
@@ -203,7 +200,7 @@ class Scene:
             _attach_mesh(self._scene, self.vertices, self.faces)
             _build_bvh(self._scene)
         self.calls = embree_calls(self)
-        """`EmbreeCalls` for compiled path loops, or None (then only `intersect` and
+        """`EmbreeCalls` for compiled chunk calls, or None (then only `intersect` and
         `occluded` trace)."""
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray, stats: RayStats | None = None

@@ -53,13 +53,19 @@ def test_path_starts_gather_keys_and_first_directions():
     np.testing.assert_array_equal(o.T, origins[rows])
     np.testing.assert_array_equal(n.T, normals[rows])
     np.testing.assert_array_equal(dirs, kernels.cosine_directions(keys, 0, n))
+    # a later chunk of the same paths, with all the texels' start points
+    late = kernels.path_starts(np.uint32(rng.seed_key(42)), ids, pos[3:], samples[3:],
+                               texels, origins, normals)
+    for got, whole in zip(late, (keys, o, n, dirs), strict=True):
+        np.testing.assert_array_equal(got, whole[..., 3:])
 
 
 def test_level_paths_match_the_numpy_expansion():
-    """The pending paths of each level: as `_pending_samples` and `Plan.on_upper` lay them
-    out (expand every texel's pending samples, keep those on this level, sort by texel)."""
-    from baking.bake import _pending_samples
+    """The pending paths of each level: as `reference.pending_samples` and
+    `Plan.on_upper` lay them out (expand every texel's pending samples, keep those on this
+    level, sort by texel)."""
     from baking.plan import GOLDEN_FRACTION
+    from baking.reference import pending_samples
 
     gen = np.random.default_rng(4)
     count = 300
@@ -76,7 +82,7 @@ def test_level_paths_match_the_numpy_expansion():
                                                    weight, GOLDEN_FRACTION)
         want_pos, want_samples = [], []
         for group, on_upper in ((here, False), (below, True)):
-            p, s = _pending_samples(group, done, remaining)
+            p, s = pending_samples(group, done, remaining)
             upper = np.mod(phase[p] + s * GOLDEN_FRACTION, 1.0) < weight[p]
             want_pos.append(p[upper == on_upper])
             want_samples.append(s[upper == on_upper])

@@ -242,9 +242,9 @@ def test_full_surface_previews_start_on_the_surface_along_the_smoothed_normal(
     lat = _empty(vol, config)
     seen = []
     real = preview._trace
-    monkeypatch.setattr(preview, "_trace", lambda scene, volume, cfg, flat, origins, normals,
+    monkeypatch.setattr(preview, "_trace", lambda scene, tracing, flat, origins, normals,
                         workers, paths: seen.append((origins, normals))
-                        or real(scene, volume, cfg, flat, origins, normals, workers, paths))
+                        or real(scene, tracing, flat, origins, normals, workers, paths))
     _preview_all(vol, config, lat, 0.5, visible_cells(lat.geometry, mesh.vertices))
     origins, normals = seen[-1]  # the last pass: full surface
     h = float(np.mean(vol.spacing))

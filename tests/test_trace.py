@@ -1,4 +1,4 @@
-"""`baking.trace`: the Embree scene against embreex used plainly, the compiled loop's own
+"""`baking.trace`: the Embree scene against embreex used plainly, the compiled chunk call's own
 Embree calls, and the ray recorder of ``isolume bench bake``."""
 
 from concurrent.futures import ThreadPoolExecutor
@@ -88,7 +88,7 @@ def test_recorder_keeps_exact_copies_from_every_thread_and_replays_them():
 
 
 def test_scenes_offer_embree_calls_that_answer_as_embreex():
-    """The compiled loop's own Embree calls (the handle read from embreex's scene, the
+    """The compiled chunk call's own Embree calls (the handle read from embreex's scene, the
     functions of the library embreex loaded) give embreex's answers, hits and misses."""
     mesh = volumes.isosurface(volumes.load("synthetic:engine:48"), 0.3, normals="none")
     scene = Scene(mesh.vertices, mesh.faces)
