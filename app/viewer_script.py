@@ -27,7 +27,6 @@ Every line is checked before the window opens; errors name the line.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import shlex
@@ -36,6 +35,7 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -232,9 +232,35 @@ def screenshot_paths(path: str | os.PathLike) -> tuple[Path, Path]:
 
 
 # -- running a script in the viewer -------------------------------------------------------
+class ScriptTarget(Protocol):
+    """What a script drives: the public interface of `app.viewer.Viewer`.
+
+    Errors that the script should report raise `ValueError` (the viewer's `ViewerError`)."""
+
+    quit: bool
+
+    def redraw(self) -> None: ...
+    def request_iso(self, iso: float) -> None: ...
+    def set_mode(self, mode: str) -> None: ...
+    def set_exposure(self, exposure: float) -> None: ...
+    def set_light(self, angles: tuple[float, float] | None, moving: bool = False) -> None: ...
+    def move_camera(self, how: str, a: float, b: float = 0.0) -> None: ...
+    def reset_camera(self) -> None: ...
+    def request_quit(self) -> None: ...
+    def screenshot(self, path: str | os.PathLike | None = None) -> tuple[Path, Path]: ...
+    def window_pixels(self) -> np.ndarray: ...
+    def save_lattice(self, path: str | os.PathLike | None = None) -> Path | None: ...
+    def surface_ready(self) -> bool: ...
+    def bake_progress(self) -> tuple[float | None, str | None]: ...
+    def hold_bake(self, held: bool) -> None: ...
+    def bake_held(self) -> bool: ...
+    def check_lattice(self) -> dict: ...
+
+
 class ScriptRunner:
-    """Runs script commands between frames of an `app.viewer.Viewer`; waiting commands
-    (frames, sleep, wait-*) keep frames coming. Errors raise `ScriptError` naming the line."""
+    """Runs script commands between frames of a `ScriptTarget` (the viewer); waiting
+    commands (frames, sleep, wait-*) keep frames coming. Errors raise `ScriptError` naming
+    the line."""
 
     def __init__(self, commands: list) -> None:
         self.commands = deque(commands)
@@ -252,7 +278,7 @@ class ScriptRunner:
             return bool(self.commands)
         return self.current.name in ("frames", "sleep", "wait-mesh", "window-shot")
 
-    def step(self, viewer) -> None:
+    def step(self, viewer: ScriptTarget) -> None:
         """Run commands until one has to wait."""
         while True:
             if self.current is not None and not self._finished(viewer):
@@ -270,51 +296,39 @@ class ScriptRunner:
         if self.current is not None and self.current.name == "frames":
             self.frames_left -= 1
 
-    def before_swap(self, viewer) -> None:
+    def before_swap(self, viewer: ScriptTarget) -> None:
         """Read the back buffer for a pending ``window-shot``."""
         if self.pending_window_shot is None:
             return
         from .images import write_png
 
-        w, h = viewer.window.framebuffer_size
-        rgb = np.frombuffer(viewer.window.read_back(), np.uint8).reshape(h, w, 3)[::-1]
-        write_png(self.pending_window_shot, rgb)
+        write_png(self.pending_window_shot, viewer.window_pixels())
         self.pending_window_shot = None
 
-    def _start(self, command, viewer) -> None:
+    def _start(self, command: Command, viewer: ScriptTarget) -> None:
         name, args = command.name, command.args
         now = time.perf_counter()
         simple = {
             "iso": lambda: viewer.request_iso(args[0]),
             "mode": lambda: viewer.set_mode(args[0]),
             "exposure": lambda: viewer.set_exposure(args[0]),
-            "reset": lambda: setattr(viewer, "camera", viewer.home),
-            "quit": lambda: setattr(viewer, "quit", True),
+            "reset": viewer.reset_camera,
+            "quit": viewer.request_quit,
             "save-lattice": lambda: viewer.save_lattice(args[0] if args else None),
             "screenshot": lambda: viewer.screenshot(args[0]),
+            "orbit": lambda: viewer.move_camera("orbit", args[0], args[1]),
+            "zoom": lambda: viewer.move_camera("zoom", args[0]),
+            "pan": lambda: viewer.move_camera("pan", args[0], args[1]),
+            "light": lambda: viewer.set_light(None if args == ("camera",) else
+                                              (args[0], args[1]), moving=True),
         }
         if name in simple:
             simple[name]()
-        elif name in ("orbit", "zoom", "pan", "light"):
-            self._camera_or_light(name, args, viewer)
-            viewer._moved()  # like a drag: interactive quality applies
         else:
             self._start_wait(command, viewer, now)
-        viewer._touch()
+        viewer.redraw()
 
-    def _camera_or_light(self, name: str, args: tuple, viewer) -> None:
-        from .ui import orbit, pan, zoom
-
-        if name == "orbit":
-            viewer.camera = orbit(viewer.camera, args[0], args[1])
-        elif name == "zoom":
-            viewer.camera = zoom(viewer.camera, args[0])
-        elif name == "pan":
-            viewer.camera = pan(viewer.camera, args[0], args[1])
-        else:
-            viewer.set_light(None if args == ("camera",) else (args[0], args[1]))
-
-    def _start_wait(self, command, viewer, now: float) -> None:
+    def _start_wait(self, command: Command, viewer: ScriptTarget, now: float) -> None:
         name, args = command.name, command.args
         self.current, self.started = command, now
         if name == "frames":
@@ -327,19 +341,16 @@ class ScriptRunner:
         elif name == "wait-mesh":
             self.deadline = now + (args[0] if args else DEFAULT_TIMEOUT)
         elif name == "check-lattice":
-            if viewer.renderer.lattice is None:
-                raise ScriptError("check-lattice: no lattice is shown")
             self.deadline = now + DEFAULT_TIMEOUT
-            if viewer.bake is not None:  # hold the bake so the lattice stands still
-                viewer.bake.paused_ack = False
-                viewer.bake.pause(True)
+            viewer.hold_bake(True)  # the lattice stands still while it is compared
         elif name == "wait-bake":
-            if viewer.bake is None:
-                raise ScriptError("wait-bake: no lazy bake is running (--no-bake, or the "
-                                  "lattice is complete)")
+            try:
+                viewer.bake_progress()
+            except ValueError as exc:
+                raise ScriptError(f"wait-bake: {exc}") from None
             self.deadline = now + (args[1] if len(args) > 1 else DEFAULT_TIMEOUT)
 
-    def _finished(self, viewer) -> bool:
+    def _finished(self, viewer: ScriptTarget) -> bool:
         name, args = self.current.name, self.current.args
         now = time.perf_counter()
         if name == "frames":
@@ -349,42 +360,34 @@ class ScriptRunner:
         if name == "sleep":
             return now >= self.deadline
         if name == "check-lattice":
-            if viewer.bake is not None and not viewer.bake.paused_ack:
-                return self._timeout(viewer, now, "the bake to pause")
+            if not viewer.bake_held():
+                return self._timeout(now, "the bake to pause")
             self._check_lattice(viewer)
             return True
         if name == "wait-mesh":
-            done = viewer.mesh_stage == "full" and viewer.mesh_iso == viewer.state.iso
-            return done or self._timeout(viewer, now, "the full-resolution surface")
+            return viewer.surface_ready() or self._timeout(now, "the full-resolution surface")
         if name == "wait-bake":
-            p = viewer.bake.progress
-            done = p is not None and p.iso == viewer.state.iso and p.near_fraction >= args[0]
-            if viewer.bake.error:
-                raise ScriptError(f"script line {self.current.line}: wait-bake: "
-                                  f"{viewer.bake.error}")
+            fraction, error = viewer.bake_progress()
+            if error:
+                raise ScriptError(f"script line {self.current.line}: wait-bake: {error}")
+            done = fraction is not None and fraction >= args[0]
             what = f"{args[0]:.0%} of the texels near the surface"
-            return done or self._timeout(viewer, now, what)
+            if fraction is not None:
+                what += f" (at {fraction:.0%})"
+            return done or self._timeout(now, what)
         return True
 
-    def _timeout(self, viewer, now: float, what: str) -> bool:
+    def _timeout(self, now: float, what: str) -> bool:
         if now < self.deadline:
             return False
-        extra = ""
-        if self.current.name == "wait-bake" and viewer.bake.progress is not None:
-            extra = f" (at {viewer.bake.progress.near_fraction:.0%})"
         raise ScriptError(f"script line {self.current.line}: {self.current.name} waited "
-                          f"{now - self.started:.0f} s for {what}{extra}")
+                          f"{now - self.started:.0f} s for {what}")
 
-    def _check_lattice(self, viewer) -> None:
-        """Upload what is pending, compare the textures with the lattice, resume the bake."""
-        viewer._receive_bake()  # texels committed before the pause took effect
-        if viewer.uploader is not None:
-            viewer.uploader.upload(budget_s=None)
-        from .viewer import check_textures
-
-        result = check_textures(viewer.renderer.lattice)
-        viewer.checks.append(result)
-        print(f"isolume: check-lattice: {json.dumps(result)}")
-        if viewer.bake is not None:
-            viewer.bake.pause(False)
-
+    def _check_lattice(self, viewer: ScriptTarget) -> None:
+        """Compare the textures with the lattice, then resume the bake."""
+        try:
+            viewer.check_lattice()
+        except ValueError as exc:
+            raise ScriptError(f"script line {self.current.line}: check-lattice: {exc}") from None
+        finally:
+            viewer.hold_bake(False)

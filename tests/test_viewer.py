@@ -184,7 +184,7 @@ def test_bad_script_fails_before_a_window_opens(tmp_path, monkeypatch, capsys):
 
 # -- surfaces off the render thread -------------------------------------------------------
 def test_slab_extraction_matches_whole_volume_marching_cubes():
-    from app.viewer import extract_surface
+    from app.viewer_surfaces import extract_surface
 
     vol = volumes.load("synthetic:engine:64")
     for step in (1, 2):
@@ -208,7 +208,7 @@ def test_slab_extraction_matches_whole_volume_marching_cubes():
 
 
 def test_preview_step_grows_with_the_surface():
-    from app.viewer import PREVIEW_TARGET_TRIANGLES, preview_step
+    from app.viewer_surfaces import PREVIEW_TARGET_TRIANGLES, preview_step
 
     assert preview_step(None) == 2 and preview_step(1000) == 2
     assert preview_step(9 * PREVIEW_TARGET_TRIANGLES) == 3
@@ -216,7 +216,7 @@ def test_preview_step_grows_with_the_surface():
 
 
 def test_mesh_worker_drops_stale_isovalues():
-    from app.viewer import MeshWorker
+    from app.viewer_surfaces import MeshWorker
 
     worker = MeshWorker(volumes.load("synthetic:shells:96"))
     try:
@@ -238,7 +238,7 @@ def test_uploaded_regions_equal_the_lattice(gl):
     """Texels changed after the upload reach the GL textures block by block, within the
     RGB9_E5 precision; untouched and uncomputed texels stay as they were."""
     from app.lattice_gl import LatticeTextures
-    from app.viewer import TexelUploader, check_textures
+    from app.viewer_draw import TexelUploader, check_textures
     from baking.lattice import Lattice, LatticeGeometry
 
     geometry = LatticeGeometry((13, 17, 21), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
@@ -314,7 +314,7 @@ def test_keys_map_to_actions():
 
 
 def test_interactive_quality_backs_off_then_recovers():
-    from app.viewer import INTERACTIVE_MS, RENDER_SCALES, Quality
+    from app.viewer_draw import INTERACTIVE_MS, RENDER_SCALES, Quality
 
     q = Quality()
     q.adapt(5 * INTERACTIVE_MS, full_triangles=500_000)

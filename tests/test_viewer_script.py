@@ -126,3 +126,100 @@ def test_screenshot_paths_pair_png_and_exr():
     assert screenshot_paths("a/b.png") == (Path("a/b.png"), Path("a/b.exr"))
     assert screenshot_paths("a/b.EXR") == (Path("a/b.png"), Path("a/b.exr"))
     assert screenshot_paths("shot") == (Path("shot.png"), Path("shot.exr"))
+
+
+# -- running scripts against the viewer's public interface ---------------------------------
+class FakeViewer:
+    """A `ScriptTarget` that records the calls it gets; its surface is ready after two
+    frames and its bake reaches 60 % of the texels after three polls."""
+
+    def __init__(self, bake: bool = True) -> None:
+        self.calls: list[tuple] = []
+        self.quit = False
+        self.frames = 0
+        self.polls = 0
+        self.bake = bake
+        self.held = False
+
+    def __getattr__(self, name):
+        if name in ("request_iso", "set_mode", "set_exposure", "move_camera", "reset_camera",
+                    "screenshot", "save_lattice"):
+            return lambda *args, **kw: self.calls.append((name, *args))
+        raise AttributeError(name)
+
+    def redraw(self) -> None:
+        pass
+
+    def set_light(self, angles, moving=False) -> None:
+        self.calls.append(("set_light", angles, moving))
+
+    def request_quit(self) -> None:
+        self.quit = True
+
+    def window_pixels(self):
+        import numpy as np
+
+        return np.zeros((2, 3, 3), np.uint8)
+
+    def surface_ready(self) -> bool:
+        return self.frames >= 2
+
+    def bake_progress(self):
+        if not self.bake:
+            raise ValueError("no lazy bake is running")
+        self.polls += 1
+        return (None if self.polls < 2 else 0.3 * (self.polls - 1)), None
+
+    def hold_bake(self, held: bool) -> None:
+        self.held = held
+        self.calls.append(("hold_bake", held))
+
+    def bake_held(self) -> bool:
+        return self.held
+
+    def check_lattice(self) -> dict:
+        self.calls.append(("check_lattice",))
+        return {}
+
+
+def _run_script(text: str, viewer: FakeViewer, limit: int = 50) -> None:
+    from app.viewer_script import ScriptRunner
+
+    runner = ScriptRunner(parse_script(text, modes=MODES))
+    for _ in range(limit):
+        runner.step(viewer)
+        if viewer.quit:
+            return
+        runner.before_swap(viewer)
+        viewer.frames += 1
+        runner.frame_done()
+    raise AssertionError("the script did not end")
+
+
+def test_script_drives_the_public_interface_in_order(tmp_path):
+    viewer = FakeViewer()
+    shot = tmp_path / "w.png"
+    _run_script(f"iso 0.4\norbit 30 -10\nzoom 1.5\npan 0.1 0.2\nreset\nlight 45 30\n"
+                f"light camera\nmode phong\nexposure 2\nwait-mesh\nwait-bake 0.6\n"
+                f"check-lattice\nwindow-shot {shot}\nsave-lattice\nscreenshot s.png\nquit\n",
+                viewer)
+    assert viewer.calls == [
+        ("request_iso", 0.4), ("move_camera", "orbit", 30.0, -10.0),
+        ("move_camera", "zoom", 1.5), ("move_camera", "pan", 0.1, 0.2), ("reset_camera",),
+        ("set_light", (45.0, 30.0), True), ("set_light", None, True), ("set_mode", "phong"),
+        ("set_exposure", 2.0), ("hold_bake", True), ("check_lattice",), ("hold_bake", False),
+        ("save_lattice", None), ("screenshot", "s.png")]
+    assert viewer.frames >= 2 and viewer.polls == 3  # waited for the mesh and the bake
+    assert shot.exists()
+
+
+def test_script_errors_name_the_line():
+    with pytest.raises(ScriptError, match="script line 2: wait-bake: no lazy bake"):
+        _run_script("iso 0.4\nwait-bake 0.5\n", FakeViewer(bake=False))
+    with pytest.raises(ScriptError, match="script line 1: wait-mesh waited"):
+        _run_script("wait-mesh 0.001\n", _NeverReady(), limit=10_000_000)
+
+
+class _NeverReady(FakeViewer):
+    def surface_ready(self) -> bool:
+        return False

@@ -1,0 +1,417 @@
+"""The viewer's lazy-bake client: global illumination baked in a separate process.
+
+The lazy baker of `baking.lazy` bakes the texels around the displayed isosurface, visible
+ones and those nearest the eye first, a few paths each, then refines; `baking.preview`
+first traces paths on the displayed surface itself. A process rather than a thread:
+building level scenes (marching cubes again) and the baker's own numpy work hold the GIL
+for hundreds of milliseconds. The lattice arrays live in shared memory (`SharedLattice`):
+the bake process writes texels and announces them; the viewer's side (`BakeLink`) sends
+views and receives the ids of changed texels, which the drawing side re-uploads
+(`app.viewer_draw.TexelUploader`). Nothing here touches GL.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+
+import volumes
+
+
+class SharedLattice:
+    """A `baking.Lattice` whose arrays live in shared memory blocks.
+
+    The bake process attaches to the same blocks (`attach`) and writes texels; the viewer
+    reads them for upload and saving.
+    """
+
+    def __init__(self, lattice, blocks: list, owner: bool) -> None:
+        self.lattice, self.blocks, self.owner = lattice, blocks, owner
+
+    @staticmethod
+    def _layout(geometry, channels: int) -> dict[str, tuple[tuple, str]]:
+        shape = tuple(geometry.shape)
+        return {"values": ((*shape, channels), "float32"), "samples": (shape, "uint32"),
+                "second": (shape, "float32"), "active": (shape, "bool"),
+                "preview": ((*shape, channels), "float32"), "preview_paths": (shape, "uint16")}
+
+    @classmethod
+    def create(cls, geometry, channels: int, meta: dict, source=None) -> SharedLattice:
+        """New shared arrays, zero or copied from the `source` lattice."""
+        from multiprocessing import shared_memory
+
+        from baking.lattice import Lattice
+
+        arrays, blocks = {}, []
+        for name, (shape, dtype) in cls._layout(geometry, channels).items():
+            size = max(1, int(np.prod(shape)) * np.dtype(dtype).itemsize)
+            block = shared_memory.SharedMemory(create=True, size=size)
+            blocks.append(block)
+            arr = np.ndarray(shape, dtype, buffer=block.buf)
+            copied = None if source is None else getattr(source, name)
+            arr[...] = 0 if copied is None else copied
+            arrays[name] = arr
+        lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
+                          arrays["active"], dict(meta), preview=arrays["preview"],
+                          preview_paths=arrays["preview_paths"])
+        return cls(lattice, blocks, owner=True)
+
+    def describe(self) -> dict:
+        """What `attach` needs (picklable)."""
+        g = self.lattice.geometry
+        return {"names": [b.name for b in self.blocks], "shape": list(g.shape),
+                "lo": list(g.lo), "hi": list(g.hi), "channels": self.lattice.values.shape[-1],
+                "meta": self.lattice.meta}
+
+    @classmethod
+    def attach(cls, description: dict) -> SharedLattice:
+        """The same arrays, in another process."""
+        from multiprocessing import shared_memory
+
+        from baking.lattice import Lattice, LatticeGeometry
+
+        geometry = LatticeGeometry(tuple(description["shape"]), tuple(description["lo"]),
+                                   tuple(description["hi"]))
+        layout = cls._layout(geometry, description["channels"])
+        arrays, blocks = {}, []
+        for (name, (shape, dtype)), block_name in zip(layout.items(), description["names"],
+                                                      strict=True):
+            # (a spawned child shares its parent's resource tracker: the block stays
+            # registered once, and the owner's unlink unregisters it)
+            block = shared_memory.SharedMemory(name=block_name)
+            blocks.append(block)
+            arrays[name] = np.ndarray(shape, dtype, buffer=block.buf)
+        lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
+                          arrays["active"], dict(description["meta"]),
+                          preview=arrays["preview"], preview_paths=arrays["preview_paths"])
+        return cls(lattice, blocks, owner=False)
+
+    def snapshot(self):
+        """A private copy of the lattice (for saving while the bake goes on)."""
+        from baking.lattice import Lattice
+
+        lat = self.lattice
+        samples = lat.samples.copy()
+        values = np.where(samples[..., None] > 0, lat.values, 0).astype(np.float32)
+        return Lattice(lat.geometry, values, samples, lat.second.copy(), lat.active.copy(),
+                       json.loads(json.dumps(lat.meta)))
+
+    def close(self) -> None:
+        """Drop the arrays and release (and, as owner, unlink) the blocks."""
+        self.lattice = None
+        for block in self.blocks:
+            try:
+                block.close()
+            except BufferError:  # a view is still alive somewhere; the OS frees it at exit
+                pass
+            if self.owner:
+                try:
+                    block.unlink()
+                except FileNotFoundError:
+                    pass
+        self.blocks = []
+
+
+def lattice_meta(volume: volumes.Volume, config) -> dict:
+    """Metadata of a new lattice baked with `config` for `volume` (as `baking.bake` writes
+    it)."""
+    from baking.bake import path_settings
+    from baking.lattice import volume_identity
+
+    return {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
+            "scale": config.scale, "volume": volume_identity(volume),
+            "config": config.to_dict(), "channels": path_settings(volume, config).channels}
+
+
+def scene_budget() -> float:
+    """Bytes the bake process may spend on cached level scenes: a quarter of the memory."""
+    try:
+        return 0.25 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 2e9
+
+
+def _bake_main(job: dict, inbox, outbox) -> None:
+    """Entry point of the bake process: previews for the first view, the plan (while the
+    previews go on and later views get theirs), then `baking.lazy.serve` until stopped."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the viewer's to handle
+    try:
+        os.nice(19)  # idle priority: the viewer (and llvmpipe's threads) come first
+    except (AttributeError, OSError):
+        pass
+    process = None
+    try:
+        process = _BakeProcess(job, inbox, outbox)
+        process.run()
+    except Exception as exc:
+        outbox.put(("error", f"{exc.__class__.__name__}: {exc}"))
+    finally:
+        if process is not None:
+            process.shared.close()
+
+
+class _BakeProcess:
+    """The lazy bake's side of the link (runs in the spawned process)."""
+
+    def __init__(self, job: dict, inbox, outbox) -> None:
+        import multiprocessing
+
+        from baking.config import BakeConfig
+        from baking.preview import Previewer
+
+        self.job, self.inbox, self.outbox = job, inbox, outbox
+        self.shared = SharedLattice.attach(job["lattice"])
+        self.volume = volumes.Volume(**job["volume"])
+        self.config = BakeConfig.from_dict(job["config"])
+        self.parent = multiprocessing.parent_process()
+        self.workers = job["workers"] or os.cpu_count() or 1
+        self.previewer = Previewer(self.volume, self.config, self.shared.lattice,
+                                   self.workers)
+        self.lit = None  # the last view given its first preview pass (held: not an id)
+        self.waiting: list = []  # messages for `serve`, in order
+
+    def receive(self, block: bool):
+        """The next message (waiting for one if `block`); None when none is waiting and
+        not `block`; "stop" when the viewer is gone."""
+        while True:
+            message = self.receive_within(0.5 if block else None)
+            if message is not None or not block:
+                return message
+
+    def receive_within(self, timeout: float | None):
+        """The next message within `timeout` seconds (None: only one already waiting), or
+        None; "stop" when the viewer is gone."""
+        import queue
+
+        try:
+            return self.inbox.get(block=timeout is not None, timeout=timeout)
+        except queue.Empty:
+            if self.parent is not None and not self.parent.is_alive():
+                return "stop"
+            return None
+
+    def first_light(self, view) -> None:
+        """The first preview pass of `view` (a few paths per visible texel, traced on its
+        displayed surface); the others follow through `preview_step`."""
+        if view is self.lit or view.visible is None or not len(view.visible):
+            return
+        self.lit = view
+        self._announce(self.previewer.set_view(view.iso, view.visible))
+
+    def preview_step(self) -> bool:
+        """A slice of the queued preview passes; False when there was none."""
+        if not self.previewer.busy:
+            return False
+        self._announce(self.previewer.step())
+        return True
+
+    def _announce(self, flat: np.ndarray) -> None:
+        """Tell the viewer which texels changed, and which preview passes finished."""
+        if len(flat):
+            self.outbox.put(("texels", flat))
+        while self.previewer.done:
+            self.outbox.put(("preview", self.previewer.done.pop(0)))
+
+    def _keep(self, message) -> bool:
+        """Queue `message` for `serve`, lighting views at once; False on "stop"."""
+        from baking.lazy import View
+
+        if message == "stop":
+            return False
+        if isinstance(message, View):
+            self.first_light(message)
+        self.waiting.append(message)
+        return True
+
+    def _plan(self):
+        """Make the Baker (its plan takes seconds to tens of seconds) on a thread while the
+        preview passes go on and every new view gets its own; None when told to stop."""
+        import threading
+
+        from baking.bake import Baker
+        from baking.lazy import scene_cache_size
+
+        made: dict = {}
+
+        def make() -> None:
+            try:
+                made["baker"] = Baker(self.volume, self.config, lattice=self.shared.lattice,
+                                      workers=self.job["workers"], scene_cache=made["cache"])
+            except BaseException as exc:  # re-raised below, in this thread
+                made["error"] = exc
+
+        made["cache"] = scene_cache_size(self.volume, self.job["iso"], self.config.max_levels,
+                                         scene_budget())
+        planner = threading.Thread(target=make, name="isolume-plan", daemon=True)
+        planner.start()
+        while planner.is_alive():
+            message = self.receive_within(None if self.previewer.busy else 0.1)
+            if message is not None and not self._keep(message):
+                return None
+            self.preview_step()
+        if "error" in made:
+            raise made["error"]
+        return made["baker"], made["cache"]
+
+    def run(self) -> None:
+        from baking.lazy import LazyScheduler, View, serve
+        from baking.preview import drop_inactive
+        from baking.preview import warm_up as preview_warm_up
+
+        preview_warm_up(self.volume)  # while the viewer opens its window
+        self.outbox.put(("started", {"seconds": time.time() - self.job["started"]}))
+        message = self.receive(True)  # the first view gets its first preview before the plan
+        while not isinstance(message, View):
+            if not self._keep(message):
+                return
+            message = self.receive(True)
+        self._keep(message)
+        t0 = time.perf_counter()
+        active = self.shared.lattice.active  # the Baker replaces the lattice's attribute
+        made = self._plan()
+        if made is None:
+            return
+        baker, cache = made
+        active[...] = baker.plan.active
+        baker.lattice.active = active
+        self.previewer.only_active = True
+        stale = drop_inactive(self.shared.lattice)
+        if len(stale):
+            self.outbox.put(("texels", stale))
+        self.outbox.put(("ready", {"seconds": time.perf_counter() - t0,
+                                   "active": len(baker.plan.ids),
+                                   "levels": len(baker.plan.levels),
+                                   "scene_cache": cache, "meta": baker.lattice.meta}))
+        scheduler = LazyScheduler(baker.plan, baker.geometry,
+                                  self.shared.lattice.samples.reshape(-1),
+                                  max_samples=self.config.samples,
+                                  batch_paths=self.job["batch_paths"])
+
+        def receive(block: bool):
+            return self.waiting.pop(0) if self.waiting else self.receive(block)
+
+        try:
+            serve(baker, scheduler, receive, self.outbox.put, on_view=self.first_light,
+                  before_batch=self.preview_step)
+        finally:
+            baker.close()
+
+
+class BakeLink:
+    """The viewer's side of the lazy bake process: send views, receive committed texels."""
+
+    def __init__(self, volume: volumes.Volume, config, shared: SharedLattice,
+                 workers: int | None, iso: float, batch_paths: int | None = None) -> None:
+        import multiprocessing
+
+        from baking.lazy import BATCH_PATHS
+
+        ctx = multiprocessing.get_context("spawn")
+        self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
+        job = {
+            "lattice": shared.describe(),
+            "volume": {"data": volume.data, "spacing": volume.spacing, "origin": volume.origin,
+                       "name": volume.name, "source": volume.source,
+                       "suggested_iso": volume.suggested_iso},
+            "config": config.to_dict(), "workers": workers, "iso": float(iso),
+            "batch_paths": batch_paths or BATCH_PATHS, "started": time.time(),
+        }
+        self.started = time.perf_counter()
+        self.process = ctx.Process(target=_bake_main, args=(job, self.inbox, self.outbox),
+                                   name="isolume-bake", daemon=True)
+        self.process.start()
+        self.ready: dict | None = None
+        self.progress = None
+        self.stats: dict = {}
+        self.error: str | None = None
+        self.paused = False
+        self.paused_ack = False
+        self.history: list[tuple[float, object]] = []
+        self.previews: list[tuple[float, dict]] = []  # (seconds since start, figures) per pass
+        self.warm: dict | None = None  # the process is ready for views (its start-up time)
+
+    def send_view(self, view) -> None:
+        self.inbox.put(view)
+
+    def pause(self, paused: bool) -> None:
+        self.paused = bool(paused)
+        self.inbox.put("pause" if paused else "resume")
+
+    def poll(self) -> list[np.ndarray]:
+        """Handle the messages that arrived; return the flat ids of committed texels."""
+        import queue
+
+        texels = []
+        while True:
+            try:
+                message = self.outbox.get_nowait()
+            except queue.Empty:
+                break
+            kind = message[0]
+            if kind == "texels":
+                texels.append(message[1])
+            elif kind == "progress":
+                self.progress, self.stats = message[1], message[2]
+                self.history.append((time.perf_counter() - self.started, message[1]))
+            elif kind == "ready":
+                self.ready = message[1]
+            elif kind == "paused":
+                self.paused_ack = message[1]
+            elif kind == "started":
+                self.warm = message[1]
+            elif kind == "preview":
+                self.previews.append((time.perf_counter() - self.started, message[1]))
+            elif kind == "error":
+                self.error = message[1]
+        if self.error is None and self.ready is None and not self.process.is_alive():
+            self.error = f"the bake process ended (exit code {self.process.exitcode})"
+        return texels
+
+    def near_fraction(self, iso: float) -> float | None:
+        """Fraction of the texels near the surface at `iso` that have an estimate (None:
+        no progress reported for that isovalue yet)."""
+        p = self.progress
+        return p.near_fraction if p is not None and p.iso == iso else None
+
+    def status(self, iso: float) -> tuple[tuple[float, float] | None, tuple[str, ...]]:
+        """What the panel shows: ((visible, surface) fractions done or None, lines)."""
+        if self.error:
+            return None, (f"error: {self.error}",)
+        preview = self._preview_line(iso)
+        if self.ready is None:
+            return None, (f"planning the bake... {time.perf_counter() - self.started:.0f} s",
+                          preview)
+        p, s = self.progress, self.stats
+        if p is None:
+            return None, ("waiting for the surface", preview)
+        stage = "done for this view" if p.stage is None else f"{p.stage[0]} to {p.stage[1]} paths"
+        if p.surface == 0:
+            stage = "this isovalue lies outside the baked range"
+        rate = s.get("paths", 0) / max(s.get("seconds", 0.0), 1e-9)
+        lines = (preview, f"{stage}, {rate:,.0f} paths/s",
+                 f"{p.visible:,} visible / {p.surface:,} surface texels")
+        return (p.visible_fraction, p.surface_fraction), lines
+
+    def _preview_line(self, iso: float) -> str:
+        """The last preview pass done for the isovalue `iso` ("" when none)."""
+        done = [f for _, f in self.previews if f["iso"] == iso]
+        return f"preview: {done[-1]['paths']} paths/texel on this surface" if done else ""
+
+    def stop(self, timeout: float = 15.0) -> None:
+        """Ask the process to finish its batch and exit; terminate it if it does not (at
+        once while it is still planning: it has written nothing yet)."""
+        self.poll()
+        if self.process.is_alive() and self.ready is not None:
+            self.inbox.put("stop")
+            self.process.join(timeout)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join(2)
+        for q in (self.inbox, self.outbox):
+            q.cancel_join_thread()
+            q.close()

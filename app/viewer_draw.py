@@ -1,0 +1,370 @@
+"""The viewer's drawing: what is on the GPU, how a frame is lit and drawn.
+
+`Drawing` owns the `app.render.SurfaceRenderer` of the window's context and everything the
+picture depends on besides the camera and the user's choices (`ViewState`): the surface on
+the GPU (the preview or the full-resolution one), the lattice textures and the re-upload of
+lazily baked texels (`TexelUploader`, 8³ bricks within a per-frame budget), the light
+(`Drawing.settings`: key light fixed to the camera or to the world, the environment
+rotation of SH lattices), and the detail while the user moves the camera (`Quality`:
+the preview mesh, then lower resolutions, scaled onto the window by `Blitter`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+import volumes
+
+BRICK = 8
+"""Texels per side of the blocks re-uploaded after the bake commits texels."""
+UPLOAD_BUDGET_S = 0.006
+"""Seconds per frame spent re-uploading texels (the rest waits for the next frame)."""
+INTERACTIVE_MS = 33.0
+"""Frame time aimed at while the camera or light moves (≈ 30 fps)."""
+RENDER_SCALES = (1.0, 0.75, 0.5, 0.35)
+"""Resolution factors tried, in order, while interacting and too slow."""
+PREVIEW_TRIANGLES = 60_000
+"""While interacting and too slow, the preview surface replaces a full one above this."""
+
+
+@dataclass
+class ViewState:
+    """What the user controls (besides the camera)."""
+
+    iso: float
+    shading: str
+    exposure: float
+    light: tuple[float, float] | None = None  # None: key light fixed to the camera
+    show_ui: bool = True
+
+
+def upload_box(textures, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> None:
+    """Re-upload texels lo ≤ (z, y, x) < hi of `textures.lattice` into its GL textures
+    (irradiance premultiplied by validity, and validity), as `LatticeTextures` stores them."""
+    lat = textures.lattice
+    (z0, y0, x0), (z1, y1, x1) = lo, hi
+    region = np.s_[z0:z1, y0:y1, x0:x1]
+    premultiplied = np.ascontiguousarray(lat.displayed(region)[..., :3])  # 0 where not shown
+    valid = np.where(lat.shown(region), 255, 0).astype(np.uint8)
+    viewport = (x0, y0, z0, x1 - x0, y1 - y0, z1 - z0)
+    textures.irradiance.write(premultiplied.tobytes(), viewport=viewport, alignment=4)
+    textures.valid.write(valid.tobytes(), viewport=viewport, alignment=1)
+
+
+class TexelUploader:
+    """Tracks which BRICK³ blocks hold newly committed texels and re-uploads them.
+
+    Irradiance lattices are re-uploaded block by block (`upload_box`); SH lattices, whose
+    packing `LatticeTextures` does per z-slab, by the z-slabs of the dirty blocks."""
+
+    def __init__(self, textures) -> None:
+        self.textures = textures
+        self.shape = tuple(textures.lattice.geometry.shape)
+        self.dirty = np.zeros([-(-n // BRICK) for n in self.shape], bool)
+        self.uploaded = 0
+
+    def mark(self, flat_ids: np.ndarray) -> None:
+        """Note (N,) flat texel ids whose values changed."""
+        if len(flat_ids) == 0:
+            return
+        k, j, i = np.unravel_index(np.asarray(flat_ids, np.int64), self.shape)
+        self.dirty[k // BRICK, j // BRICK, i // BRICK] = True
+
+    @property
+    def pending(self) -> int:
+        """Blocks waiting for upload."""
+        return int(self.dirty.sum())
+
+    def upload(self, budget_s: float | None = UPLOAD_BUDGET_S) -> int:
+        """Upload dirty blocks until `budget_s` seconds are spent (None: all); returns how
+        many were uploaded."""
+        t0, n = time.perf_counter(), 0
+        if self.textures.kind != "irradiance":
+            for k in np.flatnonzero(self.dirty.any(axis=(1, 2))):
+                self.textures.update(int(k) * BRICK, min((int(k) + 1) * BRICK, self.shape[0]))
+                n += int(self.dirty[k].sum())
+                self.dirty[k] = False
+                if budget_s is not None and time.perf_counter() - t0 > budget_s:
+                    break
+            self.uploaded += n
+            return n
+        for b in np.argwhere(self.dirty):
+            lo = tuple(int(v) * BRICK for v in b)
+            hi = tuple(min(v + BRICK, s) for v, s in zip(lo, self.shape, strict=True))
+            upload_box(self.textures, lo, hi)
+            self.dirty[tuple(b)] = False
+            n += 1
+            if budget_s is not None and time.perf_counter() - t0 > budget_s:
+                break
+        self.uploaded += n
+        return n
+
+
+def check_textures(textures) -> dict:
+    """Read the GL textures back and compare them with the lattice.
+
+    Returns:
+        {"texels": texels shown (computed or previewed), "computed": texels
+        with samples, "max_rel_error":
+        largest |GL − lattice| / max(RGB) over those texels (RGB9_E5 keeps 9 mantissa
+        bits: ≤ 2⁻⁹ when rounding),
+        "valid_mismatch": texels whose validity differs, "uncomputed_nonzero": texels not
+        shown with a non-zero value}; SH lattices: the validity only.
+    """
+    lat = textures.lattice
+    z, y, x = lat.geometry.shape
+    gl_valid = np.frombuffer(textures.valid.read(), np.uint8).reshape(z, y, x)
+    computed = lat.shown()
+    if textures.kind != "irradiance":  # SH packing is LatticeTextures' own: validity only
+        return {"texels": int(computed.sum()), "computed": int((lat.samples > 0).sum()),
+                "max_rel_error": None,
+                "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
+                "uncomputed_nonzero": None}
+    gl_rgb = np.frombuffer(textures.irradiance.read(), np.float32).reshape(z, y, x, 3)
+    want = lat.displayed()[..., :3][computed].astype(np.float64)
+    got = gl_rgb[computed].astype(np.float64)
+    scale = np.maximum(want.max(axis=1, keepdims=True), 1e-30)
+    rel = np.abs(got - want) / scale
+    return {"texels": int(computed.sum()), "computed": int((lat.samples > 0).sum()),
+            "max_rel_error": float(rel.max()) if len(rel) else 0.0,
+            "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
+            "uncomputed_nonzero": int((gl_rgb[~computed] != 0).any(axis=-1).sum())}
+
+
+@dataclass
+class Quality:
+    """Detail while the user moves the camera or light: the preview mesh first, then lower
+    resolutions, until a frame takes about INTERACTIVE_MS (software GL needs both; a GPU
+    needs neither). Kept between interactions; full detail returns when the motion stops."""
+
+    level: int = 0
+    coarse: bool = False
+
+    @property
+    def scale(self) -> float:
+        return RENDER_SCALES[self.level]
+
+    def adapt(self, frame_ms: float, full_triangles: int) -> None:
+        """Adjust after an interactive frame that took `frame_ms`."""
+        if frame_ms > 1.3 * INTERACTIVE_MS:
+            if not self.coarse and full_triangles > PREVIEW_TRIANGLES:
+                self.coarse = True
+            elif self.level < len(RENDER_SCALES) - 1:
+                self.level += 1
+        elif frame_ms < 0.6 * INTERACTIVE_MS and self.level > 0:
+            self.level -= 1
+
+
+_GL_READ_FRAMEBUFFER, _GL_DRAW_FRAMEBUFFER = 0x8CA8, 0x8CA9
+_GL_COLOR_BUFFER_BIT, _GL_LINEAR = 0x4000, 0x2601
+
+
+class Blitter:
+    """Scales an 8-bit render target onto the window (glBlitFramebuffer, linear filter),
+    which moderngl's ``copy_framebuffer`` cannot do (it copies 1:1)."""
+
+    def __init__(self, ctx) -> None:
+        import ctypes
+
+        proc = ctx.extra["proc_address"]
+        self.ctx = ctx
+        self._bind = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_uint)(
+            proc("glBindFramebuffer"))
+        self._blit = ctypes.CFUNCTYPE(None, *([ctypes.c_int] * 8), ctypes.c_uint,
+                                      ctypes.c_uint)(proc("glBlitFramebuffer"))
+
+    def to_screen(self, fbo, src: tuple[int, int], dst: tuple[int, int]) -> None:
+        self._bind(_GL_READ_FRAMEBUFFER, fbo.glo)
+        self._bind(_GL_DRAW_FRAMEBUFFER, 0)
+        self._blit(0, 0, src[0], src[1], 0, 0, dst[0], dst[1], _GL_COLOR_BUFFER_BIT, _GL_LINEAR)
+        self.ctx.screen.viewport = (0, 0, dst[0], dst[1])
+        self.ctx.screen.use()  # rebinds 0 for both, as moderngl believes
+
+
+class Drawing:
+    """The picture of the viewer's window (see the module docstring).
+
+    Attributes:
+        renderer: the `app.render.SurfaceRenderer` of the window's context.
+        modes: every shading mode's name, in the keys' order.
+        albedo: (3,) surface albedo, the lattice's when one is shown.
+        meshes: the surfaces of the current isovalue by stage ("coarse", "full").
+        on_gpu: the stage whose surface the renderer holds (None: none yet).
+        uploader: re-uploads lazily baked texels (None: the lattice does not change).
+        quality: the detail used while interacting.
+    """
+
+    def __init__(self, ctx, volume: volumes.Volume) -> None:
+        from .render import SHADING_MODES, RenderSettings, SurfaceRenderer
+
+        self.ctx, self.volume = ctx, volume
+        self.renderer = SurfaceRenderer(ctx)
+        self.renderer.set_bounds(*volume.box)  # shadows and fog do not follow the isovalue
+        self._render_fields = {f.name for f in fields(RenderSettings)}
+        self.modes = tuple(SHADING_MODES)
+        self.albedo = (0.8, 0.8, 0.8)
+        self.meshes: dict[str, volumes.Mesh] = {}
+        self.on_gpu: str | None = None
+        self.uploader: TexelUploader | None = None
+        self.quality = Quality()
+        self.blitter = Blitter(ctx)
+        self._usable: tuple[str, ...] | None = None
+
+    # -- the lattice ---------------------------------------------------------------------
+    def show_lattice(self, lattice) -> str | None:
+        """Upload `lattice` (and, for SH, the environment it was baked for); returns why
+        it cannot be shown, or None."""
+        self._usable = None
+        try:
+            self.renderer.set_lattice(lattice)
+            if lattice.kind == "sh":
+                from .cli import _environment_coefficients
+
+                self.renderer.set_environment(_environment_coefficients(None, lattice, "none"))
+        except ValueError as exc:
+            self.renderer.set_lattice(None)
+            return f"lattice not shown: {exc}"
+        return None
+
+    def track_uploads(self) -> None:
+        """The lattice shown will change (a lazy bake): re-upload the texels marked."""
+        self.uploader = TexelUploader(self.renderer.lattice)
+
+    def usable_modes(self) -> tuple[str, ...]:
+        """Shading modes that can be drawn now (`SurfaceRenderer.check_mode`); the
+        closest-isovalue lookup counts as usable with an irradiance lattice, its texel
+        isovalues are computed when it is first chosen."""
+        if self._usable is None:
+            from .render import SHADING_MODES
+
+            lattice = self.renderer.lattice
+            out = []
+            for name in self.modes:
+                try:
+                    self.renderer.check_mode(name)
+                except ValueError:
+                    closest = getattr(SHADING_MODES[name], "lookup", "") == "closest"
+                    if not (closest and lattice is not None and lattice.kind == "irradiance"):
+                        continue
+                out.append(name)
+            self._usable = tuple(out)
+        return self._usable
+
+    def ensure_texel_isovalues(self, mode: str) -> None:
+        """Upload the texel isovalues the closest-isovalue lookup needs (once)."""
+        from baking.plan import texel_values
+
+        from .render import SHADING_MODES
+
+        textures = self.renderer.lattice
+        closest = getattr(SHADING_MODES[mode], "lookup", "") == "closest"
+        if not closest or textures is None or textures.texel_iso is not None:
+            return
+        lattice = textures.lattice
+        self.renderer.set_lattice(lattice, texel_values(self.volume, lattice.geometry))
+        if self.uploader is not None:  # fresh textures hold every texel computed so far
+            self.uploader = TexelUploader(self.renderer.lattice)
+        self._usable = None
+
+    def mark_texels(self, flat_ids: np.ndarray) -> None:
+        """Note (N,) flat ids of texels the bake changed."""
+        if self.uploader is not None:
+            self.uploader.mark(flat_ids)
+
+    def upload_texels(self, budget_s: float | None = UPLOAD_BUDGET_S) -> bool:
+        """Re-upload changed texels for `budget_s` seconds (None: all); True when some
+        were."""
+        if self.uploader is None or not self.uploader.pending:
+            return False
+        self.uploader.upload(budget_s)
+        return True
+
+    def check_lattice(self) -> dict:
+        """Upload every pending texel, then compare the GL textures with the lattice
+        (`check_textures`)."""
+        self.upload_texels(budget_s=None)
+        return check_textures(self.renderer.lattice)
+
+    # -- the light -----------------------------------------------------------------------
+    def settings(self, state: ViewState, size: tuple[int, int]):
+        """The `app.render.RenderSettings` of a frame of `size` (W, H) pixels in `state`."""
+        from .render import RenderSettings
+        from .ui import direction_from_angles
+
+        kw = {"size": size, "shading": state.shading, "exposure": state.exposure,
+              "albedo": self.albedo}
+        if state.light is not None:
+            kw["key_dir"] = tuple(direction_from_angles(*state.light))
+        if "env_rotation" in self._render_fields:
+            kw["env_rotation"] = state.light or (0.0, 0.0)
+        return RenderSettings(**kw)
+
+    def light_angles(self, state: ViewState, camera) -> tuple[float, float]:
+        """The light's (azimuth, elevation) in degrees (from the camera-fixed light if need
+        be)."""
+        from .render import key_direction
+        from .ui import angles_from_direction
+
+        if state.light is not None:
+            return state.light
+        if state.shading == "sh":  # the environment starts as loaded
+            return (0.0, 0.0)
+        return angles_from_direction(key_direction(camera, self.settings(state, (1, 1))))
+
+    # -- surfaces ------------------------------------------------------------------------
+    def set_surface(self, stage: str, mesh: volumes.Mesh, new_iso: bool) -> None:
+        """Keep `mesh` as the surface of `stage`; `new_iso` drops the other isovalue's."""
+        if new_iso:
+            self.meshes = {}
+        self.meshes[stage] = mesh
+        self.on_gpu = None
+
+    def sync_mesh(self, preview: bool) -> None:
+        """Put the preview or the full surface of the current isovalue on the GPU."""
+        want = "coarse" if preview and "coarse" in self.meshes else "full"
+        if want not in self.meshes:
+            want = "coarse"
+        if want == self.on_gpu or want not in self.meshes:
+            return
+        mesh = self.meshes[want]
+        self.renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
+        self.on_gpu = want
+
+    # -- frames --------------------------------------------------------------------------
+    def draw(self, camera, state: ViewState, size: tuple[int, int], scale: float) -> None:
+        """Render at `scale` × the framebuffer `size` (W, H) and put it on the window.
+
+        Raises:
+            ValueError: the shading mode lacks what it needs (`app.render.RenderError`).
+        """
+        w, h = size
+        small = (max(1, round(w * scale)), max(1, round(h * scale)))
+        settings = self.settings(state, small)
+        targets = self.renderer.draw_hdr(camera, settings)
+        if small == size:
+            self.ctx.screen.viewport = (0, 0, w, h)
+            self.renderer.resolve(targets, settings, fbo=self.ctx.screen)
+        else:
+            self.renderer.resolve(targets, settings)
+            self.blitter.to_screen(targets.ldr, small, size)
+
+    def frame(self, camera, state: ViewState, size: tuple[int, int]):
+        """An off-screen `app.render` frame (sRGB and linear radiance) of `size` (W, H)."""
+        return self.renderer.render(camera, self.settings(state, size))
+
+    def visible_points(self, camera, state: ViewState, size: tuple[int, int]) -> np.ndarray:
+        """(N, 3) world positions of the surface under the pixels of a view of `size`
+        (W, H), read at most 512 pixels across."""
+        w, h = size
+        scale = min(1.0, 512.0 / max(w, h))
+        small = (max(1, round(w * scale)), max(1, round(h * scale)))
+        settings = replace(self.settings(state, small), shading="position")
+        frame = self.renderer.render(camera, settings)
+        return frame.linear[frame.mask]
+
+    def release(self) -> None:
+        self.uploader = None
+        self.renderer.release()

@@ -1,0 +1,200 @@
+"""Isosurfaces for the viewer, extracted off the render thread.
+
+`MeshWorker` (a thread) makes a coarse surface (marching cubes every other voxel) first,
+then the full-resolution one. Marching cubes runs in z-slabs of about half a million voxels
+(`extract_surface`): scikit-image holds the GIL for a whole call (≈ 0.4 s on a 256²×128
+volume), slabs bound that to ≈ 25 ms, skip slabs whose values miss the isovalue, and let a
+newer request cancel a stale extraction between slabs. Results for an isovalue the user has
+already left are dropped.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+import volumes
+
+SLAB_VOXELS = 1 << 19
+"""Voxels per marching-cubes call (a GIL hold of ~25 ms on one core)."""
+COARSE_STEP = 2
+"""Smallest marching-cubes step of the preview surface."""
+PREVIEW_TARGET_TRIANGLES = 35_000
+"""The preview's step grows (to at most 4) so that it has about this many triangles."""
+
+
+def mesh_normals(vertices: np.ndarray, faces: np.ndarray, flip: bool = False) -> np.ndarray:
+    """(V, 3) float32 unit vertex normals from area-weighted face normals of a marching-cubes
+    mesh in world units (they point from high to low values like the field's; `flip`
+    reverses them). Cheap: used for previews before the smoothed gradient is ready."""
+    p = vertices.astype(np.float64)[faces]
+    fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    idx = faces.reshape(-1)
+    vn = np.stack([np.bincount(idx, np.repeat(fn[:, c], 3), minlength=len(vertices))
+                   for c in range(3)], axis=1)
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+    return (-vn if flip else vn).astype(np.float32)
+
+
+def preview_step(full_triangles: int | None) -> int:
+    """Marching-cubes step of the preview surface, given the full surface's triangle count
+    last time (triangles fall with the square of the step)."""
+    if not full_triangles:
+        return COARSE_STEP
+    step = round(math.sqrt(full_triangles / PREVIEW_TARGET_TRIANGLES))
+    return int(min(max(step, COARSE_STEP), 4))
+
+
+def extract_surface(volume: volumes.Volume, iso: float, *, step: int = 1,
+                    normals: str = "smooth", flip: bool = False,
+                    cancelled=None) -> volumes.Mesh | None:
+    """The isosurface ρ = iso by marching cubes in z-slabs (see the module docstring).
+
+    The triangles are those of `volumes.isosurface` at the same step (vertices on slab
+    boundaries appear once per slab; they coincide, so nothing shows).
+
+    Args:
+        step: marching-cubes step in voxels.
+        normals: "smooth" (cubic-B-spline gradient, as `volumes.isosurface`), "gradient"
+            (central differences) or "mesh" (from the triangles, cheapest).
+        cancelled: called between slabs; True abandons the work (returns None).
+
+    Returns:
+        The mesh in world units (empty, with a message, when there is no surface), or
+        None when cancelled.
+    """
+    from skimage import measure
+
+    lo, hi = volume.value_range
+    if not lo < iso < hi:
+        return volumes.Mesh.empty_at(iso, f"isovalue {iso:g} is at or beyond the data's "
+                                     f"extremes [{lo:g}, {hi:g}]; nothing to show")
+    data = volume.data
+    nz, ny, nx = data.shape
+    thick = max(step, (SLAB_VOXELS // (ny * nx)) // step * step)
+    parts_v, parts_f, count = [], [], 0
+    for z0 in range(0, nz - 1, thick):
+        if cancelled is not None and cancelled():
+            return None
+        block = data[z0:min(z0 + thick, nz - 1) + 1]
+        if block.min() > iso or block.max() < iso:
+            continue
+        try:
+            v, f, _, _ = measure.marching_cubes(block, level=iso, step_size=step,
+                                                allow_degenerate=False)
+        except (ValueError, RuntimeError):  # a slab thinner than the step, or no crossing
+            continue
+        v[:, 0] += z0
+        parts_v.append(v)
+        parts_f.append(f + count)
+        count += len(v)
+    if not parts_f:
+        return volumes.Mesh.empty_at(iso, f"no surface at isovalue {iso:g}")
+    world = volume.index_to_world(np.concatenate(parts_v)).astype(np.float32)
+    faces = np.concatenate(parts_f).astype(np.uint32)
+    if normals == "mesh":
+        n = mesh_normals(world, faces, flip)
+    else:
+        n = volumes.normals_at(volume, world, smooth=normals == "smooth", flip=flip)
+    return volumes.Mesh(world, faces, n, iso)
+
+
+@dataclass(frozen=True)
+class MeshResult:
+    """A surface from the worker: request number, stage ("coarse", "full", or "lod": a
+    lighter preview made after the full surface), seconds since the request."""
+
+    request: int
+    iso: float
+    stage: str
+    mesh: volumes.Mesh
+    seconds: float
+
+
+class MeshWorker:
+    """Extracts isosurfaces on a background thread, coarse then full; a newer request
+    cancels the older one between slabs, and `poll` returns results of the newest only."""
+
+    def __init__(self, volume: volumes.Volume, *, normals: str = "smooth",
+                 flip: bool = False) -> None:
+        self.volume, self.normals, self.flip = volume, normals, flip
+        self.coarse = min(volume.data.shape) >= 8 * COARSE_STEP
+        self._cv = threading.Condition()
+        self._pending: tuple[int, float, float] | None = None
+        self._latest = 0
+        self._results: list[MeshResult] = []
+        self._closed = False
+        self._gradient_ready = False
+        self._full_triangles: int | None = None
+        self.error: str | None = None
+        self._thread = threading.Thread(target=self._loop, name="isolume-mesh", daemon=True)
+        self._thread.start()
+
+    def request(self, iso: float) -> int:
+        """Ask for the surface at `iso`; returns the request number."""
+        with self._cv:
+            self._latest += 1
+            self._pending = (self._latest, float(iso), time.perf_counter())
+            self._cv.notify()
+            return self._latest
+
+    def poll(self) -> list[MeshResult]:
+        """Results that arrived since the last call, for the newest request only."""
+        with self._cv:
+            out = [r for r in self._results if r.request == self._latest]
+            self._results.clear()
+        return out
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify()
+        self._thread.join(timeout=5)
+
+    def _stale(self, request: int) -> bool:
+        return self._closed or request != self._latest
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                while self._pending is None and not self._closed:
+                    self._cv.wait()
+                if self._closed:
+                    return
+                request, iso, t0 = self._pending
+                self._pending = None
+            try:
+                self._extract(request, iso, t0)
+            except Exception as exc:  # report, keep serving later requests
+                self.error = f"surface extraction failed at iso {iso:g}: {exc}"
+
+    def _stages(self, stages: list[tuple[str, int]]):
+        """The planned stages, then ("lod", step) when the full surface turned out to want
+        a coarser preview than the one made (the first time: its size was unknown)."""
+        yield from stages
+        if self.coarse and preview_step(self._full_triangles) > stages[0][1]:
+            yield "lod", preview_step(self._full_triangles)
+
+    def _extract(self, request: int, iso: float, t0: float) -> None:
+        coarse = preview_step(self._full_triangles)
+        stages = [("coarse", coarse), ("full", 1)] if self.coarse else [("full", 1)]
+        for stage, step in self._stages(stages):
+            normals = self.normals
+            if stage == "coarse" and not self._gradient_ready and normals == "smooth":
+                normals = "mesh"  # the smoothed gradient grid takes seconds the first time
+            mesh = extract_surface(self.volume, iso, step=step, normals=normals,
+                                   flip=self.flip, cancelled=lambda r=request: self._stale(r))
+            if mesh is None:
+                return
+            if stage == "full":
+                self._gradient_ready = True
+                self._full_triangles = len(mesh.faces) or self._full_triangles
+            with self._cv:
+                if self._stale(request):
+                    return
+                self._results.append(MeshResult(request, iso, stage, mesh,
+                                                time.perf_counter() - t0))
