@@ -309,11 +309,9 @@ class Baker:
         lower level it is (`here`), and the upper-level samples of those whose lower
         level is the one below (`below`)."""
         plan = self.plan
-        pos, samples, texels = kernels.level_paths(here, below, done, remaining, plan.phase,
-                                                   plan.weight, GOLDEN_FRACTION)
-        origins, normals = start_points(self.volume, self.geometry.centres(plan.ids[texels]),
-                                        float(plan.levels[level]), self.config)
-        start = PathStarts(texels, origins.astype(np.float32), normals.astype(np.float32))
+        pos, samples, start = lay_out_level(
+            self.volume, self.geometry, self.config, float(plan.levels[level]), plan.ids,
+            plan.phase, plan.weight, here, below, done, remaining)
         return _LevelWork(level, pos, samples, start)
 
     def _submit_level(self, work: _LevelWork) -> list:
@@ -461,6 +459,30 @@ class PathStarts:
     texels: np.ndarray
     origins: np.ndarray
     normals: np.ndarray
+
+
+def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
+                  iso: float, ids: np.ndarray, phase: np.ndarray, weight: np.ndarray,
+                  here: np.ndarray, below: np.ndarray, done: np.ndarray,
+                  remaining: np.ndarray) -> tuple[np.ndarray, np.ndarray, PathStarts]:
+    """The pending paths of the level surface ρ = `iso` and their texels' start points
+    (`Baker._prepare_level`; a cluster task lays out its own texels with it). Each
+    texel's paths and start point depend on that texel alone.
+
+    Args:
+        ids, phase, weight: (T,) the plan's lattice ids, level phases and upper weights,
+            of all its texels or of any subset (positions then index the subset).
+        here, below, done, remaining: as `kernels.level_paths` (positions into `ids`).
+
+    Returns:
+        positions (P,) and sample indices (P,) of the paths, sorted by position, and
+        their `PathStarts`.
+    """
+    pos, samples, texels = kernels.level_paths(here, below, done, remaining, phase, weight,
+                                               GOLDEN_FRACTION)
+    origins, normals = start_points(volume, geometry.centres(ids[texels]), iso, config)
+    return pos, samples, PathStarts(texels, origins.astype(np.float32),
+                                    normals.astype(np.float32))
 
 
 @dataclass(frozen=True)
