@@ -37,7 +37,7 @@ from .integrator import (
 )
 from .lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
 from .lights import parse_light
-from .plan import GOLDEN_FRACTION, Plan, make_plan, project_to_level
+from .plan import GOLDEN_FRACTION, Plan, make_plan, newton_reach, project_to_level
 
 PATHS_PER_CHUNK = 16384
 MIN_PATHS_PER_CHUNK = 2048
@@ -82,13 +82,15 @@ def path_settings(volume: volumes.Volume, config: BakeConfig) -> PathSettings:
 
 def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
                  config: BakeConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Texel centres moved onto a level surface and offset along the normal.
+    """Texel centres moved onto a level surface (at most the plan's `newton_reach`) and
+    offset along the normal.
 
     Returns:
         origins (N, 3) world, normals (N, 3) unit (high → low values unless flipped).
     """
     h = float(np.mean(volume.spacing))
-    on_level = project_to_level(volume, centres, level, max_move=4 * config.max_move * h)
+    on_level = project_to_level(volume, centres, level,
+                                max_move=newton_reach(volume, config))
     normals = volumes.normals_at(volume, on_level, smooth=config.normals == "smooth",
                                  flip=config.flip_normals).astype(np.float64)
     return on_level + config.offset * h * normals, normals
@@ -161,6 +163,14 @@ def _new_lattice(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
     return Lattice.empty(geometry, channels, meta)
 
 
+def _kept_levels(lattice: Lattice | None) -> np.ndarray | None:
+    """(K,) the levels a lattice was started with (a resumed bake keeps them: its samples
+    were traced on them), or None."""
+    if lattice is None or "plan" not in lattice.meta:
+        return None
+    return np.asarray(lattice.meta["plan"]["levels"], np.float64)
+
+
 def _load_existing(volume: volumes.Volume, config: BakeConfig, out: Path | None
                    ) -> Lattice | None:
     """The lattice in `out` when it can be resumed with `config`, None when there is none.
@@ -210,7 +220,7 @@ class Baker:
         self.lattice = lattice or _new_lattice(volume, config, self.geometry,
                                                self.settings.channels)
         self.lighting = make_lighting(config)
-        self.plan = make_plan(volume, self.geometry, config)
+        self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice))
         self.lattice.active = self.plan.active
         kernels.warm_up()
         self.stats = BakeStats()
@@ -371,7 +381,7 @@ def _group_by(keys: np.ndarray, values: np.ndarray, first: int, last: int) -> li
 
 def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike | None = None,
          workers: int | None = None, progress: bool = False,
-         checkpoint_seconds: float = 60.0) -> Lattice:
+         checkpoint_seconds: float = 60.0, scheduler: str | None = None) -> Lattice:
     """Bake (or resume) the illumination lattice of `volume` for `config`.
 
     Args:
@@ -381,6 +391,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
             depend on it.
         progress: show a progress bar (texels, rays per second) on stderr.
         checkpoint_seconds: save finished texels to `out` at least this often.
+        scheduler: trace on a Dask cluster instead of local threads (``tcp://HOST:PORT``
+            or ``local:N``; `baking.cluster`): the same lattice to the bit.
 
     Returns:
         The lattice (also written to `out`; on Ctrl-C the finished texels are saved
@@ -388,7 +400,12 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
     """
     out = Path(out) if out is not None else None
     existing = _load_existing(volume, config, out)
-    baker = Baker(volume, config, lattice=existing, workers=workers)
+    if scheduler is not None:
+        from .cluster import ClusterBaker
+
+        baker = ClusterBaker(volume, config, scheduler, lattice=existing)
+    else:
+        baker = Baker(volume, config, lattice=existing, workers=workers)
     pending = np.maximum(config.samples - baker.samples_done(), 0)
     bar = _progress(int(pending.sum()), progress)
     last_save = [time.perf_counter()]
@@ -556,6 +573,8 @@ def _finish_meta(lattice: Lattice, plan: Plan, stats: BakeStats, previous: dict)
         "unreachable_texels": plan.unreachable,
         "total_texels": int(math.prod(lattice.geometry.shape)),
         "levels": [float(v) for v in plan.levels],
+        "iso_range": [float(v) for v in plan.iso_range],
+        "move_limit_voxels": plan.move_limit,
         "noise_sigma": plan.noise,
         "move_voxels_p50": float(np.percentile(plan.move_voxels, 50)),
         "move_voxels_p90": float(np.percentile(plan.move_voxels, 90)),

@@ -11,6 +11,15 @@ from .errors import BakeError
 from .lights import parse_light
 
 MODES = ("irradiance", "sh")
+DEFAULT_ENV = "sky:sun=3,sun_az=-120,sun_el=50"
+"""The lighting of the command line when none is given (``render``, ``view``, ``bake`` and
+``reference`` alike): a blue sky over a grey ground with a sun of irradiance 3 from the
+upper left of the default view (azimuth −120°, the camera's −60° plus 60°; elevation 50°),
+so that the first picture shows shape by its cast shadows and the sky's soft light.
+`BakeConfig`'s own default `env` stays the constant white sky (E = π on open surfaces,
+what the analytic tests use)."""
+DIRECT_LIGHT = ("pixels", "lattice")
+"""Where the direct light of point/directional lights and the sky's sun is computed."""
 
 
 @dataclass(frozen=True)
@@ -28,8 +37,10 @@ class BakeConfig:
         env: environment spec (see `baking.environment.parse_env`); "" = none.
         lights: point/directional light specs (see `baking.lights`).
         seed: random seed.
-        max_move: largest Newton move onto a level surface, voxels; sets the number of
-            isovalue levels from the data's gradients.
+        max_move: largest Newton move onto a level surface (for 90 % of the texels),
+            voxels; sets the number of isovalue levels from the data's gradients. None
+            (the default): chosen from the samples, and the level count capped by the
+            scenes' cost (`baking.plan.move_limit`, `level_budget`).
         max_levels: cap on the number of levels (memory and build time).
         offset: ray-origin offset along the normal, voxels (paper Fig. 5, "offset").
         normals: "smooth" (cubic-B-spline-smoothed gradient, the paper's) or "gradient"
@@ -42,6 +53,12 @@ class BakeConfig:
             term) exceeds this, from `samples` up to `max_samples` ("model no more than a
             scene needs": easy texels stop early).
         max_samples: cap on paths per texel with `target_error`.
+        direct_light: "pixels": the lights' and the sun's direct light (at a texel's own
+            point) is left out of the lattice, which the renderer adds per pixel with
+            shadow maps; their bounces and the rest of the sky stay in the lattice.
+            "lattice": everything in the lattice. None chooses "pixels" for an
+            irradiance bake with a light or a sun, else "lattice" (a file written before
+            the field existed reads as "lattice", what it holds).
     """
 
     mode: str = "irradiance"
@@ -54,7 +71,7 @@ class BakeConfig:
     env: str = "constant:1,1,1"
     lights: tuple[str, ...] = ()
     seed: int = 0
-    max_move: float = 0.5
+    max_move: float | None = None
     max_levels: int = 64
     offset: float = 0.25
     normals: str = "smooth"
@@ -62,6 +79,7 @@ class BakeConfig:
     noise_sigmas: float = 3.0
     target_error: float | None = None
     max_samples: int = 4096
+    direct_light: str | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -94,7 +112,8 @@ class BakeConfig:
             )
         if not self.env and not self.lights:
             raise BakeError("nothing lights the scene: give --env and/or --light")
-        if not 0 < self.max_move <= 4 or not 2 <= self.max_levels <= 1024:
+        if (self.max_move is not None and not 0 < self.max_move <= 4) \
+                or not 2 <= self.max_levels <= 1024:
             raise BakeError("max_move must lie in (0, 4] voxels and max_levels in [2, 1024]")
         if self.target_error is not None and not 0 < self.target_error < 1:
             raise BakeError(f"--target-error {self.target_error:g}: expected a relative "
@@ -106,6 +125,21 @@ class BakeConfig:
             raise BakeError(f"normals {self.normals!r}: expected 'smooth' or 'gradient'")
         if not 0 <= self.offset <= 2:
             raise BakeError(f"offset {self.offset:g}: expected 0 to 2 voxels")
+        self._choose_direct_light()
+
+    def _choose_direct_light(self) -> None:
+        """Resolve and check `direct_light` (see the class docs)."""
+        from .lights import has_pixel_lights
+
+        if self.direct_light is None:
+            pixels = self.mode == "irradiance" and has_pixel_lights(self.env, self.lights)
+            object.__setattr__(self, "direct_light", "pixels" if pixels else "lattice")
+        if self.direct_light not in DIRECT_LIGHT:
+            raise BakeError(f"--direct-light {self.direct_light!r}: expected one of "
+                            f"{', '.join(DIRECT_LIGHT)}")
+        if self.direct_light == "pixels" and self.mode != "irradiance":
+            raise BakeError("--direct-light pixels needs --mode irradiance (an SH transfer "
+                            "holds no light of its own); use --direct-light lattice")
 
     @property
     def gray(self) -> bool:
@@ -124,6 +158,7 @@ class BakeConfig:
     def from_dict(cls, d: dict) -> BakeConfig:
         """Inverse of `to_dict` (unknown keys are an error)."""
         d = dict(d)
+        d.setdefault("direct_light", "lattice")  # files from before the field: all in it
         d["lights"] = tuple(d.get("lights", ()))
         d["albedo"] = tuple(d.get("albedo", (0.8, 0.8, 0.8)))
         if d.get("iso_range") is not None:

@@ -51,6 +51,10 @@ COARSE_OFFSET_VOXELS = 0.5
 """Start-point offset on a step-2 surface: that mesh sits up to (2 voxels)²/(8 R) off the
 true surface in concave regions of radius R, so the bake's 0.25 voxels would let concave
 texels start behind a facet for R < 2 voxels."""
+REACH_VOXELS = 2.0
+"""Largest move of a texel centre onto the displayed surface (smoothed-field steps)."""
+FINISH_VOXELS = 0.5
+"""Largest further move onto the raw field's surface (plain steps)."""
 PATHS_PER_STEP = 1 << 17
 """Paths traced per `Previewer.step` (~0.15 s on 2 cores, idle): the bake process reads
 its messages between steps, so a new view waits about that long for its first pass."""
@@ -103,9 +107,9 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
     h = float(np.mean(volume.spacing))
     smooth = step == 1 and config.normals == "smooth"
     on_surface = project_to_level(volume, lattice.geometry.centres(flat), iso,
-                                  max_move=4 * config.max_move * h, smooth=smooth)
+                                  max_move=REACH_VOXELS * h, smooth=smooth)
     if smooth:  # finish on the raw field's surface
-        on_surface = project_to_level(volume, on_surface, iso, max_move=config.max_move * h,
+        on_surface = project_to_level(volume, on_surface, iso, max_move=FINISH_VOXELS * h,
                                       smooth=False)
     normals = volumes.normals_at(volume, on_surface, smooth=smooth, flip=config.flip_normals)
     offset = COARSE_OFFSET_VOXELS if step == 2 else config.offset

@@ -203,7 +203,9 @@ def test_whole_path_loop_equals_the_vertex_by_vertex_tracer(monkeypatch, env, al
 
 
 def test_resume_equals_uninterrupted(tmp_path):
-    config = BakeConfig(samples=40, bounces=1, env="constant:1,1,1")
+    """Samples added to a file later equal a bake that had them from the start, when the
+    levels do not depend on the samples (an explicit max_move)."""
+    config = BakeConfig(samples=40, bounces=1, env="constant:1,1,1", max_move=0.5)
     vol = make("shells", 32)
     whole = bake(vol, config, workers=2)
     path = tmp_path / "l.npz"
@@ -221,9 +223,10 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
 
     bake_module = sys.modules["baking.bake"]
 
-    config = BakeConfig(samples=20, bounces=1, env="constant:1,1,1")
+    config = BakeConfig(samples=20, bounces=1, env="constant:1,1,1", max_move=0.5)
     vol = make("shells", 32)
     whole = bake(vol, config, workers=2)
+    assert len(whole.meta["plan"]["levels"]) > 6
     original = bake_module.Baker._submit_level
     calls = {"n": 0}
 
@@ -262,7 +265,7 @@ def test_level_approximation_error_shrinks_with_more_levels():
 
     vol = make("shells", 40)
     samples = 128
-    base = BakeConfig(samples=samples, bounces=1, env="constant:1,1,1")
+    base = BakeConfig(samples=samples, bounces=1, env="constant:1,1,1", iso_range=(0.05, 0.95))
     geometry = LatticeGeometry.for_volume(vol, 1.0)
     plan = make_plan(vol, geometry, base)
     rng = np.random.default_rng(5)
@@ -270,7 +273,7 @@ def test_level_approximation_error_shrinks_with_more_levels():
     exact, stderr = [], []
     lighting, settings = make_lighting(base), path_settings(vol, base)
     for pos in pick:
-        iso = float(plan.rho[pos])
+        iso = float(plan.target[pos])
         mesh = volumes.isosurface(vol, iso)
         scene = Scene(mesh.vertices, mesh.faces)
         centre = geometry.centres(plan.ids[[pos]])

@@ -100,20 +100,29 @@ def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.
             out: np.ndarray) -> None:
     """Newton steps p += (level − ρ(p)) ∇ρ / |∇ρ|² from each (N, 3) world point, the
     total move clamped to `max_move`; stops once a step moved less than 1e-4 voxel (Newton
-    converges quadratically where the gradient is regular)."""
+    converges quadratically where the gradient is regular).
+
+    Damped where the field is flat: a step is at most one voxel long, and a point gets
+    one more step per voxel of `max_move`, so a point in a plateau next to the surface
+    (small gradient: an undamped step would overshoot far past it) walks up to it."""
     value = np.empty(1)
     g = np.empty(3)
-    tiny = 1e-4 * min(spacing[0], spacing[1], spacing[2])
+    voxel = min(spacing[0], spacing[1], spacing[2])
+    tiny = 1e-4 * voxel
+    steps = iterations + int(max_move / voxel)
     for i in range(points.shape[0]):
         sx, sy, sz = points[i, 0], points[i, 1], points[i, 2]
         px, py, pz = sx, sy, sz
-        for _ in range(iterations):
+        for _ in range(steps):
             zi, yi, xi = ((pz - origin[2]) / spacing[2], (py - origin[1]) / spacing[1],
                           (px - origin[0]) / spacing[0])
             _lerp3(data, zi, yi, xi, value)
             _lerp3(grad, zi, yi, xi, g)
             g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
             step = (levels[i] - value[0]) / g2
+            length = abs(step) * np.sqrt(g2)
+            if length > voxel:
+                step *= voxel / length
             qx, qy, qz = px + step * g[0], py + step * g[1], pz + step * g[2]
             dx, dy, dz = qx - sx, qy - sy, qz - sz
             dist = np.sqrt(dx * dx + dy * dy + dz * dz)

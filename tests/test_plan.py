@@ -1,0 +1,106 @@
+"""`baking.plan`: targets clamped to the iso range, levels inside it, level counts that
+follow the samples and the scenes' cost, and Newton moves that reach the level."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import volumes
+from baking import BakeConfig, bake
+from baking.lattice import LatticeGeometry
+from baking.plan import (
+    MOVE_LIMITS,
+    SCENE_SHARE,
+    level_budget,
+    make_plan,
+    move_limit,
+    project_to_level,
+)
+from volumes import Volume
+from volumes.synthetic import make
+
+
+def _plan(vol, **kwargs):
+    config = BakeConfig(**kwargs)
+    return make_plan(vol, LatticeGeometry.for_volume(vol, config.scale), config), config
+
+
+def test_targets_are_the_texel_values_clamped_to_the_iso_range():
+    vol = make("shells", 32)
+    plan, _ = _plan(vol, samples=64, iso_range=(0.4, 0.6))
+    lo, hi = plan.iso_range
+    assert (lo, hi) == (0.4, 0.6)
+    np.testing.assert_array_equal(plan.target, np.clip(plan.rho, lo, hi))
+    assert plan.rho.min() < lo and plan.rho.max() > hi  # corners of crossing cells reach out
+    assert plan.levels[0] >= lo and plan.levels[-1] <= hi
+    assert np.all(np.diff(plan.levels) > 0)
+
+
+def test_automatic_levels_follow_the_samples():
+    """The move limit scales as sqrt(256 / N) within its bounds; more samples, more levels."""
+    assert move_limit(BakeConfig(samples=256)) == pytest.approx(0.5)
+    assert move_limit(BakeConfig(samples=64)) == pytest.approx(1.0)
+    assert move_limit(BakeConfig(samples=4)) == MOVE_LIMITS[1]
+    assert move_limit(BakeConfig(samples=4096)) == MOVE_LIMITS[0]
+    assert move_limit(BakeConfig(samples=4, max_move=0.3)) == 0.3  # explicit: as told
+    vol = make("shells", 40)
+    counts = [len(_plan(vol, samples=n, iso_range=(0.1, 0.9))[0].levels) for n in (4, 64, 4096)]
+    assert counts[0] < counts[1] < counts[2]
+
+
+def test_noise_free_bakes_keep_fine_levels():
+    """Directional light only, no bounces: every path gives the same estimate, so neither
+    the samples nor the scenes' cost may coarsen the levels."""
+    vol = make("shells", 40)
+    lights = ("dir:0,0,1:1,1,1",)
+    quick, _ = _plan(vol, samples=2, bounces=0, env="", lights=lights, iso_range=(0.1, 0.9))
+    noisy, _ = _plan(vol, samples=2, bounces=0, iso_range=(0.1, 0.9))
+    assert quick.move_limit == 0.5 and len(quick.levels) > 2 * len(noisy.levels)
+
+
+def test_level_budget_keeps_scenes_a_fraction_of_the_tracing():
+    """A quick bake (few paths) gets few levels; a long one is not capped by the cost."""
+    vol = make("engine", 64)
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    quick = BakeConfig(samples=4, bounces=0, iso_range=(0.2, 0.4))
+    long = dataclasses.replace(quick, samples=1024, bounces=2)
+    plan, _ = _plan(vol, **dataclasses.asdict(quick))
+    rho = np.zeros(geometry.shape, np.float32)  # no surface crossed: the volume's cost only
+    cells = np.zeros(tuple(n - 1 for n in geometry.shape), bool)
+    budget_quick = level_budget(vol, geometry, quick, rho, cells, len(plan.ids), (0.2, 0.4))
+    budget_long = level_budget(vol, geometry, long, rho, cells, len(plan.ids), (0.2, 0.4))
+    rays = len(plan.ids) * 4
+    assert budget_quick == max(2, int(SCENE_SHARE * rays / (0.06 * vol.data.size)))
+    assert budget_long == long.max_levels
+    assert len(plan.levels) <= budget_quick
+
+
+def test_resumed_bake_keeps_the_levels_its_samples_were_traced_on(tmp_path):
+    vol = make("shells", 32)
+    config = BakeConfig(samples=8, bounces=1, iso_range=(0.1, 0.7))
+    path = tmp_path / "l.npz"
+    first = bake(vol, config, out=path, workers=2)
+    more = dataclasses.replace(config, samples=512)
+    fresh, _ = _plan(vol, **dataclasses.asdict(more))
+    resumed = bake(vol, dataclasses.replace(more, samples=24), out=path, workers=2)
+    assert len(fresh.levels) != len(first.meta["plan"]["levels"])
+    assert resumed.meta["plan"]["levels"] == first.meta["plan"]["levels"]
+    assert resumed.meta["plan"]["iso_range"] == [0.1, 0.7]
+
+
+def test_damped_newton_walks_out_of_a_plateau_onto_the_level():
+    """A point deep in the flat part of a tanh profile (gradient e^-4 of the edge's): one
+    undamped Newton step would overshoot by tens of voxels; damped steps of at most a
+    voxel reach the level within the allowed move."""
+    size, w = 48, 1.2
+    z = np.arange(size, dtype=np.float32)
+    data = 0.5 - 0.5 * np.tanh((z - 24) / w)
+    vol = Volume(np.broadcast_to(data[:, None, None], (size, 8, 8)).copy(), (1, 1, 1),
+                 (0, 0, 0), name="edge", source="edge")
+    start = np.array([[4.0, 4.0, 20.5]])  # 3.5 voxels inside, value 0.9975
+    moved = project_to_level(vol, start, 0.5, max_move=6.0)
+    assert volumes.value_at(vol, moved)[0] == pytest.approx(0.5, abs=1e-3)
+    assert moved[0, 2] == pytest.approx(24.0, abs=0.05)
+    stuck = project_to_level(vol, start, 0.5, max_move=2.0)  # too far: clamped, not past
+    assert np.linalg.norm(stuck - start) == pytest.approx(2.0)
