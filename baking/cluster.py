@@ -1,0 +1,487 @@
+"""Bakes on a Dask cluster (`distributed`): the same lattice, bit for bit, on many machines.
+
+The machine that runs ``isolume bake --scheduler ADDRESS`` (the *master*) plans the bake,
+holds the lattice and the pass sums, and commits texels and saves checkpoints as a local
+bake does (`baking.bake.Baker`, which `ClusterBaker` extends). The tracing runs on the
+cluster's workers as tasks of (level, group of whole texels):
+
+* What every task needs — the volume, the bake settings, the parsed lighting and the
+  tracing constants — is one `_Job`, scattered to every worker once (``broadcast``); a
+  task carries only its texels' lattice ids, level phases and weights, samples done and
+  still to do (41 bytes per texel) and returns their pass sums ((C + 2) · 8 bytes per
+  texel). A worker lays out its texels' paths and start points itself
+  (`bake.lay_out_level`), so no path array crosses the network.
+* A level scene is built once per worker that traces the level (a per-process cache,
+  `_WorkerBake`): each level's tasks prefer one worker (round robin over the workers, a
+  loose restriction: Dask's work stealing still moves them to idle workers, which then
+  build the scene too), lower levels first (task priority).
+* Bit-identical lattices: a task forms its texels' sums from zero (`kernels.accumulate`
+  does so locally too: a texel's paths on one level are summed in order, then added to
+  its pass sum) and the master adds them to the pass sums level by level, in the order
+  a local bake adds them — whatever the workers, the chunking or the completion order.
+* A worker that dies costs its unfinished tasks: Dask runs them again elsewhere, and the
+  master counts each task's result once (keyed by task). Results from a worker running
+  other isolume code or other numerical libraries are refused (`fingerprint`).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.metadata
+import itertools
+import logging
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+import volumes
+
+from . import kernels
+from .bake import (
+    REPORT_S,
+    Baker,
+    PassSums,
+    Tracing,
+    _commit,
+    _finish_meta,
+    _group_by,
+    _level_scene,
+    lay_out_level,
+    trace_chunk,
+)
+from .config import BakeConfig
+from .errors import BakeError
+from .integrator import Lighting, PathSettings, WholePaths
+from .lattice import Lattice, LatticeGeometry
+
+PATHS_PER_TASK = 65536
+"""Expected paths per task: ~0.1–0.3 s of tracing, against ~2 ms of Dask overhead."""
+LOCAL_PREFIX = "local:"
+CONNECT_TIMEOUT_S = 20.0
+SCENES_PER_WORKER = 3
+"""Level scenes a worker process keeps (its own levels arrive in order; one more for a
+stolen task)."""
+_LIBRARIES = ("numpy", "numba", "embreex", "scipy", "scikit-image")
+
+
+@functools.cache
+def fingerprint() -> dict[str, str]:
+    """What a worker's lattice bits depend on: a hash of isolume's sources (`baking`,
+    `volumes`) and the versions of the numerical libraries."""
+    digest = hashlib.sha256()
+    for package in ("baking", "volumes"):
+        root = Path(__file__).resolve().parent.parent / package
+        for path in sorted(root.glob("*.py")):
+            digest.update(path.name.encode())
+            digest.update(path.read_bytes())
+    versions = {name: importlib.metadata.version(name) for name in _LIBRARIES}
+    return {"isolume sources": digest.hexdigest()[:16], **versions}
+
+
+@dataclass(frozen=True)
+class _Job:
+    """What every task of one bake traces with: scattered to each worker once.
+
+    Attributes:
+        token: names this bake in the workers' caches and in task keys.
+        fingerprint: the master's `fingerprint()`.
+        levels: (K,) isovalues of the plan's levels.
+        seed_key, weights, whole: as `bake.Tracing`.
+    """
+
+    token: str
+    fingerprint: dict
+    volume: volumes.Volume
+    config: BakeConfig
+    geometry: LatticeGeometry
+    levels: np.ndarray
+    lighting: Lighting
+    settings: PathSettings
+    seed_key: np.uint32
+    weights: np.ndarray
+    whole: WholePaths | None
+
+
+@dataclass(frozen=True)
+class _Partial:
+    """A task's result: the pass sums of its texels (in its order) and counters.
+
+    Attributes:
+        sum: (T, C), second: (T,) float64, n: (T,) int64 — formed from zero.
+        paths, rays: traced; trace_seconds: tracing; scene_seconds: building the level
+            scene (0 when the worker had it).
+    """
+
+    sum: np.ndarray
+    second: np.ndarray
+    n: np.ndarray
+    paths: int
+    rays: int
+    trace_seconds: float
+    scene_seconds: float
+
+
+# -- worker side ---------------------------------------------------------------------------
+_BAKES: dict[str, _WorkerBake] = {}
+_BAKES_LOCK = threading.Lock()
+
+
+class _WorkerBake:
+    """One bake's state in a worker process: its job and a few level scenes (least
+    recently used first out; each built once, by the first task that needs it)."""
+
+    def __init__(self, job: _Job) -> None:
+        differ = [f"{k} {v} here, {job.fingerprint.get(k)} on the master"
+                  for k, v in fingerprint().items() if job.fingerprint.get(k) != v]
+        if differ:
+            raise BakeError("this worker runs other isolume code or libraries than the "
+                            f"master ({'; '.join(differ)}): the lattice would not be the "
+                            "same bits; install the same isolume and libraries everywhere")
+        kernels.warm_up()
+        self.job = job
+        self._scenes: OrderedDict[int, object] = OrderedDict()
+        self._building: dict[int, threading.Lock] = {}
+        self._lock = threading.Lock()
+
+    def scene(self, level: int) -> tuple[object, float]:
+        """The Embree scene of `level` and the seconds spent building it here (0 when
+        cached)."""
+        with self._lock:
+            building = self._building.setdefault(level, threading.Lock())
+        with building:  # a second thread wanting the same level waits for the first
+            with self._lock:
+                if level in self._scenes:
+                    self._scenes.move_to_end(level)
+                    return self._scenes[level], 0.0
+            t0 = time.perf_counter()
+            scene = _level_scene(self.job.volume, float(self.job.levels[level]),
+                                 self.job.config)
+            seconds = time.perf_counter() - t0
+            with self._lock:
+                self._scenes[level] = scene
+                while len(self._scenes) > SCENES_PER_WORKER:
+                    self._scenes.popitem(last=False)
+            return scene, seconds
+
+
+def _worker_bake(job: _Job) -> _WorkerBake:
+    """This process's state for `job` (made by its first task)."""
+    with _BAKES_LOCK:
+        state = _BAKES.get(job.token)
+        if state is None:
+            state = _BAKES[job.token] = _WorkerBake(job)
+        return state
+
+
+def forget(token: str) -> None:
+    """Drop a finished bake's state from this worker process."""
+    with _BAKES_LOCK:
+        _BAKES.pop(token, None)
+
+
+def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
+               weight: np.ndarray, done: np.ndarray, remaining: np.ndarray,
+               upper: np.ndarray) -> _Partial:
+    """Worker: trace the pending paths of T texels on level `level`.
+
+    Args:
+        ids: (T,) sorted flat lattice ids of the texels; phase, weight: (T,) their plan
+            phases and upper-level weights; done, remaining: (T,) int64 samples they have
+            and still need; upper: (T,) bool, True where `level` is the texel's upper
+            level (its samples that go up are traced), False where it is the lower.
+
+    Returns:
+        the texels' pass sums formed from zero, and counters.
+    """
+    state = _worker_bake(job)
+    job = state.job
+    scene, scene_seconds = state.scene(level)
+    pos, samples, start = lay_out_level(
+        job.volume, job.geometry, job.config, float(job.levels[level]), ids, phase, weight,
+        np.flatnonzero(~upper), np.flatnonzero(upper), done, remaining)
+    acc = PassSums(len(ids), job.settings.channels)
+    paths, rays, seconds = 0, 0, 0.0
+    if len(pos):
+        tracing = Tracing(ids, job.lighting, job.settings, job.seed_key, job.weights, acc,
+                          job.whole)
+        paths, rays, seconds = trace_chunk(scene, tracing, pos, samples, start)
+    return _Partial(acc.sum, acc.second, acc.n, paths, rays, seconds, scene_seconds)
+
+
+# -- master side ---------------------------------------------------------------------------
+def connect(scheduler: str, timeout: float = CONNECT_TIMEOUT_S):
+    """A Dask client for `scheduler`: ``tcp://HOST:PORT`` (any address Dask takes) or
+    ``local:N`` (a cluster of N single-threaded worker processes on this machine).
+
+    Returns:
+        (client, the local cluster or None).
+
+    Raises:
+        BakeError: Dask is not installed, `scheduler` is malformed or does not answer.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise BakeError(f"--scheduler {scheduler}: needs Dask distributed, an optional "
+                        "dependency: pip install 'isolume[cluster]'") from None
+    if scheduler.startswith(LOCAL_PREFIX):
+        count = scheduler[len(LOCAL_PREFIX):]
+        if not count.isdigit() or int(count) < 1:
+            raise BakeError(f"--scheduler {scheduler}: expected local:N with N ≥ 1 worker "
+                            "processes")
+        cluster = LocalCluster(n_workers=int(count), threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR)
+        return Client(cluster), cluster
+    if not scheduler or any(c.isspace() for c in scheduler):
+        raise BakeError(f"--scheduler {scheduler!r}: expected a Dask scheduler address "
+                        "such as tcp://host:8786, or local:N")
+    try:
+        return Client(scheduler, timeout=timeout), None
+    except (OSError, ValueError, TypeError) as exc:
+        raise BakeError(f"--scheduler {scheduler}: no Dask scheduler answered within "
+                        f"{timeout:.0f} s ({type(exc).__name__}: {exc})") from None
+
+
+def task_groups(texels: np.ndarray, expected: np.ndarray,
+                paths_per_task: int = PATHS_PER_TASK) -> list[tuple[int, int]]:
+    """Cut a level's sorted texels into tasks of about `paths_per_task` expected paths.
+
+    Any cut gives the same lattice (a texel's paths on one level stay in one task); the
+    expected counts only size the tasks.
+
+    Args:
+        texels: (T,) sorted plan positions; expected: (T,) expected paths of each.
+
+    Returns:
+        [(lo, hi)] slices of `texels`, in order, covering them.
+    """
+    if len(texels) == 0:
+        return []
+    ends = np.cumsum(expected, dtype=np.float64)
+    cuts = np.searchsorted(ends, np.arange(1, int(ends[-1] // paths_per_task) + 1)
+                           * float(paths_per_task), side="right")
+    bounds = np.unique(np.concatenate([[0], np.minimum(cuts, len(texels) - 1) + 1,
+                                       [len(texels)]]))
+    return [(int(lo), int(hi)) for lo, hi in itertools.pairwise(bounds)]
+
+
+@dataclass
+class ClusterTraffic:
+    """What the cluster did: tasks, bytes each way, scene builds and their seconds."""
+
+    tasks: int = 0
+    bytes_sent: int = 0
+    bytes_returned: int = 0
+    scene_builds: int = 0
+    scene_seconds: float = 0.0
+    job_bytes: int = 0
+
+    def as_dict(self) -> dict:
+        return {k: float(v) if isinstance(v, float) else int(v)
+                for k, v in self.__dict__.items()}
+
+
+@dataclass
+class _Level:
+    """A level of the current pass on the cluster: its tasks' texel slices and results."""
+
+    texels: list[np.ndarray]
+    results: dict[int, _Partial]
+
+    @property
+    def finished(self) -> bool:
+        return len(self.results) == len(self.texels)
+
+
+class ClusterBaker(Baker):
+    """A `Baker` whose paths are traced by tasks on a Dask cluster; the lattice, the
+    commits and the checkpoints stay on this machine.
+
+    Args:
+        scheduler: `connect`'s address (``tcp://HOST:PORT`` or ``local:N``).
+        lattice: an existing lattice to extend (resume), or None.
+        client: an existing ``distributed.Client`` instead of `scheduler` (tests).
+    """
+
+    def __init__(self, volume: volumes.Volume, config: BakeConfig, scheduler: str = "", *,
+                 lattice: Lattice | None = None, client=None) -> None:
+        super().__init__(volume, config, lattice=lattice, workers=1)
+        self._cluster = None
+        if client is None:
+            client, self._cluster = connect(scheduler)
+            self._own_client = True
+        else:
+            self._own_client = False
+        self.client = client
+        self.traffic = ClusterTraffic()
+        self._worker_list: list[str] = []
+        self._workers_asked = -np.inf
+        t = self._tracing
+        job = _Job(uuid.uuid4().hex, fingerprint(), replace(volume, _cache={}), config,
+                   self.geometry, np.asarray(self.plan.levels, np.float64), t.lighting,
+                   t.settings, t.seed_key, t.weights, t.whole)
+        self.token = job.token
+        self._job = client.scatter(job, broadcast=True, hash=False)
+        self.traffic.job_bytes = _nbytes(job)
+
+    def close(self) -> None:
+        """Drop the bake's state on the workers, then the client (and a local cluster)."""
+        try:
+            self.client.cancel([self._job])
+            self.client.run(forget, self.token)
+        except Exception:  # a cluster already gone has nothing to drop
+            pass
+        if self._own_client:
+            self.client.close()
+            if self._cluster is not None:
+                self._cluster.close()
+        super().close()
+
+    def run(self, positions: np.ndarray | None = None, target: int | np.ndarray | None = None,
+            *, bar=None, after_level=None) -> None:
+        """`Baker.run` on the cluster: every level's tasks may be in flight at once; their
+        pass sums are added and complete texels committed level by level, in order."""
+        from distributed import as_completed
+
+        plan = self.plan
+        positions = np.arange(len(plan.ids)) if positions is None else np.unique(positions)
+        target = self.config.samples if target is None else target
+        done = np.zeros(len(plan.ids), np.int64)
+        remaining = np.zeros(len(plan.ids), np.int64)
+        done[positions] = self.samples_done(positions)
+        remaining[positions] = np.maximum(np.asarray(target) - done[positions], 0)
+        busy = positions[remaining[positions] > 0]
+        if len(busy) == 0:
+            return
+        first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
+        by_lower = _group_by(plan.lower[busy], busy, first, last)
+        levels: dict[int, _Level] = {}
+        owner: dict = {}  # future -> (level, task index)
+        stream = as_completed()
+        next_submit, next_apply = first, first
+        try:
+            while next_apply <= last:
+                while next_submit <= last and self._room(levels, next_apply):
+                    levels[next_submit] = self._submit_level_tasks(
+                        next_submit, by_lower, first, done, remaining, owner, stream)
+                    next_submit += 1
+                if levels[next_apply].finished:
+                    self._apply(levels.pop(next_apply), after_level,
+                                by_lower[next_apply - first - 1] if next_apply > first
+                                else busy[:0])
+                    next_apply += 1
+                    continue
+                future = next(stream)
+                self._receive(future, owner, levels, bar, next_apply)
+        except BaseException:
+            self.client.cancel(list(owner))
+            self._acc.clear(busy)
+            raise
+        finally:
+            _finish_meta(self.lattice, plan, self.stats, self.previous)
+            self.lattice.meta["cluster"] = self.traffic.as_dict()
+
+    def _workers(self) -> list[str]:
+        """Sorted addresses of the cluster's workers (asked of the scheduler at most
+        every `REPORT_S` seconds)."""
+        now = time.perf_counter()
+        if now - self._workers_asked > REPORT_S:
+            self._worker_list = sorted(self.client.scheduler_info(n_workers=-1)["workers"])
+            self._workers_asked = now
+        return self._worker_list
+
+    def _room(self, levels: dict[int, _Level], next_apply: int) -> bool:
+        """May another level be submitted? Two levels per worker in flight keep every
+        worker on levels it has; finished levels waiting for an earlier one are held
+        on this machine (their pass sums), at most eight per worker."""
+        workers = max(1, len(self._workers()))
+        unfinished = sum(not level.finished for level in levels.values())
+        return unfinished < 2 * workers and len(levels) < 8 * workers
+
+    def _submit_level_tasks(self, level: int, by_lower: list, first: int, done: np.ndarray,
+                            remaining: np.ndarray, owner: dict, stream) -> _Level:
+        """Queue the tasks of `level`: the lower-level samples of the texels whose lower
+        level it is, the upper-level samples of those whose lower level is below it."""
+        plan = self.plan
+        here = by_lower[level - first]
+        below = by_lower[level - first - 1] if level > first else here[:0]
+        texels = np.concatenate([here, below])
+        order = np.argsort(texels, kind="stable")
+        texels = texels[order]
+        upper = (np.arange(len(order)) >= len(here))[order]
+        w = plan.weight[texels]
+        expected = remaining[texels] * np.where(upper, w, 1.0 - w)
+        workers = self._workers()
+        prefer = [workers[level % len(workers)]] if workers else None
+        slices = []
+        for index, (lo, hi) in enumerate(task_groups(texels, expected, PATHS_PER_TASK)):
+            part = texels[lo:hi]
+            args = (plan.ids[part].astype(np.int64), plan.phase[part], plan.weight[part],
+                    done[part], remaining[part], upper[lo:hi])
+            future = self.client.submit(
+                trace_task, self._job, level, *args, key=f"isolume-{self.token}-{level}-{index}",
+                workers=prefer, allow_other_workers=True, priority=-level, pure=False)
+            owner[future] = (level, index)
+            stream.add(future)
+            slices.append(part)
+            self.traffic.tasks += 1
+            self.traffic.bytes_sent += sum(a.nbytes for a in args)
+        return _Level(slices, {})
+
+    def _receive(self, future, owner: dict, levels: dict[int, _Level], bar,
+                 next_apply: int) -> None:
+        """Take one finished task's result (once per task, whatever Dask re-ran)."""
+        level, index = owner.pop(future)
+        try:
+            part: _Partial = future.result()
+        except BakeError:
+            raise
+        except Exception as exc:
+            raise BakeError(f"cluster task {future.key} failed on the cluster: "
+                            f"{type(exc).__name__}: {exc}") from None
+        results = levels[level].results
+        if index in results:
+            return
+        results[index] = part
+        self.stats.add_rays(part.rays, part.trace_seconds)
+        self.stats.paths += part.paths
+        self.stats.scene_seconds += part.scene_seconds
+        self.traffic.bytes_returned += part.sum.nbytes + part.second.nbytes + part.n.nbytes
+        self.traffic.scene_builds += part.scene_seconds > 0
+        self.traffic.scene_seconds += part.scene_seconds
+        if bar is not None:
+            bar.update(part.paths)
+            elapsed = time.perf_counter() - self.stats.started
+            bar.set_postfix_str(
+                f"texels {self.texels_done:,}/{len(self.plan.ids):,} "
+                f"level {next_apply + 1}/{len(self.plan.levels)} "
+                f"{len(self._workers())} workers "
+                f"{self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} Mrays/s", refresh=False)
+
+    def _apply(self, level: _Level, after_level, complete: np.ndarray) -> None:
+        """Add a finished level's pass sums (the order a local bake adds them in), then
+        commit the texels whose upper level it was."""
+        acc = self._acc
+        for index, part in sorted(level.results.items()):
+            texels = level.texels[index]
+            acc.sum[texels] += part.sum
+            acc.second[texels] += part.second
+            acc.n[texels] += part.n
+        complete = complete[acc.n[complete] > 0]
+        if len(complete):
+            self.texels_done += _commit(self.lattice, self.plan, acc, complete)
+            if after_level is not None:
+                after_level(complete)
+
+
+def _nbytes(obj) -> int:
+    """Pickled size of `obj` (what scattering it sends to each worker)."""
+    import pickle
+
+    return len(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
