@@ -21,7 +21,8 @@ Shading modes (paper Figs. 1, 6, 8–10), all on the same mesh and camera:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 
 import moderngl
 import numpy as np
@@ -99,12 +100,27 @@ of slope tan θ changes depth by 2.41 tan θ texels; the constant covers depth r
 curvature. Less slope bias shows as acne (tests/test_render_modes.py fails at 2.3)."""
 SHADOW_MARGIN = 1.01
 """The light's view spans this many scene-sphere radii (surfaces on the sphere stay in)."""
+MAX_DIRECT_LIGHTS = 8
+MAX_DIRECT_TILES = 16
+"""Per-pixel lights and shadow-atlas tiles ``direct.glsl`` holds (a point light takes 6)."""
+DIRECT_BIAS_TEXELS = (0.5, 1.5)
+"""Depth bias of the per-pixel lights' shadows, in tile texels: constant + slope × tan θ.
+Each filter tap is compared against the receiver's own plane at that tap, so only the
+hardware's bilinear 2×2 comparison (≤ 1.5 texels from the tap across a plane of slope
+tan θ) and depth rounding need a bias (tests/test_direct_light.py: no acne on lit slopes,
+shadows that meet their casters)."""
+DIRECT_UNITS = (14, 15)
+"""Texture units of the direct lights' shadow atlas: compared, raw (lattices use 1–13)."""
 
 
 class RenderError(ValueError):
     """A frame that cannot be drawn as asked (mode without its lattice or environment)."""
 
 TONEMAPS = {"clamp": 0, "reinhard": 1, "aces": 2}
+EXPOSURE_KEY = 0.18
+"""Automatic exposure brings the log-average luminance of the surface pixels to this value
+(the photographers' middle grey, the "key" of Reinhard et al. 2002 that game engines'
+eye adaptation also aims at): under the ACES curve it displays at about 140 of 255."""
 
 
 @dataclass(frozen=True)
@@ -117,7 +133,11 @@ class RenderSettings:
     Attributes:
         size: (width, height) pixels.
         shading: a key of `SHADING_MODES`.
-        exposure: linear multiplier applied before the tone curve.
+        exposure: linear multiplier applied before the tone curve (on top of the
+            automatic exposure when `auto_exposure`).
+        auto_exposure: scale the radiance by `auto_exposure_scale` of the frame's surface
+            pixels first (`SurfaceRenderer.render`; a window passes its own, smoothed,
+            scale to `SurfaceRenderer.resolve`).
         tonemap: a key of `TONEMAPS`.
         background: linear RGB shown where there is no surface.
         albedo: diffuse reflectance, linear RGB.
@@ -130,6 +150,10 @@ class RenderSettings:
             (`baking.sh.rotation_from_az_el`); (0, 0) leaves it as loaded.
         shadow_resolution: side of the key light's square shadow map, texels (shadow
             modes).
+        direct_lights: the lights shaded per pixel in the irradiance lattice modes
+            (`baking.lights.PointLight`, `DirectionalLight`, `SunLight`); None: those of
+            the lattice (`lattice_direct_lights`: its point/directional lights and sun
+            when it was baked with direct light "pixels", else none).
         fog_density: fog extinction per scene diagonal ("lambert_fog"): a fraction
             T = exp(−fog_density · s / diagonal) of the surface's radiance reaches the eye,
             s the eye distance beyond the near side of the scene's bounding sphere (see
@@ -140,6 +164,7 @@ class RenderSettings:
     size: tuple[int, int] = (512, 512)
     shading: str = "phong_hemi"
     exposure: float = 1.0
+    auto_exposure: bool = False
     tonemap: str = "aces"
     background: tuple[float, float, float] = (0.03, 0.035, 0.045)
     albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
@@ -153,6 +178,7 @@ class RenderSettings:
     env_rotation: tuple[float, float] = (0.0, 0.0)
     shadow_resolution: int = 2048
     fog_density: float = 1.5
+    direct_lights: tuple | None = None
 
     def __post_init__(self) -> None:
         if self.shading not in SHADING_MODES and self.shading not in _DEBUG_MODES:
@@ -172,6 +198,9 @@ class RenderSettings:
                              "and 16384 texels")
         if not self.fog_density >= 0:
             raise ValueError(f"fog density must be ≥ 0, got {self.fog_density:g}")
+        if self.direct_lights is not None:
+            object.__setattr__(self, "direct_lights", tuple(self.direct_lights))
+            direct_tiles(self.direct_lights)  # checks kinds and counts
 
 
 def key_direction(camera: Camera, settings: RenderSettings) -> np.ndarray:
@@ -201,6 +230,64 @@ def light_view_proj(direction: np.ndarray, centre: np.ndarray, radius: float) ->
     view[:3, 3] = -view[:3, :3] @ np.asarray(centre, np.float64)
     ortho = np.diag([1.0 / radius, 1.0 / radius, -1.0 / radius, 1.0])
     return ortho @ view
+
+
+def lattice_direct_lights(lattice) -> tuple:
+    """The lights a lattice leaves to the renderer: its point/directional lights and its
+    sky's sun when baked with direct light "pixels" (`baking.lights.pixel_lights`), else
+    () (a lattice without the setting holds all its light)."""
+    config = (lattice.meta.get("config") or {}) if lattice is not None else {}
+    if config.get("direct_light") != "pixels":
+        return ()
+    from baking.lights import pixel_lights
+
+    return pixel_lights(config.get("env", ""), tuple(config.get("lights", ())))
+
+
+def direct_tiles(lights) -> list[int]:
+    """The first shadow-atlas tile of each per-pixel light (a distant light or the sun
+    takes one, a point light six).
+
+    Raises:
+        RenderError: an unknown kind of light, or more than the shader holds.
+    """
+    from baking.lights import DirectionalLight, PointLight, SunLight
+
+    first, tiles = [], 0
+    for light in lights:
+        if not isinstance(light, DirectionalLight | PointLight | SunLight):
+            raise RenderError(f"per-pixel light {light!r}: expected a PointLight, "
+                              "DirectionalLight or SunLight")
+        first.append(tiles)
+        tiles += 6 if isinstance(light, PointLight) else 1
+    if len(first) > MAX_DIRECT_LIGHTS or tiles > MAX_DIRECT_TILES:
+        raise RenderError(f"{len(first)} per-pixel lights needing {tiles} shadow tiles: at "
+                          f"most {MAX_DIRECT_LIGHTS} lights and {MAX_DIRECT_TILES} tiles "
+                          "(a point light takes 6); bake the rest with --direct-light lattice")
+    return first
+
+
+_CUBE_FACES = (((1, 0, 0), (0, -1, 0)), ((-1, 0, 0), (0, -1, 0)), ((0, 1, 0), (0, 0, 1)),
+               ((0, -1, 0), (0, 0, -1)), ((0, 0, 1), (0, -1, 0)), ((0, 0, -1), (0, -1, 0)))
+"""(axis, up) of a point light's six 90° shadow faces, in the order +x −x +y −y +z −z."""
+
+
+def point_face_view_proj(position: np.ndarray, face: int, near: float, far: float
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(4, 4) world → clip transform of face `face` (`_CUBE_FACES`) of a point light at
+    `position`, and its linear depth plane (4,): depth = (axis·(p − position)) / far."""
+    axis, up = (np.asarray(v, np.float64) for v in _CUBE_FACES[face])
+    right = np.cross(axis, up)
+    view = np.eye(4)
+    view[0, :3], view[1, :3], view[2, :3] = right, up, -axis
+    view[:3, 3] = -view[:3, :3] @ position
+    proj = np.zeros((4, 4))  # 90° field of view both ways
+    proj[0, 0] = proj[1, 1] = 1.0
+    proj[2, 2] = -(far + near) / (far - near)
+    proj[2, 3] = -2.0 * far * near / (far - near)
+    proj[3, 2] = -1.0
+    plane = np.concatenate([axis / far, [-(axis @ position) / far]])
+    return proj @ view, plane
 
 
 def occlusion_sky(lattice) -> np.ndarray:
@@ -239,11 +326,39 @@ class Frame:
         linear: (H, W, 3) float32 linear radiance (before exposure); 0 off the surface.
         srgb: (H, W, 3) uint8 display image (exposure, tone curve, sRGB).
         mask: (H, W) bool, True on surface pixels.
+        exposure: the linear scale applied before the tone curve (the settings' exposure
+            times the automatic one).
     """
 
     linear: np.ndarray
     srgb: np.ndarray
     mask: np.ndarray
+    exposure: float = 1.0
+
+
+def auto_exposure_scale(linear: np.ndarray, mask: np.ndarray, key: float = EXPOSURE_KEY,
+                        weights: np.ndarray | None = None) -> float:
+    """The exposure that brings the log-average luminance of the surface pixels to `key`.
+
+    Args:
+        linear: (..., 3) linear radiance.
+        mask: (...) bool, the surface pixels.
+        weights: (...) optional weight of each pixel (e.g. the surface fraction of a block).
+
+    Returns:
+        key / exp(mean(log L)) over the surface pixels (luminance L, Rec. 709 weights,
+        floored at 10⁻³ of the mean so that black pixels do not dominate); 1 when there
+        are no surface pixels or they are all black.
+    """
+    lum = np.asarray(linear, np.float64)[mask] @ np.array([0.2126, 0.7152, 0.0722])
+    w = np.ones(len(lum)) if weights is None else np.asarray(weights, np.float64)[mask]
+    if len(lum) == 0 or not w.sum() > 0:
+        return 1.0
+    mean = float(np.average(lum, weights=w))
+    if not mean > 0:
+        return 1.0
+    log_average = float(np.exp(np.average(np.log(np.maximum(lum, 1e-3 * mean)), weights=w)))
+    return key / log_average
 
 
 @dataclass
@@ -257,6 +372,24 @@ class _Targets:
     def release(self) -> None:
         for obj in self.objects:
             obj.release()
+
+
+@dataclass
+class _DirectAtlas:
+    """The per-pixel lights' shadow tiles in one depth texture, with a raw-depth sampler
+    for the blocker search; `key` says what they were drawn for, `uniforms` the shader's
+    values for them."""
+
+    depth: moderngl.Texture
+    raw: moderngl.Sampler
+    fbo: moderngl.Framebuffer
+    key: tuple | None = None
+    uniforms: dict = field(default_factory=dict)
+
+    def release(self) -> None:
+        self.fbo.release()
+        self.raw.release()
+        self.depth.release()
 
 
 @dataclass
@@ -292,6 +425,8 @@ class SurfaceRenderer:
         self._iso: float | None = None
         self._targets: _Targets | None = None
         self._shadow: _ShadowMap | None = None
+        self._atlas: _DirectAtlas | None = None
+        self._lattice_lights: tuple = ()
         self.lattice: LatticeTextures | None = None
         self._env_coeffs: np.ndarray | None = None
         # Framebuffer 0 is always valid to bind; parking on it before freeing our targets
@@ -307,6 +442,8 @@ class SurfaceRenderer:
                 vs, fs = shaders.source("fullscreen.vert"), shaders.source("tonemap.frag", d)
             elif kind == "shadow":
                 vs, fs = shaders.source("shadow.vert"), shaders.source("shadow.frag")
+            elif kind == "depth":
+                vs, fs = shaders.source("depth.vert"), shaders.source("depth.frag")
             else:
                 vs, fs = shaders.source("surface.vert"), shaders.source("surface.frag", d)
             self._programs[key] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
@@ -353,6 +490,7 @@ class SurfaceRenderer:
         if self.lattice is not None:
             self.lattice.release()
             self.lattice = None
+        self._lattice_lights = lattice_direct_lights(lattice)
         if lattice is not None:
             self.lattice = LatticeTextures(self.ctx, lattice, texel_isovalues)
 
@@ -428,6 +566,8 @@ class SurfaceRenderer:
             self._targets.release()
         if self._shadow is not None:
             self._shadow.release()
+        if self._atlas is not None:
+            self._atlas.release()
         for prog in self._programs.values():
             prog.release()
 
@@ -461,12 +601,25 @@ class SurfaceRenderer:
             raise RenderError(f"environment has {self._env_coeffs.shape[0]} SH coefficients, "
                               f"the lattice needs {order * order}")
 
-    def _surface_program(self, shading: str) -> moderngl.Program:
-        """The compiled surface program for `shading` (checks what it needs)."""
+    def direct_lights(self, settings: RenderSettings) -> tuple:
+        """The lights `settings` shades per pixel: none outside the irradiance lattice
+        modes, else the settings' own or the lattice's (`RenderSettings.direct_lights`)."""
+        mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
+        if mode.lattice != "irradiance":
+            return ()
+        if settings.direct_lights is not None:
+            return settings.direct_lights
+        return self._lattice_lights
+
+    def _surface_program(self, settings: RenderSettings) -> moderngl.Program:
+        """The compiled surface program for the settings' mode (checks what it needs)."""
+        shading = settings.shading
         self.check_mode(shading)
         defines = {**SHADING_MODES, **_DEBUG_MODES}[shading].defines()
         if shading == "sh":
             defines += self.lattice.sh_defines()
+        if self.direct_lights(settings):
+            defines += (("DIRECT", 1),)
         return self._program("surface", defines)
 
     # -- drawing -----------------------------------------------------------------------
@@ -486,6 +639,74 @@ class SurfaceRenderer:
         self._draw_mesh(prog)
         shadow.key = key
         return shadow
+
+    def _ensure_atlas(self, tile: int, tiles: int) -> _DirectAtlas:
+        """A depth atlas holding `tiles` square tiles of `tile` texels (reused when it
+        has that size)."""
+        cols = math.ceil(math.sqrt(tiles))
+        size = (tile * cols, tile * math.ceil(tiles / cols))
+        if self._atlas is not None and self._atlas.depth.size == size:
+            return self._atlas
+        if self._atlas is not None:
+            self._default_fbo.use()
+            self._atlas.release()
+        depth = self.ctx.depth_texture(size)
+        depth.compare_func = "<="
+        depth.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        depth.repeat_x = depth.repeat_y = False
+        raw = self.ctx.sampler(texture=depth, filter=(moderngl.NEAREST, moderngl.NEAREST),
+                               repeat_x=False, repeat_y=False, compare_func="")
+        self._atlas = _DirectAtlas(depth, raw, self.ctx.framebuffer(depth_attachment=depth))
+        return self._atlas
+
+    def _draw_direct_atlas(self, lights: tuple, settings: RenderSettings) -> _DirectAtlas:
+        """The per-pixel lights' shadow tiles for this mesh and scene (redrawn on change)
+        and the shader's uniforms for them."""
+        first = direct_tiles(lights)
+        tiles = first[-1] + (6 if _is_point(lights[-1]) else 1)
+        cols = math.ceil(math.sqrt(tiles))
+        tile = min(settings.shadow_resolution, 8192 // cols)
+        atlas = self._ensure_atlas(tile, tiles)
+        centre, radius = self.scene_sphere()
+        key = (self._mesh_generation, lights, tuple(centre), radius, tile)
+        if atlas.key == key:
+            return atlas
+        width, height = atlas.depth.size
+        matrices, planes, rects, ranges = [], [], [], []
+        for light in lights:
+            for view_proj, plane, span in _light_tiles(light, centre, SHADOW_MARGIN * radius):
+                i = len(matrices)
+                x, y = (i % cols) * tile, (i // cols) * tile
+                matrices.append(view_proj)
+                planes.append(plane)
+                rects.append((x / width, y / height, tile / width, tile / height))
+                ranges.append(span)
+        prog = self._program("depth", ())
+        atlas.fbo.use()
+        atlas.fbo.viewport = (0, 0, width, height)
+        self.ctx.clear(depth=1.0)
+        for i, (view_proj, plane) in enumerate(zip(matrices, planes, strict=True)):
+            atlas.fbo.viewport = (round(rects[i][0] * width), round(rects[i][1] * height),
+                                  tile, tile)
+            prog["u_view_proj"].write(view_proj.T.astype("f4").tobytes())
+            prog["u_depth"].value = tuple(plane)
+            self._draw_mesh(prog)
+        atlas.fbo.viewport = (0, 0, width, height)
+        atlas.uniforms = _direct_uniforms(lights, first, matrices, planes, rects, ranges)
+        atlas.key = key
+        return atlas
+
+    def _bind_direct(self, prog: moderngl.Program, lights: tuple,
+                     settings: RenderSettings) -> None:
+        """Draw (if needed) and bind the per-pixel lights' shadow atlas and uniforms."""
+        atlas = self._draw_direct_atlas(lights, settings)
+        shadow_unit, raw_unit = DIRECT_UNITS
+        atlas.depth.use(location=shadow_unit)
+        atlas.depth.use(location=raw_unit)
+        atlas.raw.use(location=raw_unit)
+        self._set_uniforms(prog, {**atlas.uniforms, "u_direct_shadow": shadow_unit,
+                                  "u_direct_depth": raw_unit,
+                                  "u_direct_bias": DIRECT_BIAS_TEXELS})
 
     def _uniforms(self, camera: Camera, s: RenderSettings) -> dict:
         """Uniform values of the surface shaders (each program takes those it declares)."""
@@ -536,10 +757,13 @@ class SurfaceRenderer:
         """The surface program of the settings' mode with its uniforms set and its textures
         bound (the shadow map drawn first if the mode needs it)."""
         mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
-        prog = self._surface_program(settings.shading)
+        prog = self._surface_program(settings)
         self._set_uniforms(prog, self._uniforms(camera, settings))
         if mode.shadow:
             self._bind_shadow_map(prog, camera, settings)
+        lights = self.direct_lights(settings)
+        if lights:
+            self._bind_direct(prog, lights, settings)
         if mode.lattice is not None:
             self.lattice.bind(prog)
         if mode.lattice == "occlusion":
@@ -560,29 +784,88 @@ class SurfaceRenderer:
             self._draw_mesh(prog)
         return targets
 
-    def resolve(self, targets: _Targets, settings: RenderSettings, fbo=None) -> None:
-        """Tone-map the HDR target into `fbo` (default: the internal 8-bit target)."""
+    def resolve(self, targets: _Targets, settings: RenderSettings, fbo=None,
+                auto: float = 1.0) -> None:
+        """Tone-map the HDR target into `fbo` (default: the internal 8-bit target), the
+        radiance scaled by the settings' exposure times `auto` (the automatic exposure)."""
         prog = self._program("tonemap", (("TONEMAP", TONEMAPS[settings.tonemap]),))
         (fbo or targets.ldr).use()
         self.ctx.disable(moderngl.DEPTH_TEST)
         targets.hdr_color.use(location=0)
         prog["u_hdr"].value = 0
-        prog["u_exposure"].value = settings.exposure
+        prog["u_exposure"].value = settings.exposure * auto
         prog["u_background"].value = settings.background
         vao = self.ctx.vertex_array(prog, [])
         vao.render(moderngl.TRIANGLES, vertices=3)
         vao.release()
 
     def render(self, camera: Camera, settings: RenderSettings) -> Frame:
-        """Draw one frame off-screen and read it back (rows top to bottom)."""
+        """Draw one frame off-screen and read it back (rows top to bottom); with
+        `auto_exposure`, exposed by `auto_exposure_scale` of its surface pixels."""
         targets = self.draw_hdr(camera, settings)
-        self.resolve(targets, settings)
         w, h = settings.size
         hdr = np.frombuffer(targets.hdr.read(components=4, dtype="f4"), np.float32)
         hdr = hdr.reshape(h, w, 4)[::-1]
-        ldr = np.frombuffer(targets.ldr.read(components=3), np.uint8).reshape(h, w, 3)[::-1]
         mask = hdr[..., 3] > 0
-        return Frame(np.ascontiguousarray(hdr[..., :3]), np.ascontiguousarray(ldr), mask)
+        auto = auto_exposure_scale(hdr[..., :3], mask) if settings.auto_exposure else 1.0
+        if auto != 1.0 and {**SHADING_MODES, **_DEBUG_MODES}[settings.shading].fog:
+            # the fog fades to the background divided by the exposure: draw it again
+            settings = replace(settings, exposure=settings.exposure * auto,
+                               auto_exposure=False)
+            targets, auto = self.draw_hdr(camera, settings), 1.0
+        self.resolve(targets, settings, auto=auto)
+        ldr = np.frombuffer(targets.ldr.read(components=3), np.uint8).reshape(h, w, 3)[::-1]
+        return Frame(np.ascontiguousarray(hdr[..., :3]), np.ascontiguousarray(ldr), mask,
+                     settings.exposure * auto)
+
+
+def _is_point(light) -> bool:
+    from baking.lights import PointLight
+
+    return isinstance(light, PointLight)
+
+
+def _light_tiles(light, centre: np.ndarray, radius: float):
+    """(view_proj (4, 4), linear depth plane (4,), world units per unit of depth) of each
+    shadow tile of `light` for a scene within the sphere (`centre`, `radius`)."""
+    if _is_point(light):
+        position = np.asarray(light.position, np.float64)
+        reach = float(np.linalg.norm(position - centre)) + radius
+        near = max(1e-4 * reach, reach - 2 * radius)
+        for face in range(6):
+            view_proj, plane = point_face_view_proj(position, face, near, reach)
+            yield view_proj, plane, reach
+        return
+    direction = np.asarray(light.direction, np.float64)
+    view_proj = light_view_proj(direction, centre, radius)
+    yield view_proj, 0.5 * view_proj[2] + 0.5 * np.eye(4)[3], 2.0 * radius
+
+
+def _direct_uniforms(lights, first, matrices, planes, rects, ranges) -> dict:
+    """The ``direct.glsl`` uniform arrays (padded to their declared sizes)."""
+    from baking.lights import SunLight
+
+    def padded(rows, width, count, dtype="f4"):
+        out = np.zeros((count, width), dtype)
+        out[:len(rows)] = rows
+        return out.tobytes()
+
+    where = [(*light.position, 1.0) if _is_point(light) else (*light.direction, 0.0)
+             for light in lights]
+    rgb = [light.intensity if _is_point(light) else light.irradiance for light in lights]
+    tan_r = [[math.tan(math.radians(light.radius))] if isinstance(light, SunLight) else [0.0]
+             for light in lights]
+    n, t = MAX_DIRECT_LIGHTS, MAX_DIRECT_TILES
+    return {
+        "u_direct_count": len(lights),
+        "u_direct_where": padded(where, 4, n), "u_direct_rgb": padded(rgb, 3, n),
+        "u_direct_tan_radius": padded(tan_r, 1, n),
+        "u_direct_tile": padded([[f] for f in first], 1, n, "i4"),
+        "u_tile_view_proj": b"".join(m.T.astype("f4").tobytes() for m in matrices)
+        + bytes(64 * (t - len(matrices))),
+        "u_tile_depth": padded(planes, 4, t), "u_tile_rect": padded(rects, 4, t),
+        "u_tile_range": padded([[r] for r in ranges], 1, t),
+    }
 
 
 def default_camera(volume, view: tuple[float, float, float | None] | None = None) -> Camera:

@@ -341,6 +341,12 @@ class SkyEnvironment(Environment):
             total += 0.5 * (z1 - z0) * weights @ self.gradient_radiance(z)
         return 2.0 * math.pi * total
 
+    def without_sun(self) -> SkyEnvironment:
+        """The same sky without its sun (what a surface sees of it when the sun's direct
+        light is shaded per pixel)."""
+        return SkyEnvironment(self.zenith, self.horizon, self.ground, self.horizon_blur,
+                              (0.0, 0.0, 0.0), self.sun_az, self.sun_el, self.sun_radius)
+
     def _in_sun(self, d: np.ndarray) -> np.ndarray:
         return d @ self.sun_direction >= self.sun_cos_radius
 

@@ -25,12 +25,20 @@ half the cost of a closest hit (and none at all when nothing lights escaping ray
 
 In SH mode each path that escapes in direction ω adds c_v·π·Y(ω): the projection of the
 transfer function, including shadowing and every bounce, onto the SH basis.
+
+Split direct light (``Lighting.pixel_direct``, a bake with ``direct_light="pixels"``): at
+the first vertex — the texel's own point — the point and directional lights add nothing
+and the procedural sky is taken without its sun, for its light sample and for the escaping
+cosine-sampled ray alike (the sun-free sky's sampler and pdf in both MIS weights, so the
+two strategies still sum to the sun-free sky's irradiance). Bounce vertices see every
+light. The estimate is then the irradiance minus the lights' and the sun's direct
+irradiance, which the renderer adds back per pixel with exact shadows.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -68,12 +76,31 @@ class Lighting:
         lights: point and directional lights.
         sky: `kernels.sky_params` of a procedural sky (sampled by compiled kernels), or
             None for the numpy path of any other environment.
+        pixel_direct: leave the lights' and the sun's direct light at the first vertex out
+            (the renderer shades it per pixel; see the module docs).
+        first_env, first_sky: what the first vertex sees of `env` and `sky` (without the
+            sun when `pixel_direct`), derived.
     """
 
     env: object | None
     sample_env: bool
     lights: tuple[Light, ...]
     sky: np.ndarray | None = None
+    pixel_direct: bool = False
+    first_env: object | None = field(init=False, repr=False)
+    first_sky: np.ndarray | None = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        first_env, first_sky = self.env, self.sky
+        if self.pixel_direct:
+            first_env = getattr(self.env, "without_sun", lambda: self.env)()
+            first_sky = None if self.sky is None else kernels.sky_without_sun(self.sky)
+        object.__setattr__(self, "first_env", first_env)
+        object.__setattr__(self, "first_sky", first_sky)
+
+    def lights_at(self, vertex: int) -> tuple[Light, ...]:
+        """The point and directional lights whose light samples vertex `vertex` takes."""
+        return () if self.pixel_direct and vertex == 0 else self.lights
 
 
 @dataclass(frozen=True)
@@ -185,18 +212,19 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     constant = constant_radiance is not None  # cosine sampling is ideal here
     escaped_radiance = constant_radiance if constant else np.zeros(3)
     sees_env = lighting.env is not None or not irradiance  # escaping rays bring something
-    sky = lighting.sky
     dirs = kernels.cosine_directions(keys, 0, n) if dirs is None else _rows(dirs)
     for vertex in range(settings.bounces + 1):
         dim = vertex * DIMS_PER_VERTEX
-        if irradiance and lighting.lights:
-            result[alive, :3] += _direct_lights(scene, pos.T, n.T, beta.T, lighting.lights,
-                                                stats)
+        env, sky = (lighting.first_env, lighting.first_sky) if vertex == 0 else (
+            lighting.env, lighting.sky)
+        lights = lighting.lights_at(vertex)
+        if irradiance and lights:
+            result[alive, :3] += _direct_lights(scene, pos.T, n.T, beta.T, lights, stats)
         if irradiance and sky is not None:
             _direct_sky(scene, result, alive, pos, n, beta, keys, dim + 2, sky, stats)
         elif irradiance and lighting.sample_env:
             result[alive, :3] += _direct_env(scene, pos.T, n.T, beta.T, keys, dim + 2,
-                                             lighting.env, stats)
+                                             env, stats)
         last = vertex == settings.bounces
         if last and not sees_env:  # nothing comes back along the last ray
             break
@@ -208,7 +236,8 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
         if irradiance and sky is not None:
             kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n)
         elif not constant and sees_env:
-            _add_escaped(result, alive, prim < 0, beta.T, dirs.T, n.T, lighting, settings)
+            _add_escaped(result, alive, prim < 0, beta.T, dirs.T, n.T, env,
+                         lighting.sample_env, settings)
         if last:
             kernels.add_escaped(result, alive, prim, beta, escaped_radiance)
             break
@@ -229,6 +258,7 @@ class WholePaths:
     offset: float
     escaped_radiance: np.ndarray
     sky: np.ndarray
+    first_sky: np.ndarray
     use_sky: bool
 
 
@@ -242,10 +272,12 @@ def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None
         constant_radiance is not None or use_sky)
     if not covered:
         return None
+    no_sky = np.zeros(kernels.SKY_PARAMS)
     return WholePaths(
         settings.bounces, np.asarray(settings.albedo, np.float32), settings.hit_offset,
         np.zeros(3) if use_sky else constant_radiance,
-        lighting.sky if use_sky else np.zeros(kernels.SKY_PARAMS), use_sky)
+        lighting.sky if use_sky else no_sky, lighting.first_sky if use_sky else no_sky,
+        use_sky)
 
 
 def _constant_radiance(lighting: Lighting, settings: PathSettings) -> np.ndarray | None:
@@ -278,7 +310,8 @@ def trace_whole_paths(scene: Scene, params: WholePaths, starts: tuple, weights: 
     start = time.perf_counter()
     rays = kernels.trace_chunk(tuple(scene.calls), *starts, params.bounces, params.albedo,
                                params.offset, params.escaped_radiance, params.sky,
-                               params.use_sky, weights, acc.sum, acc.second, acc.n, record)
+                               params.first_sky, params.use_sky, weights, acc.sum,
+                               acc.second, acc.n, record)
     if stats is not None:
         stats.add(rays, time.perf_counter() - start)
     if recorder is not None:
@@ -295,11 +328,11 @@ def _rows(vectors: np.ndarray) -> np.ndarray:
 
 
 def _add_escaped(result: np.ndarray, alive: np.ndarray, escaped: np.ndarray,
-                 beta: np.ndarray, dirs: np.ndarray, n: np.ndarray, lighting: Lighting,
-                 settings: PathSettings) -> None:
+                 beta: np.ndarray, dirs: np.ndarray, n: np.ndarray, env,
+                 sample_env: bool, settings: PathSettings) -> None:
     """Add what the cosine-sampled rays that `escaped` (M,) bring back from a
-    non-constant environment (MIS-weighted against its light sample), or their SH
-    projection."""
+    non-constant environment `env` (MIS-weighted against its light sample when
+    `sample_env`), or their SH projection."""
     if not escaped.any():
         return
     esc_dirs = dirs[escaped].astype(np.float64)
@@ -307,8 +340,7 @@ def _add_escaped(result: np.ndarray, alive: np.ndarray, escaped: np.ndarray,
         result[alive[escaped]] += _escape_sh(beta[escaped], esc_dirs, settings)
         return
     weight = np.full(len(esc_dirs), np.pi)
-    if lighting.sample_env:
+    if sample_env:
         cos = (n[escaped] * dirs[escaped]).sum(axis=1)
-        weight *= power_heuristic(cos / np.pi, lighting.env.pdf(esc_dirs))
-    result[alive[escaped], :3] += (beta[escaped] * lighting.env.radiance(esc_dirs)
-                                   * weight[:, None])
+        weight *= power_heuristic(cos / np.pi, env.pdf(esc_dirs))
+    result[alive[escaped], :3] += beta[escaped] * env.radiance(esc_dirs) * weight[:, None]

@@ -432,6 +432,13 @@ def sky_params(env) -> np.ndarray:
     ]).astype(np.float64)
 
 
+def sky_without_sun(p: np.ndarray) -> np.ndarray:
+    """`sky_params` of the same sky without its sun (no sun radiance, no sun sampling)."""
+    out = np.array(p, np.float64)
+    out[14:18] = 0.0
+    return out
+
+
 @numba.njit(**_JIT)
 def _sky_tuple(p: np.ndarray) -> tuple:
     """The (SKY_PARAMS,) array as a tuple: helpers called per ray take it by value (an
@@ -684,8 +691,8 @@ def occluded_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray) -> np.ndarray
 def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
                 samples: np.ndarray, texels: np.ndarray, origins: np.ndarray,
                 normals: np.ndarray, bounces: int, albedo: np.ndarray, offset: float,
-                escaped_radiance: np.ndarray, sky: np.ndarray, use_sky: bool,
-                weights: np.ndarray, acc_sum: np.ndarray, acc_second: np.ndarray,
+                escaped_radiance: np.ndarray, sky: np.ndarray, first_sky: np.ndarray,
+                use_sky: bool, weights: np.ndarray, acc_sum: np.ndarray, acc_second: np.ndarray,
                 acc_n: np.ndarray, record: np.ndarray) -> int:
     """`path_starts`, `integrator.trace_paths` and `accumulate` of a chunk of paths in one
     compiled call, for irradiance under a constant environment or the procedural sky (no
@@ -700,7 +707,9 @@ def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
             sorted by texel position; (T, 3) float32 start points and unit normals).
         albedo: (3,) float32; offset: world distance hit points leave the surface by.
         escaped_radiance: (3,) π·L of a constant environment (zero under the sky).
-        sky: (SKY_PARAMS,) `sky_params` (any values when not `use_sky`).
+        sky: (SKY_PARAMS,) `sky_params` (any values when not `use_sky`); first_sky: those
+            of the sky the first vertex sees (`sky_without_sun` when the sun's direct
+            light is shaded per pixel, else `sky`).
         weights, acc_sum, acc_second, acc_n: as `accumulate` (acc_sum (A, 3)).
         record: (capacity, RAY_RECORD_ROWS) float32 for benchmarks (every ray traced is
             appended; capacity P·2·(bounces + 1) suffices), or (0, RAY_RECORD_ROWS).
@@ -715,8 +724,9 @@ def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
     rays, recorded = 0, 0
     for vertex in range(bounces + 1):
         dim = vertex * DIMS_PER_VERTEX
+        seen = first_sky if vertex == 0 else sky
         if use_sky:
-            light, contrib, useful = sky_light_samples(sky, keys, dim + 2, n)
+            light, contrib, useful = sky_light_samples(seen, keys, dim + 2, n)
             idx, shadow_at, shadow_dirs = shadow_rays(useful, at, light)
             blocked = occluded_rays(calls, shadow_at, shadow_dirs)
             recorded = _record(record, recorded, 1.0, shadow_at, shadow_dirs)
@@ -731,7 +741,7 @@ def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
         recorded = _record(record, recorded, 1.0 if last else 0.0, at, dirs)
         rays += len(prim)
         if use_sky:
-            sky_add_escaped(sky, result, alive, prim, beta, dirs, n)
+            sky_add_escaped(seen, result, alive, prim, beta, dirs, n)
         if last:
             add_escaped(result, alive, prim, beta, escaped_radiance)
             break
@@ -761,7 +771,7 @@ def warm_up() -> None:
     level_paths(index, index, index, index, np.zeros(1), np.zeros(1), 0.5)
     sky = np.zeros(SKY_PARAMS)
     trace_chunk((0, 0, 0), np.uint32(0), index, index[:0], index[:0], index, vec.T.copy(),
-                vec.T.copy(), 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, True,
+                vec.T.copy(), 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky, True,
                 np.ones(3), np.zeros((1, 3)), np.zeros(1), index.copy(),
                 np.empty((0, RAY_RECORD_ROWS), np.float32))
     _, contrib, useful = sky_light_samples(sky, keys, 0, vec)

@@ -4,6 +4,10 @@
   radiance units × area (W/sr-like); irradiance at distance r, normal incidence: I / r².
 * ``dir:X,Y,Z:R,G,B``: a distant light; (X, Y, Z) points *towards* the light, so its
   light travels along −(X, Y, Z); (R, G, B) is the irradiance at normal incidence.
+
+`pixel_lights` lists what a renderer shades per pixel when a lattice is baked with
+``direct_light="pixels"``: these lights and the procedural sky's sun (`SunLight`, a
+distant disc whose soft shadow edge comes from its angular radius).
 """
 
 from __future__ import annotations
@@ -49,7 +53,49 @@ class DirectionalLight:
         return d, np.full(n, np.inf), np.broadcast_to(np.asarray(self.irradiance), (n, 3))
 
 
+@dataclass(frozen=True)
+class SunLight:
+    """The procedural sky's sun: a disc of uniform radiance (`environment.SkyEnvironment`).
+
+    Attributes:
+        direction: (3,) unit vector towards the disc's centre.
+        irradiance: (3,) irradiance at normal incidence of the whole disc.
+        radius: angular radius, degrees.
+    """
+
+    direction: tuple[float, float, float]
+    irradiance: tuple[float, float, float]
+    radius: float
+
+
 Light = PointLight | DirectionalLight
+
+
+def has_pixel_lights(env_spec: str, light_specs: tuple[str, ...]) -> bool:
+    """True when `pixel_lights` of these specs is not empty (an image environment is not
+    read: it has no sun to split off)."""
+    return bool(light_specs) or _sun_of(env_spec) is not None
+
+
+def pixel_lights(env_spec: str, light_specs: tuple[str, ...]
+                 ) -> tuple[PointLight | DirectionalLight | SunLight, ...]:
+    """The lights shaded per pixel under ``direct_light="pixels"``: every ``--light`` and
+    the sun of a procedural sky (last)."""
+    sun = _sun_of(env_spec)
+    return tuple(parse_light(s) for s in light_specs) + (() if sun is None else (sun,))
+
+
+def _sun_of(env_spec: str) -> SunLight | None:
+    """The `SunLight` of a ``sky:...`` spec with a sun, else None."""
+    if not env_spec or env_spec.split(":", 1)[0].strip() != "sky":
+        return None
+    from .environment import parse_env
+
+    sky = parse_env(env_spec)
+    if sky.sun_probability == 0:
+        return None
+    return SunLight(tuple(float(v) for v in sky.sun_direction), tuple(sky.sun),
+                    float(sky.sun_radius))
 
 
 def _join(values) -> str:

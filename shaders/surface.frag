@@ -7,6 +7,8 @@
 // Feature switches of the local models (1-4): SHADOW 1 shadow-maps the key light,
 // FOG 1 fades to the fog colour with eye distance. LOOKUP picks how irradiance lattices
 // (5, 7) are read: 0 trilinear, 1 nearest texel, 2 closest-isovalue texel, 3 B-spline.
+// DIRECT 1 (with 5): the lattice holds all but the direct light of the point/directional
+// lights and the sun, which is added here per pixel with shadows (direct.glsl).
 #ifndef SHADOW
 #define SHADOW 0
 #endif
@@ -16,12 +18,18 @@
 #ifndef LOOKUP
 #define LOOKUP 0
 #endif
+#ifndef DIRECT
+#define DIRECT 0
+#endif
 #include "lighting.glsl"
 #if SHADOW
 #include "shadow.glsl"
 #endif
 #if SHADING >= 5 && SHADING <= 7
 #include "lattice.glsl"
+#endif
+#if DIRECT
+#include "direct.glsl"
 #endif
 
 uniform vec3 u_eye;
@@ -43,7 +51,12 @@ void main() {
     // Local models light both sides of the surface: turn the normal towards the eye.
     if (dot(n, v) < 0.0) n = -n;
 #if SHADING >= 5 && SHADING <= 7
-    frag_color = vec4(lattice_radiance(v_world, n, u_albedo), 1.0);
+    vec3 radiance_gi = lattice_radiance(v_world, n, u_albedo);
+#if DIRECT
+    vec3 facet_n = normalize(cross(dFdx(v_world), dFdy(v_world)));
+    radiance_gi += u_albedo * direct_irradiance(v_world, n, facet_n) / PI;
+#endif
+    frag_color = vec4(radiance_gi, 1.0);
     return;
 #endif
 #if SHADOW

@@ -303,7 +303,7 @@ def test_sky_light_samples_match_the_environment(spec, normals):
 @pytest.mark.parametrize("spec", SKIES)
 def test_sky_escaped_rays_match_the_environment(spec, normals):
     from baking.environment import parse_env
-    from baking.integrator import Lighting, PathSettings, _add_escaped
+    from baking.integrator import PathSettings, _add_escaped
 
     env = parse_env(spec)
     r = np.random.default_rng(8)
@@ -317,6 +317,6 @@ def test_sky_escaped_rays_match_the_environment(spec, normals):
     got, want = np.zeros((m, 3)), np.zeros((m, 3))
     kernels.sky_add_escaped(kernels.sky_params(env), got, alive, prim,
                             *(np.ascontiguousarray(a.T) for a in (beta, dirs, normals)))
-    _add_escaped(want, alive, prim < 0, beta, dirs, normals, Lighting(env, True, ()),
+    _add_escaped(want, alive, prim < 0, beta, dirs, normals, env, True,
                  PathSettings(bounces=0, albedo=(1, 1, 1), hit_offset=0.0))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
