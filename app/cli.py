@@ -263,7 +263,8 @@ def cmd_bake(args: argparse.Namespace) -> int:
     config = _bake_config(args)
     vol = _load_volume(args)
     try:
-        lattice = bake(vol, config, out=out, workers=args.workers, progress=True)
+        lattice = bake(vol, config, out=out, workers=args.workers, progress=True,
+                       scheduler=args.scheduler)
     except KeyboardInterrupt:
         if out.exists():
             done = Lattice.load(out)
@@ -276,6 +277,11 @@ def cmd_bake(args: argparse.Namespace) -> int:
           f"({plan['active_texels'] / total:.1%}), {len(plan['levels'])} levels, "
           f"{stats['rays_traced']:,} rays in {stats['bake_seconds']:.1f} s "
           f"({stats['rays_traced'] / max(stats['bake_seconds'], 1e-9) / 1e6:.2f} Mrays/s)")
+    if args.scheduler:
+        moved = lattice.meta["cluster"]
+        print(f"cluster: {moved['tasks']:,} tasks, {moved['bytes_sent'] / 1e6:.1f} MB sent and "
+              f"{moved['bytes_returned'] / 1e6:.1f} MB returned (+ {moved['job_bytes'] / 1e6:.1f} "
+              f"MB to each worker once), {moved['scene_builds']} level scenes built")
     return 0
 
 
@@ -341,6 +347,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cap on isovalue levels (fewer: faster, texels move farther onto "
                    "their levels)")
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="trace on a Dask cluster: its scheduler (tcp://host:8786), or local:N "
+                   "for N worker processes here; the same lattice (pip install "
+                   "'isolume[cluster]')")
     p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
     for name in COMMAND_MODULES:
         module = _command_module(name)
