@@ -297,6 +297,7 @@ COMMAND_MODULES = {
     "chart": "app.charts",
     "bench": "app.bench",
 }
+        direct_light=args.direct_light,
 """Commands that live in their own modules. Each module provides ``HELP`` (one line),
 ``add_arguments(parser)`` and ``run(args) -> int``, and is imported only when present."""
 
@@ -385,3 +386,7 @@ if __name__ == "__main__":
     from app.cli import main as _main
 
     sys.exit(_main())
+    p.add_argument("--direct-light", choices=["pixels", "lattice"], default=None,
+                   help="where the direct light of --light lights and the sky's sun goes: "
+                   "pixels (shaded exactly per pixel by render/view, the lattice keeps their "
+                   "bounces; the default when there is one) or lattice (all in the lattice)")

@@ -183,6 +183,14 @@ def background(lighting: Lighting, dirs: np.ndarray) -> np.ndarray:
     return np.asarray(lighting.env.radiance(np.asarray(dirs, np.float64)), np.float64)
 
 
+def _identity_config(config: BakeConfig) -> dict:
+    """The configuration a state file is resumed for: every field that changes the
+    picture (not ``samples``, nor ``direct_light``, which a reference ignores)."""
+    d = dataclasses.replace(config, samples=1).to_dict()
+    del d["direct_light"]
+    return d
+
+
 def rays_hash(origins: np.ndarray, dirs: np.ndarray) -> str:
     """A digest of the primary rays: a state file is resumed only for the same rays."""
     digest = hashlib.sha1()
@@ -314,7 +322,8 @@ class ReferenceTracer:
         iso: the displayed isovalue.
         origins, dirs: (N, 3) primary rays, one per pixel (dirs unit length).
         config: lighting, albedo, bounces, seed, offset, flip_normals (``mode`` must be
-            "irradiance"; ``samples`` is the default target per pixel).
+            "irradiance"; ``samples`` is the default target per pixel; ``direct_light`` is
+            ignored: a reference holds all the light).
         smooth: smoothed-gradient (True) or plain-gradient first-vertex normals.
         env_rotation: (3, 3) rotation R of the environment, L'(ω) = L(Rᵀω) (the renderer's
             ``--env-rotation``, `baking.sh.rotation_from_az_el`), or None.
@@ -332,6 +341,7 @@ class ReferenceTracer:
         if origins.shape != dirs.shape or origins.ndim != 2 or origins.shape[1] != 3:
             raise ValueError(f"origins {origins.shape} and dirs {dirs.shape}: expected (N, 3)")
         started = time.perf_counter()
+        config = dataclasses.replace(config, direct_light="lattice")  # all the light
         self.volume, self.iso, self.config, self.smooth = volume, float(iso), config, smooth
         self.counters = TraceCounters()
         self.lighting = rotated_lighting(make_lighting(config), env_rotation)  # bad specs first
@@ -348,7 +358,7 @@ class ReferenceTracer:
             "pixels": self.pixels, "rays": rays_hash(origins, dirs),
             "normals": "smooth" if smooth else "gradient",
             "env_rotation": None if env_rotation is None else np.asarray(env_rotation).tolist(),
-            "config": dataclasses.replace(config, samples=1).to_dict(),
+            "config": _identity_config(config),
         }
         threads = max(1, workers or os.cpu_count() or 1)
         self._pool = ThreadPoolExecutor(max_workers=threads)
