@@ -11,11 +11,11 @@ from .errors import BakeError
 from .lights import parse_light
 
 MODES = ("irradiance", "sh")
-DEFAULT_ENV = "sky:sun=3,sun_az=-120,sun_el=50"
+DEFAULT_ENV = "sky:sun=6,sun_az=-150,sun_el=40"
 """The lighting of the command line when none is given (``render``, ``view``, ``bake`` and
-``reference`` alike): a blue sky over a grey ground with a sun of irradiance 3 from the
-upper left of the default view (azimuth −120°, the camera's −60° plus 60°; elevation 50°),
-so that the first picture shows shape by its cast shadows and the sky's soft light.
+``reference`` alike): a blue sky over a grey ground with a sun of irradiance 6 from the
+left of the default view (azimuth −150°, the camera's −60° turned 90°; elevation 40°), so
+that the first picture shows shape by cast shadows as well as by the sky's soft light.
 `BakeConfig`'s own default `env` stays the constant white sky (E = π on open surfaces,
 what the analytic tests use)."""
 DIRECT_LIGHT = ("pixels", "lattice")
