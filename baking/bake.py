@@ -13,6 +13,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import threading
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor, wait
@@ -52,6 +53,9 @@ class BakeStats:
     rays: int = 0
     trace_seconds: float = 0.0
     scene_seconds: float = 0.0
+    mesh_seconds: float = 0.0
+    embree_seconds: float = 0.0
+    scenes: int = 0
     paths: int = 0
     started: float = field(default_factory=time.perf_counter)
 
@@ -208,7 +212,8 @@ class Baker:
     Args:
         lattice: an existing lattice to extend (resume); None starts empty.
         workers: threads tracing concurrently; the result does not depend on it.
-        scene_cache: how many level scenes to keep alive.
+        scene_cache: how many level scenes to keep alive (at least 2: the one traced and
+            the next, built meanwhile).
     """
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig, *,
@@ -235,7 +240,8 @@ class Baker:
         self._pool = ThreadPoolExecutor(max_workers=self.workers)
         self._helper = ThreadPoolExecutor(max_workers=1)  # lays out the next level
         self._scenes: OrderedDict[int, object] = OrderedDict()
-        self._scene_cache = max(1, scene_cache)
+        self._scene_cache = max(2, scene_cache)
+        self._scene_lock = threading.Lock()
         _finish_meta(self.lattice, self.plan, self.stats, self.previous)
 
     def samples_done(self, positions: np.ndarray | None = None) -> np.ndarray:
@@ -268,9 +274,11 @@ class Baker:
         jobs: list = []
         try:
             # Pipelined: a helper thread lays out the paths and start points of the next
-            # level (compiled, GIL-free: it overlaps the scene build, which holds the GIL)
-            # while this one builds the level scene and the workers trace it.
-            work = self._prepare_level(first, by_lower[0], busy[:0], done, remaining)
+            # level and builds its scene while the workers trace this one (the chunks are
+            # compiled calls without the GIL; marching cubes holds it, the BVH build does
+            # not). The main thread only waits for what the pipeline did not hide.
+            work = self._waited(self._prepare_level, first, by_lower[0], busy[:0], done,
+                                remaining)
             for level in range(first, last + 1):
                 upcoming = None
                 if level < last:
@@ -281,7 +289,7 @@ class Baker:
                 self._collect(jobs, level, bar)
                 jobs = []
                 if upcoming is not None:
-                    work = upcoming.result()
+                    work = self._waited(upcoming.result)
                 # a texel's pass is complete once its upper level is done
                 complete = by_lower[level - first - 1] if level > first else busy[:0]
                 complete = complete[self._acc.n[complete] > 0]
@@ -303,29 +311,45 @@ class Baker:
         self._scenes.clear()
 
     def _scene(self, level: int):
-        if level in self._scenes:
-            self._scenes.move_to_end(level)
-            return self._scenes[level]
-        while len(self._scenes) >= self._scene_cache:
-            self._scenes.popitem(last=False)
+        """The Embree scene of `level`, from the cache or built now (least recently used
+        scenes out: the cache holds at least the level being traced and the next)."""
+        with self._scene_lock:
+            if level in self._scenes:
+                self._scenes.move_to_end(level)
+                return self._scenes[level]
         scene = _level_scene(self.volume, float(self.plan.levels[level]), self.config)
-        self._scenes[level] = scene
+        with self._scene_lock:
+            self.stats.mesh_seconds += scene.mesh_seconds
+            self.stats.embree_seconds += scene.build_seconds
+            self.stats.scenes += 1
+            while len(self._scenes) >= self._scene_cache:
+                self._scenes.popitem(last=False)
+            self._scenes[level] = scene
         return scene
+
+    def _waited(self, function, *args):
+        """`function(*args)`, its wall time counted as waiting for level scenes."""
+        began = time.perf_counter()
+        try:
+            return function(*args)
+        finally:
+            self.stats.scene_seconds += time.perf_counter() - began
 
     def _prepare_level(self, level: int, here: np.ndarray, below: np.ndarray,
                        done: np.ndarray, remaining: np.ndarray) -> _LevelWork:
         """Lay out every pending path of isovalue level `level`, sorted by texel, with
-        the start points of its texels: the lower-level samples of the texels whose
+        the start points of its texels — the lower-level samples of the texels whose
         lower level it is (`here`), and the upper-level samples of those whose lower
-        level is the one below (`below`)."""
+        level is the one below (`below`) — and get the level's scene if it has paths."""
         plan = self.plan
         pos, samples, start = lay_out_level(
             self.volume, self.geometry, self.config, float(plan.levels[level]), plan.ids,
             plan.phase, plan.weight, here, below, done, remaining)
-        return _LevelWork(level, pos, samples, start)
+        scene = self._scene(level) if len(pos) else None
+        return _LevelWork(level, pos, samples, start, scene)
 
     def _submit_level(self, work: _LevelWork) -> list:
-        """Build the level's scene (timed as scene time) and queue its chunks of paths.
+        """Queue the level's chunks of paths on its scene.
 
         Workers add their per-texel sums straight into the pass accumulator: the chunks
         of one level hold disjoint texels, and a texel is committed only after its last
@@ -333,10 +357,7 @@ class Baker:
         """
         if len(work.pos) == 0:
             return []
-        t0 = time.perf_counter()
-        scene = self._scene(work.level)
-        self.stats.scene_seconds += time.perf_counter() - t0
-        return [self._pool.submit(trace_chunk, scene, self._tracing, work.pos[lo:hi],
+        return [self._pool.submit(trace_chunk, work.scene, self._tracing, work.pos[lo:hi],
                                   work.samples[lo:hi], work.start)
                 for lo, hi in _chunk_bounds(work.pos, self.workers)]
 
@@ -456,12 +477,13 @@ def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
 @dataclass(frozen=True)
 class _LevelWork:
     """The pending paths of one level: texel positions (P,) sorted, sample indices (P,),
-    and the start points of their texels."""
+    the start points of their texels, and the level's `trace.Scene` (None when P = 0)."""
 
     level: int
     pos: np.ndarray
     samples: np.ndarray
     start: PathStarts
+    scene: object
 
 
 @dataclass(frozen=True)
@@ -547,13 +569,20 @@ def trace_chunk(scene, tracing: Tracing, pos, samples,
 
 
 def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):
-    """Embree scene of the level surface ρ = iso (empty at the data's extremes)."""
+    """Embree scene of the level surface ρ = iso (empty at the data's extremes), with the
+    seconds its marching cubes took as ``mesh_seconds`` (Embree's as ``build_seconds``).
+    Zero-area triangles are kept: no ray hits them, and removing them costs a third of
+    the marching cubes."""
     from .trace import Scene
 
     lo, hi = volume.value_range
     iso = min(max(iso, lo), hi)
-    mesh = volumes.isosurface(volume, iso, normals="none")
-    return Scene(mesh.vertices, mesh.faces)
+    began = time.perf_counter()
+    mesh = volumes.isosurface(volume, iso, normals="none", keep_degenerate=True)
+    mesh_seconds = time.perf_counter() - began
+    scene = Scene(mesh.vertices, mesh.faces)
+    scene.mesh_seconds = mesh_seconds
+    return scene
 
 
 def _finish_meta(lattice: Lattice, plan: Plan, stats: BakeStats, previous: dict) -> None:

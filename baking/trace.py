@@ -204,9 +204,14 @@ class Scene:
         self.recorder: RayRecorder | None = None  # benchmarks: a copy of every batch
         self.built_by = ""
         """How the Embree scene was built: "native", "embreex", or "" (empty)."""
+        self.mesh_seconds = 0.0
+        """Seconds the mesh took to make (set by whoever made it)."""
+        began = time.perf_counter()
         if not self.empty:
             self._scene = rtcore_scene.EmbreeScene()
             self.built_by = _attach_mesh(self._scene, self.vertices, self.faces)
+        self.build_seconds = time.perf_counter() - began
+        """Seconds Embree's geometry and BVH took to build."""
         self.calls = embree_calls(self)
         """`EmbreeCalls` for compiled chunk calls, or None (then only `intersect` and
         `occluded` trace)."""

@@ -63,6 +63,7 @@ def isosurface(
     normals: str = "smooth",
     flip_normals: bool = False,
     step_size: int = 1,
+    keep_degenerate: bool = False,
 ) -> Mesh:
     """Extract the isosurface ρ = iso.
 
@@ -73,6 +74,8 @@ def isosurface(
             central differences) or "none" (no normals: a mesh for ray tracing only).
         flip_normals: reverse the normals (for data whose material is less dense).
         step_size: marching-cubes step in voxels (2 gives a fast coarse preview).
+        keep_degenerate: keep zero-area triangles (ray tracing never hits them; removing
+            them costs a third of the marching cubes).
 
     Returns:
         Mesh in world units; an empty mesh with a message when the surface is empty
@@ -86,7 +89,7 @@ def isosurface(
         return Mesh.empty_at(iso, f"isovalue {iso:g} is at the data's extreme; nothing to show")
     try:
         verts, faces, _, _ = measure.marching_cubes(
-            volume.data, level=iso, step_size=step_size, allow_degenerate=False
+            volume.data, level=iso, step_size=step_size, allow_degenerate=keep_degenerate
         )
     except ValueError:  # the strided samples (step_size > 1) all lie on one side of iso
         return Mesh.empty_at(iso, f"no surface at isovalue {iso:g} at step size {step_size}")
