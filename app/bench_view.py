@@ -72,6 +72,21 @@ def _filled_lattices(volume):
     return irr, sh
 
 
+DIRECT_MODE = "irradiance+sun"
+"""Lattice irradiance with the sun of ``sky:sun=3`` shaded per pixel (a lattice baked with
+direct light "pixels"): soft shadow from a 0.5° disc."""
+
+
+def _variants(mode: str) -> list[tuple[str, tuple | None]]:
+    """(label, per-pixel lights) to time for `mode`: "irradiance" also with the sun shaded
+    per pixel (`DIRECT_MODE`)."""
+    if mode != "irradiance":
+        return [(mode, None)]
+    from baking.lights import pixel_lights
+
+    return [(mode, None), (DIRECT_MODE, pixel_lights("sky:sun=3", ()))]
+
+
 def _time_mode(renderer, ctx, camera, settings, frames: int) -> list[float]:
     """Milliseconds per frame (draw, tone map, finish) after 3 warm-up frames."""
     for _ in range(3):
@@ -131,17 +146,18 @@ def frame_times(volume, iso: float, size: tuple[int, int], frames: int = 20,
                     env = np.zeros((25, 3))
                     env[0] = np.sqrt(4 * np.pi)  # a white sky
                     renderer.set_environment(env)
-                settings = RenderSettings(size=size, shading=mode)
-                ms = _time_mode(renderer, gl.ctx, camera, settings, frames)
                 key = "modes" if name == "full" else "preview"
-                result[key][mode] = {"ms": float(np.median(ms)), "ms_min": float(min(ms)),
-                                     "fps": 1000.0 / float(np.median(ms))}
+                for label, direct in _variants(mode):
+                    settings = RenderSettings(size=size, shading=mode, direct_lights=direct)
+                    ms = _time_mode(renderer, gl.ctx, camera, settings, frames)
+                    result[key][label] = {"ms": float(np.median(ms)), "ms_min": float(min(ms)),
+                                          "fps": 1000.0 / float(np.median(ms))}
         renderer.release()
     finally:
         gl.release()
     modes = result["modes"]
     result["ratios"] = {f"{gi}/{local}": modes[gi]["ms"] / modes[local]["ms"]
-                        for gi in ("irradiance", "sh") if gi in modes
+                        for gi in ("irradiance", DIRECT_MODE, "sh") if gi in modes
                         for local in ("phong_hemi", "phong_shadow") if local in modes}
     return result
 

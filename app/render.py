@@ -244,6 +244,19 @@ def lattice_direct_lights(lattice) -> tuple:
     return pixel_lights(config.get("env", ""), tuple(config.get("lights", ())))
 
 
+def lattice_start_offset(lattice) -> float:
+    """World distance by which the baker lifted a lattice's start points off the surface
+    (its ``offset`` in voxels × the volume's mean spacing): per-pixel direct light is
+    looked up from there too, as the reference's shadow rays start there (0 when the
+    lattice does not say)."""
+    meta = lattice.meta if lattice is not None else {}
+    offset = (meta.get("config") or {}).get("offset")
+    spacing = (meta.get("volume") or {}).get("spacing")
+    if offset is None or spacing is None:
+        return 0.0
+    return float(offset) * float(np.mean(spacing))
+
+
 def direct_tiles(lights) -> list[int]:
     """The first shadow-atlas tile of each per-pixel light (a distant light or the sun
     takes one, a point light six).
@@ -427,6 +440,7 @@ class SurfaceRenderer:
         self._shadow: _ShadowMap | None = None
         self._atlas: _DirectAtlas | None = None
         self._lattice_lights: tuple = ()
+        self._direct_offset = 0.0
         self.lattice: LatticeTextures | None = None
         self._env_coeffs: np.ndarray | None = None
         # Framebuffer 0 is always valid to bind; parking on it before freeing our targets
@@ -491,6 +505,7 @@ class SurfaceRenderer:
             self.lattice.release()
             self.lattice = None
         self._lattice_lights = lattice_direct_lights(lattice)
+        self._direct_offset = lattice_start_offset(lattice)
         if lattice is not None:
             self.lattice = LatticeTextures(self.ctx, lattice, texel_isovalues)
 
@@ -706,7 +721,8 @@ class SurfaceRenderer:
         atlas.raw.use(location=raw_unit)
         self._set_uniforms(prog, {**atlas.uniforms, "u_direct_shadow": shadow_unit,
                                   "u_direct_depth": raw_unit,
-                                  "u_direct_bias": DIRECT_BIAS_TEXELS})
+                                  "u_direct_bias": DIRECT_BIAS_TEXELS,
+                                  "u_direct_offset": self._direct_offset})
 
     def _uniforms(self, camera: Camera, s: RenderSettings) -> dict:
         """Uniform values of the surface shaders (each program takes those it declares)."""

@@ -30,6 +30,8 @@ uniform vec4 u_tile_depth[MAX_TILES];     // linear depth = dot(xyz, world) + w
 uniform vec4 u_tile_rect[MAX_TILES];      // atlas uv of the tile: offset xy, size zw
 uniform float u_tile_range[MAX_TILES];    // world units per unit of depth
 uniform vec2 u_direct_bias;               // (constant, slope) bias, in tile texels
+uniform float u_direct_offset;            // world distance the shaded point is lifted along
+                                          // its normal (the baker's start-point offset)
 uniform sampler2DShadow u_direct_shadow;  // the atlas, compare <=, bilinear
 uniform sampler2D u_direct_depth;         // the same atlas, raw depths (blocker search)
 

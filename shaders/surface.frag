@@ -54,7 +54,9 @@ void main() {
     vec3 radiance_gi = lattice_radiance(v_world, n, u_albedo);
 #if DIRECT
     vec3 facet_n = normalize(cross(dFdx(v_world), dFdy(v_world)));
-    radiance_gi += u_albedo * direct_irradiance(v_world, n, facet_n) / PI;
+    // from where the baker's paths start: off the surface along the normal
+    radiance_gi += u_albedo * direct_irradiance(v_world + u_direct_offset * n, n, facet_n)
+                   / PI;
 #endif
     frag_color = vec4(radiance_gi, 1.0);
     return;
