@@ -85,7 +85,10 @@ def _load_volume(args: argparse.Namespace) -> volumes.Volume:
         options["dtype"] = args.dtype
     if getattr(args, "spacing", None):
         options["spacing"] = _floats(args.spacing, 3, "--spacing")
-    return volumes.load(args.volume, **options)
+    volume = volumes.load(args.volume, **options)
+    if getattr(args, "up", None):
+        volume = volumes.turn_up(volume, args.up)
+    return volume
 
 
 def _isovalue(volume: volumes.Volume, iso: float | None) -> float:
@@ -130,25 +133,47 @@ def _add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
     p.add_argument("--dims", help="X,Y,Z for raw files whose name does not say")
     p.add_argument("--dtype", help="sample type for raw files, e.g. uint8, int16, float32")
     p.add_argument("--spacing", help="voxel size X,Y,Z (overrides the file)")
+    p.add_argument("--up", metavar="AXIS", default=None,
+                   help="the volume's axis that points up: x, y, z, -x, -y or -z (after the "
+                   "orientation its header gives; e.g. -z for raw slices that run top "
+                   "to bottom; default z)")
 
 
 def _add_render_options(p: argparse.ArgumentParser) -> None:
+    from baking.config import DEFAULT_ENV
+
     from .render import SHADING_MODES, TONEMAPS
 
     p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
     p.add_argument("--shading", default=None,
-                   help=f"one of {', '.join(SHADING_MODES)} (default: irradiance with "
-                   "--lattice, else phong_hemi)")
+                   help=f"one of {', '.join(SHADING_MODES)} (default: the lattice's kind "
+                   "with --lattice, else irradiance: global illumination traced for this "
+                   "view)")
     p.add_argument("--lattice", help="illumination lattice from `isolume bake`")
     p.add_argument("--env", default=None,
-                   help="environment for --shading sh (default: the one the lattice was "
-                   "baked with): constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular]")
+                   help="the lighting: constant:R,G,B | sky[:k=v,...] | "
+                   "FILE.exr/.hdr[@angular] (default: the lattice's with --lattice, else "
+                   f"{DEFAULT_ENV})")
+    p.add_argument("--light", action="append", metavar="SPEC",
+                   help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable; without --lattice)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="paths per texel of the global illumination traced for this view "
+                   "(without --lattice; default 64)")
+    p.add_argument("--bounces", type=int, default=2,
+                   help="diffuse bounces of that illumination (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="tracing threads (default: all cores)")
     p.add_argument("--env-rotation", default="0,0", help="AZ,EL degrees (--shading sh)")
     p.add_argument("--sh-window", default="none", choices=["none", "hanning", "lanczos"],
                    help="window against ringing of the environment's SH projection")
     p.add_argument("--size", default="512x512", help="WxH pixels")
     p.add_argument("--view", default="30,30", help="AZ,EL[,DIST]: degrees, diagonals")
-    p.add_argument("--exposure", type=float, default=1.0, help="linear exposure multiplier")
+    p.add_argument("--exposure", type=float, default=1.0,
+                   help="linear exposure multiplier on the automatic exposure (which brings "
+                   "the log-average of the surface's luminance to middle grey)")
+    p.add_argument("--no-auto-exposure", action="store_true",
+                   help="no automatic exposure: --exposure is the whole linear scale")
     p.add_argument("--tonemap", default="aces", choices=list(TONEMAPS))
     p.add_argument("--albedo", default=None,
                    help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
@@ -197,12 +222,13 @@ def cmd_render(args: argparse.Namespace) -> int:
     from .camera import parse_view
     from .images import check_output_path, write_image
     from .offscreen import render_volume
-    from .render import RenderSettings
+    from .render import LATTICE_MODES, RenderSettings
 
     out = check_output_path(args.out)
     vol = _load_volume(args)
     lattice = _load_lattice(args.lattice, vol)
-    shading = args.shading or (lattice.kind if lattice is not None else "phong_hemi")
+    shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
+    view_light = _view_light(args, vol) if lattice is None and shading == "irradiance" else None
     if args.albedo is not None:
         albedo = parse_albedo(args.albedo)
     elif lattice is not None:
@@ -213,7 +239,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         view = parse_view(args.view)
         settings = RenderSettings(
             size=_size(args.size), shading=shading, exposure=args.exposure,
-            tonemap=args.tonemap, albedo=albedo,
+            auto_exposure=not args.no_auto_exposure, tonemap=args.tonemap, albedo=albedo,
             env_rotation=_floats(args.env_rotation, 2, "--env-rotation"),
         )
     except ValueError as exc:
@@ -221,22 +247,50 @@ def cmd_render(args: argparse.Namespace) -> int:
     env_coeffs = None
     if shading == "sh" and lattice is not None:
         env_coeffs = _environment_coefficients(args.env, lattice, args.sh_window)
-    from .render import LATTICE_MODES
-
-    if shading in LATTICE_MODES and lattice is None:
-        raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume bake)")
+    if shading in LATTICE_MODES and lattice is None and view_light is None:
+        raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume "
+                       "bake); without one, irradiance is traced for the view")
     iso = _isovalue(vol, args.iso)
+    if lattice is not None:
+        from baking.plan import outside_served_range
+
+        refused = outside_served_range(lattice.meta, iso, args.lattice)
+        if refused:
+            raise CLIError(refused)
     frame, mesh = render_volume(
         vol, iso, settings, view=view, backend=args.gl,
         normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,
-        env_coeffs=env_coeffs,
+        env_coeffs=env_coeffs, view_light=view_light, workers=args.workers, progress=True,
     )
     if mesh.empty:
         print(f"isolume: warning: {mesh.message}", file=sys.stderr)
     write_image(out, frame.linear, frame.srgb)
+    lighting = f", lighting {view_light.env}" if view_light is not None else ""
     print(f"wrote {out} ({settings.size[0]}x{settings.size[1]}, {vol.name} at iso {iso:.6g}, "
-          f"{len(mesh.faces):,} triangles, shading {settings.shading})")
+          f"{len(mesh.faces):,} triangles, shading {settings.shading}{lighting}, exposure "
+          f"{frame.exposure:.3g})")
     return 0
+
+
+def _view_light(args: argparse.Namespace, volume: volumes.Volume):
+    """The `BakeConfig` of the global illumination ``render`` traces for its view (the
+    lighting ``reference`` path-traces with the same arguments)."""
+    from baking.config import DEFAULT_ENV, BakeConfig
+
+    from .view_gi import DEFAULT_PATHS
+
+    samples = DEFAULT_PATHS if args.samples is None else args.samples
+    if not 1 <= samples <= 4096:
+        raise CLIError(f"--samples {samples}: expected 1 to 4096 paths per texel")
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers {args.workers}: expected at least 1")
+    env = DEFAULT_ENV if args.env is None else args.env
+    return BakeConfig(
+        mode="irradiance", samples=samples, bounces=args.bounces,
+        albedo=parse_albedo(args.albedo or "0.8"), env="" if env == "none" else env,
+        lights=tuple(args.light or ()), seed=args.seed, normals=args.normals,
+        flip_normals=args.flip_normals,
+    )
 
 
 def _bake_config(args: argparse.Namespace):
@@ -249,6 +303,7 @@ def _bake_config(args: argparse.Namespace):
         env="" if args.env == "none" else args.env, lights=tuple(args.light or ()), seed=args.seed,
         flip_normals=args.flip_normals, target_error=args.target_error,
         max_samples=max(args.max_samples, args.samples), max_levels=args.max_levels,
+        direct_light=args.direct_light,
     )
 
 
@@ -297,7 +352,6 @@ COMMAND_MODULES = {
     "chart": "app.charts",
     "bench": "app.bench",
 }
-        direct_light=args.direct_light,
 """Commands that live in their own modules. Each module provides ``HELP`` (one line),
 ``add_arguments(parser)`` and ``run(args) -> int``, and is imported only when present."""
 
@@ -314,6 +368,8 @@ def _command_module(name: str):
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
+    from baking.config import DEFAULT_ENV
+
     parser = argparse.ArgumentParser(
         prog="isolume", description="Isosurfaces with precomputed global illumination."
     )
@@ -339,14 +395,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--albedo", default="0.8", help="A or R,G,B")
     p.add_argument("--scale", type=float, default=1.0, help="texels per voxel per axis")
     p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"))
-    p.add_argument("--env", default="constant:1,1,1",
-                   help="constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular] | none")
+    p.add_argument("--env", default=DEFAULT_ENV,
+                   help="constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular] | none "
+                   f"(default {DEFAULT_ENV})")
     p.add_argument("--light", action="append", metavar="SPEC",
                    help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-levels", type=int, default=64, metavar="K",
                    help="cap on isovalue levels (fewer: faster, texels move farther onto "
                    "their levels)")
+    p.add_argument("--direct-light", choices=["pixels", "lattice"], default=None,
+                   help="where the direct light of --light lights and the sky's sun goes: "
+                   "pixels (shaded exactly per pixel by render/view, the lattice keeps their "
+                   "bounces; the default when there is one) or lattice (all in the lattice)")
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
     p.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="trace on a Dask cluster: its scheduler (tcp://host:8786), or local:N "
@@ -386,7 +447,3 @@ if __name__ == "__main__":
     from app.cli import main as _main
 
     sys.exit(_main())
-    p.add_argument("--direct-light", choices=["pixels", "lattice"], default=None,
-                   help="where the direct light of --light lights and the sky's sun goes: "
-                   "pixels (shaded exactly per pixel by render/view, the lattice keeps their "
-                   "bounces; the default when there is one) or lattice (all in the lattice)")

@@ -31,7 +31,7 @@ import numpy as np
 
 import volumes
 
-from .viewer_bake import BakeLink, SharedLattice, lattice_meta
+from .viewer_bake import BakeLink, SharedLattice, lattice_meta, range_warning
 from .viewer_draw import PREVIEW_TRIANGLES, Drawing, ViewState
 from .viewer_surfaces import MeshWorker
 
@@ -48,6 +48,8 @@ DEFAULT_BAKE_SAMPLES = 256
 # -- command line -------------------------------------------------------------------------
 def add_arguments(parser) -> None:
     """Options of ``isolume view``."""
+    from baking.config import DEFAULT_ENV
+
     from .cli import _add_volume_options
 
     _add_volume_options(parser, optional=True)
@@ -59,7 +61,12 @@ def add_arguments(parser) -> None:
                         help="initial shading mode (default: irradiance when a lattice is "
                         "shown or baked, else phong_hemi)")
     parser.add_argument("--size", default="1024x768", help="window size WxH (screen units)")
-    parser.add_argument("--exposure", type=float, default=1.0, help="linear exposure")
+    parser.add_argument("--exposure", type=float, default=1.0,
+                        help="linear exposure multiplier on the automatic exposure (which "
+                        "brings the log-average of the surface's luminance to middle grey "
+                        "and adapts smoothly)")
+    parser.add_argument("--no-auto-exposure", action="store_true",
+                        help="no automatic exposure: --exposure is the whole linear scale")
     parser.add_argument("--frames", type=int, metavar="N",
                         help="render N frames once the surface is ready (after --script), "
                         "then exit")
@@ -78,9 +85,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--bake-mode", default="irradiance", choices=["irradiance", "sh"],
                         help="what a new lazy lattice holds: irradiance (fixed light) or SH "
                         "transfer (the environment rotates with the light controls)")
-    parser.add_argument("--bake-env", default="constant:1,1,1",
+    parser.add_argument("--bake-env", default=DEFAULT_ENV,
                         help="environment of a new lazy lattice: constant:R,G,B | sky[:...] | "
-                        "FILE.exr/.hdr (as isolume bake --env)")
+                        f"FILE.exr/.hdr (as isolume bake --env; default {DEFAULT_ENV})")
     parser.add_argument("--bake-samples", type=int, default=DEFAULT_BAKE_SAMPLES,
                         help="paths per texel the lazy bake refines up to (new lattices)")
     parser.add_argument("--bake-workers", type=int, default=None,
@@ -102,6 +109,7 @@ class Options:
     size: tuple[int, int]
     shading: str | None
     exposure: float
+    auto_exposure: bool
     frames: int | None
     screenshot: Path | None
     script: tuple
@@ -147,6 +155,7 @@ def _options(args) -> Options:
     script = tuple(load_script(args.script, SHADING_MODES)) if args.script else ()
     return Options(
         size=_size(args.size), shading=args.shading, exposure=args.exposure,
+        auto_exposure=not args.no_auto_exposure,
         frames=args.frames, screenshot=screenshot, script=script, stats=stats,
         bake=not args.no_bake, bake_mode=args.bake_mode, bake_env=args.bake_env,
         bake_samples=args.bake_samples, bake_workers=args.bake_workers,
@@ -251,9 +260,11 @@ class Viewer:
 
         self.volume, self.options = volume, options
         self.window = create_window(options.size, f"isolume — {volume.name}")
-        self.drawing = Drawing(self.window.ctx, volume)
+        self.drawing = Drawing(self.window.ctx, volume, options.auto_exposure)
         self.home = default_camera(volume)
         self.camera = self.home
+        self.framed = False  # the first surface has been framed
+        self.panel_rect: tuple[float, float, float, float] | None = None
         self.ui = self._make_ui() if options.ui else None
         self.message = ""
         self.shared: SharedLattice | None = None
@@ -530,6 +541,23 @@ class Viewer:
         self.camera = moves[how](self.camera)
         self._moved()
 
+    def _frame(self, mesh: volumes.Mesh) -> None:
+        """Aim the camera at the first surface's bounding box, in the part of the window
+        the panel leaves free; that view becomes the one `R` returns to. A camera the user
+        (or a script) has moved already stays where it is."""
+        from .camera import frame_box
+
+        w, h = self.window.window_size
+        left = 0.0
+        if self._ui_shown and self.panel_rect is not None:
+            x, _, width, _ = self.panel_rect
+            left = min(max((x + width + 10) / max(w, 1), 0.0), 0.6)
+        home = frame_box(self.home, mesh.vertices.min(axis=0), mesh.vertices.max(axis=0),
+                         w / max(h, 1), (left, 1.0))
+        if self.camera == self.home:
+            self.camera = home
+        self.home, self.framed = home, True
+
     def reset_camera(self) -> None:
         self.camera = self.home
         self.redraw()
@@ -541,6 +569,9 @@ class Viewer:
         """Apply an `app.ui.Action` (from the panel or a key); problems become the status
         message."""
         name, value = action.name, action.value
+        if name == "panel_rect":  # where the panel is (window units), for framing
+            self.panel_rect = value
+            return
         simple = {
             "iso": lambda: self.request_iso(value),
             "iso_step": lambda: self.step_iso(value),
@@ -676,7 +707,8 @@ class Viewer:
         now = time.perf_counter()
         recent_input = now - self.last_input < 0.25
         settle = self.reduced and not self._interacting(now)  # one full-detail frame
-        return self.dirty or recent_input or settle or self.script.forces_frames
+        return (self.dirty or recent_input or settle or self.script.forces_frames
+                or self.drawing.adapting)
 
     def _frame_size(self) -> tuple[int, int]:
         w, h = self.window.framebuffer_size
@@ -753,6 +785,8 @@ class Viewer:
                     self.drawing.meshes["coarse"] = mesh
                 continue
             self.drawing.set_surface(result.stage, mesh, new_iso=result.iso != self.mesh_iso)
+            if not self.framed and not mesh.empty:
+                self._frame(mesh)
             self.drawing.sync_mesh(preview=self.drawing.quality.coarse
                                    and self._interacting(time.perf_counter()))
             self.mesh_stage, self.mesh_iso = result.stage, result.iso
@@ -827,7 +861,8 @@ class Viewer:
     def _bake_status(self) -> tuple[tuple[float, float] | None, tuple[str, ...]]:
         if self.bake is None:
             if self.static_lattice is not None:
-                return None, ("lattice loaded (complete)",)
+                return None, (*range_warning(self.static_lattice.meta, self.state.iso),
+                              "lattice loaded (complete)")
             return None, ()
         return self.bake.status(self.state.iso)
 

@@ -302,6 +302,18 @@ class _BakeProcess:
             baker.close()
 
 
+def range_warning(meta: dict, iso: float) -> tuple[str, ...]:
+    """A panel line when `iso` lies outside the iso range of the lattice whose metadata is
+    `meta` (its texels are lit on surfaces inside it); () otherwise."""
+    from baking.plan import served_range
+
+    served = served_range(meta)
+    if served is None or served[0] <= iso <= served[1]:
+        return ()
+    return (f"WARNING: iso {iso:.4g} is outside the baked range {served[0]:.4g} to "
+            f"{served[1]:.4g}: light of the surface at the range's end",)
+
+
 class BakeLink:
     """The viewer's side of the lazy bake process: send views, receive committed texels."""
 
@@ -395,7 +407,8 @@ class BakeLink:
         rate = s.get("paths", 0) / max(s.get("seconds", 0.0), 1e-9)
         lines = (preview, f"{stage}, {rate:,.0f} paths/s",
                  f"{p.visible:,} visible / {p.surface:,} surface texels")
-        return (p.visible_fraction, p.surface_fraction), lines
+        meta = self.ready.get("meta", {})
+        return (p.visible_fraction, p.surface_fraction), range_warning(meta, iso) + lines
 
     def _preview_line(self, iso: float) -> str:
         """The last preview pass done for the isovalue `iso` ("" when none)."""

@@ -249,6 +249,29 @@ def newton_reach(volume: volumes.Volume, config: BakeConfig) -> float:
     return max(MAX_REACH * move_limit(config) * h, float(np.linalg.norm(cell)))
 
 
+def served_range(meta: dict) -> tuple[float, float] | None:
+    """The iso range a lattice (its metadata `meta`) was baked for, or None for files
+    written before texels were lit on values clamped to it (they serve any isovalue)."""
+    served = meta.get("plan", {}).get("iso_range")
+    return None if served is None else (float(served[0]), float(served[1]))
+
+
+def outside_served_range(meta: dict, iso: float, source: str) -> str:
+    """"" when a lattice baked with metadata `meta` (from `source`) serves isovalue `iso`;
+    else a one-line message saying so and what to do."""
+    served = served_range(meta)
+    if served is None:
+        return ""
+    lo, hi = served
+    tolerance = 1e-6 * max(abs(lo), abs(hi), 1.0)
+    if lo - tolerance <= iso <= hi + tolerance:
+        return ""
+    nearest = lo if iso < lo else hi
+    return (f"{source}: baked for isovalues {lo:g} to {hi:g}; at isovalue {iso:g} its light "
+            f"would be that of the surface at {nearest:g} (wrong shadows and shading): bake "
+            f"with --iso-range covering {iso:g}, or render without the lattice")
+
+
 def move_limit(config: BakeConfig) -> float:
     """Largest Newton move onto a level that the level spacing allows (90 % of texels),
     voxels: `config.max_move`, or when that is None `REFERENCE_MOVE` × √(256 / samples)

@@ -104,3 +104,31 @@ def test_damped_newton_walks_out_of_a_plateau_onto_the_level():
     assert moved[0, 2] == pytest.approx(24.0, abs=0.05)
     stuck = project_to_level(vol, start, 0.5, max_move=2.0)  # too far: clamped, not past
     assert np.linalg.norm(stuck - start) == pytest.approx(2.0)
+
+
+def test_render_refuses_isovalues_outside_the_baked_range(tmp_path, capsys):
+    """A lattice lights its texels on surfaces inside its iso range: at another isovalue
+    the picture would be wrong, so ``render`` says so (exit 2, one line) instead."""
+    from app.cli import main
+
+    path = tmp_path / "l.npz"
+    bake(make("sphere", 24), BakeConfig(samples=2, bounces=0, iso_range=(0.4, 0.6)),
+         out=path, workers=2)
+    common = ["render", "synthetic:sphere:24", "--lattice", str(path), "--size", "24x24",
+              "--gl", "osmesa", "--out", str(tmp_path / "a.png")]
+    assert main([*common, "--iso", "0.5"]) == 0
+    capsys.readouterr()
+    assert main([*common, "--iso", "0.2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert f"{path}: baked for isovalues 0.4 to 0.6; at isovalue 0.2" in err
+    assert "--iso-range" in err
+
+
+def test_viewer_panel_warns_outside_the_baked_range():
+    from app.viewer_bake import range_warning
+
+    meta = {"plan": {"iso_range": [0.4, 0.6]}}
+    assert range_warning(meta, 0.5) == ()
+    assert "outside the baked range 0.4 to 0.6" in range_warning(meta, 0.7)[0]
+    assert range_warning({"plan": {}}, 0.9) == ()  # older files serve every isovalue
