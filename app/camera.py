@@ -7,7 +7,7 @@ towards +y; positive azimuth turns the eye counter-clockwise seen from above.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -118,3 +118,35 @@ def parse_view(text: str) -> tuple[float, float, float | None]:
     if abs(values[1]) > 90:
         raise ValueError(f"--view {text!r}: elevation must lie in [-90, 90], got {values[1]:g}")
     return values[0], values[1], values[2] if len(values) == 3 else None
+
+
+FRAME_FILL = 0.85
+"""Framing leaves the box's bounding sphere this fraction of the free half-width."""
+
+
+def frame_box(camera: Camera, lo, hi, aspect: float,
+              free: tuple[float, float] = (0.0, 1.0)) -> Camera:
+    """`camera` (its azimuth, elevation and field of view) aimed at the box `lo`..`hi`
+    ((3,) world) so that the box's bounding sphere fills `FRAME_FILL` of the free part of
+    the picture and sits in its middle.
+
+    Args:
+        aspect: width / height of the picture.
+        free: (left, right) edges of the free part, fractions of the width (what a panel
+            on the left leaves: (panel's right edge / width, 1)).
+
+    Returns:
+        A camera whose target is the box centre, whose `scale` is the box diagonal and whose
+        `pan` shifts the picture so that the target shows at the middle of the free part
+        (the pan turns with the view, so orbiting keeps it there).
+    """
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    scale = max(float(np.linalg.norm(hi - lo)), 1e-9)
+    t = np.tan(np.radians(camera.fov_y) / 2)
+    left, right = free
+    half = FRAME_FILL * min(t, t * aspect * (right - left))  # tan of the free half-angle
+    distance = 0.5 * scale / np.sin(np.arctan(half))  # the sphere touches those edges
+    middle = left + right - 1.0  # the free part's middle, x in normalised device coords
+    pan_x = -middle * t * aspect * distance / scale
+    return replace(camera, target=tuple((lo + hi) / 2), scale=scale,
+                   distance=float(distance / scale), pan=(float(pan_x), 0.0))

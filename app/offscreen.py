@@ -31,13 +31,18 @@ def render_volume(
     flip_normals: bool = False,
     lattice=None,
     env_coeffs=None,
+    view_light=None,
+    workers: int | None = None,
+    progress: bool = False,
 ) -> tuple[Frame, volumes.Mesh]:
     """Extract the isosurface at `iso` and render it in a fresh headless context.
 
     `lattice` (a `baking.Lattice`) is needed by the lattice shading modes, `env_coeffs`
-    ((n², 3) SH coefficients of the environment) by "sh". The shadow map and the fog are
-    fitted to the volume's world box; "irradiance_closest" gets the texel isovalues
-    computed from `volume` here.
+    ((n², 3) SH coefficients of the environment) by "sh". Without a lattice, `view_light`
+    (a `baking.config.BakeConfig`) lights this view instead: a position pass finds the
+    visible surface and `app.view_gi.view_lattice` traces the texels it reads (`workers`
+    threads, `progress` on stderr). The shadow map and the fog are fitted to the volume's
+    world box; "irradiance_closest" gets the texel isovalues computed from `volume` here.
 
     Returns:
         (frame, mesh): the picture and the mesh that was drawn.
@@ -48,9 +53,19 @@ def render_volume(
         renderer = SurfaceRenderer(gl.ctx)
         renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_bounds(*volume.box)
+        camera = default_camera(volume, view)
+        if lattice is None and view_light is not None and len(mesh.faces):
+            from dataclasses import replace
+
+            from .view_gi import view_lattice
+
+            position = renderer.render(camera, replace(settings, shading="position",
+                                                       auto_exposure=False))
+            lattice = view_lattice(volume, view_light, iso, position.linear[position.mask],
+                                   workers=workers, progress=progress)
         renderer.set_lattice(lattice, _texel_isovalues(volume, lattice, settings.shading))
         renderer.set_environment(env_coeffs)
-        frame = renderer.render(default_camera(volume, view), settings)
+        frame = renderer.render(camera, settings)
         renderer.release()
     finally:
         gl.release()

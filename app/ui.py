@@ -187,6 +187,8 @@ def draw_panel(imgui, model: PanelModel) -> list[Action]:
     imgui.set_next_window_bg_alpha(0.85)
     flags = imgui.WindowFlags_.always_auto_resize | imgui.WindowFlags_.no_saved_settings
     visible, _ = imgui.begin("isolume", None, flags)
+    pos, size = imgui.get_window_pos(), imgui.get_window_size()
+    actions.append(Action("panel_rect", (pos.x, pos.y, size.x, size.y)))
     if visible:
         _surface_section(imgui, model, actions)
         _shading_section(imgui, model, actions)

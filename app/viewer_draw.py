@@ -11,6 +11,7 @@ the preview mesh, then lower resolutions, scaled onto the window by `Blitter`).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, fields, replace
 
@@ -28,6 +29,11 @@ RENDER_SCALES = (1.0, 0.75, 0.5, 0.35)
 """Resolution factors tried, in order, while interacting and too slow."""
 PREVIEW_TRIANGLES = 60_000
 """While interacting and too slow, the preview surface replaces a full one above this."""
+EXPOSURE_ADAPT_S = 0.3
+"""Time constant of the automatic exposure's adaptation (seconds; game engines' eye
+adaptation takes a few tenths of a second): it moves smoothly, never jumps."""
+EXPOSURE_PROBE = 64
+"""The automatic exposure reads this many pixels across the HDR target (nearest samples)."""
 
 
 @dataclass
@@ -159,7 +165,7 @@ class Quality:
 
 
 _GL_READ_FRAMEBUFFER, _GL_DRAW_FRAMEBUFFER = 0x8CA8, 0x8CA9
-_GL_COLOR_BUFFER_BIT, _GL_LINEAR = 0x4000, 0x2601
+_GL_COLOR_BUFFER_BIT, _GL_LINEAR, _GL_NEAREST = 0x4000, 0x2601, 0x2600
 
 
 class Blitter:
@@ -177,10 +183,17 @@ class Blitter:
                                       ctypes.c_uint)(proc("glBlitFramebuffer"))
 
     def to_screen(self, fbo, src: tuple[int, int], dst: tuple[int, int]) -> None:
+        self.blit(fbo, src, None, dst)
+
+    def blit(self, fbo, src: tuple[int, int], dst_fbo, dst: tuple[int, int],
+             nearest: bool = False) -> None:
+        """Scale `fbo`'s (W, H) `src` onto `dst_fbo` (None: the window) at `dst`."""
         self._bind(_GL_READ_FRAMEBUFFER, fbo.glo)
-        self._bind(_GL_DRAW_FRAMEBUFFER, 0)
-        self._blit(0, 0, src[0], src[1], 0, 0, dst[0], dst[1], _GL_COLOR_BUFFER_BIT, _GL_LINEAR)
-        self.ctx.screen.viewport = (0, 0, dst[0], dst[1])
+        self._bind(_GL_DRAW_FRAMEBUFFER, 0 if dst_fbo is None else dst_fbo.glo)
+        self._blit(0, 0, src[0], src[1], 0, 0, dst[0], dst[1], _GL_COLOR_BUFFER_BIT,
+                   _GL_NEAREST if nearest else _GL_LINEAR)
+        if dst_fbo is None:
+            self.ctx.screen.viewport = (0, 0, dst[0], dst[1])
         self.ctx.screen.use()  # rebinds 0 for both, as moderngl believes
 
 
@@ -195,9 +208,12 @@ class Drawing:
         on_gpu: the stage whose surface the renderer holds (None: none yet).
         uploader: re-uploads lazily baked texels (None: the lattice does not change).
         quality: the detail used while interacting.
+        auto_exposure: expose by `app.render.auto_exposure_scale`, smoothed in time.
+        auto: the automatic exposure now (None before the first frame).
+        adapting: the automatic exposure is still moving (keep drawing frames).
     """
 
-    def __init__(self, ctx, volume: volumes.Volume) -> None:
+    def __init__(self, ctx, volume: volumes.Volume, auto_exposure: bool = True) -> None:
         from .render import SHADING_MODES, RenderSettings, SurfaceRenderer
 
         self.ctx, self.volume = ctx, volume
@@ -212,6 +228,11 @@ class Drawing:
         self.quality = Quality()
         self.blitter = Blitter(ctx)
         self._usable: tuple[str, ...] | None = None
+        self.auto_exposure = auto_exposure
+        self.auto: float | None = None
+        self.adapting = False
+        self._adapted_at = 0.0
+        self._probe = None  # a small float framebuffer the HDR target is sampled into
 
     # -- the lattice ---------------------------------------------------------------------
     def show_lattice(self, lattice) -> str | None:
@@ -342,18 +363,64 @@ class Drawing:
         """
         w, h = size
         small = (max(1, round(w * scale)), max(1, round(h * scale)))
-        settings = self.settings(state, small)
+        settings = self.exposed(self.settings(state, small))
         targets = self.renderer.draw_hdr(camera, settings)
+        change = self._adapt(targets, small)
         if small == size:
             self.ctx.screen.viewport = (0, 0, w, h)
-            self.renderer.resolve(targets, settings, fbo=self.ctx.screen)
+            self.renderer.resolve(targets, settings, fbo=self.ctx.screen, auto=change)
         else:
-            self.renderer.resolve(targets, settings)
+            self.renderer.resolve(targets, settings, auto=change)
             self.blitter.to_screen(targets.ldr, small, size)
 
+    def exposed(self, settings):
+        """`settings` with the automatic exposure (as it stands) folded into `exposure`."""
+        if not self.auto_exposure or self.auto is None:
+            return settings
+        return replace(settings, exposure=settings.exposure * self.auto)
+
+    def _adapt(self, targets, size: tuple[int, int]) -> float:
+        """Move the automatic exposure towards the frame's own (`auto_exposure_scale` of
+        `EXPOSURE_PROBE` pixels across the HDR target of `size`) with time constant
+        `EXPOSURE_ADAPT_S`; returns the factor by which it changed."""
+        if not self.auto_exposure:
+            return 1.0
+        from .render import auto_exposure_scale
+
+        rgba = self._sample_hdr(targets, size)
+        goal = auto_exposure_scale(rgba[..., :3], rgba[..., 3] > 0)
+        now = time.perf_counter()
+        before = self.auto
+        if before is None or not (rgba[..., 3] > 0).any():
+            self.auto = goal if before is None else before
+        else:
+            k = 1.0 - math.exp(-(now - self._adapted_at) / EXPOSURE_ADAPT_S)
+            self.auto = before * (goal / before) ** k
+        self._adapted_at = now
+        self.adapting = abs(math.log(goal / self.auto)) > 0.01
+        return 1.0 if before is None else self.auto / before
+
+    def _sample_hdr(self, targets, size: tuple[int, int]) -> np.ndarray:
+        """(h, w, 4) float32 nearest samples of the HDR target of `size`, about
+        `EXPOSURE_PROBE` across."""
+        w, h = size
+        k = EXPOSURE_PROBE / max(w, h)
+        small = (max(1, min(w, round(w * k))), max(1, min(h, round(h * k))))
+        if self._probe is None or self._probe[0] != small:
+            if self._probe is not None:
+                self._probe[1].release()
+                self._probe[2].release()
+            texture = self.ctx.texture(small, 4, dtype="f4")
+            self._probe = (small, texture, self.ctx.framebuffer(color_attachments=[texture]))
+        _, _, fbo = self._probe
+        self.blitter.blit(targets.hdr, size, fbo, small, nearest=True)
+        data = np.frombuffer(fbo.read(components=4, dtype="f4"), np.float32)
+        return data.reshape(small[1], small[0], 4)
+
     def frame(self, camera, state: ViewState, size: tuple[int, int]):
-        """An off-screen `app.render` frame (sRGB and linear radiance) of `size` (W, H)."""
-        return self.renderer.render(camera, self.settings(state, size))
+        """An off-screen `app.render` frame (sRGB and linear radiance) of `size` (W, H),
+        exposed as the window is."""
+        return self.renderer.render(camera, self.exposed(self.settings(state, size)))
 
     def visible_points(self, camera, state: ViewState, size: tuple[int, int]) -> np.ndarray:
         """(N, 3) world positions of the surface under the pixels of a view of `size`
@@ -367,4 +434,7 @@ class Drawing:
 
     def release(self) -> None:
         self.uploader = None
+        if self._probe is not None:
+            self._probe[2].release()
+            self._probe[1].release()
         self.renderer.release()

@@ -142,7 +142,7 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
     saved = Lattice.load(tmp_path / "lazy.npz", volumes.load("synthetic:engine:48"))
     assert (saved.samples > 0).sum() == check["computed"] > 0
     assert saved.active.sum() > check["texels"]  # the plan's active texels, for resuming
-    again = _view(["synthetic:engine:48", "--lattice", "lazy.npz", "--no-bake", "--no-ui",
+    again = _view(["synthetic:engine:48", "--lattice", "lazy.npz", "--no-bake",
                    "--size", "320x240", "--frames", "1", "--screenshot", "again.png"],
                   display, tmp_path)
     assert again.returncode == 0, again.stderr
@@ -150,10 +150,11 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
 
 
 def test_frames_keep_coming_while_the_full_surface_is_extracted(display, tmp_path):
-    """A 160³ volume: the isovalue change shows a preview first, and frames are drawn
-    until the full-resolution surface replaces it."""
+    """A 256³ volume (its full surface takes a few tenths of a second): the isovalue change
+    shows a preview first, and frames are drawn until the full-resolution surface replaces
+    it."""
     (tmp_path / "s.txt").write_text("wait-mesh\niso 0.42\nwait-mesh\nquit\n")
-    run = _view(["synthetic:sphere:160", "--no-bake", "--size", "256x192", "--script", "s.txt",
+    run = _view(["synthetic:sphere:256", "--no-bake", "--size", "256x192", "--script", "s.txt",
                  "--stats", "stats.json"], display, tmp_path)
     assert run.returncode == 0, run.stderr
     change = json.loads((tmp_path / "stats.json").read_text())["extractions"][-1]

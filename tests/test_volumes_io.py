@@ -422,7 +422,7 @@ def test_nifti_round_trip(tmp_path, suffix):
     affine[:3, 3] = ORIGIN
     path = tmp_path / f"brain{suffix}"
     nib.save(nib.Nifti1Image(data.transpose(2, 1, 0), affine), str(path))  # [i, j, k] = [x, y, z]
-    assert_volume(load_file(path), data, name="brain")
+    assert_volume(load_file(path, orientation=False), data, name="brain")
 
 
 def test_nifti_corrupt(tmp_path):
@@ -662,3 +662,97 @@ def test_raw_spacing_from_a_manifest_beside_the_file(tmp_path):
     assert load_file(raw, spacing=(1, 2, 3)).spacing == (1.0, 2.0, 3.0)  # explicit wins
     (tmp_path / "manifest.json").write_text("{not json")
     assert load_file(raw).spacing == (1.0, 1.0, 1.0)
+
+
+# --------------------------------------------------------------------------- orientation
+# Each format writes the asymmetric volume with index axes permuted and flipped in the
+# world; loaded, every sample must sit at the world position (LPS) the header gives it.
+AXES = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+"""Columns: world direction of index axes x, y, z (x → −y, y → +z, z → −x)."""
+
+
+def assert_placed(vol, data, world_of) -> None:
+    """Every sample of (Z, Y, X) `data` is found in `vol` at `world_of(i, j, k)` (LPS)."""
+    k, j, i = (a.reshape(-1) for a in np.indices(data.shape))
+    points = world_of(np.stack([i, j, k], axis=1).astype(np.float64))
+    index = np.rint(vol.world_to_index(points)).astype(int)
+    np.testing.assert_allclose(vol.world_to_index(points), index, atol=1e-6)
+    np.testing.assert_array_equal(vol.data[index[:, 0], index[:, 1], index[:, 2]],
+                                  data.reshape(-1).astype(np.float32))
+    assert (np.asarray(vol.spacing) > 0).all()
+
+
+def oriented(origin, directions):
+    """World position of index (i, j, k) rows: origin + directions @ (spacing * index)."""
+    return lambda ijk: np.asarray(origin) + (ijk * np.asarray(SPACING)) @ np.asarray(
+        directions).T
+
+
+def test_nrrd_orientation_in_ras_is_placed_in_lps(tmp_path):
+    nrrd = pytest.importorskip("nrrd")
+    data = sample_data("int16")
+    path = tmp_path / "oriented.nrrd"
+    header = {"space": "right-anterior-superior",
+              "space directions": (AXES * np.asarray(SPACING)).T,  # one row per axis
+              "space origin": np.array(ORIGIN)}
+    nrrd.write(str(path), data, header, index_order="C")
+    ras_to_lps = np.array([-1.0, -1.0, 1.0])
+    assert_placed(load_file(path), data,
+                  lambda ijk: ras_to_lps * oriented(ORIGIN, AXES)(ijk))
+
+
+def test_nifti_affine_is_placed_in_lps(tmp_path):
+    nib = pytest.importorskip("nibabel")
+    data = sample_data("int16")
+    affine = np.eye(4)
+    affine[:3, :3] = AXES * np.asarray(SPACING)
+    affine[:3, 3] = ORIGIN
+    path = tmp_path / "oriented.nii.gz"
+    nib.save(nib.Nifti1Image(data.transpose(2, 1, 0), affine), str(path))
+    ras_to_lps = np.array([-1.0, -1.0, 1.0])
+    assert_placed(load_file(path), data,
+                  lambda ijk: ras_to_lps * oriented(ORIGIN, AXES)(ijk))
+
+
+def test_metaimage_transform_matrix_is_applied(tmp_path):
+    data = sample_data("int16")
+    path = tmp_path / "oriented.mha"
+    write_metaimage(path, data)
+    matrix = " ".join(f"{v:g}" for v in AXES.T.reshape(-1))  # one axis per three numbers
+    text = path.read_bytes().replace(b"NDims = 3\n", f"NDims = 3\nTransformMatrix = "
+                                     f"{matrix}\n".encode())
+    path.write_bytes(text)
+    assert_placed(load_file(path), data, oriented(ORIGIN, AXES))
+    path.write_bytes(text.replace(f"TransformMatrix = {matrix}".encode(),
+                                  b"TransformMatrix = 1 0 0 1"))
+    load_error(path, "TransformMatrix", "9 number(s)")
+
+
+def test_dicom_orientation_is_applied(tmp_path):
+    """A sagittal series: rows run along +y (posterior), columns down −z, slices along
+    row × column = −x."""
+    data = sample_data("int16")
+    folder = tmp_path / "sagittal"
+    folder.mkdir()
+    write_dicom_series(folder, data, slope=1.0, intercept=0.0)
+    import pydicom
+
+    row, col = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, -1.0])
+    normal = np.cross(row, col)
+    for file in folder.iterdir():
+        ds = pydicom.dcmread(file)
+        k = round((float(ds.ImagePositionPatient[2]) - ORIGIN[2]) / SPACING[2])
+        ds.ImageOrientationPatient = [*row, *col]
+        ds.ImagePositionPatient = list(np.asarray(ORIGIN) + k * SPACING[2] * normal)
+        ds.save_as(file)
+    directions = np.stack([row, col, normal], axis=1)
+    assert_placed(load_file(folder), data, oriented(ORIGIN, directions))
+
+
+def test_orientation_can_be_left_out(tmp_path):
+    data = sample_data("int16")
+    path = tmp_path / "oriented.mha"
+    write_metaimage(path, data)
+    path.write_bytes(path.read_bytes().replace(
+        b"NDims = 3\n", b"NDims = 3\nTransformMatrix = 0 -1 0 0 0 1 -1 0 0\n"))
+    assert_volume(load_file(path, orientation=False), data)

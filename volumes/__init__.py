@@ -5,6 +5,7 @@ Public API::
     volumes.load(spec) -> Volume          # file path or "synthetic:NAME[:SIZE]"
     volumes.isosurface(volume, iso) -> Mesh
     volumes.suggest_isovalues(volume) -> tuple[float, ...]
+    volumes.turn_up(volume, "-z") -> Volume   # the volume's -z axis pointing up
 """
 
 from __future__ import annotations
@@ -14,11 +15,13 @@ import os
 from .core import Volume, VolumeError
 from .field import gradient_at, gradient_grid, newton_to_level, normals_at, value_at
 from .mesh import Mesh, check_isovalue, isosurface
+from .orientation import UP_AXES, turn_up
 from .stats import histogram_lines, suggest_isovalues
 from .synthetic import DEFAULT
 
 __all__ = [
     "DEFAULT",
+    "UP_AXES",
     "Mesh",
     "Volume",
     "VolumeError",
@@ -31,6 +34,7 @@ __all__ = [
     "newton_to_level",
     "normals_at",
     "suggest_isovalues",
+    "turn_up",
     "value_at",
 ]
 

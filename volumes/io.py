@@ -19,9 +19,13 @@ Supported inputs (chosen by extension, or by what a folder holds):
 
 Every loader returns samples indexed ``[z, y, x]`` with spacing and origin in (x, y, z)
 order, world units (millimetres for medical formats); see :mod:`volumes.core`.
-Orientation (direction cosines, rotations, axis flips) is ignored everywhere: the volume is
-placed axis-aligned at the file's origin with positive spacings. ``spacing`` and ``origin``
-passed to :func:`load_file` override what a file says.
+Orientation is applied (:mod:`volumes.orientation`): NRRD ``space directions`` (in its
+``space``), NIfTI's affine, MetaImage ``TransformMatrix`` and DICOM
+``ImageOrientationPatient`` say where the index axes point, and the samples are reordered
+so that they run along world +x, +y, +z of the patient's LPS frame (+z superior: a head
+comes up upright); ``orientation=False`` keeps the file's index order instead. ``spacing``
+and ``origin`` passed to :func:`load_file` override what a file says (along its index axes,
+before the orientation is applied).
 
 Every bad input raises :class:`VolumeError` with a one-line message that names the file,
 the offending value and what was expected.
@@ -46,6 +50,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from .core import Volume, VolumeError
+from .orientation import place
 
 __all__ = ["RAW_DTYPES", "SUPPORTED_FORMATS", "load_file", "parse_raw_name"]
 
@@ -137,8 +142,15 @@ _READ_ERRORS = (
     TypeError,
 )
 
-# (data [z, y, x], spacing xyz or None, origin xyz or None)
-_Loaded = tuple[np.ndarray, Sequence[float] | None, Sequence[float] | None]
+# (data [z, y, x], spacing xyz or None, origin xyz or None, orientation or None), the
+# origin in the file's own frame; orientation: ((3, 3) columns = the direction of index
+# axes x, y, z in that frame, (3,) signs that take the frame to LPS)
+_Orientation = tuple[np.ndarray, np.ndarray]
+_Loaded = tuple[np.ndarray, Sequence[float] | None, Sequence[float] | None,
+                _Orientation | None]
+LPS = np.ones(3)
+"""Signs from a frame that already is LPS (DICOM, ITK's MetaImage)."""
+RAS_TO_LPS = np.array([-1.0, -1.0, 1.0])
 
 
 # --------------------------------------------------------------------------- public API
@@ -152,6 +164,7 @@ def load_file(
     spacing: tuple[float, float, float] | None = None,
     origin: tuple[float, float, float] | None = None,
     endian: str = "little",
+    orientation: bool = True,
 ) -> Volume:
     """Read a volume file or folder (see the module docstring for the formats).
 
@@ -164,6 +177,7 @@ def load_file(
         origin: (3,) world position x, y, z of voxel (0, 0, 0); overrides the header.
             Default: the header's, or (0, 0, 0).
         endian: byte order of a raw file, ``"little"`` (default) or ``"big"``.
+        orientation: apply the header's orientation (see the module docstring).
 
     Returns:
         A :class:`Volume` with (Z, Y, X) float32 data, named after the file stem.
@@ -201,10 +215,10 @@ def load_file(
 
     try:
         if kind == "raw":
-            data, spacing0, origin0 = _load_raw(path, dims_xyz, raw_dtype, byteorder)
+            data, spacing0, origin0, frame = _load_raw(path, dims_xyz, raw_dtype, byteorder)
             spacing0 = _manifest_spacing(path)
         else:
-            data, spacing0, origin0 = _LOADERS[kind](path)
+            data, spacing0, origin0, frame = _LOADERS[kind](path)
     except VolumeError:
         raise
     except _READ_ERRORS as exc:
@@ -214,13 +228,16 @@ def load_file(
 
     if not data.flags.writeable and data.dtype == np.float32:
         data = np.array(data)  # Volume keeps native float32 as is; give it its own copy
-    return Volume(
-        data,
-        spacing=_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
-        origin=_pick(origin, origin0, (0.0, 0.0, 0.0)),
-        name=_volume_name(path),
-        source=where,
-    )
+    volume = Volume(data, spacing=_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
+                    origin=_pick(origin, origin0, (0.0, 0.0, 0.0)), name=_volume_name(path),
+                    source=where)
+    if frame is None or not orientation:
+        return volume
+    directions, to_lps = frame
+    placed = place(volume.data, volume.spacing, to_lps * np.asarray(volume.origin),
+                   to_lps[:, None] * directions, where)
+    return Volume(placed.data, spacing=placed.spacing, origin=placed.origin,
+                  name=volume.name, source=where)
 
 
 def parse_raw_name(name: str) -> tuple[str, tuple[int, int, int], np.dtype] | None:
@@ -432,7 +449,7 @@ def _load_raw(
             f"{dtype.name}, got {problem}"
         )
     x, y, z = dims
-    return buf.view(dtype).reshape(z, y, x), None, None
+    return buf.view(dtype).reshape(z, y, x), None, None, None
 
 
 def _read_raw_samples(path: Path, expected: int, compressed: bool) -> tuple[np.ndarray, int]:
@@ -488,7 +505,9 @@ def _load_nrrd(path: Path) -> _Loaded:
             f"{path}: expected a 3-D scalar NRRD volume, got dimension {data.ndim} "
             f"with sizes {sizes} (fastest axis first)"
         )
-    return data, _nrrd_spacing(header), _nrrd_origin(header)
+    directions = _nrrd_directions(header)
+    frame = None if directions is None else (directions, _nrrd_flips(header))
+    return data, _nrrd_spacing(header), _nrrd_origin(header), frame
 
 
 def _nrrd_spacing(header: dict) -> tuple[float, float, float] | None:
@@ -509,6 +528,33 @@ def _nrrd_spacing(header: dict) -> tuple[float, float, float] | None:
     return (out[0], out[1], out[2])
 
 
+_NRRD_SPACES = {  # NRRD space -> sign flips that take it to LPS (x, y, z)
+    "left-posterior-superior": (1, 1, 1), "lps": (1, 1, 1),
+    "right-anterior-superior": (-1, -1, 1), "ras": (-1, -1, 1),
+    "left-anterior-superior": (1, -1, 1), "las": (1, -1, 1),
+    "scanner-xyz": (1, 1, 1), "3d-right-handed": (1, 1, 1),
+    "3d-left-handed": (-1, 1, 1),  # mirrored into a right-handed world
+}
+
+
+def _nrrd_flips(header: dict) -> np.ndarray:
+    """(3,) signs that take the header's ``space`` to LPS (ones for other spaces)."""
+    space = str(header.get("space", "")).strip().lower()
+    return np.asarray(_NRRD_SPACES.get(space, (1, 1, 1)), np.float64)
+
+
+def _nrrd_directions(header: dict) -> np.ndarray | None:
+    """(3, 3) directions of the index axes (columns) in the header's space, from ``space
+    directions`` (one row per axis), or None when the header gives none."""
+    rows = header.get("space directions")
+    if rows is None:
+        return None
+    d = np.asarray(rows, np.float64)
+    if d.shape != (3, 3) or not np.isfinite(d).all():
+        return None
+    return d.T
+
+
 def _nrrd_origin(header: dict) -> np.ndarray | None:
     """(3,) xyz ``space origin`` (else ``axis mins``), or None."""
     for key in ("space origin", "axis mins"):
@@ -527,7 +573,9 @@ def _nrrd_origin(header: dict) -> np.ndarray | None:
 def _load_metaimage(path: Path) -> _Loaded:
     """MetaImage ``.mhd`` (separate data) / ``.mha`` (``LOCAL`` data) -> (Z, Y, X).
 
-    TransformMatrix / AnatomicalOrientation are ignored (axis-aligned placement).
+    ``TransformMatrix`` (or ``Rotation`` / ``Orientation``) gives the index axes' directions
+    in LPS, one axis per three consecutive numbers as ITK writes it;
+    ``AnatomicalOrientation`` alone is not used.
     """
     where = str(path)
     content = _read_bytes(path)
@@ -549,6 +597,10 @@ def _load_metaimage(path: Path) -> _Loaded:
     compressed = _meta_bool(fields, ("CompressedData",), where)
     spacing = _meta_first(fields, ("ElementSpacing", "ElementSize"), where)
     origin = _meta_first(fields, ("Offset", "Origin", "Position"), where)
+    matrix = next((_meta_numbers(fields, key, where, count=9) for key in
+                   ("TransformMatrix", "Rotation", "Orientation") if key.lower() in fields),
+                  None)
+    frame = None if matrix is None else (np.asarray(matrix, np.float64).reshape(3, 3).T, LPS)
 
     data_file = fields.get("elementdatafile", "")
     if data_file.upper() == "LOCAL":
@@ -584,7 +636,7 @@ def _load_metaimage(path: Path) -> _Loaded:
         )
     x, y, z = dims
     data = np.frombuffer(payload, dtype).reshape(z, y, x)
-    return data, spacing, origin
+    return data, spacing, origin, frame
 
 
 def _parse_metaimage_header(content: bytes, where: str) -> tuple[dict[str, str], int]:
@@ -702,15 +754,16 @@ def _meta_inflate(
 def _load_nifti(path: Path) -> _Loaded:
     """NIfTI via nibabel: [i, j, k] = [x, y, z] array -> (Z, Y, X).
 
-    Spacing is the header zooms, origin the affine translation; the affine's rotation,
-    shear and flips are ignored (axis-aligned placement).
+    Spacing is the header zooms; the affine (nibabel's choice of sform and qform) maps
+    voxels to RAS millimetres: its translation is the origin and its columns the axes'
+    directions, both turned into LPS.
     """
     nib = _optional("nibabel", path)
     try:
         img = nib.load(str(path))
         arr = np.asanyarray(img.dataobj)
         zooms = tuple(float(z) for z in img.header.get_zooms()[:3])
-        origin = np.asarray(img.affine, np.float64)[:3, 3]
+        affine = np.asarray(img.affine, np.float64)
     except (nib.filebasedimages.ImageFileError, *_READ_ERRORS) as exc:
         raise VolumeError(f"{path}: not a readable NIfTI file: {_one_line(exc)}") from None
     while arr.ndim > 3 and arr.shape[-1] == 1:
@@ -719,7 +772,7 @@ def _load_nifti(path: Path) -> _Loaded:
         raise VolumeError(
             f"{path}: expected a 3-D scalar NIfTI image (x, y, z), got shape {arr.shape}"
         )
-    return arr.transpose(2, 1, 0), zooms, origin
+    return arr.transpose(2, 1, 0), zooms, affine[:3, 3], (affine[:3, :3], RAS_TO_LPS)
 
 
 # --------------------------------------------------------------------------- NumPy
@@ -732,7 +785,7 @@ def _load_npy(path: Path) -> _Loaded:
         arr = np.load(path, allow_pickle=False)
     except _READ_ERRORS as exc:
         raise VolumeError(f"{path}: not a valid .npy array file: {_one_line(exc)}") from None
-    return _check_numpy_array(arr, str(path)), None, None
+    return _check_numpy_array(arr, str(path)), None, None, None
 
 
 def _load_npz(path: Path) -> _Loaded:
@@ -758,7 +811,7 @@ def _load_npz(path: Path) -> _Loaded:
         raise
     except _READ_ERRORS as exc:
         raise VolumeError(f"{path}: not a valid .npz archive: {_one_line(exc)}") from None
-    return _check_numpy_array(arr, f"{path} [{key}]"), spacing, origin
+    return _check_numpy_array(arr, f"{path} [{key}]"), spacing, origin, None
 
 
 def _check_magic(path: Path, magic: bytes, what: str) -> None:
@@ -811,7 +864,7 @@ def _load_tiff_file(path: Path) -> _Loaded:
             f"{path}: expected a grey-scale TIFF stack (one page per z slice), got an "
             f"array of shape {arr.shape}"
         )
-    return arr, spacing, None
+    return arr, spacing, None, None
 
 
 def _imagej_spacing(tif: Any) -> tuple[float, float, float] | None:
@@ -853,7 +906,7 @@ def _load_tiff_folder(path: Path, files: list[Path]) -> _Loaded:
                 f"{slices[0].shape}; expected every slice the same size"
             )
         slices.append(img)
-    return np.stack(slices), None, None
+    return np.stack(slices), None, None, None
 
 
 # --------------------------------------------------------------------------- DICOM
@@ -1006,7 +1059,22 @@ def _load_dicom_folder(path: Path, items: list[tuple[Path, Any]]) -> _Loaded:
         spacing = (col_mm, row_mm, step if step is not None else 1.0)
     position = _ds_floats(first, "ImagePositionPatient")
     origin = position if position is not None and position.size == 3 else None
-    return data, spacing, origin
+    directions = _dicom_directions(first, depth)
+    return data, spacing, origin, None if directions is None else (directions, LPS)
+
+
+def _dicom_directions(first: Any, depth: np.ndarray | None) -> np.ndarray | None:
+    """(3, 3) LPS directions of x (along a row), y (down a column) and z (the slice order:
+    along the normal when positions sorted the slices), or None without
+    ImageOrientationPatient."""
+    iop = _ds_floats(first, "ImageOrientationPatient")
+    if iop is None or iop.size != 6:
+        return None
+    row, col = iop[:3], iop[3:6]
+    normal = np.cross(row, col)
+    if depth is None or not np.linalg.norm(normal) > 0:
+        return None  # slices not ordered along a known direction
+    return np.stack([row, col, normal], axis=1)
 
 
 # --------------------------------------------------------------------------- folders

@@ -1,0 +1,75 @@
+"""The first picture: the camera frames the isosurface in the free part of the window, and
+automatic exposure brings the surface to middle grey."""
+
+import numpy as np
+import pytest
+
+from app.camera import FRAME_FILL, Camera, frame_box
+from app.render import EXPOSURE_KEY, auto_exposure_scale
+
+
+def _ndc(camera: Camera, aspect: float, points) -> np.ndarray:
+    """(N, 2) normalised device coordinates of (N, 3) world points."""
+    p = np.c_[np.asarray(points, np.float64), np.ones(len(points))] @ camera.view_proj(
+        aspect).T
+    return p[:, :2] / p[:, 3:]
+
+
+@pytest.mark.parametrize(("aspect", "free"), [(1.0, (0.0, 1.0)), (4 / 3, (0.35, 1.0)),
+                                              (0.6, (0.2, 0.9))])
+@pytest.mark.parametrize("view", [(30.0, 30.0), (200.0, -60.0)])
+def test_the_box_fills_the_free_part_and_sits_in_its_middle(aspect, free, view):
+    lo, hi = np.array([5.0, -2.0, 10.0]), np.array([9.0, 6.0, 11.0])
+    camera = frame_box(Camera(azimuth=view[0], elevation=view[1]), lo, hi, aspect, free)
+    centre = _ndc(camera, aspect, [(lo + hi) / 2])[0]
+    left, right = 2 * np.asarray(free) - 1
+    assert centre == pytest.approx(((left + right) / 2, 0.0), abs=1e-9)
+    # the bounding sphere stays inside the free part and fills FRAME_FILL of it one way
+    r = np.linalg.norm(hi - lo) / 2
+    u = np.random.default_rng(0).normal(size=(4000, 3))
+    sphere = _ndc(camera, aspect, (lo + hi) / 2 + r * u / np.linalg.norm(u, axis=1)[:, None])
+    assert (sphere[:, 0] > left).all() and (sphere[:, 0] < right).all()
+    assert (np.abs(sphere[:, 1]) < 1).all()
+    half_width = (sphere[:, 0].max() - sphere[:, 0].min()) / (right - left)
+    half_height = (sphere[:, 1].max() - sphere[:, 1].min()) / 2
+    assert max(half_width, half_height) > 0.97 * FRAME_FILL
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    ndc = _ndc(camera, aspect, corners)
+    assert (ndc[:, 0] > left).all() and (ndc[:, 0] < right).all()
+    assert (np.abs(ndc[:, 1]) < 1).all()
+    # the near and far planes enclose the box
+    near, far = camera.clip_range()
+    eye = camera.eye
+    depth = (corners - eye) @ (camera.center - eye) / np.linalg.norm(camera.center - eye)
+    assert near < depth.min() and depth.max() < far
+
+
+def test_orbiting_keeps_the_target_where_it_was_framed():
+    lo, hi = np.zeros(3), np.ones(3)
+    camera = frame_box(Camera(), lo, hi, 1.5, (0.3, 1.0))
+    from dataclasses import replace
+
+    for az, el in [(0, 0), (120, 45), (300, -80)]:
+        turned = replace(camera, azimuth=az, elevation=el)
+        x, y = _ndc(turned, 1.5, [(lo + hi) / 2])[0]
+        assert (x, y) == pytest.approx((0.3, 0.0), abs=1e-9)
+
+
+def test_auto_exposure_is_the_key_over_the_log_average():
+    rgb = np.zeros((4, 4, 3))
+    mask = np.zeros((4, 4), bool)
+    rgb[:2] = 0.5  # luminance 0.5 on 8 pixels, 2.0 on 4, background ignored
+    rgb[2, :] = 2.0
+    rgb[3, :] = 1e6
+    mask[:3] = True
+    expected = EXPOSURE_KEY / np.exp((8 * np.log(0.5) + 4 * np.log(2.0)) / 12)
+    assert auto_exposure_scale(rgb, mask) == pytest.approx(expected)
+    # black pixels are floored at 1e-3 of the mean, not log(0)
+    rgb[0, 0] = 0.0
+    assert np.isfinite(auto_exposure_scale(rgb, mask))
+    assert auto_exposure_scale(rgb, np.zeros_like(mask)) == 1.0
+    weights = np.where(np.arange(4)[:, None] < 2, 1.0, 3.0) * np.ones((4, 4))
+    heavy = EXPOSURE_KEY / np.exp((7 * np.log(0.5) + 12 * np.log(2.0)
+                                   + np.log(1e-3 * 27.5 / 20)) / 20)  # floor: 1e-3 × mean
+    assert auto_exposure_scale(rgb, mask, weights=weights) == pytest.approx(heavy)
