@@ -12,6 +12,9 @@ plots plus the settings that made it:
    `app.render.SHADING_MODES` offers) and per texel-normal scheme (paper Fig. 5).
 4. ``chart4_shading_modes``: error and frame time of every shading mode (paper Table 2),
    local models lit to match the environment as well as they can be.
+5. ``chart5_levels`` (``--charts 5``, not made by default): error against bake time per
+   isovalue-level policy, the automatic one against fixed move limits
+   (`app.chart_levels`).
 
 Error: relative RMSE of linear radiance against a per-pixel path-traced reference (the
 baker's own integrator, `baking.reference`), over the pixels that both images mark as
@@ -74,7 +77,7 @@ AMBIENT_ORDER = 9
 cosine's coefficients fall as l^-2.5: order 9 leaves < 0.2 % of a smooth sky's E)."""
 CALIBRATION_SPP = 16
 """Samples per pixel traced to measure s/spp (one pass of the tracer's job split)."""
-CHARTS = ("1", "2", "3", "4")
+CHARTS = ("1", "2", "3", "4", "5")
 
 
 # -- options ----------------------------------------------------------------------------
@@ -113,7 +116,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(overrides --quick's list)")
     p.add_argument("--chart-samples", type=int, default=None,
                    help="paths per texel of the lattices of charts 2-4")
-    p.add_argument("--charts", default=",".join(CHARTS), help="which charts, e.g. 1,4")
+    p.add_argument("--charts", default=",".join(CHARTS[:4]),
+                   help=f"which charts of {','.join(CHARTS)}, e.g. 1,4 (default 1-4)")
     p.add_argument("--ref-spp", type=int, default=64, help="first reference spp (default 64)")
     p.add_argument("--ref-max-seconds", type=float, default=None,
                    help="cap on reference tracing time (default "
@@ -388,7 +392,12 @@ class LatticeStore:
         return baked
 
     def _start(self, config) -> Baked | None:
-        """The cached lattice with the most samples below `config.samples`, or None."""
+        """The cached lattice with the most samples below `config.samples`, or None (also
+        when the levels follow the samples: resuming would keep the smaller bake's)."""
+        from baking.plan import levels_follow_samples
+
+        if levels_follow_samples(config):
+            return None
         stem, best = self._stem(config), None
         for path in self.folder.glob(f"{stem}_s*.npz"):
             n = path.stem.rsplit("_s", 1)[-1]
@@ -815,8 +824,15 @@ def chart_shading_modes(run: Run) -> Chart:
                      "memory": "bytes of the GL textures the mode reads (app.lattice_gl)"})
 
 
+def chart_levels(run: Run) -> Chart:
+    """Chart 5: error against bake time per level policy (`app.chart_levels`)."""
+    from .chart_levels import chart_levels as levels
+
+    return levels(run)
+
+
 CHART_BUILDERS = {"1": chart_bake_time, "2": chart_resolution, "3": chart_lookup_normals,
-                  "4": chart_shading_modes}
+                  "4": chart_shading_modes, "5": chart_levels}
 
 
 # -- errors and the reference rule ------------------------------------------------------
@@ -1081,7 +1097,14 @@ def plot_shading_modes(record: dict, path: Path) -> None:
 
 PLOTTERS = {"chart1_bake_time": plot_bake_time, "chart2_resolution": plot_resolution,
             "chart3_lookup_normals": plot_lookup_normals,
-            "chart4_shading_modes": plot_shading_modes}
+            "chart4_shading_modes": plot_shading_modes,
+            "chart5_levels": lambda record, path: _levels_plot()(record, path)}
+
+
+def _levels_plot():
+    from .chart_levels import plot_levels
+
+    return plot_levels
 
 
 # -- the command ------------------------------------------------------------------------

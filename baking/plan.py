@@ -285,6 +285,13 @@ def move_limit(config: BakeConfig) -> float:
     return float(np.clip(scaled, *MOVE_LIMITS))
 
 
+def levels_follow_samples(config: BakeConfig) -> bool:
+    """True when `config`'s levels depend on its sample count (the automatic policy): a
+    bake resumed with more samples then keeps the levels of its file, and differs from a
+    fresh bake of the larger count."""
+    return config.max_move is None and not noise_free(config)
+
+
 def noise_free(config: BakeConfig) -> bool:
     """True when every path of a texel gives the same estimate: point and directional
     lights only (one shadow ray each), no bounces. The levels are then the only error,
