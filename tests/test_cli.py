@@ -109,3 +109,56 @@ def test_console_entry_point_reports_without_traceback(tmp_path):
     )
     assert result.returncode == 2
     assert "Traceback" not in result.stderr and "absent.nrrd" in result.stderr
+
+
+def _subcommands(parser, prefix=()):
+    """Every command path of `parser` (("render",), ("bench", "lazy"), ...)."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield (*prefix, name)
+                yield from _subcommands(sub, (*prefix, name))
+
+
+def test_every_command_has_help(capsys):
+    """``isolume CMD --help`` prints usage and exits 0 for every command and subcommand
+    (a stray ``%`` in a help string makes argparse fail only when help is shown)."""
+    from app.cli import build_parser
+
+    commands = list(_subcommands(build_parser()))
+    assert {("render",), ("view",), ("reference",), ("bench",)} <= set(commands)
+    for command in [(), *commands]:
+        with pytest.raises(SystemExit) as exit_info:
+            main([*command, "--help"])
+        out = capsys.readouterr().out
+        assert exit_info.value.code == 0, command
+        assert out.startswith("usage: isolume"), (command, out[:80])
+
+
+def test_render_traces_global_illumination_by_default(tmp_path, capsys):
+    """Without --lattice, render shows global illumination for its view: under a constant
+    white sky a convex sphere sees the whole sky everywhere (E = π, every path escapes), so
+    its radiance is albedo · 1 = 0.8 on every surface pixel, up to RGB9_E5 rounding (2⁻⁹)."""
+    exr = tmp_path / "gi.exr"
+    status, text, err = _run(capsys, "render", "synthetic:sphere:24", "--env", "constant:1,1,1",
+                             "--size", "48x40", "--gl", "osmesa", "--samples", "8",
+                             "--out", str(exr))
+    assert status == 0, err
+    assert "shading irradiance" in text and "global illumination:" in err
+    rgb = read_exr(exr)["RGB"]
+    surface = rgb.max(axis=-1) > 0
+    assert surface.mean() > 0.05
+    np.testing.assert_allclose(rgb[surface], 0.8, rtol=2.0**-8)
+    # local shading stays available
+    status, text, _ = _run(capsys, "render", "synthetic:sphere:24", "--shading", "phong_hemi",
+                           "--size", "48x40", "--gl", "osmesa", "--out", str(exr))
+    assert status == 0 and "shading phong_hemi" in text
+
+
+def test_up_turns_the_volume(capsys):
+    status, out, _ = _run(capsys, "info", "synthetic:engine:48", "--up", "x")
+    assert status == 0 and "25 x 30 x 48" in out  # x (48 samples) now runs up
+    status, _, err = _run(capsys, "info", "synthetic:engine:48", "--up", "w")
+    assert status == 2 and "--up 'w'" in err
