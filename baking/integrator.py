@@ -28,11 +28,12 @@ transfer function, including shadowing and every bounce, onto the SH basis.
 
 Split direct light (``Lighting.pixel_direct``, a bake with ``direct_light="pixels"``): at
 the first vertex — the texel's own point — the point and directional lights add nothing
-and the procedural sky is taken without its sun, for its light sample and for the escaping
-cosine-sampled ray alike (the sun-free sky's sampler and pdf in both MIS weights, so the
-two strategies still sum to the sun-free sky's irradiance). Bounce vertices see every
-light. The estimate is then the irradiance minus the lights' and the sun's direct
-irradiance, which the renderer adds back per pixel with exact shadows.
+and the procedural sky is seen without its sun, by the cosine-sampled ray alone: what is
+left of the sky is smooth, and cosine sampling alone is the better estimator for it (5 %
+less noise per path than with the MIS light sample on the synthetic engine, and one
+shadow ray less per path). Bounce vertices see every light, sampled as before. The
+estimate is then the irradiance minus the lights' and the sun's direct irradiance, which
+the renderer adds back per pixel with exact shadows.
 """
 
 from __future__ import annotations
@@ -80,6 +81,8 @@ class Lighting:
             (the renderer shades it per pixel; see the module docs).
         first_env, first_sky: what the first vertex sees of `env` and `sky` (without the
             sun when `pixel_direct`), derived.
+        first_sample_env: whether the first vertex takes a light sample of the
+            environment (not of a sun-free sky: its cosine-sampled ray alone), derived.
     """
 
     env: object | None
@@ -89,14 +92,16 @@ class Lighting:
     pixel_direct: bool = False
     first_env: object | None = field(init=False, repr=False)
     first_sky: np.ndarray | None = field(init=False, repr=False)
+    first_sample_env: bool = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        first_env, first_sky = self.env, self.sky
-        if self.pixel_direct:
-            first_env = getattr(self.env, "without_sun", lambda: self.env)()
+        first_env, first_sky, first_sample = self.env, self.sky, self.sample_env
+        if self.pixel_direct and hasattr(self.env, "without_sun"):  # a procedural sky
+            first_env, first_sample = self.env.without_sun(), False
             first_sky = None if self.sky is None else kernels.sky_without_sun(self.sky)
         object.__setattr__(self, "first_env", first_env)
         object.__setattr__(self, "first_sky", first_sky)
+        object.__setattr__(self, "first_sample_env", first_sample)
 
     def lights_at(self, vertex: int) -> tuple[Light, ...]:
         """The point and directional lights whose light samples vertex `vertex` takes."""
@@ -215,14 +220,16 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
     dirs = kernels.cosine_directions(keys, 0, n) if dirs is None else _rows(dirs)
     for vertex in range(settings.bounces + 1):
         dim = vertex * DIMS_PER_VERTEX
-        env, sky = (lighting.first_env, lighting.first_sky) if vertex == 0 else (
-            lighting.env, lighting.sky)
+        env, sky, sample_env = (
+            (lighting.first_env, lighting.first_sky, lighting.first_sample_env) if vertex == 0
+            else (lighting.env, lighting.sky, lighting.sample_env))
         lights = lighting.lights_at(vertex)
         if irradiance and lights:
             result[alive, :3] += _direct_lights(scene, pos.T, n.T, beta.T, lights, stats)
         if irradiance and sky is not None:
-            _direct_sky(scene, result, alive, pos, n, beta, keys, dim + 2, sky, stats)
-        elif irradiance and lighting.sample_env:
+            if sample_env:
+                _direct_sky(scene, result, alive, pos, n, beta, keys, dim + 2, sky, stats)
+        elif irradiance and sample_env:
             result[alive, :3] += _direct_env(scene, pos.T, n.T, beta.T, keys, dim + 2,
                                              env, stats)
         last = vertex == settings.bounces
@@ -234,10 +241,10 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
             hits = scene.intersect(pos.T, dirs.T, stats)
             prim = hits["prim"]
         if irradiance and sky is not None:
-            kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n)
+            kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n, sample_env)
         elif not constant and sees_env:
-            _add_escaped(result, alive, prim < 0, beta.T, dirs.T, n.T, env,
-                         lighting.sample_env, settings)
+            _add_escaped(result, alive, prim < 0, beta.T, dirs.T, n.T, env, sample_env,
+                         settings)
         if last:
             kernels.add_escaped(result, alive, prim, beta, escaped_radiance)
             break
@@ -259,6 +266,7 @@ class WholePaths:
     escaped_radiance: np.ndarray
     sky: np.ndarray
     first_sky: np.ndarray
+    first_sampled: bool
     use_sky: bool
 
 
@@ -277,7 +285,7 @@ def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None
         settings.bounces, np.asarray(settings.albedo, np.float32), settings.hit_offset,
         np.zeros(3) if use_sky else constant_radiance,
         lighting.sky if use_sky else no_sky, lighting.first_sky if use_sky else no_sky,
-        use_sky)
+        lighting.first_sample_env, use_sky)
 
 
 def _constant_radiance(lighting: Lighting, settings: PathSettings) -> np.ndarray | None:
@@ -310,7 +318,8 @@ def trace_whole_paths(scene: Scene, params: WholePaths, starts: tuple, weights: 
     start = time.perf_counter()
     rays = kernels.trace_chunk(tuple(scene.calls), *starts, params.bounces, params.albedo,
                                params.offset, params.escaped_radiance, params.sky,
-                               params.first_sky, params.use_sky, weights, acc.sum,
+                               params.first_sky, params.first_sampled, params.use_sky,
+                               weights, acc.sum,
                                acc.second, acc.n, record)
     if stats is not None:
         stats.add(rays, time.perf_counter() - start)

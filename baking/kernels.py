@@ -561,17 +561,18 @@ def add_unblocked(result: np.ndarray, alive: np.ndarray, idx: np.ndarray,
 
 @numba.njit(**_JIT)
 def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: np.ndarray,
-                    beta: np.ndarray, dirs: np.ndarray, normals: np.ndarray) -> None:
+                    beta: np.ndarray, dirs: np.ndarray, normals: np.ndarray,
+                    mis: bool) -> None:
     """result[alive[i], :3] += beta[:, i]·L(dir)·π·w for every cosine-sampled ray i that
-    escaped (prim < 0), w the power-heuristic weight against the sky's light sample
-    (beta, dirs, normals: (3, M))."""
+    escaped (prim < 0), w the power-heuristic weight against the sky's light sample when
+    `mis` (the vertex took one), else 1 (beta, dirs, normals: (3, M))."""
     p = _sky_tuple(p)
     m = len(prim)
     added = np.empty((3, m))
     for i in range(m):  # without branches, in SIMD lanes; hits get zero
         x, y, z = float(dirs[0, i]), float(dirs[1, i]), float(dirs[2, i])
         cos = normals[0, i] * x + normals[1, i] * y + normals[2, i] * z
-        own, pdf = cos / math.pi, _sky_pdf(p, x, y, z)
+        own, pdf = cos / math.pi, _sky_pdf(p, x, y, z) if mis else 0.0
         total = own * own + pdf * pdf
         weight = math.pi * own * own / total if (total > 0) & (prim[i] < 0) else 0.0
         r, g, b = _sky_radiance(p, x, y, z)
@@ -692,8 +693,9 @@ def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
                 samples: np.ndarray, texels: np.ndarray, origins: np.ndarray,
                 normals: np.ndarray, bounces: int, albedo: np.ndarray, offset: float,
                 escaped_radiance: np.ndarray, sky: np.ndarray, first_sky: np.ndarray,
-                use_sky: bool, weights: np.ndarray, acc_sum: np.ndarray, acc_second: np.ndarray,
-                acc_n: np.ndarray, record: np.ndarray) -> int:
+                first_sampled: bool, use_sky: bool, weights: np.ndarray,
+                acc_sum: np.ndarray, acc_second: np.ndarray, acc_n: np.ndarray,
+                record: np.ndarray) -> int:
     """`path_starts`, `integrator.trace_paths` and `accumulate` of a chunk of paths in one
     compiled call, for irradiance under a constant environment or the procedural sky (no
     point or directional lights): the same kernels, vertex by vertex over all the paths,
@@ -709,7 +711,8 @@ def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
         escaped_radiance: (3,) π·L of a constant environment (zero under the sky).
         sky: (SKY_PARAMS,) `sky_params` (any values when not `use_sky`); first_sky: those
             of the sky the first vertex sees (`sky_without_sun` when the sun's direct
-            light is shaded per pixel, else `sky`).
+            light is shaded per pixel, else `sky`); first_sampled: whether the first vertex
+            takes a light sample of it (else its cosine-sampled ray alone sees it).
         weights, acc_sum, acc_second, acc_n: as `accumulate` (acc_sum (A, 3)).
         record: (capacity, RAY_RECORD_ROWS) float32 for benchmarks (every ray traced is
             appended; capacity P·2·(bounces + 1) suffices), or (0, RAY_RECORD_ROWS).
@@ -725,7 +728,8 @@ def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
     for vertex in range(bounces + 1):
         dim = vertex * DIMS_PER_VERTEX
         seen = first_sky if vertex == 0 else sky
-        if use_sky:
+        sampled = first_sampled or vertex > 0
+        if use_sky and sampled:
             light, contrib, useful = sky_light_samples(seen, keys, dim + 2, n)
             idx, shadow_at, shadow_dirs = shadow_rays(useful, at, light)
             blocked = occluded_rays(calls, shadow_at, shadow_dirs)
@@ -741,7 +745,7 @@ def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
         recorded = _record(record, recorded, 1.0 if last else 0.0, at, dirs)
         rays += len(prim)
         if use_sky:
-            sky_add_escaped(seen, result, alive, prim, beta, dirs, n)
+            sky_add_escaped(seen, result, alive, prim, beta, dirs, n, sampled)
         if last:
             add_escaped(result, alive, prim, beta, escaped_radiance)
             break
@@ -771,10 +775,10 @@ def warm_up() -> None:
     level_paths(index, index, index, index, np.zeros(1), np.zeros(1), 0.5)
     sky = np.zeros(SKY_PARAMS)
     trace_chunk((0, 0, 0), np.uint32(0), index, index[:0], index[:0], index, vec.T.copy(),
-                vec.T.copy(), 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky, True,
+                vec.T.copy(), 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky, True, True,
                 np.ones(3), np.zeros((1, 3)), np.zeros(1), index.copy(),
                 np.empty((0, RAY_RECORD_ROWS), np.float32))
     _, contrib, useful = sky_light_samples(sky, keys, 0, vec)
     idx, _, _ = shadow_rays(useful, vec, vec)
     add_unblocked(result, index, idx, np.zeros(len(idx), np.bool_), vec, contrib)
-    sky_add_escaped(sky, result, index, prim, vec, vec, vec)
+    sky_add_escaped(sky, result, index, prim, vec, vec, vec, True)

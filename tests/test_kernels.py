@@ -300,8 +300,10 @@ def test_sky_light_samples_match_the_environment(spec, normals):
         assert 0.05 < in_sun.mean() < 0.95
 
 
+@pytest.mark.parametrize("mis", [True, False])
 @pytest.mark.parametrize("spec", SKIES)
-def test_sky_escaped_rays_match_the_environment(spec, normals):
+def test_sky_escaped_rays_match_the_environment(spec, mis, normals):
+    """Escaped rays' sky light, weighted against the light sample (mis) or alone."""
     from baking.environment import parse_env
     from baking.integrator import PathSettings, _add_escaped
 
@@ -316,7 +318,7 @@ def test_sky_escaped_rays_match_the_environment(spec, normals):
     alive = r.permutation(m)
     got, want = np.zeros((m, 3)), np.zeros((m, 3))
     kernels.sky_add_escaped(kernels.sky_params(env), got, alive, prim,
-                            *(np.ascontiguousarray(a.T) for a in (beta, dirs, normals)))
-    _add_escaped(want, alive, prim < 0, beta, dirs, normals, env, True,
+                            *(np.ascontiguousarray(a.T) for a in (beta, dirs, normals)), mis)
+    _add_escaped(want, alive, prim < 0, beta, dirs, normals, env, mis,
                  PathSettings(bounces=0, albedo=(1, 1, 1), hit_offset=0.0))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
