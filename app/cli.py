@@ -422,10 +422,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _join_negative_axes(argv: Sequence[str]) -> list[str]:
+    """``--up -z`` as ``--up=-z``: argparse would take ``-z`` for an option."""
+    out, rest = [], list(argv)
+    while rest:
+        word = rest.pop(0)
+        if word == "--up" and rest and rest[0] in ("-x", "-y", "-z"):
+            word = f"--up={rest.pop(0)}"
+        out.append(word)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``isolume`` console script; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_negative_axes(sys.argv[1:] if argv is None else argv))
     command = COMMANDS.get(args.command) or _command_module(args.command).run
     try:
         return command(args)

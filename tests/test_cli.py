@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pytest
 
+import volumes
 from app.cli import main
 from app.images import read_exr
 
@@ -160,5 +161,11 @@ def test_render_traces_global_illumination_by_default(tmp_path, capsys):
 def test_up_turns_the_volume(capsys):
     status, out, _ = _run(capsys, "info", "synthetic:engine:48", "--up", "x")
     assert status == 0 and "25 x 30 x 48" in out  # x (48 samples) now runs up
+    from app.cli import _join_negative_axes, _load_volume, build_parser
+
+    args = build_parser().parse_args(_join_negative_axes(["info", "synthetic:engine:48",
+                                                          "--up", "-z"]))
+    plain = volumes.load("synthetic:engine:48")
+    np.testing.assert_array_equal(_load_volume(args).data, plain.data[::-1, :, ::-1])
     status, _, err = _run(capsys, "info", "synthetic:engine:48", "--up", "w")
     assert status == 2 and "--up 'w'" in err
