@@ -686,7 +686,10 @@ class Run:
     facts: dict = field(default_factory=dict)
 
     def lattice(self, **changes) -> Baked:
-        """The lattice of the base config with `changes` (e.g. samples, mode, scale)."""
+        """The lattice of the base config with `changes` (e.g. samples, mode, scale); where
+        the direct light goes is chosen anew for it (`BakeConfig.direct_light`: per pixel
+        for irradiance with a sun or lights) unless `changes` say."""
+        changes.setdefault("direct_light", None)
         return self.store.get(dataclasses.replace(self.config, **changes))
 
     def summary(self, baked: Baked) -> dict:
@@ -793,18 +796,35 @@ def _mode_lattice(run: Run, mode) -> Baked | None:
     return run.lattice(samples=n)
 
 
-def chart_shading_modes(run: Run) -> Chart:
-    """Chart 4: error and frame time of every shading mode."""
+DIRECT_IN_LATTICE = "irradiance, direct in lattice"
+"""Chart 4's row for an irradiance lattice that holds the lights' and the sun's direct light
+too (``--direct-light lattice``), beside "irradiance" with it shaded per pixel."""
+
+
+def _chart4_rows(run: Run):
+    """(row name, shading mode name, mode, baked lattice or None) of chart 4: every shading
+    mode, and the irradiance lattice with the direct light in it as well, when the
+    lighting has a sun or lights to shade per pixel."""
     from .render import SHADING_MODES
 
-    modes = []
     for name, mode in SHADING_MODES.items():
         baked = _mode_lattice(run, mode)
+        yield name, name, mode, baked
+        pixels = baked is not None and baked.lattice.meta["config"].get("direct_light")
+        if name == "irradiance" and pixels == "pixels":
+            yield DIRECT_IN_LATTICE, name, mode, run.lattice(
+                samples=run.plan.chart_samples, direct_light="lattice")
+
+
+def chart_shading_modes(run: Run) -> Chart:
+    """Chart 4: error and frame time of every shading mode."""
+    modes = []
+    for row, name, mode, baked in _chart4_rows(run):
         lattice = None if baked is None else baked.lattice
-        key = run.render(f"mode/{name}", name, lattice)
+        key = run.render(f"mode/{row}", name, lattice)
         seconds = run.gl.frame_seconds(name, lattice, run.plan.draws)
         modes.append({
-            "mode": name, "kind": mode.lattice or "local", "lookup": mode.lookup,
+            "mode": row, "kind": mode.lattice or "local", "lookup": mode.lookup,
             "shadow": mode.shadow, "fog": mode.fog, "image": key,
             "frame_ms_mean": 1e3 * float(seconds.mean()),
             "frame_ms_min": 1e3 * float(seconds.min()),

@@ -53,10 +53,15 @@ void main() {
 #if SHADING >= 5 && SHADING <= 7
     vec3 radiance_gi = lattice_radiance(v_world, n, u_albedo);
 #if DIRECT
+    // the smooth normal on the side of the facet the eye sees (as the reference and the
+    // baker's start points turn it: at silhouettes it may point away from the eye)
     vec3 facet_n = normalize(cross(dFdx(v_world), dFdy(v_world)));
+    if (dot(facet_n, v) < 0.0) facet_n = -facet_n;
+    vec3 n_seen = normalize(v_normal);
+    if (dot(n_seen, facet_n) < 0.0) n_seen = -n_seen;
     // from where the baker's paths start: off the surface along the normal
-    radiance_gi += u_albedo * direct_irradiance(v_world + u_direct_offset * n, n, facet_n)
-                   / PI;
+    radiance_gi += u_albedo * direct_irradiance(v_world + u_direct_offset * n_seen, n_seen,
+                                                facet_n) / PI;
 #endif
     frag_color = vec4(radiance_gi, 1.0);
     return;

@@ -225,3 +225,18 @@ def test_bad_options_are_one_line_errors(tmp_path, capsys):
         status = main(["chart", "synthetic:sphere:16", "--out", str(tmp_path), *argv])
         _, err = capsys.readouterr()
         assert status == 2 and err.startswith("isolume: error:") and err.count("\n") == 1
+
+
+def test_chart4_shows_both_direct_light_choices(tmp_path):
+    """Under a sun, chart 4 has the irradiance lattice with the sun's direct light shaded
+    per pixel ("irradiance", the default) and with it in the lattice, each baked so."""
+    status = _chart(tmp_path, "synthetic:shells:20", "--charts", "4", "--chart-samples", "8",
+                    "--size", "32x32", "--ref-max-seconds", "5", "--draws", "10")
+    assert status == 0
+    record = json.loads((tmp_path / "chart4_shading_modes.json").read_text())
+    rows = {m["mode"]: m for m in record["modes"]}
+    split, whole = rows["irradiance"], rows[charts.DIRECT_IN_LATTICE]
+    assert split["lattice"]["config"]["direct_light"] == "pixels"
+    assert whole["lattice"]["config"]["direct_light"] == "lattice"
+    assert math.isfinite(split["error"]) and math.isfinite(whole["error"])
+    assert rows["sh"]["lattice"]["config"]["direct_light"] == "lattice"
