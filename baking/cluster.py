@@ -311,37 +311,50 @@ class ClusterBaker(Baker):
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig, scheduler: str = "", *,
                  lattice: Lattice | None = None, client=None) -> None:
-        super().__init__(volume, config, lattice=lattice, workers=1)
-        self._cluster = None
+        self._cluster, self._own_client, self._job = None, client is None, None
         if client is None:
             client, self._cluster = connect(scheduler)
-            self._own_client = True
-        else:
-            self._own_client = False
         self.client = client
+        try:  # the plan (on this machine)
+            super().__init__(volume, config, lattice=lattice, workers=1)
+        except BaseException:
+            self._close_client()
+            raise
         self.traffic = ClusterTraffic()
         self._worker_list: list[str] = []
         self._workers_asked = -np.inf
+        self._threads = 1
         t = self._tracing
         job = _Job(uuid.uuid4().hex, fingerprint(), replace(volume, _cache={}), config,
                    self.geometry, np.asarray(self.plan.levels, np.float64), t.lighting,
                    t.settings, t.seed_key, t.weights, t.whole)
         self.token = job.token
+        try:
+            client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+        except TimeoutError:
+            self.close()
+            raise BakeError(f"--scheduler {scheduler or client.scheduler.address}: no worker "
+                            f"joined within {CONNECT_TIMEOUT_S:.0f} s (start some with "
+                            "`dask worker ADDRESS`)") from None
         self._job = client.scatter(job, broadcast=True, hash=False)
         self.traffic.job_bytes = _nbytes(job)
 
     def close(self) -> None:
         """Drop the bake's state on the workers, then the client (and a local cluster)."""
-        try:
-            self.client.cancel([self._job])
-            self.client.run(forget, self.token)
-        except Exception:  # a cluster already gone has nothing to drop
-            pass
+        if self._job is not None:
+            try:
+                self.client.cancel([self._job])
+                self.client.run(forget, self.token)
+            except Exception:  # a cluster already gone has nothing to drop
+                pass
+        self._close_client()
+        super().close()
+
+    def _close_client(self) -> None:
         if self._own_client:
             self.client.close()
             if self._cluster is not None:
                 self._cluster.close()
-        super().close()
 
     def run(self, positions: np.ndarray | None = None, target: int | np.ndarray | None = None,
             *, bar=None, after_level=None) -> None:
@@ -367,7 +380,7 @@ class ClusterBaker(Baker):
         next_submit, next_apply = first, first
         try:
             while next_apply <= last:
-                while next_submit <= last and self._room(levels, next_apply):
+                while next_submit <= last and self._room(levels):
                     levels[next_submit] = self._submit_level_tasks(
                         next_submit, by_lower, first, done, remaining, owner, stream)
                     next_submit += 1
@@ -389,20 +402,25 @@ class ClusterBaker(Baker):
 
     def _workers(self) -> list[str]:
         """Sorted addresses of the cluster's workers (asked of the scheduler at most
-        every `REPORT_S` seconds)."""
+        every `REPORT_S` seconds; their thread count is kept in ``_threads``)."""
         now = time.perf_counter()
         if now - self._workers_asked > REPORT_S:
-            self._worker_list = sorted(self.client.scheduler_info(n_workers=-1)["workers"])
+            info = self.client.scheduler_info(n_workers=-1)["workers"]
+            self._worker_list = sorted(info)
+            self._threads = sum(int(w.get("nthreads", 1)) for w in info.values())
             self._workers_asked = now
         return self._worker_list
 
-    def _room(self, levels: dict[int, _Level], next_apply: int) -> bool:
+    def _room(self, levels: dict[int, _Level]) -> bool:
         """May another level be submitted? Two levels per worker in flight keep every
-        worker on levels it has; finished levels waiting for an earlier one are held
-        on this machine (their pass sums), at most eight per worker."""
+        worker on levels it has, and two tasks per thread every thread busy; finished
+        levels waiting for an earlier one are held on this machine (their pass sums),
+        at most eight per worker."""
         workers = max(1, len(self._workers()))
-        unfinished = sum(not level.finished for level in levels.values())
-        return unfinished < 2 * workers and len(levels) < 8 * workers
+        unfinished = [level for level in levels.values() if not level.finished]
+        tasks = sum(len(level.texels) - len(level.results) for level in unfinished)
+        return ((len(unfinished) < 2 * workers or tasks < 2 * self._threads)
+                and len(levels) < 8 * workers)
 
     def _submit_level_tasks(self, level: int, by_lower: list, first: int, done: np.ndarray,
                             remaining: np.ndarray, owner: dict, stream) -> _Level:

@@ -191,3 +191,13 @@ def test_concurrent_tasks_build_a_level_scene_once(monkeypatch):
         t.join()
     assert builds == [0.5]
     assert got[0][0] is got[1][0] and sorted(s > 0 for _, s in got) == [False, True]
+
+
+def test_a_cluster_without_workers_is_one_line(monkeypatch):
+    monkeypatch.setattr(cluster_module, "CONNECT_TIMEOUT_S", 1.0)
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None,
+                                  silence_logs=logging.CRITICAL) as empty, \
+            distributed.Client(empty) as client:
+        with pytest.raises(BakeError, match="no worker joined within 1 s"):
+            cluster_module.ClusterBaker(make("sphere", 12), BakeConfig(samples=2),
+                                        client=client)
