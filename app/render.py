@@ -257,6 +257,30 @@ def lattice_start_offset(lattice) -> float:
     return float(offset) * float(np.mean(spacing))
 
 
+def aimed_lights(lights: tuple, direction) -> tuple:
+    """`lights` with the first distant one (the sun or a directional light) turned to point
+    towards the unit vector `direction` (3,): a light moved in the viewer. Its direct
+    light and shadows follow exactly; the lattice's share of it (its bounces) does not."""
+    from baking.lights import DirectionalLight, SunLight
+
+    out, turned = [], False
+    for light in lights:
+        if not turned and isinstance(light, DirectionalLight | SunLight):
+            d = np.asarray(direction, np.float64)
+            light = replace(light, direction=tuple(float(v) for v in d / np.linalg.norm(d)))
+            turned = True
+        out.append(light)
+    return tuple(out)
+
+
+def first_distant_light(lights: tuple):
+    """The first `SunLight` or `DirectionalLight` of `lights`, or None."""
+    from baking.lights import DirectionalLight, SunLight
+
+    return next((light for light in lights
+                 if isinstance(light, DirectionalLight | SunLight)), None)
+
+
 def direct_tiles(lights) -> list[int]:
     """The first shadow-atlas tile of each per-pixel light (a distant light or the sun
     takes one, a point light six).
@@ -615,6 +639,11 @@ class SurfaceRenderer:
         if self._env_coeffs.shape[0] < order * order:
             raise RenderError(f"environment has {self._env_coeffs.shape[0]} SH coefficients, "
                               f"the lattice needs {order * order}")
+
+    @property
+    def lattice_lights(self) -> tuple:
+        """The lights the lattice shown leaves to the pixels (`lattice_direct_lights`)."""
+        return self._lattice_lights
 
     def direct_lights(self, settings: RenderSettings) -> tuple:
         """The lights `settings` shades per pixel: none outside the irradiance lattice

@@ -848,6 +848,8 @@ class Viewer:
                           "only the fallback light of texels not computed yet.")
         fractions, lines = self._bake_status()
         return PanelModel(
+        elif self.drawing.light_note(self.state) is not None:  # sun/lights per pixel
+            light_note = self.drawing.light_note(self.state)
             title=f"{self.volume.name}  {x}x{y}x{z}", iso=self.state.iso,
             iso_range=self.volume.value_range, mesh_status=self.mesh_info,
             modes=self.drawing.modes, enabled=self.drawing.usable_modes(),

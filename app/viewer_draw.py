@@ -326,12 +326,45 @@ class Drawing:
     def light_angles(self, state: ViewState, camera) -> tuple[float, float]:
         """The light's (azimuth, elevation) in degrees (from the camera-fixed light if need
         be)."""
-        from .render import key_direction
+        from .render import first_distant_light, key_direction
         from .ui import angles_from_direction
+            moved = self._moved_lights(state)
+            if moved is not None:
+                kw["direct_lights"] = moved
 
         if state.light is not None:
             return state.light
         if state.shading == "sh":  # the environment starts as loaded
+    def _moved_lights(self, state: ViewState) -> tuple | None:
+        """The per-pixel lights of the lattice shown with the sun (or first directional
+        light) turned to the user's light direction; None when there is none to turn."""
+        from .render import aimed_lights, first_distant_light
+        from .ui import direction_from_angles
+
+        lights = self.renderer.lattice_lights
+        if state.light is None or first_distant_light(lights) is None:
+            return None
+        return aimed_lights(lights, direction_from_angles(*state.light))
+
+    def light_note(self, state: ViewState) -> str | None:
+        """What the light controls do to a lattice whose sun or lights are shaded per
+        pixel, and whether its indirect light is stale; None for other lattices."""
+        from .render import LATTICE_MODES, first_distant_light
+
+        mode = LATTICE_MODES.get(state.shading)
+        baked = first_distant_light(self.renderer.lattice_lights)
+        if mode is None or mode.lattice != "irradiance" or baked is None:
+            return None
+        moved = self._moved_lights(state)
+        shown = first_distant_light(moved) if moved is not None else baked
+        turn = math.degrees(math.acos(float(np.clip(
+            np.dot(shown.direction, baked.direction), -1.0, 1.0))))
+        if turn < 0.5:
+            return ("The sun and lights are shaded per pixel (exact shadows); turning the "
+                    "light moves them, their bounced light stays as baked.")
+        return (f"Light turned {turn:.0f}° from the bake: its direct light and shadows are "
+                "exact, its bounced light is stale until the lattice is baked again.")
+
             return (0.0, 0.0)
         return angles_from_direction(key_direction(camera, self.settings(state, (1, 1))))
 
@@ -342,6 +375,9 @@ class Drawing:
             self.meshes = {}
         self.meshes[stage] = mesh
         self.on_gpu = None
+        baked = first_distant_light(self.renderer.lattice_lights)
+        if baked is not None and self.light_note(state) is not None:
+            return angles_from_direction(np.asarray(baked.direction))  # the baked sun
 
     def sync_mesh(self, preview: bool) -> None:
         """Put the preview or the full surface of the current isovalue on the GPU."""

@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 from test_render_modes import _merge, _plane, _sphere
+from test_viewer import _surface, _view, display  # noqa: F401  (display: an Xvfb fixture)
 
 import volumes
 from app.camera import Camera
@@ -440,3 +441,64 @@ def test_sun_on_an_isosurface_matches_ray_cast_shadows(renderer):
     off = np.abs(got - want) > 5 * stderr + 0.05 * want.max()
     assert off.mean() < 0.005, off.mean()  # measured 0.03 %
     assert abs(got.mean() / want.mean() - 1) < 0.01  # neither darker (acne) nor brighter
+
+
+# -- the viewer moves the sun ---------------------------------------------------------------
+def test_viewer_moves_the_sun_with_exact_shadows(display, tmp_path):  # noqa: F811
+    """A lattice whose sun is shaded per pixel: turning the light in the viewer moves the
+    sun's light and shadows (the lattice's part of the picture stays), "light camera" puts
+    it back where it was baked."""
+    from app.viewer_bake import lattice_meta
+
+    vol = volumes.load("synthetic:engine:48")
+    config = BakeConfig(env="sky:sun=3", samples=1)
+    lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 1.0), 3, lattice_meta(vol, config))
+    lattice.values[...] = 0.4
+    lattice.samples[...] = 1
+    lattice.active[...] = True
+    lattice.save(tmp_path / "sun.npz")
+    (tmp_path / "s.txt").write_text("wait-mesh\nscreenshot baked.png\nlight 20 25\n"
+                                    "screenshot moved.png\nlight camera\n"
+                                    "screenshot back.png\nquit\n")
+    run = _view(["synthetic:engine:48", "--lattice", "sun.npz", "--no-bake", "--shading",
+                 "irradiance", "--size", "320x240", "--script", "s.txt"],
+                display, tmp_path)
+    assert run.returncode == 0, run.stderr
+    baked, mask = _surface(tmp_path / "baked.exr")
+    moved, moved_mask = _surface(tmp_path / "moved.exr")
+    back, _ = _surface(tmp_path / "back.exr")
+    assert (mask == moved_mask).all()
+    lattice_only = 0.8 * 0.4 / np.pi  # albedo · E / π of the lattice's constant E
+    # baked, the sun (az 45°, el 40°) leaves the faces the camera sees in shadow; turned
+    # towards the camera it lights them: the sun moved, the lattice's light stayed
+    in_shadow = baked[mask][:, 0] < lattice_only + 0.01
+    lit_now = moved[mask][:, 0] > lattice_only + 0.1
+    assert in_shadow.mean() > 0.3 and (in_shadow & lit_now).mean() > 0.3
+    assert min(moved[mask].min(), baked[mask].min()) >= lattice_only - 1e-3
+    np.testing.assert_allclose(back, baked, atol=1e-6)
+
+
+def test_viewer_light_note_says_when_the_bounced_light_is_stale(gl):
+    from app.ui import direction_from_angles
+    from app.viewer_bake import lattice_meta
+    from app.viewer_draw import Drawing, ViewState
+
+    vol = volumes.load("synthetic:sphere:16")
+    config = BakeConfig(env="sky:sun=3,sun_az=45,sun_el=40", samples=1)
+    lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 1.0), 3, lattice_meta(vol, config))
+    drawing = Drawing(gl, vol, auto_exposure=False)
+    try:
+        assert drawing.show_lattice(lattice) is None
+        state = ViewState(iso=0.5, shading="irradiance", exposure=1.0)
+        assert "shaded per pixel" in drawing.light_note(state)
+        sun = pixel_lights(config.env, ())[0]
+        start = drawing.light_angles(state, None)  # the drag starts at the baked sun
+        np.testing.assert_allclose(direction_from_angles(*start), sun.direction, atol=1e-9)
+        state.light = (start[0] + 30.0, start[1])
+        assert "stale" in drawing.light_note(state)
+        (moved,) = drawing.settings(state, (8, 8)).direct_lights
+        assert moved.radius == sun.radius and moved.irradiance == sun.irradiance
+        state.shading = "phong_hemi"
+        assert drawing.light_note(state) is None
+    finally:
+        drawing.release()
