@@ -265,6 +265,7 @@ class Viewer:
         self.camera = self.home
         self.framed = False  # the first surface has been framed
         self.panel_rect: tuple[float, float, float, float] | None = None
+        self.panel_frames = 0  # frames the panel has been drawn (its size settles in two)
         self.ui = self._make_ui() if options.ui else None
         self.message = ""
         self.shared: SharedLattice | None = None
@@ -541,17 +542,21 @@ class Viewer:
         self.camera = moves[how](self.camera)
         self._moved()
 
-    def _frame(self, mesh: volumes.Mesh) -> None:
+    def _frame_first_surface(self) -> None:
         """Aim the camera at the first surface's bounding box, in the part of the window
-        the panel leaves free; that view becomes the one `R` returns to. A camera the user
-        (or a script) has moved already stays where it is."""
+        the panel leaves free (once the panel has its size); that view becomes the one `R`
+        returns to. A camera the user (or a script) has moved already stays where it is."""
         from .camera import frame_box
 
+        meshes = [m for m in self.drawing.meshes.values() if not m.empty]
+        if self.framed or not meshes or (self._ui_shown and self.panel_frames < 2):
+            return
+        mesh = meshes[0]
         w, h = self.window.window_size
         left = 0.0
         if self._ui_shown and self.panel_rect is not None:
             x, _, width, _ = self.panel_rect
-            left = min(max((x + width + 10) / max(w, 1), 0.0), 0.6)
+            left = min(max((x + width + 10) / max(w, 1), 0.0), 0.5)  # at most half
         home = frame_box(self.home, mesh.vertices.min(axis=0), mesh.vertices.max(axis=0),
                          w / max(h, 1), (left, 1.0))
         if self.camera == self.home:
@@ -571,6 +576,7 @@ class Viewer:
         name, value = action.name, action.value
         if name == "panel_rect":  # where the panel is (window units), for framing
             self.panel_rect = value
+            self.panel_frames += 1
             return
         simple = {
             "iso": lambda: self.request_iso(value),
@@ -728,6 +734,7 @@ class Viewer:
 
             for action in draw_panel(self.ui.imgui, self._panel_model()):
                 self.apply(action)
+        self._frame_first_surface()
         interacting = self._interacting(start)
         drawing = self.drawing
         drawing.sync_mesh(preview=(interacting and drawing.quality.coarse)
@@ -785,8 +792,6 @@ class Viewer:
                     self.drawing.meshes["coarse"] = mesh
                 continue
             self.drawing.set_surface(result.stage, mesh, new_iso=result.iso != self.mesh_iso)
-            if not self.framed and not mesh.empty:
-                self._frame(mesh)
             self.drawing.sync_mesh(preview=self.drawing.quality.coarse
                                    and self._interacting(time.perf_counter()))
             self.mesh_stage, self.mesh_iso = result.stage, result.iso
@@ -843,13 +848,13 @@ class Viewer:
         light_note = ""
         if self.state.shading == "sh":
             light_note = "The light controls rotate the environment (SH transfer)."
+        elif self.drawing.light_note(self.state) is not None:  # sun/lights per pixel
+            light_note = self.drawing.light_note(self.state)
         elif self.state.shading in self._lattice_modes():
             light_note = ("The light is baked into the lattice (fixed); rotating it moves "
                           "only the fallback light of texels not computed yet.")
         fractions, lines = self._bake_status()
         return PanelModel(
-        elif self.drawing.light_note(self.state) is not None:  # sun/lights per pixel
-            light_note = self.drawing.light_note(self.state)
             title=f"{self.volume.name}  {x}x{y}x{z}", iso=self.state.iso,
             iso_range=self.volume.value_range, mesh_status=self.mesh_info,
             modes=self.drawing.modes, enabled=self.drawing.usable_modes(),

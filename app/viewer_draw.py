@@ -36,6 +36,15 @@ EXPOSURE_PROBE = 64
 """The automatic exposure reads this many pixels across the HDR target (nearest samples)."""
 
 
+def adapted_exposure(current: float, goal: float, seconds: float,
+                     time_constant: float = EXPOSURE_ADAPT_S) -> float:
+    """The exposure `seconds` after `current` when it moves towards `goal`: exponentially in
+    log space (equal steps in stops), so it never overshoots and halves its distance in
+    stops every ``time_constant · ln 2`` seconds."""
+    k = 1.0 - math.exp(-max(seconds, 0.0) / time_constant)
+    return current * (goal / current) ** k
+
+
 @dataclass
 class ViewState:
     """What the user controls (besides the camera)."""
@@ -319,22 +328,13 @@ class Drawing:
               "albedo": self.albedo}
         if state.light is not None:
             kw["key_dir"] = tuple(direction_from_angles(*state.light))
+            moved = self._moved_lights(state)
+            if moved is not None:
+                kw["direct_lights"] = moved
         if "env_rotation" in self._render_fields:
             kw["env_rotation"] = state.light or (0.0, 0.0)
         return RenderSettings(**kw)
 
-    def light_angles(self, state: ViewState, camera) -> tuple[float, float]:
-        """The light's (azimuth, elevation) in degrees (from the camera-fixed light if need
-        be)."""
-        from .render import first_distant_light, key_direction
-        from .ui import angles_from_direction
-            moved = self._moved_lights(state)
-            if moved is not None:
-                kw["direct_lights"] = moved
-
-        if state.light is not None:
-            return state.light
-        if state.shading == "sh":  # the environment starts as loaded
     def _moved_lights(self, state: ViewState) -> tuple | None:
         """The per-pixel lights of the lattice shown with the sun (or first directional
         light) turned to the user's light direction; None when there is none to turn."""
@@ -365,7 +365,19 @@ class Drawing:
         return (f"Light turned {turn:.0f}° from the bake: its direct light and shadows are "
                 "exact, its bounced light is stale until the lattice is baked again.")
 
+    def light_angles(self, state: ViewState, camera) -> tuple[float, float]:
+        """The light's (azimuth, elevation) in degrees (from the camera-fixed light if need
+        be)."""
+        from .render import first_distant_light, key_direction
+        from .ui import angles_from_direction
+
+        if state.light is not None:
+            return state.light
+        if state.shading == "sh":  # the environment starts as loaded
             return (0.0, 0.0)
+        baked = first_distant_light(self.renderer.lattice_lights)
+        if baked is not None and self.light_note(state) is not None:
+            return angles_from_direction(np.asarray(baked.direction))  # the baked sun
         return angles_from_direction(key_direction(camera, self.settings(state, (1, 1))))
 
     # -- surfaces ------------------------------------------------------------------------
@@ -375,9 +387,6 @@ class Drawing:
             self.meshes = {}
         self.meshes[stage] = mesh
         self.on_gpu = None
-        baked = first_distant_light(self.renderer.lattice_lights)
-        if baked is not None and self.light_note(state) is not None:
-            return angles_from_direction(np.asarray(baked.direction))  # the baked sun
 
     def sync_mesh(self, preview: bool) -> None:
         """Put the preview or the full surface of the current isovalue on the GPU."""
@@ -430,8 +439,7 @@ class Drawing:
         if before is None or not (rgba[..., 3] > 0).any():
             self.auto = goal if before is None else before
         else:
-            k = 1.0 - math.exp(-(now - self._adapted_at) / EXPOSURE_ADAPT_S)
-            self.auto = before * (goal / before) ** k
+            self.auto = adapted_exposure(before, goal, now - self._adapted_at)
         self._adapted_at = now
         self.adapting = abs(math.log(goal / self.auto)) > 0.01
         return 1.0 if before is None else self.auto / before

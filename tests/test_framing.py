@@ -1,6 +1,8 @@
 """The first picture: the camera frames the isosurface in the free part of the window, and
 automatic exposure brings the surface to middle grey."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -73,3 +75,18 @@ def test_auto_exposure_is_the_key_over_the_log_average():
     heavy = EXPOSURE_KEY / np.exp((7 * np.log(0.5) + 12 * np.log(2.0)
                                    + np.log(1e-3 * 27.5 / 20)) / 20)  # floor: 1e-3 × mean
     assert auto_exposure_scale(rgb, mask, weights=weights) == pytest.approx(heavy)
+
+
+def test_viewer_exposure_adapts_smoothly_in_stops():
+    from app.viewer_draw import EXPOSURE_ADAPT_S, adapted_exposure
+
+    assert adapted_exposure(1.0, 4.0, 0.0) == 1.0
+    half = EXPOSURE_ADAPT_S * np.log(2)
+    assert adapted_exposure(1.0, 4.0, half) == pytest.approx(2.0)  # half of two stops
+    # steps of any size land where one step of their sum lands: no frame-rate dependence
+    a = 1.0
+    for _ in range(10):
+        a = adapted_exposure(a, 0.1, 0.03)
+    assert a == pytest.approx(adapted_exposure(1.0, 0.1, 0.3))
+    path = [adapted_exposure(1.0, 0.1, t) for t in np.linspace(0, 3, 30)]
+    assert all(0.1 < b < a <= 1.0 for a, b in itertools.pairwise(path))  # no overshoot
