@@ -18,8 +18,13 @@ vec3 lattice_coord(vec3 world) {
 // lookup); elsewhere hemisphere-ambient Lambert with a cool tint shows through, so unbaked
 // regions are visible but still readable.
 vec3 lattice_blend(float w, vec3 baked, vec3 n, vec3 albedo) {
+#if DIRECT
+    // the sun and the lights are added per pixel on top (direct.glsl): no key light here
+    vec3 fallback = UNBAKED_TINT * albedo * hemisphere_irradiance(n) / PI;
+#else
     vec3 fallback = UNBAKED_TINT * albedo * (hemisphere_irradiance(n) + 0.5 * u_key_irradiance
                     * max(dot(n, u_key_dir), 0.0)) / PI;
+#endif
     return mix(fallback, baked, smoothstep(0.0, 0.25, w));
 }
 
