@@ -169,3 +169,28 @@ def test_up_turns_the_volume(capsys):
     np.testing.assert_array_equal(_load_volume(args).data, plain.data[::-1, :, ::-1])
     status, _, err = _run(capsys, "info", "synthetic:engine:48", "--up", "w")
     assert status == 2 and "--up 'w'" in err
+
+
+def test_default_render_agrees_with_the_reference(tmp_path, capsys):
+    """The default picture (GI traced for the view under the default sky and sun, the sun
+    added per pixel) against ``isolume reference`` with the same arguments, on a part with
+    shadows and interreflections. Measured: 5.7 % RMS with 3.4 % of it the reference's own
+    noise (512 spp), mean ratio 0.996; the sun counted twice gives 1.45."""
+    from baking.config import DEFAULT_ENV
+
+    common = ["synthetic:engine:48", "--size", "64x64"]
+    status, _, err = _run(capsys, "render", *common, "--gl", "osmesa",
+                          "--out", str(tmp_path / "gi.exr"))
+    assert status == 0, err
+    status, _, err = _run(capsys, "reference", *common, "--env", DEFAULT_ENV, "--spp", "512",
+                          "--out", str(tmp_path / "ref.exr"))
+    assert status == 0, err
+    gi, ref = read_exr(tmp_path / "gi.exr"), read_exr(tmp_path / "ref.exr")
+    both = (ref["mask"] > 0.5) & (gi["RGB"].max(axis=-1) > 0)
+    assert both.sum() > 0.95 * (ref["mask"] > 0.5).sum()
+    truth, picture, noise = ref["RGB"][both], gi["RGB"][both], ref["stderr"][both]
+    # the mean over ~1500 pixels: its noise is ~0.1 %, the lattice's bias measured 0.4 %
+    assert picture.mean() / truth.mean() == pytest.approx(1.0, abs=0.03)
+    error = np.sqrt(np.mean((picture - truth) ** 2)) / truth.mean()
+    own_noise = np.sqrt(np.mean(noise**2)) / truth.mean()
+    assert np.sqrt(max(error**2 - own_noise**2, 0.0)) < 0.08
