@@ -202,6 +202,9 @@ def add_lazy_arguments(parser) -> None:
                         "default: the bake's)")
     parser.add_argument("--workers", type=int, default=None, help="tracing threads")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds at most")
+    parser.add_argument("--wide-range", action="store_true",
+                        help="bake for the default iso range, not the one around the view "
+                        "(as the viewer does with a lattice file of such a bake)")
     parser.add_argument("--relative", type=float, default=1.2, metavar="F",
                         help="also time the picture to within F x the error of the same "
                         "view's texels fully baked (default 1.2; 0: off)")
@@ -351,7 +354,7 @@ def lazy(args) -> int:
     import volumes
     from baking.config import BakeConfig
     from baking.lattice import LatticeGeometry
-    from baking.lazy import View, visible_cells
+    from baking.lazy import View, view_iso_range, visible_cells
     from baking.preview import cell_corners
 
     from .cli import _isovalue, _size
@@ -381,8 +384,10 @@ def lazy(args) -> int:
           f"{truth.own_noise():.2%} RMS)")
     relative_target = float("nan")
     if args.relative > 0:
-        full, seconds = full_bake_error(volume, config, cell_corners(geometry.shape, cells),
-                                        truth, workers)
+        full_config = config if args.wide_range else replace(
+            config, iso_range=view_iso_range(volume, iso))  # what the lazy bake ends with
+        full, seconds = full_bake_error(volume, full_config,
+                                        cell_corners(geometry.shape, cells), truth, workers)
         relative_target = args.relative * full
         figures.update(full_bake_error=full, full_bake_seconds=seconds,
                        relative_target=relative_target)
@@ -392,7 +397,7 @@ def lazy(args) -> int:
     meta = lattice_meta(volume, config)
     shared = SharedLattice.create(geometry, meta["channels"], meta)
     t0 = time.perf_counter()
-    link = BakeLink(volume, config, shared, workers, iso)
+    link = BakeLink(volume, config, shared, workers, iso, follow_iso=not args.wide_range)
     link.send_view(View(iso, tuple(float(v) for v in camera.eye), cells))
     visible_flat = subset = None
     trace, subset_lum = [], []

@@ -338,7 +338,8 @@ class Viewer:
         self.static_lattice = None
         if self._show_lattice(self.shared.lattice):
             self.drawing.track_uploads()
-        self.bake = BakeLink(self.volume, config, self.shared, self.options.bake_workers, iso)
+        self.bake = BakeLink(self.volume, config, self.shared, self.options.bake_workers, iso,
+                             follow_iso=lattice is None)
 
     def _show_lattice(self, lattice) -> bool:
         problem = self.drawing.show_lattice(lattice)

@@ -12,6 +12,7 @@ views and receives the ids of changed texels, which the drawing side re-uploads
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -228,9 +229,10 @@ class _BakeProcess:
         self.waiting.append(message)
         return True
 
-    def _plan(self):
-        """Make the Baker (its plan takes seconds to tens of seconds) on a thread while the
-        preview passes go on and every new view gets its own; None when told to stop."""
+    def _plan(self, config):
+        """Make the Baker for `config` (its plan takes seconds) on a thread while the
+        preview passes go on and every new view gets its own; its stages are reported as
+        ``("planning", stage)``. None when told to stop."""
         import threading
 
         from baking.bake import Baker
@@ -240,12 +242,14 @@ class _BakeProcess:
 
         def make() -> None:
             try:
-                made["baker"] = Baker(self.volume, self.config, lattice=self.shared.lattice,
-                                      workers=self.job["workers"], scene_cache=made["cache"])
+                made["baker"] = Baker(self.volume, config, lattice=self.shared.lattice,
+                                      workers=self.job["workers"], scene_cache=made["cache"],
+                                      progress=lambda stage: self.outbox.put(("planning",
+                                                                              stage)))
             except BaseException as exc:  # re-raised below, in this thread
                 made["error"] = exc
 
-        made["cache"] = scene_cache_size(self.volume, self.job["iso"], self.config.max_levels,
+        made["cache"] = scene_cache_size(self.volume, self.job["iso"], config.max_levels,
                                          scene_budget())
         planner = threading.Thread(target=make, name="isolume-plan", daemon=True)
         planner.start()
@@ -259,8 +263,7 @@ class _BakeProcess:
         return made["baker"], made["cache"]
 
     def run(self) -> None:
-        from baking.lazy import LazyScheduler, View, serve
-        from baking.preview import drop_inactive
+        from baking.lazy import View, view_iso_range
         from baking.preview import warm_up as preview_warm_up
 
         preview_warm_up(self.volume)  # while the viewer opens its window
@@ -271,35 +274,72 @@ class _BakeProcess:
                 return
             message = self.receive(True)
         self._keep(message)
+        config, old_plan = self.config, None
+        if self.job["follow_iso"]:  # a fresh lattice: bake for the isovalues around the view
+            config = dataclasses.replace(config, iso_range=view_iso_range(self.volume,
+                                                                          message.iso))
+        while True:
+            plan = self._serve(config, old_plan)
+            if plan is None:
+                return
+            outside = self.waiting[0]  # the view the plan does not serve
+            self.first_light(outside)  # its previews go on while the new plan is made
+            config = dataclasses.replace(config, iso_range=view_iso_range(self.volume,
+                                                                          outside.iso))
+            old_plan = plan
+            self.outbox.put(("replanning", {"iso": outside.iso}))
+
+    def _serve(self, config, old_plan):
+        """Plan for `config` (keeping what the lattice holds for `old_plan` that the new
+        plan can use, `baking.lazy.carry_over`) and bake lazily. Returns the plan when a
+        view outside its iso range ended the loop (that view first in `waiting`), None
+        when told to stop."""
+        from baking.lazy import LazyScheduler, carry_over, serve
+        from baking.preview import drop_inactive
+
         t0 = time.perf_counter()
-        active = self.shared.lattice.active  # the Baker replaces the lattice's attribute
-        made = self._plan()
+        lattice = self.shared.lattice
+        active = lattice.active  # the Baker replaces the lattice's attribute
+        if old_plan is not None:  # new levels: the Baker would keep the lattice's
+            lattice.meta.pop("plan", None)
+        lattice.meta["config"] = config.to_dict()  # what a saved lattice was baked with
+        made = self._plan(config)
         if made is None:
-            return
+            return None
         baker, cache = made
+        if old_plan is not None:
+            reset = carry_over(lattice, old_plan, baker.plan)
+            if len(reset):
+                self.outbox.put(("texels", reset))
         active[...] = baker.plan.active
         baker.lattice.active = active
         self.previewer.only_active = True
-        stale = drop_inactive(self.shared.lattice)
+        stale = drop_inactive(lattice)
         if len(stale):
             self.outbox.put(("texels", stale))
         self.outbox.put(("ready", {"seconds": time.perf_counter() - t0,
                                    "active": len(baker.plan.ids),
                                    "levels": len(baker.plan.levels),
                                    "scene_cache": cache, "meta": baker.lattice.meta}))
-        scheduler = LazyScheduler(baker.plan, baker.geometry,
-                                  self.shared.lattice.samples.reshape(-1),
-                                  max_samples=self.config.samples,
+        scheduler = LazyScheduler(baker.plan, baker.geometry, lattice.samples.reshape(-1),
+                                  max_samples=config.samples,
                                   batch_paths=self.job["batch_paths"])
+        lo, hi = baker.plan.iso_range
 
         def receive(block: bool):
             return self.waiting.pop(0) if self.waiting else self.receive(block)
 
         try:
-            serve(baker, scheduler, receive, self.outbox.put, on_view=self.first_light,
-                  before_batch=self.preview_step)
+            stats = serve(baker, scheduler, receive, self.outbox.put,
+                          on_view=self.first_light, before_batch=self.preview_step,
+                          accepts=(lambda view: lo <= view.iso <= hi)
+                          if self.job["follow_iso"] else None)
         finally:
             baker.close()
+        if stats.outside is None:
+            return None
+        self.waiting.insert(0, stats.outside)
+        return baker.plan
 
 
 def range_warning(meta: dict, iso: float) -> tuple[str, ...]:
@@ -318,7 +358,8 @@ class BakeLink:
     """The viewer's side of the lazy bake process: send views, receive committed texels."""
 
     def __init__(self, volume: volumes.Volume, config, shared: SharedLattice,
-                 workers: int | None, iso: float, batch_paths: int | None = None) -> None:
+                 workers: int | None, iso: float, batch_paths: int | None = None,
+                 follow_iso: bool = False) -> None:
         import multiprocessing
 
         from baking.lazy import BATCH_PATHS
@@ -332,6 +373,7 @@ class BakeLink:
                        "suggested_iso": volume.suggested_iso},
             "config": config.to_dict(), "workers": workers, "iso": float(iso),
             "batch_paths": batch_paths or BATCH_PATHS, "started": time.time(),
+            "follow_iso": follow_iso,
         }
         self.started = time.perf_counter()
         self.process = ctx.Process(target=_bake_main, args=(job, self.inbox, self.outbox),
@@ -346,6 +388,8 @@ class BakeLink:
         self.history: list[tuple[float, object]] = []
         self.previews: list[tuple[float, dict]] = []  # (seconds since start, figures) per pass
         self.warm: dict | None = None  # the process is ready for views (its start-up time)
+        self.planning: tuple[float, str] = (self.started, "")  # since when, which stage
+        self.replans = 0
 
     def send_view(self, view) -> None:
         self.inbox.put(view)
@@ -372,6 +416,12 @@ class BakeLink:
                 self.history.append((time.perf_counter() - self.started, message[1]))
             elif kind == "ready":
                 self.ready = message[1]
+            elif kind == "planning":
+                self.planning = (self.planning[0], message[1])
+            elif kind == "replanning":  # the view left the baked iso range
+                self.ready, self.progress = None, None
+                self.planning = (time.perf_counter(), "")
+                self.replans += 1
             elif kind == "paused":
                 self.paused_ack = message[1]
             elif kind == "started":
@@ -396,7 +446,9 @@ class BakeLink:
             return None, (f"error: {self.error}",)
         preview = self._preview_line(iso)
         if self.ready is None:
-            return None, (f"planning the bake... {time.perf_counter() - self.started:.0f} s",
+            since, stage = self.planning
+            stage = f" ({stage})" if stage else ""
+            return None, (f"planning the bake{stage}... {time.perf_counter() - since:.0f} s",
                           preview)
         p, s = self.progress, self.stats
         if p is None:

@@ -214,18 +214,19 @@ class Baker:
         workers: threads tracing concurrently; the result does not depend on it.
         scene_cache: how many level scenes to keep alive (at least 2: the one traced and
             the next, built meanwhile).
+        progress: `make_plan`'s stage callback.
     """
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig, *,
                  lattice: Lattice | None = None, workers: int | None = None,
-                 scene_cache: int = 1) -> None:
+                 scene_cache: int = 1, progress=None) -> None:
         self.volume, self.config = volume, config
         self.settings = path_settings(volume, config)
         self.geometry = LatticeGeometry.for_volume(volume, config.scale)
         self.lattice = lattice or _new_lattice(volume, config, self.geometry,
                                                self.settings.channels)
         self.lighting = make_lighting(config)
-        self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice))
+        self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice), progress)
         self.lattice.active = self.plan.active
         kernels.warm_up()
         self.stats = BakeStats()

@@ -56,6 +56,43 @@ Large, because every batch visits every level it touches; a new view still inter
 batch between two levels."""
 SCENE_BYTES_PER_TRIANGLE = 100
 """Rough memory of one triangle of a level scene (mesh arrays and Embree's BVH)."""
+VIEW_RANGE_FRACTION = 0.05
+"""A lazy bake that follows the displayed isovalue bakes for the isovalues within this
+fraction of the data range on either side of it (`view_iso_range`)."""
+
+
+# -- the iso range around the displayed surface --------------------------------------------
+def view_iso_range(volume, iso: float) -> tuple[float, float]:
+    """The iso range a lazy bake for the isovalue `iso` serves: `VIEW_RANGE_FRACTION` of
+    the data range on either side, within the data range. Its texels are lit on their
+    values clamped to it (`baking.plan`): for the displayed surface that is more accurate
+    than a wide range (texels lit close to it), and the plan, its active texels and its
+    levels are a fraction of a wide range's."""
+    vmin, vmax = volume.value_range
+    half = VIEW_RANGE_FRACTION * (vmax - vmin)
+    return max(vmin, iso - half), min(vmax, iso + half)
+
+
+def carry_over(lattice, old: Plan, new: Plan) -> np.ndarray:
+    """Keep what a new plan (another iso range) can use of a lattice baked by `old`: a
+    texel keeps its samples when both plans light it at the same target isovalue; the
+    others are reset (values, second moments and sample counts to 0).
+
+    Returns:
+        (K,) flat ids of the texels reset (the display re-uploads them).
+    """
+    flat = old.ids
+    target = np.full(len(flat), np.nan)
+    pos = np.searchsorted(new.ids, flat)
+    found = pos < len(new.ids)
+    found[found] = new.ids[pos[found]] == flat[found]
+    target[found] = new.target[pos[found]]
+    samples = lattice.samples.reshape(-1)
+    reset = flat[(target != old.target) & (samples[flat] > 0)]  # NaN: inactive now
+    samples[reset] = 0
+    lattice.values.reshape(-1, lattice.values.shape[-1])[reset] = 0
+    lattice.second.reshape(-1)[reset] = 0
+    return reset
 
 
 # -- geometry of the texels the display needs ---------------------------------------------
@@ -368,12 +405,15 @@ class ServeStats:
     views: int = 0
     interrupted: int = 0
     started: float = field(default_factory=time.perf_counter)
+    outside: View | None = None
+    """The view that ended the loop because the plan does not serve it (`accepts`)."""
 
 
 def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
           send: Callable[[tuple], None], *, stop_when_done: bool = False,
           on_view: Callable[[View], None] | None = None,
-          before_batch: Callable[[], bool] | None = None) -> ServeStats:
+          before_batch: Callable[[], bool] | None = None,
+          accepts: Callable[[View], bool] | None = None) -> ServeStats:
     """Bake lazily until told to stop.
 
     Messages in (from `receive(block)`, which returns None when nothing is waiting and
@@ -394,6 +434,9 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
         before_batch: work that goes before each batch of the bake (the viewer's further preview
             passes); returns True when it did some, and the loop then reads its messages
             before going on.
+        accepts: whether the baker's plan serves a view (its isovalue); a view it does not
+            serve ends the loop, and is returned as `ServeStats.outside` (the caller
+            plans again for it).
     """
     stats = ServeStats()
     paused = False
@@ -447,6 +490,9 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
         for message in waiting_now:
             if not isinstance(message, View) and not handle(message):
                 return stats
+        if views and accepts is not None and not accepts(views[-1]):
+            stats.outside = views[-1]
+            return stats
         if views and not handle(views[-1]):
             return stats
         if not paused and before_batch is not None and before_batch():
@@ -457,7 +503,11 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
                 report()
                 if stop_when_done:
                     return stats
-            if not handle(next_message(True)):
+            message = next_message(True)
+            if isinstance(message, View) and accepts is not None and not accepts(message):
+                stats.outside = message
+                return stats
+            if not handle(message):
                 return stats
             continue
         t0 = time.perf_counter()

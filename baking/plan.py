@@ -24,6 +24,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,15 +179,20 @@ def texel_values(volume: volumes.Volume, geometry: LatticeGeometry) -> np.ndarra
 
 
 def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
-              levels: np.ndarray | None = None) -> Plan:
+              levels: np.ndarray | None = None,
+              progress: Callable[[str], None] | None = None) -> Plan:
     """Choose active texels, their targets and the levels for `config` (see the module
-    docstring); `levels` (K,) replaces the choice (a resumed bake keeps its file's)."""
+    docstring); `levels` (K,) replaces the choice (a resumed bake keeps its file's).
+    `progress(stage)` is told each stage as it starts (the viewer shows it)."""
+    say = progress or (lambda _stage: None)
     vmin, vmax = volume.value_range
     if vmax <= vmin:
         raise BakeError(f"{volume.source or volume.name}: the volume is constant ({vmin:g}); "
                         "there is no isosurface to bake")
     lo, hi = resolved_iso_range(volume, config)
+    say("texel values")
     rho = texel_values(volume, geometry)
+    say("noise estimate")
     noise = noise_sigma(volume, (lo, hi))
     min_span = max(config.noise_sigmas * noise, MIN_SPAN_FRACTION * (vmax - vmin))
     cells = _cell_mask(rho, lo, hi, min_span)
@@ -201,6 +207,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     target = np.clip(texel_rho, lo, hi)
     h = float(np.mean(volume.spacing))
     centres = geometry.centres(ids)
+    say("gradients")
     grad = np.linalg.norm(volumes.gradient_at(volume, centres), axis=1) * h
     limit = move_limit(config)
     if levels is None:
@@ -216,6 +223,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     # move leaves it floating in front of that surface rather than buried behind it.
     reach = newton_reach(volume, config)
     tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
+    say(f"paths onto {len(levels)} levels")
     ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol)
     ok_hi, move_hi = _reaches(volume, centres, levels[lower + 1], reach, tol)
     outside = 0.0 if config.flip_normals else 1.0

@@ -244,3 +244,117 @@ def test_serve_bakes_the_view_with_the_real_baker(sphere):
     final = [m for m in sent if m[0] == "progress"][-1][1]
     assert final.surface_fraction == 1.0 and final.stage is None
     assert (baker.lattice.values.reshape(-1, 3)[surface] > 0).all()
+
+
+def test_view_iso_range_is_a_band_around_the_isovalue_within_the_data():
+    from baking.lazy import VIEW_RANGE_FRACTION, view_iso_range
+
+    vol = volumes.load("synthetic:sphere:24")
+    vmin, vmax = vol.value_range
+    half = VIEW_RANGE_FRACTION * (vmax - vmin)
+    assert view_iso_range(vol, 0.5) == pytest.approx((0.5 - half, 0.5 + half))
+    assert view_iso_range(vol, vmin + half / 2)[0] == vmin
+
+
+def test_carry_over_keeps_texels_lit_at_the_same_target():
+    """Two plans of neighbouring ranges: a texel keeps its samples when both light it at
+    the same (clamped) isovalue; the others — clamped differently, or inactive now —
+    are reset and returned."""
+    from baking.bake import Baker
+    from baking.lazy import carry_over
+
+    vol = volumes.load("synthetic:shells:24")
+    old = Baker(vol, BakeConfig(samples=2, bounces=0, iso_range=(0.3, 0.5)), workers=2)
+    try:
+        old.run()
+    finally:
+        old.close()
+    lattice = old.lattice
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    new = make_plan(vol, geometry, BakeConfig(samples=2, bounces=0, iso_range=(0.4, 0.6)))
+    before = lattice.samples.reshape(-1).copy()
+    reset = carry_over(lattice, old.plan, new)
+    pos = np.searchsorted(new.ids, old.plan.ids)
+    inside = pos < len(new.ids)
+    inside[inside] = new.ids[pos[inside]] == old.plan.ids[inside]
+    same = np.zeros(len(old.plan.ids), bool)
+    same[inside] = new.target[pos[inside]] == old.plan.target[inside]
+    samples = lattice.samples.reshape(-1)
+    assert same.any() and (~same).any()
+    np.testing.assert_array_equal(samples[old.plan.ids[same]], before[old.plan.ids[same]])
+    assert (samples[old.plan.ids[~same]] == 0).all()
+    np.testing.assert_array_equal(np.sort(reset), np.sort(old.plan.ids[~same]))
+    assert (lattice.values.reshape(-1, 3)[reset] == 0).all()
+
+
+def test_serve_returns_a_view_its_plan_does_not_serve(sphere):
+    """A view outside the plan's iso range ends the loop before any batch is baked for
+    it; the caller plans again."""
+    from baking.bake import Baker
+
+    vol, geometry, _ = sphere
+    baker = Baker(vol, BakeConfig(samples=4, bounces=0, iso_range=(0.45, 0.55)), workers=2)
+    sched = LazyScheduler(baker.plan, geometry, baker.lattice.samples.reshape(-1),
+                          max_samples=4)
+    outside = View(0.8, (0.0, -2.0, 0.0), None)
+    messages = [View(0.5, (0.0, -2.0, 0.0), None)]
+
+    def receive(block):
+        return messages.pop(0) if messages else None
+
+    def send(message):  # the outside view comes once a batch of the first was baked
+        if message[0] == "texels" and outside not in sent:
+            sent.append(outside)
+            messages.append(outside)
+
+    sent: list = []
+    lo, hi = baker.plan.iso_range
+    try:
+        stats = serve(baker, sched, receive, send, accepts=lambda view: lo <= view.iso <= hi)
+    finally:
+        baker.close()
+    assert stats.outside is outside and sched.iso == 0.5 and stats.views == 1
+
+
+def test_the_lazy_bake_plans_again_when_the_view_leaves_its_range():
+    """The viewer's lazy bake of a fresh lattice bakes for the isovalues around the view;
+    an isovalue outside them makes it plan again for the new one (the panel says so),
+    and the new plan's texels get samples."""
+    import time
+
+    from app.viewer_bake import BakeLink, SharedLattice, lattice_meta
+    from baking.lazy import view_iso_range
+
+    vol = volumes.load("synthetic:shells:24")
+    config = BakeConfig(samples=4, bounces=0, env="constant:1")
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    meta = lattice_meta(vol, config)
+    shared = SharedLattice.create(geometry, meta["channels"], meta)
+    link = BakeLink(vol, config, shared, 1, 0.3, follow_iso=True)
+
+    def wait_ready(deadline):
+        while link.ready is None and link.error is None and time.monotonic() < deadline:
+            link.poll()
+            time.sleep(0.05)
+        assert link.error is None and link.ready is not None
+        return link.ready["meta"]["plan"]["iso_range"]
+
+    try:
+        deadline = time.monotonic() + 120
+        link.send_view(View(0.3, (0.0, -2.0, 0.0), None))
+        assert wait_ready(deadline) == pytest.approx(view_iso_range(vol, 0.3))
+        link.send_view(View(0.6, (0.0, -2.0, 0.0), None))
+        while link.replans == 0 and time.monotonic() < deadline:
+            link.poll()
+            time.sleep(0.05)
+        assert link.replans == 1
+        assert wait_ready(deadline) == pytest.approx(view_iso_range(vol, 0.6))
+        assert link.ready["meta"]["config"]["iso_range"] == pytest.approx(
+            view_iso_range(vol, 0.6))
+        while link.near_fraction(0.6) != 1.0 and time.monotonic() < deadline:
+            link.poll()
+            time.sleep(0.05)
+        assert link.near_fraction(0.6) == 1.0
+    finally:
+        link.stop()
+        shared.close()
