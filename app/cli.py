@@ -228,6 +228,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     vol = _load_volume(args)
     lattice = _load_lattice(args.lattice, vol)
     shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
+    if lattice is not None and lattice.kind == "irradiance" and (args.env or args.light):
+        raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
+                       f"lighting ({lattice.meta['config'].get('env') or 'no environment'}); "
+                       "bake again for other light, or leave out --lattice")
     view_light = _view_light(args, vol) if lattice is None and shading == "irradiance" else None
     if args.albedo is not None:
         albedo = parse_albedo(args.albedo)

@@ -194,3 +194,15 @@ def test_default_render_agrees_with_the_reference(tmp_path, capsys):
     error = np.sqrt(np.mean((picture - truth) ** 2)) / truth.mean()
     own_noise = np.sqrt(np.mean(noise**2)) / truth.mean()
     assert np.sqrt(max(error**2 - own_noise**2, 0.0)) < 0.08
+
+
+def test_lighting_options_are_refused_with_an_irradiance_lattice(tmp_path, capsys):
+    """An irradiance lattice holds the light it was baked with: asking for another one is
+    an error, not a picture lit otherwise than asked."""
+    lattice = tmp_path / "l.npz"
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "1",
+                          "--bounces", "0", "--env", "constant:1,1,1", "--out", str(lattice))
+    assert status == 0, err
+    status, _, err = _run(capsys, "render", "synthetic:sphere:16", "--lattice", str(lattice),
+                          "--env", "sky", "--out", str(tmp_path / "x.png"))
+    assert status == 2 and "constant:1,1,1" in err and err.count("\n") == 1
