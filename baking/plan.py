@@ -173,9 +173,23 @@ def _corners_of(cells: np.ndarray) -> np.ndarray:
 
 
 def texel_values(volume: volumes.Volume, geometry: LatticeGeometry) -> np.ndarray:
-    """(Z, Y, X) float32 field value at every texel centre (trilinear)."""
-    centres = geometry.all_centres().reshape(-1, 3)
-    return volumes.value_at(volume, centres).reshape(geometry.shape).astype(np.float32)
+    """(Z, Y, X) float32 field value at every texel centre: trilinear, clamped at the
+    border, the same arithmetic as `volumes.value_at` at `geometry.centres`. Separable —
+    the texel centres form a grid, so one linear interpolation along x, then y, then z
+    (the order `value_at` combines them in) — instead of 8 reads per texel: 0.3 s instead
+    of 8 s for CThead's 7.4 M texels."""
+    values = volume.data.astype(np.float64)
+    for xyz in range(3):
+        axis = 2 - xyz  # array axes are (z, y, x)
+        n = volume.data.shape[axis]
+        centres = geometry.lo[xyz] + (np.arange(geometry.shape[axis]) + 0.5) \
+            * geometry.texel_size[xyz]
+        index = np.clip((centres - volume.origin[xyz]) / volume.spacing[xyz], 0.0, n - 1.0)
+        lower = np.minimum(index.astype(np.int64), max(n - 2, 0))
+        weight = (index - lower).reshape([-1 if a == axis else 1 for a in range(3)])
+        values = (1 - weight) * np.take(values, lower, axis=axis) \
+            + weight * np.take(values, np.minimum(lower + 1, n - 1), axis=axis)
+    return values.astype(np.float32)
 
 
 def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
@@ -350,16 +364,36 @@ def choose_levels(target: np.ndarray, grad_per_voxel: np.ndarray,
         return np.array([lo, lo + max(abs(lo) * 1e-6, 1e-6)])
     edges = np.linspace(lo, hi, bins + 1)
     which = np.clip(np.searchsorted(edges, target, side="right") - 1, 0, bins - 1)
-    order = np.argsort(which, kind="stable")
-    groups = np.split(grad_per_voxel[order], np.searchsorted(which[order], np.arange(1, bins)))
     fallback = float(np.percentile(grad_per_voxel, 10))
-    spacing = np.array([np.percentile(g, 10) if len(g) else fallback for g in groups])
-    spacing = move * np.maximum(spacing, 1e-12 * (hi - lo))
+    spacing = move * np.maximum(_binned_percentile(which, grad_per_voxel, bins, 10, fallback),
+                                1e-12 * (hi - lo))
     per_bin = (edges[1:] - edges[:-1]) / spacing  # levels each bin asks for
     per_bin = _water_fill(per_bin, budget - 1)
     density = np.concatenate([[0.0], np.cumsum(per_bin)])
     count = int(np.clip(np.ceil(density[-1]) + 1, 2, budget))
     return np.interp(np.linspace(0, density[-1], count), density, edges)
+
+
+def _binned_percentile(which: np.ndarray, values: np.ndarray, bins: int, q: float,
+                       empty: float) -> np.ndarray:
+    """(bins,) the q-th percentile of the (N,) `values` in each bin (`which`, (N,) bin
+    indices), as `np.percentile`'s linear method gives it; `empty` for empty bins. One
+    sort for all bins."""
+    order = np.lexsort((values, which))
+    ranked, bin_of = values[order], which[order]
+    starts = np.searchsorted(bin_of, np.arange(bins))
+    counts = np.searchsorted(bin_of, np.arange(bins), side="right") - starts
+    position = starts + q / 100 * np.maximum(counts - 1, 0)
+    below = np.floor(position).astype(np.int64)
+    above = np.minimum(below + 1, starts + np.maximum(counts - 1, 0))
+    t = position - below
+    if len(ranked) == 0:
+        return np.full(bins, empty)
+    a, b = ranked[np.minimum(below, len(ranked) - 1)], ranked[np.minimum(above,
+                                                                         len(ranked) - 1)]
+    diff = b - a
+    out = np.where(t >= 0.5, b - diff * (1 - t), a + diff * t)  # numpy's _lerp
+    return np.where(counts > 0, out, empty)
 
 
 def _water_fill(demand: np.ndarray, budget: float) -> np.ndarray:
