@@ -48,6 +48,7 @@ from .bake import (
     Baker,
     PassSums,
     Tracing,
+    _chunk_bounds,
     _commit,
     _finish_meta,
     _group_by,
@@ -210,7 +211,9 @@ def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
     if len(pos):
         tracing = Tracing(ids, job.lighting, job.settings, job.seed_key, job.weights, acc,
                           job.whole)
-        paths, rays, seconds = trace_chunk(scene, tracing, pos, samples, start)
+        for lo, hi in _chunk_bounds(pos, 1):  # the local bake's chunk sizes (cache-sized)
+            n, r, t = trace_chunk(scene, tracing, pos[lo:hi], samples[lo:hi], start)
+            paths, rays, seconds = paths + n, rays + r, seconds + t
     return _Partial(acc.sum, acc.second, acc.n, paths, rays, seconds, scene_seconds)
 
 
@@ -226,7 +229,7 @@ def connect(scheduler: str, timeout: float = CONNECT_TIMEOUT_S):
         BakeError: Dask is not installed, `scheduler` is malformed or does not answer.
     """
     try:
-        from distributed import Client, LocalCluster
+        from distributed import Client
     except ImportError:
         raise BakeError(f"--scheduler {scheduler}: needs Dask distributed, an optional "
                         "dependency: pip install 'isolume[cluster]'") from None
@@ -235,8 +238,7 @@ def connect(scheduler: str, timeout: float = CONNECT_TIMEOUT_S):
         if not count.isdigit() or int(count) < 1:
             raise BakeError(f"--scheduler {scheduler}: expected local:N with N ≥ 1 worker "
                             "processes")
-        cluster = LocalCluster(n_workers=int(count), threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR)
+        cluster = local_cluster(int(count))
         return Client(cluster), cluster
     if not scheduler or any(c.isspace() for c in scheduler):
         raise BakeError(f"--scheduler {scheduler!r}: expected a Dask scheduler address "
@@ -246,6 +248,25 @@ def connect(scheduler: str, timeout: float = CONNECT_TIMEOUT_S):
     except (OSError, ValueError, TypeError) as exc:
         raise BakeError(f"--scheduler {scheduler}: no Dask scheduler answered within "
                         f"{timeout:.0f} s ({type(exc).__name__}: {exc})") from None
+
+
+def local_cluster(workers: int, **options):
+    """A ``distributed.LocalCluster`` of `workers` single-threaded worker processes.
+
+    Their nannies give them Dask's usual environment less MALLOC_TRIM_THRESHOLD_: setting
+    it also fixes glibc's mmap threshold at 128 kB, so every per-chunk array is mapped and
+    unmapped afresh (measured, engine CT, 4 paths/texel, one worker: 8× the page faults,
+    system time 0.4 → 2.0 s).
+    """
+    import dask
+    from distributed import LocalCluster
+
+    environ = dask.config.get("distributed.nanny.pre-spawn-environ", {})
+    environ = {k: v for k, v in environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                            **{"dashboard_address": None, "silence_logs": logging.ERROR,
+                               **options})
 
 
 def task_groups(texels: np.ndarray, expected: np.ndarray,

@@ -20,7 +20,6 @@ steal from: at least one scene each. It stops scaling where P · c / W falls to 
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import resource
 import time
@@ -31,7 +30,7 @@ import numpy as np
 import volumes
 
 from .bake import Baker
-from .cluster import ClusterBaker
+from .cluster import ClusterBaker, local_cluster
 from .config import BakeConfig
 
 WORKER_COUNTS = (1, 4, 16, 64)
@@ -70,13 +69,15 @@ def _time_local(volume, config: BakeConfig, threads: int) -> tuple[float, float,
 
 
 def _time_cluster(volume, config: BakeConfig, client) -> tuple[float, float, ClusterBaker]:
-    """(wall seconds, CPU seconds of this process and the workers, baker)."""
+    """(wall seconds, CPU seconds of this process and the workers, baker); the master's
+    share of the CPU seconds is kept as ``baker.master_cpu``."""
     before = sum(client.run(cpu_seconds).values())
     t0, c0 = time.perf_counter(), cpu_seconds()
     baker = ClusterBaker(volume, config, client=client)
     baker.run()
     baker.close()
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
+    baker.master_cpu = cpu
     return wall, cpu + sum(client.run(cpu_seconds).values()) - before, baker
 
 
@@ -97,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--target-voxels", type=float, default=512.0**3,
                         help="voxel count of the extrapolated volume (default 512³)")
     args = parser.parse_args(argv)
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     volume = volumes.load(args.volume)
     config = BakeConfig(samples=args.samples, bounces=args.bounces, env=args.env)
@@ -115,12 +116,12 @@ def main(argv: list[str] | None = None) -> int:
     _row("2 threads", wall, cpu, two, wall1)
     lattices = [one.lattice, two.lattice]
     for count in (1, 2):
-        with LocalCluster(n_workers=count, threads_per_worker=1, processes=True,
-                          dashboard_address=None, silence_logs=logging.ERROR) as cluster, \
-                Client(cluster) as client:
+        with local_cluster(count) as cluster, Client(cluster) as client:
             _time_cluster(volumes.load("synthetic:sphere:16"), BakeConfig(samples=1), client)
             wall, cpu, baker = _time_cluster(volume, config, client)  # workers warm
             _row(f"{count} worker process" + "es" * (count > 1), wall, cpu, baker, wall1)
+            print(f"{'':>22}CPU on this machine (plan, client) {baker.master_cpu:.1f} s, "
+                  f"on the workers {cpu - baker.master_cpu:.1f} s")
             lattices.append(baker.lattice)
             moved = baker.traffic
             if count == 1:  # each level scene built once, not hidden behind tracing

@@ -20,9 +20,7 @@ cluster_module = pytest.importorskip("baking.cluster")
 @pytest.fixture(scope="module")
 def cluster():
     """Two single-threaded worker processes (restarted by their nannies when killed)."""
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None,
-                                  silence_logs=logging.CRITICAL) as local:
+    with cluster_module.local_cluster(2, silence_logs=logging.CRITICAL) as local:
         yield local
 
 
