@@ -421,7 +421,7 @@ def lazy(args) -> int:
             lat = shared.lattice
             _first_shown(figures, lat, corners, now)
             image_err = truth.error(lat)
-            shown = "first_estimate_s" in figures  # a picture: every texel shows a value
+            shown = bool(link.previews)  # a picture: the first preview pass is done
             if shown and "relative_target_s" not in figures and args.relative > 0:
                 rmse = truth.rmse(lat)
                 if rmse <= relative_target:
