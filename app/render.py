@@ -418,7 +418,7 @@ class _DirectAtlas:
     values for them."""
 
     depth: moderngl.Texture
-    raw: moderngl.Sampler
+    raw: moderngl.Texture
     fbo: moderngl.Framebuffer
     key: tuple | None = None
     uniforms: dict = field(default_factory=dict)
@@ -662,8 +662,9 @@ class SurfaceRenderer:
         defines = {**SHADING_MODES, **_DEBUG_MODES}[shading].defines()
         if shading == "sh":
             defines += self.lattice.sh_defines()
-        if self.direct_lights(settings):
-            defines += (("DIRECT", 1),)
+        lights = self.direct_lights(settings)
+        if lights:
+            defines += (("DIRECT", 1), ("DIRECT_SUM(p, n, f)", direct_sum(lights)))
         return self._program("surface", defines)
 
     # -- drawing -----------------------------------------------------------------------
@@ -698,9 +699,11 @@ class SurfaceRenderer:
         depth.compare_func = "<="
         depth.filter = (moderngl.LINEAR, moderngl.LINEAR)
         depth.repeat_x = depth.repeat_y = False
-        raw = self.ctx.sampler(texture=depth, filter=(moderngl.NEAREST, moderngl.NEAREST),
-                               repeat_x=False, repeat_y=False, compare_func="")
-        self._atlas = _DirectAtlas(depth, raw, self.ctx.framebuffer(depth_attachment=depth))
+        raw = self.ctx.texture(size, 1, dtype="f4")  # the same depths as floats
+        raw.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        raw.repeat_x = raw.repeat_y = False
+        self._atlas = _DirectAtlas(depth, raw, self.ctx.framebuffer(
+            color_attachments=[raw], depth_attachment=depth))
         return self._atlas
 
     def _draw_direct_atlas(self, lights: tuple, settings: RenderSettings) -> _DirectAtlas:
@@ -728,7 +731,7 @@ class SurfaceRenderer:
         prog = self._program("depth", ())
         atlas.fbo.use()
         atlas.fbo.viewport = (0, 0, width, height)
-        self.ctx.clear(depth=1.0)
+        self.ctx.clear(1.0, 1.0, 1.0, 1.0, depth=1.0)
         for i, (view_proj, plane) in enumerate(zip(matrices, planes, strict=True)):
             atlas.fbo.viewport = (round(rects[i][0] * width), round(rects[i][1] * height),
                                   tile, tile)
@@ -736,7 +739,8 @@ class SurfaceRenderer:
             prog["u_depth"].value = tuple(plane)
             self._draw_mesh(prog)
         atlas.fbo.viewport = (0, 0, width, height)
-        atlas.uniforms = _direct_uniforms(lights, first, matrices, planes, rects, ranges)
+        atlas.uniforms = _direct_uniforms(lights, matrices, planes, rects, ranges,
+                                          [tile] * len(matrices))
         atlas.key = key
         return atlas
 
@@ -746,9 +750,9 @@ class SurfaceRenderer:
         atlas = self._draw_direct_atlas(lights, settings)
         shadow_unit, raw_unit = DIRECT_UNITS
         atlas.depth.use(location=shadow_unit)
-        atlas.depth.use(location=raw_unit)
         atlas.raw.use(location=raw_unit)
-        self._set_uniforms(prog, {**atlas.uniforms, "u_direct_shadow": shadow_unit,
+        self._set_uniforms(prog, {**_active_parts(prog, atlas.uniforms),
+                                  "u_direct_shadow": shadow_unit,
                                   "u_direct_depth": raw_unit,
                                   "u_direct_bias": DIRECT_BIAS_TEXELS,
                                   "u_direct_offset": self._direct_offset})
@@ -886,8 +890,35 @@ def _light_tiles(light, centre: np.ndarray, radius: float):
     yield view_proj, 0.5 * view_proj[2] + 0.5 * np.eye(4)[3], 2.0 * radius
 
 
-def _direct_uniforms(lights, first, matrices, planes, rects, ranges) -> dict:
-    """The ``direct.glsl`` uniform arrays (padded to their declared sizes)."""
+def _active_parts(prog: moderngl.Program, arrays: dict) -> dict:
+    """The `_direct_uniforms` arrays cut to the lengths the compiled program keeps (a
+    compiler drops the tail of an array that only constant indices below it read)."""
+    out = {}
+    for name, data in arrays.items():
+        if name in prog and not isinstance(data, bytes):
+            out[name] = data
+        elif name in prog:
+            declared = MAX_DIRECT_LIGHTS if name.startswith("u_direct") else MAX_DIRECT_TILES
+            out[name] = data[:prog[name].array_length * (len(data) // declared)]
+    return out
+
+
+def direct_sum(lights) -> str:
+    """The ``DIRECT_SUM(p, n, f)`` body of ``direct.glsl`` for `lights`: one call per light
+    with constant light and tile indices (a program per set of light kinds)."""
+    from baking.lights import SunLight
+
+    calls = []
+    for i, (light, tile) in enumerate(zip(lights, direct_tiles(lights), strict=True)):
+        kind = ("point_light" if _is_point(light) else
+                "distant_soft" if isinstance(light, SunLight) else "distant_hard")
+        calls.append(f"{kind}({i}, {tile}, p, n, f)")
+    return "(" + " + ".join(calls) + ")"
+
+
+def _direct_uniforms(lights, matrices, planes, rects, ranges, tile_texels) -> dict:
+    """The ``direct.glsl`` uniform arrays (padded to their declared sizes); `tile_texels`:
+    each tile's side in texels."""
     from baking.lights import SunLight
 
     def padded(rows, width, count, dtype="f4"):
@@ -900,16 +931,18 @@ def _direct_uniforms(lights, first, matrices, planes, rects, ranges) -> dict:
     rgb = [light.intensity if _is_point(light) else light.irradiance for light in lights]
     tan_r = [[math.tan(math.radians(light.radius))] if isinstance(light, SunLight) else [0.0]
              for light in lights]
+    axes = [m[:2, :3] / np.linalg.norm(m[:2, :3], axis=1, keepdims=True) for m in matrices]
     n, t = MAX_DIRECT_LIGHTS, MAX_DIRECT_TILES
     return {
-        "u_direct_count": len(lights),
         "u_direct_where": padded(where, 4, n), "u_direct_rgb": padded(rgb, 3, n),
         "u_direct_tan_radius": padded(tan_r, 1, n),
-        "u_direct_tile": padded([[f] for f in first], 1, n, "i4"),
         "u_tile_view_proj": b"".join(m.T.astype("f4").tobytes() for m in matrices)
         + bytes(64 * (t - len(matrices))),
         "u_tile_depth": padded(planes, 4, t), "u_tile_rect": padded(rects, 4, t),
         "u_tile_range": padded([[r] for r in ranges], 1, t),
+        "u_tile_right": padded([a[0] for a in axes], 3, t),
+        "u_tile_up": padded([a[1] for a in axes], 3, t),
+        "u_tile_texel": padded([[1.0 / texels] for texels in tile_texels], 1, t),
     }
 
 

@@ -502,3 +502,29 @@ def test_viewer_light_note_says_when_the_bounced_light_is_stale(gl):
         assert drawing.light_note(state) is None
     finally:
         drawing.release()
+
+
+def test_several_lights_add_up(renderer):
+    """Each light is one call of the specialised shader (`direct_sum`); together they
+    give the sum of their pictures (the lattice's light counted once)."""
+    from app.render import direct_sum
+
+    sun = SunLight(tuple(SUN), (2.0, 2.0, 2.0), 3.0)
+    hard = DirectionalLight((-0.3, 0.4, 0.8), (1.0, 0.5, 0.25))
+    point = PointLight((0.5, -0.4, 3.0), (4.0, 4.0, 4.0))
+    assert direct_sum((hard, sun, point)) == ("(distant_hard(0, 0, p, n, f) + distant_soft"
+                                              "(1, 1, p, n, f) + point_light(2, 2, p, n, f))")
+    renderer.set_mesh(*_merge(_plane(0.0, 3.5, 2), _sphere((0, 0, HEIGHT), 0.5, 48, 96)))
+    lo, hi = np.array([-3.5, -3.5, -0.1]), np.array([3.5, 3.5, 3.2])
+    renderer.set_bounds(lo, hi)
+    lattice = _zero_lattice(lo, hi)
+    lattice.values[...] = 0.3
+    renderer.set_lattice(lattice)
+    camera = Camera(azimuth=30, elevation=60, distance=1.0, target=(0, 0, 0.5), scale=5.0)
+    base = RenderSettings(size=(96, 96), tonemap="clamp", shading="irradiance")
+    pictures = [_render(renderer, camera, dataclasses.replace(base, direct_lights=lights))[0]
+                for lights in [(hard, sun, point), (hard,), (sun,), (point,), ()]]
+    together, *alone, none = pictures
+    # the per-pixel turn of the sun's taps depends only on the pixel: the same noise
+    np.testing.assert_allclose(together, sum(alone) - 2 * none, rtol=1e-4, atol=2e-5)
+    assert (together - none).max() > 0.1
