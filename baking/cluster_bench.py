@@ -7,7 +7,8 @@ the four lattices are the same bits, and prints wall and CPU seconds (this proce
 the workers: steadier than wall times on a shared machine) and the model's inputs: the
 level count K, the seconds per level scene S (as a worker builds it: marching cubes and
 BVH), the seconds per path c (one thread), the master's serial seconds M (the plan), a
-worker's set-up U and the job's size J. The model for W single-threaded workers
+worker's set-up U and the job's size J — S, c and M in CPU seconds (what an unloaded core
+would take). The model for W single-threaded workers
 (`predict`):
 
     T(W) = M + U + S · max(K / W, 1) + P · c / W + J · W / bandwidth
@@ -29,7 +30,7 @@ import numpy as np
 
 import volumes
 
-from .bake import Baker
+from .bake import Baker, _level_scene
 from .cluster import ClusterBaker, local_cluster
 from .config import BakeConfig
 
@@ -102,16 +103,20 @@ def main(argv: list[str] | None = None) -> int:
 
     volume = volumes.load(args.volume)
     config = BakeConfig(samples=args.samples, bounces=args.bounces, env=args.env)
-    t0 = time.perf_counter()
+    c0 = cpu_seconds()
     plan_only = Baker(volume, config, workers=1)
-    master_s = time.perf_counter() - t0
+    master_s = cpu_seconds() - c0
     plan_only.close()
+    c0 = cpu_seconds()  # again, as the bakes below plan: with the volume's caches warm
+    Baker(volume, config, workers=1).close()
+    warm_plan_s = cpu_seconds() - c0
+    scene_s = _scene_cpu_seconds(volume, config, plan_only.plan.levels)
     levels, active = len(plan_only.plan.levels), len(plan_only.plan.ids)
     print(f"{volume.name} {volume.data.shape[::-1]}: {active:,} active texels, {levels} levels, "
-          f"plan {master_s:.1f} s; {args.samples} paths/texel, {args.bounces} bounces, "
+          f"plan {master_s:.1f} CPU s; {args.samples} paths/texel, {args.bounces} bounces, "
           f"{args.env}")
-    wall1, cpu, one = _time_local(volume, config, 1)
-    _row("1 thread", wall1, cpu, one, wall1)
+    wall1, cpu1, one = _time_local(volume, config, 1)
+    _row("1 thread", wall1, cpu1, one, wall1)
     wall, cpu, two = _time_local(volume, config, 2)
     _row("2 threads", wall, cpu, two, wall1)
     lattices = [one.lattice, two.lattice]
@@ -124,8 +129,6 @@ def main(argv: list[str] | None = None) -> int:
                   f"on the workers {cpu - baker.master_cpu:.1f} s")
             lattices.append(baker.lattice)
             moved = baker.traffic
-            if count == 1:  # each level scene built once, not hidden behind tracing
-                scene_s = moved.scene_seconds / max(moved.scene_builds, 1)
     same = all(np.array_equal(a.values, lattices[0].values) and
                np.array_equal(a.samples, lattices[0].samples) for a in lattices[1:])
     print(f"lattices identical to the bit: {same}")
@@ -134,7 +137,8 @@ def main(argv: list[str] | None = None) -> int:
           f"({moved.bytes_sent / 1e6:.2f} MB sent, {moved.bytes_returned / 1e6:.2f} MB back), "
           f"job {moved.job_bytes / 1e6:.1f} MB per worker once, {moved.scene_builds} scene "
           f"builds for {levels} levels")
-    path_s = one.stats.trace_seconds / max(one.stats.paths, 1)
+    # CPU seconds: what an unloaded core takes (wall times swell on a shared machine)
+    path_s = (cpu1 - warm_plan_s - levels * scene_s) / max(one.stats.paths, 1)
     setup_s = _setup_seconds(volume)
     print(f"model inputs: K = {levels} levels, S = {scene_s:.3f} s per level scene, "
           f"c = {path_s * 1e6:.2f} µs per path (1 thread), M = {master_s:.1f} s plan, "
@@ -142,6 +146,16 @@ def main(argv: list[str] | None = None) -> int:
     _print_model(volume, config, master_s, setup_s, scene_s, path_s, active, moved.job_bytes,
                  args.target_voxels)
     return 0
+
+
+def _scene_cpu_seconds(volume, config: BakeConfig, levels: np.ndarray, count: int = 3) -> float:
+    """CPU seconds (Embree's threads included) per level scene: marching cubes and BVH of
+    `count` levels spread over the plan's."""
+    picked = levels[np.linspace(0, len(levels) - 1, min(count, len(levels))).astype(int)]
+    c0 = cpu_seconds()
+    for iso in picked:
+        _level_scene(volume, float(iso), config)
+    return (cpu_seconds() - c0) / len(picked)
 
 
 def _setup_seconds(volume) -> float:
