@@ -307,7 +307,7 @@ def _bake_config(args: argparse.Namespace):
         env="" if args.env == "none" else args.env, lights=tuple(args.light or ()), seed=args.seed,
         flip_normals=args.flip_normals, target_error=args.target_error,
         max_samples=max(args.max_samples, args.samples), max_levels=args.max_levels,
-        direct_light=args.direct_light,
+        max_move=args.max_move, direct_light=args.direct_light,
     )
 
 
@@ -408,6 +408,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-levels", type=int, default=64, metavar="K",
                    help="cap on isovalue levels (fewer: faster, texels move farther onto "
                    "their levels)")
+    p.add_argument("--max-move", type=float, default=None, metavar="VOXELS",
+                   help="level spacing: texels move at most this far onto their levels "
+                   "(default: from the samples, 0.5 voxel at 256 paths, and the level count "
+                   "capped by the scenes' cost)")
     p.add_argument("--direct-light", choices=["pixels", "lattice"], default=None,
                    help="where the direct light of --light lights and the sky's sun goes: "
                    "pixels (shaded exactly per pixel by render/view, the lattice keeps their "

@@ -112,9 +112,10 @@ class BakeConfig:
             )
         if not self.env and not self.lights:
             raise BakeError("nothing lights the scene: give --env and/or --light")
-        if (self.max_move is not None and not 0 < self.max_move <= 4) \
-                or not 2 <= self.max_levels <= 1024:
-            raise BakeError("max_move must lie in (0, 4] voxels and max_levels in [2, 1024]")
+        if self.max_move is not None and not 0 < self.max_move <= 4:
+            raise BakeError(f"--max-move {self.max_move:g}: expected (0, 4] voxels")
+        if not 2 <= self.max_levels <= 1024:
+            raise BakeError(f"--max-levels {self.max_levels}: expected 2 to 1024 levels")
         if self.target_error is not None and not 0 < self.target_error < 1:
             raise BakeError(f"--target-error {self.target_error:g}: expected a relative "
                             "standard error between 0 and 1, e.g. 0.02")

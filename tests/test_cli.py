@@ -68,7 +68,7 @@ def _npy(tmp_path, name, data):
                     str(t / "x.png")], "none can be suggested"),
         (lambda t: ["info", "synthetic:cube"], "unknown synthetic volume"),
         (lambda t: ["bake", "synthetic:sphere:16", "--max-levels", "1", "--out",
-                    str(t / "l.npz")], "max_levels in [2, 1024]"),
+                    str(t / "l.npz")], "--max-levels 1: expected 2 to 1024 levels"),
         (lambda t: ["view", "--bake-max-levels", "0"], "--bake-max-levels 0"),
     ],
 )

@@ -157,3 +157,22 @@ def test_binned_percentiles_equal_numpy_per_bin():
     want = [np.percentile(values[which == k], 10) if (which == k).any() else -1.0
             for k in range(50)]
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_bake_command_records_levels_and_takes_max_move(tmp_path, capsys):
+    from app.cli import main
+    from baking import Lattice
+
+    out = tmp_path / "l.npz"
+    argv = ["bake", "synthetic:shells:24", "--out", str(out), "--samples", "4",
+            "--bounces", "0", "--env", "constant:1,1,1", "--iso-range", "0.3", "0.6"]
+    assert main([*argv, "--max-move", "0.25"]) == 0
+    fine = Lattice.load(out, volumes.load("synthetic:shells:24")).meta["plan"]
+    assert fine["move_limit_voxels"] == 0.25 and fine["iso_range"] == [0.3, 0.6]
+    out.unlink()
+    assert main(argv) == 0
+    auto = Lattice.load(out, volumes.load("synthetic:shells:24")).meta["plan"]
+    assert auto["move_limit_voxels"] == 2.0 and len(auto["levels"]) < len(fine["levels"])
+    capsys.readouterr()
+    assert main([*argv, "--max-move", "9"]) == 2
+    assert "--max-move 9: expected (0, 4] voxels" in capsys.readouterr().err
