@@ -120,15 +120,16 @@ def parse_view(text: str) -> tuple[float, float, float | None]:
     return values[0], values[1], values[2] if len(values) == 3 else None
 
 
-FRAME_FILL = 0.85
-"""Framing leaves the box's bounding sphere this fraction of the free half-width."""
+FRAME_FILL = 0.9
+"""Framing leaves the box's projected corners within this fraction of the free part's
+half-width and half-height."""
 
 
 def frame_box(camera: Camera, lo, hi, aspect: float,
               free: tuple[float, float] = (0.0, 1.0)) -> Camera:
     """`camera` (its azimuth, elevation and field of view) aimed at the box `lo`..`hi`
-    ((3,) world) so that the box's bounding sphere fills `FRAME_FILL` of the free part of
-    the picture and sits in its middle.
+    ((3,) world) so that the box's projected corners fill `FRAME_FILL` of the free part of
+    the picture (its width or its height, whichever binds) around its middle.
 
     Args:
         aspect: width / height of the picture.
@@ -144,9 +145,28 @@ def frame_box(camera: Camera, lo, hi, aspect: float,
     scale = max(float(np.linalg.norm(hi - lo)), 1e-9)
     t = np.tan(np.radians(camera.fov_y) / 2)
     left, right = free
-    half = FRAME_FILL * min(t, t * aspect * (right - left))  # tan of the free half-angle
-    distance = 0.5 * scale / np.sin(np.arctan(half))  # the sphere touches those edges
     middle = left + right - 1.0  # the free part's middle, x in normalised device coords
-    pan_x = -middle * t * aspect * distance / scale
-    return replace(camera, target=tuple((lo + hi) / 2), scale=scale,
-                   distance=float(distance / scale), pan=(float(pan_x), 0.0))
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    # start where the bounding sphere fits, then move in until the corners fill the part
+    half = FRAME_FILL * min(t, t * aspect * (right - left))
+    distance = 0.5 * scale / np.sin(np.arctan(half))
+    framed = camera
+    for _ in range(8):
+        framed = replace(camera, target=tuple((lo + hi) / 2), scale=scale,
+                         distance=float(distance / scale),
+                         pan=(float(-middle * t * aspect * distance / scale), 0.0))
+        ndc = _project(framed, aspect, corners)
+        fill = max(np.abs(ndc[:, 0] - middle).max() / (right - left),
+                   np.abs(ndc[:, 1]).max()) / FRAME_FILL
+        if abs(fill - 1.0) < 1e-3:
+            break
+        # a distant box's projection shrinks as 1/distance; about the centre, by less
+        distance *= 1.0 + 0.9 * (fill - 1.0)
+    return framed
+
+
+def _project(camera: Camera, aspect: float, points: np.ndarray) -> np.ndarray:
+    """(N, 2) normalised device coordinates of (N, 3) world points."""
+    p = np.c_[points, np.ones(len(points))] @ camera.view_proj(aspect).T
+    return p[:, :2] / p[:, 3:]
