@@ -176,3 +176,19 @@ def test_bake_command_records_levels_and_takes_max_move(tmp_path, capsys):
     capsys.readouterr()
     assert main([*argv, "--max-move", "9"]) == 2
     assert "--max-move 9: expected (0, 4] voxels" in capsys.readouterr().err
+
+
+def test_stalled_newton_falls_back_to_the_nearest_crossing_along_neighbour_lines():
+    """A segmented (binary) volume: 3 voxels from the step the smoothed gradient is exactly
+    zero, so Newton cannot move; the point is then taken to the nearest place where the
+    trilinear field crosses the level along the 26 neighbour directions — the step face,
+    3 voxels straight down, exactly on the level."""
+    data = np.zeros((16, 8, 8), np.float32)
+    data[:8] = 1.0  # material below z = 7.5
+    vol = Volume(data, (1, 1, 1), (0, 0, 0), name="step", source="step")
+    start = np.array([[3.5, 3.5, 10.5]])
+    assert np.linalg.norm(volumes.gradient_at(vol, start)) == 0.0
+    moved = project_to_level(vol, start, 0.5, max_move=4.0)
+    np.testing.assert_allclose(moved, [[3.5, 3.5, 7.5]], atol=1e-5)
+    far = project_to_level(vol, start, 0.5, max_move=2.0)  # out of reach: left where it was
+    np.testing.assert_array_equal(far, start)

@@ -131,7 +131,9 @@ def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.
 
     Damped where the field is flat: a step is at most one voxel long, and a point gets
     one more step per voxel of `max_move`, so a point in a plateau next to the surface
-    (small gradient: an undamped step would overshoot far past it) walks up to it."""
+    (small gradient: an undamped step would overshoot far past it) walks up to it. Where
+    the steps stall (`STALLED_FRACTION`), the nearest crossing of the level along the 26
+    neighbour directions is taken instead (`_nearest_crossing`)."""
     value = np.empty(1)
     g = np.empty(3)
     voxel = min(spacing[0], spacing[1], spacing[2])
@@ -160,7 +162,68 @@ def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.
             px, py, pz = qx, qy, qz
             if moved < tiny:
                 break
+        start = _value_at(data, origin, spacing, sx, sy, sz, value) - levels[i]
+        end = _value_at(data, origin, spacing, px, py, pz, value) - levels[i]
+        if abs(end) > STALLED_FRACTION * abs(start):  # Newton stalled: search the lines
+            px, py, pz = _nearest_crossing(data, origin, spacing, sx, sy, sz, levels[i],
+                                           max_move, px, py, pz, value)
         out[i, 0], out[i, 1], out[i, 2] = px, py, pz
+
+
+STALLED_FRACTION = 0.01
+"""Newton has stalled when the residual |ρ − level| ends above this fraction of where it
+started (noisy or sharp-edged data, where the smoothed gradient misleads the steps)."""
+
+
+@numba.njit(nogil=True, cache=True)
+def _value_at(data: np.ndarray, origin: np.ndarray, spacing: np.ndarray, x: float, y: float,
+              z: float, scratch: np.ndarray) -> float:
+    """Trilinear value of the (Z, Y, X, 1) `data` at world (x, y, z)."""
+    _lerp3(data, (z - origin[2]) / spacing[2], (y - origin[1]) / spacing[1],
+           (x - origin[0]) / spacing[0], scratch)
+    return scratch[0]
+
+
+@numba.njit(nogil=True, cache=True)
+def _nearest_crossing(data: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
+                      sx: float, sy: float, sz: float, level: float, max_move: float,
+                      fx: float, fy: float, fz: float, scratch: np.ndarray):
+    """The nearest point within `max_move` of (sx, sy, sz) where the trilinear field
+    crosses `level` along one of the 26 lines to the neighbouring voxels' directions
+    (steps of half a voxel, then bisection); (fx, fy, fz) when none crosses. A texel is a
+    corner of a cell its target surface crosses, so along some such line the level lies
+    within a cell's diagonal, whatever the gradient says."""
+    voxel = min(spacing[0], spacing[1], spacing[2])
+    step = 0.5 * voxel
+    start = _value_at(data, origin, spacing, sx, sy, sz, scratch) - level
+    best = np.inf
+    bx, by, bz = fx, fy, fz
+    for a in range(27):
+        if a == 13:  # (0, 0, 0)
+            continue
+        dx, dy, dz = (a % 3 - 1) * spacing[0], (a // 3 % 3 - 1) * spacing[1], \
+            (a // 9 - 1) * spacing[2]
+        norm = np.sqrt(dx * dx + dy * dy + dz * dz)
+        dx, dy, dz = dx / norm, dy / norm, dz / norm
+        near, t = 0.0, step
+        while t <= max_move and t < best:
+            v = _value_at(data, origin, spacing, sx + t * dx, sy + t * dy, sz + t * dz,
+                          scratch) - level
+            if v * start <= 0:
+                far = t
+                for _ in range(24):
+                    mid = 0.5 * (near + far)
+                    w = _value_at(data, origin, spacing, sx + mid * dx, sy + mid * dy,
+                                  sz + mid * dz, scratch) - level
+                    if w * start <= 0:
+                        far = mid
+                    else:
+                        near = mid
+                best = far
+                bx, by, bz = sx + far * dx, sy + far * dy, sz + far * dz
+                break
+            near, t = t, t + step
+    return bx, by, bz
 
 
 def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
