@@ -343,6 +343,7 @@ class Baked:
         """JSON-ready figures of the bake."""
         meta = self.lattice.meta
         return {"bake_seconds": self.seconds, "cached": self.cached,
+                "resumed_from": int(meta.get("chart_resumed_from", 0)),
                 "rays": int(meta.get("rays_traced", 0)),
                 "active_texels": int(meta["plan"]["active_texels"]),
                 "texels": int(np.prod(self.lattice.geometry.shape)),
