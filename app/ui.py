@@ -113,7 +113,8 @@ class PanelModel:
         mesh_status: e.g. "full resolution, 594,782 triangles".
         modes: every shading mode; enabled: those usable now (lattice modes need one),
             the ones the mode selector offers.
-        mode, exposure: current shading mode and exposure.
+        mode, exposure: current shading mode and exposure (a multiplier on the automatic
+            one, `auto_exposure`, when that is on; else None).
         light: (azimuth, elevation) degrees, or None for the camera-fixed light.
         light_note: shown under the light controls (e.g. the lattice's light is fixed).
         bake_lines: status lines of the lazy bake ("" entries are skipped).
@@ -134,6 +135,7 @@ class PanelModel:
     exposure: float
     light: tuple[float, float] | None
     light_note: str = ""
+    auto_exposure: float | None = None
     bake_lines: tuple[str, ...] = ()
     bake_fractions: tuple[float, float] | None = None
     bake_paused: bool = False
@@ -232,6 +234,8 @@ def _shading_section(imgui, model: PanelModel, actions: list[Action]) -> None:
                                            imgui.SliderFlags_.logarithmic)
     if changed:
         actions.append(Action("exposure", float(exposure)))
+    if model.auto_exposure is not None:
+        imgui.text_disabled(f"x automatic exposure {model.auto_exposure:.3g}")
     camera_light = model.light is None
     changed, camera_light = imgui.checkbox("light follows the camera", camera_light)
     if changed:

@@ -861,6 +861,7 @@ class Viewer:
             modes=self.drawing.modes, enabled=self.drawing.usable_modes(),
             mode=self.state.shading, exposure=self.state.exposure,
             light=self.state.light, light_note=light_note, bake_lines=lines,
+            auto_exposure=self.drawing.auto if self.drawing.auto_exposure else None,
             bake_fractions=fractions, bake_paused=bool(self.bake and self.bake.paused),
             can_bake=self.bake is not None, can_save=self.shared is not None,
             frame_ms=self.clock.mean_ms, size=self._frame_size(), message=self.message,
