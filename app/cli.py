@@ -205,6 +205,8 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(f"dims       {x} x {y} x {z} (X x Y x Z), {vol.data.size:,} voxels")
     print(f"spacing    {', '.join(f'{s:g}' for s in vol.spacing)}")
     print(f"origin     {', '.join(f'{s:g}' for s in vol.origin)}")
+    if vol.placement:
+        print(f"placement  {vol.placement}")
     print(f"range      {lo:g} .. {hi:g}")
     print("histogram (log counts)")
     for line in volumes.histogram_lines(vol):

@@ -697,8 +697,13 @@ def test_nrrd_orientation_in_ras_is_placed_in_lps(tmp_path):
               "space origin": np.array(ORIGIN)}
     nrrd.write(str(path), data, header, index_order="C")
     ras_to_lps = np.array([-1.0, -1.0, 1.0])
-    assert_placed(load_file(path), data,
-                  lambda ijk: ras_to_lps * oriented(ORIGIN, AXES)(ijk))
+    vol = load_file(path)
+    assert_placed(vol, data, lambda ijk: ras_to_lps * oriented(ORIGIN, AXES)(ijk))
+    # RAS x → −y, y → +z, z → −x is LPS x → +y, y → +z, z → +x
+    assert vol.placement == "NRRD orientation, in LPS: index axes x, y, z along world +y, +z, +x"
+    raw = tmp_path / "vol_11x7x5_int16.raw"
+    raw.write_bytes(data.astype("<i2").tobytes())
+    assert "gives no orientation (--up AXIS turns it)" in load_file(raw).placement
 
 
 def test_nifti_affine_is_placed_in_lps(tmp_path):

@@ -61,6 +61,8 @@ def test_up_turns_the_named_axis_up_without_mirroring(axis):
     k, j, i = np.indices((5, 6, 7), dtype=np.float32)
     ramp = sign * {"x": i, "y": j, "z": k}[axis[-1]]
     turned = turn_up(Volume(ramp, spacing=(1.0, 2.0, 3.0)), axis)
+    if axis != "z":
+        assert turned.placement == f"turned so that its {axis} axis points up"
     diff = np.diff(turned.data, axis=0)
     assert (diff > 0).all()
     assert np.allclose(np.diff(turned.data, axis=1), 0) and np.allclose(

@@ -35,6 +35,8 @@ class Volume:
         source: where the data came from (path or spec), for messages.
         suggested_iso: isovalues known to show the structure (synthetic volumes set
             them; `volumes.suggest_isovalues` derives them for loaded data).
+        placement: how the samples were placed in the world (orientation applied, or
+            why none was), for `isolume info`; "" when nothing was said.
     """
 
     data: np.ndarray
@@ -43,6 +45,7 @@ class Volume:
     name: str = "volume"
     source: str = ""
     suggested_iso: tuple[float, ...] = ()
+    placement: str = ""
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:

@@ -228,16 +228,21 @@ def load_file(
 
     if not data.flags.writeable and data.dtype == np.float32:
         data = np.array(data)  # Volume keeps native float32 as is; give it its own copy
-    volume = Volume(data, spacing=_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
-                    origin=_pick(origin, origin0, (0.0, 0.0, 0.0)), name=_volume_name(path),
-                    source=where)
+    label = _FORMAT_LABELS[kind] if kind != "folder" else "DICOM"
     if frame is None or not orientation:
-        return volume
+        why = "left out (orientation=False)" if frame is not None else (
+            f"as stored: the {label} input gives no orientation (--up AXIS turns it)")
+        return Volume(data, spacing=_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
+                      origin=_pick(origin, origin0, (0.0, 0.0, 0.0)), name=_volume_name(path),
+                      source=where, placement=why)
+    volume = Volume(data, spacing=_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
+                    origin=_pick(origin, origin0, (0.0, 0.0, 0.0)), source=where)
     directions, to_lps = frame
     placed = place(volume.data, volume.spacing, to_lps * np.asarray(volume.origin),
                    to_lps[:, None] * directions, where)
     return Volume(placed.data, spacing=placed.spacing, origin=placed.origin,
-                  name=volume.name, source=where)
+                  name=_volume_name(path), source=where,
+                  placement=placed.describe(f"{label} orientation, in LPS"))
 
 
 def parse_raw_name(name: str) -> tuple[str, tuple[int, int, int], np.dtype] | None:

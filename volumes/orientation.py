@@ -44,6 +44,14 @@ class Placement:
     spacing: tuple[float, float, float]
     origin: tuple[float, float, float]
     residual_deg: float
+    axes: str = "x, y, z"
+
+    def describe(self, frame: str) -> str:
+        """One line for `isolume info`: where the index axes went."""
+        text = f"{frame}: index axes x, y, z along world {self.axes}"
+        if self.residual_deg > 0.5:
+            text += f" (oblique by {self.residual_deg:.1f}°, placed along the nearest axes)"
+        return text
 
 
 def nearest_axes(directions: np.ndarray) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -99,9 +107,10 @@ def place(data: np.ndarray, spacing, origin, directions: np.ndarray | None,
     order = [world.index(w) for w in range(3)]  # index axis placed along world axis w
     arr = np.ascontiguousarray(arr.transpose(order).transpose(2, 1, 0))
     cosines = np.clip(np.abs(d[list(world), [0, 1, 2]]), -1.0, 1.0)
+    axes = ", ".join(f"{'+' if signs[a] > 0 else '-'}{'xyz'[world[a]]}" for a in range(3))
     return Placement(arr, tuple(float(v) for v in spacing[order]),
                      tuple(float(v) for v in origin + snapped @ (spacing * first)),
-                     float(np.degrees(np.arccos(cosines.min()))))
+                     float(np.degrees(np.arccos(cosines.min()))), axes)
 
 
 def up_rotation(axis: str) -> np.ndarray:
@@ -133,5 +142,7 @@ def turn_up(volume: Volume, axis: str) -> Volume:
         return volume
     placed = place(volume.data, volume.spacing, r @ np.asarray(volume.origin), r,
                    volume.source or volume.name)
+    turned = f"turned so that its {axis.strip().lower()} axis points up"
     return Volume(placed.data, placed.spacing, placed.origin, name=volume.name,
-                  source=volume.source, suggested_iso=volume.suggested_iso)
+                  source=volume.source, suggested_iso=volume.suggested_iso,
+                  placement=f"{volume.placement}; {turned}" if volume.placement else turned)
