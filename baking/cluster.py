@@ -73,16 +73,64 @@ _LIBRARIES = ("numpy", "numba", "embreex", "scipy", "scikit-image")
 
 @functools.cache
 def fingerprint() -> dict[str, str]:
-    """What a worker's lattice bits depend on: a hash of isolume's sources (`baking`,
-    `volumes`) and the versions of the numerical libraries."""
+    """What a process's lattice bits depend on: a hash of the isolume code it has loaded
+    (every module of `baking` and `volumes`, imported if it is not yet) and the versions
+    of the numerical libraries.
+
+    The code is hashed as loaded (bytecode, constants, names), not read from disk again:
+    a source file edited after this process imported it would otherwise hash as the
+    code this process does not run.
+    """
     digest = hashlib.sha256()
     for package in ("baking", "volumes"):
         root = Path(__file__).resolve().parent.parent / package
         for path in sorted(root.glob("*.py")):
-            digest.update(path.name.encode())
-            digest.update(path.read_bytes())
+            name = package if path.stem == "__init__" else f"{package}.{path.stem}"
+            digest.update(name.encode())
+            try:
+                module = importlib.import_module(name)
+            except Exception as exc:  # the same failure on both sides hashes the same
+                digest.update(f"import failed: {type(exc).__name__}".encode())
+                continue
+            _digest_module(module, digest)
     versions = {name: importlib.metadata.version(name) for name in _LIBRARIES}
-    return {"isolume sources": digest.hexdigest()[:16], **versions}
+    return {"isolume code": digest.hexdigest()[:16], **versions}
+
+
+def _digest_module(module, digest) -> None:
+    """Add the code of the functions and classes `module` defines (numba's compiled
+    ones by their Python source) and its upper-case constants to `digest`, in name order
+    (this module's constants, which size tasks, are left out: they change no bits)."""
+    for name, obj in sorted(vars(module).items()):
+        if name.isupper() and module.__name__ not in (__name__, f"{__name__}_bench"):
+            if isinstance(obj, np.ndarray):
+                digest.update(obj.tobytes())
+            elif isinstance(obj, int | float | str | tuple):
+                digest.update(f"{name}={obj!r}".encode())
+        if getattr(obj, "__module__", None) != module.__name__:
+            continue  # imported from elsewhere (hashed there) or data
+        members = vars(obj).items() if isinstance(obj, type) else [(name, obj)]
+        for member_name, member in sorted(members, key=lambda item: item[0]):
+            function = getattr(member, "py_func", None) or getattr(member, "__func__", member)
+            code = getattr(function, "__code__", None)
+            if code is not None:
+                digest.update(f"{name}.{member_name}".encode())
+                _digest_code(code, digest)
+
+
+def _digest_code(code, digest) -> None:
+    """Bytecode, names and constants of `code` and of the code nested in it (sets by
+    sorted members: their order follows string hashing, which differs between
+    processes)."""
+    digest.update(code.co_code)
+    digest.update(repr(code.co_names).encode())
+    for const in code.co_consts:
+        if hasattr(const, "co_code"):
+            _digest_code(const, digest)
+        elif isinstance(const, frozenset):
+            digest.update(repr(sorted(map(repr, const))).encode())
+        else:
+            digest.update(repr(const).encode())
 
 
 @dataclass(frozen=True)

@@ -199,3 +199,28 @@ def test_a_cluster_without_workers_is_one_line(monkeypatch):
         with pytest.raises(BakeError, match="no worker joined within 1 s"):
             cluster_module.ClusterBaker(make("sphere", 12), BakeConfig(samples=2),
                                         client=client)
+
+
+def test_fingerprint_is_the_loaded_code_and_the_same_in_every_process():
+    """Processes with other string hashing agree; other code or constants differ."""
+    import subprocess
+    import sys
+    import types
+
+    code = "from baking.cluster import fingerprint; print(fingerprint())"
+    seen = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           env={**os.environ, "PYTHONHASHSEED": seed},
+                           check=True).stdout for seed in ("1", "2")}
+    assert seen == {f"{cluster_module.fingerprint()}\n"}
+
+    def digest(source: str) -> str:
+        module = types.ModuleType("probe")
+        exec(compile(source, "probe.py", "exec"), module.__dict__)
+        h = cluster_module.hashlib.sha256()
+        cluster_module._digest_module(module, h)
+        return h.hexdigest()
+
+    base = "STEP = 0.5\ndef f(x):\n    return x * 2.0 + len({'a', 'b'})\n"
+    assert digest(base) == digest(base)
+    assert digest(base) != digest(base.replace("2.0", "2.5"))
+    assert digest(base) != digest(base.replace("0.5", "0.25"))
