@@ -233,3 +233,18 @@ def test_default_pictures_of_real_scans_are_exposed_right(tmp_path, capsys, name
     values = rgb[surface].astype(float).mean(axis=-1)
     assert 0.1 < surface.mean() < 0.9
     assert 100 <= np.median(values) <= 180 and np.percentile(values, 95) <= 240
+
+
+def test_default_render_is_the_same_for_any_worker_count(tmp_path, capsys):
+    """The view's GI draws its random numbers per texel and path: 1 or 3 threads give the
+    same picture to the bit."""
+    pictures = []
+    for workers in ("1", "3"):
+        out = tmp_path / f"w{workers}.exr"
+        status, _, err = _run(capsys, "render", "synthetic:engine:32", "--size", "48x48",
+                              "--gl", "osmesa", "--samples", "8", "--workers", workers,
+                              "--out", str(out))
+        assert status == 0, err
+        pictures.append(read_exr(out)["RGB"])
+    assert pictures[0].max() > 0
+    np.testing.assert_array_equal(pictures[0], pictures[1])
