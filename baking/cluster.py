@@ -393,6 +393,7 @@ class ClusterBaker(Baker):
         self._worker_list: list[str] = []
         self._workers_asked = -np.inf
         self._threads = 1
+        self._passes = 0
         t = self._tracing
         job = _Job(uuid.uuid4().hex, fingerprint(), replace(volume, _cache={}), config,
                    self.geometry, np.asarray(self.plan.levels, np.float64), t.lighting,
@@ -443,6 +444,7 @@ class ClusterBaker(Baker):
             return
         first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
         by_lower = _group_by(plan.lower[busy], busy, first, last)
+        self._passes += 1  # task keys must not repeat an earlier pass's (Dask reuses results)
         levels: dict[int, _Level] = {}
         owner: dict = {}  # future -> (level, task index)
         stream = as_completed()
@@ -512,7 +514,8 @@ class ClusterBaker(Baker):
             args = (plan.ids[part].astype(np.int64), plan.phase[part], plan.weight[part],
                     done[part], remaining[part], upper[lo:hi])
             future = self.client.submit(
-                trace_task, self._job, level, *args, key=f"isolume-{self.token}-{level}-{index}",
+                trace_task, self._job, level, *args,
+                key=f"isolume-{self.token}-{self._passes}-{level}-{index}",
                 workers=prefer, allow_other_workers=True, priority=-level, pure=False)
             owner[future] = (level, index)
             stream.add(future)

@@ -224,3 +224,14 @@ def test_fingerprint_is_the_loaded_code_and_the_same_in_every_process():
     assert digest(base) == digest(base)
     assert digest(base) != digest(base.replace("2.0", "2.5"))
     assert digest(base) != digest(base.replace("0.5", "0.25"))
+
+
+def test_target_error_refinement_on_the_cluster_equals_the_local_one(cluster):
+    """`--target-error` passes (a subset of texels, per-texel targets) on the cluster."""
+    config = BakeConfig(samples=8, bounces=1, env="sky:sun=3", target_error=0.05,
+                        max_samples=64)
+    vol = make("torus", 24)
+    local = bake(vol, config, workers=2)
+    remote = bake(vol, config, scheduler=cluster.scheduler_address)
+    assert local.samples.max() > 8  # some texels were refined
+    _same_bits(local, remote)
