@@ -17,6 +17,11 @@ Shading modes (paper Figs. 1, 6, 8–10), all on the same mesh and camera:
   (transfer under a rotating environment), and from a constant-sky, no-bounce bake
   ``vicinity`` (albedo·E/π) and ``ao`` (E/(π·L_sky) as an occlusion factor on
   hemisphere-ambient Lambert).
+
+The irradiance lattice modes add, per pixel, the direct light of the point and directional
+lights and the sky's sun of a lattice baked with direct light "pixels"
+(`lattice_direct_lights`, or `RenderSettings.direct_lights`): shadow-mapped from one
+linear-depth atlas of tiles, the sun's penumbra from its angular radius (``direct.glsl``).
 """
 
 from __future__ import annotations
@@ -413,9 +418,9 @@ class _Targets:
 
 @dataclass
 class _DirectAtlas:
-    """The per-pixel lights' shadow tiles in one depth texture, with a raw-depth sampler
-    for the blocker search; `key` says what they were drawn for, `uniforms` the shader's
-    values for them."""
+    """The per-pixel lights' shadow tiles in one depth texture (compared, bilinear), with
+    an R32F copy of its depths for the sun's blocker search (`raw`); `key` says what they
+    were drawn for, `uniforms` the shader's values for them."""
 
     depth: moderngl.Texture
     raw: moderngl.Texture
