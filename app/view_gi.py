@@ -63,7 +63,7 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     scene = surface_scene(volume, iso, 1) if len(texels) else None
     if scene is None:
         return lattice
-    tracing = _split_direct_light(preview_tracing(volume, config), config)
+    tracing = preview_tracing(volume, config)
     chunk = max(256, CHUNK_PATHS // int(config.samples))
     for lo in range(0, len(texels), chunk):
         estimate(volume, config, lattice, iso, texels[lo:lo + chunk], scene, 1,
@@ -72,24 +72,6 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
         report.update(min(lo + chunk, len(texels)))
     report.done(int((lattice.preview_paths > 0).sum()))
     return lattice
-
-
-def _split_direct_light(tracing, config):
-    """`tracing` leaving the sun's and the lights' direct light at the texels' own points to
-    the renderer when `config.direct_light` is "pixels" (the renderer adds it per pixel for
-    such a lattice, `app.render.lattice_direct_lights`): what the picture's texels hold and
-    what the renderer adds must not overlap. (`baking.bake.make_lighting` does not set
-    `Lighting.pixel_direct` yet; once it does, this changes nothing.)"""
-    import dataclasses
-
-    from baking.integrator import whole_paths
-
-    pixels = config.direct_light == "pixels"
-    if tracing.lighting.pixel_direct == pixels:
-        return tracing
-    lighting = dataclasses.replace(tracing.lighting, pixel_direct=pixels)
-    return dataclasses.replace(tracing, lighting=lighting,
-                               whole=whole_paths(lighting, tracing.settings))
 
 
 class _Progress:

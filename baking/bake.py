@@ -65,13 +65,15 @@ class BakeStats:
 
 
 def make_lighting(config: BakeConfig) -> Lighting:
-    """Parse the environment and lights of `config`."""
+    """Parse the environment and lights of `config`; the lights' and the sun's direct light
+    is left to the renderer when `config.direct_light` is "pixels"."""
     from .environment import ConstantEnvironment, SkyEnvironment, parse_env
 
     env = parse_env(config.env) if config.env else None
     sample_env = env is not None and not isinstance(env, ConstantEnvironment)
     sky = kernels.sky_params(env) if type(env) is SkyEnvironment else None
-    return Lighting(env, sample_env, tuple(parse_light(s) for s in config.lights), sky)
+    return Lighting(env, sample_env, tuple(parse_light(s) for s in config.lights), sky,
+                    pixel_direct=config.direct_light == "pixels")
 
 
 def path_settings(volume: volumes.Volume, config: BakeConfig) -> PathSettings:

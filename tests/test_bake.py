@@ -65,7 +65,8 @@ def test_directional_light_cosine_and_shadow():
 
     vol = _sdf_volume(sdf, size=64)
     e0 = 2.0
-    config = BakeConfig(samples=2, bounces=0, env="", lights=("dir:0,0,1:2,2,2",))
+    config = BakeConfig(samples=2, bounces=0, env="", lights=("dir:0,0,1:2,2,2",),
+                        direct_light="lattice")
     lattice = bake(vol, config, workers=2)
     points, values = _surface_points(lattice, vol)
     on_big = np.linalg.norm(points - big, axis=1) < 0.25 + 0.1
@@ -99,7 +100,7 @@ def test_point_light_inverse_square_and_cosine_on_a_plane():
     d, intensity, samples = 0.3, 0.5, 32
     config = BakeConfig(samples=samples, bounces=0, env="",
                         lights=(f"point:0,0,{d}:{intensity},{intensity},{intensity}",),
-                        iso_range=(0.3, 0.7))
+                        iso_range=(0.3, 0.7), direct_light="lattice")
     lattice = bake(vol, config, workers=2)
     plan = make_plan(vol, lattice.geometry, config)
     h, width = vol.spacing[0], 1.2 * vol.spacing[0]
@@ -147,7 +148,7 @@ def test_closed_cavity_follows_the_geometric_series(bounces):
     vol = _sdf_volume(lambda x, y, z: radius - np.sqrt(x * x + y * y + z * z), size=48)
     config = BakeConfig(samples=samples, bounces=bounces, albedo=(albedo,) * 3, env="",
                         lights=(f"point:0,0,0:{intensity},{intensity},{intensity}",),
-                        iso_range=(0.4, 0.6))
+                        iso_range=(0.4, 0.6), direct_light="lattice")
     lattice = bake(vol, config, workers=2)
     plan = make_plan(vol, lattice.geometry, config)
     h, width = vol.spacing[0], 1.2 * vol.spacing[0]
@@ -178,14 +179,16 @@ def test_determinism_across_worker_counts():
     assert not np.array_equal(one.values, other_seed.values)
 
 
-@pytest.mark.parametrize("env, albedo", [("constant:1,0.6,0.3", (0.8, 0.5, 0.3)),
-                                         ("sky:sun=3", (0.7, 0.7, 0.7))])
-def test_whole_path_loop_equals_the_vertex_by_vertex_tracer(monkeypatch, env, albedo):
+@pytest.mark.parametrize("env, albedo, direct", [
+    ("constant:1,0.6,0.3", (0.8, 0.5, 0.3), None), ("sky:sun=3", (0.7, 0.7, 0.7), "pixels"),
+    ("sky:sun=3", (0.7, 0.7, 0.7), "lattice")])
+def test_whole_path_loop_equals_the_vertex_by_vertex_tracer(monkeypatch, env, albedo,
+                                                            direct):
     """Chunks traced in one compiled call (Embree called per ray from compiled code) give
     the lattice of the tracer that calls embreex once per step, to the bit, and trace as
     many rays."""
     baking_bake = importlib.import_module("baking.bake")  # `baking.bake` is the function
-    config = BakeConfig(samples=12, bounces=2, env=env, albedo=albedo)
+    config = BakeConfig(samples=12, bounces=2, env=env, albedo=albedo, direct_light=direct)
     vol = make("engine", 40)
     used = []
     loop = baking_bake.trace_whole_paths

@@ -66,9 +66,6 @@ def test_pixel_lights_are_the_lights_then_the_sun():
 
 
 # -- the baker's split --------------------------------------------------------------------
-@pytest.mark.xfail(strict=True, reason="baking.bake.make_lighting does not pass "
-                   "config.direct_light on yet: Lighting(..., pixel_direct=config."
-                   "direct_light == 'pixels'); remove this mark when it does")
 def test_bakes_leave_out_the_direct_light_their_config_sends_to_the_pixels():
     from baking.bake import make_lighting
 

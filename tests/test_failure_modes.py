@@ -32,7 +32,8 @@ def _step(sdf, width):
 
 def _dir_light(direction=(0, 0, 1), **kwargs):
     d = ",".join(str(v) for v in direction)
-    return BakeConfig(samples=2, bounces=0, env="", lights=(f"dir:{d}:1,1,1",), **kwargs)
+    return BakeConfig(samples=2, bounces=0, env="", lights=(f"dir:{d}:1,1,1",),
+                      direct_light="lattice", **kwargs)
 
 
 def test_hard_shadows_fade_as_the_isovalue_changes():

@@ -124,7 +124,7 @@ def test_previews_agree_with_the_bake_where_the_surface_is_one_level():
     11 %), a wrong normal or a missing factor."""
     vol = volumes.load("synthetic:shells:32")
     iso = vol.suggested_iso[0] if isinstance(vol.suggested_iso, tuple) else vol.suggested_iso
-    config = BakeConfig(env="sky:sun=2", bounces=1, samples=16)
+    config = BakeConfig(env="sky:sun=2", bounces=1, samples=16, direct_light="lattice")
     lat = _empty(vol, config)
     mesh = volumes.isosurface(vol, iso)
     cells = visible_cells(lat.geometry, mesh.vertices)
