@@ -115,14 +115,18 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{volume.name} {volume.data.shape[::-1]}: {active:,} active texels, {levels} levels, "
           f"plan {master_s:.1f} CPU s; {args.samples} paths/texel, {args.bounces} bounces, "
           f"{args.env}")
-    wall1, cpu1, one = _time_local(volume, config, 1)
-    _row("1 thread", wall1, cpu1, one, wall1)
-    wall, cpu, two = _time_local(volume, config, 2)
-    _row("2 threads", wall, cpu, two, wall1)
-    lattices = [one.lattice, two.lattice]
-    for count in (1, 2):
-        with local_cluster(count) as cluster, Client(cluster) as client:
+    # both clusters start (and load isolume's code) first, with this process's code:
+    # a source edited later would make their code differ, and the workers refuse then
+    with local_cluster(1) as small, Client(small) as one_client, \
+            local_cluster(2) as pair, Client(pair) as two_client:
+        for client in (one_client, two_client):
             _time_cluster(volumes.load("synthetic:sphere:16"), BakeConfig(samples=1), client)
+        wall1, cpu1, one = _time_local(volume, config, 1)
+        _row("1 thread", wall1, cpu1, one, wall1)
+        wall, cpu, two = _time_local(volume, config, 2)
+        _row("2 threads", wall, cpu, two, wall1)
+        lattices = [one.lattice, two.lattice]
+        for count, client in ((1, one_client), (2, two_client)):
             wall, cpu, baker = _time_cluster(volume, config, client)  # workers warm
             _row(f"{count} worker process" + "es" * (count > 1), wall, cpu, baker, wall1)
             print(f"{'':>22}CPU on this machine (plan, client) {baker.master_cpu:.1f} s, "
