@@ -16,7 +16,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -228,10 +228,16 @@ class Baker:
         self.lattice = lattice or _new_lattice(volume, config, self.geometry,
                                                self.settings.channels)
         self.lighting = make_lighting(config)
-        self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice), progress)
+        self.stats = BakeStats()
+        self._helper = ThreadPoolExecutor(max_workers=1)  # next level's layout and scene
+        self._scenes: OrderedDict[int, object] = OrderedDict()
+        self._scene_cache = max(2, scene_cache)
+        self._scene_lock = threading.Lock()
+        self._pending: dict[int, Future] = {}  # scenes being built ahead
+        self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice), progress,
+                              on_levels=self._build_first_scene)
         self.lattice.active = self.plan.active
         kernels.warm_up()
-        self.stats = BakeStats()
         self.texels_done = int(np.count_nonzero(self.samples_done()))
         self.previous = dict(self.lattice.meta.get("stats", {}))
         self._acc = PassSums(len(self.plan.ids), self.settings.channels)
@@ -241,10 +247,6 @@ class Baker:
             self._acc, whole_paths(self.lighting, self.settings))
         self.workers = max(1, workers or os.cpu_count() or 1)
         self._pool = ThreadPoolExecutor(max_workers=self.workers)
-        self._helper = ThreadPoolExecutor(max_workers=1)  # lays out the next level
-        self._scenes: OrderedDict[int, object] = OrderedDict()
-        self._scene_cache = max(2, scene_cache)
-        self._scene_lock = threading.Lock()
         _finish_meta(self.lattice, self.plan, self.stats, self.previous)
 
     def samples_done(self, positions: np.ndarray | None = None) -> np.ndarray:
@@ -312,15 +314,25 @@ class Baker:
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._helper.shutdown(wait=True, cancel_futures=True)
         self._scenes.clear()
+        self._pending.clear()
+
+    def _build_first_scene(self, levels: np.ndarray) -> None:
+        """Start building the lowest level's scene (where a whole bake starts) on the
+        helper thread while the plan goes on (`make_plan`'s `on_levels`)."""
+        self._pending[0] = self._helper.submit(_level_scene, self.volume, float(levels[0]),
+                                               self.config)
 
     def _scene(self, level: int):
-        """The Embree scene of `level`, from the cache or built now (least recently used
-        scenes out: the cache holds at least the level being traced and the next)."""
+        """The Embree scene of `level`, from the cache, from the scenes built ahead, or
+        built now (least recently used scenes out: the cache holds at least the level
+        being traced and the next)."""
         with self._scene_lock:
             if level in self._scenes:
                 self._scenes.move_to_end(level)
                 return self._scenes[level]
-        scene = _level_scene(self.volume, float(self.plan.levels[level]), self.config)
+            ahead = self._pending.pop(level, None)
+        scene = ahead.result() if ahead is not None else _level_scene(
+            self.volume, float(self.plan.levels[level]), self.config)
         with self._scene_lock:
             self.stats.mesh_seconds += scene.mesh_seconds
             self.stats.embree_seconds += scene.build_seconds

@@ -194,10 +194,13 @@ def texel_values(volume: volumes.Volume, geometry: LatticeGeometry) -> np.ndarra
 
 def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
               levels: np.ndarray | None = None,
-              progress: Callable[[str], None] | None = None) -> Plan:
+              progress: Callable[[str], None] | None = None,
+              on_levels: Callable[[np.ndarray], None] | None = None) -> Plan:
     """Choose active texels, their targets and the levels for `config` (see the module
     docstring); `levels` (K,) replaces the choice (a resumed bake keeps its file's).
-    `progress(stage)` is told each stage as it starts (the viewer shows it)."""
+    `progress(stage)` is told each stage as it starts (the viewer shows it);
+    `on_levels(levels)` as soon as the levels are known (the baker starts building the
+    first level's scene while the texels' reach is tested)."""
     say = progress or (lambda _stage: None)
     vmin, vmax = volume.value_range
     if vmax <= vmin:
@@ -228,6 +231,8 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
         budget = level_budget(volume, geometry, config, rho, cells, len(ids), (lo, hi))
         levels = choose_levels(target, grad, (lo, hi), limit, budget)
     levels = np.asarray(levels, np.float64)
+    if on_levels is not None:
+        on_levels(levels)
     lower = np.clip(np.searchsorted(levels, target, side="right") - 1, 0, len(levels) - 2)
     weight = np.clip((target - levels[lower]) / (levels[lower + 1] - levels[lower]), 0, 1)
     # Each texel must reach its bracketing levels by Newton steps along the gradient. Where
@@ -238,8 +243,12 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     reach = newton_reach(volume, config)
     tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
     say(f"paths onto {len(levels)} levels")
-    ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol)
-    ok_hi, move_hi = _reaches(volume, centres, levels[lower + 1], reach, tol)
+    uses_lo, uses_hi = weight < 1, weight > 0
+    ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol, uses_lo)
+    ok_hi, move_hi = _reaches(volume, centres, levels[lower + 1], reach, tol,
+                              uses_hi | ~ok_lo)
+    ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol,
+                              ~uses_lo & ~ok_hi, ok_lo, move_lo)  # the fallback's
     outside = 0.0 if config.flip_normals else 1.0
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
     weight = np.where(needed, weight, np.where(ok_hi, 1.0, np.where(ok_lo, 0.0, outside)))
@@ -436,12 +445,18 @@ def project_to_level(volume: volumes.Volume, points: np.ndarray, level,
 
 
 def _reaches(volume: volumes.Volume, points: np.ndarray, levels: np.ndarray, reach: float,
-             tol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Can each point be moved onto its level within `reach` world units?
+             tol: np.ndarray, which: np.ndarray, ok: np.ndarray | None = None,
+             moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Can each point be moved onto its level within `reach` world units? Decided for the
+    (N,) `which` points only; the others keep `ok` (default True) and `moved` (default 0).
 
     Returns:
         ok: (N,) bool; moved: (N,) distance of the (clamped) move, world units.
     """
-    moved = project_to_level(volume, points, levels, max_move=reach)
-    ok = np.abs(volumes.value_at(volume, moved) - levels) <= tol
-    return ok, np.linalg.norm(moved - points, axis=1)
+    ok = np.ones(len(points), bool) if ok is None else ok.copy()
+    moved = np.zeros(len(points)) if moved is None else moved.copy()
+    if which.any():
+        landed = project_to_level(volume, points[which], levels[which], max_move=reach)
+        ok[which] = np.abs(volumes.value_at(volume, landed) - levels[which]) <= tol[which]
+        moved[which] = np.linalg.norm(landed - points[which], axis=1)
+    return ok, moved
