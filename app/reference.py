@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from baking.config import DEFAULT_ENV
+
 from .cli import (
     CLIError,
     _add_volume_options,
@@ -52,9 +54,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", default="512x512", help="WxH pixels (default 512x512)")
     p.add_argument("--view", default="30,30",
                    help="AZ,EL[,DIST]: degrees, diagonals (default 30,30)")
-    p.add_argument("--env", default="constant:1,1,1",
+    p.add_argument("--env", default=DEFAULT_ENV,
                    help="constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular] | none "
-                   "(default constant:1,1,1)")
+                   f"(default {DEFAULT_ENV}, as render, view and bake)")
     p.add_argument("--env-rotation", default="0,0", help="AZ,EL degrees, as in render")
     p.add_argument("--light", action="append", metavar="SPEC",
                    help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable)")

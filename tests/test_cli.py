@@ -248,3 +248,18 @@ def test_default_render_is_the_same_for_any_worker_count(tmp_path, capsys):
         pictures.append(read_exr(out)["RGB"])
     assert pictures[0].max() > 0
     np.testing.assert_array_equal(pictures[0], pictures[1])
+
+
+def test_render_view_bake_and_reference_default_to_the_same_lighting():
+    """The same arguments give the same lighting, so any picture can be checked against
+    the path tracer (DESIGN §6)."""
+    from app.cli import build_parser
+    from baking.config import DEFAULT_ENV
+
+    parser = build_parser()
+    for argv in (["render", "--out", "a.png"], ["reference", "v.npy", "--out", "a.exr"],
+                 ["bake", "v.npy", "--out", "l.npz"]):
+        args = parser.parse_args(argv)
+        assert getattr(args, "env", None) in (None, DEFAULT_ENV), argv
+    assert parser.parse_args(["reference", "v.npy", "--out", "a.exr"]).env == DEFAULT_ENV
+    assert parser.parse_args(["bake", "v.npy", "--out", "l.npz"]).env == DEFAULT_ENV
