@@ -409,6 +409,9 @@ class ClusterBaker(Baker):
         self._job = client.scatter(job, broadcast=True, hash=False)
         self.traffic.job_bytes = _nbytes(job)
 
+    def _build_first_scene(self, levels: np.ndarray) -> None:
+        """Nothing: the workers build the level scenes; this machine traces none."""
+
     def close(self) -> None:
         """Drop the bake's state on the workers, then the client (and a local cluster)."""
         if self._job is not None:
