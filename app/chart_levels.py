@@ -22,11 +22,21 @@ POLICIES = (("auto", None), ("0.25 voxel", 0.25), ("0.5 voxel", 0.5), ("1 voxel"
 def chart_levels(run) -> Chart:
     """Chart 5: error against bake time of irradiance lattices at chart 1's sample
     counts, one series per level policy (`POLICIES`)."""
+    import dataclasses
+
+    import numpy as np
+
     import volumes
     from baking import kernels
+    from baking.bake import Baker
 
-    volumes.gradient_grid(run.volume)  # once per volume: not any one bake's time
+    volumes.gradient_grid(run.volume)  # once per process: not any one bake's time
     kernels.warm_up()
+    warm = Baker(run.volume, dataclasses.replace(run.config, samples=1), workers=run.workers)
+    try:
+        warm.run(np.arange(min(len(warm.plan.ids), 4096)))
+    finally:
+        warm.close()
     series = {}
     for label, max_move in POLICIES:
         points = []
