@@ -43,6 +43,10 @@ ISO_STEPS = 1000
 """A fine isovalue step is 1/ISO_STEPS of the data range (shift: ×10)."""
 DEFAULT_BAKE_SAMPLES = 256
 """Paths per texel a new lazy lattice is refined up to (rounds of 4, 16, 64, 256)."""
+BAKE_REFRESH_S = 0.5
+BAKE_FRAME_SPACING = 4.0
+"""New texels alone bring a frame at most every `BAKE_REFRESH_S` seconds and no sooner than
+`BAKE_FRAME_SPACING` frame times after the last one (`Viewer._bake_frame_due`)."""
 
 
 # -- command line -------------------------------------------------------------------------
@@ -242,6 +246,18 @@ class FrameClock:
         return 1000 * float(np.mean(self.times)) if self.times else 0.0
 
 
+def bake_frame_due(now: float, last_end: float | None, last_frame_s: float | None) -> bool:
+    """Whether texels that arrived from the lazy bake may be shown now (seconds of
+    `time.perf_counter`): at least `BAKE_REFRESH_S` after the last frame ended, and no
+    sooner than `BAKE_FRAME_SPACING` times its duration, so that drawing takes at most a
+    1 / (1 + spacing) share of the time (software GL at 1024×700 with the sun's soft
+    shadows takes 0.4–1 s a frame; redrawn for every upload, the bake process — at idle
+    priority — got a tenth of a core and planned CThead in 14 s, not 1.4)."""
+    if last_end is None or last_frame_s is None:
+        return True
+    return now - last_end >= max(BAKE_REFRESH_S, BAKE_FRAME_SPACING * last_frame_s)
+
+
 class ViewerError(ValueError):
     """A request the viewer cannot honour (bad script step, missing lattice); one line."""
 
@@ -287,6 +303,7 @@ class Viewer:
         self.extractions: list[Extraction] = []
         self.clock = FrameClock()
         self.dirty = True
+        self.lattice_changed = False  # texels uploaded since the last frame
         self.last_input = 0.0
         self.view_sent: tuple | None = None
         self.view_seen: tuple | None = None
@@ -715,7 +732,11 @@ class Viewer:
         recent_input = now - self.last_input < 0.25
         settle = self.reduced and not self._interacting(now)  # one full-detail frame
         return (self.dirty or recent_input or settle or self.script.forces_frames
-                or self.drawing.adapting)
+                or self.drawing.adapting or (self.lattice_changed and self._bake_frame_due(now)))
+
+    def _bake_frame_due(self, now: float) -> bool:
+        last = self.clock.times[-1] if self.clock.times else None
+        return bake_frame_due(now, self.clock.last_end, last)
 
     def _frame_size(self) -> tuple[int, int]:
         w, h = self.window.framebuffer_size
@@ -760,7 +781,7 @@ class Viewer:
         # drawn with less detail than there is: one more frame once the motion stops
         self.reduced = (interacting and scale < 1) or (drawing.on_gpu == "coarse"
                                                        and "full" in drawing.meshes)
-        self.dirty = False
+        self.dirty = self.lattice_changed = False
 
     def _extraction_pending(self) -> bool:
         return bool(self.extractions) and self.extractions[-1].full_s is None
@@ -815,7 +836,7 @@ class Viewer:
         if self.bake.error:
             self.message = f"lazy bake stopped: {self.bake.error}"
         if self.drawing.upload_texels() and self.state.shading in self._lattice_modes():
-            self.redraw()
+            self.lattice_changed = True  # shown by `_wants_frame`, at a pace
 
     def _lattice_modes(self) -> tuple[str, ...]:
         from .render import LATTICE_MODES

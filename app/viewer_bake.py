@@ -230,9 +230,10 @@ class _BakeProcess:
         return True
 
     def _plan(self, config):
-        """Make the Baker for `config` (its plan takes seconds) on a thread while the
-        preview passes go on and every new view gets its own; its stages are reported as
-        ``("planning", stage)``. None when told to stop."""
+        """Make the Baker for `config` on a thread; meanwhile every new view gets its first
+        preview pass, but the further passes wait: the plan takes seconds, they take tens
+        (CThead: the plan was ready after 29 s with the passes going on beside it). Its
+        stages are reported as ``("planning", stage)``. None when told to stop."""
         import threading
 
         from baking.bake import Baker
@@ -254,10 +255,9 @@ class _BakeProcess:
         planner = threading.Thread(target=make, name="isolume-plan", daemon=True)
         planner.start()
         while planner.is_alive():
-            message = self.receive_within(None if self.previewer.busy else 0.1)
+            message = self.receive_within(0.1)
             if message is not None and not self._keep(message):
                 return None
-            self.preview_step()
         if "error" in made:
             raise made["error"]
         return made["baker"], made["cache"]

@@ -358,3 +358,14 @@ def test_the_lazy_bake_plans_again_when_the_view_leaves_its_range():
     finally:
         link.stop()
         shared.close()
+
+
+def test_new_texels_are_drawn_at_a_pace_that_leaves_the_bake_the_processor():
+    from app.viewer import BAKE_FRAME_SPACING, BAKE_REFRESH_S, bake_frame_due
+
+    assert bake_frame_due(10.0, None, None)  # nothing drawn yet
+    assert not bake_frame_due(10.0 + BAKE_REFRESH_S / 2, 10.0, 0.01)  # fast frames: by time
+    assert bake_frame_due(10.0 + BAKE_REFRESH_S, 10.0, 0.01)
+    slow = 0.8  # a slow frame: wait several of its durations
+    assert not bake_frame_due(10.0 + BAKE_FRAME_SPACING * slow * 0.9, 10.0, slow)
+    assert bake_frame_due(10.0 + BAKE_FRAME_SPACING * slow, 10.0, slow)
