@@ -446,13 +446,17 @@ def texture_bytes(lattice, lookup: str = "trilinear") -> int:
     RGB9_E5 (4 B/texel) plus the R8 valid mask (1 B), plus R32F texel isovalues (4 B)
     for the closest-isovalue lookup; SH is ⌈n²/4⌉ RGBA16F textures (8 B/texel) per
     colour group plus the valid mask."""
+    from baking.sh import transfer_blocks
+
     from .lattice_gl import sh_layout
 
     texels = int(np.prod(lattice.geometry.shape))
     if lattice.kind == "irradiance":
         return texels * (4 + 1 + (4 if lookup == "closest" else 0))
     order = int(lattice.meta["sh_order"])
-    per_group, groups = sh_layout(order, lattice.values.shape[-1] != order * order)
+    blocks = transfer_blocks(lattice.meta)
+    per_group, groups = sh_layout(order, lattice.values.shape[-1] != blocks * order * order,
+                                  blocks)
     return texels * (8 * per_group * groups + 1)
 
 
@@ -524,7 +528,10 @@ class GLScene:
                                       else None)
             self._lattice = key
         if shading == "sh":
-            self.renderer.set_environment(self._env_coeffs(int(lattice.meta["sh_order"])))
+            from baking.sh import transfer_blocks
+
+            self.renderer.set_environment(self._env_coeffs(int(lattice.meta["sh_order"]),
+                                                           transfer_blocks(lattice.meta)))
 
     def _texel_isovalues(self, lattice) -> np.ndarray:
         from baking.plan import texel_values
@@ -534,13 +541,15 @@ class GLScene:
             self._texel_iso[shape] = texel_values(self.volume, lattice.geometry)
         return self._texel_iso[shape]
 
-    def _env_coeffs(self, order: int) -> np.ndarray:
+    def _env_coeffs(self, order: int, blocks: int = 1) -> np.ndarray:
+        """`baking.sh.display_coefficients` of the chart's environment (cached)."""
         from baking import sh
         from baking.environment import parse_env
 
-        if order not in self._env:
-            self._env[order] = sh.project_environment(parse_env(self.env_spec), order)
-        return self._env[order]
+        if (order, blocks) not in self._env:
+            self._env[order, blocks] = sh.display_coefficients(parse_env(self.env_spec),
+                                                               order, blocks)
+        return self._env[order, blocks]
 
     def render(self, shading: str, lattice=None) -> Image:
         """Draw `shading` (with `lattice` where it reads one) and read it back."""

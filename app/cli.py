@@ -120,8 +120,11 @@ def _environment_coefficients(spec: str | None, lattice, window: str):
 
     spec = spec or lattice.meta["config"].get("env") or "constant:1,1,1"
     order = int(lattice.meta["sh_order"])
-    return sh.project_environment(parse_env(spec), order,
-                                  window=None if window == "none" else window)
+    try:  # a split transfer (sun per pixel) also takes the sky without its sun
+        return sh.display_coefficients(parse_env(spec), order, sh.transfer_blocks(lattice.meta),
+                                       window=None if window == "none" else window)
+    except ValueError as exc:
+        raise CLIError(f"--env {spec}: {exc}") from None
 
 
 def _add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:

@@ -25,6 +25,7 @@ import moderngl
 import numpy as np
 
 from baking.lattice import Lattice
+from baking.sh import transfer_blocks
 
 from .glcontext import store_rgb9e5
 
@@ -32,18 +33,21 @@ MAX_TEXTURE_UNITS = 16  # guaranteed by GL 3.3 for fragment shaders
 SH_FIRST_UNIT = 2  # units 0: HDR resolve input or shadow map, 1: valid mask
 
 
-def sh_layout(order: int, rgb: bool) -> tuple[int, int]:
-    """(textures per colour group, groups) for SH transfer of `order` bands.
+def sh_layout(order: int, rgb: bool, blocks: int = 1) -> tuple[int, int]:
+    """(textures per colour group, groups) for SH transfer of `order` bands in `blocks`
+    transfer blocks (2 for a split transfer: `baking.sh.transfer_blocks`).
 
     Raises:
         ValueError: when the textures would not fit the fragment shader's units.
     """
-    per_group = -(-order * order // 4)
+    per_group = -(-blocks * order * order // 4)
     groups = 3 if rgb else 1
     if SH_FIRST_UNIT + per_group * groups > MAX_TEXTURE_UNITS:
         limit = "7" if not rgb else "4"
-        raise ValueError(f"SH order {order} needs {per_group * groups} textures; the renderer "
-                         f"draws {'coloured' if rgb else 'gray'} transfer up to order {limit}")
+        split = " split" if blocks > 1 else ""
+        raise ValueError(f"SH order {order}{split} needs {per_group * groups} textures; the "
+                         f"renderer draws {'coloured' if rgb else 'gray'} transfer up to "
+                         f"order {limit} (split: fewer)")
     return per_group, groups
 
 
@@ -54,6 +58,9 @@ class LatticeTextures:
         kind: "irradiance" or "sh".
         sh_order, sh_groups, sh_textures: SH layout (order, 1 or 3 colour groups, textures
             per group); zeros for irradiance.
+        sh_coefficients: transfer coefficients per colour: n², or 2n² for a split
+            transfer (direct, then indirect; `u_light` then holds the sun-free sky's
+            coefficients, then the whole sky's).
         texel_iso: R32F texture of the texel isovalues ρ(x_t), or None (not given, or an
             SH lattice: the lookup variants read irradiance lattices only).
     """
@@ -71,15 +78,17 @@ class LatticeTextures:
         z, y, x = lattice.geometry.shape
         shown = lattice.shown()
         self.valid = ctx.texture3d((x, y, z), 1, self._valid_bytes(shown), dtype="f1")
-        self.sh_order = self.sh_groups = self.sh_textures = 0
+        self.sh_order = self.sh_groups = self.sh_textures = self.sh_coefficients = 0
         if self.kind == "irradiance":
             self.irradiance = ctx.texture3d((x, y, z), 3, dtype="f4")
             store_rgb9e5(ctx, self.irradiance, lattice.displayed()[..., :3])
             self.textures = [self.irradiance]
         elif self.kind == "sh":
             self.sh_order = int(lattice.meta["sh_order"])
-            rgb = lattice.values.shape[-1] != self.sh_order**2
-            self.sh_textures, self.sh_groups = sh_layout(self.sh_order, rgb)
+            blocks = transfer_blocks(lattice.meta)  # 2: direct, indirect transfer
+            self.sh_coefficients = blocks * self.sh_order**2
+            rgb = lattice.values.shape[-1] != self.sh_coefficients
+            self.sh_textures, self.sh_groups = sh_layout(self.sh_order, rgb, blocks)
             self.textures = [ctx.texture3d((x, y, z), 4, dtype="f2")
                              for _ in range(self.sh_textures * self.sh_groups)]
             self._write_sh(0, z)
@@ -106,7 +115,7 @@ class LatticeTextures:
         """(z, y, x, 4) float16 arrays, one per texture: τ·valid, four coefficients each."""
         lat = self.lattice
         values = lat.displayed(np.s_[z0:z1])  # zero where nothing is shown
-        n2 = self.sh_order**2
+        n2 = self.sh_coefficients
         values = values.reshape(*values.shape[:3], n2, -1)  # (..., n², 1 or 3)
         padded = np.zeros((*values.shape[:3], self.sh_textures * 4, values.shape[-1]),
                           np.float16)

@@ -262,6 +262,16 @@ def lattice_start_offset(lattice) -> float:
     return float(offset) * float(np.mean(spacing))
 
 
+def rotated_lights(lights: tuple, env_rotation: tuple[float, float]) -> tuple:
+    """Distant lights (`DirectionalLight`, `SunLight`) carried along with the environment
+    by ``--env-rotation AZ,EL`` (`baking.sh.rotation_from_az_el`: direction d → R·d)."""
+    from baking.sh import rotation_from_az_el
+
+    r = rotation_from_az_el(*env_rotation)
+    return tuple(replace(light, direction=tuple(float(v) for v in r @ light.direction))
+                 for light in lights)
+
+
 def aimed_lights(lights: tuple, direction) -> tuple:
     """`lights` with the first distant one (the sun or a directional light) turned to point
     towards the unit vector `direction` (3,): a light moved in the viewer. Its direct
@@ -544,13 +554,16 @@ class SurfaceRenderer:
         self._env_coeffs = None if coeffs is None else np.asarray(coeffs, np.float64)
 
     def _sh_light(self, settings: RenderSettings) -> np.ndarray:
-        """(n², 3) environment coefficients rotated by the settings' env_rotation."""
+        """(m, 3) environment coefficients rotated by the settings' env_rotation: n² of
+        them, or for a split transfer the sun-free sky's n² then the whole sky's n²
+        (`baking.sh.display_coefficients`), each block rotated alike."""
         from baking import sh
 
         order = self.lattice.sh_order
-        coeffs = self._env_coeffs[: order * order]
-        r = sh.rotation_from_az_el(*settings.env_rotation)
-        return sh.rotation(r, order) @ coeffs
+        blocks = self.lattice.sh_coefficients // (order * order)
+        coeffs = self._env_coeffs[: blocks * order * order]
+        turn = sh.rotation(sh.rotation_from_az_el(*settings.env_rotation), order)
+        return np.concatenate([turn @ block for block in np.split(coeffs, blocks)])
 
     def _mesh_vao(self, program: moderngl.Program) -> moderngl.VertexArray | None:
         if not self._mesh_objects:
@@ -641,7 +654,13 @@ class SurfaceRenderer:
         if self._env_coeffs is None:
             raise RenderError("shading 'sh' needs an environment (--env SPEC)")
         order = self.lattice.sh_order
-        if self._env_coeffs.shape[0] < order * order:
+        if self.lattice.sh_coefficients > order * order:  # split: sun-free sky, whole sky
+            if self._env_coeffs.shape[0] != self.lattice.sh_coefficients:
+                raise RenderError(
+                    f"environment has {self._env_coeffs.shape[0]} SH coefficients; this "
+                    f"lattice splits its transfer and needs {2 * order * order}: the sky "
+                    "without its sun, then the whole sky (baking.sh.display_coefficients)")
+        elif self._env_coeffs.shape[0] < order * order:
             raise RenderError(f"environment has {self._env_coeffs.shape[0]} SH coefficients, "
                               f"the lattice needs {order * order}")
 
@@ -651,9 +670,12 @@ class SurfaceRenderer:
         return self._lattice_lights
 
     def direct_lights(self, settings: RenderSettings) -> tuple:
-        """The lights `settings` shades per pixel: none outside the irradiance lattice
-        modes, else the settings' own or the lattice's (`RenderSettings.direct_lights`)."""
+        """The lights `settings` shades per pixel: in the irradiance lattice modes the
+        settings' own or the lattice's (`RenderSettings.direct_lights`); in "sh" mode the
+        sun of a split lattice, turned with the environment (`env_rotation`); else none."""
         mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
+        if mode.lattice == "sh" and self._lattice_lights:
+            return rotated_lights(self._lattice_lights, settings.env_rotation)
         if mode.lattice != "irradiance":
             return ()
         if settings.direct_lights is not None:

@@ -83,6 +83,9 @@ def path_settings(volume: volumes.Volume, config: BakeConfig) -> PathSettings:
         bounces=config.bounces, albedo=config.albedo, hit_offset=2e-3 * h,
         sh_order=config.sh_order if config.mode == "sh" else None,
         rgb_transfer=config.mode == "sh" and not config.gray,
+        # issue 14 part 3: an SH bake with the sun per pixel keeps direct and indirect
+        # transfer apart (`baking.integrator` module docs)
+        sh_split=config.mode == "sh" and config.direct_light == "pixels",
     )
 
 

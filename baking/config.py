@@ -56,9 +56,13 @@ class BakeConfig:
         direct_light: "pixels": the lights' and the sun's direct light (at a texel's own
             point) is left out of the lattice, which the renderer adds per pixel with
             shadow maps; their bounces and the rest of the sky stay in the lattice.
+            In SH mode (a sky with a sun) the transfer keeps its direct and indirect
+            parts apart, shown under the sun-free and the whole rotated sky, and the
+            rotated sun is shaded per pixel (`baking.integrator`).
             "lattice": everything in the lattice. None chooses "pixels" for an
-            irradiance bake with a light or a sun, else "lattice" (a file written before
-            the field existed reads as "lattice", what it holds).
+            irradiance bake with a light or a sun, else "lattice" (SH bakes ask for the
+            split: it doubles the transfer's values; a file written before the field
+            existed reads as "lattice", what it holds).
     """
 
     mode: str = "irradiance"
@@ -138,9 +142,11 @@ class BakeConfig:
         if self.direct_light not in DIRECT_LIGHT:
             raise BakeError(f"--direct-light {self.direct_light!r}: expected one of "
                             f"{', '.join(DIRECT_LIGHT)}")
-        if self.direct_light == "pixels" and self.mode != "irradiance":
-            raise BakeError("--direct-light pixels needs --mode irradiance (an SH transfer "
-                            "holds no light of its own); use --direct-light lattice")
+        if (self.direct_light == "pixels" and self.mode == "sh"
+                and not has_pixel_lights(self.env, ())):
+            raise BakeError(f"--direct-light pixels with --mode sh needs a sky with a sun "
+                            f"(--env {self.env!r} has none to shade per pixel); use "
+                            "--direct-light lattice")
 
     @property
     def gray(self) -> bool:

@@ -26,6 +26,13 @@ half the cost of a closest hit (and none at all when nothing lights escaping ray
 In SH mode each path that escapes in direction ω adds c_v·π·Y(ω): the projection of the
 transfer function, including shadowing and every bounce, onto the SH basis.
 
+Split SH transfer (``PathSettings.sh_split``, an SH bake with ``direct_light="pixels"``):
+escapes of the first vertex (the texel's own point: its direct, shadowed transfer T₀) and
+of the bounce vertices (the indirect transfer T₁) go to two blocks of n² coefficients.
+The renderer forms ℓ_sf·T₀ + ℓ·T₁ with the rotated sky without its sun ℓ_sf and the whole
+rotated sky ℓ, and adds the rotated sun's direct light per pixel: the first vertex does
+not see the sun, the bounces do (the sun's bounced light turns with the sky too).
+
 Split direct light (``Lighting.pixel_direct``, a bake with ``direct_light="pixels"``): at
 the first vertex — the texel's own point — the point and directional lights add nothing
 and the procedural sky is seen without its sun, by the cosine-sampled ray alone: what is
@@ -118,6 +125,9 @@ class PathSettings:
         hit_offset: world distance by which new ray origins leave a hit surface.
         sh_order: None for irradiance, else the SH order whose basis escapes project on.
         rgb_transfer: SH mode with coloured albedo: keep a transfer vector per channel.
+        sh_split: SH mode with the sun's direct light per pixel: the first vertex's escapes
+            (direct transfer) and the bounces' (indirect transfer) in two blocks, first
+            vertex first (see the module docs).
     """
 
     bounces: int
@@ -125,13 +135,20 @@ class PathSettings:
     hit_offset: float
     sh_order: int | None = None
     rgb_transfer: bool = False
+    sh_split: bool = False
+
+    @property
+    def block(self) -> int:
+        """Values of one SH transfer block: n² (×3 for coloured transfer)."""
+        return self.sh_order**2 * (3 if self.rgb_transfer else 1)
 
     @property
     def channels(self) -> int:
-        """Values per texel: 3 (RGB irradiance) or n² (×3 for coloured SH transfer)."""
+        """Values per texel: 3 (RGB irradiance) or n² (×3 for coloured SH transfer, ×2
+        for split transfer)."""
         if self.sh_order is None:
             return 3
-        return self.sh_order**2 * (3 if self.rgb_transfer else 1)
+        return self.block * (2 if self.sh_split else 1)
 
 
 def _direct_lights(scene: Scene, pos, n, beta, lights, stats) -> np.ndarray:
@@ -244,7 +261,7 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
             kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n, sample_env)
         elif not constant and sees_env:
             _add_escaped(result, alive, prim < 0, beta.T, dirs.T, n.T, env, sample_env,
-                         settings)
+                         settings, vertex)
         if last:
             kernels.add_escaped(result, alive, prim, beta, escaped_radiance)
             break
@@ -338,15 +355,18 @@ def _rows(vectors: np.ndarray) -> np.ndarray:
 
 def _add_escaped(result: np.ndarray, alive: np.ndarray, escaped: np.ndarray,
                  beta: np.ndarray, dirs: np.ndarray, n: np.ndarray, env,
-                 sample_env: bool, settings: PathSettings) -> None:
-    """Add what the cosine-sampled rays that `escaped` (M,) bring back from a
-    non-constant environment `env` (MIS-weighted against its light sample when
-    `sample_env`), or their SH projection."""
+                 sample_env: bool, settings: PathSettings, vertex: int) -> None:
+    """Add what the cosine-sampled rays of path vertex `vertex` that `escaped` (M,) bring
+    back from a non-constant environment `env` (MIS-weighted against its light sample
+    when `sample_env`), or their SH projection (into the bounces' block of a split
+    transfer after the first vertex)."""
     if not escaped.any():
         return
     esc_dirs = dirs[escaped].astype(np.float64)
     if settings.sh_order is not None:
-        result[alive[escaped]] += _escape_sh(beta[escaped], esc_dirs, settings)
+        first = settings.block if settings.sh_split and vertex > 0 else 0
+        columns = np.s_[first:first + settings.block]
+        result[alive[escaped], columns] += _escape_sh(beta[escaped], esc_dirs, settings)
         return
     weight = np.full(len(esc_dirs), np.pi)
     if sample_env:

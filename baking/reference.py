@@ -167,12 +167,15 @@ def _stopped(stop: threading.Event | None) -> bool:
 
 
 def rotated_lighting(lighting: Lighting, rotation: np.ndarray | None) -> Lighting:
-    """`lighting` with its environment turned by the (3, 3) `rotation` (None: unchanged)."""
+    """`lighting` with its environment turned by the (3, 3) `rotation` (None: unchanged).
+    A procedural sky's compiled parameters describe the unturned sky: they are dropped, so
+    the turned one is sampled through its own methods."""
     if rotation is None or lighting.env is None:
         return lighting
     from .environment import rotated
 
-    return dataclasses.replace(lighting, env=rotated(lighting.env, np.asarray(rotation)))
+    return dataclasses.replace(lighting, env=rotated(lighting.env, np.asarray(rotation)),
+                               sky=None)
 
 
 def background(lighting: Lighting, dirs: np.ndarray) -> np.ndarray:

@@ -45,6 +45,7 @@ __all__ = [
     "band_rotation",
     "basis",
     "clamped_cosine_coefficients",
+    "display_coefficients",
     "irradiance_coefficients",
     "num_coefficients",
     "project_environment",
@@ -53,6 +54,7 @@ __all__ = [
     "rotation_from_az_el",
     "sh_index",
     "sphere_quadrature",
+    "transfer_blocks",
     "window",
 ]
 
@@ -363,6 +365,34 @@ def irradiance_coefficients(l_coeffs: np.ndarray, order: int | None = None) -> n
         raise ValueError(f"need {order * order} coefficients for order {order}, got {c.shape[0]}")
     a = clamped_cosine_coefficients(order)[_band_of_index(order)]
     return c[: order * order] * a.reshape((-1,) + (1,) * (c.ndim - 1))
+
+
+def transfer_blocks(meta: dict) -> int:
+    """Transfer blocks per texel of a lattice with metadata `meta`: 2 for an SH bake with
+    ``direct_light="pixels"`` (direct transfer T₀, then indirect T₁:
+    `baking.integrator`), else 1."""
+    config = meta.get("config") or {}
+    split = meta.get("kind") == "sh" and config.get("direct_light") == "pixels"
+    return 2 if split else 1
+
+
+def display_coefficients(env, order: int, blocks: int = 1, window=None) -> np.ndarray:
+    """(blocks·order², 3) environment coefficients an SH lattice's transfer blocks are
+    dotted with (`project_environment` with `window`): for one block the environment's;
+    for a split transfer (2 blocks) the environment without its sun (seen by the direct
+    transfer: the renderer adds the sun per pixel), then the whole environment (seen by
+    the indirect transfer: the sun's bounced light).
+
+    Raises:
+        ValueError: a split transfer under an environment without a sun to take out.
+    """
+    whole = project_environment(env, order, window)
+    if blocks == 1:
+        return whole
+    if not hasattr(env, "without_sun"):
+        raise ValueError("a split SH lattice (direct light per pixel) is shown under a "
+                         "procedural sky with a sun (sky:...), not under this environment")
+    return np.concatenate([project_environment(env.without_sun(), order, window), whole])
 
 
 # ----------------------------------------------------------------------------- windowing

@@ -155,6 +155,8 @@ vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
 #if SHADING == 6
 // SH transfer: E = sum_i tau_i l_i, with tau from SH_TEXTURES RGBA16F textures per colour
 // group and the rotated environment coefficients l in u_light (four per vec4, red first).
+// A split transfer holds the direct block, then the indirect one: l is then the sun-free
+// sky's coefficients followed by the whole sky's (app/lattice_gl.py), the same sum.
 SH_DECLARE
 uniform vec4 u_light[3 * SH_TEXTURES];
 

@@ -8,7 +8,8 @@
 // FOG 1 fades to the fog colour with eye distance. LOOKUP picks how irradiance lattices
 // (5, 7) are read: 0 trilinear, 1 nearest texel, 2 closest-isovalue texel, 3 B-spline.
 // DIRECT 1 (with 5): the lattice holds all but the direct light of the point/directional
-// lights and the sun, which is added here per pixel with shadows (direct.glsl).
+// lights and the sun, which is added here per pixel with shadows (direct.glsl); with 6:
+// a split SH transfer, shown under the sun-free sky, plus the turned sun per pixel.
 #ifndef SHADOW
 #define SHADOW 0
 #endif

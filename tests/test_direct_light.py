@@ -48,7 +48,8 @@ def test_direct_light_is_recorded_and_old_files_read_as_lattice():
 
 @pytest.mark.parametrize("changes, message", [
     ({"direct_light": "pixel"}, "expected one of pixels, lattice"),
-    ({"mode": "sh", "direct_light": "pixels"}, "needs --mode irradiance"),
+    ({"mode": "sh", "direct_light": "pixels", "lights": ("dir:0,0,1:1,1,1",)},
+     "not low-frequency"),
 ])
 def test_bad_direct_light_settings_say_what_was_expected(changes, message):
     with pytest.raises(BakeError, match=message):
