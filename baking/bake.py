@@ -268,17 +268,10 @@ class Baker:
         others is dropped whole.
         """
         plan = self.plan
-        positions = np.arange(len(plan.ids)) if positions is None else np.unique(positions)
-        target = self.config.samples if target is None else target
-        done = np.zeros(len(plan.ids), np.int64)
-        remaining = np.zeros(len(plan.ids), np.int64)
-        done[positions] = self.samples_done(positions)
-        remaining[positions] = np.maximum(np.asarray(target) - done[positions], 0)
-        busy = positions[remaining[positions] > 0]
-        if len(busy) == 0:
+        pending = self.pending(positions, target)
+        if pending is None:
             return
-        first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
-        by_lower = _group_by(plan.lower[busy], busy, first, last)
+        busy, done, remaining, first, last, by_lower = pending
         jobs: list = []
         try:
             # Pipelined: a helper thread lays out the paths and start points of the next
@@ -311,6 +304,29 @@ class Baker:
             raise
         finally:
             _finish_meta(self.lattice, plan, self.stats, self.previous)
+
+    def pending(self, positions: np.ndarray | None, target: int | np.ndarray | None):
+        """What `run(positions, target)` has to do, or None when nothing.
+
+        Returns:
+            busy (B,) plan positions that need paths; done, remaining (T,) paths done and
+            still to trace per plan position (0 outside `positions`); the first and last
+            level (`last` = the highest lower level + 1) and, for each level from `first`
+            to `last`, the busy positions whose lower level it is.
+        """
+        plan = self.plan
+        positions = np.arange(len(plan.ids)) if positions is None else np.unique(positions)
+        target = self.config.samples if target is None else target
+        done = np.zeros(len(plan.ids), np.int64)
+        remaining = np.zeros(len(plan.ids), np.int64)
+        done[positions] = self.samples_done(positions)
+        remaining[positions] = np.maximum(np.asarray(target) - done[positions], 0)
+        busy = positions[remaining[positions] > 0]
+        if len(busy) == 0:
+            return None
+        first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
+        return busy, done, remaining, first, last, _group_by(plan.lower[busy], busy, first,
+                                                             last)
 
     def close(self) -> None:
         """Stop the worker threads and drop the cached scenes."""

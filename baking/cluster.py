@@ -51,7 +51,6 @@ from .bake import (
     _chunk_bounds,
     _commit,
     _finish_meta,
-    _group_by,
     _level_scene,
     lay_out_level,
     trace_chunk,
@@ -435,18 +434,10 @@ class ClusterBaker(Baker):
         pass sums are added and complete texels committed level by level, in order."""
         from distributed import as_completed
 
-        plan = self.plan
-        positions = np.arange(len(plan.ids)) if positions is None else np.unique(positions)
-        target = self.config.samples if target is None else target
-        done = np.zeros(len(plan.ids), np.int64)
-        remaining = np.zeros(len(plan.ids), np.int64)
-        done[positions] = self.samples_done(positions)
-        remaining[positions] = np.maximum(np.asarray(target) - done[positions], 0)
-        busy = positions[remaining[positions] > 0]
-        if len(busy) == 0:
+        pending = self.pending(positions, target)
+        if pending is None:
             return
-        first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
-        by_lower = _group_by(plan.lower[busy], busy, first, last)
+        busy, done, remaining, first, last, by_lower = pending
         self._passes += 1  # task keys must not repeat an earlier pass's (Dask reuses results)
         levels: dict[int, _Level] = {}
         owner: dict = {}  # future -> (level, task index)
@@ -471,7 +462,7 @@ class ClusterBaker(Baker):
             self._acc.clear(busy)
             raise
         finally:
-            _finish_meta(self.lattice, plan, self.stats, self.previous)
+            _finish_meta(self.lattice, self.plan, self.stats, self.previous)
             self.lattice.meta["cluster"] = self.traffic.as_dict()
 
     def _workers(self) -> list[str]:
