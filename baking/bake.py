@@ -133,14 +133,15 @@ def _commit(lattice: Lattice, plan: Plan, acc: PassSums, positions: np.ndarray) 
                                 acc.sum, acc.second, acc.n)
 
 
-def _luminance_weights(channels: int, irradiance: bool) -> np.ndarray:
+def _luminance_weights(channels: int, irradiance: bool, second_block: int = 0) -> np.ndarray:
     """(C,) weights of the brightness whose variance the error estimates use: luminance
-    of RGB irradiance, the DC coefficient of SH transfer."""
+    of RGB irradiance, the DC coefficient of SH transfer (of both blocks of a split
+    transfer, the second starting at `second_block`: issue 14 part 3)."""
     weights = np.zeros(channels)
     if irradiance:
         weights[:3] = LUMINANCE
     else:
-        weights[0] = 1.0
+        weights[0] = weights[second_block] = 1.0
     return weights
 
 
@@ -246,7 +247,8 @@ class Baker:
         self._acc = PassSums(len(self.plan.ids), self.settings.channels)
         self._tracing = Tracing(
             self.plan.ids, self.lighting, self.settings, np.uint32(rng.seed_key(config.seed)),
-            _luminance_weights(self.settings.channels, self.settings.sh_order is None),
+            _luminance_weights(self.settings.channels, self.settings.sh_order is None,
+                               self.settings.block if self.settings.sh_split else 0),
             self._acc, whole_paths(self.lighting, self.settings))
         self.workers = max(1, workers or os.cpu_count() or 1)
         self._pool = ThreadPoolExecutor(max_workers=self.workers)

@@ -270,3 +270,15 @@ def test_split_sh_under_a_turned_sky_is_closer_to_the_reference():
         scene.release()
     noise = reference_noise(ref)
     assert errors["3split"] + 3 * noise < min(errors["3"], errors["5"]), (errors, noise)
+
+
+def test_target_error_of_a_split_transfer_weighs_both_blocks():
+    """--target-error watches the whole DC term: direct + indirect block."""
+    from baking.bake import _luminance_weights
+
+    np.testing.assert_array_equal(_luminance_weights(8, False, 4), [1, 0, 0, 0, 1, 0, 0, 0])
+    np.testing.assert_array_equal(_luminance_weights(4, False), [1, 0, 0, 0])
+    config = BakeConfig(mode="sh", sh_order=2, samples=4, target_error=0.05, max_samples=16,
+                        env="sky:sun=3", direct_light="pixels")
+    lattice = bake(make("shells", 24), config, workers=2)
+    assert lattice.values.shape[-1] == 8 and lattice.samples.max() > 4
