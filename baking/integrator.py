@@ -355,7 +355,7 @@ def _rows(vectors: np.ndarray) -> np.ndarray:
 
 def _add_escaped(result: np.ndarray, alive: np.ndarray, escaped: np.ndarray,
                  beta: np.ndarray, dirs: np.ndarray, n: np.ndarray, env,
-                 sample_env: bool, settings: PathSettings, vertex: int) -> None:
+                 sample_env: bool, settings: PathSettings, vertex: int = 0) -> None:
     """Add what the cosine-sampled rays of path vertex `vertex` that `escaped` (M,) bring
     back from a non-constant environment `env` (MIS-weighted against its light sample
     when `sample_env`), or their SH projection (into the bounces' block of a split
