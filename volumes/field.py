@@ -170,9 +170,11 @@ def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.
         out[i, 0], out[i, 1], out[i, 2] = px, py, pz
 
 
-STALLED_FRACTION = 0.01
+STALLED_FRACTION = 0.1
 """Newton has stalled when the residual |ρ − level| ends above this fraction of where it
-started (noisy or sharp-edged data, where the smoothed gradient misleads the steps)."""
+started (noisy or sharp-edged data, where the smoothed gradient misleads the steps). At
+1 % noisy texels that had all but converged searched too (engine CT plan 24 s instead of
+10 s) for the same errors."""
 
 
 @numba.njit(nogil=True, cache=True)
