@@ -13,6 +13,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import sys
 import threading
 import time
 from collections import OrderedDict
@@ -197,6 +198,11 @@ def _load_existing(volume: volumes.Volume, config: BakeConfig, out: Path | None
                         "repeat them, or write to a new --out file")
     lattice.meta["config"] = config.to_dict()
     return lattice
+
+
+def _plan_progress(stage: str) -> None:
+    """The plan's stages on stderr (a large volume's plan takes seconds)."""
+    print(f"planning: {stage}", file=sys.stderr, flush=True)
 
 
 def _progress(total: int, enabled: bool):
@@ -462,7 +468,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
 
         baker = ClusterBaker(volume, config, scheduler, lattice=existing)
     else:
-        baker = Baker(volume, config, lattice=existing, workers=workers)
+        baker = Baker(volume, config, lattice=existing, workers=workers,
+                      progress=_plan_progress if progress else None)
     pending = np.maximum(config.samples - baker.samples_done(), 0)
     bar = _progress(int(pending.sum()), progress)
     last_save = [time.perf_counter()]

@@ -167,6 +167,7 @@ def test_bake_command_records_levels_and_takes_max_move(tmp_path, capsys):
     argv = ["bake", "synthetic:shells:24", "--out", str(out), "--samples", "4",
             "--bounces", "0", "--env", "constant:1,1,1", "--iso-range", "0.3", "0.6"]
     assert main([*argv, "--max-move", "0.25"]) == 0
+    assert "planning: paths onto" in capsys.readouterr().err  # the plan's stages shown
     fine = Lattice.load(out, volumes.load("synthetic:shells:24")).meta["plan"]
     assert fine["move_limit_voxels"] == 0.25 and fine["iso_range"] == [0.3, 0.6]
     out.unlink()
