@@ -420,7 +420,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--direct-light", choices=["pixels", "lattice"], default=None,
                    help="where the direct light of --light lights and the sky's sun goes: "
                    "pixels (shaded exactly per pixel by render/view, the lattice keeps their "
-                   "bounces; the default when there is one) or lattice (all in the lattice)")
+                   "bounces; the default when there is one; --mode sh: the sun, which turns "
+                   "with the sky, and two transfer vectors, asked for explicitly) or lattice "
+                   "(all in the lattice)")
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
     p.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="trace on a Dask cluster: its scheduler (tcp://host:8786), or local:N "
