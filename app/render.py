@@ -22,6 +22,9 @@ The irradiance lattice modes add, per pixel, the direct light of the point and d
 lights and the sky's sun of a lattice baked with direct light "pixels"
 (`lattice_direct_lights`, or `RenderSettings.direct_lights`): shadow-mapped from one
 linear-depth atlas of tiles, the sun's penumbra from its angular radius (``direct.glsl``).
+So does ``sh`` for such a lattice (a split transfer): its sun, turned with the
+environment (`rotated_lights`), over the transfer shown under the turned sky without its
+sun (direct block) and the whole turned sky (indirect block).
 """
 
 from __future__ import annotations
