@@ -282,3 +282,25 @@ def test_target_error_of_a_split_transfer_weighs_both_blocks():
                         env="sky:sun=3", direct_light="pixels")
     lattice = bake(make("shells", 24), config, workers=2)
     assert lattice.values.shape[-1] == 8 and lattice.samples.max() > 4
+
+
+def test_cli_bakes_and_renders_a_split_sh_lattice(tmp_path, capsys):
+    """bake --mode sh --direct-light pixels, then render --shading sh (turned): the file
+    records the split; an environment without a sun is refused in one line."""
+    from app.cli import main
+    from baking.lattice import Lattice
+
+    lattice = tmp_path / "split.npz"
+    assert main(["bake", "synthetic:sphere:16", "--mode", "sh", "--sh-order", "2",
+                 "--samples", "2", "--env", "sky:sun=3", "--direct-light", "pixels",
+                 "--out", str(lattice), "--workers", "2"]) == 0
+    loaded = Lattice.load(lattice, volumes.load("synthetic:sphere:16"))
+    assert sh.transfer_blocks(loaded.meta) == 2 and loaded.values.shape[-1] == 8
+    render = ["render", "synthetic:sphere:16", "--lattice", str(lattice), "--shading", "sh",
+              "--size", "32x32", "--gl", "osmesa"]
+    assert main([*render, "--env-rotation", "90,0", "--out", str(tmp_path / "a.png")]) == 0
+    assert (tmp_path / "a.png").stat().st_size > 0
+    capsys.readouterr()
+    assert main([*render, "--env", "constant:1,1,1", "--out", str(tmp_path / "b.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "procedural sky with a sun" in err[0], err
