@@ -244,10 +244,11 @@ class Baker:
         self._scene_cache = max(2, scene_cache)
         self._scene_lock = threading.Lock()
         self._pending: dict[int, Future] = {}  # scenes being built ahead
+        warm = self._helper.submit(kernels.warm_up)  # loads compiled code beside the plan
         self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice), progress,
                               on_levels=self._build_first_scene)
         self.lattice.active = self.plan.active
-        kernels.warm_up()
+        warm.result()
         self.texels_done = int(np.count_nonzero(self.samples_done()))
         self.previous = dict(self.lattice.meta.get("stats", {}))
         self._acc = PassSums(len(self.plan.ids), self.settings.channels)
