@@ -125,14 +125,18 @@ float filtered(int tile, Receiver r, float radius, mat2 turn, int taps) {
     return lit / float(FILTER_TAPS);
 }
 
+// Whether a receiver falls outside its tile (the map covers every blocker in the scene).
+bool off_tile(Receiver r) {
+    return any(lessThan(r.uv, vec2(0.0))) || any(greaterThan(r.uv, vec2(1.0)));
+}
+
 // Irradiance of distant light i (tile `tile`) at `world` (normal n, facet normal `facet`).
 vec3 distant_hard(int i, int tile, vec3 world, vec3 n, vec3 facet) {
     vec3 l = u_direct_where[i].xyz;
     float cosine = dot(n, l);
     if (cosine <= 0.0) return vec3(0.0);
     Receiver r = distant_receiver(tile, l, world, facet);
-    if (any(lessThan(r.uv, vec2(0.0))) || any(greaterThan(r.uv, vec2(1.0))))
-        return u_direct_rgb[i] * cosine;
+    if (off_tile(r)) return u_direct_rgb[i] * cosine;  // outside the map: nothing shades it
     return u_direct_rgb[i] * (cosine * filtered(tile, r, u_tile_texel[tile], tap_turn(),
                                                 HARD_TAPS));
 }
@@ -142,8 +146,7 @@ vec3 distant_soft(int i, int tile, vec3 world, vec3 n, vec3 facet) {
     float cosine = dot(n, l);
     if (cosine <= 0.0) return vec3(0.0);
     Receiver r = distant_receiver(tile, l, world, facet);
-    if (any(lessThan(r.uv, vec2(0.0))) || any(greaterThan(r.uv, vec2(1.0))))
-        return u_direct_rgb[i] * cosine;
+    if (off_tile(r)) return u_direct_rgb[i] * cosine;  // outside the map: nothing shades it
     float tan_r = u_direct_tan_radius[i];
     float texel = u_tile_texel[tile];
     mat2 turn = tap_turn();
