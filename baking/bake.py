@@ -91,16 +91,19 @@ def path_settings(volume: volumes.Volume, config: BakeConfig) -> PathSettings:
 
 
 def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
-                 config: BakeConfig) -> tuple[np.ndarray, np.ndarray]:
+                 config: BakeConfig, on_level: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Texel centres moved onto a level surface (at most the plan's `newton_reach`) and
-    offset along the normal.
+    offset along the normal. `on_level` (N, 3): where that move lands, when the plan
+    already projected them (`Plan.landing`: the same computation).
 
     Returns:
         origins (N, 3) world, normals (N, 3) unit (high → low values unless flipped).
     """
     h = float(np.mean(volume.spacing))
-    on_level = project_to_level(volume, centres, level,
-                                max_move=newton_reach(volume, config))
+    if on_level is None:
+        on_level = project_to_level(volume, centres, level,
+                                    max_move=newton_reach(volume, config))
     normals = volumes.normals_at(volume, on_level, smooth=config.normals == "smooth",
                                  flip=config.flip_normals).astype(np.float64)
     return on_level + config.offset * h * normals, normals
@@ -387,7 +390,7 @@ class Baker:
         plan = self.plan
         pos, samples, start = lay_out_level(
             self.volume, self.geometry, self.config, float(plan.levels[level]), plan.ids,
-            plan.phase, plan.weight, here, below, done, remaining)
+            plan.phase, plan.weight, here, below, done, remaining, plan.landing)
         scene = self._scene(level) if len(pos) else None
         return _LevelWork(level, pos, samples, start, scene)
 
@@ -547,7 +550,8 @@ class PathStarts:
 def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
                   iso: float, ids: np.ndarray, phase: np.ndarray, weight: np.ndarray,
                   here: np.ndarray, below: np.ndarray, done: np.ndarray,
-                  remaining: np.ndarray) -> tuple[np.ndarray, np.ndarray, PathStarts]:
+                  remaining: np.ndarray, landing: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, PathStarts]:
     """The pending paths of the level surface ρ = `iso` and their texels' start points
     (`Baker._prepare_level`; a cluster task lays out its own texels with it). Each
     texel's paths and start point depend on that texel alone.
@@ -556,6 +560,8 @@ def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: Bak
         ids, phase, weight: (T,) the plan's lattice ids, level phases and upper weights,
             of all its texels or of any subset (positions then index the subset).
         here, below, done, remaining: as `kernels.level_paths` (positions into `ids`).
+        landing: (T, 2, 3) the plan's `Plan.landing` of the same texels, or None to
+            project them here (cluster tasks, which are not sent it).
 
     Returns:
         positions (P,) and sample indices (P,) of the paths, sorted by position, and
@@ -563,7 +569,11 @@ def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: Bak
     """
     pos, samples, texels = kernels.level_paths(here, below, done, remaining, phase, weight,
                                                GOLDEN_FRACTION)
-    origins, normals = start_points(volume, geometry.centres(ids[texels]), iso, config)
+    on_level = None
+    if landing is not None:  # the texels of `here` land on their lower level, `below` upper
+        on_level = landing[texels, np.isin(texels, below).astype(np.int64)]
+    origins, normals = start_points(volume, geometry.centres(ids[texels]), iso, config,
+                                    on_level)
     return pos, samples, PathStarts(texels, origins.astype(np.float32),
                                     normals.astype(np.float32))
 

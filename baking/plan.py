@@ -120,6 +120,9 @@ class Plan:
         move_voxels: (T,) distance from the texel to its farther level, voxels.
         move_limit: the level spacing's move limit, voxels (`move_limit`).
         reach: largest Newton move onto a level, world units (`newton_reach`).
+        landing: (T, 2, 3) float64 world point where each texel's Newton steps land on its
+            lower (0) and upper (1) level — the start points' projection, done once (NaN
+            where a texel does not use the level).
         unreachable: texels that cannot reach one or both bracketing levels within
             `reach`; they use one level only.
     """
@@ -137,6 +140,7 @@ class Plan:
     move_voxels: np.ndarray
     move_limit: float
     reach: float
+    landing: np.ndarray
     unreachable: int = 0
 
     def on_upper(self, positions: np.ndarray, samples: np.ndarray) -> np.ndarray:
@@ -244,18 +248,20 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
     say(f"paths onto {len(levels)} levels")
     uses_lo, uses_hi = weight < 1, weight > 0
-    ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol, uses_lo)
+    landing = np.full((len(ids), 2, 3), np.nan)
+    ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol, uses_lo,
+                              landing[:, 0])
     ok_hi, move_hi = _reaches(volume, centres, levels[lower + 1], reach, tol,
-                              uses_hi | ~ok_lo)
+                              uses_hi | ~ok_lo, landing[:, 1])
     ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol,
-                              ~uses_lo & ~ok_hi, ok_lo, move_lo)  # the fallback's
+                              ~uses_lo & ~ok_hi, landing[:, 0], ok_lo, move_lo)  # fallback
     outside = 0.0 if config.flip_normals else 1.0
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
     weight = np.where(needed, weight, np.where(ok_hi, 1.0, np.where(ok_lo, 0.0, outside)))
     move = np.maximum(np.where(weight < 1, move_lo, 0.0), np.where(weight > 0, move_hi, 0.0)) / h
     phase = pcg_hash(ids.astype(np.uint32) ^ np.uint32(config.seed & 0xFFFFFFFF)) / 2.0**32
     return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase, active, noise,
-                move, limit, reach, int(np.count_nonzero(~needed)))
+                move, limit, reach, landing, int(np.count_nonzero(~needed)))
 
 
 def resolved_iso_range(volume: volumes.Volume, config: BakeConfig) -> tuple[float, float]:
@@ -445,10 +451,12 @@ def project_to_level(volume: volumes.Volume, points: np.ndarray, level,
 
 
 def _reaches(volume: volumes.Volume, points: np.ndarray, levels: np.ndarray, reach: float,
-             tol: np.ndarray, which: np.ndarray, ok: np.ndarray | None = None,
-             moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             tol: np.ndarray, which: np.ndarray, landed: np.ndarray,
+             ok: np.ndarray | None = None, moved: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """Can each point be moved onto its level within `reach` world units? Decided for the
-    (N,) `which` points only; the others keep `ok` (default True) and `moved` (default 0).
+    (N,) `which` points only, whose landing points are written into `landed` (N, 3); the
+    others keep `ok` (default True) and `moved` (default 0).
 
     Returns:
         ok: (N,) bool; moved: (N,) distance of the (clamped) move, world units.
@@ -456,7 +464,9 @@ def _reaches(volume: volumes.Volume, points: np.ndarray, levels: np.ndarray, rea
     ok = np.ones(len(points), bool) if ok is None else ok.copy()
     moved = np.zeros(len(points)) if moved is None else moved.copy()
     if which.any():
-        landed = project_to_level(volume, points[which], levels[which], max_move=reach)
-        ok[which] = np.abs(volumes.value_at(volume, landed) - levels[which]) <= tol[which]
-        moved[which] = np.linalg.norm(landed - points[which], axis=1)
+        landed[which] = project_to_level(volume, points[which], levels[which],
+                                         max_move=reach)
+        ok[which] = np.abs(volumes.value_at(volume, landed[which]) - levels[which]) \
+            <= tol[which]
+        moved[which] = np.linalg.norm(landed[which] - points[which], axis=1)
     return ok, moved

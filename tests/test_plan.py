@@ -193,3 +193,31 @@ def test_stalled_newton_falls_back_to_the_nearest_crossing_along_neighbour_lines
     np.testing.assert_allclose(moved, [[3.5, 3.5, 7.5]], atol=1e-5)
     far = project_to_level(vol, start, 0.5, max_move=2.0)  # out of reach: left where it was
     np.testing.assert_array_equal(far, start)
+
+
+def test_levels_start_where_the_plan_landed_their_texels():
+    """The plan's reach test projects every texel onto the levels it uses; laying out a
+    level reuses those points (`Plan.landing`) and gets the start points a fresh
+    projection gives, to the bit."""
+    from baking.bake import lay_out_level, start_points
+
+    vol = make("shells", 32)
+    plan, config = _plan(vol, samples=8, bounces=0, iso_range=(0.2, 0.7), max_move=0.5)
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    uses = np.stack([plan.weight < 1, plan.weight > 0], axis=1)
+    assert np.isfinite(plan.landing[uses]).all()
+    level = 1
+    here = np.flatnonzero(plan.lower == level)
+    below = np.flatnonzero(plan.lower == level - 1)
+    assert len(here) and len(below) and (plan.weight[below] > 0).any()
+    done = np.zeros(len(plan.ids), np.int64)
+    remaining = np.full(len(plan.ids), 8, np.int64)
+    args = (vol, geometry, config, float(plan.levels[level]), plan.ids, plan.phase,
+            plan.weight, here, below, done, remaining)
+    _, _, reused = lay_out_level(*args, plan.landing)
+    _, _, fresh = lay_out_level(*args)
+    np.testing.assert_array_equal(reused.origins, fresh.origins)
+    np.testing.assert_array_equal(reused.normals, fresh.normals)
+    origins, _ = start_points(vol, geometry.centres(plan.ids[fresh.texels]),
+                              float(plan.levels[level]), config)
+    np.testing.assert_array_equal(fresh.origins, origins.astype(np.float32))
