@@ -2,10 +2,10 @@
 
 `MeshWorker` (a thread) makes a coarse surface (marching cubes every other voxel) first,
 then the full-resolution one. Marching cubes runs in z-slabs of about half a million voxels
-(`extract_surface`): scikit-image holds the GIL for a whole call (≈ 0.4 s on a 256²×128
-volume), slabs bound that to ≈ 25 ms, skip slabs whose values miss the isovalue, and let a
-newer request cancel a stale extraction between slabs. Results for an isovalue the user has
-already left are dropped.
+(`volumes.marching_cubes`): scikit-image holds the GIL for a whole call (≈ 0.2–0.4 s on a
+256²×128 volume), slabs bound that to ≈ 25 ms, skip slabs whose values miss the isovalue,
+and let a newer request cancel a stale extraction between slabs. Results for an isovalue
+the user has already left are dropped.
 """
 
 from __future__ import annotations
@@ -67,35 +67,19 @@ def extract_surface(volume: volumes.Volume, iso: float, *, step: int = 1,
         The mesh in world units (empty, with a message, when there is no surface), or
         None when cancelled.
     """
-    from skimage import measure
-
     lo, hi = volume.value_range
     if not lo < iso < hi:
         return volumes.Mesh.empty_at(iso, f"isovalue {iso:g} is at or beyond the data's "
                                      f"extremes [{lo:g}, {hi:g}]; nothing to show")
-    data = volume.data
-    nz, ny, nx = data.shape
-    thick = max(step, (SLAB_VOXELS // (ny * nx)) // step * step)
-    parts_v, parts_f, count = [], [], 0
-    for z0 in range(0, nz - 1, thick):
-        if cancelled is not None and cancelled():
-            return None
-        block = data[z0:min(z0 + thick, nz - 1) + 1]
-        if block.min() > iso or block.max() < iso:
-            continue
-        try:
-            v, f, _, _ = measure.marching_cubes(block, level=iso, step_size=step,
-                                                allow_degenerate=False)
-        except (ValueError, RuntimeError):  # a slab thinner than the step, or no crossing
-            continue
-        v[:, 0] += z0
-        parts_v.append(v)
-        parts_f.append(f + count)
-        count += len(v)
-    if not parts_f:
+    result = volumes.marching_cubes(volume.data, iso, step_size=step,
+                                    slab_voxels=SLAB_VOXELS, cancelled=cancelled)
+    if result is None:
+        return None
+    verts, faces = result
+    if len(faces) == 0:
         return volumes.Mesh.empty_at(iso, f"no surface at isovalue {iso:g}")
-    world = volume.index_to_world(np.concatenate(parts_v)).astype(np.float32)
-    faces = np.concatenate(parts_f).astype(np.uint32)
+    world = volume.index_to_world(verts).astype(np.float32)
+    faces = faces.astype(np.uint32)
     if normals == "mesh":
         n = mesh_normals(world, faces, flip)
     else:

@@ -39,7 +39,14 @@ from .integrator import (
 )
 from .lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
 from .lights import parse_light
-from .plan import GOLDEN_FRACTION, Plan, make_plan, newton_reach, project_to_level
+from .plan import (
+    GOLDEN_FRACTION,
+    Plan,
+    make_plan,
+    newton_reach,
+    project_to_level,
+    resolved_iso_range,
+)
 
 PATHS_PER_CHUNK = 16384
 MIN_PATHS_PER_CHUNK = 2048
@@ -185,6 +192,20 @@ def _kept_levels(lattice: Lattice | None) -> np.ndarray | None:
     return np.asarray(lattice.meta["plan"]["levels"], np.float64)
 
 
+def _first_level(volume: volumes.Volume, config: BakeConfig,
+                 kept: np.ndarray | None) -> float | None:
+    """The lowest level the plan will choose, known before it: a resumed bake's first kept
+    level, else the bottom of the iso range (`choose_levels` starts there whenever a
+    texel's value lies at or below it, as at every surface that crosses it); None when the
+    range cannot be resolved (the plan then says why)."""
+    if kept is not None:
+        return float(kept[0])
+    try:
+        return float(resolved_iso_range(volume, config)[0])
+    except BakeError:
+        return None
+
+
 def _load_existing(volume: volumes.Volume, config: BakeConfig, out: Path | None
                    ) -> Lattice | None:
     """The lattice in `out` when it can be resumed with `config`, None when there is none.
@@ -248,6 +269,10 @@ class Baker:
         self._scene_lock = threading.Lock()
         self._pending: dict[int, Future] = {}  # scenes being built ahead
         warm = self._helper.submit(kernels.warm_up)  # loads compiled code beside the plan
+        self._first_guess = _first_level(volume, config, _kept_levels(lattice))
+        if self._first_guess is not None:  # the plan's first level, built beside the plan
+            self._pending[0] = self._helper.submit(_level_scene, volume, self._first_guess,
+                                                   config)
         self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice), progress,
                               on_levels=self._build_first_scene)
         self.lattice.active = self.plan.active
@@ -348,10 +373,12 @@ class Baker:
         self._pending.clear()
 
     def _build_first_scene(self, levels: np.ndarray) -> None:
-        """Start building the lowest level's scene (where a whole bake starts) on the
-        helper thread while the plan goes on (`make_plan`'s `on_levels`)."""
-        self._pending[0] = self._helper.submit(_level_scene, self.volume, float(levels[0]),
-                                               self.config)
+        """Make sure the scene being built ahead for level 0 (where a whole bake starts) is
+        that of `levels[0]` (`make_plan`'s `on_levels`): the one started before the plan
+        (`_first_level`) when the guess was right, else one started now."""
+        if self._first_guess != float(levels[0]):
+            self._pending[0] = self._helper.submit(_level_scene, self.volume,
+                                                   float(levels[0]), self.config)
 
     def _scene(self, level: int):
         """The Embree scene of `level`, from the cache, from the scenes built ahead, or
@@ -622,6 +649,12 @@ def trace_chunk(scene, tracing: Tracing, pos, samples,
     return len(pos), ray_stats.rays, ray_stats.seconds
 
 
+SCENE_SLAB_VOXELS = 1 << 18
+"""Marching cubes of a level scene runs in z-slabs of this many voxels (~10 ms each), so
+the tracing workers are not held off the GIL for a whole extraction (0.17 s on the
+engine CT) while the next level's scene is built beside them."""
+
+
 def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):
     """Embree scene of the level surface ρ = iso (empty at the data's extremes), with the
     seconds its marching cubes took as ``mesh_seconds`` (Embree's as ``build_seconds``).
@@ -632,7 +665,8 @@ def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):
     lo, hi = volume.value_range
     iso = min(max(iso, lo), hi)
     began = time.perf_counter()
-    mesh = volumes.isosurface(volume, iso, normals="none", keep_degenerate=True)
+    mesh = volumes.isosurface(volume, iso, normals="none", keep_degenerate=True,
+                              slab_voxels=SCENE_SLAB_VOXELS)
     mesh_seconds = time.perf_counter() - began
     scene = Scene(mesh.vertices, mesh.faces)
     scene.mesh_seconds = mesh_seconds

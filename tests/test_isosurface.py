@@ -93,3 +93,27 @@ def test_coarse_step_size_is_a_subset_resolution():
     vol = make("torus", 48)
     fine, coarse = volumes.isosurface(vol, 0.5), volumes.isosurface(vol, 0.5, step_size=2)
     assert 0 < len(coarse.faces) < 0.5 * len(fine.faces)
+
+
+def test_slabs_give_the_whole_calls_triangles_and_stay_watertight():
+    """Marching cubes in z-slabs (the bake's level scenes, the viewer) gives the triangles of
+    one whole call — degenerate ones kept; z off by float32 rounding of the slab's offset —
+    and vertices on slab boundaries coincide bit for bit, so a closed surface has every
+    edge shared by exactly two triangles."""
+    vol = make("torus", 40)
+    whole = volumes.isosurface(vol, 0.5, normals="none", keep_degenerate=True)
+    slabs = volumes.isosurface(vol, 0.5, normals="none", keep_degenerate=True,
+                               slab_voxels=5 * 40 * 40)
+
+    def rows(mesh):
+        t = mesh.vertices[mesh.faces].reshape(-1, 9).astype(np.float64)
+        return t[np.lexsort(np.round(t, 5).T[::-1])]
+
+    assert len(slabs.faces) == len(whole.faces) and len(slabs.vertices) > len(whole.vertices)
+    np.testing.assert_allclose(rows(slabs), rows(whole), rtol=0, atol=1e-5 * vol.spacing[2])
+    _, ids = np.unique(slabs.vertices, axis=0, return_inverse=True)
+    tri = ids.reshape(-1)[slabs.faces]
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    edges = edges[edges[:, 0] != edges[:, 1]]  # degenerate triangles' collapsed edges
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)

@@ -66,10 +66,10 @@ def test_level_budget_keeps_scenes_a_fraction_of_the_tracing():
     quick = BakeConfig(samples=4, bounces=0, iso_range=(0.2, 0.4))
     long = dataclasses.replace(quick, samples=1024, bounces=2)
     plan, _ = _plan(vol, **dataclasses.asdict(quick))
-    rho = np.zeros(geometry.shape, np.float32)  # no surface crossed: the volume's cost only
     cells = np.zeros(tuple(n - 1 for n in geometry.shape), bool)
-    budget_quick = level_budget(vol, geometry, quick, rho, cells, len(plan.ids), (0.2, 0.4))
-    budget_long = level_budget(vol, geometry, long, rho, cells, len(plan.ids), (0.2, 0.4))
+    span = (np.zeros(cells.shape, np.float32),) * 2  # no surface crossed: the volume's cost
+    budget_quick = level_budget(vol, geometry, quick, span, cells, len(plan.ids), (0.2, 0.4))
+    budget_long = level_budget(vol, geometry, long, span, cells, len(plan.ids), (0.2, 0.4))
     rays = len(plan.ids) * 4
     assert budget_quick == max(2, int(SCENE_SHARE * rays / (0.06 * vol.data.size)))
     assert budget_long == long.max_levels
@@ -221,3 +221,13 @@ def test_levels_start_where_the_plan_landed_their_texels():
     origins, _ = start_points(vol, geometry.centres(plan.ids[fresh.texels]),
                               float(plan.levels[level]), config)
     np.testing.assert_array_equal(fresh.origins, origins.astype(np.float32))
+
+
+def test_cell_spans_equal_numpy_reductions_over_the_corners():
+    from baking.plan import cell_spans
+
+    rho = np.random.default_rng(3).normal(size=(7, 5, 9)).astype(np.float32)
+    views = [rho[a:a + 6, b:b + 4, c:c + 8] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    cmin, cmax = cell_spans(rho)
+    np.testing.assert_array_equal(cmin, np.minimum.reduce(views))
+    np.testing.assert_array_equal(cmax, np.maximum.reduce(views))

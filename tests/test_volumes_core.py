@@ -151,3 +151,19 @@ def test_newton_projection_matches_the_plain_iteration():
         p = start + d * np.minimum(1.0, max_move / np.maximum(dist, 1e-30))
     got = volumes.newton_to_level(vol, start, levels, max_move)
     np.testing.assert_allclose(got, p, atol=2e-4 * min(vol.spacing))
+
+
+def test_newton_projection_is_the_same_whatever_the_threads(monkeypatch):
+    """Cut into shares on threads (`NEWTON_MIN_SHARE`), every point lands bit for bit where
+    one call puts it."""
+    from volumes import field
+
+    vol = make("torus", 40)
+    r = np.random.default_rng(5)
+    start = vol.index_to_world(r.uniform(2, 37, size=(3001, 3)))
+    levels = r.uniform(0.2, 0.8, 3001)
+    whole = volumes.newton_to_level(vol, start, levels, 2.0 * min(vol.spacing))
+    monkeypatch.setattr(field, "NEWTON_MIN_SHARE", 100)
+    monkeypatch.setattr(field.os, "cpu_count", lambda: 7)
+    np.testing.assert_array_equal(
+        volumes.newton_to_level(vol, start, levels, 2.0 * min(vol.spacing)), whole)

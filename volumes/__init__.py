@@ -13,8 +13,8 @@ from __future__ import annotations
 import os
 
 from .core import Volume, VolumeError
-from .field import gradient_at, gradient_grid, newton_to_level, normals_at, value_at
-from .mesh import Mesh, check_isovalue, isosurface
+from .field import gradient_at, gradient_grid, newton_to_level, normals_at, value_at, values_on_grid
+from .mesh import Mesh, check_isovalue, isosurface, marching_cubes
 from .orientation import UP_AXES, turn_up
 from .stats import histogram_lines, suggest_isovalues
 from .synthetic import DEFAULT
@@ -31,11 +31,13 @@ __all__ = [
     "histogram_lines",
     "isosurface",
     "load",
+    "marching_cubes",
     "newton_to_level",
     "normals_at",
     "suggest_isovalues",
     "turn_up",
     "value_at",
+    "values_on_grid",
 ]
 
 

@@ -14,7 +14,9 @@ the material is denser than its surroundings); ``flip=True`` reverses them.
 
 from __future__ import annotations
 
+import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -234,13 +236,55 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
     (smoothed unless not `smooth`), the total move clamped to `max_move` world units.
 
     One compiled pass per point (value and gradient read together, no temporaries, no
-    GIL): the bake does this for every texel on each of its levels."""
+    GIL): the bake does this for every texel on each of its levels. Large batches are cut
+    into one contiguous share per core, run on threads (each point's steps are its own:
+    the same result whatever the split)."""
     points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
     levels = np.ascontiguousarray(np.broadcast_to(levels, (len(points),)), np.float64)
     out = np.empty_like(points)
-    _newton(volume.data[..., None], gradient_grid(volume, smooth),
-            np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64),
-            points, levels, float(max_move), int(iterations), out)
+    fixed = (volume.data[..., None], gradient_grid(volume, smooth),
+             np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64))
+
+    def steps(lo: int, hi: int) -> None:
+        _newton(*fixed, points[lo:hi], levels[lo:hi], float(max_move), int(iterations),
+                out[lo:hi])
+
+    shares = min(os.cpu_count() or 1, len(points) // NEWTON_MIN_SHARE)
+    if shares <= 1:
+        steps(0, len(points))
+        return out
+    cuts = np.linspace(0, len(points), shares + 1).astype(np.int64)
+    with ThreadPoolExecutor(max_workers=shares) as pool:
+        list(pool.map(steps, cuts[:-1], cuts[1:]))
+    return out
+
+
+NEWTON_MIN_SHARE = 1 << 14
+"""Fewest points a thread of `newton_to_level` takes (smaller batches run in the caller)."""
+
+
+@numba.njit(nogil=True, cache=True)
+def _grid_trilinear(data: np.ndarray, iz: np.ndarray, iy: np.ndarray, ix: np.ndarray,
+                    out: np.ndarray) -> None:
+    """out[k, j, i] = trilinear interpolation of the (Z, Y, X, 1) `data` at the fractional
+    index (iz[k], iy[j], ix[i]) — `_lerp3` at every point of the grid, no temporaries."""
+    value = np.empty(1)
+    for k in range(iz.shape[0]):
+        for j in range(iy.shape[0]):
+            for i in range(ix.shape[0]):
+                _lerp3(data, iz[k], iy[j], ix[i], value)
+                out[k, j, i] = value[0]
+
+
+def values_on_grid(volume: Volume, x: np.ndarray, y: np.ndarray, z: np.ndarray
+                   ) -> np.ndarray:
+    """(len(z), len(y), len(x)) float32 trilinear field values at the points of the world
+    grid spanned by the coordinates `x`, `y`, `z` (each 1-D, world units): bit for bit
+    `value_at` at those points, one compiled pass (CThead's 7.4 M texels in ~0.1 s)."""
+    axes = [(np.asarray(c, np.float64) - o) / h
+            for c, o, h in zip((x, y, z), volume.origin, volume.spacing, strict=True)]
+    out = np.empty((len(axes[2]), len(axes[1]), len(axes[0])), np.float32)
+    _grid_trilinear(volume.data[..., None], axes[2], axes[1], axes[0], out)
     return out
 
 
