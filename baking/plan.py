@@ -282,11 +282,11 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     say(f"paths onto {len(levels)} levels")
     uses_lo, uses_hi = weight < 1, weight > 0
     landing = np.full((len(ids), 2, 3), np.nan)
-    ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol, uses_lo,
+    ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol, uses_lo,
                               landing[:, 0])
-    ok_hi, move_hi = _reaches(volume, centres, levels[lower + 1], reach, tol,
+    ok_hi, move_hi = _reaches(volume, config, centres, levels[lower + 1], reach, tol,
                               uses_hi | ~ok_lo, landing[:, 1])
-    ok_lo, move_lo = _reaches(volume, centres, levels[lower], reach, tol,
+    ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol,
                               ~uses_lo & ~ok_hi, landing[:, 0], ok_lo, move_lo)  # fallback
     outside = 0.0 if config.flip_normals else 1.0
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
@@ -483,13 +483,14 @@ def project_to_level(volume: volumes.Volume, points: np.ndarray, level,
     return volumes.newton_to_level(volume, points, level, max_move, iterations, smooth)
 
 
-def _reaches(volume: volumes.Volume, points: np.ndarray, levels: np.ndarray, reach: float,
-             tol: np.ndarray, which: np.ndarray, landed: np.ndarray,
-             ok: np.ndarray | None = None, moved: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Can each point be moved onto its level within `reach` world units? Decided for the
-    (N,) `which` points only, whose landing points are written into `landed` (N, 3); the
-    others keep `ok` (default True) and `moved` (default 0).
+def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
+             levels: np.ndarray, reach: float, tol: np.ndarray, which: np.ndarray,
+             landed: np.ndarray, ok: np.ndarray | None = None,
+             moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Can each point be moved onto its level within `reach` world units, and do its paths
+    start outside that level's surface (`starts_outside`)? Decided for the (N,) `which`
+    points only, whose landing points are written into `landed` (N, 3); the others keep
+    `ok` (default True) and `moved` (default 0).
 
     Returns:
         ok: (N,) bool; moved: (N,) distance of the (clamped) move, world units.
@@ -499,7 +500,31 @@ def _reaches(volume: volumes.Volume, points: np.ndarray, levels: np.ndarray, rea
     if which.any():
         landed[which] = project_to_level(volume, points[which], levels[which],
                                          max_move=reach)
-        ok[which] = np.abs(volumes.value_at(volume, landed[which]) - levels[which]) \
-            <= tol[which]
+        ok[which] = (np.abs(volumes.value_at(volume, landed[which]) - levels[which])
+                     <= tol[which]) & starts_outside(volume, config, landed[which],
+                                                     levels[which])
         moved[which] = np.linalg.norm(landed[which] - points[which], axis=1)
     return ok, moved
+
+
+def starts_outside(volume: volumes.Volume, config: BakeConfig, landed: np.ndarray,
+                   levels: np.ndarray) -> np.ndarray:
+    """(N,) bool: does the start point of paths from (N, 3) points `landed` on the surfaces
+    ρ = `levels` (N,) — moved `config.offset` voxels along the normal, as
+    `baking.bake.start_points` moves it — lie on the side of the level the normal points
+    to (lower values; higher with `flip_normals`)?
+
+    Not where the level is the thin shell around a ridge or a valley whose extreme barely
+    passes it — a cooling fin whose peak lies just below the displayed isovalue, next to
+    the casing it stands on: the smoothed normal there is the casing's, points across the
+    shell, the start point lands inside it and every path is blocked (such texels came out
+    black, and the casing wall beside the fin dark: the worst error of the synthetic
+    engine). Always True without an offset.
+    """
+    if config.offset <= 0 or len(landed) == 0:
+        return np.ones(len(landed), bool)
+    h = float(np.mean(volume.spacing))
+    normals = volumes.normals_at(volume, landed, smooth=config.normals == "smooth",
+                                 flip=config.flip_normals).astype(np.float64)
+    beyond = volumes.value_at(volume, landed + config.offset * h * normals) - levels
+    return beyond > 0 if config.flip_normals else beyond < 0

@@ -231,3 +231,35 @@ def test_cell_spans_equal_numpy_reductions_over_the_corners():
     cmin, cmax = cell_spans(rho)
     np.testing.assert_array_equal(cmin, np.minimum.reduce(views))
     np.testing.assert_array_equal(cmax, np.maximum.reduce(views))
+
+
+def _starts_inside(vol: Volume, plan, config) -> np.ndarray:
+    """(T,) bool: does some level a texel uses start its paths on the high side of it?"""
+    h = float(np.mean(vol.spacing))
+    inside = np.zeros(len(plan.ids), bool)
+    for side, used in ((0, plan.weight < 1), (1, plan.weight > 0)):
+        level = plan.levels[plan.lower + side][used]
+        landed = plan.landing[used, side]
+        start = landed + config.offset * h * volumes.normals_at(vol, landed)
+        inside[used] |= volumes.value_at(vol, start) >= level
+    return inside
+
+
+def test_paths_start_outside_the_thin_shell_of_a_fin_below_the_isovalue(monkeypatch):
+    """The synthetic engine's cooling fins peak near 0.29, just below its isovalue 0.3.
+    Texels by a fin's root carry values near that peak; the level of such a value is a
+    thin shell around the fin's crest, the smoothed normal there is the casing's, and a
+    start point moved along it lands inside the shell (every path blocked: black texels,
+    a dark streak on the casing). The plan moves their paths to the bracketing level
+    whose start lies outside; only texels that can use neither are left (counted as
+    unreachable)."""
+    from baking import plan as plan_module
+
+    vol = make("engine", 48)
+    plan, config = _plan(vol, samples=4, bounces=0, iso_range=(0.2, 0.5), max_move=0.5)
+    inside = _starts_inside(vol, plan, config).sum()
+    assert inside <= plan.unreachable
+    monkeypatch.setattr(plan_module, "starts_outside",
+                        lambda volume, config, landed, levels: np.ones(len(landed), bool))
+    unchecked, _ = _plan(vol, samples=4, bounces=0, iso_range=(0.2, 0.5), max_move=0.5)
+    assert _starts_inside(vol, unchecked, config).sum() >= max(50, 5 * inside)
