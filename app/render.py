@@ -119,6 +119,9 @@ tan θ) and depth rounding need a bias (tests/test_direct_light.py: no acne on l
 shadows that meet their casters)."""
 DIRECT_UNITS = (14, 15)
 """Texture units of the direct lights' shadow atlas: compared, raw (lattices use 1–13)."""
+GBUFFER_UNITS = (16, 17)
+"""Texture units of the G-buffer the deferred pass reads: points, normals (units of their
+own, so that no program's texture is ever one the surface pass draws into)."""
 
 
 class RenderError(ValueError):
@@ -418,11 +421,32 @@ def auto_exposure_scale(linear: np.ndarray, mask: np.ndarray, key: float = EXPOS
 
 @dataclass
 class _Targets:
+    """A frame's render targets: the linear HDR colour with its depth (`hdr`), the 8-bit
+    display image (`ldr`) and, once per-pixel lights are drawn, the G-buffer they read
+    (`gbuffer`: the HDR colour, the points and normals of ``gbuffer.glsl``, the same
+    depth)."""
+
     size: tuple[int, int]
     hdr: moderngl.Framebuffer
     hdr_color: moderngl.Texture
     ldr: moderngl.Framebuffer
+    depth: moderngl.Renderbuffer
     objects: list = field(default_factory=list)
+    gbuffer: moderngl.Framebuffer | None = None
+    g_point: moderngl.Texture | None = None
+    g_normals: moderngl.Texture | None = None
+
+    def ensure_gbuffer(self, ctx: moderngl.Context) -> moderngl.Framebuffer:
+        """The G-buffer framebuffer (made on first use: only frames with per-pixel lights
+        need its two RGBA32F targets)."""
+        if self.gbuffer is None:
+            self.g_point = ctx.texture(self.size, 4, dtype="f4")
+            self.g_normals = ctx.texture(self.size, 4, dtype="f4")
+            self.gbuffer = ctx.framebuffer(
+                color_attachments=[self.hdr_color, self.g_point, self.g_normals],
+                depth_attachment=self.depth)
+            self.objects[:0] = [self.gbuffer, self.g_point, self.g_normals]
+        return self.gbuffer
 
     def release(self) -> None:
         for obj in self.objects:
@@ -500,6 +524,8 @@ class SurfaceRenderer:
                 vs, fs = shaders.source("shadow.vert"), shaders.source("shadow.frag")
             elif kind == "depth":
                 vs, fs = shaders.source("depth.vert"), shaders.source("depth.frag")
+            elif kind == "deferred":
+                vs, fs = shaders.source("fullscreen.vert"), shaders.source("deferred.frag", d)
             else:
                 vs, fs = shaders.source("surface.vert"), shaders.source("surface.frag", d)
             self._programs[key] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
@@ -600,7 +626,8 @@ class SurfaceRenderer:
         hdr = ctx.framebuffer(color_attachments=[color], depth_attachment=depth)
         ldr_color = ctx.texture(size, 4, dtype="f1")
         ldr = ctx.framebuffer(color_attachments=[ldr_color])
-        self._targets = _Targets(size, hdr, color, ldr, [hdr, color, depth, ldr, ldr_color])
+        self._targets = _Targets(size, hdr, color, ldr, depth,
+                                 [hdr, color, depth, ldr, ldr_color])
         return self._targets
 
     def _ensure_shadow_map(self, resolution: int) -> _ShadowMap:
@@ -692,10 +719,16 @@ class SurfaceRenderer:
         defines = {**SHADING_MODES, **_DEBUG_MODES}[shading].defines()
         if shading == "sh":
             defines += self.lattice.sh_defines()
-        lights = self.direct_lights(settings)
-        if lights:
-            defines += (("DIRECT", 1), ("DIRECT_SUM(p, n, f)", direct_sum(lights)))
+        if self.direct_lights(settings):
+            defines += (("DIRECT", 1),)  # writes the G-buffer of `_deferred_pass`
         return self._program("surface", defines)
+
+    def _deferred(self, settings: RenderSettings) -> bool:
+        """Whether the settings' frame is shaded in `_deferred_pass`: the irradiance
+        lattice modes, and any mode with per-pixel lights (``surface.frag``)."""
+        mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
+        return mode.lattice in ("irradiance", "occlusion") or bool(
+            self.direct_lights(settings))
 
     # -- drawing -----------------------------------------------------------------------
     def _draw_shadow_map(self, camera: Camera, settings: RenderSettings) -> _ShadowMap:
@@ -774,6 +807,39 @@ class SurfaceRenderer:
         atlas.key = key
         return atlas
 
+    def _deferred_pass(self, targets: _Targets, camera: Camera, settings: RenderSettings
+                       ) -> None:
+        """Add what ``deferred.frag`` shades from the G-buffer the surface pass left: the
+        irradiance lattice's radiance (modes "irradiance*", "vicinity", "ao") and the
+        per-pixel lights' direct light (the shadow atlas drawn first if the mesh, lights
+        or scene changed); one full-screen pass, blending ONE, ONE."""
+        mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
+        lights = self.direct_lights(settings)
+        defines = mode.defines()
+        if lights:
+            defines += (("DIRECT", 1), ("DIRECT_SUM(p, n, f)", direct_sum(lights)))
+        prog = self._program("deferred", defines)
+        self._set_uniforms(prog, self._uniforms(camera, settings))
+        if mode.lattice in ("irradiance", "occlusion"):
+            self.lattice.bind(prog)
+        if mode.lattice == "occlusion":
+            sky = occlusion_sky(self.lattice.lattice)
+            self._set_uniforms(prog, {"u_sky_radiance": tuple(sky)})  # "ao" reads it
+        if lights:
+            self._bind_direct(prog, lights, settings)
+        point_unit, normals_unit = GBUFFER_UNITS
+        targets.g_point.use(location=point_unit)
+        targets.g_normals.use(location=normals_unit)
+        self._set_uniforms(prog, {"u_g_point": point_unit, "u_g_normals": normals_unit})
+        targets.hdr.use()
+        self.ctx.disable(moderngl.DEPTH_TEST)
+        self.ctx.enable(moderngl.BLEND)
+        self.ctx.blend_func = moderngl.ONE, moderngl.ONE
+        vao = self.ctx.vertex_array(prog, [])
+        vao.render(moderngl.TRIANGLES, vertices=3)
+        vao.release()
+        self.ctx.disable(moderngl.BLEND)
+
     def _bind_direct(self, prog: moderngl.Program, lights: tuple,
                      settings: RenderSettings) -> None:
         """Draw (if needed) and bind the per-pixel lights' shadow atlas and uniforms."""
@@ -834,33 +900,32 @@ class SurfaceRenderer:
 
     def _prepared_program(self, camera: Camera, settings: RenderSettings) -> moderngl.Program:
         """The surface program of the settings' mode with its uniforms set and its textures
-        bound (the shadow map drawn first if the mode needs it)."""
+        bound (the shadow map drawn first if the mode needs it); the irradiance lattices
+        and the per-pixel lights are bound in `_deferred_pass`."""
         mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
         prog = self._surface_program(settings)
         self._set_uniforms(prog, self._uniforms(camera, settings))
         if mode.shadow:
             self._bind_shadow_map(prog, camera, settings)
-        lights = self.direct_lights(settings)
-        if lights:
-            self._bind_direct(prog, lights, settings)
-        if mode.lattice is not None:
-            self.lattice.bind(prog)
-        if mode.lattice == "occlusion":
-            sky = occlusion_sky(self.lattice.lattice)
-            self._set_uniforms(prog, {"u_sky_radiance": tuple(sky)})  # "ao" reads it
         if settings.shading == "sh":
+            self.lattice.bind(prog)
             light = self.lattice.light_uniform(self._sh_light(settings))
             prog["u_light"].write(light.tobytes())
         return prog
 
     def draw_hdr(self, camera: Camera, settings: RenderSettings) -> _Targets:
-        """Draw the mesh in linear radiance into the HDR target (alpha 1 on the surface)."""
+        """Draw the mesh in linear radiance into the HDR target (alpha 1 on the surface):
+        local and SH modes in the surface pass; the irradiance lattices and the per-pixel
+        lights from the G-buffer it leaves (`_deferred_pass`)."""
         prog = self._prepared_program(camera, settings) if self._triangles else None
         targets = self._ensure_targets(settings.size)
-        targets.hdr.use()
+        deferred = prog is not None and self._deferred(settings)
+        (targets.ensure_gbuffer(self.ctx) if deferred else targets.hdr).use()
         self.ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         if prog is not None:
             self._draw_mesh(prog)
+        if deferred:
+            self._deferred_pass(targets, camera, settings)
         return targets
 
     def resolve(self, targets: _Targets, settings: RenderSettings, fbo=None,

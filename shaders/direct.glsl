@@ -18,8 +18,9 @@
 // sum of one call per light with constant light and tile indices (distant_soft,
 // distant_hard, point_light), so every uniform array is indexed by constants and nothing
 // loops over lights at run time (llvmpipe runs such code twice as fast). llvmpipe runs
-// both sides of every branch, so a pixel costs all the texture reads in the code (about
-// as much each as the rest of the shading): a hard light reads one, a sun 8 + 16.
+// both sides of every branch, so a pixel costs all the texture reads in the code: a hard
+// light reads one, a sun 8 + 16. It runs in a full-screen pass (deferred.frag), once
+// per pixel.
 #define MAX_DIRECT 8
 #define MAX_TILES 16
 #ifndef SEARCH_TAPS

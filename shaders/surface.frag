@@ -7,9 +7,23 @@
 // Feature switches of the local models (1-4): SHADOW 1 shadow-maps the key light,
 // FOG 1 fades to the fog colour with eye distance. LOOKUP picks how irradiance lattices
 // (5, 7) are read: 0 trilinear, 1 nearest texel, 2 closest-isovalue texel, 3 B-spline.
-// DIRECT 1 (with 5): the lattice holds all but the direct light of the point/directional
-// lights and the sun, which is added here per pixel with shadows (direct.glsl); with 6:
-// a split SH transfer, shown under the sun-free sky, plus the turned sun per pixel.
+// DIRECT 1 (with 5 or 7): the lattice holds all but the direct light of the
+// point/directional lights and the sun, added per pixel with shadows; with 6: a split SH
+// transfer, shown under the sun-free sky, plus the turned sun per pixel.
+//
+// Deferred shading: the irradiance lattices (5, 7) and the per-pixel lights are not shaded
+// here but in one full-screen pass (deferred.frag) over what this pass leaves in the
+// G-buffer (gbuffer.glsl): the point and its normals. On llvmpipe a draw shades every 4x4
+// block a triangle touches, and a dense isosurface's triangles cover a pixel or two each,
+// so lookups made here ran for many times more SIMD lanes than there are pixels. This
+// pass then writes (0, 0, 0, 1) (alpha marks the surface) and the full-screen pass adds
+// the radiance. SH transfer (6) stays here: its many textures would not fit one pass
+// beside the G-buffer and the shadow atlas.
+#if SHADING == 5 || SHADING == 7
+#define DEFERRED 1
+#else
+#define DEFERRED 0
+#endif
 #ifndef SHADOW
 #define SHADOW 0
 #endif
@@ -26,11 +40,13 @@
 #if SHADOW
 #include "shadow.glsl"
 #endif
-#if SHADING >= 5 && SHADING <= 7
+#if SHADING == 6
 #include "lattice.glsl"
 #endif
-#if DIRECT
-#include "direct.glsl"
+#if DEFERRED || DIRECT
+#include "gbuffer.glsl"
+layout(location = 1) out vec4 g_point;    // gbuffer.glsl
+layout(location = 2) out vec4 g_normals;
 #endif
 
 uniform vec3 u_eye;
@@ -51,20 +67,22 @@ void main() {
     vec3 n = normalize(v_normal);
     // Local models light both sides of the surface: turn the normal towards the eye.
     if (dot(n, v) < 0.0) n = -n;
-#if SHADING >= 5 && SHADING <= 7
-    vec3 radiance_gi = lattice_radiance(v_world, n, u_albedo);
+#if DEFERRED || DIRECT
 #if DIRECT
-    // the smooth normal on the side of the facet the eye sees (as the reference and the
-    // baker's start points turn it: at silhouettes it may point away from the eye)
+    // the facet's normal on the side the eye sees (the per-pixel lights' receiver plane)
     vec3 facet_n = normalize(cross(dFdx(v_world), dFdy(v_world)));
     if (dot(facet_n, v) < 0.0) facet_n = -facet_n;
-    vec3 n_seen = normalize(v_normal);
-    if (dot(n_seen, facet_n) < 0.0) n_seen = -n_seen;
-    // from where the baker's paths start: off the surface along the normal
-    radiance_gi += u_albedo * direct_irradiance(v_world + u_direct_offset * n_seen, n_seen,
-                                                facet_n) / PI;
+#else
+    vec3 facet_n = n;
 #endif
-    frag_color = vec4(radiance_gi, 1.0);
+    g_point = vec4(v_world, 1.0);
+    g_normals = encode_normals(n, facet_n);
+#endif
+#if DEFERRED
+    frag_color = vec4(0.0, 0.0, 0.0, 1.0);  // deferred.frag adds the radiance
+    return;
+#elif SHADING == 6
+    frag_color = vec4(lattice_radiance(v_world, n, u_albedo), 1.0);
     return;
 #endif
 #if SHADOW
