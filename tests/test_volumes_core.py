@@ -154,8 +154,8 @@ def test_newton_projection_matches_the_plain_iteration():
 
 
 def test_newton_projection_is_the_same_whatever_the_threads(monkeypatch):
-    """Cut into shares on threads (`NEWTON_MIN_SHARE`), every point lands bit for bit where
-    one call puts it."""
+    """Cut into shares on threads (`MIN_SHARE`), every point lands bit for bit where one
+    call puts it."""
     from volumes import field
 
     vol = make("torus", 40)
@@ -163,7 +163,7 @@ def test_newton_projection_is_the_same_whatever_the_threads(monkeypatch):
     start = vol.index_to_world(r.uniform(2, 37, size=(3001, 3)))
     levels = r.uniform(0.2, 0.8, 3001)
     whole = volumes.newton_to_level(vol, start, levels, 2.0 * min(vol.spacing))
-    monkeypatch.setattr(field, "NEWTON_MIN_SHARE", 100)
+    monkeypatch.setattr(field, "MIN_SHARE", 100)
     monkeypatch.setattr(field.os, "cpu_count", lambda: 7)
     np.testing.assert_array_equal(
         volumes.newton_to_level(vol, start, levels, 2.0 * min(vol.spacing)), whole)
