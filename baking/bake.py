@@ -294,6 +294,25 @@ class Baker:
         ids = self.plan.ids if positions is None else self.plan.ids[positions]
         return self.lattice.samples.reshape(-1)[ids].astype(np.int64)
 
+    def relight(self, config: BakeConfig, lattice: Lattice) -> None:
+        """Trace under `config`'s lights into `lattice` from the next `run` on (issue 14: a
+        light turned in the viewer, `baking.lazy.Relight`). The plan and the cached level
+        scenes stay: they do not depend on the light.
+
+        Raises:
+            ValueError: `config` differs from the bake's in more than its env and lights.
+        """
+        from dataclasses import replace
+
+        if replace(config, env=self.config.env, lights=self.config.lights) != self.config:
+            raise ValueError("Baker.relight: only the env and the lights may change")
+        self.config, self.lattice = config, lattice
+        self.lighting = make_lighting(config)
+        self._tracing = replace(
+            self._tracing, lighting=self.lighting,
+            whole=whole_paths(self.lighting, self.settings))
+        self.texels_done = int(np.count_nonzero(self.samples_done()))
+
     def run(self, positions: np.ndarray | None = None, target: int | np.ndarray | None = None,
             *, bar=None, after_level=None) -> None:
         """Bring the texels at plan `positions` (all if None) up to `target` paths each

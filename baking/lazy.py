@@ -35,13 +35,15 @@ own isosurface whatever isovalue is displayed, which is the point of the method.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .lattice import LUMINANCE, LatticeGeometry
+from .lattice import LUMINANCE, Lattice, LatticeGeometry
 from .plan import Plan
 
 FIRST_TARGET = 4
@@ -93,6 +95,165 @@ def carry_over(lattice, old: Plan, new: Plan) -> np.ndarray:
     lattice.values.reshape(-1, lattice.values.shape[-1])[reset] = 0
     lattice.second.reshape(-1)[reset] = 0
     return reset
+
+
+# -- a turned light -------------------------------------------------------------------------
+RELIGHT_PATHS = 16
+"""Under a turned light a texel's new estimate goes on screen once it rests on this many
+paths (its own or a preview's), or on as many as the old value it replaces when that had
+fewer: until then the old light's value stays (stale, but not noisier than it was)."""
+TURN_TOLERANCE_DEG = 0.5
+"""Light directions closer than this are the same light (`app.viewer_draw.Drawing.light_note`
+says "not turned" below it too)."""
+
+
+def turned_light(config) -> np.ndarray | None:
+    """(3,) unit vector towards the light a viewer turns under `config`: the first distant
+    light of `baking.lights.pixel_lights` (its first directional light, else its sky's
+    sun), the one `app.render.aimed_lights` aims. None when there is none or it is not
+    shaded per pixel: a lattice holding its direct light, or an SH transfer (its sky and
+    sun turn with the transfer; nothing to bake again)."""
+    from .lights import DirectionalLight, SunLight, pixel_lights
+
+    if config.mode != "irradiance" or config.direct_light != "pixels":
+        return None
+    for light in pixel_lights(config.env, config.lights):
+        if isinstance(light, DirectionalLight | SunLight):
+            return np.asarray(light.direction, np.float64)
+    return None
+
+
+def same_direction(a, b) -> bool:
+    """Whether unit vectors `a` and `b` (3,) lie within `TURN_TOLERANCE_DEG` of each other."""
+    cos = float(np.dot(np.asarray(a, np.float64), np.asarray(b, np.float64)))
+    return cos >= math.cos(math.radians(TURN_TOLERANCE_DEG))
+
+
+def relit_config(config, direction):
+    """`config` with the light `turned_light` names pointing towards `direction` (3,): a
+    ``dir:`` light spec with the new vector, or the sky with the new ``sun_az``/``sun_el``
+    (`baking.environment.SkyEnvironment`: (cos el cos az, cos el sin az, sin el))."""
+    d = np.asarray(direction, np.float64)
+    d = d / np.linalg.norm(d)
+    xyz = ",".join(f"{v:.9g}" for v in d)
+    lights = list(config.lights)
+    for i, spec in enumerate(lights):
+        kind, _, rest = spec.partition(":")
+        if kind == "dir":
+            lights[i] = f"dir:{xyz}:{rest.split(':', 1)[1]}"
+            return dataclasses.replace(config, lights=tuple(lights))
+    if turned_light(config) is None:
+        raise ValueError(f"{config.env!r} {config.lights}: no per-pixel directional light "
+                         "or sun to turn")
+    head, _, body = config.env.partition(":")
+    entries: list[str] = []  # "key=v[,v,v]" of the sky spec
+    for token in filter(None, (t.strip() for t in body.split(","))):
+        if "=" in token:
+            entries.append(token)
+        else:
+            entries[-1] += "," + token
+    kept = [e for e in entries if e.split("=", 1)[0].strip() not in ("sun_az", "sun_el")]
+    az = math.degrees(math.atan2(d[1], d[0]))
+    el = math.degrees(math.asin(float(np.clip(d[2], -1.0, 1.0))))
+    env = f"{head}:" + ",".join([*kept, f"sun_az={az:.9g}", f"sun_el={el:.9g}"])
+    return dataclasses.replace(config, env=env)
+
+
+class Relight:
+    """A lattice on screen baked again for a turned light (`relit_config`).
+
+    The bake traces into `fresh`, a lattice of its own (means, sample counts, second
+    moments and previews, all under the new light), and `publish` copies a texel's whole
+    state from it into the lattice on screen, `shown`, once it rests on enough paths
+    (`RELIGHT_PATHS`). Until then the display keeps the old light's value, and no texel's
+    mean ever averages paths traced under two lights. A published texel follows `fresh`
+    from then on (each `publish` of it copies it again).
+
+    Args:
+        shown: the lattice the display reads (the viewer's shared memory); its `active`
+            mask is shared with `fresh`.
+        config: the bake's config under the turned light.
+
+    Attributes:
+        fresh: the new light's lattice (what a `baking.bake.Baker` and a
+            `baking.preview.Previewer` write into).
+        published: (Z·Y·X,) bool, texels whose new estimate is on screen.
+        direction: (3,) unit vector towards the turned light.
+    """
+
+    def __init__(self, shown: Lattice, config) -> None:
+        shape, channels = shown.samples.shape, shown.values.shape[-1]
+        previews = shown.preview is not None
+        # np.zeros: untouched pages cost no memory, and only the texels near the displayed
+        # surface are ever written
+        self.fresh = Lattice(
+            shown.geometry, np.zeros((*shape, channels), np.float32),
+            np.zeros(shape, np.uint32), np.zeros(shape, np.float32), shown.active,
+            {**shown.meta, "config": config.to_dict()},
+            preview=np.zeros((*shape, channels), np.float32) if previews else None,
+            preview_paths=np.zeros(shape, np.uint16) if previews else None)
+        self.shown, self.config = shown, config
+        self.published = np.zeros(shown.samples.size, bool)
+        self.direction = turned_light(config)
+
+    def needed(self, flat: np.ndarray) -> np.ndarray:
+        """(K,) paths a new estimate of the texels `flat` (K,) needs to replace what the
+        display shows of them now: `RELIGHT_PATHS`, or fewer when the old value rests on
+        fewer (at least 1: a texel showing nothing shows any new estimate)."""
+        old = _paths_behind(self.shown, flat)
+        return np.maximum(np.minimum(old, RELIGHT_PATHS), 1)
+
+    def publish(self, flat: np.ndarray) -> np.ndarray:
+        """Put the new estimates of the texels `flat` (K,) on screen where they rest on
+        enough paths (`needed`), or were published before; returns the (J,) flat ids
+        copied (to be re-uploaded)."""
+        flat = np.unique(np.asarray(flat, np.int64))
+        if len(flat) == 0:
+            return flat
+        ready = self.published[flat] | (_paths_behind(self.fresh, flat) >= self.needed(flat))
+        out = flat[ready]
+        fresh, shown = self.fresh, self.shown
+        channels = shown.values.shape[-1]
+        shown.values.reshape(-1, channels)[out] = fresh.values.reshape(-1, channels)[out]
+        shown.second.reshape(-1)[out] = fresh.second.reshape(-1)[out]
+        if shown.preview is not None:
+            shown.preview.reshape(-1, channels)[out] = fresh.preview.reshape(-1, channels)[out]
+            shown.preview_paths.reshape(-1)[out] = fresh.preview_paths.reshape(-1)[out]
+        shown.samples.reshape(-1)[out] = fresh.samples.reshape(-1)[out]
+        self.published[out] = True
+        return out
+
+    def forward(self, send: Callable[[tuple], None]) -> Callable[[tuple], None]:
+        """A `serve` ``send`` that publishes the texels of each ``("texels", flat)``
+        message (committed into `fresh`) and passes on those put on screen; other
+        messages go to `send` unchanged."""
+        def relay(message: tuple) -> None:
+            if message[0] != "texels":
+                send(message)
+                return
+            shown = self.publish(message[1])
+            if len(shown):
+                send(("texels", shown))
+
+        return relay
+
+    def status(self, scheduler: LazyScheduler) -> dict:
+        """How far the view of `scheduler` (which bakes `fresh`) is on screen under the new
+        light: counts of its visible and surface texels, and of those published."""
+        ids = scheduler.plan.ids
+        visible, surface = ids[scheduler.visible], ids[scheduler.surface]
+        return {"direction": [float(v) for v in self.direction], "iso": scheduler.iso,
+                "visible": len(visible), "visible_done": int(self.published[visible].sum()),
+                "surface": len(surface), "surface_done": int(self.published[surface].sum())}
+
+
+def _paths_behind(lattice: Lattice, flat: np.ndarray) -> np.ndarray:
+    """(K,) int64 paths behind what a display shows of the texels `flat` (K,): the more
+    of its own samples and its preview's paths."""
+    paths = lattice.samples.reshape(-1)[flat].astype(np.int64)
+    if lattice.preview_paths is not None:
+        paths = np.maximum(paths, lattice.preview_paths.reshape(-1)[flat])
+    return paths
 
 
 # -- geometry of the texels the display needs ---------------------------------------------
@@ -388,11 +549,15 @@ class View:
         iso: displayed isovalue.
         eye: (3,) world eye position.
         visible: (K,) flat base ids of the lattice cells under visible pixels, or None.
+        light: (3,) unit vector towards the light the display turns (`turned_light`:
+            the first directional light, else the sky's sun) as it shades it per pixel;
+            None: no opinion (the bake keeps its light).
     """
 
     iso: float
     eye: tuple[float, float, float]
     visible: np.ndarray | None = None
+    light: tuple[float, float, float] | None = None
 
 
 @dataclass
