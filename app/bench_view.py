@@ -51,6 +51,9 @@ def add_frames_arguments(parser) -> None:
     parser.add_argument("--size", default="512x512", help="WxH pixels")
     parser.add_argument("--gl", default="egl", choices=["egl", "osmesa", "auto"])
     parser.add_argument("--frames", type=int, default=20, help="timed frames per mode")
+    parser.add_argument("--rounds", type=int, default=4,
+                        help="rounds the frames are split into, every mode once per round "
+                        "(interleaved: a change in the machine's load touches all modes alike)")
     parser.add_argument("--json", help="also write the figures to this JSON file")
 
 
@@ -87,34 +90,53 @@ def _variants(mode: str) -> list[tuple[str, tuple | None]]:
     return [(mode, None), (DIRECT_MODE, pixel_lights("sky:sun=3", ()))]
 
 
-def _time_mode(renderer, ctx, camera, settings, frames: int) -> list[float]:
-    """Milliseconds per frame (draw, tone map, finish) after 3 warm-up frames."""
-    for _ in range(3):
-        renderer.resolve(renderer.draw_hdr(camera, settings), settings)
+def _time_mode(renderer, ctx, camera, settings, frames: int) -> tuple[list, list]:
+    """Wall and CPU milliseconds of `frames` frames (draw, tone map, finish) after one
+    warm-up frame. CPU time is the process's (llvmpipe's threads included): on a machine
+    shared with other jobs it moves less than wall time."""
+    renderer.resolve(renderer.draw_hdr(camera, settings), settings)
     ctx.finish()
-    out = []
+    wall, cpu = [], []
     for _ in range(frames):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         renderer.resolve(renderer.draw_hdr(camera, settings), settings)
         ctx.finish()
-        out.append(1000 * (time.perf_counter() - t0))
-    return out
+        wall.append(1000 * (time.perf_counter() - t0))
+        cpu.append(1000 * (time.process_time() - c0))
+    return wall, cpu
+
+
+def _jobs(preview: bool) -> list[tuple[str, str, str | None, tuple | None]]:
+    """(label, mode, lattice needed: None, "irr" or "sh", per-pixel lights) to time, grouped
+    by the lattice they need (one upload per group and round)."""
+    from .render import SHADING_MODES
+
+    jobs = []
+    for mode, spec in SHADING_MODES.items():
+        if preview and mode not in ("phong_hemi", "irradiance"):
+            continue
+        needs = "sh" if spec.lattice == "sh" else spec.lattice and "irr"
+        jobs += [(label, mode, needs, direct) for label, direct in _variants(mode)]
+    order = {None: 0, "irr": 1, "sh": 2}
+    return sorted(jobs, key=lambda job: order[job[2]])
 
 
 def frame_times(volume, iso: float, size: tuple[int, int], frames: int = 20,
-                backend: str = "egl") -> dict:
-    """Frame times of every shading mode (and the preview mesh) in one headless context.
+                backend: str = "egl", rounds: int = 4) -> dict:
+    """Frame times of every shading mode (and the preview mesh) in one headless context,
+    the frames of each mode split over `rounds` interleaved rounds.
 
     Returns:
-        {"renderer", "triangles", "modes": {mode: {"ms", "ms_min", "fps"}}, "ratios",
-        "preview": {...}} — ratios of the GI modes to phong_hemi and phong_shadow.
+        {"renderer", "triangles", "modes": {mode: {"ms", "ms_min", "fps", "cpu_ms"}},
+        "ratios", "cpu_ratios", "preview": {...}} — medians, and their ratios of the GI
+        modes to phong_hemi and phong_shadow (wall and CPU time).
     """
     import volumes
     from baking.lattice import LatticeGeometry
     from baking.plan import texel_values
 
     from .glcontext import create_headless
-    from .render import SHADING_MODES, RenderSettings, SurfaceRenderer, default_camera
+    from .render import RenderSettings, SurfaceRenderer, default_camera
 
     mesh = volumes.isosurface(volume, iso)
     rho = texel_values(volume, LatticeGeometry.for_volume(volume, 1.0))
@@ -123,40 +145,43 @@ def frame_times(volume, iso: float, size: tuple[int, int], frames: int = 20,
     gl = create_headless(backend)
     result = {"renderer": gl.ctx.info["GL_RENDERER"], "size": list(size),
               "triangles": len(mesh.faces), "preview_triangles": len(preview.faces),
-              "modes": {}, "preview": {}}
+              "rounds": rounds, "modes": {}, "preview": {}}
+    per_round = max(1, -(-frames // rounds))
     try:
         renderer = SurfaceRenderer(gl.ctx)
         camera = default_camera(volume)
         renderer.set_bounds(*volume.box)
-        lattices = {None: None, "sh": sh}
         for name, m in [("full", mesh), ("preview", preview)]:
             renderer.set_mesh(m.vertices, m.normals, m.faces, iso=iso)
-            shown = "unset"
-            for mode, spec in SHADING_MODES.items():
-                if name == "preview" and mode not in ("phong_hemi", "irradiance"):
-                    continue
-                needs = spec.lattice if spec.lattice in lattices else spec.lattice and "irr"
-                if needs != shown:
-                    if needs == "irr":
-                        renderer.set_lattice(irr, rho)
-                    else:
-                        renderer.set_lattice(lattices[needs])
-                    shown = needs
-                if needs == "sh":
-                    env = np.zeros((25, 3))
-                    env[0] = np.sqrt(4 * np.pi)  # a white sky
-                    renderer.set_environment(env)
-                key = "modes" if name == "full" else "preview"
-                for label, direct in _variants(mode):
+            key = "modes" if name == "full" else "preview"
+            times = {}
+            for _ in range(rounds):
+                shown = "unset"
+                for label, mode, needs, direct in _jobs(name == "preview"):
+                    if needs != shown:
+                        if needs == "sh":
+                            renderer.set_lattice(sh)
+                            env = np.zeros((25, 3))
+                            env[0] = np.sqrt(4 * np.pi)  # a white sky
+                            renderer.set_environment(env)
+                        else:
+                            renderer.set_lattice(irr if needs == "irr" else None, rho)
+                        shown = needs
                     settings = RenderSettings(size=size, shading=mode, direct_lights=direct)
-                    ms = _time_mode(renderer, gl.ctx, camera, settings, frames)
-                    result[key][label] = {"ms": float(np.median(ms)), "ms_min": float(min(ms)),
-                                          "fps": 1000.0 / float(np.median(ms))}
+                    wall, cpu = _time_mode(renderer, gl.ctx, camera, settings, per_round)
+                    times.setdefault(label, ([], []))
+                    times[label][0].extend(wall)
+                    times[label][1].extend(cpu)
+            for label, (wall, cpu) in times.items():
+                result[key][label] = {"ms": float(np.median(wall)), "ms_min": float(min(wall)),
+                                      "fps": 1000.0 / float(np.median(wall)),
+                                      "cpu_ms": float(np.median(cpu))}
         renderer.release()
     finally:
         gl.release()
     modes = result["modes"]
-    result["ratios"] = {f"{gi}/{local}": modes[gi]["ms"] / modes[local]["ms"]
+    for name, field in (("ratios", "ms"), ("cpu_ratios", "cpu_ms")):
+        result[name] = {f"{gi}/{local}": modes[gi][field] / modes[local][field]
                         for gi in ("irradiance", DIRECT_MODE, "sh") if gi in modes
                         for local in ("phong_hemi", "phong_shadow") if local in modes}
     return result
@@ -171,15 +196,17 @@ def frames(args) -> int:
     volume = volumes.load(args.volume or _default_volume())
     iso = _isovalue(volume, args.iso)
     size = _size(args.size)
-    r = frame_times(volume, iso, size, args.frames, args.gl)
+    r = frame_times(volume, iso, size, args.frames, args.gl, args.rounds)
     print(f"frame times: {volume.name} at iso {iso:.6g}, {r['triangles']:,} triangles "
-          f"(preview {r['preview_triangles']:,}), {size[0]}x{size[1]}, {r['renderer']}")
+          f"(preview {r['preview_triangles']:,}), {size[0]}x{size[1]}, {r['renderer']}; "
+          f"medians of {args.frames} frames in {args.rounds} interleaved rounds")
     for mode, f in r["modes"].items():
-        print(f"  {mode:20s} {f['ms']:8.1f} ms  {f['fps']:6.1f} fps")
+        print(f"  {mode:20s} {f['ms']:8.1f} ms  {f['fps']:6.1f} fps  (CPU {f['cpu_ms']:.1f} ms)")
     for mode, f in r["preview"].items():
-        print(f"  {mode + ' (preview)':20s} {f['ms']:8.1f} ms  {f['fps']:6.1f} fps")
+        print(f"  {mode + ' (preview)':20s} {f['ms']:8.1f} ms  {f['fps']:6.1f} fps  "
+              f"(CPU {f['cpu_ms']:.1f} ms)")
     for name, ratio in r["ratios"].items():
-        print(f"  ratio {name}: {ratio:.2f}")
+        print(f"  ratio {name}: {ratio:.2f} (CPU time {r['cpu_ratios'][name]:.2f})")
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=1))
     return 0

@@ -382,6 +382,54 @@ def test_point_light_shadow_matches_ray_cast_visibility(renderer):
     assert wrong.mean() < 0.01  # the shadow's edge pixels only
 
 
+@pytest.mark.parametrize("towards", [(0.3, -0.5, 0.8), (0.2, -0.8, -0.5)])
+def test_deferred_pass_keeps_the_normals_a_sphere_follows_the_cosine_law(renderer, towards):
+    """The lattice and the lights are shaded from the G-buffer (octahedral normals): on a
+    sphere under a lattice of constant E and a directional light, every surface pixel shows
+    albedo (E + E_l max(n.l, 0)) / pi with n the sphere's normal there, lit from above and
+    from below (both halves of the octahedral map), in all four quadrants of the view."""
+    light = DirectionalLight(towards, (2.0, 1.5, 1.0))
+    towards_light = np.asarray(light.direction)
+    renderer.set_mesh(*_merge(_sphere((0, 0, 0), 1.0, 96, 192)))
+    lo, hi = np.full(3, -1.2), np.full(3, 1.2)
+    renderer.set_bounds(lo, hi)
+    lattice = _zero_lattice(lo, hi)
+    lattice.values[...] = 0.3
+    renderer.set_lattice(lattice)
+    camera = Camera(azimuth=35, elevation=0, distance=1.5, target=(0, 0, 0), scale=2.4)
+    base = RenderSettings(size=(128, 128), tonemap="clamp", albedo=(0.8, 0.7, 0.6))
+    points, mask = _render(renderer, camera, dataclasses.replace(base, shading="position"))
+    shown, shown_mask = _render(renderer, camera, dataclasses.replace(
+        base, shading="irradiance", direct_lights=(light,)))
+    assert (mask == shown_mask).all() and mask.mean() > 0.3
+    n = points[mask] / np.linalg.norm(points[mask], axis=1, keepdims=True)
+    cosine = n @ towards_light
+    want = np.asarray(base.albedo) * (0.3 + np.asarray(light.irradiance)
+                                      * np.maximum(cosine, 0)[:, None]) / np.pi
+    # away from the terminator, where the shadow map's own edge lies; elsewhere the mesh's
+    # interpolated normals differ from the sphere's by < 1e-3 (96 x 192 facets)
+    lit, dark = cosine > 0.15, cosine < -0.05
+    np.testing.assert_allclose(shown[mask][lit | dark], want[lit | dark], rtol=3e-3)
+    for side in (n[:, 2] > 0.4, n[:, 2] < -0.4):  # both halves of the octahedral map
+        assert (lit & side).sum() > 100
+    assert dark.sum() > 100
+
+
+def test_bench_frames_times_the_sun_per_pixel_beside_phong_shadow():
+    """`isolume bench frames` times irradiance with the sun per pixel in the same
+    interleaved rounds as the local modes and reports its ratios (wall and CPU time)."""
+    from app.bench_view import DIRECT_MODE, frame_times
+
+    vol = volumes.load("synthetic:sphere:16")
+    r = frame_times(vol, 0.5, (32, 32), frames=2, backend="osmesa", rounds=2)
+    assert r["rounds"] == 2 and {"phong_shadow", "irradiance", DIRECT_MODE} <= set(r["modes"])
+    for f in r["modes"].values():
+        assert f["ms"] > 0 and f["cpu_ms"] > 0
+    assert r["cpu_ratios"][f"{DIRECT_MODE}/phong_shadow"] > 0
+    assert r["ratios"][f"{DIRECT_MODE}/phong_shadow"] == pytest.approx(
+        r["modes"][DIRECT_MODE]["ms"] / r["modes"]["phong_shadow"]["ms"])
+
+
 # -- the renderer reads the lattice's setting ---------------------------------------------
 def test_lattice_direct_lights_follow_the_bake_setting():
     config = BakeConfig(env="sky:sun=3", lights=("dir:0,0,1:1,1,1",))
