@@ -79,9 +79,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--script", metavar="FILE",
                         help="commands, one per line: iso V | orbit DAZ DEL | zoom F | "
                         "pan DX DY | reset | mode NAME | light AZ EL | light camera | "
-                        "exposure X | wait-mesh [T] | wait-bake FRACTION [T] | frames N | "
-                        "sleep S | screenshot FILE | window-shot FILE | save-lattice [FILE] "
-                        "| check-lattice | quit")
+                        "exposure X | wait-mesh [T] | wait-bake FRACTION [T] | "
+                        "wait-light FRACTION [T] | frames N | sleep S | screenshot FILE | "
+                        "window-shot FILE | save-lattice [FILE] | check-lattice | quit")
     parser.add_argument("--stats", metavar="FILE.json",
                         help="write frame times, extraction and bake figures on exit")
     parser.add_argument("--no-bake", action="store_true",
@@ -647,12 +647,11 @@ class Viewer:
     def save_lattice(self, path: str | os.PathLike | None = None) -> Path | None:
         """Write the lattice being shown/baked to `path` (default: --lattice, else
         isolume-NAME.npz)."""
-        lattice = self.shared.snapshot() if self.shared is not None else None
-        if lattice is None:
+        if self.shared is None:
             self.message = "no lazily baked lattice to save"
             return None
-        if self.bake is not None and self.bake.ready is not None:
-            lattice.meta.update(self.bake.ready["meta"])
+        lattice = (self.bake.snapshot(self.shared) if self.bake is not None
+                   else self.shared.snapshot())
         path = Path(path or self.options.lattice_path or f"isolume-{self.volume.name}.npz")
         lattice.save(path)
         done = int((lattice.samples > 0).sum())
@@ -675,6 +674,19 @@ class Viewer:
             raise ViewerError("no lazy bake is running (--no-bake, or the lattice is "
                               "complete)")
         return self.bake.near_fraction(self.state.iso), self.bake.error
+
+    def relit_progress(self) -> tuple[float | None, str | None]:
+        """(share of the visible texels showing the bounced light of the light as turned
+        now, None before the bake reports on it; the bake's error or None).
+
+        Raises:
+            ViewerError: no lazy bake runs, or no light is shaded per pixel.
+        """
+        turned = self.drawing.turned_light(self.state)
+        if self.bake is None or turned is None:
+            raise ViewerError("no lazy bake of a per-pixel sun or light to wait for "
+                              "(mode irradiance with a lazily baked lattice)")
+        return self.bake.relit_fraction(turned[1]), self.bake.error
 
     def hold_bake(self, held: bool) -> None:
         """Pause (True) or resume the lazy bake, if one runs; `bake_held` says when the
@@ -847,7 +859,9 @@ class Viewer:
         """Tell the bake process what is on screen once the view has settled."""
         if self.bake is None or self.mesh_iso != self.state.iso or self.mesh_stage is None:
             return
-        key = (self.state.iso, self.camera, self.mesh_stage == "full")
+        turned = self.drawing.turned_light(self.state)  # its bounced light follows it
+        key = (self.state.iso, self.camera, self.mesh_stage == "full",
+               None if turned is None else turned[1])
         now = time.perf_counter()
         if key != self.view_seen:  # the view changed: wait until it holds still
             self.view_seen, self.view_since = key, now
@@ -859,7 +873,7 @@ class Viewer:
         points = self.drawing.visible_points(self.camera, self.state, self._frame_size())
         cells = visible_cells(self.shared.lattice.geometry, points)
         self.bake.send_view(View(self.state.iso, tuple(float(v) for v in self.camera.eye),
-                                 cells))
+                                 cells, key[3]))
         self.view_sent = key
 
     # -- panel ---------------------------------------------------------------------------
@@ -871,7 +885,8 @@ class Viewer:
         if self.state.shading == "sh":
             light_note = "The light controls rotate the environment (SH transfer)."
         elif self.drawing.light_note(self.state) is not None:  # sun/lights per pixel
-            light_note = self.drawing.light_note(self.state)
+            light_note = self._relit_line() or self.drawing.light_note(
+                self.state, rebakes=self.bake is not None)
         elif self.state.shading in self._lattice_modes():
             light_note = ("The light is baked into the lattice (fixed); rotating it moves "
                           "only the fallback light of texels not computed yet.")
@@ -887,6 +902,14 @@ class Viewer:
             can_bake=self.bake is not None, can_save=self.shared is not None,
             frame_ms=self.clock.mean_ms, size=self._frame_size(), message=self.message,
         )
+
+    def _relit_line(self) -> str | None:
+        """The lazy bake's progress on the bounced light of the light as turned (None
+        before it starts on it)."""
+        turned = self.drawing.turned_light(self.state)
+        if self.bake is None or turned is None:
+            return None
+        return self.bake.relit_line(turned[1], turned[0])
 
     def _bake_status(self) -> tuple[tuple[float, float] | None, tuple[str, ...]]:
         if self.bake is None:
@@ -908,6 +931,8 @@ class Viewer:
                     "progress": asdict(p) if p is not None else None,
                     "previews": [{"at_s": at, **f} for at, f in self.bake.previews],
                     "stats": self.bake.stats, "error": self.bake.error,
+                    "turns": [{k: v for k, v in t.items() if k != "sent"}
+                              for t in self.bake.turns],
                     "blocks_uploaded": uploader.uploaded if uploader else 0}
         cam = self.camera
         state = asdict(self.state) | {"camera": {

@@ -29,15 +29,17 @@ class SharedLattice:
     reads them for upload and saving.
     """
 
-    def __init__(self, lattice, blocks: list, owner: bool) -> None:
+    def __init__(self, lattice, blocks: list, owner: bool, relit: np.ndarray) -> None:
         self.lattice, self.blocks, self.owner = lattice, blocks, owner
+        self.relit = relit  # (Z, Y, X) bool: texels showing the turned light's bake
 
     @staticmethod
     def _layout(geometry, channels: int) -> dict[str, tuple[tuple, str]]:
         shape = tuple(geometry.shape)
         return {"values": ((*shape, channels), "float32"), "samples": (shape, "uint32"),
                 "second": (shape, "float32"), "active": (shape, "bool"),
-                "preview": ((*shape, channels), "float32"), "preview_paths": (shape, "uint16")}
+                "preview": ((*shape, channels), "float32"), "preview_paths": (shape, "uint16"),
+                "relit": (shape, "bool")}
 
     @classmethod
     def create(cls, geometry, channels: int, meta: dict, source=None) -> SharedLattice:
@@ -52,13 +54,13 @@ class SharedLattice:
             block = shared_memory.SharedMemory(create=True, size=size)
             blocks.append(block)
             arr = np.ndarray(shape, dtype, buffer=block.buf)
-            copied = None if source is None else getattr(source, name)
+            copied = None if source is None else getattr(source, name, None)
             arr[...] = 0 if copied is None else copied
             arrays[name] = arr
         lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
                           arrays["active"], dict(meta), preview=arrays["preview"],
                           preview_paths=arrays["preview_paths"])
-        return cls(lattice, blocks, owner=True)
+        return cls(lattice, blocks, owner=True, relit=arrays["relit"])
 
     def describe(self) -> dict:
         """What `attach` needs (picklable)."""
@@ -88,21 +90,25 @@ class SharedLattice:
         lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
                           arrays["active"], dict(description["meta"]),
                           preview=arrays["preview"], preview_paths=arrays["preview_paths"])
-        return cls(lattice, blocks, owner=False)
+        return cls(lattice, blocks, owner=False, relit=arrays["relit"])
 
-    def snapshot(self):
-        """A private copy of the lattice (for saving while the bake goes on)."""
+    def snapshot(self, relit: bool = False):
+        """A private copy of the lattice (for saving while the bake goes on); `relit`:
+        only the texels baked under the turned light (`relit`), the others as not
+        computed (a lattice file holds one light)."""
         from baking.lattice import Lattice
 
         lat = self.lattice
         samples = lat.samples.copy()
+        if relit:
+            samples[~self.relit] = 0
         values = np.where(samples[..., None] > 0, lat.values, 0).astype(np.float32)
         return Lattice(lat.geometry, values, samples, lat.second.copy(), lat.active.copy(),
                        json.loads(json.dumps(lat.meta)))
 
     def close(self) -> None:
         """Drop the arrays and release (and, as owner, unlink) the blocks."""
-        self.lattice = None
+        self.lattice = self.relit = None
         for block in self.blocks:
             try:
                 block.close()
@@ -157,24 +163,35 @@ def _bake_main(job: dict, inbox, outbox) -> None:
 
 
 class _BakeProcess:
-    """The lazy bake's side of the link (runs in the spawned process)."""
+    """The lazy bake's side of the link (runs in the spawned process).
+
+    A turned light (a `baking.lazy.View` whose ``light`` differs from the one baked) makes
+    the bake go on under the new light into a lattice of its own (`baking.lazy.Relight`),
+    keeping the plan and the level scenes: its previews and rounds follow the same order
+    (visible texels, then the rest of the surface), and each texel's new estimate replaces
+    the old one on screen once it rests on enough paths. Turning again drops that work and
+    starts over for the last direction."""
 
     def __init__(self, job: dict, inbox, outbox) -> None:
         import multiprocessing
 
         from baking.config import BakeConfig
+        from baking.lazy import turned_light
         from baking.preview import Previewer
 
         self.job, self.inbox, self.outbox = job, inbox, outbox
         self.shared = SharedLattice.attach(job["lattice"])
         self.volume = volumes.Volume(**job["volume"])
-        self.config = BakeConfig.from_dict(job["config"])
+        self.config = BakeConfig.from_dict(job["config"])  # the light and range baked now
         self.parent = multiprocessing.parent_process()
         self.workers = job["workers"] or os.cpu_count() or 1
         self.previewer = Previewer(self.volume, self.config, self.shared.lattice,
                                    self.workers)
         self.lit = None  # the last view given its first preview pass (held: not an id)
         self.waiting: list = []  # messages for `serve`, in order
+        self.light = turned_light(self.config)  # None: nothing a viewer can turn
+        self.relight = None  # the `baking.lazy.Relight` of the last turn, if any
+        self.scheduler = None  # of the loop running now
 
     def receive(self, block: bool):
         """The next message (waiting for one if `block`); None when none is waiting and
@@ -196,6 +213,31 @@ class _BakeProcess:
                 return "stop"
             return None
 
+    def turned(self, view) -> bool:
+        """Whether `view` shows the light turned away from the one baked now."""
+        from baking.lazy import same_direction
+
+        return (view.light is not None and self.light is not None
+                and not same_direction(view.light, self.light))
+
+    def turn(self, view) -> None:
+        """Bake under the light of `view` from now on if it was turned: a new
+        `baking.lazy.Relight` (the work of an earlier turn is dropped), previews traced
+        again under the new light."""
+        from baking.lazy import Relight, relit_config
+        from baking.preview import Previewer
+
+        if not self.turned(view):
+            return
+        self.config = relit_config(self.config, view.light)
+        self.relight = Relight(self.shared.lattice, self.config, self.shared.relit)
+        only_active = self.previewer.only_active
+        self.previewer = Previewer(self.volume, self.config, self.relight.fresh, self.workers)
+        self.previewer.only_active = only_active
+        self.light, self.lit = self.relight.direction, None
+        self.outbox.put(("relight", {"direction": [float(v) for v in self.light],
+                                     "config": self.config.to_dict()}))
+
     def first_light(self, view) -> None:
         """The first preview pass of `view` (a few paths per visible texel, traced on its
         displayed surface); the others follow through `preview_step`."""
@@ -213,10 +255,32 @@ class _BakeProcess:
 
     def _announce(self, flat: np.ndarray) -> None:
         """Tell the viewer which texels changed, and which preview passes finished."""
-        if len(flat):
-            self.outbox.put(("texels", flat))
+        self._texels(flat)
         while self.previewer.done:
             self.outbox.put(("preview", self.previewer.done.pop(0)))
+        self._relit_status()
+
+    def _texels(self, flat: np.ndarray) -> None:
+        """Announce the texels `flat` changed in the lattice baked now (under a turned
+        light: those of them put on screen, `Relight.publish`)."""
+        if self.relight is not None:
+            flat = self.relight.publish(flat)
+        if len(flat):
+            self.outbox.put(("texels", flat))
+
+    def _send(self, message: tuple) -> None:
+        """`serve`'s messages to the viewer (texels through `_texels`)."""
+        if message[0] == "texels":
+            self._texels(message[1])
+            return
+        self.outbox.put(message)
+        if message[0] == "progress":
+            self._relit_status()
+
+    def _relit_status(self) -> None:
+        """How far the view is on screen under the turned light, as ``("relit", dict)``."""
+        if self.relight is not None and self.scheduler is not None:
+            self.outbox.put(("relit", self.relight.status(self.scheduler)))
 
     def _keep(self, message) -> bool:
         """Queue `message` for `serve`, lighting views at once; False on "stop"."""
@@ -225,6 +289,7 @@ class _BakeProcess:
         if message == "stop":
             return False
         if isinstance(message, View):
+            self.turn(message)
             self.first_light(message)
         self.waiting.append(message)
         return True
@@ -274,27 +339,53 @@ class _BakeProcess:
                 return
             message = self.receive(True)
         self._keep(message)
-        config, old_plan = self.config, None
+        old_plan = None
         if self.job["follow_iso"]:  # a fresh lattice: bake for the isovalues around the view
-            config = dataclasses.replace(config, iso_range=view_iso_range(self.volume,
-                                                                          message.iso))
+            self.config = dataclasses.replace(
+                self.config, iso_range=view_iso_range(self.volume, message.iso))
         while True:
-            plan = self._serve(config, old_plan)
+            plan = self._serve(old_plan)
             if plan is None:
                 return
             outside = self.waiting[0]  # the view the plan does not serve
+            self.turn(outside)
             self.first_light(outside)  # its previews go on while the new plan is made
-            config = dataclasses.replace(config, iso_range=view_iso_range(self.volume,
-                                                                          outside.iso))
+            self.config = dataclasses.replace(
+                self.config, iso_range=view_iso_range(self.volume, outside.iso))
             old_plan = plan
             self.outbox.put(("replanning", {"iso": outside.iso}))
 
-    def _serve(self, config, old_plan):
-        """Plan for `config` (keeping what the lattice holds for `old_plan` that the new
-        plan can use, `baking.lazy.carry_over`) and bake lazily. Returns the plan when a
-        view outside its iso range ended the loop (that view first in `waiting`), None
-        when told to stop."""
-        from baking.lazy import LazyScheduler, carry_over, serve
+    def _serve(self, old_plan):
+        """Plan for `self.config` (keeping what the lattice holds for `old_plan` that the
+        new plan can use) and bake lazily, under each turned light in turn. Returns the
+        plan when a view outside its iso range ended the loop (that view first in
+        `waiting`), None when told to stop."""
+        baker = self._baker(old_plan)
+        if baker is None:
+            return None
+        try:
+            while True:
+                stats = self._serve_light(baker)
+                if stats.outside is None:
+                    return None
+                self.waiting.insert(0, stats.outside)
+                if not self._inside(baker.plan, stats.outside):
+                    return baker.plan
+                self.turn(stats.outside)  # the same plan and level scenes, a new light
+        finally:
+            baker.close()
+
+    def _inside(self, plan, view) -> bool:
+        """Whether `plan` serves the isovalue of `view` (a lattice from a file serves every
+        one: the panel warns outside its range)."""
+        lo, hi = plan.iso_range
+        return not self.job["follow_iso"] or lo <= view.iso <= hi
+
+    def _baker(self, old_plan):
+        """The Baker of `self.config` (`_plan`), the lattice carried over from `old_plan`
+        (`baking.lazy.carry_over`: the baked one and a turned light's), the plan announced
+        as ``("ready", ...)``; None when told to stop."""
+        from baking.lazy import carry_over
         from baking.preview import drop_inactive
 
         t0 = time.perf_counter()
@@ -302,44 +393,55 @@ class _BakeProcess:
         active = lattice.active  # the Baker replaces the lattice's attribute
         if old_plan is not None:  # new levels: the Baker would keep the lattice's
             lattice.meta.pop("plan", None)
-        lattice.meta["config"] = config.to_dict()  # what a saved lattice was baked with
-        made = self._plan(config)
+        lattice.meta["config"] = self.config.to_dict()  # what a saved lattice was baked with
+        made = self._plan(self.config)
         if made is None:
             return None
         baker, cache = made
+        relight = self.relight
         if old_plan is not None:
             reset = carry_over(lattice, old_plan, baker.plan)
+            if relight is not None:  # and the turned light's: published texels follow it
+                carry_over(relight.fresh, old_plan, baker.plan)
+                reset = np.union1d(reset, relight.publish(np.flatnonzero(relight.published)))
             if len(reset):
                 self.outbox.put(("texels", reset))
         active[...] = baker.plan.active
         baker.lattice.active = active
+        if relight is not None:
+            relight.fresh.active = active
         self.previewer.only_active = True
         stale = drop_inactive(lattice)
+        if relight is not None:
+            self._texels(drop_inactive(relight.fresh))
         if len(stale):
             self.outbox.put(("texels", stale))
         self.outbox.put(("ready", {"seconds": time.perf_counter() - t0,
                                    "active": len(baker.plan.ids),
                                    "levels": len(baker.plan.levels),
                                    "scene_cache": cache, "meta": baker.lattice.meta}))
-        scheduler = LazyScheduler(baker.plan, baker.geometry, lattice.samples.reshape(-1),
-                                  max_samples=config.samples,
-                                  batch_paths=self.job["batch_paths"])
-        lo, hi = baker.plan.iso_range
+        return baker
+
+    def _serve_light(self, baker):
+        """`baking.lazy.serve` under the light baked now (into the turned light's lattice
+        after a turn) until told to stop or a view it does not serve (another isovalue
+        range, a turned light) ends it; returns serve's stats."""
+        from baking.lazy import LazyScheduler, serve
+
+        if self.relight is not None and baker.lattice is not self.relight.fresh:
+            baker.relight(self.config, self.relight.fresh)
+        self.scheduler = LazyScheduler(baker.plan, baker.geometry,
+                                       baker.lattice.samples.reshape(-1),
+                                       max_samples=self.config.samples,
+                                       batch_paths=self.job["batch_paths"])
 
         def receive(block: bool):
             return self.waiting.pop(0) if self.waiting else self.receive(block)
 
-        try:
-            stats = serve(baker, scheduler, receive, self.outbox.put,
-                          on_view=self.first_light, before_batch=self.preview_step,
-                          accepts=(lambda view: lo <= view.iso <= hi)
-                          if self.job["follow_iso"] else None)
-        finally:
-            baker.close()
-        if stats.outside is None:
-            return None
-        self.waiting.insert(0, stats.outside)
-        return baker.plan
+        return serve(baker, self.scheduler, receive, self._send, on_view=self.first_light,
+                     before_batch=self.preview_step,
+                     accepts=lambda view: (self._inside(baker.plan, view)
+                                           and not self.turned(view)))
 
 
 def range_warning(meta: dict, iso: float) -> tuple[str, ...]:
@@ -390,8 +492,20 @@ class BakeLink:
         self.warm: dict | None = None  # the process is ready for views (its start-up time)
         self.planning: tuple[float, str] = (self.started, "")  # since when, which stage
         self.replans = 0
+        self.light_sent: tuple | None = None  # the light of the last view sent
+        self.light_baked: tuple | None = None  # that of the first (the lattice's own)
+        self.turns: list[dict] = []  # per turned light: direction, seconds to each stage
+        self.relit: dict | None = None  # the last turned light's progress on screen
+        self.relit_config: dict | None = None  # the config it is baked with
 
     def send_view(self, view) -> None:
+        if view.light is not None and view.light != self.light_sent:
+            if self.light_sent is not None:  # (the first view's light is the baked one)
+                self.turns.append({"direction": list(view.light),
+                                   "sent": time.perf_counter()})
+            else:
+                self.light_baked = view.light
+            self.light_sent = view.light
         self.inbox.put(view)
 
     def pause(self, paused: bool) -> None:
@@ -428,11 +542,78 @@ class BakeLink:
                 self.warm = message[1]
             elif kind == "preview":
                 self.previews.append((time.perf_counter() - self.started, message[1]))
+            elif kind == "relight":  # the bake goes on under a turned light
+                self.relit_config, self.relit = message[1]["config"], None
+                self._turn_event(message[1]["direction"], "started_s")
+            elif kind == "relit":
+                self.relit = message[1]
+                self._turn_progress(message[1])
             elif kind == "error":
                 self.error = message[1]
         if self.error is None and self.ready is None and not self.process.is_alive():
             self.error = f"the bake process ended (exit code {self.process.exitcode})"
         return texels
+
+    def _turn_event(self, direction, stage: str) -> None:
+        """Note the seconds from sending the view with the light turned to `direction`
+        until `stage` (once per stage)."""
+        from baking.lazy import same_direction
+
+        for turn in reversed(self.turns):
+            if same_direction(turn["direction"], direction):
+                turn.setdefault(stage, time.perf_counter() - turn["sent"])
+                return
+
+    def _turn_progress(self, status: dict) -> None:
+        """Note when the visible texels, then the whole surface, show the turned light."""
+        if status["visible"] and status["visible_done"] == status["visible"]:
+            self._turn_event(status["direction"], "visible_s")
+        if status["surface"] and status["surface_done"] == status["surface"]:
+            self._turn_event(status["direction"], "surface_s")
+
+    def relit_fraction(self, direction) -> float | None:
+        """Share of the visible texels (of the surface texels when none is known) that
+        show the bake under the light turned to `direction` (3,); None when the bake
+        reports no progress under that light."""
+        from baking.lazy import same_direction
+
+        r = self.relit
+        if r is None or not same_direction(r["direction"], direction):
+            return None
+        if r["visible"]:
+            return r["visible_done"] / r["visible"]
+        return r["surface_done"] / r["surface"] if r["surface"] else None
+
+    def relit_line(self, direction, name: str) -> str | None:
+        """The panel's line on the bounced light of the `name` ("sun", "light") turned to
+        `direction` (3,), or None when the bake has not started on that light."""
+        from baking.lazy import same_direction
+
+        r = self.relit
+        if self.light_sent is None or not same_direction(self.light_sent, direction):
+            return None  # not sent yet (the light is moving)
+        if self.relit_config is None and same_direction(self.light_baked, direction):
+            return None  # never turned
+        if r is None or not same_direction(r["direction"], direction):
+            return f"Bounced light: re-baking for the turned {name}..."
+        if r["visible"] and r["visible_done"] < r["visible"]:
+            return (f"Bounced light: re-baking for the turned {name}, "
+                    f"{100 * r['visible_done'] / r['visible']:.0f} % of the visible texels")
+        if r["surface_done"] < r["surface"]:
+            return (f"Bounced light: up to date with the turned {name} where visible; "
+                    f"{100 * r['surface_done'] / r['surface']:.0f} % of the surface")
+        return f"Bounced light: up to date with the turned {name}."
+
+    def snapshot(self, shared: SharedLattice):
+        """A copy of `shared` to save, with the bake's metadata: after a turn, only the
+        texels baked under the turned light, with its config (a file holds one light)."""
+        relit = self.relit_config is not None
+        lattice = shared.snapshot(relit=relit)
+        if self.ready is not None:
+            lattice.meta.update(self.ready["meta"])
+        if relit:
+            lattice.meta["config"] = self.relit_config
+        return lattice
 
     def near_fraction(self, iso: float) -> float | None:
         """Fraction of the texels near the surface at `iso` that have an estimate (None:

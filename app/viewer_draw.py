@@ -346,9 +346,10 @@ class Drawing:
             return None
         return aimed_lights(lights, direction_from_angles(*state.light))
 
-    def light_note(self, state: ViewState) -> str | None:
+    def light_note(self, state: ViewState, rebakes: bool = False) -> str | None:
         """What the light controls do to a lattice whose sun or lights are shaded per
-        pixel, and whether its indirect light is stale; None for other lattices."""
+        pixel, and whether its indirect light is stale; None for other lattices.
+        `rebakes`: a lazy bake re-bakes the bounced light of a turned light."""
         from .render import LATTICE_MODES, first_distant_light
 
         mode = LATTICE_MODES.get(state.shading)
@@ -359,11 +360,31 @@ class Drawing:
         shown = first_distant_light(moved) if moved is not None else baked
         turn = math.degrees(math.acos(float(np.clip(
             np.dot(shown.direction, baked.direction), -1.0, 1.0))))
+        after = ("re-baked once the light rests" if rebakes else "stays as baked")
         if turn < 0.5:
             return ("The sun and lights are shaded per pixel (exact shadows); turning the "
-                    "light moves them, their bounced light stays as baked.")
+                    f"light moves them, their bounced light is {after}.")
+        until = "re-baked (once the light rests)" if rebakes else "the lattice is baked again"
         return (f"Light turned {turn:.0f}° from the bake: its direct light and shadows are "
-                "exact, its bounced light is stale until the lattice is baked again.")
+                f"exact, its bounced light is stale until {until}.")
+
+    def turned_light(self, state: ViewState) -> tuple[str, tuple[float, float, float]] | None:
+        """("sun" or "light", (3,) unit vector towards it) of the light that the frames of
+        `state` shade per pixel and the user turns (the sun or first directional light of
+        an irradiance lattice, `light_note`): what a lazy bake's bounced light must
+        follow (`baking.lazy.View.light`). None in other modes and for other lattices
+        (an SH transfer turns its sun with itself)."""
+        from baking.lights import SunLight
+
+        from .render import first_distant_light
+
+        if self.light_note(state) is None:
+            return None
+        moved = self._moved_lights(state)
+        light = first_distant_light(moved if moved is not None
+                                    else self.renderer.lattice_lights)
+        name = "sun" if isinstance(light, SunLight) else "light"
+        return name, tuple(float(v) for v in light.direction)
 
     def light_angles(self, state: ViewState, camera) -> tuple[float, float]:
         """The light's (azimuth, elevation) in degrees (from the camera-fixed light if need

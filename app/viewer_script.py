@@ -14,6 +14,8 @@ distances are in units of the volume's diagonal, times are seconds::
     exposure 0.8             # linear exposure multiplier
     wait-mesh [TIMEOUT]      # until the full-resolution surface is on screen
     wait-bake 0.5 [TIMEOUT]  # until 50 % of the texels near the surface have an estimate
+    wait-light 1 [TIMEOUT]   # until 100 % of the visible texels show the bounced light
+                             # of the sun (or light) as turned (a lazy bake re-bakes it)
     frames 5                 # render 5 frames
     sleep 0.5                # keep rendering for 0.5 s
     screenshot out.png       # out.png (sRGB) and out.exr (linear radiance)
@@ -125,6 +127,7 @@ _SPECS: dict[str, _Spec] = {
     "exposure": _Spec((_positive,), (), "exposure VALUE"),
     "wait-mesh": _Spec((), (_positive,), "wait-mesh [TIMEOUT]"),
     "wait-bake": _Spec((_fraction,), (_positive,), "wait-bake FRACTION [TIMEOUT]"),
+    "wait-light": _Spec((_fraction,), (_positive,), "wait-light FRACTION [TIMEOUT]"),
     "frames": _Spec((_count,), (), "frames N"),
     "sleep": _Spec((_positive,), (), "sleep SECONDS"),
     "screenshot": _Spec((_text,), (), "screenshot FILE.png|FILE.exr"),
@@ -252,6 +255,7 @@ class ScriptTarget(Protocol):
     def save_lattice(self, path: str | os.PathLike | None = None) -> Path | None: ...
     def surface_ready(self) -> bool: ...
     def bake_progress(self) -> tuple[float | None, str | None]: ...
+    def relit_progress(self) -> tuple[float | None, str | None]: ...
     def hold_bake(self, held: bool) -> None: ...
     def bake_held(self) -> bool: ...
     def check_lattice(self) -> dict: ...
@@ -343,11 +347,11 @@ class ScriptRunner:
         elif name == "check-lattice":
             self.deadline = now + DEFAULT_TIMEOUT
             viewer.hold_bake(True)  # the lattice stands still while it is compared
-        elif name == "wait-bake":
+        elif name in ("wait-bake", "wait-light"):
             try:
-                viewer.bake_progress()
+                (viewer.bake_progress if name == "wait-bake" else viewer.relit_progress)()
             except ValueError as exc:
-                raise ScriptError(f"wait-bake: {exc}") from None
+                raise ScriptError(f"{name}: {exc}") from None
             self.deadline = now + (args[1] if len(args) > 1 else DEFAULT_TIMEOUT)
 
     def _finished(self, viewer: ScriptTarget) -> bool:
@@ -366,12 +370,14 @@ class ScriptRunner:
             return True
         if name == "wait-mesh":
             return viewer.surface_ready() or self._timeout(now, "the full-resolution surface")
-        if name == "wait-bake":
-            fraction, error = viewer.bake_progress()
+        if name in ("wait-bake", "wait-light"):
+            progress = viewer.bake_progress if name == "wait-bake" else viewer.relit_progress
+            fraction, error = progress()
             if error:
-                raise ScriptError(f"script line {self.current.line}: wait-bake: {error}")
+                raise ScriptError(f"script line {self.current.line}: {name}: {error}")
             done = fraction is not None and fraction >= args[0]
-            what = f"{args[0]:.0%} of the texels near the surface"
+            what = (f"{args[0]:.0%} of the texels near the surface" if name == "wait-bake"
+                    else f"{args[0]:.0%} of the visible texels under the turned light")
             if fraction is not None:
                 what += f" (at {fraction:.0%})"
             return done or self._timeout(now, what)

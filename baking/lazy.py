@@ -173,6 +173,8 @@ class Relight:
         shown: the lattice the display reads (the viewer's shared memory); its `active`
             mask is shared with `fresh`.
         config: the bake's config under the turned light.
+        published: None, or a (Z, Y, X) bool array to keep `published` in (cleared; the
+            viewer's shared memory, so that a saved lattice holds one light's texels).
 
     Attributes:
         fresh: the new light's lattice (what a `baking.bake.Baker` and a
@@ -181,7 +183,7 @@ class Relight:
         direction: (3,) unit vector towards the turned light.
     """
 
-    def __init__(self, shown: Lattice, config) -> None:
+    def __init__(self, shown: Lattice, config, published: np.ndarray | None = None) -> None:
         shape, channels = shown.samples.shape, shown.values.shape[-1]
         previews = shown.preview is not None
         # np.zeros: untouched pages cost no memory, and only the texels near the displayed
@@ -193,7 +195,10 @@ class Relight:
             preview=np.zeros((*shape, channels), np.float32) if previews else None,
             preview_paths=np.zeros(shape, np.uint16) if previews else None)
         self.shown, self.config = shown, config
-        self.published = np.zeros(shown.samples.size, bool)
+        if published is None:
+            published = np.zeros(shape, bool)
+        published[...] = False
+        self.published = published.reshape(-1)
         self.direction = turned_light(config)
 
     def needed(self, flat: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ on enough paths, and never averaged with them."""
 
 import dataclasses
 import math
+import time
 
 import numpy as np
 import pytest
@@ -295,3 +296,115 @@ def _lattice_of(geometry):
     lattice.preview = np.zeros_like(lattice.values)
     lattice.preview_paths = np.zeros(lattice.samples.shape, np.uint16)
     return lattice
+
+
+# -- the viewer's side ----------------------------------------------------------------------
+def _wait(link, done, deadline, what):
+    while not done() and link.error is None and time.monotonic() < deadline:
+        link.poll()
+        time.sleep(0.05)
+    assert link.error is None, link.error
+    assert done(), what
+
+
+def test_the_viewers_lazy_bake_relights_a_turned_sun():
+    """The lazy-bake process (`app.viewer_bake`) of the viewer, sent a view whose sun was
+    turned: it reports the re-bake until every texel around the view shows the new sun's
+    bake — the lattice a bake under that sun gives from scratch, to rounding — and a saved
+    lattice holds only those texels, with the turned sun in its config."""
+    from app.viewer_bake import BakeLink, SharedLattice, lattice_meta
+    from baking.lattice import LatticeGeometry
+    from baking.lazy import view_iso_range, visible_cells
+
+    vol = volumes.load("synthetic:engine:32")
+    config = BakeConfig(samples=16, bounces=1, env=SUN)
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    meta = lattice_meta(vol, config)
+    shared = SharedLattice.create(geometry, meta["channels"], meta)
+    link = BakeLink(vol, config, shared, 2, ISO, follow_iso=True)
+    mesh = volumes.isosurface(vol, ISO)
+    front = mesh.vertices[mesh.vertices[:, 1] < np.median(mesh.vertices[:, 1])]
+    cells = visible_cells(geometry, front)
+    baked, turned = tuple(turned_light(config)), tuple(_unit((0.6, 0.3, 0.5)))
+
+    def finished():
+        p = link.progress
+        return p is not None and p.stage is None and p.iso == ISO
+
+    try:
+        deadline = time.monotonic() + 120
+        link.send_view(View(ISO, EYE, cells, baked))
+        _wait(link, finished, deadline, "the first bake")
+        assert link.relit_config is None and link.relit_line(baked, "sun") is None
+        link.progress = None
+        link.send_view(View(ISO, EYE, cells, turned))
+        assert link.relit_line(turned, "sun").startswith("Bounced light: re-baking")
+        _wait(link, lambda: link.relit_fraction(turned) == 1.0 and finished(), deadline,
+              "the re-bake")
+        status = link.relit
+        assert status["surface_done"] == status["surface"] > 0 and status["visible"] > 0
+        assert link.relit_line(turned, "sun") == "Bounced light: up to date with the turned sun."
+        assert link.relit_line(baked, "sun") is None  # drawn elsewhere: not this bake's
+        (turn,) = link.turns
+        assert 0 < turn["started_s"] <= turn["visible_s"] <= turn["surface_s"]
+        relit = relit_config(dataclasses.replace(config, iso_range=view_iso_range(vol, ISO)),
+                             turned)
+        assert link.relit_config == relit.to_dict()
+        saved = link.snapshot(shared)
+        assert saved.meta["config"] == relit.to_dict()
+        shown = shared.lattice
+        on_screen = shared.relit.reshape(-1)
+        scratch = Baker(vol, relit, workers=2)
+        try:
+            positions = np.searchsorted(scratch.plan.ids, np.flatnonzero(on_screen))
+            assert (scratch.plan.ids[positions] == np.flatnonzero(on_screen)).all()
+            scratch.run(positions, config.samples)
+        finally:
+            scratch.close()
+        ids = np.flatnonzero(on_screen & (shown.samples.reshape(-1) == config.samples))
+        assert len(ids) >= status["surface"]
+        np.testing.assert_allclose(shown.values.reshape(-1, 3)[ids],
+                                   scratch.lattice.values.reshape(-1, 3)[ids], rtol=1e-5,
+                                   atol=1e-6)
+        np.testing.assert_array_equal(saved.samples.reshape(-1)[~on_screen], 0)
+        np.testing.assert_array_equal(saved.samples.reshape(-1)[on_screen],
+                                      shown.samples.reshape(-1)[on_screen])
+    finally:
+        link.stop()
+        shared.close()
+
+
+def test_the_viewer_turns_the_bounced_light_of_irradiance_lattices_only(gl):
+    """What the viewer asks the lazy bake to follow (`Drawing.turned_light`): the sun as
+    drawn per pixel in the irradiance modes of a split lattice; nothing for an SH
+    transfer (its sun turns with the transfer) nor in local shading modes."""
+    from app.ui import direction_from_angles
+    from app.viewer_bake import lattice_meta
+    from app.viewer_draw import Drawing, ViewState
+    from baking.lattice import LatticeGeometry
+
+    vol = volumes.load("synthetic:sphere:16")
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    drawing = Drawing(gl, vol)
+    try:
+        for mode, config in (("irradiance", BakeConfig(env=SUN)),
+                             ("sh", BakeConfig(mode="sh", sh_order=3, env=SUN,
+                                               direct_light="pixels"))):
+            meta = lattice_meta(vol, config)
+            assert drawing.show_lattice(Lattice.empty(geometry, meta["channels"], meta)) is None
+            state = ViewState(0.5, mode, 1.0)
+            if mode == "sh":
+                assert drawing.turned_light(state) is None
+                state.light = (30.0, 20.0)
+                assert drawing.turned_light(state) is None
+                continue
+            name, baked = drawing.turned_light(state)
+            np.testing.assert_allclose(baked, turned_light(config), atol=1e-9)
+            state.light = (30.0, 20.0)
+            name, turned = drawing.turned_light(state)
+            assert name == "sun"
+            np.testing.assert_allclose(turned, direction_from_angles(30.0, 20.0), atol=1e-9)
+            assert drawing.turned_light(ViewState(0.5, "phong_hemi", 1.0, (30.0, 20.0))) is None
+    finally:
+        drawing.release()
+    assert gl.error == "GL_NO_ERROR"

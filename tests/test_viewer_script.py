@@ -31,6 +31,7 @@ wait-mesh
 wait-mesh 5
 wait-bake 0.5
 wait-bake 1 30
+wait-light 1 30
 frames 5
 sleep 0.25
 screenshot "out dir/shot.png"   # quoted paths may hold spaces
@@ -59,6 +60,7 @@ def test_every_command_parses_with_converted_arguments():
         ("wait-mesh", (5.0,)),
         ("wait-bake", (0.5,)),
         ("wait-bake", (1.0, 30.0)),
+        ("wait-light", (1.0, 30.0)),
         ("frames", (5,)),
         ("sleep", (0.25,)),
         ("screenshot", ("out dir/shot.png",)),
