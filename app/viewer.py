@@ -287,6 +287,7 @@ class Viewer:
         self.shared: SharedLattice | None = None
         self.bake: BakeLink | None = None
         self.static_lattice = lattice
+        self.relit_file = False  # a complete file's lattice re-baked for a turned light
         self._setup_lattice(lattice, iso)
         shading = options.shading or (self.drawing.renderer.lattice.kind
                                       if self.drawing.renderer.lattice else "phong_hemi")
@@ -347,6 +348,11 @@ class Viewer:
             config = BakeConfig(mode=self.options.bake_mode, env=self.options.bake_env,
                                 samples=self.options.bake_samples,
                                 max_levels=self.options.bake_max_levels)
+        self._start_bake(lattice, config, iso)
+
+    def _start_bake(self, lattice, config, iso: float) -> None:
+        """Show `lattice` (None: a new one for `config`) from shared memory and start its
+        lazy bake with `config`."""
         from baking.lattice import LatticeGeometry
 
         geometry = LatticeGeometry.for_volume(self.volume, config.scale)
@@ -652,7 +658,10 @@ class Viewer:
             return None
         lattice = (self.bake.snapshot(self.shared) if self.bake is not None
                    else self.shared.snapshot())
-        path = Path(path or self.options.lattice_path or f"isolume-{self.volume.name}.npz")
+        default = self.options.lattice_path or Path(f"isolume-{self.volume.name}.npz")
+        if self.relit_file:  # not over the file's whole bake
+            default = default.with_name(f"{default.stem}-relit.npz")
+        path = Path(path or default)
         lattice.save(path)
         done = int((lattice.samples > 0).sum())
         self.message = f"saved {path} ({done:,} texels computed)"
@@ -682,10 +691,17 @@ class Viewer:
         Raises:
             ViewerError: no lazy bake runs, or no light is shaded per pixel.
         """
+        from baking.config import BakeConfig
+        from baking.lazy import same_direction, turned_light
+
         turned = self.drawing.turned_light(self.state)
-        if self.bake is None or turned is None:
+        file = self.static_lattice is not None and self.options.bake
+        if turned is None or (self.bake is None and not file):
             raise ViewerError("no lazy bake of a per-pixel sun or light to wait for "
-                              "(mode irradiance with a lazily baked lattice)")
+                              "(mode irradiance with a lattice that --no-bake leaves as is)")
+        if self.bake is None:  # a complete file: its bake starts once the light rests turned
+            baked = turned_light(BakeConfig.from_dict(self.static_lattice.meta["config"]))
+            return (1.0 if same_direction(turned[1], baked) else None), None
         return self.bake.relit_fraction(turned[1]), self.bake.error
 
     def hold_bake(self, held: bool) -> None:
@@ -857,6 +873,8 @@ class Viewer:
 
     def _update_view(self) -> None:
         """Tell the bake process what is on screen once the view has settled."""
+        if self.bake is None and self.static_lattice is not None:
+            self._bake_turned_file()
         if self.bake is None or self.mesh_iso != self.state.iso or self.mesh_stage is None:
             return
         turned = self.drawing.turned_light(self.state)  # its bounced light follows it
@@ -875,6 +893,23 @@ class Viewer:
         self.bake.send_view(View(self.state.iso, tuple(float(v) for v in self.camera.eye),
                                  cells, key[3]))
         self.view_sent = key
+
+    def _bake_turned_file(self) -> None:
+        """A complete lattice from a file whose sun (or light) the user turned: start a
+        lazy bake with the file's config, which re-bakes the bounced light for the turned
+        light around the view. Its result is saved only on request, beside the file
+        (`save_lattice`): the file keeps its whole bake."""
+        from baking.config import BakeConfig
+        from baking.lazy import same_direction, turned_light
+
+        turned = self.drawing.turned_light(self.state)
+        if not self.options.bake or self.drag is not None or turned is None:
+            return
+        config = BakeConfig.from_dict(self.static_lattice.meta["config"])
+        if same_direction(turned[1], turned_light(config)):
+            return
+        self.relit_file = True
+        self._start_bake(self.static_lattice, config, self.state.iso)
 
     # -- panel ---------------------------------------------------------------------------
     def _panel_model(self):
@@ -959,7 +994,8 @@ class Viewer:
         try:
             if self.options.screenshot is not None and self.mesh_stage is not None:
                 self.screenshot(self.options.screenshot)
-            if self.options.lattice_path is not None and self.shared is not None:
+            if (self.options.lattice_path is not None and self.shared is not None
+                    and not self.relit_file):
                 self.save_lattice(self.options.lattice_path)
             if self.options.stats is not None:
                 self.options.stats.write_text(json.dumps(self.figures(), indent=1,

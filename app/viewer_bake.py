@@ -492,19 +492,21 @@ class BakeLink:
         self.warm: dict | None = None  # the process is ready for views (its start-up time)
         self.planning: tuple[float, str] = (self.started, "")  # since when, which stage
         self.replans = 0
-        self.light_sent: tuple | None = None  # the light of the last view sent
-        self.light_baked: tuple | None = None  # that of the first (the lattice's own)
+        from baking.lazy import turned_light
+
+        baked = turned_light(config)  # the light the lattice was baked with, if turnable
+        self.light_baked = None if baked is None else tuple(float(v) for v in baked)
+        self.light_sent = self.light_baked  # that of the last view sent
         self.turns: list[dict] = []  # per turned light: direction, seconds to each stage
         self.relit: dict | None = None  # the last turned light's progress on screen
         self.relit_config: dict | None = None  # the config it is baked with
 
     def send_view(self, view) -> None:
-        if view.light is not None and view.light != self.light_sent:
-            if self.light_sent is not None:  # (the first view's light is the baked one)
-                self.turns.append({"direction": list(view.light),
-                                   "sent": time.perf_counter()})
-            else:
-                self.light_baked = view.light
+        from baking.lazy import same_direction
+
+        if view.light is not None and (self.light_sent is None
+                                       or not same_direction(view.light, self.light_sent)):
+            self.turns.append({"direction": list(view.light), "sent": time.perf_counter()})
             self.light_sent = view.light
         self.inbox.put(view)
 
@@ -565,7 +567,12 @@ class BakeLink:
                 return
 
     def _turn_progress(self, status: dict) -> None:
-        """Note when the visible texels, then the whole surface, show the turned light."""
+        """Note when half, 90 %, 99 % and all of the visible texels, then the whole
+        surface, show the turned light."""
+        done = status["visible_done"] / max(status["visible"], 1)
+        for share in (50, 90, 99):
+            if status["visible"] and done >= share / 100:
+                self._turn_event(status["direction"], f"visible_{share}_s")
         if status["visible"] and status["visible_done"] == status["visible"]:
             self._turn_event(status["direction"], "visible_s")
         if status["surface"] and status["surface_done"] == status["surface"]:
@@ -574,10 +581,14 @@ class BakeLink:
     def relit_fraction(self, direction) -> float | None:
         """Share of the visible texels (of the surface texels when none is known) that
         show the bake under the light turned to `direction` (3,); None when the bake
-        reports no progress under that light."""
+        reports no progress under that light; 1 when it is the light baked and was
+        never turned."""
         from baking.lazy import same_direction
 
         r = self.relit
+        if self.relit_config is None and self.light_baked is not None and same_direction(
+                self.light_baked, direction):
+            return 1.0  # never turned: nothing to re-bake
         if r is None or not same_direction(r["direction"], direction):
             return None
         if r["visible"]:
@@ -592,7 +603,8 @@ class BakeLink:
         r = self.relit
         if self.light_sent is None or not same_direction(self.light_sent, direction):
             return None  # not sent yet (the light is moving)
-        if self.relit_config is None and same_direction(self.light_baked, direction):
+        if self.relit_config is None and (self.light_baked is None
+                                          or same_direction(self.light_baked, direction)):
             return None  # never turned
         if r is None or not same_direction(r["direction"], direction):
             return f"Bounced light: re-baking for the turned {name}..."

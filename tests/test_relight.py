@@ -8,8 +8,10 @@ import time
 
 import numpy as np
 import pytest
+from test_viewer import _view, display  # noqa: F401  (a fixture: Xvfb for the viewer)
 
 import volumes
+from app.ui import direction_from_angles
 from baking.bake import Baker
 from baking.config import BakeConfig
 from baking.lattice import LUMINANCE, Lattice
@@ -408,3 +410,50 @@ def test_the_viewer_turns_the_bounced_light_of_irradiance_lattices_only(gl):
     finally:
         drawing.release()
     assert gl.error == "GL_NO_ERROR"
+
+
+FILE_SESSION = """
+wait-mesh
+mode irradiance
+wait-light 1 30
+screenshot before.png
+light 60 40
+wait-light 1 120
+screenshot after.png
+save-lattice
+quit
+"""
+
+
+def test_a_complete_lattice_file_is_re_baked_for_a_turned_sun(display, tmp_path):  # noqa: F811
+    """``view --lattice FILE`` of a complete bake: turning its sun starts a lazy bake with
+    the file's config that re-bakes the bounced light around the view; the picture's
+    bounced light changes, the file keeps its whole bake, and ``save-lattice`` writes
+    the turned sun's texels beside it."""
+    import json
+
+    from app.images import read_exr
+    from baking.bake import bake
+
+    vol = volumes.load("synthetic:engine:48")
+    config = _config(samples=8)
+    lattice_file = tmp_path / "light.npz"
+    bake(vol, config, out=lattice_file, workers=2)
+    original = lattice_file.read_bytes()
+    (tmp_path / "s.txt").write_text(FILE_SESSION)
+    run = _view(["synthetic:engine:48", "--iso", str(ISO), "--lattice", "light.npz",
+                 "--size", "320x240", "--script", "s.txt", "--stats", "stats.json"],
+                display, tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert lattice_file.read_bytes() == original
+    (turn,) = json.loads((tmp_path / "stats.json").read_text())["bake"]["turns"]
+    assert 0 < turn["started_s"] <= turn["visible_s"]
+    relit = Lattice.load(tmp_path / "light-relit.npz", vol)
+    want = relit_config(config, direction_from_angles(60.0, 40.0))
+    np.testing.assert_allclose(turned_light(BakeConfig.from_dict(relit.meta["config"])),
+                               turned_light(want), atol=1e-8)
+    assert (relit.samples > 0).sum() > 1000
+    before, after = (read_exr(tmp_path / f"{n}.exr")["RGB"] for n in ("before", "after"))
+    mask = before.max(axis=-1) > 0
+    assert mask.mean() > 0.05 and (mask == (after.max(axis=-1) > 0)).all()
+    assert np.abs(after[mask] - before[mask]).mean() > 0.02 * before[mask].mean()
