@@ -311,9 +311,10 @@ def _wait(link, done, deadline, what):
 
 def test_the_viewers_lazy_bake_relights_a_turned_sun():
     """The lazy-bake process (`app.viewer_bake`) of the viewer, sent a view whose sun was
-    turned: it reports the re-bake until every texel around the view shows the new sun's
-    bake — the lattice a bake under that sun gives from scratch, to rounding — and a saved
-    lattice holds only those texels, with the turned sun in its config."""
+    turned, then turned again while it re-bakes: it reports the re-bake until every texel
+    around the view shows the last sun's bake — the lattice a bake under that sun gives
+    from scratch, to rounding: nothing of the first turn's — and a saved lattice holds only
+    those texels, with the last sun in its config."""
     from app.viewer_bake import BakeLink, SharedLattice, lattice_meta
     from baking.lattice import LatticeGeometry
     from baking.lazy import view_iso_range, visible_cells
@@ -328,6 +329,7 @@ def test_the_viewers_lazy_bake_relights_a_turned_sun():
     front = mesh.vertices[mesh.vertices[:, 1] < np.median(mesh.vertices[:, 1])]
     cells = visible_cells(geometry, front)
     baked, turned = tuple(turned_light(config)), tuple(_unit((0.6, 0.3, 0.5)))
+    abandoned = tuple(_unit((-0.5, -0.5, 0.6)))
 
     def finished():
         p = link.progress
@@ -339,6 +341,8 @@ def test_the_viewers_lazy_bake_relights_a_turned_sun():
         _wait(link, finished, deadline, "the first bake")
         assert link.relit_config is None and link.relit_line(baked, "sun") is None
         link.progress = None
+        link.send_view(View(ISO, EYE, cells, abandoned))
+        _wait(link, lambda: link.relit is not None, deadline, "the first turn's re-bake")
         link.send_view(View(ISO, EYE, cells, turned))
         assert link.relit_line(turned, "sun").startswith("Bounced light: re-baking")
         _wait(link, lambda: link.relit_fraction(turned) == 1.0 and finished(), deadline,
@@ -347,7 +351,8 @@ def test_the_viewers_lazy_bake_relights_a_turned_sun():
         assert status["surface_done"] == status["surface"] > 0 and status["visible"] > 0
         assert link.relit_line(turned, "sun") == "Bounced light: up to date with the turned sun."
         assert link.relit_line(baked, "sun") is None  # drawn elsewhere: not this bake's
-        (turn,) = link.turns
+        first, turn = link.turns
+        assert first["direction"] == list(abandoned) and turn["direction"] == list(turned)
         assert 0 < turn["started_s"] <= turn["visible_s"] <= turn["surface_s"]
         relit = relit_config(dataclasses.replace(config, iso_range=view_iso_range(vol, ISO)),
                              turned)
