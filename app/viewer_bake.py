@@ -435,6 +435,7 @@ class _BakeProcess:
             self._texels(drop_inactive(relight.fresh))
         if len(stale):
             self.outbox.put(("texels", stale))
+        lattice.meta["config"] = self.config.to_dict()  # (a turn during the plan)
         self.outbox.put(("ready", {"seconds": time.perf_counter() - t0,
                                    "active": len(baker.plan.ids),
                                    "levels": len(baker.plan.levels),
@@ -551,6 +552,8 @@ class BakeLink:
                 self.history.append((time.perf_counter() - self.started, message[1]))
             elif kind == "ready":
                 self.ready = message[1]
+                if self.relit_config is not None:  # planned again under the turned light
+                    self.relit_config = self.ready["meta"]["config"]
             elif kind == "planning":
                 self.planning = (self.planning[0], message[1])
             elif kind == "replanning":  # the view left the baked iso range

@@ -31,6 +31,12 @@ new view interrupts a batch between two levels.
 Re-targeting. A new view (isovalue, eye, visible cells) rebuilds the stages; texels already
 at a stage's target are skipped, so finished work is kept — a texel's value holds for its
 own isosurface whatever isovalue is displayed, which is the point of the method.
+
+A turned light. A lattice whose sun (or directional light) the display shades per pixel
+holds that light's bounces; when the viewer turns it, `Relight` bakes the same texels in
+the same order under the new direction (`relit_config`) into a lattice of its own, and
+puts each texel's new estimate on screen once it rests on `RELIGHT_PATHS` paths: the old
+light's value stays until then, and no mean averages paths of two lights.
 """
 
 from __future__ import annotations

@@ -20,9 +20,11 @@ from baking.lazy import (
     LazyScheduler,
     Relight,
     View,
+    cell_index,
     relit_config,
     same_direction,
     serve,
+    surface_positions,
     turned_light,
 )
 
@@ -462,3 +464,59 @@ def test_a_complete_lattice_file_is_re_baked_for_a_turned_sun(display, tmp_path)
     mask = before.max(axis=-1) > 0
     assert mask.mean() > 0.05 and (mask == (after.max(axis=-1) > 0)).all()
     assert np.abs(after[mask] - before[mask]).mean() > 0.02 * before[mask].mean()
+
+
+def test_a_turned_light_carries_over_when_the_bake_plans_again():
+    """A turned sun, then an isovalue outside the lazy bake's range: the bake plans again
+    for it under the turned sun (its config keeps the turn), and the new surface shows
+    that sun's bake — a bake from scratch under it, to rounding."""
+    from app.viewer_bake import BakeLink, SharedLattice, lattice_meta
+    from baking.lattice import LatticeGeometry
+    from baking.lazy import view_iso_range
+
+    vol = volumes.load("synthetic:shells:24")
+    config = BakeConfig(samples=4, bounces=1, env=SUN)
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    meta = lattice_meta(vol, config)
+    shared = SharedLattice.create(geometry, meta["channels"], meta)
+    link = BakeLink(vol, config, shared, 2, 0.3, follow_iso=True)
+    baked, turned = tuple(turned_light(config)), tuple(_unit((0.2, -0.7, 0.6)))
+
+    def finished(iso):
+        p = link.progress
+        return lambda: p is not None and p.stage is None and p.iso == iso
+
+    def done(iso):
+        def check():
+            p = link.progress
+            return (p is not None and p.stage is None and p.iso == iso
+                    and link.relit_fraction(turned) == 1.0)
+        return check
+
+    try:
+        deadline = time.monotonic() + 120
+        link.send_view(View(0.3, EYE, None, baked))
+        _wait(link, lambda: finished(0.3)(), deadline, "the first bake")
+        link.send_view(View(0.3, EYE, None, turned))
+        _wait(link, done(0.3), deadline, "the re-bake")
+        link.send_view(View(0.6, EYE, None, turned))
+        _wait(link, lambda: link.replans == 1 and done(0.6)(), deadline, "the new plan")
+        relit = relit_config(dataclasses.replace(config, iso_range=view_iso_range(vol, 0.6)),
+                             turned)
+        assert link.relit_config == relit.to_dict()
+        assert link.relit["surface_done"] == link.relit["surface"] > 0
+        scratch = Baker(vol, relit, workers=2)
+        try:
+            cells = cell_index(scratch.plan, geometry.shape)
+            surface = surface_positions(scratch.plan, cells, 0.6)
+            scratch.run(surface, config.samples)
+        finally:
+            scratch.close()
+        ids = scratch.plan.ids[surface]
+        assert shared.relit.reshape(-1)[ids].all()
+        np.testing.assert_allclose(shared.lattice.values.reshape(-1, 3)[ids],
+                                   scratch.lattice.values.reshape(-1, 3)[ids], rtol=1e-5,
+                                   atol=1e-6)
+    finally:
+        link.stop()
+        shared.close()
