@@ -119,9 +119,9 @@ tan θ) and depth rounding need a bias (tests/test_direct_light.py: no acne on l
 shadows that meet their casters)."""
 DIRECT_UNITS = (14, 15)
 """Texture units of the direct lights' shadow atlas: compared, raw (lattices use 1–13)."""
-GBUFFER_UNITS = (16, 17)
-"""Texture units of the G-buffer the deferred pass reads: points, normals (units of their
-own, so that no program's texture is ever one the surface pass draws into)."""
+GBUFFER_UNIT = 16
+"""Texture unit of the G-buffer the deferred pass reads (a unit of its own, so that no
+program's texture is ever the one the surface pass draws into)."""
 
 
 class RenderError(ValueError):
@@ -422,9 +422,9 @@ def auto_exposure_scale(linear: np.ndarray, mask: np.ndarray, key: float = EXPOS
 @dataclass
 class _Targets:
     """A frame's render targets: the linear HDR colour with its depth (`hdr`), the 8-bit
-    display image (`ldr`) and, once per-pixel lights are drawn, the G-buffer they read
-    (`gbuffer`: the HDR colour, the points and normals of ``gbuffer.glsl``, the same
-    depth)."""
+    display image (`ldr`) and, once a deferred frame is drawn, the G-buffer of
+    ``gbuffer.glsl`` (`g_surface`, RGBA32F) with the framebuffers that draw it: alone
+    (`deferred`) or beside the HDR colour (`forward_g`, for SH transfer with lights)."""
 
     size: tuple[int, int]
     hdr: moderngl.Framebuffer
@@ -432,21 +432,21 @@ class _Targets:
     ldr: moderngl.Framebuffer
     depth: moderngl.Renderbuffer
     objects: list = field(default_factory=list)
-    gbuffer: moderngl.Framebuffer | None = None
-    g_point: moderngl.Texture | None = None
-    g_normals: moderngl.Texture | None = None
+    g_surface: moderngl.Texture | None = None
+    deferred: moderngl.Framebuffer | None = None
+    forward_g: moderngl.Framebuffer | None = None
 
-    def ensure_gbuffer(self, ctx: moderngl.Context) -> moderngl.Framebuffer:
-        """The G-buffer framebuffer (made on first use: only frames with per-pixel lights
-        need its two RGBA32F targets)."""
-        if self.gbuffer is None:
-            self.g_point = ctx.texture(self.size, 4, dtype="f4")
-            self.g_normals = ctx.texture(self.size, 4, dtype="f4")
-            self.gbuffer = ctx.framebuffer(
-                color_attachments=[self.hdr_color, self.g_point, self.g_normals],
-                depth_attachment=self.depth)
-            self.objects[:0] = [self.gbuffer, self.g_point, self.g_normals]
-        return self.gbuffer
+    def gbuffer(self, ctx: moderngl.Context, with_hdr: bool) -> moderngl.Framebuffer:
+        """The framebuffer drawing the G-buffer (made on first use), with the HDR colour
+        as its first target when `with_hdr`."""
+        if self.g_surface is None:
+            self.g_surface = ctx.texture(self.size, 4, dtype="f4")
+            self.deferred = ctx.framebuffer(color_attachments=[self.g_surface],
+                                            depth_attachment=self.depth)
+            self.forward_g = ctx.framebuffer(
+                color_attachments=[self.hdr_color, self.g_surface], depth_attachment=self.depth)
+            self.objects[:0] = [self.deferred, self.forward_g, self.g_surface]
+        return self.forward_g if with_hdr else self.deferred
 
     def release(self) -> None:
         for obj in self.objects:
@@ -827,10 +827,9 @@ class SurfaceRenderer:
             self._set_uniforms(prog, {"u_sky_radiance": tuple(sky)})  # "ao" reads it
         if lights:
             self._bind_direct(prog, lights, settings)
-        point_unit, normals_unit = GBUFFER_UNITS
-        targets.g_point.use(location=point_unit)
-        targets.g_normals.use(location=normals_unit)
-        self._set_uniforms(prog, {"u_g_point": point_unit, "u_g_normals": normals_unit})
+        targets.g_surface.use(location=GBUFFER_UNIT)
+        self._set_uniforms(prog, {"u_gbuffer": GBUFFER_UNIT,
+                                  **pixel_rays(camera, settings.size)})
         targets.hdr.use()
         self.ctx.disable(moderngl.DEPTH_TEST)
         self.ctx.enable(moderngl.BLEND)
@@ -919,11 +918,17 @@ class SurfaceRenderer:
         lights from the G-buffer it leaves (`_deferred_pass`)."""
         prog = self._prepared_program(camera, settings) if self._triangles else None
         targets = self._ensure_targets(settings.size)
-        deferred = prog is not None and self._deferred(settings)
-        (targets.ensure_gbuffer(self.ctx) if deferred else targets.hdr).use()
+        targets.hdr.use()
         self.ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        if prog is not None:
-            self._draw_mesh(prog)
+        if prog is None:
+            return targets
+        deferred = self._deferred(settings)
+        if deferred:
+            mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
+            # only SH transfer draws radiance beside the G-buffer
+            targets.gbuffer(self.ctx, with_hdr=mode.lattice == "sh").use()
+            self.ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        self._draw_mesh(prog)
         if deferred:
             self._deferred_pass(targets, camera, settings)
         return targets
@@ -961,6 +966,27 @@ class SurfaceRenderer:
         ldr = np.frombuffer(targets.ldr.read(components=3), np.uint8).reshape(h, w, 3)[::-1]
         return Frame(np.ascontiguousarray(hdr[..., :3]), np.ascontiguousarray(ldr), mask,
                      settings.exposure * auto)
+
+
+def pixel_rays(camera: Camera, size: tuple[int, int]) -> dict:
+    """``deferred.frag``'s eye rays: the uniforms u_ray0, u_rayx, u_rayy (3,) such that
+    the ray through the pixel centre at window coordinates (x, y) (gl_FragCoord: from the
+    lower left, centres at half-integers) of a `size` (W, H) view runs along
+    u_ray0 + x u_rayx + y u_rayy (not unit: the shader normalises it)."""
+    w, h = size
+    inverse = np.linalg.inv(camera.view_proj(w / h))
+    eye = np.asarray(camera.eye, np.float64)
+
+    def towards(x: float, y: float) -> np.ndarray:  # NDC (x, y) on the far plane
+        p = inverse @ np.array([x, y, 1.0, 1.0])
+        return p[:3] / p[3] - eye
+
+    # the far plane's points are affine in NDC (a perspective inverse's w depends on z only)
+    centre = towards(0.0, 0.0)
+    dx, dy = towards(1.0, 0.0) - centre, towards(0.0, 1.0) - centre
+    scale = 1.0 / np.linalg.norm(centre)
+    return {"u_ray0": tuple(scale * (centre - dx - dy)), "u_rayx": tuple(scale * 2 / w * dx),
+            "u_rayy": tuple(scale * 2 / h * dy)}
 
 
 def _is_point(light) -> bool:

@@ -13,12 +13,12 @@
 //
 // Deferred shading: the irradiance lattices (5, 7) and the per-pixel lights are not shaded
 // here but in one full-screen pass (deferred.frag) over what this pass leaves in the
-// G-buffer (gbuffer.glsl): the point and its normals. On llvmpipe a draw shades every 4x4
-// block a triangle touches, and a dense isosurface's triangles cover a pixel or two each,
-// so lookups made here ran for many times more SIMD lanes than there are pixels. This
-// pass then writes (0, 0, 0, 1) (alpha marks the surface) and the full-screen pass adds
-// the radiance. SH transfer (6) stays here: its many textures would not fit one pass
-// beside the G-buffer and the shadow atlas.
+// G-buffer (gbuffer.glsl): the point's eye distance and its normals. On llvmpipe a draw
+// shades every 4x4 block a triangle touches, and a dense isosurface's triangles cover a
+// pixel or two each, so lookups made here ran for many times more SIMD lanes than there
+// are pixels. This pass then writes the G-buffer alone, and the full-screen pass the HDR
+// target. SH transfer (6) stays here (its many textures would not fit one pass beside
+// the shadow atlas); with DIRECT it writes the G-buffer too, for the lights.
 #if SHADING == 5 || SHADING == 7
 #define DEFERRED 1
 #else
@@ -45,8 +45,6 @@
 #endif
 #if DEFERRED || DIRECT
 #include "gbuffer.glsl"
-layout(location = 1) out vec4 g_point;    // gbuffer.glsl
-layout(location = 2) out vec4 g_normals;
 #endif
 
 uniform vec3 u_eye;
@@ -56,35 +54,34 @@ uniform vec3 u_fog_color;  // radiance the fog fades to (the background before e
 in vec3 v_world;
 in vec3 v_normal;
 
-out vec4 frag_color;
+#if DEFERRED
+layout(location = 0) out vec4 g_surface;  // gbuffer.glsl; the HDR target is not drawn
+#else
+layout(location = 0) out vec4 frag_color;
+#if DIRECT
+layout(location = 1) out vec4 g_surface;
+#endif
+#endif
 
 void main() {
 #if SHADING == 9
     frag_color = vec4(v_world, 1.0);
-    return;
-#endif
+#else
     vec3 v = normalize(u_eye - v_world);
     vec3 n = normalize(v_normal);
     // Local models light both sides of the surface: turn the normal towards the eye.
     if (dot(n, v) < 0.0) n = -n;
-#if DEFERRED || DIRECT
 #if DIRECT
     // the facet's normal on the side the eye sees (the per-pixel lights' receiver plane)
     vec3 facet_n = normalize(cross(dFdx(v_world), dFdy(v_world)));
     if (dot(facet_n, v) < 0.0) facet_n = -facet_n;
-#else
-    vec3 facet_n = n;
+    g_surface = gbuffer_value(length(u_eye - v_world), n, facet_n);
+#elif DEFERRED
+    g_surface = gbuffer_value(length(u_eye - v_world), n, n);
 #endif
-    g_point = vec4(v_world, 1.0);
-    g_normals = encode_normals(n, facet_n);
-#endif
-#if DEFERRED
-    frag_color = vec4(0.0, 0.0, 0.0, 1.0);  // deferred.frag adds the radiance
-    return;
-#elif SHADING == 6
+#if SHADING == 6
     frag_color = vec4(lattice_radiance(v_world, n, u_albedo), 1.0);
-    return;
-#endif
+#elif !DEFERRED
 #if SHADOW
     vec3 facet = normalize(cross(dFdx(v_world), dFdy(v_world)));
     float visibility = key_visibility(v_world, facet);
@@ -103,4 +100,6 @@ void main() {
     radiance = mix(u_fog_color, radiance, fog_transmittance(length(u_eye - v_world)));
 #endif
     frag_color = vec4(radiance, 1.0);
+#endif
+#endif
 }
