@@ -4,7 +4,11 @@
 mode, compiled on first use), the mesh buffers, the framebuffers and the key light's
 shadow map. Each frame is drawn in linear radiance into an RGBA32F target (alpha marks
 surface pixels), then exposure, tone curve and sRGB encoding are applied in a full-screen
-pass. Everything here works the same in a glfw window and off-screen.
+pass. The irradiance lattice modes and the per-pixel lights are shaded deferred: the mesh
+pass writes a G-buffer (``gbuffer.glsl``) and one full-screen pass shades each pixel once
+(``deferred.frag``), which on llvmpipe costs a fraction of shading the many partly covered
+4×4 blocks of a dense mesh's tiny triangles. Everything here works the same in a glfw
+window and off-screen.
 
 Shading modes (paper Figs. 1, 6, 8–10), all on the same mesh and camera:
 
