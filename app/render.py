@@ -42,7 +42,7 @@ import numpy as np
 import shaders
 
 from .camera import Camera
-from .lattice_gl import LatticeTextures
+from .lattice_gl import MAX_TEXTURE_UNITS, LatticeTextures
 
 LOOKUPS = {"trilinear": 0, "nearest": 1, "closest": 2, "bspline": 3}
 """Irradiance lattice lookups (paper Fig. 6) -> LOOKUP define in ``lattice.glsl``."""
@@ -716,23 +716,38 @@ class SurfaceRenderer:
             return settings.direct_lights
         return self._lattice_lights
 
+    def _lattice_defines(self, settings: RenderSettings) -> tuple:
+        """The defines the surface and the deferred program share: the mode's, the SH
+        sum's, DEFERRED (`_lattice_deferred`) and DIRECT (per-pixel lights)."""
+        defines = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading].defines()
+        if settings.shading == "sh":
+            defines += self.lattice.sh_defines()
+        defines += (("DEFERRED", int(self._lattice_deferred(settings))),)
+        if self.direct_lights(settings):
+            defines += (("DIRECT", 1),)
+        return defines
+
     def _surface_program(self, settings: RenderSettings) -> moderngl.Program:
         """The compiled surface program for the settings' mode (checks what it needs)."""
-        shading = settings.shading
-        self.check_mode(shading)
-        defines = {**SHADING_MODES, **_DEBUG_MODES}[shading].defines()
-        if shading == "sh":
-            defines += self.lattice.sh_defines()
-        if self.direct_lights(settings):
-            defines += (("DIRECT", 1),)  # writes the G-buffer of `_deferred_pass`
-        return self._program("surface", defines)
+        self.check_mode(settings.shading)
+        return self._program("surface", self._lattice_defines(settings))
+
+    def _lattice_deferred(self, settings: RenderSettings) -> bool:
+        """Whether the settings' lattice is read in `_deferred_pass` (``surface.frag``):
+        every lattice mode whose textures fit one pass beside the G-buffer and the shadow
+        atlas (GL 3.3's 16 texture units; only SH transfer of high orders does not)."""
+        mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
+        if mode.lattice is None:
+            return False
+        atlas = len(DIRECT_UNITS) if self.direct_lights(settings) else 0
+        lattice = self.lattice
+        units = 1 + len(lattice.textures) + (lattice.texel_iso is not None)  # + valid mask
+        return units + 1 + atlas <= MAX_TEXTURE_UNITS  # + the G-buffer
 
     def _deferred(self, settings: RenderSettings) -> bool:
-        """Whether the settings' frame is shaded in `_deferred_pass`: the irradiance
-        lattice modes, and any mode with per-pixel lights (``surface.frag``)."""
-        mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
-        return mode.lattice in ("irradiance", "occlusion") or bool(
-            self.direct_lights(settings))
+        """Whether the settings' frame has a `_deferred_pass`: a deferred lattice, or
+        per-pixel lights."""
+        return self._lattice_deferred(settings) or bool(self.direct_lights(settings))
 
     # -- drawing -----------------------------------------------------------------------
     def _draw_shadow_map(self, camera: Camera, settings: RenderSettings) -> _ShadowMap:
@@ -814,17 +829,19 @@ class SurfaceRenderer:
     def _deferred_pass(self, targets: _Targets, camera: Camera, settings: RenderSettings
                        ) -> None:
         """Add what ``deferred.frag`` shades from the G-buffer the surface pass left: the
-        irradiance lattice's radiance (modes "irradiance*", "vicinity", "ao") and the
-        per-pixel lights' direct light (the shadow atlas drawn first if the mesh, lights
-        or scene changed); one full-screen pass, blending ONE, ONE."""
+        lattice's radiance (`_lattice_deferred`) and the per-pixel lights' direct light
+        (the shadow atlas drawn first if the mesh, lights or scene changed); one
+        full-screen pass, blending ONE, ONE."""
         mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
         lights = self.direct_lights(settings)
-        defines = mode.defines()
+        defines = self._lattice_defines(settings)
         if lights:
-            defines += (("DIRECT", 1), ("DIRECT_SUM(p, n, f)", direct_sum(lights)))
+            defines += (("DIRECT_SUM(p, n, f)", direct_sum(lights)),)
         prog = self._program("deferred", defines)
         self._set_uniforms(prog, self._uniforms(camera, settings))
-        if mode.lattice in ("irradiance", "occlusion"):
+        if self._lattice_deferred(settings) and mode.lattice == "sh":
+            self._bind_sh(prog, settings)
+        elif self._lattice_deferred(settings):
             self.lattice.bind(prog)
         if mode.lattice == "occlusion":
             sky = occlusion_sky(self.lattice.lattice)
@@ -910,11 +927,15 @@ class SurfaceRenderer:
         self._set_uniforms(prog, self._uniforms(camera, settings))
         if mode.shadow:
             self._bind_shadow_map(prog, camera, settings)
-        if settings.shading == "sh":
-            self.lattice.bind(prog)
-            light = self.lattice.light_uniform(self._sh_light(settings))
-            prog["u_light"].write(light.tobytes())
+        if settings.shading == "sh" and not self._lattice_deferred(settings):
+            self._bind_sh(prog, settings)
         return prog
+
+    def _bind_sh(self, prog: moderngl.Program, settings: RenderSettings) -> None:
+        """Bind the SH lattice and its turned environment to `prog`."""
+        self.lattice.bind(prog)
+        light = self.lattice.light_uniform(self._sh_light(settings))
+        prog["u_light"].write(light.tobytes())
 
     def draw_hdr(self, camera: Camera, settings: RenderSettings) -> _Targets:
         """Draw the mesh in linear radiance into the HDR target (alpha 1 on the surface):
@@ -927,10 +948,8 @@ class SurfaceRenderer:
         if prog is None:
             return targets
         deferred = self._deferred(settings)
-        if deferred:
-            mode = {**SHADING_MODES, **_DEBUG_MODES}[settings.shading]
-            # only SH transfer draws radiance beside the G-buffer
-            targets.gbuffer(self.ctx, with_hdr=mode.lattice == "sh").use()
+        if deferred:  # with a lattice drawn here, the HDR colour beside the G-buffer
+            targets.gbuffer(self.ctx, with_hdr=not self._lattice_deferred(settings)).use()
             self.ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self._draw_mesh(prog)
         if deferred:

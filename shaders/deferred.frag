@@ -1,14 +1,17 @@
 #version 330 core
 // The full-screen pass of deferred shading (see surface.frag): for each surface pixel of
-// the G-buffer (gbuffer.glsl), the irradiance lattice's radiance (SHADING 5 or 7, as
-// surface.frag defines them; alpha 1 marks the surface) and with DIRECT the per-pixel
-// lights' direct light (direct.glsl), added to the HDR target (blending ONE, ONE).
+// the G-buffer (gbuffer.glsl), with DEFERRED the lattice's radiance (SHADING 5-7 as in
+// surface.frag; alpha 1 marks the surface) and with DIRECT the per-pixel lights' direct
+// light (direct.glsl), added to the HDR target (blending ONE, ONE).
+#ifndef DEFERRED
+#define DEFERRED 0
+#endif
 #ifndef DIRECT
 #define DIRECT 0
 #endif
 #include "lighting.glsl"
 #include "gbuffer.glsl"
-#if SHADING == 5 || SHADING == 7
+#if DEFERRED
 #include "lattice.glsl"
 #endif
 #if DIRECT
@@ -31,7 +34,7 @@ void main() {
     vec3 point = u_eye + g.x * normalize(u_ray0 + gl_FragCoord.x * u_rayx
                                          + gl_FragCoord.y * u_rayy);
     vec3 n = from_octahedral(g.yz);
-#if SHADING == 5 || SHADING == 7
+#if DEFERRED
     frag_color = vec4(lattice_radiance(point, n, u_albedo), 1.0);
 #else
     frag_color = vec4(0.0);  // the surface pass drew the radiance and the alpha

@@ -11,17 +11,16 @@
 // point/directional lights and the sun, added per pixel with shadows; with 6: a split SH
 // transfer, shown under the sun-free sky, plus the turned sun per pixel.
 //
-// Deferred shading: the irradiance lattices (5, 7) and the per-pixel lights are not shaded
-// here but in one full-screen pass (deferred.frag) over what this pass leaves in the
-// G-buffer (gbuffer.glsl): the point's eye distance and its normals. On llvmpipe a draw
-// shades every 4x4 block a triangle touches, and a dense isosurface's triangles cover a
-// pixel or two each, so lookups made here ran for many times more SIMD lanes than there
-// are pixels. This pass then writes the G-buffer alone, and the full-screen pass the HDR
-// target. SH transfer (6) stays here (its many textures would not fit one pass beside
-// the shadow atlas); with DIRECT it writes the G-buffer too, for the lights.
-#if SHADING == 5 || SHADING == 7
-#define DEFERRED 1
-#else
+// Deferred shading: with DEFERRED 1 (the lattice modes 5-7) the lattice and the per-pixel
+// lights are not shaded here but in one full-screen pass (deferred.frag) over what this
+// pass leaves in the G-buffer (gbuffer.glsl): the point's eye distance and its normals.
+// On llvmpipe a draw shades every 4x4 block a triangle touches, and a dense isosurface's
+// triangles cover a pixel or two each, so lookups made here ran for many times more SIMD
+// lanes than there are pixels. This pass then writes the G-buffer alone, and the
+// full-screen pass the HDR target. SH transfer (6) is drawn here (DEFERRED 0) when its
+// textures, the G-buffer and the shadow atlas would not fit one pass's 16 texture units;
+// with DIRECT it writes the G-buffer too, for the lights.
+#ifndef DEFERRED
 #define DEFERRED 0
 #endif
 #ifndef SHADOW
@@ -40,7 +39,7 @@
 #if SHADOW
 #include "shadow.glsl"
 #endif
-#if SHADING == 6
+#if SHADING == 6 && !DEFERRED
 #include "lattice.glsl"
 #endif
 #if DEFERRED || DIRECT
@@ -79,9 +78,10 @@ void main() {
 #elif DEFERRED
     g_surface = gbuffer_value(length(u_eye - v_world), n, n);
 #endif
-#if SHADING == 6
+#if DEFERRED
+#elif SHADING == 6
     frag_color = vec4(lattice_radiance(v_world, n, u_albedo), 1.0);
-#elif !DEFERRED
+#else
 #if SHADOW
     vec3 facet = normalize(cross(dFdx(v_world), dFdy(v_world)));
     float visibility = key_visibility(v_world, facet);

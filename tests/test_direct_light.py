@@ -415,6 +415,41 @@ def test_deferred_pass_keeps_the_normals_a_sphere_follows_the_cosine_law(rendere
     assert dark.sum() > 100
 
 
+def test_split_sh_sun_is_the_same_whether_the_transfer_is_deferred_or_not(renderer):
+    """A split SH transfer of order 3 is read in the deferred pass; one of order 5 needs
+    13 textures, too many beside the G-buffer and the shadow atlas, and is read in the
+    surface pass, which then writes the G-buffer for the sun alone. With a zero transfer
+    both pictures are the sun's direct light alone, and the same (before, order 5 with the
+    sun drew nothing: its textures and the atlas shared a texture unit)."""
+    from baking import sh
+
+    vol = volumes.load("synthetic:engine:40")
+    mesh = volumes.isosurface(vol, 0.3)
+    renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=0.3)
+    renderer.set_bounds(*vol.box)
+    camera = Camera(azimuth=200, elevation=35, distance=1.6,
+                    target=tuple(np.mean(vol.box, axis=0)), scale=vol.diagonal)
+    settings = RenderSettings(size=(96, 96), shading="sh", tonemap="clamp",
+                              env_rotation=(160.0, 0.0))
+    pictures, deferred = [], []
+    for order in (3, 5):
+        config = BakeConfig(mode="sh", sh_order=order, env="sky:sun=3", direct_light="pixels")
+        meta = {"kind": "sh", "sh_order": order, "config": config.to_dict()}
+        lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 0.5), 2 * order * order, meta)
+        lattice.samples[...] = 1  # computed, and zero
+        renderer.set_lattice(lattice)
+        renderer.set_environment(sh.display_coefficients(parse_env("sky:sun=3"), order,
+                                                         blocks=2))
+        deferred.append(renderer._lattice_deferred(settings))
+        pictures.append(_render(renderer, camera, settings))
+    assert deferred == [True, False]
+    (low, low_mask), (high, high_mask) = pictures
+    assert (low_mask == high_mask).all() and low_mask.mean() > 0.2
+    sun = low[low_mask].max(axis=1)
+    assert (sun > 0.05).mean() > 0.2 and (sun < 1e-6).mean() > 0.2  # lit and unlit parts
+    np.testing.assert_allclose(high, low, atol=1e-6)
+
+
 def test_bench_frames_times_the_sun_per_pixel_beside_phong_shadow():
     """`isolume bench frames` times irradiance with the sun per pixel in the same
     interleaved rounds as the local modes and reports its ratios (wall and CPU time)."""
