@@ -859,6 +859,7 @@ class SurfaceRenderer:
         vao.render(moderngl.TRIANGLES, vertices=3)
         vao.release()
         self.ctx.disable(moderngl.BLEND)
+        self.ctx.blend_func = moderngl.DEFAULT_BLENDING
 
     def _bind_direct(self, prog: moderngl.Program, lights: tuple,
                      settings: RenderSettings) -> None:
