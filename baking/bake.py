@@ -48,6 +48,10 @@ from .plan import (
     resolved_iso_range,
 )
 
+AHEAD_LEVELS = 2
+"""Scenes of the lowest levels a `Baker` builds beside its plan: the helper thread is done
+with level 0's before the plan is, and a second scene built then is one fewer built
+beside the tracing (engine CT quick bake: 0.2 s of 2.1)."""
 PATHS_PER_CHUNK = 16384
 MIN_PATHS_PER_CHUNK = 2048
 REPORT_S = 0.5
@@ -255,7 +259,7 @@ class Baker:
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig, *,
                  lattice: Lattice | None = None, workers: int | None = None,
-                 scene_cache: int = 1, progress=None) -> None:
+                 scene_cache: int = 1, progress=None, ahead: int = AHEAD_LEVELS) -> None:
         self.volume, self.config = volume, config
         self.settings = path_settings(volume, config)
         self.geometry = LatticeGeometry.for_volume(volume, config.scale)
@@ -269,12 +273,14 @@ class Baker:
         self._scene_lock = threading.Lock()
         self._pending: dict[int, Future] = {}  # scenes being built ahead
         warm = self._helper.submit(kernels.warm_up)  # loads compiled code beside the plan
-        self._first_guess = _first_level(volume, config, _kept_levels(lattice))
+        self._ahead = ahead
+        self._first_guess = _first_level(volume, config, _kept_levels(lattice)) \
+            if ahead > 0 else None
         if self._first_guess is not None:  # the plan's first level, built beside the plan
             self._pending[0] = self._helper.submit(_level_scene, volume, self._first_guess,
                                                    config)
         self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice), progress,
-                              on_levels=self._build_first_scene)
+                              on_levels=self._build_first_scenes)
         self.lattice.active = self.plan.active
         warm.result()
         self.texels_done = int(np.count_nonzero(self.samples_done()))
@@ -391,13 +397,15 @@ class Baker:
         self._scenes.clear()
         self._pending.clear()
 
-    def _build_first_scene(self, levels: np.ndarray) -> None:
-        """Make sure the scene being built ahead for level 0 (where a whole bake starts) is
-        that of `levels[0]` (`make_plan`'s `on_levels`): the one started before the plan
-        (`_first_level`) when the guess was right, else one started now."""
-        if self._first_guess != float(levels[0]):
-            self._pending[0] = self._helper.submit(_level_scene, self.volume,
-                                                   float(levels[0]), self.config)
+    def _build_first_scenes(self, levels: np.ndarray) -> None:
+        """Build the scenes of the lowest `ahead` levels (where a whole bake starts) on the
+        helper thread while the plan goes on (`make_plan`'s `on_levels`); level 0's is the
+        one started before the plan (`_first_level`) when the guess was right. None with
+        `ahead` 0 (a cluster bake's workers build the scenes)."""
+        for level in range(min(self._ahead, len(levels))):
+            if level > 0 or self._first_guess != float(levels[0]):
+                self._pending[level] = self._helper.submit(_level_scene, self.volume,
+                                                           float(levels[level]), self.config)
 
     def _scene(self, level: int):
         """The Embree scene of `level`, from the cache, from the scenes built ahead, or

@@ -384,7 +384,7 @@ class ClusterBaker(Baker):
             client, self._cluster = connect(scheduler)
         self.client = client
         try:  # the plan (on this machine)
-            super().__init__(volume, config, lattice=lattice, workers=1)
+            super().__init__(volume, config, lattice=lattice, workers=1, ahead=0)
         except BaseException:
             self._close_client()
             raise
@@ -407,9 +407,6 @@ class ClusterBaker(Baker):
                             "`dask worker ADDRESS`)") from None
         self._job = client.scatter(job, broadcast=True, hash=False)
         self.traffic.job_bytes = _nbytes(job)
-
-    def _build_first_scene(self, levels: np.ndarray) -> None:
-        """Nothing: the workers build the level scenes; this machine traces none."""
 
     def close(self) -> None:
         """Drop the bake's state on the workers, then the client (and a local cluster)."""

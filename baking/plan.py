@@ -524,7 +524,7 @@ def starts_outside(volume: volumes.Volume, config: BakeConfig, landed: np.ndarra
     if config.offset <= 0 or len(landed) == 0:
         return np.ones(len(landed), bool)
     h = float(np.mean(volume.spacing))
-    normals = volumes.normals_at(volume, landed, smooth=config.normals == "smooth",
-                                 flip=config.flip_normals).astype(np.float64)
-    beyond = volumes.value_at(volume, landed + config.offset * h * normals) - levels
+    beyond = volumes.values_along_normals(volume, landed, config.offset * h,
+                                          smooth=config.normals == "smooth",
+                                          flip=config.flip_normals) - levels
     return beyond > 0 if config.flip_normals else beyond < 0

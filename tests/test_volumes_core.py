@@ -167,3 +167,16 @@ def test_newton_projection_is_the_same_whatever_the_threads(monkeypatch):
     monkeypatch.setattr(field.os, "cpu_count", lambda: 7)
     np.testing.assert_array_equal(
         volumes.newton_to_level(vol, start, levels, 2.0 * min(vol.spacing)), whole)
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_values_along_normals_equal_lookups_at_the_moved_points(flip):
+    """The compiled pass against `normals_at` and `value_at` (float32 normals there, hence
+    the tolerance: a value gradient of ~1 per voxel times 1e-7 of a voxel)."""
+    vol = make("torus", 40)
+    r = np.random.default_rng(7)
+    points = vol.index_to_world(r.uniform(2, 37, size=(5000, 3)))
+    distance = 0.3 * min(vol.spacing)
+    moved = points + distance * volumes.normals_at(vol, points, flip=flip).astype(np.float64)
+    np.testing.assert_allclose(volumes.values_along_normals(vol, points, distance, flip=flip),
+                               volumes.value_at(vol, moved), rtol=0, atol=1e-5)

@@ -13,7 +13,15 @@ from __future__ import annotations
 import os
 
 from .core import Volume, VolumeError
-from .field import gradient_at, gradient_grid, newton_to_level, normals_at, value_at, values_on_grid
+from .field import (
+    gradient_at,
+    gradient_grid,
+    newton_to_level,
+    normals_at,
+    value_at,
+    values_along_normals,
+    values_on_grid,
+)
 from .mesh import Mesh, check_isovalue, isosurface, marching_cubes
 from .orientation import UP_AXES, turn_up
 from .stats import histogram_lines, suggest_isovalues
@@ -37,6 +45,7 @@ __all__ = [
     "suggest_isovalues",
     "turn_up",
     "value_at",
+    "values_along_normals",
     "values_on_grid",
 ]
 
