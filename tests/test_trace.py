@@ -135,3 +135,21 @@ def test_recorder_splits_a_compiled_loop_s_rays_by_query():
     np.testing.assert_array_equal(batches["INTERSECT"][0], rows[[0, 3], 0:3])
     np.testing.assert_array_equal(batches["OCCLUDED"][1], rows[[1, 2], 3:6])
     assert batches["OCCLUDED"][2] is None
+
+
+def test_bench_bake_times_a_plain_bake_and_replays_the_same_rays(tmp_path, capsys):
+    """`isolume bench bake`: the timed bake and the recorded one trace the same rays (it
+    asserts so), and every figure it prints is there and consistent."""
+    import json
+
+    from app.cli import main
+
+    out = tmp_path / "bench.json"
+    assert main(["bench", "bake", "synthetic:torus:24", "--samples", "2", "--bounces", "1",
+                 "--workers", "2", "--json", str(out)]) == 0
+    f = json.loads(out.read_text())
+    assert f["rays"] > 0 and f["levels"] >= 2
+    assert f["end_to_end_seconds"] == pytest.approx(f["plan_seconds"] + f["bake_seconds"])
+    assert 0 < f["end_to_end_ratio"] < f["ratio"]
+    assert f["bare_embreex_rays_per_s"] > 0 and f["chunk_ratio"] > 0
+    assert "end to end" in capsys.readouterr().out
