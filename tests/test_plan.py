@@ -66,10 +66,9 @@ def test_level_budget_keeps_scenes_a_fraction_of_the_tracing():
     quick = BakeConfig(samples=4, bounces=0, iso_range=(0.2, 0.4))
     long = dataclasses.replace(quick, samples=1024, bounces=2)
     plan, _ = _plan(vol, **dataclasses.asdict(quick))
-    cells = np.zeros(tuple(n - 1 for n in geometry.shape), bool)
-    span = (np.zeros(cells.shape, np.float32),) * 2  # no surface crossed: the volume's cost
-    budget_quick = level_budget(vol, geometry, quick, span, cells, len(plan.ids), (0.2, 0.4))
-    budget_long = level_budget(vol, geometry, long, span, cells, len(plan.ids), (0.2, 0.4))
+    # no surface crossed: the volume's cost only
+    budget_quick = level_budget(vol, geometry, quick, 0, len(plan.ids))
+    budget_long = level_budget(vol, geometry, long, 0, len(plan.ids))
     rays = len(plan.ids) * 4
     assert budget_quick == max(2, int(SCENE_SHARE * rays / (0.06 * vol.data.size)))
     assert budget_long == long.max_levels
@@ -223,14 +222,25 @@ def test_levels_start_where_the_plan_landed_their_texels():
     np.testing.assert_array_equal(fresh.origins, origins.astype(np.float32))
 
 
-def test_cell_spans_equal_numpy_reductions_over_the_corners():
-    from baking.plan import cell_spans
+def test_selected_cells_equal_numpy_reductions_and_dilation():
+    """`select_cells` against the plain numpy recipe: corner minima and maxima by eight
+    shifted views, the cell mask, its corners by eight shifted ORs."""
+    from baking.plan import select_cells
 
     rho = np.random.default_rng(3).normal(size=(7, 5, 9)).astype(np.float32)
     views = [rho[a:a + 6, b:b + 4, c:c + 8] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
-    cmin, cmax = cell_spans(rho)
-    np.testing.assert_array_equal(cmin, np.minimum.reduce(views))
-    np.testing.assert_array_equal(cmax, np.maximum.reduce(views))
+    cmin, cmax = np.minimum.reduce(views), np.maximum.reduce(views)
+    lo, hi, min_span, mid = 1.0, 1.6, 2.8, 1.3
+    cells = (cmax >= lo) & (cmin <= hi) & (cmax - cmin > min_span)
+    want = np.zeros(rho.shape, bool)
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                want[a:a + 6, b:b + 4, c:c + 8] |= cells
+    active, crossed = select_cells(rho, lo, hi, min_span, mid)
+    np.testing.assert_array_equal(active, want)
+    assert crossed == np.count_nonzero(cells & (cmin <= mid) & (cmax >= mid))
+    assert 0 < crossed < np.count_nonzero(cells) and 0 < active.sum() < active.size
 
 
 def _starts_inside(vol: Volume, plan, config) -> np.ndarray:
