@@ -417,8 +417,10 @@ def _binned_percentile(which: np.ndarray, values: np.ndarray, bins: int, q: floa
                        empty: float) -> np.ndarray:
     """(bins,) the q-th percentile of the (N,) `values` in each bin (`which`, (N,) bin
     indices), as `np.percentile`'s linear method gives it; `empty` for empty bins. One
-    sort for all bins."""
-    order = np.lexsort((values, which))
+    sort for all bins: by value, then stably by bin (a radix sort of integers), which
+    ranks the values within each bin as `np.lexsort((values, which))` does, faster."""
+    by_value = np.argsort(values)
+    order = by_value[np.argsort(which[by_value], kind="stable")]
     ranked, bin_of = values[order], which[order]
     starts = np.searchsorted(bin_of, np.arange(bins))
     counts = np.searchsorted(bin_of, np.arange(bins), side="right") - starts
