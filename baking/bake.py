@@ -358,6 +358,8 @@ class Baker:
                 complete = complete[self._acc.n[complete] > 0]
                 if len(complete):
                     self.texels_done += _commit(self.lattice, plan, self._acc, complete)
+                    if bar is not None:  # the texels just done (the last level's too)
+                        self._show(bar, level, refresh=True)
                     if after_level is not None:
                         after_level(complete)
         except BaseException:
@@ -477,11 +479,15 @@ class Baker:
                 if bar is not None:
                     bar.update(paths)
             if bar is not None:
-                elapsed = time.perf_counter() - self.stats.started
-                bar.set_postfix_str(
-                    f"texels {self.texels_done:,}/{len(self.plan.ids):,} "
-                    f"level {level + 1}/{len(self.plan.levels)} "
-                    f"{self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} Mrays/s", refresh=False)
+                self._show(bar, level)
+
+    def _show(self, bar, level: int, refresh: bool = False) -> None:
+        """The progress bar's texels done, level and ray rate."""
+        elapsed = time.perf_counter() - self.stats.started
+        bar.set_postfix_str(
+            f"texels {self.texels_done:,}/{len(self.plan.ids):,} "
+            f"level {level + 1}/{len(self.plan.levels)} "
+            f"{self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} Mrays/s", refresh=refresh)
 
 
 def _cancel(jobs: list) -> None:
