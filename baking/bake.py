@@ -682,26 +682,23 @@ def trace_chunk(scene, tracing: Tracing, pos, samples,
     return len(pos), ray_stats.rays, ray_stats.seconds
 
 
-SCENE_SLAB_VOXELS = 1 << 18
-"""Marching cubes of a level scene runs in z-slabs of this many voxels (~10 ms each), so
-the tracing workers are not held off the GIL for a whole extraction (0.17 s on the
-engine CT) while the next level's scene is built beside them."""
-
-
 def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):
     """Embree scene of the level surface ρ = iso (empty at the data's extremes), with the
     seconds its marching cubes took as ``mesh_seconds`` (Embree's as ``build_seconds``).
-    Zero-area triangles are kept: no ray hits them, and removing them costs a third of
-    the marching cubes."""
+    The surface is `volumes.tracing_surface`'s: compiled, without the GIL (scikit-image
+    held it for 0.17 s a level on the engine CT, stalling the plan and the tracing
+    workers beside the build), a watertight triangle soup with zero-area triangles kept
+    (no ray hits them)."""
     from .trace import Scene
 
     lo, hi = volume.value_range
-    iso = min(max(iso, lo), hi)
     began = time.perf_counter()
-    mesh = volumes.isosurface(volume, iso, normals="none", keep_degenerate=True,
-                              slab_voxels=SCENE_SLAB_VOXELS)
+    if lo < iso < hi:
+        vertices, faces = volumes.tracing_surface(volume, iso)
+    else:
+        vertices, faces = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
     mesh_seconds = time.perf_counter() - began
-    scene = Scene(mesh.vertices, mesh.faces)
+    scene = Scene(vertices, faces)
     scene.mesh_seconds = mesh_seconds
     return scene
 

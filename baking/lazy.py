@@ -62,8 +62,9 @@ BATCH_PATHS = 1 << 18
 """Paths per batch (one `Baker.run`, a sweep over the isovalue levels its texels use).
 Large, because every batch visits every level it touches; a new view still interrupts a
 batch between two levels."""
-SCENE_BYTES_PER_TRIANGLE = 100
-"""Rough memory of one triangle of a level scene (mesh arrays and Embree's BVH)."""
+SCENE_BYTES_PER_TRIANGLE = 130
+"""Rough memory of one triangle of a level scene (mesh arrays — a triangle soup, three
+vertices of its own each: `volumes.tracing_surface` — and Embree's BVH)."""
 VIEW_RANGE_FRACTION = 0.05
 """A lazy bake that follows the displayed isovalue bakes for the isovalues within this
 fraction of the data range on either side of it (`view_iso_range`)."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 
 from .core import Volume, VolumeError
+from .cubes import tracing_surface
 from .field import (
     gradient_at,
     gradient_grid,
@@ -43,6 +44,7 @@ __all__ = [
     "newton_to_level",
     "normals_at",
     "suggest_isovalues",
+    "tracing_surface",
     "turn_up",
     "value_at",
     "values_along_normals",

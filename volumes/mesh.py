@@ -104,7 +104,6 @@ def isosurface(
     flip_normals: bool = False,
     step_size: int = 1,
     keep_degenerate: bool = False,
-    slab_voxels: int | None = None,
 ) -> Mesh:
     """Extract the isosurface ρ = iso.
 
@@ -117,8 +116,6 @@ def isosurface(
         step_size: marching-cubes step in voxels (2 gives a fast coarse preview).
         keep_degenerate: keep zero-area triangles (ray tracing never hits them; removing
             them costs a third of the marching cubes).
-        slab_voxels: run marching cubes in z-slabs of about this many voxels
-            (`marching_cubes`): the same triangles, the GIL free between slabs.
 
     Returns:
         Mesh in world units; an empty mesh with a message when the surface is empty
@@ -131,7 +128,7 @@ def isosurface(
     if not lo < iso < hi:
         return Mesh.empty_at(iso, f"isovalue {iso:g} is at the data's extreme; nothing to show")
     verts, faces = marching_cubes(volume.data, iso, step_size=step_size,
-                                  keep_degenerate=keep_degenerate, slab_voxels=slab_voxels)
+                                  keep_degenerate=keep_degenerate)
     if len(faces) == 0:
         at_step = f" at step size {step_size}" if step_size > 1 else ""
         return Mesh.empty_at(iso, f"no surface at isovalue {iso:g}{at_step}")
