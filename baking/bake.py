@@ -273,13 +273,13 @@ class Baker:
         self._scene_lock = threading.Lock()
         self._pending: dict[int, Future] = {}  # scenes being built ahead
         warm = self._helper.submit(kernels.warm_up)  # loads compiled code beside the plan
+        kept = _kept_levels(lattice)
         self._ahead = ahead
-        self._first_guess = _first_level(volume, config, _kept_levels(lattice)) \
-            if ahead > 0 else None
+        self._first_guess = _first_level(volume, config, kept) if ahead > 0 else None
         if self._first_guess is not None:  # the plan's first level, built beside the plan
             self._pending[0] = self._helper.submit(_level_scene, volume, self._first_guess,
                                                    config)
-        self.plan = make_plan(volume, self.geometry, config, _kept_levels(lattice), progress,
+        self.plan = make_plan(volume, self.geometry, config, kept, progress,
                               on_levels=self._build_first_scenes)
         self.lattice.active = self.plan.active
         warm.result()

@@ -131,23 +131,31 @@ bool off_tile(Receiver r) {
     return any(lessThan(r.uv, vec2(0.0))) || any(greaterThan(r.uv, vec2(1.0)));
 }
 
+// Where distant light i meets the receiver at `world` (normal n, facet normal `facet`):
+// its cosine (0 facing away) and the receiver in tile `tile`. False when no shadow lookup
+// is needed: facing away, or outside the map (nothing there shades it).
+bool distant_receiver_in(int i, int tile, vec3 world, vec3 n, vec3 facet, out float cosine,
+                         out Receiver r) {
+    vec3 l = u_direct_where[i].xyz;
+    cosine = max(dot(n, l), 0.0);
+    if (cosine == 0.0) return false;
+    r = distant_receiver(tile, l, world, facet);
+    return !off_tile(r);
+}
+
 // Irradiance of distant light i (tile `tile`) at `world` (normal n, facet normal `facet`).
 vec3 distant_hard(int i, int tile, vec3 world, vec3 n, vec3 facet) {
-    vec3 l = u_direct_where[i].xyz;
-    float cosine = dot(n, l);
-    if (cosine <= 0.0) return vec3(0.0);
-    Receiver r = distant_receiver(tile, l, world, facet);
-    if (off_tile(r)) return u_direct_rgb[i] * cosine;  // outside the map: nothing shades it
+    float cosine;
+    Receiver r;
+    if (!distant_receiver_in(i, tile, world, n, facet, cosine, r)) return u_direct_rgb[i] * cosine;
     return u_direct_rgb[i] * (cosine * filtered(tile, r, u_tile_texel[tile], tap_turn(),
                                                 HARD_TAPS));
 }
 
 vec3 distant_soft(int i, int tile, vec3 world, vec3 n, vec3 facet) {
-    vec3 l = u_direct_where[i].xyz;
-    float cosine = dot(n, l);
-    if (cosine <= 0.0) return vec3(0.0);
-    Receiver r = distant_receiver(tile, l, world, facet);
-    if (off_tile(r)) return u_direct_rgb[i] * cosine;  // outside the map: nothing shades it
+    float cosine;
+    Receiver r;
+    if (!distant_receiver_in(i, tile, world, n, facet, cosine, r)) return u_direct_rgb[i] * cosine;
     float tan_r = u_direct_tan_radius[i];
     float texel = u_tile_texel[tile];
     mat2 turn = tap_turn();

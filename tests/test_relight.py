@@ -151,22 +151,35 @@ def _lum(values):
     return values.astype(np.float64) @ LUMINANCE
 
 
-@pytest.fixture(scope="module")
-def relit(engine):
-    """The surface around a view baked under the default sun, then the sun turned and the
-    same surface baked again lazily (published as it went)."""
-    config = _config()
+def _baked_then_turned(engine, config, direction, until=None):
+    """The surface around a view baked under `config`'s sun, then the sun turned to
+    `direction` and the same surface baked again lazily (published as it went; stopped
+    after a commit once `until(relight)` holds).
+
+    Returns:
+        the (closed) baker, its lattice, the old `_state` of the plan's texels, the
+        `Relight`, the re-bake's scheduler and `serve` stats.
+    """
     baker = Baker(engine, config, lattice=_empty(engine, config), workers=2, scene_cache=64)
     try:
         lattice = baker.lattice
         _serve_view(baker, lattice.samples.reshape(-1))
-        ids = baker.plan.ids
-        old = _state(lattice, ids)
-        relight = _turn(baker, lattice, _unit((0.6, 0.3, 0.5)))
-        scheduler, _ = _serve_view(baker, relight.fresh.samples.reshape(-1),
-                                   send=relight.forward(lambda message: None))
+        old = _state(lattice, baker.plan.ids)
+        relight = _turn(baker, lattice, direction)
+        scheduler, stats = _serve_view(
+            baker, relight.fresh.samples.reshape(-1), send=relight.forward(lambda m: None),
+            until=None if until is None else lambda: until(relight))
     finally:
         baker.close()
+    return baker, lattice, old, relight, scheduler, stats
+
+
+@pytest.fixture(scope="module")
+def relit(engine):
+    """The surface around a view baked under the default sun, then the sun turned and the
+    same surface baked again lazily."""
+    baker, _, old, relight, scheduler, _ = _baked_then_turned(engine, _config(),
+                                                              _unit((0.6, 0.3, 0.5)))
     return baker, relight, scheduler, old
 
 
@@ -213,20 +226,10 @@ def test_a_texel_shows_the_old_light_or_the_new_never_a_mix(engine):
     """Stopped half-way through the re-bake: every texel holds either the old light's whole
     state (mean, samples, second moment, preview) or the new light's, and the new one only
     where it rests on RELIGHT_PATHS paths (the old ones rested on more)."""
-    config = dataclasses.replace(_config(), seed=3)
-    baker = Baker(engine, config, lattice=_empty(engine, config), workers=2, scene_cache=64)
-    try:
-        lattice = baker.lattice
-        _serve_view(baker, lattice.samples.reshape(-1))
-        ids = baker.plan.ids
-        old = _state(lattice, ids)
-        relight = _turn(baker, lattice, _unit((-0.2, 0.9, 0.4)))
-        published = relight.published
-        scheduler, stats = _serve_view(
-            baker, relight.fresh.samples.reshape(-1), send=relight.forward(lambda m: None),
-            until=lambda: published.sum() > 3000)
-    finally:
-        baker.close()
+    baker, lattice, old, relight, scheduler, stats = _baked_then_turned(
+        engine, dataclasses.replace(_config(), seed=3), _unit((-0.2, 0.9, 0.4)),
+        until=lambda relight: relight.published.sum() > 3000)
+    ids, published = baker.plan.ids, relight.published
     assert stats.interrupted + stats.batches > 0
     surface = ids[scheduler.surface]
     now, fresh = _state(lattice, ids), _state(relight.fresh, ids)

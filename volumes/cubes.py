@@ -99,14 +99,15 @@ def _case(data: np.ndarray, iso: float, k: int, j: int, i: int) -> int:
 
 
 @numba.njit(nogil=True, cache=True)
-def _count(data: np.ndarray, iso: float, count: np.ndarray, k0: int, k1: int) -> int:
-    """Triangles of the cells in z-layers [k0, k1)."""
-    total = 0
+def _count(data: np.ndarray, iso: float, count: np.ndarray, k0: int, k1: int,
+           totals: np.ndarray) -> None:
+    """totals[k] = triangles of the cells in z-layer k, for k in [k0, k1)."""
     for k in range(k0, k1):
+        total = 0
         for j in range(data.shape[1] - 1):
             for i in range(data.shape[2] - 1):
                 total += count[_case(data, iso, k, j, i)]
-    return total
+        totals[k] = total
 
 
 @numba.njit(nogil=True, cache=True)
@@ -148,11 +149,8 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
     cells_per_layer = max(data.shape[1] - 1, 0) * max(data.shape[2] - 1, 0)
     totals = np.zeros(layers, np.int64)
 
-    def count_layers(lo: int, hi: int) -> None:
-        for k in range(lo, hi):
-            totals[k] = _count(data, float(iso), count, k, k + 1)
-
-    _on_threads(count_layers, layers, cells_per_layer)
+    _on_threads(lambda lo, hi: _count(data, float(iso), count, lo, hi, totals), layers,
+                cells_per_layer)
     firsts = np.concatenate([[0], np.cumsum(totals)])
     vertices = np.empty((3 * int(firsts[-1]), 3), np.float32)
     origin = np.asarray(volume.origin, np.float64)
