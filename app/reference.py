@@ -1,6 +1,6 @@
 """``isolume reference``: a path-traced reference image of the displayed isosurface.
 
-Same camera as ``isolume render`` (`app.render.default_camera`, pixel-centre rays from
+Same camera as ``isolume render`` (`app.render.renderer.default_camera`, pixel-centre rays from
 `Camera.primary_rays`), same lighting as ``isolume bake`` (the baker's integrator). Writes
 
 * ``FILE.exr``: linear radiance (``RGB``), its per-pixel standard error (``stderr.R/G/B``)
@@ -28,17 +28,16 @@ from pathlib import Path
 
 import numpy as np
 
-from baking.config import DEFAULT_ENV
-
-from .cli import (
+from isolume.app.options import (
     CLIError,
-    _add_volume_options,
-    _floats,
-    _isovalue,
-    _load_volume,
-    _size,
+    add_volume_options,
+    floats,
+    isovalue,
+    load_volume,
     parse_albedo,
+    parse_size,
 )
+from isolume.baking.config import DEFAULT_ENV
 
 HELP = "path-trace a reference image of the isosurface (linear EXR + standard error)"
 CHECKPOINT_SECONDS = 60.0
@@ -46,7 +45,7 @@ CHECKPOINT_SECONDS = 60.0
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``isolume reference``."""
-    _add_volume_options(p, optional=False)
+    add_volume_options(p, optional=False)
     p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
     p.add_argument("--out", required=True,
                    help="FILE.exr (also FILE.json and FILE.state.npz; resumed if present)")
@@ -92,19 +91,19 @@ def _check_numbers(args: argparse.Namespace) -> None:
 
 def _camera(args: argparse.Namespace, volume):
     """(camera, (width, height)) from --view and --size, as ``isolume render`` makes them."""
-    from .camera import parse_view
-    from .render import default_camera
+    from isolume.app.render.camera import parse_view
+    from isolume.app.render.renderer import default_camera
 
     try:
         view = parse_view(args.view)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
-    return default_camera(volume, view), _size(args.size)
+    return default_camera(volume, view), parse_size(args.size)
 
 
 def _config(args: argparse.Namespace):
     """The `BakeConfig` of the lighting and the integrator (samples = --spp)."""
-    from baking.config import BakeConfig
+    from isolume.baking.config import BakeConfig
 
     return BakeConfig(
         mode="irradiance", samples=args.spp, bounces=args.bounces,
@@ -115,9 +114,9 @@ def _config(args: argparse.Namespace):
 
 def _env_rotation(text: str) -> np.ndarray | None:
     """(3, 3) rotation of ``--env-rotation AZ,EL``; None for the identity."""
-    from baking.sh import rotation_from_az_el
+    from isolume.baking.sh import rotation_from_az_el
 
-    az, el = _floats(text, 2, "--env-rotation")
+    az, el = floats(text, 2, "--env-rotation")
     return None if az == el == 0 else rotation_from_az_el(az, el)
 
 
@@ -127,8 +126,8 @@ def _resume(outputs: _Outputs, tracer):
     Raises:
         BakeError: the state file holds a reference of another scene or camera.
     """
-    from baking.errors import BakeError
-    from baking.reference import PixelStats, load_state
+    from isolume.baking.errors import BakeError
+    from isolume.baking.reference import PixelStats, load_state
 
     if not outputs.state.exists():
         return PixelStats.empty(tracer.pixels), {}
@@ -171,9 +170,8 @@ def _summary(image, stats, hit_pixels: np.ndarray) -> dict:
 
 def _save(outputs: _Outputs, tracer, stats, meta: dict, size: tuple[int, int]) -> dict:
     """Write state, EXR and sidecar; returns the sidecar's dict."""
-    from baking.reference import atomic_write, save_state
-
-    from .images import write_exr
+    from isolume.app.render.images import write_exr
+    from isolume.baking.reference import atomic_write, save_state
 
     save_state(outputs.state, stats, meta)
     w, h = size
@@ -227,16 +225,15 @@ def _progress(total: int):
 
 def run(args: argparse.Namespace) -> int:
     """Trace (or extend) the reference image; returns the exit status."""
-    from baking.reference import ReferenceTracer
-
-    from .images import check_output_path
+    from isolume.app.render.images import check_output_path
+    from isolume.baking.reference import ReferenceTracer
 
     outputs = _Outputs.for_exr(check_output_path(args.out, (".exr",)))
     _check_numbers(args)
     config = _config(args)
     rotation = _env_rotation(args.env_rotation)
-    volume = _load_volume(args)
-    iso = _isovalue(volume, args.iso)
+    volume = load_volume(args)
+    iso = isovalue(volume, args.iso)
     camera, size = _camera(args, volume)
     origins, dirs = camera.primary_rays(*size)
     with ReferenceTracer(volume, iso, origins, dirs, config, smooth=args.normals == "smooth",

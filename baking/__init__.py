@@ -4,9 +4,9 @@ Needs no display and no GL. The only module importing ``embreex`` is `baking.tra
 and it is imported only when a bake actually runs.
 """
 
-from .bake import bake
-from .config import BakeConfig
-from .errors import BakeError
-from .lattice import Lattice, LatticeGeometry
+from isolume.baking.bake import bake
+from isolume.baking.config import BakeConfig
+from isolume.baking.errors import BakeError
+from isolume.baking.lattice import Lattice, LatticeGeometry
 
 __all__ = ["BakeConfig", "BakeError", "Lattice", "LatticeGeometry", "bake"]

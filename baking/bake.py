@@ -23,12 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-import volumes
-
-from . import kernels, rng
-from .config import BakeConfig
-from .errors import BakeError
-from .integrator import (
+from isolume import volumes
+from isolume.baking import kernels, rng
+from isolume.baking.config import BakeConfig
+from isolume.baking.errors import BakeError
+from isolume.baking.integrator import (
     Lighting,
     PathSettings,
     RayStats,
@@ -37,9 +36,9 @@ from .integrator import (
     trace_whole_paths,
     whole_paths,
 )
-from .lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
-from .lights import parse_light
-from .plan import (
+from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
+from isolume.baking.lights import parse_light
+from isolume.baking.plan import (
     GOLDEN_FRACTION,
     Plan,
     make_plan,
@@ -79,7 +78,7 @@ class BakeStats:
 def make_lighting(config: BakeConfig) -> Lighting:
     """Parse the environment and lights of `config`; the lights' and the sun's direct light
     is left to the renderer when `config.direct_light` is "pixels"."""
-    from .environment import ConstantEnvironment, SkyEnvironment, parse_env
+    from isolume.baking.environment import ConstantEnvironment, SkyEnvironment, parse_env
 
     env = parse_env(config.env) if config.env else None
     sample_env = env is not None and not isinstance(env, ConstantEnvironment)
@@ -528,7 +527,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
     out = Path(out) if out is not None else None
     existing = _load_existing(volume, config, out)
     if scheduler is not None:
-        from .cluster import ClusterBaker
+        from isolume.baking.cluster import ClusterBaker
 
         baker = ClusterBaker(volume, config, scheduler, lattice=existing)
     else:
@@ -689,7 +688,7 @@ def _level_scene(volume: volumes.Volume, iso: float, config: BakeConfig):
     held it for 0.17 s a level on the engine CT, stalling the plan and the tracing
     workers beside the build), a watertight triangle soup with zero-area triangles kept
     (no ray hits them)."""
-    from .trace import Scene
+    from isolume.baking.trace import Scene
 
     lo, hi = volume.value_range
     began = time.perf_counter()

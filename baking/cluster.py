@@ -40,10 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-import volumes
-
-from . import kernels
-from .bake import (
+from isolume import volumes
+from isolume.baking import kernels
+from isolume.baking.bake import (
     REPORT_S,
     Baker,
     PassSums,
@@ -55,10 +54,10 @@ from .bake import (
     lay_out_level,
     trace_chunk,
 )
-from .config import BakeConfig
-from .errors import BakeError
-from .integrator import Lighting, PathSettings, WholePaths
-from .lattice import Lattice, LatticeGeometry
+from isolume.baking.config import BakeConfig
+from isolume.baking.errors import BakeError
+from isolume.baking.integrator import Lighting, PathSettings, WholePaths
+from isolume.baking.lattice import Lattice, LatticeGeometry
 
 PATHS_PER_TASK = 65536
 """Expected paths per task: ~0.1–0.3 s of tracing, against ~2 ms of Dask overhead."""
@@ -84,7 +83,7 @@ def fingerprint() -> dict[str, str]:
     for package in ("baking", "volumes"):
         root = Path(__file__).resolve().parent.parent / package
         for path in sorted(root.glob("*.py")):
-            name = package if path.stem == "__init__" else f"{package}.{path.stem}"
+            name = f"isolume.{package}" + ("" if path.stem == "__init__" else f".{path.stem}")
             digest.update(name.encode())
             try:
                 module = importlib.import_module(name)
@@ -101,7 +100,7 @@ def _digest_module(module, digest) -> None:
     ones by their Python source) and its upper-case constants to `digest`, in name order
     (this module's constants, which size tasks, are left out: they change no bits)."""
     for name, obj in sorted(vars(module).items()):
-        if name.isupper() and module.__name__ not in (__name__, f"{__name__}_bench"):
+        if name.isupper() and module.__name__ != __name__:
             if isinstance(obj, np.ndarray):
                 digest.update(obj.tobytes())
             elif isinstance(obj, int | float | str | tuple):

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import BakeError
-from .lights import parse_light
+from isolume.baking.errors import BakeError
+from isolume.baking.lights import parse_light
 
 MODES = ("irradiance", "sh")
 DEFAULT_ENV = "sky:sun=6,sun_az=-150,sun_el=40"
@@ -134,7 +134,7 @@ class BakeConfig:
 
     def _choose_direct_light(self) -> None:
         """Resolve and check `direct_light` (see the class docs)."""
-        from .lights import has_pixel_lights
+        from isolume.baking.lights import has_pixel_lights
 
         if self.direct_light is None:
             pixels = self.mode == "irradiance" and has_pixel_lights(self.env, self.lights)

@@ -73,6 +73,8 @@ from pathlib import Path
 
 import numpy as np
 
+from isolume.volumes.errors import IsolumeError
+
 __all__ = [
     "FLOOR_FRACTION",
     "ConstantEnvironment",
@@ -111,7 +113,7 @@ LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
 _FOUR_PI = 4.0 * math.pi
 
 
-class EnvSpecError(ValueError):
+class EnvSpecError(IsolumeError):
     """A bad environment spec or file; the one-line message names it and what was expected."""
 
 

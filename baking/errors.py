@@ -1,5 +1,8 @@
 """The error raised for bad bake input (configuration, lattice files, light specs)."""
 
 
-class BakeError(ValueError):
+from isolume.volumes.errors import IsolumeError
+
+
+class BakeError(IsolumeError):
     """Bad bake input; the one-line message names the file or value and what was expected."""

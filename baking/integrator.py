@@ -51,12 +51,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import kernels
-from .lights import Light
-from .sampling import power_heuristic
+from isolume.baking import kernels
+from isolume.baking.lights import Light
+from isolume.baking.sampling import power_heuristic
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
-    from .trace import Scene
+    from isolume.baking.trace import Scene
 
 DIMS_PER_VERTEX = kernels.DIMS_PER_VERTEX
 
@@ -197,7 +197,7 @@ def _direct_sky(scene: Scene, result, alive, pos, n, beta, keys, dim, sky, stats
 
 def _escape_sh(beta: np.ndarray, dirs: np.ndarray, settings: PathSettings) -> np.ndarray:
     """(M, C) SH projection π·beta·Y(ω) of escaping paths."""
-    from .sh import basis
+    from isolume.baking.sh import basis
 
     y = np.pi * basis(dirs, settings.sh_order)
     if settings.rgb_transfer:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import BakeError
+from isolume.baking.errors import BakeError
 
 FORMAT_VERSION = 1
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -141,6 +141,18 @@ class Lattice:
     @property
     def kind(self) -> str:
         return self.meta.get("kind", "irradiance")
+
+    @property
+    def config(self):
+        """The `BakeConfig` the lattice was baked with (None when the file names none)."""
+        from .config import BakeConfig
+
+        d = self.meta.get("config")
+        return None if d is None else BakeConfig.from_dict(d)
+
+    @config.setter
+    def config(self, config) -> None:
+        self.meta["config"] = config.to_dict()
 
     @property
     def computed(self) -> np.ndarray:

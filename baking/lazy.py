@@ -49,8 +49,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .lattice import LUMINANCE, Lattice, LatticeGeometry
-from .plan import Plan
+from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry
+from isolume.baking.plan import Plan
 
 FIRST_TARGET = 4
 """Paths per texel of the first round: enough for a recognisable estimate."""
@@ -110,17 +110,17 @@ RELIGHT_PATHS = 16
 paths (its own or a preview's), or on as many as the old value it replaces when that had
 fewer: until then the old light's value stays (stale, but not noisier than it was)."""
 TURN_TOLERANCE_DEG = 0.5
-"""Light directions closer than this are the same light (`app.viewer_draw.Drawing.light_note`
+"""Light directions closer than this are the same light (`app.viewer.draw.Drawing.light_note`
 says "not turned" below it too)."""
 
 
 def turned_light(config) -> np.ndarray | None:
     """(3,) unit vector towards the light a viewer turns under `config`: the first distant
     light of `baking.lights.pixel_lights` (its first directional light, else its sky's
-    sun), the one `app.render.aimed_lights` aims. None when there is none or it is not
+    sun), the one `app.render.renderer.aimed_lights` aims. None when there is none or it is not
     shaded per pixel: a lattice holding its direct light, or an SH transfer (its sky and
     sun turn with the transfer; nothing to bake again)."""
-    from .lights import DirectionalLight, SunLight, pixel_lights
+    from isolume.baking.lights import DirectionalLight, SunLight, pixel_lights
 
     if config.mode != "irradiance" or config.direct_light != "pixels":
         return None

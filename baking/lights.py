@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import BakeError
+from isolume.baking.errors import BakeError
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,7 @@ def _sun_of(env_spec: str) -> SunLight | None:
     """The `SunLight` of a ``sky:...`` spec with a sun, else None."""
     if not env_spec or env_spec.split(":", 1)[0].strip() != "sky":
         return None
-    from .environment import parse_env
+    from isolume.baking.environment import parse_env
 
     sky = parse_env(env_spec)
     if sky.sun_probability == 0:

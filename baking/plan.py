@@ -30,12 +30,11 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-import volumes
-
-from .config import BakeConfig
-from .errors import BakeError
-from .lattice import LatticeGeometry
-from .rng import pcg_hash
+from isolume import volumes
+from isolume.baking.config import BakeConfig
+from isolume.baking.errors import BakeError
+from isolume.baking.lattice import LatticeGeometry
+from isolume.baking.rng import pcg_hash
 
 _BSPLINE = np.array([1.0, 4.0, 1.0]) / 6.0
 # Residual of the separable B-spline smoother on white noise: var(x - k*x) / sigma^2 =

@@ -28,15 +28,21 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-import volumes
-
-from . import kernels, rng
-from .bake import PassSums, PathStarts, Tracing, make_lighting, path_settings, trace_chunk
-from .config import BakeConfig
-from .integrator import whole_paths
-from .lattice import Lattice
-from .lazy import corner_offsets
-from .plan import project_to_level
+from isolume import volumes
+from isolume.baking import kernels, rng
+from isolume.baking.bake import (
+    PassSums,
+    PathStarts,
+    Tracing,
+    make_lighting,
+    path_settings,
+    trace_chunk,
+)
+from isolume.baking.config import BakeConfig
+from isolume.baking.integrator import whole_paths
+from isolume.baking.lattice import Lattice
+from isolume.baking.lazy import corner_offsets
+from isolume.baking.plan import project_to_level
 
 PASSES = ((4, True), (64, False), (256, False))
 """(paths per texel, coarse mesh allowed) of the preview passes of a view, in order; the
@@ -79,7 +85,7 @@ def mesh_step(volume: volumes.Volume, coarse: bool) -> int:
 def surface_scene(volume: volumes.Volume, iso: float, step: int):
     """Embree scene of the isosurface ρ = `iso` extracted with `step`, or None when it is
     empty."""
-    from .trace import Scene
+    from isolume.baking.trace import Scene
 
     mesh = volumes.isosurface(volume, iso, step_size=step, normals="none")
     return None if mesh.empty else Scene(mesh.vertices, mesh.faces)

@@ -39,14 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
-import volumes
-
-from . import rng
-from .bake import make_lighting, path_settings
-from .config import BakeConfig
-from .errors import BakeError
-from .integrator import Lighting, PathSettings, RayStats, trace_paths
-from .lattice import volume_identity
+from isolume import volumes
+from isolume.baking import rng
+from isolume.baking.bake import make_lighting, path_settings
+from isolume.baking.config import BakeConfig
+from isolume.baking.errors import BakeError
+from isolume.baking.integrator import Lighting, PathSettings, RayStats, trace_paths
+from isolume.baking.lattice import volume_identity
 
 STATE_VERSION = 1
 PIXELS_PER_BLOCK = 1024
@@ -172,7 +171,7 @@ def rotated_lighting(lighting: Lighting, rotation: np.ndarray | None) -> Lightin
     the turned one is sampled through its own methods."""
     if rotation is None or lighting.env is None:
         return lighting
-    from .environment import rotated
+    from isolume.baking.environment import rotated
 
     return dataclasses.replace(lighting, env=rotated(lighting.env, np.asarray(rotation)),
                                sky=None)
@@ -336,7 +335,7 @@ class ReferenceTracer:
     def __init__(self, volume: volumes.Volume, iso: float, origins: np.ndarray,
                  dirs: np.ndarray, config: BakeConfig, *, smooth: bool = True,
                  env_rotation: np.ndarray | None = None, workers: int | None = None) -> None:
-        from .trace import Scene
+        from isolume.baking.trace import Scene
 
         if config.mode != "irradiance":
             raise BakeError("a reference image needs mode 'irradiance' (radiance per pixel)")

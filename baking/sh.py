@@ -39,7 +39,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from baking import environment as _env
+from isolume.baking import environment as _env
 
 __all__ = [
     "band_rotation",

@@ -25,7 +25,7 @@ import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-from .integrator import RayStats
+from isolume.baking.integrator import RayStats
 
 _MISS = -1
 

@@ -21,7 +21,7 @@ def shared_file(*parts: str) -> Path:
 @pytest.fixture(scope="session")
 def _gl_session():
     """One OSMesa context for the whole session (tests run on OSMesa, as CI does)."""
-    from app.glcontext import create_headless
+    from isolume.app.render.glcontext import create_headless
 
     context = create_headless("osmesa")
     yield context
@@ -39,7 +39,7 @@ def gl(_gl_session):
 @pytest.fixture
 def renderer(gl):
     """A fresh SurfaceRenderer on the session context; checks GL errors around the test."""
-    from app.render import SurfaceRenderer
+    from isolume.app.render.renderer import SurfaceRenderer
 
     assert gl.error == "GL_NO_ERROR"
     r = SurfaceRenderer(gl)

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-import volumes
-from app.offscreen import render_volume
-from app.render import RenderSettings
-from baking import BakeConfig, bake, sh
-from baking.environment import parse_env
+from isolume import volumes
+from isolume.app.render.offscreen import render_volume
+from isolume.app.render.renderer import RenderSettings
+from isolume.baking import BakeConfig, bake, sh
+from isolume.baking.environment import parse_env
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "images"
 SKY = "sky:zenith=0.12,0.2,0.45,horizon=0.35,ground=0.15,sun=10,sun_az=60,sun_el=35,sun_radius=1"

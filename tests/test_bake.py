@@ -6,11 +6,11 @@ import importlib
 import numpy as np
 import pytest
 
-import volumes
-from baking import BakeConfig, BakeError, Lattice, bake
-from baking.lattice import LatticeGeometry
-from volumes import Volume
-from volumes.synthetic import SPHERE_RADIUS, make
+from isolume import volumes
+from isolume.baking import BakeConfig, BakeError, Lattice, bake
+from isolume.baking.lattice import LatticeGeometry
+from isolume.volumes import Volume
+from isolume.volumes.synthetic import SPHERE_RADIUS, make
 
 
 def _sdf_volume(sdf, size=48, extent=1.0, name="test"):
@@ -94,7 +94,7 @@ def test_point_light_inverse_square_and_cosine_on_a_plane():
     level within 0.02 voxel of the analytic plane (test_isosurface), and
     |d ln E / dz| <= 3 / (d - z) = 10 / world unit here, so 0.5 %; 1 % for the worst texel.
     """
-    from baking.plan import make_plan
+    from isolume.baking.plan import make_plan
 
     vol = _sdf_volume(lambda x, y, z: z, size=40)
     d, intensity, samples = 0.3, 0.5, 32
@@ -142,7 +142,7 @@ def test_closed_cavity_follows_the_geometric_series(bounces):
     0.1 level spacing <= 0.05 voxel (max_move 0.5): 2 * 0.07 h / R = 0.6 % for the start
     point, and again 2 * 0.02 h / R = 0.2 % for each bounce vertex on the mesh: 1 % at worst.
     """
-    from baking.plan import make_plan
+    from isolume.baking.plan import make_plan
 
     radius, albedo, intensity, samples = 0.3, 0.7, 0.09, 8
     vol = _sdf_volume(lambda x, y, z: radius - np.sqrt(x * x + y * y + z * z), size=48)
@@ -187,7 +187,7 @@ def test_whole_path_loop_equals_the_vertex_by_vertex_tracer(monkeypatch, env, al
     """Chunks traced in one compiled call (Embree called per ray from compiled code) give
     the lattice of the tracer that calls embreex once per step, to the bit, and trace as
     many rays."""
-    baking_bake = importlib.import_module("baking.bake")  # `baking.bake` is the function
+    baking_bake = importlib.import_module("isolume.baking.bake")  # `baking.bake` is the function
     config = BakeConfig(samples=12, bounces=2, env=env, albedo=albedo, direct_light=direct)
     vol = make("engine", 40)
     used = []
@@ -224,7 +224,7 @@ def test_resume_equals_uninterrupted(tmp_path):
 def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypatch):
     import sys
 
-    bake_module = sys.modules["baking.bake"]
+    bake_module = sys.modules["isolume.baking.bake"]
 
     config = BakeConfig(samples=20, bounces=1, env="constant:1,1,1", max_move=0.5)
     vol = make("shells", 32)
@@ -260,11 +260,11 @@ def test_level_approximation_error_shrinks_with_more_levels():
     The noise of (lattice - exact) is sqrt(2) standard errors per texel (independent
     estimates of equal variance); the finest scheme must come within 3x that.
     """
-    from baking.bake import make_lighting, path_settings, start_points
-    from baking.integrator import trace_paths
-    from baking.plan import make_plan
-    from baking.rng import path_keys
-    from baking.trace import Scene
+    from isolume.baking.bake import make_lighting, path_settings, start_points
+    from isolume.baking.integrator import trace_paths
+    from isolume.baking.plan import make_plan
+    from isolume.baking.rng import path_keys
+    from isolume.baking.trace import Scene
 
     vol = make("shells", 40)
     samples = 128

@@ -1,11 +1,11 @@
-"""The picture-error measure of ``isolume bench lazy`` (`app.bench_view.PixelTruth`)."""
+"""The picture-error measure of ``isolume bench lazy`` (`app.bench.view.PixelTruth`)."""
 
 import numpy as np
 import pytest
 
-import volumes
-from baking.config import BakeConfig
-from baking.lattice import Lattice, LatticeGeometry
+from isolume import volumes
+from isolume.baking.config import BakeConfig
+from isolume.baking.lattice import Lattice, LatticeGeometry
 
 pytest.importorskip("moderngl")
 
@@ -14,8 +14,8 @@ def test_picture_error_is_zero_for_the_exact_lattice_and_sees_a_wrong_one():
     """Unoccluded convex sphere under a constant sky: path tracing gives albedo·L at
     every pixel with zero variance, and a lattice holding πL everywhere shows exactly
     that; one 10 % too bright on every texel is 10 % off everywhere."""
-    from app.bench_view import pixel_truth
-    from app.render import default_camera
+    from isolume.app.bench.view import pixel_truth
+    from isolume.app.render.renderer import default_camera
 
     vol = volumes.load("synthetic:sphere:24")
     config = BakeConfig(env="constant:1,1,1", bounces=1, albedo=(0.5, 0.5, 0.5))

@@ -4,12 +4,12 @@ import json
 
 import pytest
 
-from app.chart_levels import POLICIES
-from app.cli import main
+from isolume.app.charts.levels import POLICIES
+from isolume.app.cli import main
 
 
 def test_level_policy_chart(tmp_path):
-    from app.glcontext import GLUnavailable, create_headless
+    from isolume.app.render.glcontext import GLUnavailable, create_headless
 
     try:
         create_headless("osmesa").release()

@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from PIL import Image as PILImage
 
-from app import charts
-from app.cli import main
-from app.render import SHADING_MODES
-from baking.reference import ReferenceImage
+from isolume.app.charts import charts
+from isolume.app.cli import main
+from isolume.app.render.renderer import SHADING_MODES
+from isolume.baking.reference import ReferenceImage
 
 CHART_NAMES = ("chart1_bake_time", "chart2_resolution", "chart3_lookup_normals",
                "chart4_shading_modes")
@@ -43,7 +43,7 @@ def sphere(tmp_path_factory):
 
 
 def _chart(out, *argv) -> int:
-    from app.glcontext import GLUnavailable, create_headless
+    from isolume.app.render.glcontext import GLUnavailable, create_headless
 
     try:
         create_headless("osmesa").release()
@@ -191,7 +191,7 @@ def test_local_lighting_matches_the_environment():
     np.testing.assert_allclose(flat.sky, np.pi * np.array([0.5, 1, 2]), rtol=1e-12)
     np.testing.assert_allclose(flat.ground, flat.sky, rtol=1e-12)
     np.testing.assert_allclose(flat.mean_radiance, [0.5, 1, 2], rtol=1e-12)
-    from baking.environment import parse_env
+    from isolume.baking.environment import parse_env
 
     sky = parse_env("sky:sun=3")
     lit = charts.local_lighting("sky:sun=3")
@@ -206,7 +206,7 @@ def test_local_lighting_matches_the_environment():
 
 
 def test_downsample_and_crop_keep_world_positions():
-    from volumes.synthetic import make
+    from isolume.volumes.synthetic import make
 
     vol = make("torus", 32)
     small = charts.downsample_volume(vol, 2)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import volumes
-from app.cli import main
-from app.images import read_exr
+from isolume import volumes
+from isolume.app.cli import main
+from isolume.app.render.images import read_exr
 
 
 def _run(capsys, *argv):
@@ -94,7 +94,7 @@ def test_unwritable_directory(tmp_path, capsys):
 
 
 def test_no_gl_names_the_alternatives(tmp_path, monkeypatch, capsys):
-    import app.glcontext as glc
+    import isolume.app.render.glcontext as glc
 
     def fail():
         raise glc.GLUnavailable("OSMesa is not installed (libOSMesa.so.8 not found); try --gl egl")
@@ -107,7 +107,7 @@ def test_no_gl_names_the_alternatives(tmp_path, monkeypatch, capsys):
 
 def test_console_entry_point_reports_without_traceback(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-m", "app.cli", "info", str(tmp_path / "absent.nrrd")],
+        [sys.executable, "-m", "isolume.app.cli", "info", str(tmp_path / "absent.nrrd")],
         capture_output=True, text=True, timeout=60,
     )
     assert result.returncode == 2
@@ -128,7 +128,7 @@ def _subcommands(parser, prefix=()):
 def test_every_command_has_help(capsys):
     """``isolume CMD --help`` prints usage and exits 0 for every command and subcommand
     (a stray ``%`` in a help string makes argparse fail only when help is shown)."""
-    from app.cli import build_parser
+    from isolume.app.cli import build_parser
 
     commands = list(_subcommands(build_parser()))
     assert {("render",), ("view",), ("reference",), ("bench",)} <= set(commands)
@@ -163,12 +163,13 @@ def test_render_traces_global_illumination_by_default(tmp_path, capsys):
 def test_up_turns_the_volume(capsys):
     status, out, _ = _run(capsys, "info", "synthetic:engine:48", "--up", "x")
     assert status == 0 and "25 x 30 x 48" in out  # x (48 samples) now runs up
-    from app.cli import _join_negative_axes, _load_volume, build_parser
+    from isolume.app.cli import _join_negative_axes, build_parser
+    from isolume.app.options import load_volume
 
     args = build_parser().parse_args(_join_negative_axes(["info", "synthetic:engine:48",
                                                           "--up", "-z"]))
     plain = volumes.load("synthetic:engine:48")
-    np.testing.assert_array_equal(_load_volume(args).data, plain.data[::-1, :, ::-1])
+    np.testing.assert_array_equal(load_volume(args).data, plain.data[::-1, :, ::-1])
     status, _, err = _run(capsys, "info", "synthetic:engine:48", "--up", "w")
     assert status == 2 and "--up 'w'" in err
 
@@ -178,7 +179,7 @@ def test_default_render_agrees_with_the_reference(tmp_path, capsys):
     added per pixel) against ``isolume reference`` with the same arguments, on a part with
     shadows and interreflections. Measured: 5.7 % RMS with 3.4 % of it the reference's own
     noise (512 spp), mean ratio 0.996; the sun counted twice gives 1.45."""
-    from baking.config import DEFAULT_ENV
+    from isolume.baking.config import DEFAULT_ENV
 
     common = ["synthetic:engine:48", "--size", "64x64"]
     status, _, err = _run(capsys, "render", *common, "--gl", "osmesa",
@@ -253,8 +254,8 @@ def test_default_render_is_the_same_for_any_worker_count(tmp_path, capsys):
 def test_render_view_bake_and_reference_default_to_the_same_lighting():
     """The same arguments give the same lighting, so any picture can be checked against
     the path tracer (DESIGN §6)."""
-    from app.cli import build_parser
-    from baking.config import DEFAULT_ENV
+    from isolume.app.cli import build_parser
+    from isolume.baking.config import DEFAULT_ENV
 
     parser = build_parser()
     for argv in (["render", "--out", "a.png"], ["reference", "v.npy", "--out", "a.exr"],

@@ -10,11 +10,11 @@ import threading
 import numpy as np
 import pytest
 
-from baking import BakeConfig, BakeError, Lattice, bake
-from volumes.synthetic import make
+from isolume.baking import BakeConfig, BakeError, Lattice, bake
+from isolume.volumes.synthetic import make
 
 distributed = pytest.importorskip("distributed")
-cluster_module = pytest.importorskip("baking.cluster")
+cluster_module = pytest.importorskip("isolume.baking.cluster")
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +131,7 @@ def test_a_worker_with_other_code_is_refused(cluster, monkeypatch):
 
 def test_cli_bake_on_a_local_cluster(tmp_path, capsys):
     """``isolume bake --scheduler local:1``: the file of a local bake, and what moved."""
-    from app.cli import main
+    from isolume.app.cli import main
 
     args = ["bake", "synthetic:sphere:24", "--samples", "4", "--bounces", "1"]
     assert main([*args, "--out", str(tmp_path / "c.npz"), "--scheduler", "local:1"]) == 0
@@ -207,7 +207,7 @@ def test_fingerprint_is_the_loaded_code_and_the_same_in_every_process():
     import sys
     import types
 
-    code = "from baking.cluster import fingerprint; print(fingerprint())"
+    code = "from isolume.baking.cluster import fingerprint; print(fingerprint())"
     seen = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                            env={**os.environ, "PYTHONHASHSEED": seed},
                            check=True).stdout for seed in ("1", "2")}

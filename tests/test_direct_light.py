@@ -15,17 +15,28 @@ import pytest
 from test_render_modes import _merge, _plane, _sphere
 from test_viewer import _surface, _view, display  # noqa: F401  (display: an Xvfb fixture)
 
-import volumes
-from app.camera import Camera
-from app.render import RenderError, RenderSettings, direct_tiles, lattice_direct_lights
-from baking import kernels, rng
-from baking.config import BakeConfig
-from baking.environment import parse_env, sample_uniform_cone
-from baking.errors import BakeError
-from baking.integrator import Lighting, PathSettings, trace_paths, trace_whole_paths, whole_paths
-from baking.lattice import Lattice, LatticeGeometry
-from baking.lights import DirectionalLight, PointLight, SunLight, parse_light, pixel_lights
-from baking.trace import Scene
+from isolume import volumes
+from isolume.app.render.camera import Camera
+from isolume.app.render.renderer import (
+    RenderError,
+    RenderSettings,
+    direct_tiles,
+    lattice_direct_lights,
+)
+from isolume.baking import kernels, rng
+from isolume.baking.config import BakeConfig
+from isolume.baking.environment import parse_env, sample_uniform_cone
+from isolume.baking.errors import BakeError
+from isolume.baking.integrator import (
+    Lighting,
+    PathSettings,
+    trace_paths,
+    trace_whole_paths,
+    whole_paths,
+)
+from isolume.baking.lattice import Lattice, LatticeGeometry
+from isolume.baking.lights import DirectionalLight, PointLight, SunLight, parse_light, pixel_lights
+from isolume.baking.trace import Scene
 
 
 # -- configuration ------------------------------------------------------------------------
@@ -68,7 +79,7 @@ def test_pixel_lights_are_the_lights_then_the_sun():
 
 # -- the baker's split --------------------------------------------------------------------
 def test_bakes_leave_out_the_direct_light_their_config_sends_to_the_pixels():
-    from baking.bake import make_lighting
+    from isolume.baking.bake import make_lighting
 
     assert make_lighting(BakeConfig(env="sky:sun=3")).pixel_direct
     assert not make_lighting(BakeConfig(env="sky:sun=3", direct_light="lattice")).pixel_direct
@@ -421,7 +432,7 @@ def test_split_sh_sun_is_the_same_whether_the_transfer_is_deferred_or_not(render
     surface pass, which then writes the G-buffer for the sun alone. With a zero transfer
     both pictures are the sun's direct light alone, and the same (before, order 5 with the
     sun drew nothing: its textures and the atlas shared a texture unit)."""
-    from baking import sh
+    from isolume.baking import sh
 
     vol = volumes.load("synthetic:engine:40")
     mesh = volumes.isosurface(vol, 0.3)
@@ -453,7 +464,7 @@ def test_split_sh_sun_is_the_same_whether_the_transfer_is_deferred_or_not(render
 def test_bench_frames_times_the_sun_per_pixel_beside_phong_shadow():
     """`isolume bench frames` times irradiance with the sun per pixel in the same
     interleaved rounds as the local modes and reports its ratios (wall and CPU time)."""
-    from app.bench_view import DIRECT_MODE, frame_times
+    from isolume.app.bench.view import DIRECT_MODE, frame_times
 
     vol = volumes.load("synthetic:sphere:16")
     r = frame_times(vol, 0.5, (32, 32), frames=2, backend="osmesa", rounds=2)
@@ -492,8 +503,8 @@ def test_sun_on_an_isosurface_matches_ray_cast_shadows(renderer):
     """The sun alone (no sky, no bounces) on the synthetic engine's fins and bores, shaded
     per pixel, against the reference tracer's shadow rays over the sun's disc at the same
     pixels (its start points lifted by the bake's offset, as the renderer's lookups)."""
-    from baking.lattice import volume_identity
-    from baking.reference import render_reference
+    from isolume.baking.lattice import volume_identity
+    from isolume.baking.reference import render_reference
 
     vol = volumes.load("synthetic:engine:64")
     mesh = volumes.isosurface(vol, 0.3)
@@ -529,7 +540,7 @@ def test_viewer_moves_the_sun_with_exact_shadows(display, tmp_path):  # noqa: F8
     """A lattice whose sun is shaded per pixel: turning the light in the viewer moves the
     sun's light and shadows (the lattice's part of the picture stays), "light camera" puts
     it back where it was baked."""
-    from app.viewer_bake import lattice_meta
+    from isolume.app.viewer.bake_client import lattice_meta
 
     vol = volumes.load("synthetic:engine:48")
     config = BakeConfig(env="sky:sun=3", samples=1)
@@ -560,9 +571,9 @@ def test_viewer_moves_the_sun_with_exact_shadows(display, tmp_path):  # noqa: F8
 
 
 def test_viewer_light_note_says_when_the_bounced_light_is_stale(gl):
-    from app.ui import direction_from_angles
-    from app.viewer_bake import lattice_meta
-    from app.viewer_draw import Drawing, ViewState
+    from isolume.app.viewer.bake_client import lattice_meta
+    from isolume.app.viewer.draw import Drawing, ViewState
+    from isolume.app.viewer.panel import direction_from_angles
 
     vol = volumes.load("synthetic:sphere:16")
     config = BakeConfig(env="sky:sun=3,sun_az=45,sun_el=40", samples=1)
@@ -588,7 +599,7 @@ def test_viewer_light_note_says_when_the_bounced_light_is_stale(gl):
 def test_several_lights_add_up(renderer):
     """Each light is one call of the specialised shader (`direct_sum`); together they
     give the sum of their pictures (the lattice's light counted once)."""
-    from app.render import direct_sum
+    from isolume.app.render.renderer import direct_sum
 
     sun = SunLight(tuple(SUN), (2.0, 2.0, 2.0), 3.0)
     hard = DirectionalLight((-0.3, 0.4, 0.8), (1.0, 0.5, 0.25))

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from baking import environment as envmod
-from baking.environment import EnvSpecError
-from baking.sh import rotation_from_az_el
+from isolume.baking import environment as envmod
+from isolume.baking.environment import EnvSpecError
+from isolume.baking.sh import rotation_from_az_el
 
 PROBES = Path(__file__).resolve().parents[2] / "shared" / "data" / "probes"
 

@@ -8,11 +8,11 @@ the measured figures.
 import numpy as np
 import pytest
 
-import volumes
-from baking import BakeConfig, BakeError, bake, sh
-from baking.environment import parse_env
-from volumes import Volume
-from volumes.synthetic import make
+from isolume import volumes
+from isolume.baking import BakeConfig, BakeError, bake, sh
+from isolume.baking.environment import parse_env
+from isolume.volumes import Volume
+from isolume.volumes.synthetic import make
 
 
 def _grid(size: int):

@@ -6,8 +6,8 @@ import itertools
 import numpy as np
 import pytest
 
-from app.camera import FRAME_FILL, Camera, frame_box
-from app.render import EXPOSURE_KEY, auto_exposure_scale
+from isolume.app.render.camera import FRAME_FILL, Camera, frame_box
+from isolume.app.render.renderer import EXPOSURE_KEY, auto_exposure_scale
 
 
 def _ndc(camera: Camera, aspect: float, points) -> np.ndarray:
@@ -72,7 +72,7 @@ def test_auto_exposure_is_the_key_over_the_log_average():
 
 
 def test_viewer_exposure_adapts_smoothly_in_stops():
-    from app.viewer_draw import EXPOSURE_ADAPT_S, adapted_exposure
+    from isolume.app.viewer.draw import EXPOSURE_ADAPT_S, adapted_exposure
 
     assert adapted_exposure(1.0, 4.0, 0.0) == 1.0
     half = EXPOSURE_ADAPT_S * np.log(2)

@@ -7,7 +7,6 @@ change results re-records them (``python tests/golden/record.py``) and says why.
 import json
 
 import pytest
-
 from golden.record import HASHES, differences, record
 
 

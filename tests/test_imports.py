@@ -11,11 +11,13 @@ CHECK = "import sys, {mods}; bad = [m for m in {forbidden!r} if m in sys.modules
 @pytest.mark.parametrize(
     ("modules", "forbidden"),
     [
-        ("volumes", ["moderngl", "glfw", "embreex", "baking", "app"]),
-        ("baking", ["moderngl", "glfw", "embreex", "app"]),
-        ("app, app.cli, app.render, app.glcontext", ["embreex"]),
-        ("app.charts", ["moderngl", "matplotlib", "embreex"]),  # loaded when a chart runs
-        ("app.reference", ["embreex", "moderngl"]),
+        ("isolume.volumes", ["moderngl", "glfw", "embreex", "isolume.baking", "isolume.app"]),
+        ("isolume.baking", ["moderngl", "glfw", "embreex", "isolume.app"]),
+        ("isolume.app.cli, isolume.app.render.renderer, isolume.app.render.glcontext",
+         ["embreex"]),
+        # loaded when a chart runs
+        ("isolume.app.charts.charts", ["moderngl", "matplotlib", "embreex"]),
+        ("isolume.app.reference", ["embreex", "moderngl"]),
     ],
 )
 def test_import_direction(modules, forbidden):

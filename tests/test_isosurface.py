@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-import volumes
-from volumes import Volume, VolumeError
-from volumes.synthetic import SPHERE_RADIUS, make
+from isolume import volumes
+from isolume.volumes import Volume, VolumeError
+from isolume.volumes.synthetic import SPHERE_RADIUS, make
 
 
 def _edge_interpolation_error(width_in_voxels: float) -> float:

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from baking import kernels, rng
-from baking.lattice import LUMINANCE
-from baking.sampling import sample_cosine_hemisphere, to_world
+from isolume.baking import kernels, rng
+from isolume.baking.lattice import LUMINANCE
+from isolume.baking.sampling import sample_cosine_hemisphere, to_world
 
 
 @pytest.fixture(scope="module")
@@ -64,8 +64,8 @@ def test_level_paths_match_the_numpy_expansion():
     """The pending paths of each level: as `reference.pending_samples` and
     `Plan.on_upper` lay them out (expand every texel's pending samples, keep those on this
     level, sort by texel)."""
-    from baking.plan import GOLDEN_FRACTION
-    from baking.reference import pending_samples
+    from isolume.baking.plan import GOLDEN_FRACTION
+    from isolume.baking.reference import pending_samples
 
     gen = np.random.default_rng(4)
     count = 300
@@ -270,8 +270,8 @@ def test_shadow_rays_and_unblocked_sums_match_numpy():
 def test_sky_light_samples_match_the_environment(spec, normals):
     """The compiled sky sampler against `SkyEnvironment.sample/pdf/radiance` and the
     MIS weighting of `integrator._direct_env`, on the same uniforms."""
-    from baking.environment import parse_env
-    from baking.sampling import power_heuristic
+    from isolume.baking.environment import parse_env
+    from isolume.baking.sampling import power_heuristic
 
     env = parse_env(spec)
     assert len(kernels.sky_params(env)) == kernels.SKY_PARAMS
@@ -304,8 +304,8 @@ def test_sky_light_samples_match_the_environment(spec, normals):
 @pytest.mark.parametrize("spec", SKIES)
 def test_sky_escaped_rays_match_the_environment(spec, mis, normals):
     """Escaped rays' sky light, weighted against the light sample (mis) or alone."""
-    from baking.environment import parse_env
-    from baking.integrator import PathSettings, _add_escaped
+    from isolume.baking.environment import parse_env
+    from isolume.baking.integrator import PathSettings, _add_escaped
 
     env = parse_env(spec)
     r = np.random.default_rng(8)

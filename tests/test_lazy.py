@@ -5,10 +5,10 @@ import queue
 import numpy as np
 import pytest
 
-import volumes
-from baking.config import BakeConfig
-from baking.lattice import LatticeGeometry
-from baking.lazy import (
+from isolume import volumes
+from isolume.baking.config import BakeConfig
+from isolume.baking.lattice import LatticeGeometry
+from isolume.baking.lazy import (
     LazyScheduler,
     View,
     by_distance,
@@ -22,7 +22,7 @@ from baking.lazy import (
     surface_positions,
     visible_cells,
 )
-from baking.plan import make_plan
+from isolume.baking.plan import make_plan
 
 
 @pytest.fixture(scope="module")
@@ -208,7 +208,7 @@ def test_relative_error_matches_the_standard_error_formula():
 def test_serve_bakes_the_view_with_the_real_baker(sphere):
     """End to end on a tiny volume: every surface texel reaches the target, texels come
     nearer-first, and committed ids are announced."""
-    from baking.bake import Baker
+    from isolume.baking.bake import Baker
 
     vol, geometry, _ = sphere
     config = BakeConfig(samples=4, bounces=0)
@@ -247,7 +247,7 @@ def test_serve_bakes_the_view_with_the_real_baker(sphere):
 
 
 def test_view_iso_range_is_a_band_around_the_isovalue_within_the_data():
-    from baking.lazy import VIEW_RANGE_FRACTION, view_iso_range
+    from isolume.baking.lazy import VIEW_RANGE_FRACTION, view_iso_range
 
     vol = volumes.load("synthetic:sphere:24")
     vmin, vmax = vol.value_range
@@ -260,8 +260,8 @@ def test_carry_over_keeps_texels_lit_at_the_same_target():
     """Two plans of neighbouring ranges: a texel keeps its samples when both light it at
     the same (clamped) isovalue; the others — clamped differently, or inactive now —
     are reset and returned."""
-    from baking.bake import Baker
-    from baking.lazy import carry_over
+    from isolume.baking.bake import Baker
+    from isolume.baking.lazy import carry_over
 
     vol = volumes.load("synthetic:shells:24")
     old = Baker(vol, BakeConfig(samples=2, bounces=0, iso_range=(0.3, 0.5)), workers=2)
@@ -290,7 +290,7 @@ def test_carry_over_keeps_texels_lit_at_the_same_target():
 def test_serve_returns_a_view_its_plan_does_not_serve(sphere):
     """A view outside the plan's iso range ends the loop before any batch is baked for
     it; the caller plans again."""
-    from baking.bake import Baker
+    from isolume.baking.bake import Baker
 
     vol, geometry, _ = sphere
     baker = Baker(vol, BakeConfig(samples=4, bounces=0, iso_range=(0.45, 0.55)), workers=2)
@@ -322,8 +322,8 @@ def test_the_lazy_bake_plans_again_when_the_view_leaves_its_range():
     and the new plan's texels get samples."""
     import time
 
-    from app.viewer_bake import BakeLink, SharedLattice, lattice_meta
-    from baking.lazy import view_iso_range
+    from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta
+    from isolume.baking.lazy import view_iso_range
 
     vol = volumes.load("synthetic:shells:24")
     config = BakeConfig(samples=4, bounces=0, env="constant:1")
@@ -361,7 +361,7 @@ def test_the_lazy_bake_plans_again_when_the_view_leaves_its_range():
 
 
 def test_new_texels_are_drawn_at_a_pace_that_leaves_the_bake_the_processor():
-    from app.viewer import BAKE_FRAME_SPACING, BAKE_REFRESH_S, bake_frame_due
+    from isolume.app.viewer.window import BAKE_FRAME_SPACING, BAKE_REFRESH_S, bake_frame_due
 
     assert bake_frame_due(10.0, None, None)  # nothing drawn yet
     assert not bake_frame_due(10.0 + BAKE_REFRESH_S / 2, 10.0, 0.01)  # fast frames: by time

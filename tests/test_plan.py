@@ -6,10 +6,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-import volumes
-from baking import BakeConfig, bake
-from baking.lattice import LatticeGeometry
-from baking.plan import (
+from isolume import volumes
+from isolume.baking import BakeConfig, bake
+from isolume.baking.lattice import LatticeGeometry
+from isolume.baking.plan import (
     MOVE_LIMITS,
     SCENE_SHARE,
     level_budget,
@@ -17,8 +17,8 @@ from baking.plan import (
     move_limit,
     project_to_level,
 )
-from volumes import Volume
-from volumes.synthetic import make
+from isolume.volumes import Volume
+from isolume.volumes.synthetic import make
 
 
 def _plan(vol, **kwargs):
@@ -108,7 +108,7 @@ def test_damped_newton_walks_out_of_a_plateau_onto_the_level():
 def test_render_refuses_isovalues_outside_the_baked_range(tmp_path, capsys):
     """A lattice lights its texels on surfaces inside its iso range: at another isovalue
     the picture would be wrong, so ``render`` says so (exit 2, one line) instead."""
-    from app.cli import main
+    from isolume.app.cli import main
 
     path = tmp_path / "l.npz"
     bake(make("sphere", 24), BakeConfig(samples=2, bounces=0, iso_range=(0.4, 0.6)),
@@ -125,7 +125,7 @@ def test_render_refuses_isovalues_outside_the_baked_range(tmp_path, capsys):
 
 
 def test_viewer_panel_warns_outside_the_baked_range():
-    from app.viewer_bake import range_warning
+    from isolume.app.viewer.bake_client import range_warning
 
     meta = {"plan": {"iso_range": [0.4, 0.6]}}
     assert range_warning(meta, 0.5) == ()
@@ -137,7 +137,7 @@ def test_viewer_panel_warns_outside_the_baked_range():
                                          ("synthetic:engine:48", 0.7),
                                          ("synthetic:torus:33", 1.6)])
 def test_separable_texel_values_equal_trilinear_lookups(spec, scale):
-    from baking.plan import texel_values
+    from isolume.baking.plan import texel_values
 
     vol = volumes.load(spec)
     geometry = LatticeGeometry.for_volume(vol, scale)
@@ -147,7 +147,7 @@ def test_separable_texel_values_equal_trilinear_lookups(spec, scale):
 
 
 def test_binned_percentiles_equal_numpy_per_bin():
-    from baking.plan import _binned_percentile
+    from isolume.baking.plan import _binned_percentile
 
     gen = np.random.default_rng(1)
     which, values = gen.integers(0, 50, 5000), gen.normal(size=5000)
@@ -159,8 +159,8 @@ def test_binned_percentiles_equal_numpy_per_bin():
 
 
 def test_bake_command_records_levels_and_takes_max_move(tmp_path, capsys):
-    from app.cli import main
-    from baking import Lattice
+    from isolume.app.cli import main
+    from isolume.baking import Lattice
 
     out = tmp_path / "l.npz"
     argv = ["bake", "synthetic:shells:24", "--out", str(out), "--samples", "4",
@@ -198,7 +198,7 @@ def test_levels_start_where_the_plan_landed_their_texels():
     """The plan's reach test projects every texel onto the levels it uses; laying out a
     level reuses those points (`Plan.landing`) and gets the start points a fresh
     projection gives, to the bit."""
-    from baking.bake import lay_out_level, start_points
+    from isolume.baking.bake import lay_out_level, start_points
 
     vol = make("shells", 32)
     plan, config = _plan(vol, samples=8, bounces=0, iso_range=(0.2, 0.7), max_move=0.5)
@@ -225,7 +225,7 @@ def test_levels_start_where_the_plan_landed_their_texels():
 def test_selected_cells_equal_numpy_reductions_and_dilation():
     """`select_cells` against the plain numpy recipe: corner minima and maxima by eight
     shifted views, the cell mask, its corners by eight shifted ORs."""
-    from baking.plan import select_cells
+    from isolume.baking.plan import select_cells
 
     rho = np.random.default_rng(3).normal(size=(7, 5, 9)).astype(np.float32)
     views = [rho[a:a + 6, b:b + 4, c:c + 8] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
@@ -263,7 +263,7 @@ def test_paths_start_outside_the_thin_shell_of_a_fin_below_the_isovalue(monkeypa
     a dark streak on the casing). The plan moves their paths to the bracketing level
     whose start lies outside; only texels that can use neither are left (counted as
     unreachable)."""
-    from baking import plan as plan_module
+    from isolume.baking import plan as plan_module
 
     vol = make("engine", 48)
     plan, config = _plan(vol, samples=4, bounces=0, iso_range=(0.2, 0.5), max_move=0.5)

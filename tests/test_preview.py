@@ -5,12 +5,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import volumes
-from baking.bake import Baker
-from baking.config import BakeConfig
-from baking.lattice import Lattice, LatticeGeometry
-from baking.lazy import visible_cells
-from baking.preview import Previewer, cell_corners, pass_plan
+from isolume import volumes
+from isolume.baking.bake import Baker
+from isolume.baking.config import BakeConfig
+from isolume.baking.lattice import Lattice, LatticeGeometry
+from isolume.baking.lazy import visible_cells
+from isolume.baking.preview import Previewer, cell_corners, pass_plan
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +62,7 @@ def test_previews_on_a_convex_surface_under_a_uniform_sky_are_exact(sphere, coar
     offset causes no self-shadowing, on the full surface and on the step-2 one of large
     volumes (the first pass's)."""
     if coarse:
-        monkeypatch.setattr("baking.preview.COARSE_VOXELS", 0)
+        monkeypatch.setattr("isolume.baking.preview.COARSE_VOXELS", 0)
     vol, mesh = sphere
     config = BakeConfig(env="constant:0.5,1,2", bounces=1, samples=16)
     lat = _empty(vol, config)
@@ -164,7 +164,7 @@ def test_nothing_to_do_at_the_data_extreme(sphere):
 def test_shown_displayed_sampled_and_saved(tmp_path, sphere):
     """A display shows a preview while it rests on more paths than the texel's own
     samples, and looks it up like any value; a saved copy has no previews."""
-    from app.viewer import SharedLattice
+    from isolume.app.viewer.window import SharedLattice
 
     vol, _ = sphere
     geometry = LatticeGeometry.for_volume(vol, 1.0)
@@ -196,8 +196,8 @@ def test_the_bake_process_shows_previews_before_its_plan(tmp_path):
     withdraws those outside the active set, and the lazy bake's own samples follow."""
     import time
 
-    from app.viewer import BakeLink, SharedLattice, lattice_meta
-    from baking.lazy import View
+    from isolume.app.viewer.window import BakeLink, SharedLattice, lattice_meta
+    from isolume.baking.lazy import View
 
     vol = volumes.load("synthetic:sphere:24")
     config = BakeConfig(samples=16, bounces=0, env="constant:1")
@@ -235,7 +235,7 @@ def test_full_surface_previews_start_on_the_surface_along_the_smoothed_normal(
     normal: plain-gradient starts put black marks on the tops of the synthetic engine's
     thin posts, and smoothed-gradient steps alone stall short of the surface (paths
     starting inside the material: 593 of 112 k texels on the engine CT)."""
-    import baking.preview as preview
+    import isolume.baking.preview as preview
 
     vol, mesh = sphere
     config = BakeConfig(env="constant:1", bounces=0, samples=8)
@@ -257,7 +257,7 @@ def test_texels_whose_start_is_inside_the_material_get_no_preview(sphere, monkey
     """A start point on the wrong side of the isosurface (inside the material) would
     bring back black paths: such texels are left without a preview, and the display
     interpolates their neighbours."""
-    import baking.preview as preview
+    import isolume.baking.preview as preview
 
     vol, mesh = sphere
     config = BakeConfig(env="constant:1", bounces=0, samples=4)

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from app.camera import Camera
-from app.cli import main
-from app.images import read_exr
-from app.render import RenderSettings, default_camera
-from baking import BakeConfig
-from baking.reference import PixelStats, ReferenceTracer, render_reference
-from volumes.synthetic import SPHERE_RADIUS, make
+from isolume.app.cli import main
+from isolume.app.render.camera import Camera
+from isolume.app.render.images import read_exr
+from isolume.app.render.renderer import RenderSettings, default_camera
+from isolume.baking import BakeConfig
+from isolume.baking.reference import PixelStats, ReferenceTracer, render_reference
+from isolume.volumes.synthetic import SPHERE_RADIUS, make
 
 VIEW = (20.0, 25.0, 1.1)
 SIZE = (96, 80)
@@ -109,8 +109,8 @@ def test_directional_light_follows_the_cosine_law(sphere):
 
 def _gl_frame(vol, iso, settings, view):
     """The GL renderer's frame (OSMesa), or skip where there is no OSMesa."""
-    from app.glcontext import GLUnavailable
-    from app.offscreen import render_volume
+    from isolume.app.render.glcontext import GLUnavailable
+    from isolume.app.render.offscreen import render_volume
 
     try:
         frame, _ = render_volume(vol, iso, settings, view=view, backend="osmesa")
@@ -285,8 +285,8 @@ def test_turning_a_sky_equals_moving_its_sun():
     with different samplers (the turned sky through its own methods, the other by the
     compiled sky kernels), so they agree within their combined noise (3 σ RMS); the sun
     left where it was misses by far more."""
-    import volumes
-    from baking import sh
+    from isolume import volumes
+    from isolume.baking import sh
 
     vol = volumes.load("synthetic:engine:24")
     iso = volumes.suggest_isovalues(vol)[0]

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from test_viewer import _view, display  # noqa: F401  (a fixture: Xvfb for the viewer)
 
-import volumes
-from app.ui import direction_from_angles
-from baking.bake import Baker
-from baking.config import BakeConfig
-from baking.lattice import LUMINANCE, Lattice
-from baking.lazy import (
+from isolume import volumes
+from isolume.app.viewer.panel import direction_from_angles
+from isolume.baking.bake import Baker
+from isolume.baking.config import BakeConfig
+from isolume.baking.lattice import LUMINANCE, Lattice
+from isolume.baking.lazy import (
     RELIGHT_PATHS,
     LazyScheduler,
     Relight,
@@ -121,8 +121,8 @@ def test_nothing_to_turn_in_an_sh_transfer_or_a_lattice_holding_its_direct_light
 def _empty(volume, config):
     """An empty lattice for `config` on `volume`, with the preview arrays the viewer's
     shared lattice has."""
-    from app.viewer_bake import lattice_meta
-    from baking.lattice import LatticeGeometry
+    from isolume.app.viewer.bake_client import lattice_meta
+    from isolume.baking.lattice import LatticeGeometry
 
     meta = lattice_meta(volume, config)
     lattice = Lattice.empty(LatticeGeometry.for_volume(volume, config.scale),
@@ -282,7 +282,7 @@ def test_turning_twice_keeps_only_the_last_directions_work(engine):
 def test_a_new_estimate_replaces_one_that_rested_on_fewer_paths_sooner():
     """`Relight.needed`: RELIGHT_PATHS, or as many paths as the old value had (a preview's
     or its own) when fewer; 1 where nothing was shown."""
-    from baking.lattice import LatticeGeometry
+    from isolume.baking.lattice import LatticeGeometry
 
     geometry = LatticeGeometry((1, 1, 4), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     shown = _lattice_of(geometry)
@@ -315,14 +315,14 @@ def _wait(link, done, deadline, what):
 
 
 def test_the_viewers_lazy_bake_relights_a_turned_sun():
-    """The lazy-bake process (`app.viewer_bake`) of the viewer, sent a view whose sun was
+    """The lazy-bake process (`app.viewer.bake_client`) of the viewer, sent a view whose sun was
     turned, then turned again while it re-bakes: it reports the re-bake until every texel
     around the view shows the last sun's bake — the lattice a bake under that sun gives
     from scratch, to rounding: nothing of the first turn's — and a saved lattice holds only
     those texels, with the last sun in its config."""
-    from app.viewer_bake import BakeLink, SharedLattice, lattice_meta
-    from baking.lattice import LatticeGeometry
-    from baking.lazy import view_iso_range, visible_cells
+    from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta
+    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.lazy import view_iso_range, visible_cells
 
     vol = volumes.load("synthetic:engine:32")
     config = BakeConfig(samples=16, bounces=1, env=SUN)
@@ -390,10 +390,10 @@ def test_the_viewer_turns_the_bounced_light_of_irradiance_lattices_only(gl):
     """What the viewer asks the lazy bake to follow (`Drawing.turned_light`): the sun as
     drawn per pixel in the irradiance modes of a split lattice; nothing for an SH
     transfer (its sun turns with the transfer) nor in local shading modes."""
-    from app.ui import direction_from_angles
-    from app.viewer_bake import lattice_meta
-    from app.viewer_draw import Drawing, ViewState
-    from baking.lattice import LatticeGeometry
+    from isolume.app.viewer.bake_client import lattice_meta
+    from isolume.app.viewer.draw import Drawing, ViewState
+    from isolume.app.viewer.panel import direction_from_angles
+    from isolume.baking.lattice import LatticeGeometry
 
     vol = volumes.load("synthetic:sphere:16")
     geometry = LatticeGeometry.for_volume(vol, 1.0)
@@ -442,8 +442,8 @@ def test_a_complete_lattice_file_is_re_baked_for_a_turned_sun(display, tmp_path)
     the turned sun's texels beside it."""
     import json
 
-    from app.images import read_exr
-    from baking.bake import bake
+    from isolume.app.render.images import read_exr
+    from isolume.baking.bake import bake
 
     vol = volumes.load("synthetic:engine:48")
     config = _config(samples=8)
@@ -473,9 +473,9 @@ def test_a_turned_light_carries_over_when_the_bake_plans_again():
     """A turned sun, then an isovalue outside the lazy bake's range: the bake plans again
     for it under the turned sun (its config keeps the turn), and the new surface shows
     that sun's bake — a bake from scratch under it, to rounding."""
-    from app.viewer_bake import BakeLink, SharedLattice, lattice_meta
-    from baking.lattice import LatticeGeometry
-    from baking.lazy import view_iso_range
+    from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta
+    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.lazy import view_iso_range
 
     vol = volumes.load("synthetic:shells:24")
     config = BakeConfig(samples=4, bounces=1, env=SUN)

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import volumes
-from app.camera import Camera
-from app.render import RenderSettings, default_camera
-from volumes.synthetic import SPHERE_RADIUS, make
+from isolume import volumes
+from isolume.app.render.camera import Camera
+from isolume.app.render.renderer import RenderSettings, default_camera
+from isolume.volumes.synthetic import SPHERE_RADIUS, make
 
 
 def _sphere_scene(renderer, settings, size=96):
@@ -102,8 +102,8 @@ def test_hemisphere_ambient_brightens_the_unlit_side(renderer):
 
 def _cli_render(tmp_path, backend, shading):
     out = tmp_path / f"{backend}.png"
-    cmd = [sys.executable, "-m", "app.cli", "render", "synthetic:torus:40", "--size", "96x72",
-           "--gl", backend, "--shading", shading, "--out", str(out)]
+    cmd = [sys.executable, "-m", "isolume.app.cli", "render", "synthetic:torus:40",
+           "--size", "96x72", "--gl", backend, "--shading", shading, "--out", str(out)]
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     return result, out
 

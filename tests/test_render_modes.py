@@ -7,18 +7,18 @@ compares them with what the shaders drew.
 import numpy as np
 import pytest
 
-import volumes
-from app.camera import Camera
-from app.render import (
+from isolume import volumes
+from isolume.app.render.camera import Camera
+from isolume.app.render.renderer import (
     SHADING_MODES,
     RenderError,
     RenderSettings,
     default_camera,
     light_view_proj,
 )
-from baking.lattice import Lattice, LatticeGeometry, trilinear
-from baking.plan import texel_values
-from volumes.synthetic import make
+from isolume.baking.lattice import Lattice, LatticeGeometry, trilinear
+from isolume.baking.plan import texel_values
+from isolume.volumes.synthetic import make
 
 RGB9E5_RELATIVE = 2.0**-9
 """GL_RGB9_E5 rounding: ≤ 2⁻⁹ of a texel's largest channel (9-bit shared-exponent

@@ -20,8 +20,8 @@ import pytest
 from scipy import integrate, special
 from scipy.spatial.transform import Rotation
 
-from baking import environment as envmod
-from baking import sh
+from isolume.baking import environment as envmod
+from isolume.baking import sh
 
 EXACT = 1e-10  # closed forms / exact quadrature, see module docstring
 

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-import volumes
-from app.render import RenderSettings, default_camera
-from baking import BakeConfig, BakeError, bake, sh
-from baking.environment import parse_env, rotated
-from volumes.synthetic import make
+from isolume import volumes
+from isolume.app.render.renderer import RenderSettings, default_camera
+from isolume.baking import BakeConfig, BakeError, bake, sh
+from isolume.baking.environment import parse_env, rotated
+from isolume.volumes.synthetic import make
 
 
 def _path_sd(normal: np.ndarray, order: int) -> np.ndarray:
@@ -66,7 +66,7 @@ def shells_sh():
 
 
 def _render_sh(gl, vol, lattice, coeffs, rotation=(0.0, 0.0), size=(96, 96)):
-    from app.render import SurfaceRenderer
+    from isolume.app.render.renderer import SurfaceRenderer
 
     renderer = SurfaceRenderer(gl)
     mesh = volumes.isosurface(vol, 0.5)
@@ -85,7 +85,7 @@ def test_env_rotation_equals_rotating_the_environment_itself(gl, shells_sh):
     pixels = np.zeros((32, 64, 3))
     pixels[4:10, 10:16] = 40.0  # a bright patch: rotation visibly moves the shading
     pixels += 0.2
-    from baking.environment import image_from_array
+    from isolume.baking.environment import image_from_array
 
     env = image_from_array(pixels, "latlong")
     order = 4
@@ -106,7 +106,7 @@ def test_sh_shading_matches_lattice_sum_at_surface_points(gl, shells_sh):
     """Pixel radiance = albedo/pi * sum_i tau_i(x) l_i with tau trilinear at the pixel's
     world position (read back with the position pass); tolerance: RGBA16F storage of tau
     (relative 2^-11 per coefficient) summed over 16 coefficients."""
-    from app.render import SurfaceRenderer
+    from isolume.app.render.renderer import SurfaceRenderer
 
     vol, lattice = shells_sh
     env = parse_env("sky:sun=3")
@@ -129,7 +129,7 @@ def test_sh_shading_matches_lattice_sum_at_surface_points(gl, shells_sh):
 
 
 def test_bytes_per_texel_of_sh_textures():
-    from app.lattice_gl import sh_layout
+    from isolume.app.render.lattice_gl import sh_layout
 
     # half floats, four coefficients per RGBA texture, plus the 1-byte valid mask
     sizes = {order: sh_layout(order, False)[0] * 4 * 2 + 1 for order in (3, 4, 5)}
@@ -155,7 +155,7 @@ def test_split_transfer_blocks_add_up_to_the_whole_transfer():
 
 
 def test_split_sh_needs_a_sun_and_renders_only_with_both_skies(gl):
-    from app.render import RenderError, SurfaceRenderer
+    from isolume.app.render.renderer import RenderError, SurfaceRenderer
 
     with pytest.raises(BakeError, match="needs a sky with a sun"):
         BakeConfig(mode="sh", env="sky", direct_light="pixels")
@@ -196,7 +196,7 @@ def test_split_sh_on_a_convex_sphere_is_the_exact_sky_irradiance(gl):
     whole = bake(vol, BakeConfig(**common), workers=2)
     sky = parse_env("sky:sun=3")
     turned = parse_env("sky:sun=3,sun_az=165")  # the default sun_az 45 turned by 120
-    from app.render import SurfaceRenderer
+    from isolume.app.render.renderer import SurfaceRenderer
 
     renderer = SurfaceRenderer(gl)
     mesh = volumes.isosurface(vol, 0.5)
@@ -243,8 +243,14 @@ def test_split_sh_under_a_turned_sky_is_closer_to_the_reference():
     """
     import dataclasses
 
-    from app.charts import GLScene, Image, local_lighting, reference_noise, relative_rmse
-    from baking.reference import render_reference
+    from isolume.app.charts.charts import (
+        GLScene,
+        Image,
+        local_lighting,
+        reference_noise,
+        relative_rmse,
+    )
+    from isolume.baking.reference import render_reference
 
     vol = volumes.load("synthetic:engine:32")
     iso = volumes.suggest_isovalues(vol)[0]
@@ -274,7 +280,7 @@ def test_split_sh_under_a_turned_sky_is_closer_to_the_reference():
 
 def test_target_error_of_a_split_transfer_weighs_both_blocks():
     """--target-error watches the whole DC term: direct + indirect block."""
-    from baking.bake import _luminance_weights
+    from isolume.baking.bake import _luminance_weights
 
     np.testing.assert_array_equal(_luminance_weights(8, False, 4), [1, 0, 0, 0, 1, 0, 0, 0])
     np.testing.assert_array_equal(_luminance_weights(4, False), [1, 0, 0, 0])
@@ -287,8 +293,8 @@ def test_target_error_of_a_split_transfer_weighs_both_blocks():
 def test_cli_bakes_and_renders_a_split_sh_lattice(tmp_path, capsys):
     """bake --mode sh --direct-light pixels, then render --shading sh (turned): the file
     records the split; an environment without a sun is refused in one line."""
-    from app.cli import main
-    from baking.lattice import Lattice
+    from isolume.app.cli import main
+    from isolume.baking.lattice import Lattice
 
     lattice = tmp_path / "split.npz"
     assert main(["bake", "synthetic:sphere:16", "--mode", "sh", "--sh-order", "2",

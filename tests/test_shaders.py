@@ -2,7 +2,7 @@
 
 import pytest
 
-import shaders
+from isolume import shaders
 
 
 def test_defines_follow_version_line():

@@ -8,9 +8,9 @@ import pytest
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-import volumes
-from baking import kernels, trace
-from baking.trace import RayRecorder, Scene, _scene_handle, replay
+from isolume import volumes
+from isolume.baking import kernels, trace
+from isolume.baking.trace import RayRecorder, Scene, _scene_handle, replay
 
 
 def _rays(mesh, count: int, seed: int):
@@ -142,7 +142,7 @@ def test_bench_bake_times_a_plain_bake_and_replays_the_same_rays(tmp_path, capsy
     asserts so), and every figure it prints is there and consistent."""
     import json
 
-    from app.cli import main
+    from isolume.app.cli import main
 
     out = tmp_path / "bench.json"
     assert main(["bench", "bake", "synthetic:torus:24", "--samples", "2", "--bounces", "1",

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import volumes
-from app.images import read_exr
+from isolume import volumes
+from isolume.app.render.images import read_exr
 
 ROOT = Path(__file__).resolve().parents[1]
 RGB9E5_RELATIVE = 2.0**-9
@@ -139,7 +139,7 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
     assert window.shape == shot.shape
     assert np.abs(window[:60, :120] - shot[:60, :120]).mean() > 10
     # the lattice was saved on exit; shown again from the file, it gives the same picture
-    from baking.lattice import Lattice
+    from isolume.baking.lattice import Lattice
 
     saved = Lattice.load(tmp_path / "lazy.npz", volumes.load("synthetic:engine:48"))
     assert (saved.samples > 0).sum() == check["computed"] > 0
@@ -167,7 +167,7 @@ def test_frames_keep_coming_while_the_full_surface_is_extracted(display, tmp_pat
 
 
 def test_no_display_names_the_off_screen_alternative(monkeypatch, capsys):
-    from app.cli import main
+    from isolume.app.cli import main
 
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
@@ -177,7 +177,7 @@ def test_no_display_names_the_off_screen_alternative(monkeypatch, capsys):
 
 
 def test_bad_script_fails_before_a_window_opens(tmp_path, monkeypatch, capsys):
-    from app.cli import main
+    from isolume.app.cli import main
 
     monkeypatch.delenv("DISPLAY", raising=False)
     (tmp_path / "s.txt").write_text("iso 0.5\nmode toon\n")
@@ -187,7 +187,7 @@ def test_bad_script_fails_before_a_window_opens(tmp_path, monkeypatch, capsys):
 
 # -- surfaces off the render thread -------------------------------------------------------
 def test_slab_extraction_matches_whole_volume_marching_cubes():
-    from app.viewer_surfaces import extract_surface
+    from isolume.app.viewer.surfaces import extract_surface
 
     vol = volumes.load("synthetic:engine:64")
     for step in (1, 2):
@@ -211,7 +211,7 @@ def test_slab_extraction_matches_whole_volume_marching_cubes():
 
 
 def test_preview_step_grows_with_the_surface():
-    from app.viewer_surfaces import PREVIEW_TARGET_TRIANGLES, preview_step
+    from isolume.app.viewer.surfaces import PREVIEW_TARGET_TRIANGLES, preview_step
 
     assert preview_step(None) == 2 and preview_step(1000) == 2
     assert preview_step(9 * PREVIEW_TARGET_TRIANGLES) == 3
@@ -219,7 +219,7 @@ def test_preview_step_grows_with_the_surface():
 
 
 def test_mesh_worker_drops_stale_isovalues():
-    from app.viewer_surfaces import MeshWorker
+    from isolume.app.viewer.surfaces import MeshWorker
 
     worker = MeshWorker(volumes.load("synthetic:shells:96"))
     try:
@@ -240,9 +240,9 @@ def test_mesh_worker_drops_stale_isovalues():
 def test_uploaded_regions_equal_the_lattice(gl):
     """Texels changed after the upload reach the GL textures block by block, within the
     RGB9_E5 precision; untouched and uncomputed texels stay as they were."""
-    from app.lattice_gl import LatticeTextures
-    from app.viewer_draw import TexelUploader, check_textures
-    from baking.lattice import Lattice, LatticeGeometry
+    from isolume.app.render.lattice_gl import LatticeTextures
+    from isolume.app.viewer.draw import TexelUploader, check_textures
+    from isolume.baking.lattice import Lattice, LatticeGeometry
 
     geometry = LatticeGeometry((13, 17, 21), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     lattice = Lattice.empty(geometry, 3, {"kind": "irradiance"})
@@ -270,8 +270,8 @@ def test_uploaded_regions_equal_the_lattice(gl):
 
 # -- controls ------------------------------------------------------------------------------
 def test_camera_and_light_controls():
-    from app.camera import Camera
-    from app.ui import (
+    from isolume.app.render.camera import Camera
+    from isolume.app.viewer.panel import (
         angles_from_direction,
         direction_from_angles,
         drag_target,
@@ -301,7 +301,7 @@ def test_camera_and_light_controls():
 def test_keys_map_to_actions():
     import glfw
 
-    from app.ui import Action, key_action
+    from isolume.app.viewer.panel import Action, key_action
 
     modes = ("lambert", "phong", "irradiance")
     assert key_action(glfw, glfw.KEY_RIGHT, 0, modes) == Action("iso_step", 1)
@@ -317,7 +317,7 @@ def test_keys_map_to_actions():
 
 
 def test_interactive_quality_backs_off_then_recovers():
-    from app.viewer_draw import INTERACTIVE_MS, RENDER_SCALES, Quality
+    from isolume.app.viewer.draw import INTERACTIVE_MS, RENDER_SCALES, Quality
 
     q = Quality()
     q.adapt(5 * INTERACTIVE_MS, full_triangles=500_000)

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from app.viewer_script import (
+from isolume.app.viewer.script import (
     COMMANDS,
     Command,
     ScriptError,
@@ -185,7 +185,7 @@ class FakeViewer:
 
 
 def _run_script(text: str, viewer: FakeViewer, limit: int = 50) -> None:
-    from app.viewer_script import ScriptRunner
+    from isolume.app.viewer.script import ScriptRunner
 
     runner = ScriptRunner(parse_script(text, modes=MODES))
     for _ in range(limit):

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-import volumes
-from volumes import Volume, VolumeError
-from volumes.synthetic import NAMES, make
+from isolume import volumes
+from isolume.volumes import Volume, VolumeError
+from isolume.volumes.synthetic import NAMES, make
 
 
 def test_world_position_of_voxel_follows_convention():
@@ -116,7 +116,7 @@ def _map_coordinates(grid, index_zyx):
 def test_compiled_trilinear_equals_scipy_map_coordinates():
     """The compiled lookup against scipy's order-1 interpolation with edge clamping,
     inside, outside and on the faces of the grid, scalar and vector grids alike."""
-    from volumes.field import _interpolate
+    from isolume.volumes.field import _interpolate
 
     r = np.random.default_rng(4)
     for shape in [(5, 6, 7), (5, 6, 7, 3), (1, 4, 3)]:
@@ -156,7 +156,7 @@ def test_newton_projection_matches_the_plain_iteration():
 def test_newton_projection_is_the_same_whatever_the_threads(monkeypatch):
     """Cut into shares on threads (`MIN_SHARE`), every point lands bit for bit where one
     call puts it."""
-    from volumes import field
+    from isolume.volumes import field
 
     vol = make("torus", 40)
     r = np.random.default_rng(5)

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import volumes.io as vio
-from volumes.core import VolumeError
-from volumes.io import load_file, parse_raw_name
+import isolume.volumes.io as vio
+from isolume.volumes.core import VolumeError
+from isolume.volumes.io import load_file, parse_raw_name
 
 SHAPE = (5, 7, 11)  # z, y, x
 SPACING = (0.5, 0.75, 2.0)  # x, y, z

@@ -6,9 +6,9 @@ import itertools
 import numpy as np
 import pytest
 
-import volumes
-from volumes.core import Volume, VolumeError
-from volumes.orientation import nearest_axes, place, turn_up, up_rotation
+from isolume import volumes
+from isolume.volumes.core import Volume, VolumeError
+from isolume.volumes.orientation import nearest_axes, place, turn_up, up_rotation
 
 
 def _world_samples(data, spacing, origin, directions):

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import os
 
-from .core import Volume, VolumeError
-from .cubes import tracing_surface
-from .field import (
+from isolume.volumes.core import Volume, VolumeError
+from isolume.volumes.cubes import tracing_surface
+from isolume.volumes.field import (
     gradient_at,
     gradient_grid,
     newton_to_level,
@@ -23,10 +23,10 @@ from .field import (
     values_along_normals,
     values_on_grid,
 )
-from .mesh import Mesh, check_isovalue, isosurface, marching_cubes
-from .orientation import UP_AXES, turn_up
-from .stats import histogram_lines, suggest_isovalues
-from .synthetic import DEFAULT
+from isolume.volumes.mesh import Mesh, check_isovalue, isosurface, marching_cubes
+from isolume.volumes.orientation import UP_AXES, turn_up
+from isolume.volumes.stats import histogram_lines, suggest_isovalues
+from isolume.volumes.synthetic import DEFAULT
 
 __all__ = [
     "DEFAULT",
@@ -62,9 +62,9 @@ def load(spec: str | os.PathLike | None = None, **options) -> Volume:
     """
     spec = DEFAULT if spec is None else spec
     if isinstance(spec, str) and spec.startswith("synthetic:"):
-        from .synthetic import parse
+        from isolume.volumes.synthetic import parse
 
         return parse(spec)
-    from .io import load_file
+    from isolume.volumes.io import load_file
 
     return load_file(spec, **options)

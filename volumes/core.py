@@ -18,8 +18,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import IsolumeError
 
-class VolumeError(ValueError):
+
+class VolumeError(IsolumeError):
     """Bad volume input: the message names the file or value and what was expected."""
 
 

@@ -24,8 +24,8 @@ import functools
 import numba
 import numpy as np
 
-from .core import Volume
-from .field import _on_threads
+from isolume.volumes.core import Volume
+from isolume.volumes.field import _on_threads
 
 _EDGES = np.array([(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit])
 """(12, 2) corner pairs of the cell's edges, lower corner first (corner c = x + 2y + 4z)."""

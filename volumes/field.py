@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numba
 import numpy as np
 
-from .core import Volume
+from isolume.volumes.core import Volume
 
 _GRID_LOCK = threading.Lock()
 

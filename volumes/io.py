@@ -49,8 +49,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from .core import Volume, VolumeError
-from .orientation import place
+from isolume.volumes.core import Volume, VolumeError
+from isolume.volumes.orientation import place
 
 __all__ = ["RAW_DTYPES", "SUPPORTED_FORMATS", "load_file", "parse_raw_name"]
 

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from skimage import measure
 
-from .core import Volume, VolumeError
-from .field import gradient_at, normals_from_gradient
+from isolume.volumes.core import Volume, VolumeError
+from isolume.volumes.field import gradient_at, normals_from_gradient
 
 
 @dataclass(frozen=True, eq=False)

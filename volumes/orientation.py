@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core import Volume, VolumeError
+from isolume.volumes.core import Volume, VolumeError
 
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 """What ``--up`` accepts."""

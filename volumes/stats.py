@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from skimage.filters import threshold_multiotsu
 
-from .core import Volume
+from isolume.volumes.core import Volume
 
 _MAX_SAMPLES = 2_000_000
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core import Volume, VolumeError
+from isolume.volumes.core import Volume, VolumeError
 
 
 @dataclass(frozen=True)

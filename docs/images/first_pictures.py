@@ -30,7 +30,7 @@ PICTURES = (
 
 def render(args: list[str], out: Path) -> float:
     """Run ``isolume render ARGS --out OUT``; returns the wall time in seconds."""
-    from app.cli import main
+    from isolume.app.cli import main
 
     t0 = time.perf_counter()
     if main(["render", *args, "--out", str(out)]) != 0:

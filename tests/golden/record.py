@@ -57,7 +57,7 @@ def _cli_main():
     try:
         from isolume.app.cli import main
     except ImportError:
-        from app.cli import main
+        from isolume.app.cli import main
     return main
 
 
@@ -98,15 +98,15 @@ def _relight_digest() -> str:
     """A lazy bake of the surface seen from one eye under the default sun, the sun turned,
     and the same surface re-baked: the relit lattice's arrays."""
     try:
-        from isolume.baking.lazy import LazyScheduler, Relight, View, relit_config, serve
         from isolume import volumes
         from isolume.baking.bake import Baker
         from isolume.baking.config import BakeConfig
+        from isolume.baking.lazy import LazyScheduler, Relight, View, relit_config, serve
     except ImportError:
-        import volumes
-        from baking.bake import Baker
-        from baking.config import BakeConfig
-        from baking.lazy import LazyScheduler, Relight, View, relit_config, serve
+        from isolume import volumes
+        from isolume.baking.bake import Baker
+        from isolume.baking.config import BakeConfig
+        from isolume.baking.lazy import LazyScheduler, Relight, View, relit_config, serve
 
     volume = volumes.load(VOLUME)
     config = BakeConfig(samples=16, bounces=1, env="sky:sun=6,sun_az=-150,sun_el=40",
@@ -145,7 +145,7 @@ def _renderer() -> str:
         try:
             from isolume.app.render.glcontext import create_headless
         except ImportError:
-            from app.glcontext import create_headless
+            from isolume.app.render.glcontext import create_headless
     gl = create_headless("osmesa")
     try:
         return f"{gl.ctx.info['GL_RENDERER']} | {gl.ctx.info['GL_VERSION']}"

@@ -45,13 +45,9 @@ _VIEW_BENCHES = {"frames": "frame time per shading mode (llvmpipe, EGL)",
 
 
 def _view_module():
-    import importlib.util
+    from isolume.app.bench import view
 
-    if importlib.util.find_spec("app.bench_view") is None:
-        return None
-    import app.bench_view
-
-    return app.bench_view
+    return view
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,9 +64,9 @@ def bench_bake(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    import volumes
-    from baking.bake import Baker
-    from baking.config import BakeConfig
+    from isolume import volumes
+    from isolume.baking.bake import Baker
+    from isolume.baking.config import BakeConfig
 
     vol = volumes.load(args.volume)
     config = BakeConfig(samples=args.samples, bounces=args.bounces, env=args.env,
@@ -105,8 +101,8 @@ def _bare_rate(vol, config, workers: int) -> dict:
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from baking.bake import Baker
-    from baking.trace import RayRecorder, replay
+    from isolume.baking.bake import Baker
+    from isolume.baking.trace import RayRecorder, replay
 
     baker = Baker(vol, config, workers=workers)
     bare = {"rays": 0, "seconds": 0.0}

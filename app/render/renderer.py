@@ -39,10 +39,10 @@ from dataclasses import dataclass, field, replace
 import moderngl
 import numpy as np
 
-import shaders
-
-from .camera import Camera
-from .lattice_gl import MAX_TEXTURE_UNITS, LatticeTextures
+from isolume import shaders
+from isolume.app.render.camera import Camera
+from isolume.app.render.lattice_gl import MAX_TEXTURE_UNITS, LatticeTextures
+from isolume.volumes.errors import IsolumeError
 
 LOOKUPS = {"trilinear": 0, "nearest": 1, "closest": 2, "bspline": 3}
 """Irradiance lattice lookups (paper Fig. 6) -> LOOKUP define in ``lattice.glsl``."""
@@ -128,7 +128,7 @@ GBUFFER_UNIT = 16
 program's texture is ever the one the surface pass draws into)."""
 
 
-class RenderError(ValueError):
+class RenderError(IsolumeError):
     """A frame that cannot be drawn as asked (mode without its lattice or environment)."""
 
 TONEMAPS = {"clamp": 0, "reinhard": 1, "aces": 2}
@@ -254,7 +254,7 @@ def lattice_direct_lights(lattice) -> tuple:
     config = (lattice.meta.get("config") or {}) if lattice is not None else {}
     if config.get("direct_light") != "pixels":
         return ()
-    from baking.lights import pixel_lights
+    from isolume.baking.lights import pixel_lights
 
     return pixel_lights(config.get("env", ""), tuple(config.get("lights", ())))
 
@@ -275,7 +275,7 @@ def lattice_start_offset(lattice) -> float:
 def rotated_lights(lights: tuple, env_rotation: tuple[float, float]) -> tuple:
     """Distant lights (`DirectionalLight`, `SunLight`) carried along with the environment
     by ``--env-rotation AZ,EL`` (`baking.sh.rotation_from_az_el`: direction d → R·d)."""
-    from baking.sh import rotation_from_az_el
+    from isolume.baking.sh import rotation_from_az_el
 
     r = rotation_from_az_el(*env_rotation)
     return tuple(replace(light, direction=tuple(float(v) for v in r @ light.direction))
@@ -286,7 +286,7 @@ def aimed_lights(lights: tuple, direction) -> tuple:
     """`lights` with the first distant one (the sun or a directional light) turned to point
     towards the unit vector `direction` (3,): a light moved in the viewer. Its direct
     light and shadows follow exactly; the lattice's share of it (its bounces) does not."""
-    from baking.lights import DirectionalLight, SunLight
+    from isolume.baking.lights import DirectionalLight, SunLight
 
     out, turned = [], False
     for light in lights:
@@ -300,7 +300,7 @@ def aimed_lights(lights: tuple, direction) -> tuple:
 
 def first_distant_light(lights: tuple):
     """The first `SunLight` or `DirectionalLight` of `lights`, or None."""
-    from baking.lights import DirectionalLight, SunLight
+    from isolume.baking.lights import DirectionalLight, SunLight
 
     return next((light for light in lights
                  if isinstance(light, DirectionalLight | SunLight)), None)
@@ -313,7 +313,7 @@ def direct_tiles(lights) -> list[int]:
     Raises:
         RenderError: an unknown kind of light, or more than the shader holds.
     """
-    from baking.lights import DirectionalLight, PointLight, SunLight
+    from isolume.baking.lights import DirectionalLight, PointLight, SunLight
 
     first, tiles = [], 0
     for light in lights:
@@ -371,7 +371,7 @@ def occlusion_sky(lattice) -> np.ndarray:
             "constant sky with no bounces and no lights (isolume bake VOLUME --env "
             f"constant:1,1,1 --bounces 0); this one holds {lattice.kind} baked with env "
             f"{env or 'none'!r}, bounces {bounces}, lights {list(lights or [])}")
-    from baking.environment import parse_env
+    from isolume.baking.environment import parse_env
 
     sky = np.asarray(parse_env(env).rgb, np.float64)
     if not (sky > 0).all():
@@ -590,7 +590,7 @@ class SurfaceRenderer:
         """(m, 3) environment coefficients rotated by the settings' env_rotation: n² of
         them, or for a split transfer the sun-free sky's n² then the whole sky's n²
         (`baking.sh.display_coefficients`), each block rotated alike."""
-        from baking import sh
+        from isolume.baking import sh
 
         order = self.lattice.sh_order
         blocks = self.lattice.sh_coefficients // (order * order)
@@ -1014,7 +1014,7 @@ def pixel_rays(camera: Camera, size: tuple[int, int]) -> dict:
 
 
 def _is_point(light) -> bool:
-    from baking.lights import PointLight
+    from isolume.baking.lights import PointLight
 
     return isinstance(light, PointLight)
 
@@ -1051,7 +1051,7 @@ def _active_parts(prog: moderngl.Program, arrays: dict) -> dict:
 def direct_sum(lights) -> str:
     """The ``DIRECT_SUM(p, n, f)`` body of ``direct.glsl`` for `lights`: one call per light
     with constant light and tile indices (a program per set of light kinds)."""
-    from baking.lights import SunLight
+    from isolume.baking.lights import SunLight
 
     calls = []
     for i, (light, tile) in enumerate(zip(lights, direct_tiles(lights), strict=True)):
@@ -1064,7 +1064,7 @@ def direct_sum(lights) -> str:
 def _direct_uniforms(lights, matrices, planes, rects, ranges, tile_texels) -> dict:
     """The ``direct.glsl`` uniform arrays (padded to their declared sizes); `tile_texels`:
     each tile's side in texels."""
-    from baking.lights import SunLight
+    from isolume.baking.lights import SunLight
 
     def padded(rows, width, count, dtype="f4"):
         out = np.zeros((count, width), dtype)

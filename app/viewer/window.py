@@ -3,18 +3,18 @@
 One render thread owns the window, the GL context and the UI; the slow work happens
 elsewhere so that the window never freezes. The parts, one job each:
 
-* this module: options, the window and its input (the UI first, Dear ImGui via `app.ui`,
+* this module: options, the window and its input (the UI first, Dear ImGui via `app.viewer.panel`,
   then the camera when the UI does not want it), the actions that keys, panel and script
   end in, and the loop that ties the parts together;
-* `app.viewer_surfaces`: isosurfaces off the render thread (`MeshWorker`: a coarse surface
+* `app.viewer.surfaces`: isosurfaces off the render thread (`MeshWorker`: a coarse surface
   first, then the full one, in slabs that a newer request cancels);
-* `app.viewer_bake`: the lazy-bake client (`BakeLink` to a separate process that bakes
+* `app.viewer.bake_client`: the lazy-bake client (`BakeLink` to a separate process that bakes
   the texels around the displayed surface, into a `SharedLattice`);
-* `app.viewer_draw`: the drawing and the lighting (`Drawing`: the surface and lattice on
+* `app.viewer.draw`: the drawing and the lighting (`Drawing`: the surface and lattice on
   the GPU, re-uploads of baked texels, the light, the detail while moving). Texels not
   computed yet fall back to local shading (tinted);
-* `app.viewer_script`: ``--script`` drives the viewer without a person, through the
-  public methods of `Viewer` that the `app.viewer_script.ScriptTarget` protocol lists.
+* `app.viewer.script`: ``--script`` drives the viewer without a person, through the
+  public methods of `Viewer` that the `app.viewer.script.ScriptTarget` protocol lists.
 """
 
 from __future__ import annotations
@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-import volumes
-
-from .viewer_bake import BakeLink, SharedLattice, lattice_meta, range_warning
-from .viewer_draw import PREVIEW_TRIANGLES, Drawing, ViewState
-from .viewer_surfaces import MeshWorker
+from isolume import volumes
+from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta, range_warning
+from isolume.app.viewer.draw import PREVIEW_TRIANGLES, Drawing, ViewState
+from isolume.app.viewer.surfaces import MeshWorker
+from isolume.volumes.errors import IsolumeError
 
 HELP = "open the interactive viewer (live isovalue, light, lazy global illumination)"
 
@@ -52,11 +52,10 @@ BAKE_FRAME_SPACING = 4.0
 # -- command line -------------------------------------------------------------------------
 def add_arguments(parser) -> None:
     """Options of ``isolume view``."""
-    from baking.config import DEFAULT_ENV
+    from isolume.app.options import add_volume_options
+    from isolume.baking.config import DEFAULT_ENV
 
-    from .cli import _add_volume_options
-
-    _add_volume_options(parser, optional=True)
+    add_volume_options(parser, optional=True)
     parser.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
     parser.add_argument("--lattice", metavar="FILE",
                         help="illumination lattice: shown and, if incomplete, baked further "
@@ -132,10 +131,10 @@ class Options:
 
 def _options(args) -> Options:
     """Check the command line; raise `app.cli.CLIError` with one-line messages."""
-    from .cli import CLIError, _size
-    from .images import check_output_path
-    from .render import SHADING_MODES
-    from .viewer_script import load_script
+    from isolume.app.options import CLIError, parse_size
+    from isolume.app.render.images import check_output_path
+    from isolume.app.render.renderer import SHADING_MODES
+    from isolume.app.viewer.script import load_script
 
     if args.shading is not None and args.shading not in SHADING_MODES:
         raise CLIError(f"--shading {args.shading!r}: expected one of {', '.join(SHADING_MODES)}")
@@ -150,7 +149,7 @@ def _options(args) -> Options:
     if not 2 <= args.bake_max_levels <= 1024:
         raise CLIError(f"--bake-max-levels {args.bake_max_levels}: expected 2 to 1024")
     if not args.no_bake:
-        from baking.environment import parse_env
+        from isolume.baking.environment import parse_env
 
         parse_env(args.bake_env)  # EnvSpecError (a one-line user error) before any window
     screenshot = check_output_path(args.screenshot) if args.screenshot else None
@@ -158,7 +157,7 @@ def _options(args) -> Options:
     lattice = check_output_path(args.lattice, (".npz",)) if args.lattice else None
     script = tuple(load_script(args.script, SHADING_MODES)) if args.script else ()
     return Options(
-        size=_size(args.size), shading=args.shading, exposure=args.exposure,
+        size=parse_size(args.size), shading=args.shading, exposure=args.exposure,
         auto_exposure=not args.no_auto_exposure,
         frames=args.frames, screenshot=screenshot, script=script, stats=stats,
         bake=not args.no_bake, bake_mode=args.bake_mode, bake_env=args.bake_env,
@@ -174,8 +173,8 @@ def run(args) -> int:
     (The errors are reported here rather than by `app.cli.main`: under ``python -m app.cli``
     that module runs as ``__main__`` and its `CLIError` is not the one this module sees.)
     """
-    from .cli import EXIT_USER_ERROR, CLIError
-    from .viewer_script import ScriptError
+    from isolume.app.options import EXIT_USER_ERROR, CLIError
+    from isolume.app.viewer.script import ScriptError
 
     try:
         return _run(args)
@@ -185,17 +184,17 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from .cli import _isovalue, _load_volume
+    from isolume.app.options import isovalue, load_volume
 
     options = _options(args)
-    volume = _load_volume(args)
-    iso = _isovalue(volume, args.iso)
+    volume = load_volume(args)
+    iso = isovalue(volume, args.iso)
     lattice = None
     if options.lattice_path is not None and options.lattice_path.exists():
-        from baking.lattice import Lattice
+        from isolume.baking.lattice import Lattice
 
         lattice = Lattice.load(options.lattice_path, volume)
-    from .render import LATTICE_MODES
+    from isolume.app.render.renderer import LATTICE_MODES
 
     if options.shading in LATTICE_MODES and lattice is None and not options.bake:
         raise ViewerError(f"--shading {options.shading} needs a lattice: pass --lattice FILE, or "
@@ -258,21 +257,21 @@ def bake_frame_due(now: float, last_end: float | None, last_frame_s: float | Non
     return now - last_end >= max(BAKE_REFRESH_S, BAKE_FRAME_SPACING * last_frame_s)
 
 
-class ViewerError(ValueError):
+class ViewerError(IsolumeError):
     """A request the viewer cannot honour (bad script step, missing lattice); one line."""
 
 
 class Viewer:
     """The interactive viewer: window, input and loop; it holds the drawing
-    (`app.viewer_draw.Drawing`), the surface worker, the lazy-bake link and the script.
+    (`app.viewer.draw.Drawing`), the surface worker, the lazy-bake link and the script.
 
     Its public methods below "actions" are what keys, the panel and scripts use
-    (`app.viewer_script.ScriptTarget`)."""
+    (`app.viewer.script.ScriptTarget`)."""
 
     def __init__(self, volume: volumes.Volume, iso: float, lattice, options: Options) -> None:
-        from .glcontext import create_window
-        from .render import default_camera
-        from .viewer_script import ScriptRunner
+        from isolume.app.render.glcontext import create_window
+        from isolume.app.render.renderer import default_camera
+        from isolume.app.viewer.script import ScriptRunner
 
         self.volume, self.options = volume, options
         self.window = create_window(options.size, f"isolume — {volume.name}")
@@ -319,7 +318,7 @@ class Viewer:
 
     # -- setup ---------------------------------------------------------------------------
     def _make_ui(self):
-        from .ui import ImGuiLayer
+        from isolume.app.viewer.panel import ImGuiLayer
 
         try:
             return ImGuiLayer(self.window.glfw, self.window.ui_scale)
@@ -332,7 +331,7 @@ class Viewer:
 
     def _setup_lattice(self, lattice, iso: float) -> None:
         """Show `lattice` (if any) and start the lazy bake when it is missing or incomplete."""
-        from baking.config import BakeConfig
+        from isolume.baking.config import BakeConfig
 
         config = None
         if lattice is not None:
@@ -353,7 +352,7 @@ class Viewer:
     def _start_bake(self, lattice, config, iso: float) -> None:
         """Show `lattice` (None: a new one for `config`) from shared memory and start its
         lazy bake with `config`."""
-        from baking.lattice import LatticeGeometry
+        from isolume.baking.lattice import LatticeGeometry
 
         geometry = LatticeGeometry.for_volume(self.volume, config.scale)
         meta = lattice.meta if lattice is not None else lattice_meta(self.volume, config)
@@ -371,7 +370,7 @@ class Viewer:
         return problem is None
 
     def _script_commands(self, options: Options) -> list:
-        from .viewer_script import Command
+        from isolume.app.viewer.script import Command
 
         commands = list(options.script)
         if options.frames is not None:
@@ -419,7 +418,7 @@ class Viewer:
         self._drag_by(self.drag.target, dx, dy)
 
     def _drag_by(self, target: str, dx: float, dy: float) -> None:
-        from .ui import ROTATE_DEG_PER_PX, orbit, pan, pan_per_pixel
+        from isolume.app.viewer.panel import ROTATE_DEG_PER_PX, orbit, pan, pan_per_pixel
 
         if target == "rotate":
             self.camera = orbit(self.camera, -dx * ROTATE_DEG_PER_PX, dy * ROTATE_DEG_PER_PX)
@@ -433,7 +432,7 @@ class Viewer:
         self._moved()
 
     def _on_mouse_button(self, _handle, button: int, action: int, mods: int) -> None:
-        from .ui import drag_target
+        from isolume.app.viewer.panel import drag_target
 
         glfw = self.window.glfw
         self._input()
@@ -453,7 +452,7 @@ class Viewer:
             self._start_drag(target)
 
     def _start_drag(self, target: str) -> None:
-        from .ui import Drag
+        from isolume.app.viewer.panel import Drag
 
         x, y = self.window.glfw.get_cursor_pos(self.window.handle)
         self.drag = Drag(target, x, y)
@@ -465,7 +464,7 @@ class Viewer:
         self.pending_press = None
 
     def _on_scroll(self, _handle, dx: float, dy: float) -> None:
-        from .ui import ZOOM_PER_WHEEL, zoom
+        from isolume.app.viewer.panel import ZOOM_PER_WHEEL, zoom
 
         self._input()
         if self.ui is not None:
@@ -494,7 +493,7 @@ class Viewer:
                 return
         if action == glfw.RELEASE:
             return
-        from .ui import key_action
+        from isolume.app.viewer.panel import key_action
 
         requested = key_action(glfw, key, mods, self.drawing.modes)
         if requested is not None:
@@ -559,7 +558,7 @@ class Viewer:
     def move_camera(self, how: str, a: float, b: float = 0.0) -> None:
         """Move the camera as a drag would: "orbit" by (a, b) degrees of azimuth and
         elevation, "zoom" closer by the factor a, "pan" by (a, b) diagonals."""
-        from .ui import orbit, pan, zoom
+        from isolume.app.viewer.panel import orbit, pan, zoom
 
         moves = {"orbit": lambda c: orbit(c, a, b), "zoom": lambda c: zoom(c, a),
                  "pan": lambda c: pan(c, a, b)}
@@ -570,7 +569,7 @@ class Viewer:
         """Aim the camera at the first surface's bounding box, in the part of the window
         the panel leaves free (once the panel has its size); that view becomes the one `R`
         returns to. A camera the user (or a script) has moved already stays where it is."""
-        from .camera import frame_box
+        from isolume.app.render.camera import frame_box
 
         meshes = [m for m in self.drawing.meshes.values() if not m.empty]
         if self.framed or not meshes or (self._ui_shown and self.panel_frames < 2):
@@ -595,7 +594,7 @@ class Viewer:
         self.quit = True
 
     def apply(self, action) -> None:
-        """Apply an `app.ui.Action` (from the panel or a key); problems become the status
+        """Apply an `app.viewer.panel.Action` (from the panel or a key); problems become the status
         message."""
         name, value = action.name, action.value
         if name == "panel_rect":  # where the panel is (window units), for framing
@@ -629,8 +628,8 @@ class Viewer:
     def screenshot(self, path: str | os.PathLike | None = None) -> tuple[Path, Path]:
         """Write the current view (without the panel) as PNG (sRGB) and EXR (linear
         radiance, before exposure) next to each other; returns both paths."""
-        from .images import write_exr, write_png
-        from .viewer_script import screenshot_paths
+        from isolume.app.render.images import write_exr, write_png
+        from isolume.app.viewer.script import screenshot_paths
 
         if path is None:
             stamp = time.strftime("%Y%m%d-%H%M%S")
@@ -691,8 +690,8 @@ class Viewer:
         Raises:
             ViewerError: no lazy bake runs, or no light is shaded per pixel.
         """
-        from baking.config import BakeConfig
-        from baking.lazy import same_direction, turned_light
+        from isolume.baking.config import BakeConfig
+        from isolume.baking.lazy import same_direction, turned_light
 
         turned = self.drawing.turned_light(self.state)
         file = self.static_lattice is not None and self.options.bake
@@ -718,7 +717,7 @@ class Viewer:
 
     def check_lattice(self) -> dict:
         """Upload what is pending, compare the GL textures with the lattice
-        (`app.viewer_draw.check_textures`), note and print the result.
+        (`app.viewer.draw.check_textures`), note and print the result.
 
         Raises:
             ViewerError: no lattice is shown.
@@ -780,7 +779,7 @@ class Viewer:
         if self._ui_shown:
             self.ui.new_frame(self.window.window_size, (w, h), start)
             self._confirm_press()
-            from .ui import draw_panel
+            from isolume.app.viewer.panel import draw_panel
 
             for action in draw_panel(self.ui.imgui, self._panel_model()):
                 self.apply(action)
@@ -792,7 +791,7 @@ class Viewer:
         scale = drawing.quality.scale if interacting else 1.0
         try:
             drawing.draw(self.camera, self.state, (w, h), scale)
-        except ValueError as exc:  # app.render.RenderError: a mode without what it needs
+        except ValueError as exc:  # app.render.renderer.RenderError: a mode without what it needs
             self.message = f"shading {self.state.shading!r}: {exc}; back to phong_hemi"
             self.state.shading = "phong_hemi"
             drawing.draw(self.camera, self.state, (w, h), scale)
@@ -867,7 +866,7 @@ class Viewer:
             self.lattice_changed = True  # shown by `_wants_frame`, at a pace
 
     def _lattice_modes(self) -> tuple[str, ...]:
-        from .render import LATTICE_MODES
+        from isolume.app.render.renderer import LATTICE_MODES
 
         return tuple(LATTICE_MODES)
 
@@ -886,7 +885,7 @@ class Viewer:
             return
         if key == self.view_sent or now - self.view_since < SETTLE_S or self.drag is not None:
             return
-        from baking.lazy import View, visible_cells
+        from isolume.baking.lazy import View, visible_cells
 
         points = self.drawing.visible_points(self.camera, self.state, self._frame_size())
         cells = visible_cells(self.shared.lattice.geometry, points)
@@ -899,8 +898,8 @@ class Viewer:
         lazy bake with the file's config, which re-bakes the bounced light for the turned
         light around the view. Its result is saved only on request, beside the file
         (`save_lattice`): the file keeps its whole bake."""
-        from baking.config import BakeConfig
-        from baking.lazy import same_direction, turned_light
+        from isolume.baking.config import BakeConfig
+        from isolume.baking.lazy import same_direction, turned_light
 
         turned = self.drawing.turned_light(self.state)
         if not self.options.bake or self.drag is not None or turned is None:
@@ -913,7 +912,7 @@ class Viewer:
 
     # -- panel ---------------------------------------------------------------------------
     def _panel_model(self):
-        from .ui import PanelModel
+        from isolume.app.viewer.panel import PanelModel
 
         z, y, x = self.volume.data.shape
         light_note = ""

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-import volumes
+from isolume import volumes
 
 DEFAULT_PATHS = 64
 """Paths per texel of a render's view lattice (``isolume render --samples``)."""
@@ -47,11 +47,10 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     """
     import os
 
-    from baking.lattice import Lattice, LatticeGeometry
-    from baking.lazy import visible_cells
-    from baking.preview import cell_corners, estimate, preview_tracing, surface_scene
-
-    from .viewer_bake import lattice_meta
+    from isolume.app.viewer.bake_client import lattice_meta
+    from isolume.baking.lattice import Lattice, LatticeGeometry
+    from isolume.baking.lazy import visible_cells
+    from isolume.baking.preview import cell_corners, estimate, preview_tracing, surface_scene
 
     geometry = LatticeGeometry.for_volume(volume, config.scale)
     meta = lattice_meta(volume, config)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .charts import Chart, _figure, _finish, _noise_line, _plain_log_ticks
+from isolume.app.charts.charts import Chart, _figure, _finish, _noise_line, _plain_log_ticks
 
 POLICIES = (("auto", None), ("0.25 voxel", 0.25), ("0.5 voxel", 0.5), ("1 voxel", 1.0),
             ("2 voxels", 2.0))
@@ -26,9 +26,9 @@ def chart_levels(run) -> Chart:
 
     import numpy as np
 
-    import volumes
-    from baking import kernels
-    from baking.bake import Baker
+    from isolume import volumes
+    from isolume.baking import kernels
+    from isolume.baking.bake import Baker
 
     volumes.gradient_grid(run.volume)  # once per process: not any one bake's time
     kernels.warm_up()

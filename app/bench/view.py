@@ -59,8 +59,8 @@ def add_frames_arguments(parser) -> None:
 
 def _filled_lattices(volume):
     """An irradiance lattice and a 5-band gray SH lattice with every texel computed."""
-    from baking.config import BakeConfig
-    from baking.lattice import Lattice, LatticeGeometry
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice, LatticeGeometry
 
     geometry = LatticeGeometry.for_volume(volume, 1.0)
     # a constant sky without bounces: the occlusion modes accept it too
@@ -85,7 +85,7 @@ def _variants(mode: str) -> list[tuple[str, tuple | None]]:
     per pixel (`DIRECT_MODE`)."""
     if mode != "irradiance":
         return [(mode, None)]
-    from baking.lights import pixel_lights
+    from isolume.baking.lights import pixel_lights
 
     return [(mode, None), (DIRECT_MODE, pixel_lights("sky:sun=3", ()))]
 
@@ -109,7 +109,7 @@ def _time_mode(renderer, ctx, camera, settings, frames: int) -> tuple[list, list
 def _jobs(preview: bool) -> list[tuple[str, str, str | None, tuple | None]]:
     """(label, mode, lattice needed: None, "irr" or "sh", per-pixel lights) to time, grouped
     by the lattice they need (one upload per group and round)."""
-    from .render import SHADING_MODES
+    from isolume.app.render.renderer import SHADING_MODES
 
     jobs = []
     for mode, spec in SHADING_MODES.items():
@@ -131,12 +131,11 @@ def frame_times(volume, iso: float, size: tuple[int, int], frames: int = 20,
         "ratios", "cpu_ratios", "preview": {...}} — medians, and their ratios of the GI
         modes to phong_hemi and phong_shadow (wall and CPU time).
     """
-    import volumes
-    from baking.lattice import LatticeGeometry
-    from baking.plan import texel_values
-
-    from .glcontext import create_headless
-    from .render import RenderSettings, SurfaceRenderer, default_camera
+    from isolume import volumes
+    from isolume.app.render.glcontext import create_headless
+    from isolume.app.render.renderer import RenderSettings, SurfaceRenderer, default_camera
+    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.plan import texel_values
 
     mesh = volumes.isosurface(volume, iso)
     rho = texel_values(volume, LatticeGeometry.for_volume(volume, 1.0))
@@ -189,13 +188,12 @@ def frame_times(volume, iso: float, size: tuple[int, int], frames: int = 20,
 
 def frames(args) -> int:
     """``isolume bench frames``: print ms/frame of every mode and the GI ratios."""
-    import volumes
-
-    from .cli import _isovalue, _size
+    from isolume import volumes
+    from isolume.app.options import isovalue, parse_size
 
     volume = volumes.load(args.volume or _default_volume())
-    iso = _isovalue(volume, args.iso)
-    size = _size(args.size)
+    iso = isovalue(volume, args.iso)
+    size = parse_size(args.size)
     r = frame_times(volume, iso, size, args.frames, args.gl, args.rounds)
     print(f"frame times: {volume.name} at iso {iso:.6g}, {r['triangles']:,} triangles "
           f"(preview {r['preview_triangles']:,}), {size[0]}x{size[1]}, {r['renderer']}; "
@@ -247,10 +245,9 @@ def visible_pixels_headless(volume, iso: float, size: tuple[int, int], backend: 
     """World positions (M, 3) of the visible pixels of the default view, their flat pixel
     indices (M,) (row 0 at the top), and the camera (rendered off-screen with the
     position pass, as the viewer does)."""
-    import volumes
-
-    from .glcontext import create_headless
-    from .render import RenderSettings, SurfaceRenderer, default_camera
+    from isolume import volumes
+    from isolume.app.render.glcontext import create_headless
+    from isolume.app.render.renderer import RenderSettings, SurfaceRenderer, default_camera
 
     mesh = volumes.isosurface(volume, iso)
     camera = default_camera(volume)
@@ -289,7 +286,7 @@ class PixelTruth:
         return float(np.sqrt(np.mean(rel**2)))
 
     def rmse(self, lattice) -> float:
-        """The charts' error (`app.charts.relative_rmse`) of the luminance `lattice` shows:
+        """The charts' error (`app.charts.charts.relative_rmse`) of the luminance `lattice` shows:
         RMS difference over the mean truth. Unlike `error`, a dark pixel weighs no more
         than a bright one (on CThead one crack of luminance 0.003, shown at 0.6, makes
         `error` 146 % alone)."""
@@ -311,8 +308,8 @@ def pixel_truth(volume, config, iso: float, camera, size: tuple[int, int],
     on the displayed isosurface, with the bake's lighting (`baking.reference`)."""
     from dataclasses import replace
 
-    from baking.lattice import LUMINANCE
-    from baking.reference import PixelStats, ReferenceTracer
+    from isolume.baking.lattice import LUMINANCE
+    from isolume.baking.reference import PixelStats, ReferenceTracer
 
     origins, dirs = camera.primary_rays(*size)
     with ReferenceTracer(volume, iso, origins[pixels], dirs[pixels],
@@ -329,7 +326,7 @@ def pixel_truth(volume, config, iso: float, camera, size: tuple[int, int],
 def visible_error(lattice, flat: np.ndarray) -> float:
     """RMS over texels `flat` of the relative standard error of their means (inf while
     any has fewer than 2 paths)."""
-    from baking.lazy import relative_error
+    from isolume.baking.lazy import relative_error
 
     values = lattice.values.reshape(-1, lattice.values.shape[-1])[flat]
     err = relative_error(values, lattice.second.reshape(-1)[flat],
@@ -340,7 +337,7 @@ def visible_error(lattice, flat: np.ndarray) -> float:
 
 
 def _luminance(values: np.ndarray) -> np.ndarray:
-    from baking.lattice import LUMINANCE
+    from isolume.baking.lattice import LUMINANCE
 
     return values[:, :3] @ LUMINANCE if values.shape[1] >= 3 else values[:, 0]
 
@@ -351,8 +348,8 @@ def reference_values(volume, config, flat: np.ndarray, samples: int,
     bake's default number of levels (so a capped `config.max_levels` shows its bias)."""
     from dataclasses import replace
 
-    from baking.bake import Baker
-    from baking.config import BakeConfig
+    from isolume.baking.bake import Baker
+    from isolume.baking.config import BakeConfig
 
     reference = replace(config, seed=config.seed + 7919, samples=samples,
                         max_levels=BakeConfig().max_levels)
@@ -371,7 +368,7 @@ def full_bake_error(volume, config, corners: np.ndarray, truth, workers: int | N
     """The picture's error (`PixelTruth.rmse`) when the texels it reads, (N,) flat ids
     `corners`, are baked to `config.samples` paths (the lazy bake's end for this view),
     and the seconds that bake took."""
-    from baking.bake import Baker
+    from isolume.baking.bake import Baker
 
     began = time.perf_counter()
     baker = Baker(volume, config, workers=workers, scene_cache=2)
@@ -387,22 +384,21 @@ def lazy(args) -> int:
     """``isolume bench lazy``: time to first estimates and to the error target."""
     from dataclasses import replace
 
-    import volumes
-    from baking.config import BakeConfig
-    from baking.lattice import LatticeGeometry
-    from baking.lazy import View, view_iso_range, visible_cells
-    from baking.preview import cell_corners
-
-    from .cli import _isovalue, _size
-    from .viewer import BakeLink, SharedLattice, lattice_meta
+    from isolume import volumes
+    from isolume.app.options import isovalue, parse_size
+    from isolume.app.viewer.window import BakeLink, SharedLattice, lattice_meta
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.lazy import View, view_iso_range, visible_cells
+    from isolume.baking.preview import cell_corners
 
     volume = volumes.load(args.volume or _default_volume())
-    iso = _isovalue(volume, args.iso)
+    iso = isovalue(volume, args.iso)
     config = BakeConfig(samples=args.samples)
     if args.max_levels is not None:
         config = replace(config, max_levels=args.max_levels)
     geometry = LatticeGeometry.for_volume(volume, config.scale)
-    size = _size(args.size)
+    size = parse_size(args.size)
     points, pixels, camera = visible_pixels_headless(volume, iso, size, args.gl)
     cells = visible_cells(geometry, points)
     workers = args.workers or os.cpu_count() or 1

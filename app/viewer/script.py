@@ -41,11 +41,13 @@ from typing import Protocol
 
 import numpy as np
 
+from isolume.volumes.errors import IsolumeError
+
 DEFAULT_TIMEOUT = 120.0
 """Seconds a ``wait-*`` command waits before the script fails."""
 
 
-class ScriptError(ValueError):
+class ScriptError(IsolumeError):
     """A script line that cannot be run; the message names the file and line."""
 
 
@@ -236,7 +238,7 @@ def screenshot_paths(path: str | os.PathLike) -> tuple[Path, Path]:
 
 # -- running a script in the viewer -------------------------------------------------------
 class ScriptTarget(Protocol):
-    """What a script drives: the public interface of `app.viewer.Viewer`.
+    """What a script drives: the public interface of `app.viewer.window.Viewer`.
 
     Errors that the script should report raise `ValueError` (the viewer's `ViewerError`)."""
 
@@ -304,7 +306,7 @@ class ScriptRunner:
         """Read the back buffer for a pending ``window-shot``."""
         if self.pending_window_shot is None:
             return
-        from .images import write_png
+        from isolume.app.render.images import write_png
 
         write_png(self.pending_window_shot, viewer.window_pixels())
         self.pending_window_shot = None

@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-import volumes
-
-from .glcontext import create_headless
-from .render import SHADING_MODES, Frame, RenderSettings, SurfaceRenderer, default_camera
+from isolume import volumes
+from isolume.app.render.glcontext import create_headless
+from isolume.app.render.renderer import (
+    SHADING_MODES,
+    Frame,
+    RenderSettings,
+    SurfaceRenderer,
+    default_camera,
+)
 
 
 def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarray | None:
@@ -15,7 +20,7 @@ def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarra
     mode = SHADING_MODES.get(shading)
     if lattice is None or mode is None or mode.lookup != "closest":
         return None
-    from baking.plan import texel_values
+    from isolume.baking.plan import texel_values
 
     return texel_values(volume, lattice.geometry)
 
@@ -40,7 +45,7 @@ def render_volume(
     `lattice` (a `baking.Lattice`) is needed by the lattice shading modes, `env_coeffs`
     ((n², 3) SH coefficients of the environment) by "sh". Without a lattice, `view_light`
     (a `baking.config.BakeConfig`) lights this view instead: a position pass finds the
-    visible surface and `app.view_gi.view_lattice` traces the texels it reads (`workers`
+    visible surface and `app.render.view_gi.view_lattice` traces the texels it reads (`workers`
     threads, `progress` on stderr). The shadow map and the fog are fitted to the volume's
     world box; "irradiance_closest" gets the texel isovalues computed from `volume` here.
 
@@ -57,7 +62,7 @@ def render_volume(
         if lattice is None and view_light is not None and len(mesh.faces):
             from dataclasses import replace
 
-            from .view_gi import view_lattice
+            from isolume.app.render.view_gi import view_lattice
 
             position = renderer.render(camera, replace(settings, shading="position",
                                                        auto_exposure=False))

@@ -1,6 +1,6 @@
 """The viewer's drawing: what is on the GPU, how a frame is lit and drawn.
 
-`Drawing` owns the `app.render.SurfaceRenderer` of the window's context and everything the
+`Drawing` owns the `app.render.renderer.SurfaceRenderer` of the window's context and everything the
 picture depends on besides the camera and the user's choices (`ViewState`): the surface on
 the GPU (the preview or the full-resolution one), the lattice textures and the re-upload of
 lazily baked texels (`TexelUploader`, 8³ bricks within a per-frame budget), the light
@@ -17,7 +17,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-import volumes
+from isolume import volumes
 
 BRICK = 8
 """Texels per side of the blocks re-uploaded after the bake commits texels."""
@@ -210,20 +210,20 @@ class Drawing:
     """The picture of the viewer's window (see the module docstring).
 
     Attributes:
-        renderer: the `app.render.SurfaceRenderer` of the window's context.
+        renderer: the `app.render.renderer.SurfaceRenderer` of the window's context.
         modes: every shading mode's name, in the keys' order.
         albedo: (3,) surface albedo, the lattice's when one is shown.
         meshes: the surfaces of the current isovalue by stage ("coarse", "full").
         on_gpu: the stage whose surface the renderer holds (None: none yet).
         uploader: re-uploads lazily baked texels (None: the lattice does not change).
         quality: the detail used while interacting.
-        auto_exposure: expose by `app.render.auto_exposure_scale`, smoothed in time.
+        auto_exposure: expose by `app.render.renderer.auto_exposure_scale`, smoothed in time.
         auto: the automatic exposure now (None before the first frame).
         adapting: the automatic exposure is still moving (keep drawing frames).
     """
 
     def __init__(self, ctx, volume: volumes.Volume, auto_exposure: bool = True) -> None:
-        from .render import SHADING_MODES, RenderSettings, SurfaceRenderer
+        from isolume.app.render.renderer import SHADING_MODES, RenderSettings, SurfaceRenderer
 
         self.ctx, self.volume = ctx, volume
         self.renderer = SurfaceRenderer(ctx)
@@ -251,9 +251,9 @@ class Drawing:
         try:
             self.renderer.set_lattice(lattice)
             if lattice.kind == "sh":
-                from .cli import _environment_coefficients
+                from isolume.app.options import environment_coefficients
 
-                self.renderer.set_environment(_environment_coefficients(None, lattice, "none"))
+                self.renderer.set_environment(environment_coefficients(None, lattice, "none"))
         except ValueError as exc:
             self.renderer.set_lattice(None)
             return f"lattice not shown: {exc}"
@@ -268,7 +268,7 @@ class Drawing:
         closest-isovalue lookup counts as usable with an irradiance lattice, its texel
         isovalues are computed when it is first chosen."""
         if self._usable is None:
-            from .render import SHADING_MODES
+            from isolume.app.render.renderer import SHADING_MODES
 
             lattice = self.renderer.lattice
             out = []
@@ -285,9 +285,8 @@ class Drawing:
 
     def ensure_texel_isovalues(self, mode: str) -> None:
         """Upload the texel isovalues the closest-isovalue lookup needs (once)."""
-        from baking.plan import texel_values
-
-        from .render import SHADING_MODES
+        from isolume.app.render.renderer import SHADING_MODES
+        from isolume.baking.plan import texel_values
 
         textures = self.renderer.lattice
         closest = getattr(SHADING_MODES[mode], "lookup", "") == "closest"
@@ -320,9 +319,9 @@ class Drawing:
 
     # -- the light -----------------------------------------------------------------------
     def settings(self, state: ViewState, size: tuple[int, int]):
-        """The `app.render.RenderSettings` of a frame of `size` (W, H) pixels in `state`."""
-        from .render import RenderSettings
-        from .ui import direction_from_angles
+        """The `RenderSettings` of a frame of `size` (W, H) pixels in `state`."""
+        from isolume.app.render.renderer import RenderSettings
+        from isolume.app.viewer.panel import direction_from_angles
 
         kw = {"size": size, "shading": state.shading, "exposure": state.exposure,
               "albedo": self.albedo}
@@ -338,8 +337,8 @@ class Drawing:
     def _moved_lights(self, state: ViewState) -> tuple | None:
         """The per-pixel lights of the lattice shown with the sun (or first directional
         light) turned to the user's light direction; None when there is none to turn."""
-        from .render import aimed_lights, first_distant_light
-        from .ui import direction_from_angles
+        from isolume.app.render.renderer import aimed_lights, first_distant_light
+        from isolume.app.viewer.panel import direction_from_angles
 
         lights = self.renderer.lattice_lights
         if state.light is None or first_distant_light(lights) is None:
@@ -350,7 +349,7 @@ class Drawing:
         """What the light controls do to a lattice whose sun or lights are shaded per
         pixel, and whether its indirect light is stale; None for other lattices.
         `rebakes`: a lazy bake re-bakes the bounced light of a turned light."""
-        from .render import LATTICE_MODES, first_distant_light
+        from isolume.app.render.renderer import LATTICE_MODES, first_distant_light
 
         mode = LATTICE_MODES.get(state.shading)
         baked = first_distant_light(self.renderer.lattice_lights)
@@ -374,9 +373,8 @@ class Drawing:
         an irradiance lattice, `light_note`): what a lazy bake's bounced light must
         follow (`baking.lazy.View.light`). None in other modes and for other lattices
         (an SH transfer turns its sun with itself)."""
-        from baking.lights import SunLight
-
-        from .render import first_distant_light
+        from isolume.app.render.renderer import first_distant_light
+        from isolume.baking.lights import SunLight
 
         if self.light_note(state) is None:
             return None
@@ -389,8 +387,8 @@ class Drawing:
     def light_angles(self, state: ViewState, camera) -> tuple[float, float]:
         """The light's (azimuth, elevation) in degrees (from the camera-fixed light if need
         be)."""
-        from .render import first_distant_light, key_direction
-        from .ui import angles_from_direction
+        from isolume.app.render.renderer import first_distant_light, key_direction
+        from isolume.app.viewer.panel import angles_from_direction
 
         if state.light is not None:
             return state.light
@@ -425,7 +423,7 @@ class Drawing:
         """Render at `scale` × the framebuffer `size` (W, H) and put it on the window.
 
         Raises:
-            ValueError: the shading mode lacks what it needs (`app.render.RenderError`).
+            ValueError: the shading mode lacks what it needs (`app.render.renderer.RenderError`).
         """
         w, h = size
         small = (max(1, round(w * scale)), max(1, round(h * scale)))
@@ -451,7 +449,7 @@ class Drawing:
         `EXPOSURE_ADAPT_S`; returns the factor by which it changed."""
         if not self.auto_exposure:
             return 1.0
-        from .render import auto_exposure_scale
+        from isolume.app.render.renderer import auto_exposure_scale
 
         rgba = self._sample_hdr(targets, size)
         goal = auto_exposure_scale(rgba[..., :3], rgba[..., 3] > 0)
@@ -483,7 +481,7 @@ class Drawing:
         return data.reshape(small[1], small[0], 4)
 
     def frame(self, camera, state: ViewState, size: tuple[int, int]):
-        """An off-screen `app.render` frame (sRGB and linear radiance) of `size` (W, H),
+        """An off-screen `app.render.renderer` frame (sRGB and linear radiance) of `size` (W, H),
         exposed as the window is."""
         return self.renderer.render(camera, self.exposed(self.settings(state, size)))
 

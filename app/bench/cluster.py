@@ -1,4 +1,4 @@
-"""Cluster bake figures and the scaling model: ``python -m baking.cluster_bench [VOLUME]``.
+"""Cluster bake figures and the scaling model: ``python -m app.bench.cluster [VOLUME]``.
 
 Bakes the same lattice four ways in one run — 1 and 2 threads (`bake.Baker`), 1 and 2
 worker processes of a local Dask cluster (`cluster.ClusterBaker`; the cluster started and
@@ -28,11 +28,10 @@ from dataclasses import replace
 
 import numpy as np
 
-import volumes
-
-from .bake import Baker, _level_scene
-from .cluster import ClusterBaker, local_cluster
-from .config import BakeConfig
+from isolume import volumes
+from isolume.baking.bake import Baker, _level_scene
+from isolume.baking.cluster import ClusterBaker, local_cluster
+from isolume.baking.config import BakeConfig
 
 WORKER_COUNTS = (1, 4, 16, 64)
 
@@ -90,7 +89,7 @@ def _row(name: str, wall: float, cpu: float, baker: Baker, base: float) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m baking.cluster_bench", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m app.bench.cluster", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("volume", nargs="?", default="synthetic:engine")
     parser.add_argument("--samples", type=int, default=16)
@@ -184,8 +183,8 @@ def _print_model(volume, config: BakeConfig, master_s: float, setup_s: float, sc
     `target_voxels` voxels: active texels, the plan, the set-up, the job and the level
     scenes (marching cubes scans every voxel) grow with the voxel count; a path costs
     what it costs here; K is what the plan picks at 100 paths."""
-    from .lattice import LatticeGeometry
-    from .plan import make_plan
+    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.plan import make_plan
 
     config = replace(config, samples=100)
     levels = len(make_plan(volume, LatticeGeometry.for_volume(volume, 1.0), config).levels)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .camera import Camera
+from isolume.app.render.camera import Camera
 
 ROTATE_DEG_PER_PX = 0.4
 """Camera and light rotation per mouse movement (screen coordinates)."""
@@ -97,7 +97,7 @@ def drag_target(button: int, shift: bool, ctrl: bool) -> str | None:
 @dataclass(frozen=True)
 class Action:
     """Something the user asked for through the panel or a key: name and value (applied by
-    `app.viewer.Viewer.apply`)."""
+    `app.viewer.window.Viewer.apply`)."""
 
     name: str
     value: object = None
@@ -298,7 +298,7 @@ class ImGuiLayer:
 
     def __init__(self, glfw, ui_scale: float = 1.0) -> None:
         """`ui_scale`: factor for widget and font sizes in window coordinates
-        (`app.glcontext.Window.ui_scale`); ImGui itself renders fonts at the framebuffer's
+        (`app.render.glcontext.Window.ui_scale`); ImGui itself renders fonts at the framebuffer's
         density."""
         from imgui_bundle import imgui
 

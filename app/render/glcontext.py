@@ -22,10 +22,12 @@ from dataclasses import dataclass
 
 import moderngl
 
+from isolume.volumes.errors import IsolumeError
+
 BACKENDS = ("egl", "osmesa")
 
 
-class GLUnavailable(RuntimeError):
+class GLUnavailable(IsolumeError, RuntimeError):
     """No OpenGL 3.3 context could be created with the requested backend."""
 
 
@@ -244,7 +246,7 @@ class Window:
     Attributes:
         handle: the glfw window.
         ctx: moderngl context of the window (``ctx.extra["proc_address"]`` resolves GL
-            entry points, as `app.glcontext.store_rgb9e5` needs).
+            entry points, as `app.render.glcontext.store_rgb9e5` needs).
         glfw: the glfw module.
     """
 
@@ -329,12 +331,12 @@ def create_window(size: tuple[int, int] = (1024, 768), title: str = "isolume",
         visible: False keeps the window hidden (benchmarks).
 
     Raises:
-        app.glcontext.GLUnavailable: no display, glfw cannot start, or no 3.3 context —
+        app.render.glcontext.GLUnavailable: no display, glfw cannot start, or no 3.3 context —
             the message names `isolume render` as the alternative.
     """
     import moderngl
 
-    from .glcontext import GLUnavailable
+    from isolume.app.render.glcontext import GLUnavailable
 
     if not _display_available():
         raise GLUnavailable(f"no display (DISPLAY is not set): {NO_DISPLAY_HINT}")

@@ -7,7 +7,7 @@ building level scenes (marching cubes again) and the baker's own numpy work hold
 for hundreds of milliseconds. The lattice arrays live in shared memory (`SharedLattice`):
 the bake process writes texels and announces them; the viewer's side (`BakeLink`) sends
 views and receives the ids of changed texels, which the drawing side re-uploads
-(`app.viewer_draw.TexelUploader`). Nothing here touches GL.
+(`app.viewer.draw.TexelUploader`). Nothing here touches GL.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-import volumes
+from isolume import volumes
 
 
 class SharedLattice:
@@ -46,7 +46,7 @@ class SharedLattice:
         """New shared arrays, zero or copied from the `source` lattice."""
         from multiprocessing import shared_memory
 
-        from baking.lattice import Lattice
+        from isolume.baking.lattice import Lattice
 
         arrays, blocks = {}, []
         for name, (shape, dtype) in cls._layout(geometry, channels).items():
@@ -74,7 +74,7 @@ class SharedLattice:
         """The same arrays, in another process."""
         from multiprocessing import shared_memory
 
-        from baking.lattice import Lattice, LatticeGeometry
+        from isolume.baking.lattice import Lattice, LatticeGeometry
 
         geometry = LatticeGeometry(tuple(description["shape"]), tuple(description["lo"]),
                                    tuple(description["hi"]))
@@ -96,7 +96,7 @@ class SharedLattice:
         """A private copy of the lattice (for saving while the bake goes on); `relit`:
         only the texels baked under the turned light (`relit`), the others as not
         computed (a lattice file holds one light)."""
-        from baking.lattice import Lattice
+        from isolume.baking.lattice import Lattice
 
         lat = self.lattice
         samples = lat.samples.copy()
@@ -125,8 +125,8 @@ class SharedLattice:
 def lattice_meta(volume: volumes.Volume, config) -> dict:
     """Metadata of a new lattice baked with `config` for `volume` (as `baking.bake` writes
     it)."""
-    from baking.bake import path_settings
-    from baking.lattice import volume_identity
+    from isolume.baking.bake import path_settings
+    from isolume.baking.lattice import volume_identity
 
     return {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
             "scale": config.scale, "volume": volume_identity(volume),
@@ -175,9 +175,9 @@ class _BakeProcess:
     def __init__(self, job: dict, inbox, outbox) -> None:
         import multiprocessing
 
-        from baking.config import BakeConfig
-        from baking.lazy import turned_light
-        from baking.preview import Previewer
+        from isolume.baking.config import BakeConfig
+        from isolume.baking.lazy import turned_light
+        from isolume.baking.preview import Previewer
 
         self.job, self.inbox, self.outbox = job, inbox, outbox
         self.shared = SharedLattice.attach(job["lattice"])
@@ -216,7 +216,7 @@ class _BakeProcess:
 
     def turned(self, view) -> bool:
         """Whether `view` shows the light turned away from the one baked now."""
-        from baking.lazy import same_direction
+        from isolume.baking.lazy import same_direction
 
         return (view.light is not None and self.light is not None
                 and not same_direction(view.light, self.light))
@@ -225,8 +225,8 @@ class _BakeProcess:
         """Bake under the light of `view` from now on if it was turned: a new
         `baking.lazy.Relight` (the work of an earlier turn is dropped), previews traced
         again under the new light."""
-        from baking.lazy import Relight, relit_config
-        from baking.preview import Previewer
+        from isolume.baking.lazy import Relight, relit_config
+        from isolume.baking.preview import Previewer
 
         if not self.turned(view):
             return
@@ -262,7 +262,7 @@ class _BakeProcess:
         paths go before the further preview passes: they also reach the texels no preview
         does (a start point inside a thin feature), which would otherwise keep the old
         light for the 256-path pass (15 s on the engine CT)."""
-        from baking.lazy import RELIGHT_PATHS
+        from isolume.baking.lazy import RELIGHT_PATHS
 
         if self.relight is None or self.scheduler is None or self.relit_previews < RELIGHT_PATHS:
             return False
@@ -303,7 +303,7 @@ class _BakeProcess:
 
     def _keep(self, message) -> bool:
         """Queue `message` for `serve`, lighting views at once; False on "stop"."""
-        from baking.lazy import View
+        from isolume.baking.lazy import View
 
         if message == "stop":
             return False
@@ -320,8 +320,8 @@ class _BakeProcess:
         stages are reported as ``("planning", stage)``. None when told to stop."""
         import threading
 
-        from baking.bake import Baker
-        from baking.lazy import scene_cache_size
+        from isolume.baking.bake import Baker
+        from isolume.baking.lazy import scene_cache_size
 
         made: dict = {}
 
@@ -347,8 +347,8 @@ class _BakeProcess:
         return made["baker"], made["cache"]
 
     def run(self) -> None:
-        from baking.lazy import View, view_iso_range
-        from baking.preview import warm_up as preview_warm_up
+        from isolume.baking.lazy import View, view_iso_range
+        from isolume.baking.preview import warm_up as preview_warm_up
 
         preview_warm_up(self.volume)  # while the viewer opens its window
         self.outbox.put(("started", {"seconds": time.time() - self.job["started"]}))
@@ -404,8 +404,8 @@ class _BakeProcess:
         """The Baker of `self.config` (`_plan`), the lattice carried over from `old_plan`
         (`baking.lazy.carry_over`: the baked one and a turned light's), the plan announced
         as ``("ready", ...)``; None when told to stop."""
-        from baking.lazy import carry_over
-        from baking.preview import drop_inactive
+        from isolume.baking.lazy import carry_over
+        from isolume.baking.preview import drop_inactive
 
         t0 = time.perf_counter()
         lattice = self.shared.lattice
@@ -446,7 +446,7 @@ class _BakeProcess:
         """`baking.lazy.serve` under the light baked now (into the turned light's lattice
         after a turn) until told to stop or a view it does not serve (another isovalue
         range, a turned light) ends it; returns serve's stats."""
-        from baking.lazy import LazyScheduler, serve
+        from isolume.baking.lazy import LazyScheduler, serve
 
         if self.relight is not None and baker.lattice is not self.relight.fresh:
             baker.relight(self.config, self.relight.fresh)
@@ -467,7 +467,7 @@ class _BakeProcess:
 def range_warning(meta: dict, iso: float) -> tuple[str, ...]:
     """A panel line when `iso` lies outside the iso range of the lattice whose metadata is
     `meta` (its texels are lit on surfaces inside it); () otherwise."""
-    from baking.plan import served_range
+    from isolume.baking.plan import served_range
 
     served = served_range(meta)
     if served is None or served[0] <= iso <= served[1]:
@@ -484,7 +484,7 @@ class BakeLink:
                  follow_iso: bool = False) -> None:
         import multiprocessing
 
-        from baking.lazy import BATCH_PATHS
+        from isolume.baking.lazy import BATCH_PATHS
 
         ctx = multiprocessing.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
@@ -512,7 +512,7 @@ class BakeLink:
         self.warm: dict | None = None  # the process is ready for views (its start-up time)
         self.planning: tuple[float, str] = (self.started, "")  # since when, which stage
         self.replans = 0
-        from baking.lazy import turned_light
+        from isolume.baking.lazy import turned_light
 
         baked = turned_light(config)  # the light the lattice was baked with, if turnable
         self.light_baked = None if baked is None else tuple(float(v) for v in baked)
@@ -522,7 +522,7 @@ class BakeLink:
         self.relit_config: dict | None = None  # the config it is baked with
 
     def send_view(self, view) -> None:
-        from baking.lazy import same_direction
+        from isolume.baking.lazy import same_direction
 
         if view.light is not None and (self.light_sent is None
                                        or not same_direction(view.light, self.light_sent)):
@@ -581,7 +581,7 @@ class BakeLink:
     def _turn_event(self, direction, stage: str) -> None:
         """Note the seconds from sending the view with the light turned to `direction`
         until `stage` (once per stage)."""
-        from baking.lazy import same_direction
+        from isolume.baking.lazy import same_direction
 
         for turn in reversed(self.turns):
             if same_direction(turn["direction"], direction):
@@ -605,7 +605,7 @@ class BakeLink:
         show the bake under the light turned to `direction` (3,); None when the bake
         reports no progress under that light; 1 when it is the light baked and was
         never turned."""
-        from baking.lazy import same_direction
+        from isolume.baking.lazy import same_direction
 
         r = self.relit
         if self.relit_config is None and self.light_baked is not None and same_direction(
@@ -620,7 +620,7 @@ class BakeLink:
     def relit_line(self, direction, name: str) -> str | None:
         """The panel's line on the bounced light of the `name` ("sun", "light") turned to
         `direction` (3,), or None when the bake has not started on that light."""
-        from baking.lazy import same_direction
+        from isolume.baking.lazy import same_direction
 
         r = self.relit
         if self.light_sent is None or not same_direction(self.light_sent, direction):

@@ -24,10 +24,9 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from baking.lattice import Lattice
-from baking.sh import transfer_blocks
-
-from .glcontext import store_rgb9e5
+from isolume.app.render.glcontext import store_rgb9e5
+from isolume.baking.lattice import Lattice
+from isolume.baking.sh import transfer_blocks
 
 MAX_TEXTURE_UNITS = 16  # guaranteed by GL 3.3 for fragment shaders
 SH_FIRST_UNIT = 2  # units 0: HDR resolve input or shadow map, 1: valid mask

@@ -9,12 +9,12 @@ plots plus the settings that made it:
 2. ``chart2_resolution``: error and GL texture memory against lattice resolution 0.5×,
    1×, 2× per axis (paper Fig. 12).
 3. ``chart3_lookup_normals``: error per lattice lookup (paper Fig. 6: those that
-   `app.render.SHADING_MODES` offers) and per texel-normal scheme (paper Fig. 5).
+   `app.render.renderer.SHADING_MODES` offers) and per texel-normal scheme (paper Fig. 5).
 4. ``chart4_shading_modes``: error and frame time of every shading mode (paper Table 2),
    local models lit to match the environment as well as they can be.
 5. ``chart5_levels`` (``--charts 5``, not made by default): error against bake time per
    isovalue-level policy, the automatic one against fixed move limits
-   (`app.chart_levels`).
+   (`app.charts.levels`).
 
 Error: relative RMSE of linear radiance against a per-pixel path-traced reference (the
 baker's own integrator, `baking.reference`), over the pixels that both images mark as
@@ -25,7 +25,7 @@ be at most 1/4 of the smallest error charted (then it inflates that error by at 
 or until ``--ref-max-seconds`` of tracing, which the JSON then says. The reference, the
 equal-time path tracer and the bakes use different seeds, so their noise is independent.
 
-Everything is rendered with the GL renderer (`app.render.SurfaceRenderer`) on one
+Everything is rendered with the GL renderer (`app.render.renderer.SurfaceRenderer`) on one
 headless context (EGL by default: llvmpipe where there is no GPU), same mesh, camera and
 albedo for every image. Bakes cover the whole lattice (all isovalues, the paper's "full
 texture"); a lattice of N paths per texel is made by resuming the one of the next lower
@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import CLIError, _isovalue, _load_volume, _size
+from isolume.app.options import CLIError, isovalue, load_volume, parse_size
 
 HELP = "charts of error against bake time, lattice resolution, lookups and shading modes"
 
@@ -174,7 +174,7 @@ def _plan(args: argparse.Namespace) -> Plan:
 def crop_volume(volume, text: str):
     """The sub-volume of ``X0:X1,Y0:Y1,Z0:Z1`` voxel index ranges (end exclusive; an empty
     bound means the edge), same spacing, origin at its first voxel."""
-    import volumes
+    from isolume import volumes
 
     parts = text.split(",")
     if len(parts) != 3:
@@ -200,7 +200,7 @@ def crop_volume(volume, text: str):
 def downsample_volume(volume, factor: int):
     """Block means of `factor`³ voxels (the trailing partial blocks are dropped): (Z, Y, X)
     → (Z // f, Y // f, X // f), spacing × f, origin at the first block's centre."""
-    import volumes
+    from isolume import volumes
 
     f = int(factor)
     z, y, x = (n // f for n in volume.data.shape)
@@ -216,7 +216,7 @@ def downsample_volume(volume, factor: int):
 def _prepare_volume(args: argparse.Namespace):
     """(volume, notes): the volume to chart after --crop and --downsample."""
     args.volume = args.volume or DEFAULT_VOLUME
-    volume, notes = _load_volume(args), []
+    volume, notes = load_volume(args), []
     if args.crop:
         volume = crop_volume(volume, args.crop)
         notes.append(f"sub-volume: voxels {args.crop} (x, y, z; end exclusive)")
@@ -305,8 +305,8 @@ def local_lighting(env_spec: str) -> LocalLighting:
     """The fairest key light and hemisphere ambient for `env_spec`: a sky's sun becomes the
     key light (its direction and irradiance); the rest of the environment, projected on SH
     and turned into irradiance (Funk–Hecke), gives the ambient for normals ±z."""
-    from baking import sh
-    from baking.environment import SkyEnvironment, parse_env
+    from isolume.baking import sh
+    from isolume.baking.environment import SkyEnvironment, parse_env
 
     env = parse_env(env_spec)
     mean = sh.project_environment(env, 1)[0] / math.sqrt(4 * math.pi)
@@ -373,9 +373,9 @@ class LatticeStore:
 
     def _load(self, config) -> Baked | None:
         """The cached lattice of exactly `config`, or None."""
-        from baking.config import BakeConfig
-        from baking.errors import BakeError
-        from baking.lattice import Lattice
+        from isolume.baking.config import BakeConfig
+        from isolume.baking.errors import BakeError
+        from isolume.baking.lattice import Lattice
 
         if config in self._memory:
             return self._memory[config]
@@ -395,7 +395,7 @@ class LatticeStore:
     def _start(self, config) -> Baked | None:
         """The cached lattice with the most samples below `config.samples`, or None (also
         when the levels follow the samples: resuming would keep the smaller bake's)."""
-        from baking.plan import levels_follow_samples
+        from isolume.baking.plan import levels_follow_samples
 
         if levels_follow_samples(config):
             return None
@@ -416,7 +416,7 @@ class LatticeStore:
         return baked
 
     def _bake(self, config, start: Baked | None) -> Baked:
-        from baking.bake import Baker
+        from isolume.baking.bake import Baker
 
         lattice = None
         if start is not None:
@@ -442,13 +442,12 @@ class LatticeStore:
 
 
 def texture_bytes(lattice, lookup: str = "trilinear") -> int:
-    """Bytes of the GL textures that hold `lattice` (`app.lattice_gl`): irradiance is
+    """Bytes of the GL textures that hold `lattice` (`app.render.lattice_gl`): irradiance is
     RGB9_E5 (4 B/texel) plus the R8 valid mask (1 B), plus R32F texel isovalues (4 B)
     for the closest-isovalue lookup; SH is ⌈n²/4⌉ RGBA16F textures (8 B/texel) per
     colour group plus the valid mask."""
-    from baking.sh import transfer_blocks
-
-    from .lattice_gl import sh_layout
+    from isolume.app.render.lattice_gl import sh_layout
+    from isolume.baking.sh import transfer_blocks
 
     texels = int(np.prod(lattice.geometry.shape))
     if lattice.kind == "irradiance":
@@ -466,7 +465,7 @@ def lattice_coverage(lattice, mesh) -> dict:
     "surface_uncovered" is the fraction with w < 0.25, where the shader shows mostly its
     local fallback (``lattice_blend`` in ``lattice.glsl``), "surface_partly_covered" the
     fraction with some uncomputed neighbour (w < 1)."""
-    from baking.lattice import trilinear
+    from isolume.baking.lattice import trilinear
 
     if mesh.empty:
         return {"surface_uncovered": None, "surface_partly_covered": None}
@@ -482,10 +481,9 @@ class GLScene:
 
     def __init__(self, volume, iso: float, camera, size: tuple[int, int], backend: str,
                  lighting: LocalLighting, albedo: float, env_spec: str) -> None:
-        import volumes
-
-        from .glcontext import create_headless
-        from .render import SurfaceRenderer
+        from isolume import volumes
+        from isolume.app.render.glcontext import create_headless
+        from isolume.app.render.renderer import SurfaceRenderer
 
         self.volume, self.camera, self.size = volume, camera, size
         self.lighting, self.albedo, self.env_spec = lighting, albedo, env_spec
@@ -507,7 +505,7 @@ class GLScene:
 
     def settings(self, shading: str):
         """`RenderSettings` of `shading`: the run's size and albedo, the local lighting."""
-        from .render import RenderSettings
+        from isolume.app.render.renderer import RenderSettings
 
         light = self.lighting
         return RenderSettings(size=self.size, shading=shading, albedo=(self.albedo,) * 3,
@@ -518,7 +516,7 @@ class GLScene:
     def use(self, shading: str, lattice=None) -> None:
         """Upload what `shading` reads: the lattice (with texel isovalues for the
         closest-isovalue lookup) and, for SH, the environment's coefficients."""
-        from .render import SHADING_MODES
+        from isolume.app.render.renderer import SHADING_MODES
 
         mode = SHADING_MODES[shading]
         closest = mode.lookup == "closest" and lattice is not None
@@ -528,13 +526,13 @@ class GLScene:
                                       else None)
             self._lattice = key
         if shading == "sh":
-            from baking.sh import transfer_blocks
+            from isolume.baking.sh import transfer_blocks
 
             self.renderer.set_environment(self._env_coeffs(int(lattice.meta["sh_order"]),
                                                            transfer_blocks(lattice.meta)))
 
     def _texel_isovalues(self, lattice) -> np.ndarray:
-        from baking.plan import texel_values
+        from isolume.baking.plan import texel_values
 
         shape = lattice.geometry.shape
         if shape not in self._texel_iso:
@@ -543,8 +541,8 @@ class GLScene:
 
     def _env_coeffs(self, order: int, blocks: int = 1) -> np.ndarray:
         """`baking.sh.display_coefficients` of the chart's environment (cached)."""
-        from baking import sh
-        from baking.environment import parse_env
+        from isolume.baking import sh
+        from isolume.baking.environment import parse_env
 
         if (order, blocks) not in self._env:
             self._env[order, blocks] = sh.display_coefficients(parse_env(self.env_spec),
@@ -583,7 +581,7 @@ class Reference:
     its state kept in ``path`` (resumed when the settings match)."""
 
     def __init__(self, run: Run, path: Path) -> None:
-        from baking.reference import PixelStats, ReferenceTracer, load_state
+        from isolume.baking.reference import PixelStats, ReferenceTracer, load_state
 
         config = dataclasses.replace(run.config, seed=run.config.seed + 1)
         self.path, self.seconds = path, 0.0
@@ -607,7 +605,7 @@ class Reference:
 
     def extend(self, spp: int) -> None:
         """Bring every surface pixel to `spp` samples (and save the state)."""
-        from baking.reference import save_state
+        from isolume.baking.reference import save_state
 
         if spp <= self.spp:
             return
@@ -640,7 +638,7 @@ def equal_time_path_tracing(run: Run, targets: list[tuple[str, float]]) -> list[
         One dict per target: matches (label), target_seconds, spp, seconds, image (key
         into ``run.images``).
     """
-    from baking.reference import PixelStats, ReferenceTracer
+    from isolume.baking.reference import PixelStats, ReferenceTracer
 
     config = dataclasses.replace(run.config, seed=run.config.seed + 2)
     with ReferenceTracer(run.volume, run.iso, run.origins, run.dirs, config,
@@ -773,7 +771,7 @@ def chart_resolution(run: Run) -> Chart:
 
 def chart_lookup_normals(run: Run) -> Chart:
     """Chart 3: error per lattice lookup (Fig. 6) and per texel-normal scheme (Fig. 5)."""
-    from .render import SHADING_MODES
+    from isolume.app.render.renderer import SHADING_MODES
 
     base = run.lattice(samples=run.plan.chart_samples)
     lookups = []
@@ -815,7 +813,7 @@ def _chart4_rows(run: Run):
     """(row name, shading mode name, mode, baked lattice or None) of chart 4: every shading
     mode, and the irradiance lattice with the direct light in it as well, when the
     lighting has a sun or lights to shade per pixel."""
-    from .render import SHADING_MODES
+    from isolume.app.render.renderer import SHADING_MODES
 
     for name, mode in SHADING_MODES.items():
         baked = _mode_lattice(run, mode)
@@ -851,12 +849,12 @@ def chart_shading_modes(run: Run) -> Chart:
                                    "ended by ctx.finish() (no read-back), after 3 untimed "
                                    "frames; shadow maps are drawn once per mesh and light "
                                    "and reused (a static light), as the renderer does",
-                     "memory": "bytes of the GL textures the mode reads (app.lattice_gl)"})
+                     "memory": "bytes of the GL textures the mode reads (app.render.lattice_gl)"})
 
 
 def chart_levels(run: Run) -> Chart:
-    """Chart 5: error against bake time per level policy (`app.chart_levels`)."""
-    from .chart_levels import chart_levels as levels
+    """Chart 5: error against bake time per level policy (`app.charts.levels`)."""
+    from isolume.app.charts.levels import chart_levels as levels
 
     return levels(run)
 
@@ -1132,7 +1130,7 @@ PLOTTERS = {"chart1_bake_time": plot_bake_time, "chart2_resolution": plot_resolu
 
 
 def _levels_plot():
-    from .chart_levels import plot_levels
+    from isolume.app.charts.levels import plot_levels
 
     return plot_levels
 
@@ -1167,16 +1165,15 @@ def _cache_folder(args: argparse.Namespace, out: Path) -> Path:
 
 
 def _make_run(args, volume, iso: float, plan: Plan, out: Path) -> Run:
-    from baking.config import BakeConfig
-
-    from .camera import parse_view
-    from .render import default_camera
+    from isolume.app.render.camera import parse_view
+    from isolume.app.render.renderer import default_camera
+    from isolume.baking.config import BakeConfig
 
     try:
         camera = default_camera(volume, parse_view(args.view))
     except ValueError as exc:
         raise CLIError(str(exc)) from None
-    size = _size(args.size)
+    size = parse_size(args.size)
     origins, dirs = camera.primary_rays(*size)
     config = BakeConfig(mode="irradiance", samples=plan.chart_samples, bounces=args.bounces,
                         albedo=(args.albedo,) * 3, env=args.env, seed=args.seed)
@@ -1194,7 +1191,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     plan = _plan(args)
     volume, notes = _prepare_volume(args)
-    iso = _isovalue(volume, args.iso)
+    iso = isovalue(volume, args.iso)
     began, load = time.perf_counter(), os.getloadavg()[0]
     chart_run = _make_run(args, volume, iso, plan, out)
     try:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import volumes
+from isolume import volumes
 
 SLAB_VOXELS = 1 << 19
 """Voxels per marching-cubes call (a GIL hold of ~25 ms on one core)."""

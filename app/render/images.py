@@ -7,8 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
+from isolume.volumes.errors import IsolumeError
 
-class OutputError(ValueError):
+
+class OutputError(IsolumeError):
     """An output path that cannot be written."""
 
 

@@ -1,0 +1,1 @@
+"""``isolume bench``: benchmarks that print figures (never timed assertions)."""

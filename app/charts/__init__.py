@@ -1,0 +1,1 @@
+"""``isolume chart``: speed against accuracy, charted."""

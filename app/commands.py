@@ -1,0 +1,135 @@
+"""The ``info``, ``render`` and ``bake`` commands (the others live in their own modules:
+`app.cli.COMMAND_MODULES`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from isolume import volumes
+from isolume.app.options import (
+    CLIError,
+    bake_config,
+    environment_coefficients,
+    floats,
+    isovalue,
+    load_lattice,
+    load_volume,
+    parse_albedo,
+    parse_size,
+    view_light,
+)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    """Print dimensions, spacing, value range, histogram and suggested isovalues."""
+    vol = load_volume(args)
+    z, y, x = vol.data.shape
+    lo, hi = vol.value_range
+    print(f"volume     {vol.source or vol.name}")
+    print(f"dims       {x} x {y} x {z} (X x Y x Z), {vol.data.size:,} voxels")
+    print(f"spacing    {', '.join(f'{s:g}' for s in vol.spacing)}")
+    print(f"origin     {', '.join(f'{s:g}' for s in vol.origin)}")
+    if vol.placement:
+        print(f"placement  {vol.placement}")
+    print(f"range      {lo:g} .. {hi:g}")
+    print("histogram (log counts)")
+    for line in volumes.histogram_lines(vol):
+        print("  " + line)
+    suggested = volumes.suggest_isovalues(vol)
+    if suggested:
+        print(f"suggested isovalues: {', '.join(f'{s:.6g}' for s in suggested)}")
+    else:
+        print("suggested isovalues: none (constant volume)")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """Render the isosurface off-screen to PNG (sRGB) or EXR (linear radiance)."""
+    from isolume.app.render.camera import parse_view
+    from isolume.app.render.images import check_output_path, write_image
+    from isolume.app.render.offscreen import render_volume
+    from isolume.app.render.renderer import LATTICE_MODES, RenderSettings
+
+    out = check_output_path(args.out)
+    vol = load_volume(args)
+    lattice = load_lattice(args.lattice, vol)
+    shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
+    if lattice is not None and lattice.kind == "irradiance" and (args.env or args.light):
+        raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
+                       f"lighting ({lattice.meta['config'].get('env') or 'no environment'}); "
+                       "bake again for other light, or leave out --lattice")
+    traced = view_light(args, vol) if lattice is None and shading == "irradiance" else None
+    if args.albedo is not None:
+        albedo = parse_albedo(args.albedo)
+    elif lattice is not None:
+        albedo = tuple(lattice.meta["config"]["albedo"])
+    else:
+        albedo = (0.8, 0.8, 0.8)
+    try:
+        view = parse_view(args.view)
+        settings = RenderSettings(
+            size=parse_size(args.size), shading=shading, exposure=args.exposure,
+            auto_exposure=not args.no_auto_exposure, tonemap=args.tonemap, albedo=albedo,
+            env_rotation=floats(args.env_rotation, 2, "--env-rotation"),
+        )
+    except ValueError as exc:
+        raise CLIError(str(exc)) from None
+    env_coeffs = None
+    if shading == "sh" and lattice is not None:
+        env_coeffs = environment_coefficients(args.env, lattice, args.sh_window)
+    if shading in LATTICE_MODES and lattice is None and traced is None:
+        raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume "
+                       "bake); without one, irradiance is traced for the view")
+    iso = isovalue(vol, args.iso)
+    if lattice is not None:
+        from isolume.baking.plan import outside_served_range
+
+        refused = outside_served_range(lattice.meta, iso, args.lattice)
+        if refused:
+            raise CLIError(refused)
+    frame, mesh = render_volume(
+        vol, iso, settings, view=view, backend=args.gl,
+        normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,
+        env_coeffs=env_coeffs, view_light=traced, workers=args.workers, progress=True,
+    )
+    if mesh.empty:
+        print(f"isolume: warning: {mesh.message}", file=sys.stderr)
+    write_image(out, frame.linear, frame.srgb)
+    lighting = f", lighting {traced.env}" if traced is not None else ""
+    print(f"wrote {out} ({settings.size[0]}x{settings.size[1]}, {vol.name} at iso {iso:.6g}, "
+          f"{len(mesh.faces):,} triangles, shading {settings.shading}{lighting}, exposure "
+          f"{frame.exposure:.3g})")
+    return 0
+
+
+def cmd_bake(args: argparse.Namespace) -> int:
+    """Bake an illumination lattice (resumes when --out holds a compatible one)."""
+    from isolume.app.render.images import check_output_path
+    from isolume.baking import bake
+    from isolume.baking.lattice import Lattice
+
+    out = check_output_path(args.out, (".npz",))
+    config = bake_config(args)
+    vol = load_volume(args)
+    try:
+        lattice = bake(vol, config, out=out, workers=args.workers, progress=True,
+                       scheduler=args.scheduler)
+    except KeyboardInterrupt:
+        if out.exists():
+            done = Lattice.load(out)
+            print(f"isolume: interrupted; {int((done.samples > 0).sum()):,} finished texels "
+                  f"saved in {out}; run the same command again to resume", file=sys.stderr)
+        return 130
+    plan, stats = lattice.meta["plan"], lattice.meta["stats"]
+    total = plan["total_texels"]
+    print(f"wrote {out}: {plan['active_texels']:,} of {total:,} texels active "
+          f"({plan['active_texels'] / total:.1%}), {len(plan['levels'])} levels, "
+          f"{stats['rays_traced']:,} rays in {stats['bake_seconds']:.1f} s "
+          f"({stats['rays_traced'] / max(stats['bake_seconds'], 1e-9) / 1e6:.2f} Mrays/s)")
+    if args.scheduler:
+        moved = lattice.meta["cluster"]
+        print(f"cluster: {moved['tasks']:,} tasks, {moved['bytes_sent'] / 1e6:.1f} MB sent and "
+              f"{moved['bytes_returned'] / 1e6:.1f} MB returned (+ {moved['job_bytes'] / 1e6:.1f} "
+              f"MB to each worker once), {moved['scene_builds']} level scenes built")
+    return 0

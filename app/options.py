@@ -1,0 +1,240 @@
+"""The command line's options and their parsing, shared by every command module.
+
+Each parser turns one option's text into a checked value or raises `CLIError`, whose
+message names the option, the value and what was expected.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from isolume import volumes
+from isolume.volumes.errors import IsolumeError
+
+EXIT_USER_ERROR = 2
+"""Exit status of a command that ends on bad input."""
+
+
+class CLIError(IsolumeError):
+    """A bad command-line value; the message says what was expected."""
+
+
+def floats(text: str, count: int, what: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise CLIError(f"{what} {text!r}: expected {count} comma-separated numbers") from None
+    if len(values) != count or not np.isfinite(values).all():
+        raise CLIError(f"{what} {text!r}: expected {count} comma-separated finite numbers")
+    return values
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    try:
+        w, h = (int(p) for p in parts)
+    except ValueError:
+        raise CLIError(f"--size {text!r}: expected WxH, e.g. 512x512") from None
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise CLIError(f"--size {text!r}: width and height must be between 1 and 16384")
+    return w, h
+
+
+def load_volume(args: argparse.Namespace) -> volumes.Volume:
+    options = {}
+    if getattr(args, "dims", None):
+        options["dims"] = tuple(int(v) for v in floats(args.dims, 3, "--dims"))
+    if getattr(args, "dtype", None):
+        options["dtype"] = args.dtype
+    if getattr(args, "spacing", None):
+        options["spacing"] = floats(args.spacing, 3, "--spacing")
+    volume = volumes.load(args.volume, **options)
+    if getattr(args, "up", None):
+        volume = volumes.turn_up(volume, args.up)
+    return volume
+
+
+def isovalue(volume: volumes.Volume, iso: float | None) -> float:
+    """The requested isovalue, or the first suggested one."""
+    if iso is None:
+        suggested = volumes.suggest_isovalues(volume)
+        if not suggested:
+            raise CLIError(
+                f"{volume.source or volume.name}: no isovalue given and none can be suggested "
+                f"(value range {volume.value_range}); pass --iso"
+            )
+        return suggested[0]
+    return volumes.check_isovalue(volume, iso)
+
+
+def load_lattice(path: str | None, volume: volumes.Volume):
+    """The lattice at `path` checked against `volume`, or None."""
+    if path is None:
+        return None
+    from isolume.baking.lattice import Lattice
+
+    return Lattice.load(path, volume)
+
+
+def environment_coefficients(spec: str | None, lattice, window: str):
+    """(n², 3) SH coefficients of the display environment for an SH lattice."""
+    from isolume.baking import sh
+    from isolume.baking.environment import parse_env
+
+    spec = spec or lattice.meta["config"].get("env") or "constant:1,1,1"
+    order = int(lattice.meta["sh_order"])
+    try:  # a split transfer (sun per pixel) also takes the sky without its sun
+        return sh.display_coefficients(parse_env(spec), order, sh.transfer_blocks(lattice.meta),
+                                       window=None if window == "none" else window)
+    except ValueError as exc:
+        raise CLIError(f"--env {spec}: {exc}") from None
+
+
+def add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
+    p.add_argument(
+        "volume", nargs="?" if optional else None, default=None,
+        help="volume file or synthetic:NAME[:SIZE]"
+        + (f" (default {volumes.DEFAULT})" if optional else ""),
+    )
+    p.add_argument("--dims", help="X,Y,Z for raw files whose name does not say")
+    p.add_argument("--dtype", help="sample type for raw files, e.g. uint8, int16, float32")
+    p.add_argument("--spacing", help="voxel size X,Y,Z (overrides the file)")
+    p.add_argument("--up", metavar="AXIS", default=None,
+                   help="the volume's axis that points up: x, y, z, -x, -y or -z (after the "
+                   "orientation its header gives; e.g. -z for raw slices that run top "
+                   "to bottom; default z)")
+
+
+def add_render_options(p: argparse.ArgumentParser) -> None:
+    from isolume.app.render.renderer import SHADING_MODES, TONEMAPS
+    from isolume.baking.config import DEFAULT_ENV
+
+    p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
+    p.add_argument("--shading", default=None,
+                   help=f"one of {', '.join(SHADING_MODES)} (default: the lattice's kind "
+                   "with --lattice, else irradiance: global illumination traced for this "
+                   "view)")
+    p.add_argument("--lattice", help="illumination lattice from `isolume bake`")
+    p.add_argument("--env", default=None,
+                   help="the lighting: constant:R,G,B | sky[:k=v,...] | "
+                   "FILE.exr/.hdr[@angular] (default: the lattice's with --lattice, else "
+                   f"{DEFAULT_ENV})")
+    p.add_argument("--light", action="append", metavar="SPEC",
+                   help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable; without --lattice)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="paths per texel of the global illumination traced for this view "
+                   "(without --lattice; default 64)")
+    p.add_argument("--bounces", type=int, default=2,
+                   help="diffuse bounces of that illumination (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="tracing threads (default: all cores)")
+    p.add_argument("--env-rotation", default="0,0", help="AZ,EL degrees (--shading sh)")
+    p.add_argument("--sh-window", default="none", choices=["none", "hanning", "lanczos"],
+                   help="window against ringing of the environment's SH projection")
+    p.add_argument("--size", default="512x512", help="WxH pixels")
+    p.add_argument("--view", default="30,30", help="AZ,EL[,DIST]: degrees, diagonals")
+    p.add_argument("--exposure", type=float, default=1.0,
+                   help="linear exposure multiplier on the automatic exposure (which brings "
+                   "the log-average of the surface's luminance to middle grey)")
+    p.add_argument("--no-auto-exposure", action="store_true",
+                   help="no automatic exposure: --exposure is the whole linear scale")
+    p.add_argument("--tonemap", default="aces", choices=list(TONEMAPS))
+    p.add_argument("--albedo", default=None,
+                   help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
+    p.add_argument("--normals", default="smooth", choices=["smooth", "gradient"])
+    p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
+    p.add_argument("--gl", default="auto", choices=["auto", "egl", "osmesa"])
+
+
+def parse_albedo(text: str) -> tuple[float, float, float]:
+    """``A`` or ``R,G,B`` in [0, 1] → RGB tuple."""
+    parts = text.split(",")
+    values = floats(text, len(parts), "--albedo") if len(parts) in (1, 3) else None
+    if values is None:
+        raise CLIError(f"--albedo {text!r}: expected A or R,G,B")
+    if len(values) == 1:
+        values = values * 3
+    if min(values) < 0 or max(values) > 1:
+        raise CLIError(f"--albedo {text!r}: reflectance must lie in [0, 1]")
+    return values
+
+
+def view_light(args: argparse.Namespace, volume: volumes.Volume):
+    """The `BakeConfig` of the global illumination ``render`` traces for its view (the
+    lighting ``reference`` path-traces with the same arguments)."""
+    from isolume.app.render.view_gi import DEFAULT_PATHS
+    from isolume.baking.config import DEFAULT_ENV, BakeConfig
+
+    samples = DEFAULT_PATHS if args.samples is None else args.samples
+    if not 1 <= samples <= 4096:
+        raise CLIError(f"--samples {samples}: expected 1 to 4096 paths per texel")
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers {args.workers}: expected at least 1")
+    env = DEFAULT_ENV if args.env is None else args.env
+    return BakeConfig(
+        mode="irradiance", samples=samples, bounces=args.bounces,
+        albedo=parse_albedo(args.albedo or "0.8"), env="" if env == "none" else env,
+        lights=tuple(args.light or ()), seed=args.seed, normals=args.normals,
+        flip_normals=args.flip_normals,
+    )
+
+
+def bake_config(args: argparse.Namespace):
+    from isolume.baking.config import BakeConfig
+
+    return BakeConfig(
+        mode=args.mode, sh_order=args.sh_order, samples=args.samples, bounces=args.bounces,
+        albedo=parse_albedo(args.albedo), scale=args.scale,
+        iso_range=tuple(args.iso_range) if args.iso_range else None,
+        env="" if args.env == "none" else args.env, lights=tuple(args.light or ()), seed=args.seed,
+        flip_normals=args.flip_normals, target_error=args.target_error,
+        max_samples=max(args.max_samples, args.samples), max_levels=args.max_levels,
+        max_move=args.max_move, direct_light=args.direct_light,
+    )
+
+
+def add_bake_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``isolume bake`` after the volume's."""
+    from isolume.baking.config import DEFAULT_ENV
+
+    p.add_argument("--out", required=True, help="lattice file FILE.npz (resumed if present)")
+    p.add_argument("--mode", default="irradiance", choices=["irradiance", "sh"])
+    p.add_argument("--sh-order", type=int, default=5, help="SH bands (n² coefficients)")
+    p.add_argument("--samples", type=int, default=100,
+                   help="paths per texel (the minimum, with --target-error)")
+    p.add_argument("--target-error", type=float, default=None, metavar="E",
+                   help="sample each texel until its relative standard error is below E")
+    p.add_argument("--max-samples", type=int, default=4096,
+                   help="cap on paths per texel with --target-error")
+    p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (0 = direct)")
+    p.add_argument("--albedo", default="0.8", help="A or R,G,B")
+    p.add_argument("--scale", type=float, default=1.0, help="texels per voxel per axis")
+    p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"))
+    p.add_argument("--env", default=DEFAULT_ENV,
+                   help="constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular] | none "
+                   f"(default {DEFAULT_ENV})")
+    p.add_argument("--light", action="append", metavar="SPEC",
+                   help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-levels", type=int, default=64, metavar="K",
+                   help="cap on isovalue levels (fewer: faster, texels move farther onto "
+                   "their levels)")
+    p.add_argument("--max-move", type=float, default=None, metavar="VOXELS",
+                   help="level spacing: texels move at most this far onto their levels "
+                   "(default: from the samples, 0.5 voxel at 256 paths, and the level count "
+                   "capped by the scenes' cost)")
+    p.add_argument("--direct-light", choices=["pixels", "lattice"], default=None,
+                   help="where the direct light of --light lights and the sky's sun goes: "
+                   "pixels (shaded exactly per pixel by render/view, the lattice keeps their "
+                   "bounces; the default when there is one; --mode sh: the sun, which turns "
+                   "with the sky, and two transfer vectors, asked for explicitly) or lattice "
+                   "(all in the lattice)")
+    p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="trace on a Dask cluster: its scheduler (tcp://host:8786), or local:N "
+                   "for N worker processes here; the same lattice (pip install "
+                   "'isolume[cluster]')")
+    p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
