@@ -2,15 +2,15 @@
 
 The machine that runs ``isolume bake --scheduler ADDRESS`` (the *master*) plans the bake,
 holds the lattice and the pass sums, and commits texels and saves checkpoints as a local
-bake does (`baking.bake.Baker`, which `ClusterBaker` extends). The tracing runs on the
-cluster's workers as tasks of (level, group of whole texels):
+bake does (`baking.bake.Baker`, whose `TracingBackend` here is `ClusterBackend`). The
+tracing runs on the cluster's workers as tasks of (level, group of whole texels):
 
 * What every task needs — the volume, the bake settings, the parsed lighting and the
   tracing constants — is one `_Job`, scattered to every worker once (``broadcast``); a
   task carries only its texels' lattice ids, level phases and weights, samples done and
   still to do (41 bytes per texel) and returns their pass sums ((C + 2) · 8 bytes per
   texel). A worker lays out its texels' paths and start points itself
-  (`bake.lay_out_level`), so no path array crosses the network.
+  (`passes.lay_out_level`), so no path array crosses the network.
 * A level scene is built once per worker that traces the level (a per-process cache,
   `_WorkerBake`): each level's tasks prefer one worker (round robin over the workers, a
   loose restriction: Dask's work stealing still moves them to idle workers, which then
@@ -35,6 +35,7 @@ import threading
 import time
 import uuid
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -42,22 +43,19 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels
-from isolume.baking.bake import (
-    REPORT_S,
-    Baker,
-    PassSums,
-    Tracing,
-    _chunk_bounds,
-    _commit,
-    _finish_meta,
-    _level_scene,
-    lay_out_level,
-    trace_chunk,
-)
+from isolume.baking.backend import REPORT_S, BakeJob, PassReport, PassWork
 from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import Lighting, PathSettings, WholePaths
-from isolume.baking.lattice import Lattice, LatticeGeometry
+from isolume.baking.lattice import LatticeGeometry
+from isolume.baking.passes import (
+    PassSums,
+    Tracing,
+    chunk_bounds,
+    lay_out_level,
+    level_scene,
+    trace_chunk,
+)
 
 PATHS_PER_TASK = 65536
 """Expected paths per task: ~0.1–0.3 s of tracing, against ~2 ms of Dask overhead."""
@@ -139,7 +137,7 @@ class _Job:
         token: names this bake in the workers' caches and in task keys.
         fingerprint: the master's `fingerprint()`.
         levels: (K,) isovalues of the plan's levels.
-        seed_key, weights, whole: as `bake.Tracing`.
+        seed_key, weights, whole: as `passes.Tracing`.
     """
 
     token: str
@@ -207,8 +205,8 @@ class _WorkerBake:
                     self._scenes.move_to_end(level)
                     return self._scenes[level], 0.0
             t0 = time.perf_counter()
-            scene = _level_scene(self.job.volume, float(self.job.levels[level]),
-                                 self.job.config)
+            scene = level_scene(self.job.volume, float(self.job.levels[level]),
+                                self.job.config)
             seconds = time.perf_counter() - t0
             with self._lock:
                 self._scenes[level] = scene
@@ -257,7 +255,7 @@ def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
     if len(pos):
         tracing = Tracing(ids, job.lighting, job.settings, job.seed_key, job.weights, acc,
                           job.whole)
-        for lo, hi in _chunk_bounds(pos, 1):  # the local bake's chunk sizes (cache-sized)
+        for lo, hi in chunk_bounds(pos, 1):  # the local bake's chunk sizes (cache-sized)
             n, r, t = trace_chunk(scene, tracing, pos[lo:hi], samples[lo:hi], start)
             paths, rays, seconds = paths + n, rays + r, seconds + t
     return _Partial(acc.sum, acc.second, acc.n, paths, rays, seconds, scene_seconds)
@@ -366,100 +364,122 @@ class _Level:
         return len(self.results) == len(self.texels)
 
 
-class ClusterBaker(Baker):
-    """A `Baker` whose paths are traced by tasks on a Dask cluster; the lattice, the
-    commits and the checkpoints stay on this machine.
+class ClusterBackend:
+    """A `TracingBackend` whose paths are traced by tasks on a Dask cluster; the lattice,
+    the commits and the checkpoints stay with the `Baker` on this machine.
 
     Args:
         scheduler: `connect`'s address (``tcp://HOST:PORT`` or ``local:N``).
-        lattice: an existing lattice to extend (resume), or None.
-        client: an existing ``distributed.Client`` instead of `scheduler` (tests).
+        client: an existing ``distributed.Client`` instead of `scheduler` (tests,
+            benchmarks); it stays open on `close`.
+
+    Raises:
+        BakeError: from `connect`.
     """
 
-    def __init__(self, volume: volumes.Volume, config: BakeConfig, scheduler: str = "", *,
-                 lattice: Lattice | None = None, client=None) -> None:
-        self._cluster, self._own_client, self._job = None, client is None, None
+    def __init__(self, scheduler: str = "", *, client=None) -> None:
+        self._cluster, self._own_client = None, client is None
         if client is None:
             client, self._cluster = connect(scheduler)
         self.client = client
-        try:  # the plan (on this machine)
-            super().__init__(volume, config, lattice=lattice, workers=1, ahead=0)
-        except BaseException:
-            self._close_client()
-            raise
+        self._scheduler = scheduler
         self.traffic = ClusterTraffic()
+        self.job: BakeJob | None = None
+        self.token = ""
+        self._scattered = None  # the future of the `_Job` scattered to the workers
+        self._helper = ThreadPoolExecutor(max_workers=1)  # loads compiled code beside the plan
+        self._warm = None
         self._worker_list: list[str] = []
         self._workers_asked = -np.inf
         self._threads = 1
         self._passes = 0
-        t = self._tracing
-        job = _Job(uuid.uuid4().hex, fingerprint(), replace(volume, _cache={}), config,
-                   self.geometry, np.asarray(self.plan.levels, np.float64), t.lighting,
-                   t.settings, t.seed_key, t.weights, t.whole)
-        self.token = job.token
+
+    def begin(self, volume: volumes.Volume, config: BakeConfig,
+              kept: np.ndarray | None) -> None:
+        """Load the compiled code (for the commits) while the plan is made; the workers
+        build the level scenes."""
+        self._warm = self._helper.submit(kernels.warm_up)
+
+    def levels_known(self, levels: np.ndarray) -> None:
+        """Nothing: the workers build the level scenes."""
+
+    def start(self, job: BakeJob) -> None:
+        """Scatter what every task of `job` needs to every worker (once a worker has
+        joined).
+
+        Raises:
+            BakeError: no worker joined within `CONNECT_TIMEOUT_S`.
+        """
+        if self._warm is not None:
+            self._warm.result()
+        self._drop_job()
+        t = job.tracing
+        shared = _Job(uuid.uuid4().hex, fingerprint(), replace(job.volume, _cache={}),
+                      job.config, job.geometry, np.asarray(job.plan.levels, np.float64),
+                      t.lighting, t.settings, t.seed_key, t.weights, t.whole)
+        self.token = shared.token
         try:
-            client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+            self.client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
         except TimeoutError:
-            self.close()
-            raise BakeError(f"--scheduler {scheduler or client.scheduler.address}: no worker "
-                            f"joined within {CONNECT_TIMEOUT_S:.0f} s (start some with "
+            address = self._scheduler or self.client.scheduler.address
+            raise BakeError(f"--scheduler {address}: no worker joined within "
+                            f"{CONNECT_TIMEOUT_S:.0f} s (start some with "
                             "`dask worker ADDRESS`)") from None
-        self._job = client.scatter(job, broadcast=True, hash=False)
-        self.traffic.job_bytes = _nbytes(job)
+        self._scattered = self.client.scatter(shared, broadcast=True, hash=False)
+        self.traffic.job_bytes = _nbytes(shared)
+        self.job = job
 
-    def close(self) -> None:
-        """Drop the bake's state on the workers, then the client (and a local cluster)."""
-        if self._job is not None:
-            try:
-                self.client.cancel([self._job])
-                self.client.run(forget, self.token)
-            except Exception:  # a cluster already gone has nothing to drop
-                pass
-        self._close_client()
-        super().close()
-
-    def _close_client(self) -> None:
-        if self._own_client:
-            self.client.close()
-            if self._cluster is not None:
-                self._cluster.close()
-
-    def run(self, positions: np.ndarray | None = None, target: int | np.ndarray | None = None,
-            *, bar=None, after_level=None) -> None:
-        """`Baker.run` on the cluster: every level's tasks may be in flight at once; their
-        pass sums are added and complete texels committed level by level, in order."""
+    def trace_pass(self, work: PassWork, report: PassReport) -> None:
+        """Trace `work` on the cluster (`TracingBackend.trace_pass`): every level's tasks
+        may be in flight at once; their pass sums are added and the levels reported done
+        in order."""
         from distributed import as_completed
 
-        pending = self.pending(positions, target)
-        if pending is None:
-            return
-        busy, done, remaining, first, last, by_lower = pending
         self._passes += 1  # task keys must not repeat an earlier pass's (Dask reuses results)
         levels: dict[int, _Level] = {}
         owner: dict = {}  # future -> (level, task index)
         stream = as_completed()
-        next_submit, next_apply = first, first
+        next_submit, next_apply = work.first, work.first
         try:
-            while next_apply <= last:
-                while next_submit <= last and self._room(levels):
-                    levels[next_submit] = self._submit_level_tasks(
-                        next_submit, by_lower, first, done, remaining, owner, stream)
+            while next_apply <= work.last:
+                while next_submit <= work.last and self._room(levels):
+                    levels[next_submit] = self._submit_level_tasks(next_submit, work, owner,
+                                                                   stream)
                     next_submit += 1
                 if levels[next_apply].finished:
-                    self._apply(levels.pop(next_apply), after_level,
-                                by_lower[next_apply - first - 1] if next_apply > first
-                                else busy[:0])
+                    self._apply(levels.pop(next_apply), next_apply, report)
                     next_apply += 1
                     continue
                 future = next(stream)
-                self._receive(future, owner, levels, bar, next_apply)
+                self._receive(future, owner, levels, report, next_apply)
         except BaseException:
             self.client.cancel(list(owner))
-            self._acc.clear(busy)
             raise
-        finally:
-            _finish_meta(self.lattice, self.plan, self.stats, self.previous)
-            self.lattice.meta["cluster"] = self.traffic.as_dict()
+
+    def record(self, meta: dict) -> None:
+        """What moved: ``meta["cluster"]`` (`ClusterTraffic`)."""
+        meta["cluster"] = self.traffic.as_dict()
+
+    def close(self) -> None:
+        """Drop the bake's state on the workers, then the client (and a local cluster)."""
+        self._drop_job()
+        if self._own_client:
+            self.client.close()
+            if self._cluster is not None:
+                self._cluster.close()
+        self._helper.shutdown(wait=True, cancel_futures=True)
+
+    def _drop_job(self) -> None:
+        """Forget the scattered job on the workers (a cluster already gone has nothing to
+        drop)."""
+        if self._scattered is None:
+            return
+        try:
+            self.client.cancel([self._scattered])
+            self.client.run(forget, self.token)
+        except Exception:
+            pass
+        self._scattered = None
 
     def _workers(self) -> list[str]:
         """Sorted addresses of the cluster's workers (asked of the scheduler at most
@@ -483,28 +503,27 @@ class ClusterBaker(Baker):
         return ((len(unfinished) < 2 * workers or tasks < 2 * self._threads)
                 and len(levels) < 8 * workers)
 
-    def _submit_level_tasks(self, level: int, by_lower: list, first: int, done: np.ndarray,
-                            remaining: np.ndarray, owner: dict, stream) -> _Level:
+    def _submit_level_tasks(self, level: int, work: PassWork, owner: dict,
+                            stream) -> _Level:
         """Queue the tasks of `level`: the lower-level samples of the texels whose lower
         level it is, the upper-level samples of those whose lower level is below it."""
-        plan = self.plan
-        here = by_lower[level - first]
-        below = by_lower[level - first - 1] if level > first else here[:0]
-        texels = np.concatenate([here, below])
+        plan = self.job.plan
+        here = work.lower_on(level)
+        texels = np.concatenate([here, work.upper_on(level)])
         order = np.argsort(texels, kind="stable")
         texels = texels[order]
         upper = (np.arange(len(order)) >= len(here))[order]
         w = plan.weight[texels]
-        expected = remaining[texels] * np.where(upper, w, 1.0 - w)
+        expected = work.remaining[texels] * np.where(upper, w, 1.0 - w)
         workers = self._workers()
         prefer = [workers[level % len(workers)]] if workers else None
         slices = []
         for index, (lo, hi) in enumerate(task_groups(texels, expected, PATHS_PER_TASK)):
             part = texels[lo:hi]
             args = (plan.ids[part].astype(np.int64), plan.phase[part], plan.weight[part],
-                    done[part], remaining[part], upper[lo:hi])
+                    work.done[part], work.remaining[part], upper[lo:hi])
             future = self.client.submit(
-                trace_task, self._job, level, *args,
+                trace_task, self._scattered, level, *args,
                 key=f"isolume-{self.token}-{self._passes}-{level}-{index}",
                 workers=prefer, allow_other_workers=True, priority=-level, pure=False)
             owner[future] = (level, index)
@@ -514,7 +533,7 @@ class ClusterBaker(Baker):
             self.traffic.bytes_sent += sum(a.nbytes for a in args)
         return _Level(slices, {})
 
-    def _receive(self, future, owner: dict, levels: dict[int, _Level], bar,
+    def _receive(self, future, owner: dict, levels: dict[int, _Level], report: PassReport,
                  next_apply: int) -> None:
         """Take one finished task's result (once per task, whatever Dask re-ran)."""
         level, index = owner.pop(future)
@@ -529,35 +548,27 @@ class ClusterBaker(Baker):
         if index in results:
             return
         results[index] = part
-        self.stats.add_rays(part.rays, part.trace_seconds)
-        self.stats.paths += part.paths
-        self.stats.scene_seconds += part.scene_seconds
+        stats = self.job.stats
+        stats.add_rays(part.rays, part.trace_seconds)
+        stats.paths += part.paths
+        stats.scene_seconds += part.scene_seconds
         self.traffic.bytes_returned += part.sum.nbytes + part.second.nbytes + part.n.nbytes
         self.traffic.scene_builds += part.scene_seconds > 0
         self.traffic.scene_seconds += part.scene_seconds
-        if bar is not None:
-            bar.update(part.paths)
-            elapsed = time.perf_counter() - self.stats.started
-            bar.set_postfix_str(
-                f"texels {self.texels_done:,}/{len(self.plan.ids):,} "
-                f"level {next_apply + 1}/{len(self.plan.levels)} "
-                f"{len(self._workers())} workers "
-                f"{self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} Mrays/s", refresh=False)
+        if report.bar is not None:
+            report.traced(part.paths)
+            report.show(next_apply, f"{len(self._workers())} workers ")
 
-    def _apply(self, level: _Level, after_level, complete: np.ndarray) -> None:
+    def _apply(self, finished: _Level, level: int, report: PassReport) -> None:
         """Add a finished level's pass sums (the order a local bake adds them in), then
-        commit the texels whose upper level it was."""
-        acc = self._acc
-        for index, part in sorted(level.results.items()):
-            texels = level.texels[index]
+        report the level done (the Baker commits the texels it completes)."""
+        acc = self.job.tracing.acc
+        for index, part in sorted(finished.results.items()):
+            texels = finished.texels[index]
             acc.sum[texels] += part.sum
             acc.second[texels] += part.second
             acc.n[texels] += part.n
-        complete = complete[acc.n[complete] > 0]
-        if len(complete):
-            self.texels_done += _commit(self.lattice, self.plan, acc, complete)
-            if after_level is not None:
-                after_level(complete)
+        report.level_done(level)
 
 
 def _nbytes(obj) -> int:

@@ -53,25 +53,13 @@ import numpy as np
 
 from isolume.baking import kernels
 from isolume.baking.lights import Light
+from isolume.baking.rays import RayStats
 from isolume.baking.sampling import power_heuristic
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.trace import Scene
 
 DIMS_PER_VERTEX = kernels.DIMS_PER_VERTEX
-
-
-class RayStats:
-    """Counts rays and seconds spent tracing them: inside Embree, or inside a compiled
-    loop that calls Embree per ray (thread-safe enough: += on ints)."""
-
-    def __init__(self) -> None:
-        self.rays = 0
-        self.seconds = 0.0
-
-    def add(self, rays: int, seconds: float) -> None:
-        self.rays += rays
-        self.seconds += seconds
 
 
 @dataclass(frozen=True)

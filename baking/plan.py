@@ -503,7 +503,7 @@ def starts_outside(volume: volumes.Volume, config: BakeConfig, landed: np.ndarra
                    levels: np.ndarray) -> np.ndarray:
     """(N,) bool: does the start point of paths from (N, 3) points `landed` on the surfaces
     ρ = `levels` (N,) — moved `config.offset` voxels along the normal, as
-    `baking.bake.start_points` moves it — lie on the side of the level the normal points
+    `baking.passes.start_points` moves it — lie on the side of the level the normal points
     to (lower values; higher with `flip_normals`)?
 
     Not where the level is the thin shell around a ridge or a valley whose extreme barely

@@ -30,18 +30,12 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels, rng
-from isolume.baking.bake import (
-    PassSums,
-    PathStarts,
-    Tracing,
-    make_lighting,
-    path_settings,
-    trace_chunk,
-)
+from isolume.baking.bake import make_lighting, path_settings
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import whole_paths
 from isolume.baking.lattice import Lattice
 from isolume.baking.lazy import corner_offsets
+from isolume.baking.passes import PassSums, PathStarts, Tracing, trace_chunk
 from isolume.baking.plan import project_to_level
 
 PASSES = ((4, True), (64, False), (256, False))
@@ -251,7 +245,7 @@ def preview_tracing(volume: volumes.Volume, config: BakeConfig) -> Tracing:
 
 def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths) -> np.ndarray:
     """(K, C) sums of `paths` path estimates per texel `flat` (K,), traced on `workers`
-    threads as the bake traces its chunks (`bake.trace_chunk`: one compiled call per chunk
+    threads as the bake traces its chunks (`passes.trace_chunk`: one compiled call per chunk
     where the lighting allows)."""
     sums = PassSums(len(flat), tracing.settings.channels)
     tracing = dataclasses.replace(tracing, ids=flat, acc=sums)

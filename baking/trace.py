@@ -25,7 +25,7 @@ import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-from isolume.baking.integrator import RayStats
+from isolume.baking.rays import RayStats
 
 _MISS = -1
 

@@ -187,12 +187,14 @@ def test_whole_path_loop_equals_the_vertex_by_vertex_tracer(monkeypatch, env, al
     """Chunks traced in one compiled call (Embree called per ray from compiled code) give
     the lattice of the tracer that calls embreex once per step, to the bit, and trace as
     many rays."""
+    from isolume.baking import passes
+
     baking_bake = importlib.import_module("isolume.baking.bake")  # `baking.bake` is the function
     config = BakeConfig(samples=12, bounces=2, env=env, albedo=albedo, direct_light=direct)
     vol = make("engine", 40)
     used = []
-    loop = baking_bake.trace_whole_paths
-    monkeypatch.setattr(baking_bake, "trace_whole_paths",
+    loop = passes.trace_whole_paths
+    monkeypatch.setattr(passes, "trace_whole_paths",
                         lambda *args: used.append(1) or loop(*args))
     whole = bake(vol, config, workers=2)
     assert used, "the whole-path loop should cover this bake"
@@ -222,15 +224,13 @@ def test_resume_equals_uninterrupted(tmp_path):
 
 
 def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypatch):
-    import sys
-
-    bake_module = sys.modules["isolume.baking.bake"]
+    from isolume.baking.backend import ThreadBackend
 
     config = BakeConfig(samples=20, bounces=1, env="constant:1,1,1", max_move=0.5)
     vol = make("shells", 32)
     whole = bake(vol, config, workers=2)
     assert len(whole.meta["plan"]["levels"]) > 6
-    original = bake_module.Baker._submit_level
+    original = ThreadBackend._submit_level
     calls = {"n": 0}
 
     def interrupting(self, *args, **kwargs):
@@ -239,7 +239,7 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
             raise KeyboardInterrupt
         return original(self, *args, **kwargs)
 
-    monkeypatch.setattr(bake_module.Baker, "_submit_level", interrupting)
+    monkeypatch.setattr(ThreadBackend, "_submit_level", interrupting)
     path = tmp_path / "cut.npz"
     with pytest.raises(KeyboardInterrupt):
         bake(vol, config, out=path, workers=2)
@@ -248,7 +248,7 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
     assert 0 < finished.sum() < (whole.samples > 0).sum()
     assert (cut.samples[finished] == 20).all()  # only whole texels were kept
     np.testing.assert_allclose(cut.values[finished], whole.values[finished], rtol=1e-6)
-    monkeypatch.setattr(bake_module.Baker, "_submit_level", original)
+    monkeypatch.setattr(ThreadBackend, "_submit_level", original)
     done = bake(vol, config, out=path, workers=2)
     np.testing.assert_allclose(done.values, whole.values, rtol=2e-6, atol=1e-6)
 
@@ -260,8 +260,9 @@ def test_level_approximation_error_shrinks_with_more_levels():
     The noise of (lattice - exact) is sqrt(2) standard errors per texel (independent
     estimates of equal variance); the finest scheme must come within 3x that.
     """
-    from isolume.baking.bake import make_lighting, path_settings, start_points
+    from isolume.baking.bake import make_lighting, path_settings
     from isolume.baking.integrator import trace_paths
+    from isolume.baking.passes import start_points
     from isolume.baking.plan import make_plan
     from isolume.baking.rng import path_keys
     from isolume.baking.trace import Scene

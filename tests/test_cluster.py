@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from isolume.baking import BakeConfig, BakeError, Lattice, bake
+from isolume.baking.bake import Baker
 from isolume.volumes.synthetic import make
 
 distributed = pytest.importorskip("distributed")
@@ -75,7 +76,7 @@ def test_a_worker_killed_mid_bake_costs_only_its_tasks(cluster, monkeypatch):
     vol = make("engine", 32)
     local = bake(vol, config, workers=2)
     with distributed.Client(cluster) as client:
-        baker = cluster_module.ClusterBaker(vol, config, client=client)
+        baker = Baker(vol, config, backend=cluster_module.ClusterBackend(client=client))
         bar = _KillingBar(client)
         try:
             baker.run(bar=bar)
@@ -83,7 +84,7 @@ def test_a_worker_killed_mid_bake_costs_only_its_tasks(cluster, monkeypatch):
             baker.close()
     assert bar.killed is not None and bar.in_flight > 0
     _same_bits(local, baker.lattice)
-    assert baker.traffic.tasks > 20
+    assert baker.backend.traffic.tasks > 20
 
 
 def test_interrupted_cluster_bake_keeps_whole_texels_and_resumes(cluster, tmp_path,
@@ -93,7 +94,7 @@ def test_interrupted_cluster_bake_keeps_whole_texels_and_resumes(cluster, tmp_pa
     monkeypatch.setattr(cluster_module, "PATHS_PER_TASK", 4096)
     config = BakeConfig(samples=12, bounces=1, env="constant:1,1,1")
     vol = make("engine", 32)  # 8 levels
-    apply = cluster_module.ClusterBaker._apply
+    apply = cluster_module.ClusterBackend._apply
     calls = {"n": 0}
 
     def interrupting(self, *args):
@@ -102,11 +103,11 @@ def test_interrupted_cluster_bake_keeps_whole_texels_and_resumes(cluster, tmp_pa
         if calls["n"] == 3:  # Ctrl-C with later levels in flight
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(cluster_module.ClusterBaker, "_apply", interrupting)
+    monkeypatch.setattr(cluster_module.ClusterBackend, "_apply", interrupting)
     cut = tmp_path / "cut.npz"
     with pytest.raises(KeyboardInterrupt):
         bake(vol, config, out=cut, scheduler=cluster.scheduler_address)
-    monkeypatch.setattr(cluster_module.ClusterBaker, "_apply", apply)
+    monkeypatch.setattr(cluster_module.ClusterBackend, "_apply", apply)
     saved = Lattice.load(cut, vol)
     finished = saved.samples > 0
     assert 0 < finished.sum() < saved.active.sum()
@@ -175,7 +176,7 @@ def test_concurrent_tasks_build_a_level_scene_once(monkeypatch):
         threading.Event().wait(0.2)
         return object()
 
-    monkeypatch.setattr(cluster_module, "_level_scene", slow_scene)
+    monkeypatch.setattr(cluster_module, "level_scene", slow_scene)
     monkeypatch.setattr(cluster_module.kernels, "warm_up", lambda: None)
     job = cluster_module._Job("t", cluster_module.fingerprint(), make("sphere", 8),
                               BakeConfig(), None, np.array([0.3, 0.5]), None, None,
@@ -197,8 +198,8 @@ def test_a_cluster_without_workers_is_one_line(monkeypatch):
                                   silence_logs=logging.CRITICAL) as empty, \
             distributed.Client(empty) as client:
         with pytest.raises(BakeError, match="no worker joined within 1 s"):
-            cluster_module.ClusterBaker(make("sphere", 12), BakeConfig(samples=2),
-                                        client=client)
+            Baker(make("sphere", 12), BakeConfig(samples=2),
+                  backend=cluster_module.ClusterBackend(client=client))
 
 
 def test_fingerprint_is_the_loaded_code_and_the_same_in_every_process():

@@ -198,7 +198,7 @@ def test_levels_start_where_the_plan_landed_their_texels():
     """The plan's reach test projects every texel onto the levels it uses; laying out a
     level reuses those points (`Plan.landing`) and gets the start points a fresh
     projection gives, to the bit."""
-    from isolume.baking.bake import lay_out_level, start_points
+    from isolume.baking.passes import lay_out_level, start_points
 
     vol = make("shells", 32)
     plan, config = _plan(vol, samples=8, bounces=0, iso_range=(0.2, 0.7), max_move=0.5)

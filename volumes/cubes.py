@@ -25,7 +25,7 @@ import numba
 import numpy as np
 
 from isolume.volumes.core import Volume
-from isolume.volumes.field import _on_threads
+from isolume.volumes.field import on_threads
 
 _EDGES = np.array([(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit])
 """(12, 2) corner pairs of the cell's edges, lower corner first (corner c = x + 2y + 4z)."""
@@ -149,7 +149,7 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
     cells_per_layer = max(data.shape[1] - 1, 0) * max(data.shape[2] - 1, 0)
     totals = np.zeros(layers, np.int64)
 
-    _on_threads(lambda lo, hi: _count(data, float(iso), count, lo, hi, totals), layers,
+    on_threads(lambda lo, hi: _count(data, float(iso), count, lo, hi, totals), layers,
                 cells_per_layer)
     firsts = np.concatenate([[0], np.cumsum(totals)])
     vertices = np.empty((3 * int(firsts[-1]), 3), np.float32)
@@ -160,6 +160,6 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
         _fill(data, float(iso), count, table, _EDGES, origin, spacing, lo, hi, vertices,
               int(firsts[lo]))
 
-    _on_threads(fill_layers, layers, cells_per_layer)
+    on_threads(fill_layers, layers, cells_per_layer)
     faces = np.arange(len(vertices), dtype=np.int32).reshape(-1, 3)
     return vertices, faces

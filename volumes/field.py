@@ -237,7 +237,7 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
 
     One compiled pass per point (value and gradient read together, no temporaries, no
     GIL): the bake does this for every texel on each of its levels, large batches on
-    threads (`_on_threads`)."""
+    threads (`on_threads`)."""
     points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
     levels = np.ascontiguousarray(np.broadcast_to(levels, (len(points),)), np.float64)
     out = np.empty_like(points)
@@ -248,7 +248,7 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
         _newton(*fixed, points[lo:hi], levels[lo:hi], float(max_move), int(iterations),
                 out[lo:hi])
 
-    _on_threads(steps, len(points), 1)
+    on_threads(steps, len(points), 1)
     return out
 
 
@@ -269,7 +269,7 @@ def values_on_grid(volume: Volume, x: np.ndarray, y: np.ndarray, z: np.ndarray
                    ) -> np.ndarray:
     """(len(z), len(y), len(x)) float32 trilinear field values at the points of the world
     grid spanned by the coordinates `x`, `y`, `z` (each 1-D, world units): bit for bit
-    `value_at` at those points, one compiled pass (z-slabs on threads: `_on_threads`)."""
+    `value_at` at those points, one compiled pass (z-slabs on threads: `on_threads`)."""
     axes = [(np.asarray(c, np.float64) - o) / h
             for c, o, h in zip((x, y, z), volume.origin, volume.spacing, strict=True)]
     out = np.empty((len(axes[2]), len(axes[1]), len(axes[0])), np.float32)
@@ -277,11 +277,11 @@ def values_on_grid(volume: Volume, x: np.ndarray, y: np.ndarray, z: np.ndarray
     def slab(lo: int, hi: int) -> None:
         _grid_trilinear(volume.data[..., None], axes[2][lo:hi], axes[1], axes[0], out[lo:hi])
 
-    _on_threads(slab, len(axes[2]), out[0].size if len(out) else 1)
+    on_threads(slab, len(axes[2]), out[0].size if len(out) else 1)
     return out
 
 
-def _on_threads(work, count: int, cost_per_item: int) -> None:
+def on_threads(work, count: int, cost_per_item: int) -> None:
     """`work(lo, hi)` over [0, count) in one contiguous share per core (at least
     `MIN_SHARE` points of `cost_per_item` each), on threads when there is more than one:
     the compiled kernels release the GIL, and each item's result is its own, so every
@@ -296,7 +296,7 @@ def _on_threads(work, count: int, cost_per_item: int) -> None:
 
 
 MIN_SHARE = 1 << 14
-"""Fewest points a thread of `_on_threads` takes (smaller batches run in the caller)."""
+"""Fewest points a thread of `on_threads` takes (smaller batches run in the caller)."""
 
 
 @numba.njit(nogil=True, cache=True)
@@ -335,7 +335,7 @@ def values_along_normals(volume: Volume, points_xyz: np.ndarray, distance: float
         _along_normals(*fixed, points[lo:hi], float(distance), 1.0 if flip else -1.0,
                        out[lo:hi])
 
-    _on_threads(part, len(points), 1)
+    on_threads(part, len(points), 1)
     return out
 
 

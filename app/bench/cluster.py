@@ -1,14 +1,14 @@
 """Cluster bake figures and the scaling model: ``python -m app.bench.cluster [VOLUME]``.
 
 Bakes the same lattice four ways in one run — 1 and 2 threads (`bake.Baker`), 1 and 2
-worker processes of a local Dask cluster (`cluster.ClusterBaker`; the cluster started and
-its workers warmed by a tiny bake beforehand, as a running one would be) — checks that
-the four lattices are the same bits, and prints wall and CPU seconds (this process and
-the workers: steadier than wall times on a shared machine) and the model's inputs: the
-level count K, the seconds per level scene S (as a worker builds it: marching cubes and
-BVH), the seconds per path c (one thread), the master's serial seconds M (the plan), a
-worker's set-up U and the job's size J — S, c and M in CPU seconds (what an unloaded core
-would take). The model for W single-threaded workers
+worker processes of a local Dask cluster (a `bake.Baker` with a `cluster.ClusterBackend`;
+the cluster started and its workers warmed by a tiny bake beforehand, as a running one
+would be) — checks that the four lattices are the same bits, and prints wall and CPU
+seconds (this process and the workers: steadier than wall times on a shared machine) and
+the model's inputs: the level count K, the seconds per level scene S (as a worker builds
+it: marching cubes and BVH), the seconds per path c (one thread), the master's serial
+seconds M (the plan), a worker's set-up U and the job's size J — S, c and M in CPU
+seconds (what an unloaded core would take). The model for W single-threaded workers
 (`predict`):
 
     T(W) = M + U + S · max(K / W, 1) + P · c / W + J · W / bandwidth
@@ -29,9 +29,10 @@ from dataclasses import replace
 import numpy as np
 
 from isolume import volumes
-from isolume.baking.bake import Baker, _level_scene
-from isolume.baking.cluster import ClusterBaker, local_cluster
+from isolume.baking.bake import Baker
+from isolume.baking.cluster import ClusterBackend, local_cluster
 from isolume.baking.config import BakeConfig
+from isolume.baking.passes import level_scene
 
 WORKER_COUNTS = (1, 4, 16, 64)
 
@@ -68,12 +69,12 @@ def _time_local(volume, config: BakeConfig, threads: int) -> tuple[float, float,
     return time.perf_counter() - t0, cpu_seconds() - c0, baker
 
 
-def _time_cluster(volume, config: BakeConfig, client) -> tuple[float, float, ClusterBaker]:
+def _time_cluster(volume, config: BakeConfig, client) -> tuple[float, float, Baker]:
     """(wall seconds, CPU seconds of this process and the workers, baker); the master's
     share of the CPU seconds is kept as ``baker.master_cpu``."""
     before = sum(client.run(cpu_seconds).values())
     t0, c0 = time.perf_counter(), cpu_seconds()
-    baker = ClusterBaker(volume, config, client=client)
+    baker = Baker(volume, config, backend=ClusterBackend(client=client))
     baker.run()
     baker.close()
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0
@@ -131,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{'':>22}CPU on this machine (plan, client) {baker.master_cpu:.1f} s, "
                   f"on the workers {cpu - baker.master_cpu:.1f} s")
             lattices.append(baker.lattice)
-            moved = baker.traffic
+            moved = baker.backend.traffic
     same = all(np.array_equal(a.values, lattices[0].values) and
                np.array_equal(a.samples, lattices[0].samples) for a in lattices[1:])
     print(f"lattices identical to the bit: {same}")
@@ -157,7 +158,7 @@ def _scene_cpu_seconds(volume, config: BakeConfig, levels: np.ndarray, count: in
     picked = levels[np.linspace(0, len(levels) - 1, min(count, len(levels))).astype(int)]
     c0 = cpu_seconds()
     for iso in picked:
-        _level_scene(volume, float(iso), config)
+        level_scene(volume, float(iso), config)
     return (cpu_seconds() - c0) / len(picked)
 
 
@@ -167,7 +168,7 @@ def _setup_seconds(volume) -> float:
     import subprocess
     import sys
 
-    code = "import time; t = time.perf_counter(); from baking import kernels; " \
+    code = "import time; t = time.perf_counter(); from isolume.baking import kernels; " \
            "kernels.warm_up(); print(time.perf_counter() - t)"
     warm = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                                 check=True).stdout)

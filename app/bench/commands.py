@@ -106,7 +106,8 @@ def _bare_rate(vol, config, workers: int) -> dict:
 
     baker = Baker(vol, config, workers=workers)
     bare = {"rays": 0, "seconds": 0.0}
-    original_scene, original_collect = baker._scene, baker._collect
+    backend = baker.backend
+    original_scene, original_collect = backend._scene, backend._collect
     recorder = RayRecorder()
 
     def recording_scene(level):
@@ -117,7 +118,7 @@ def _bare_rate(vol, config, workers: int) -> dict:
 
     def collect_then_replay(jobs, level, bar):
         original_collect(jobs, level, bar)
-        scene = baker._scenes.get(level)
+        scene = backend._scenes.get(level)
         batches = recorder.batches()
         if scene is not None and batches:
             rays, seconds = replay(scene, batches, pool)
@@ -125,7 +126,7 @@ def _bare_rate(vol, config, workers: int) -> dict:
             bare["seconds"] += seconds
         recorder.clear()
 
-    baker._scene, baker._collect = recording_scene, collect_then_replay
+    backend._scene, backend._collect = recording_scene, collect_then_replay
     with ThreadPoolExecutor(max_workers=workers) as pool:
         baker.run()
     baker.close()

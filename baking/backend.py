@@ -1,0 +1,377 @@
+"""Who traces a bake's paths: one small protocol, local threads by default.
+
+A `bake.Baker` plans the bake, holds the lattice and the pass sums, and commits texels; it
+hands the tracing of its passes to a `TracingBackend` — `ThreadBackend` (worker threads
+of this process) or `cluster.ClusterBackend` (tasks on a Dask cluster). A backend traces
+a pass level by level, adds each level's per-texel sums to the pass sums in level order
+and reports the level done (`PassReport.level_done`), upon which the Baker commits the
+texels the level completes. The pieces of a pass are `baking.passes`'s, so the lattice is
+the same bits whatever the backend and its number of workers.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from isolume import volumes
+from isolume.baking import kernels
+from isolume.baking.config import BakeConfig
+from isolume.baking.errors import BakeError
+from isolume.baking.lattice import LatticeGeometry
+from isolume.baking.passes import (
+    PathStarts,
+    Tracing,
+    chunk_bounds,
+    lay_out_level,
+    level_scene,
+    trace_chunk,
+)
+from isolume.baking.plan import Plan, resolved_iso_range
+
+if TYPE_CHECKING:  # embreex is imported only when a bake runs
+    from isolume.baking.trace import Scene
+
+AHEAD_LEVELS = 2
+"""Scenes of the lowest levels a `ThreadBackend` builds beside the plan: the helper thread
+is done with level 0's before the plan is, and a second scene built then is one fewer
+built beside the tracing (engine CT quick bake: 0.2 s of 2.1)."""
+REPORT_S = 0.5
+"""Seconds between progress-bar updates while a level is traced."""
+
+
+@dataclass
+class BakeStats:
+    """Counters reported in the lattice metadata and on the progress bar."""
+
+    rays: int = 0
+    trace_seconds: float = 0.0
+    scene_seconds: float = 0.0
+    mesh_seconds: float = 0.0
+    embree_seconds: float = 0.0
+    scenes: int = 0
+    paths: int = 0
+    started: float = field(default_factory=time.perf_counter)
+
+    def add_rays(self, rays: int, seconds: float) -> None:
+        self.rays += rays
+        self.trace_seconds += seconds
+
+
+@dataclass(frozen=True)
+class BakeJob:
+    """What every pass of one bake traces with, fixed once the plan is made (a new one
+    when the lights change: `Baker.relight`).
+
+    Attributes:
+        tracing: the chunks' constants and the pass sums (``tracing.acc``) they add to.
+        stats: the bake's counters (a backend adds its rays, paths and scene seconds).
+    """
+
+    volume: volumes.Volume
+    config: BakeConfig
+    geometry: LatticeGeometry
+    plan: Plan
+    tracing: Tracing
+    stats: BakeStats
+
+
+@dataclass(frozen=True)
+class PassWork:
+    """What one pass traces (`Baker.pending`).
+
+    Attributes:
+        busy: (B,) plan positions that need paths.
+        done, remaining: (T,) int64 paths done and still to trace per plan position (0
+            outside the pass).
+        first, last: the first and last level the pass traces (`last` = the highest lower
+            level + 1).
+        by_lower: for each level from `first` to `last`, the busy positions whose lower
+            level it is.
+    """
+
+    busy: np.ndarray
+    done: np.ndarray
+    remaining: np.ndarray
+    first: int
+    last: int
+    by_lower: list[np.ndarray]
+
+    def lower_on(self, level: int) -> np.ndarray:
+        """(N,) busy positions whose lower level is `level`."""
+        return self.by_lower[level - self.first]
+
+    def upper_on(self, level: int) -> np.ndarray:
+        """(N,) busy positions whose upper level is `level`: their pass ends with it."""
+        return self.by_lower[level - self.first - 1] if level > self.first else self.busy[:0]
+
+
+@dataclass(frozen=True)
+class PassReport:
+    """How a backend reports on a pass to the `Baker` that runs it.
+
+    Attributes:
+        level_done: ``level_done(level)`` commits the texels whose pass ends on `level`
+            and returns how many it committed; called once per level, first to last, when
+            the level's sums are all in the pass sums.
+        bar: the progress bar (tqdm's ``update`` and ``set_postfix_str``), or None.
+        status: ``status(level, note)``, the bar's text while `level` is traced (texels
+            done, level, ray rate), with a backend's `note` (e.g. its workers).
+    """
+
+    level_done: Callable[[int], int]
+    bar: object | None
+    status: Callable[[int, str], str]
+
+    def traced(self, paths: int) -> None:
+        """Move the bar by `paths` traced paths."""
+        if self.bar is not None:
+            self.bar.update(paths)
+
+    def show(self, level: int, note: str = "", refresh: bool = False) -> None:
+        """Put the status of `level` on the bar."""
+        if self.bar is not None:
+            self.bar.set_postfix_str(self.status(level, note), refresh=refresh)
+
+
+class TracingBackend(Protocol):
+    """What a `Baker` hands the tracing of its passes to."""
+
+    def begin(self, volume: volumes.Volume, config: BakeConfig,
+              kept: np.ndarray | None) -> None:
+        """The bake of `config` on `volume` is about to be planned (`kept`: (K,) the levels
+        of the lattice it resumes, or None): start what may run beside the plan."""
+
+    def levels_known(self, levels: np.ndarray) -> None:
+        """The plan's (K,) levels, known before the rest of the plan (`make_plan`'s
+        `on_levels`)."""
+
+    def start(self, job: BakeJob) -> None:
+        """Trace with `job` from the next pass on (once the plan is made; again with
+        other lights).
+
+        Raises:
+            BakeError: the backend cannot trace (e.g. a cluster without workers).
+        """
+
+    def trace_pass(self, work: PassWork, report: PassReport) -> None:
+        """Trace the pending paths of `work` level by level, from ``work.first`` to
+        ``work.last``: add each level's per-texel sums to ``job.tracing.acc`` (in the
+        order of a local bake), then call ``report.level_done(level)``, in level order.
+        On an exception, stop what still adds to the pass sums before it propagates (the
+        Baker drops the cut pass)."""
+
+    def record(self, meta: dict) -> None:
+        """Add the backend's own counters to the lattice metadata `meta`."""
+
+    def close(self) -> None:
+        """Stop tracing and let go of threads, processes and connections."""
+
+
+def _first_level(volume: volumes.Volume, config: BakeConfig,
+                kept: np.ndarray | None) -> float | None:
+    """The lowest level the plan will choose, known before it: a resumed bake's first kept
+    level, else the bottom of the iso range (`choose_levels` starts there whenever a
+    texel's value lies at or below it, as at every surface that crosses it); None when the
+    range cannot be resolved (the plan then says why)."""
+    if kept is not None:
+        return float(kept[0])
+    try:
+        return float(resolved_iso_range(volume, config)[0])
+    except BakeError:
+        return None
+
+
+@dataclass(frozen=True)
+class _LevelWork:
+    """The pending paths of one level: texel positions (P,) sorted, sample indices (P,),
+    the start points of their texels, and the level's scene (None when P = 0)."""
+
+    level: int
+    pos: np.ndarray
+    samples: np.ndarray
+    start: PathStarts
+    scene: Scene | None
+
+
+class ThreadBackend:
+    """Traces on worker threads of this process: a level's paths in chunks of whole
+    texels on a thread pool, while a helper thread lays out the next level and builds its
+    scene. Level scenes are cached (least recently used first out), which pays off when
+    successive passes touch the same few levels (the lazy viewer's).
+
+    Args:
+        workers: threads tracing concurrently (default: CPU count); the result does not
+            depend on it.
+        scene_cache: how many level scenes to keep alive (at least 2: the one traced and
+            the next, built meanwhile).
+        ahead: scenes of the lowest levels to build beside the plan.
+    """
+
+    def __init__(self, workers: int | None = None, scene_cache: int = 1,
+                 ahead: int = AHEAD_LEVELS) -> None:
+        self.workers = max(1, workers or os.cpu_count() or 1)
+        self.job: BakeJob | None = None
+        self._pool = ThreadPoolExecutor(max_workers=self.workers)
+        self._helper = ThreadPoolExecutor(max_workers=1)  # next level's layout and scene
+        self._scenes: OrderedDict[int, Scene] = OrderedDict()
+        self._scene_cache = max(2, scene_cache)
+        self._scene_lock = threading.Lock()
+        self._pending: dict[int, Future] = {}  # scenes being built ahead
+        self._ahead = ahead
+        self._first_guess: float | None = None
+        self._warm: Future | None = None
+        self._volume: volumes.Volume | None = None
+        self._config: BakeConfig | None = None
+
+    def begin(self, volume: volumes.Volume, config: BakeConfig,
+              kept: np.ndarray | None) -> None:
+        """Load the compiled code and build the scene of the plan's likely first level
+        (`_first_level`) on the helper thread while the plan is made."""
+        self._volume, self._config = volume, config
+        self._warm = self._helper.submit(kernels.warm_up)
+        self._first_guess = _first_level(volume, config, kept) if self._ahead > 0 else None
+        if self._first_guess is not None:
+            self._pending[0] = self._helper.submit(level_scene, volume, self._first_guess,
+                                                   config)
+
+    def levels_known(self, levels: np.ndarray) -> None:
+        """Build the scenes of the lowest `ahead` levels (where a whole bake starts) on the
+        helper thread while the plan goes on; level 0's is the one started by `begin`
+        when the guess was right."""
+        for level in range(min(self._ahead, len(levels))):
+            if level > 0 or self._first_guess != float(levels[0]):
+                self._pending[level] = self._helper.submit(
+                    level_scene, self._volume, float(levels[level]), self._config)
+
+    def start(self, job: BakeJob) -> None:
+        """Trace with `job` (once the compiled code is loaded)."""
+        if self._warm is not None:
+            self._warm.result()
+        self.job = job
+
+    def trace_pass(self, work: PassWork, report: PassReport) -> None:
+        """Trace `work` level by level (`TracingBackend.trace_pass`).
+
+        Pipelined: the helper thread lays out the paths and start points of the next level
+        and builds its scene while the workers trace this one (the chunks, the level
+        surfaces and the BVH build run without the GIL). The calling thread only waits
+        for what the pipeline did not hide.
+        """
+        chunks: list = []
+        try:
+            lay = self._waited(self._prepare_level, work, work.first)
+            for level in range(work.first, work.last + 1):
+                upcoming = None
+                if level < work.last:
+                    upcoming = self._helper.submit(self._prepare_level, work, level + 1)
+                chunks = self._submit_level(lay)
+                self._collect(chunks, level, report)
+                chunks = []
+                if upcoming is not None:
+                    lay = self._waited(upcoming.result)
+                if report.level_done(level):  # the texels just done (the last level's too)
+                    report.show(level, refresh=True)
+        except BaseException:
+            _cancel(chunks)
+            raise
+
+    def record(self, meta: dict) -> None:
+        """Nothing beyond the Baker's own counters."""
+
+    def close(self) -> None:
+        """Stop the worker threads and drop the cached scenes."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._helper.shutdown(wait=True, cancel_futures=True)
+        self._scenes.clear()
+        self._pending.clear()
+
+    def _scene(self, level: int) -> Scene:
+        """The Embree scene of `level`, from the cache, from the scenes built ahead, or
+        built now (least recently used scenes out: the cache holds at least the level
+        being traced and the next)."""
+        job = self.job
+        with self._scene_lock:
+            if level in self._scenes:
+                self._scenes.move_to_end(level)
+                return self._scenes[level]
+            ahead = self._pending.pop(level, None)
+        scene = ahead.result() if ahead is not None else level_scene(
+            job.volume, float(job.plan.levels[level]), job.config)
+        with self._scene_lock:
+            job.stats.mesh_seconds += scene.mesh_seconds
+            job.stats.embree_seconds += scene.build_seconds
+            job.stats.scenes += 1
+            while len(self._scenes) >= self._scene_cache:
+                self._scenes.popitem(last=False)
+            self._scenes[level] = scene
+        return scene
+
+    def _waited(self, function, *args):
+        """`function(*args)`, its wall time counted as waiting for level scenes."""
+        began = time.perf_counter()
+        try:
+            return function(*args)
+        finally:
+            self.job.stats.scene_seconds += time.perf_counter() - began
+
+    def _prepare_level(self, work: PassWork, level: int) -> _LevelWork:
+        """Lay out every pending path of isovalue level `level`, sorted by texel, with
+        the start points of its texels — the lower-level samples of the texels whose
+        lower level it is, and the upper-level samples of those whose lower level is the
+        one below — and get the level's scene if it has paths."""
+        job = self.job
+        plan = job.plan
+        pos, samples, start = lay_out_level(
+            job.volume, job.geometry, job.config, float(plan.levels[level]), plan.ids,
+            plan.phase, plan.weight, work.lower_on(level), work.upper_on(level), work.done,
+            work.remaining, plan.landing)
+        scene = self._scene(level) if len(pos) else None
+        return _LevelWork(level, pos, samples, start, scene)
+
+    def _submit_level(self, lay: _LevelWork) -> list[Future]:
+        """Queue the level's chunks of paths on its scene.
+
+        Workers add their per-texel sums straight into the pass sums: the chunks of one
+        level hold disjoint texels, and a texel is committed only after its last level
+        has been collected.
+        """
+        if len(lay.pos) == 0:
+            return []
+        return [self._pool.submit(trace_chunk, lay.scene, self.job.tracing, lay.pos[lo:hi],
+                                  lay.samples[lo:hi], lay.start)
+                for lo, hi in chunk_bounds(lay.pos, self.workers)]
+
+    def _collect(self, chunks: list[Future], level: int, report: PassReport) -> None:
+        """Wait for the chunks of `level`; count their paths and rays.
+
+        The progress bar moves every `REPORT_S` seconds and at the end: waking up for
+        every finished chunk would take the GIL from the workers a hundred times a level.
+        """
+        stats = self.job.stats
+        pending = set(chunks)
+        while pending:
+            finished, pending = wait(pending, timeout=REPORT_S)
+            for chunk in finished:
+                paths, rays, seconds = chunk.result()
+                stats.add_rays(rays, seconds)
+                stats.paths += paths
+                report.traced(paths)
+            report.show(level)
+
+
+def _cancel(chunks: list[Future]) -> None:
+    """Cancel queued chunks and wait for running ones (they add to the pass sums)."""
+    for chunk in chunks:
+        chunk.cancel()
+    for chunk in chunks:
+        if not chunk.cancelled():
+            chunk.exception()

@@ -1,0 +1,171 @@
+"""The module graph of isolume: every module imports, no import cycle, and no module takes
+another's private names.
+
+The graph is read from the sources (every import statement, also those inside functions
+and under ``TYPE_CHECKING``), so a cycle that only a late import closes counts too.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = {"app": "isolume.app", "baking": "isolume.baking", "volumes": "isolume.volumes",
+            "shaders": "isolume.shaders"}
+"""Top-level folders and the package each installs as (pyproject's ``package-dir``)."""
+
+
+def _modules() -> dict[str, Path]:
+    """{dotted module name: source file} of every module of isolume."""
+    modules = {}
+    for folder, package in PACKAGES.items():
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = path.relative_to(ROOT / folder).with_suffix("").parts
+            name = ".".join([package, *(p for p in parts if p != "__init__")])
+            modules[name] = path
+    return modules
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: Path) -> list[tuple[str, str | None, int]]:
+    """(imported module, imported name or None, line) of every isolume import in `path`;
+    ``from PACKAGE import MODULE`` counts as an import of the module."""
+    found = []
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(alias.name, None, node.lineno) for alias in node.names
+                      if alias.name.startswith("isolume")]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: resolved against the importing package
+                anchor = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                base = f"{anchor}.{base}" if base else anchor
+            if not base.startswith("isolume"):
+                continue
+            for alias in node.names:
+                full = f"{base}.{alias.name}"
+                if full in MODULES:
+                    found.append((full, None, node.lineno))
+                else:
+                    found.append((base, alias.name, node.lineno))
+    return found
+
+
+def _graph() -> dict[str, set[str]]:
+    """{module: the isolume modules it imports}."""
+    return {name: {target for target, _, _ in _imports(name, path)
+                   if target in MODULES and target != name}
+            for name, path in MODULES.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm,
+    iterative), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_the_source_tree_has_the_installed_modules():
+    assert {"isolume.baking.bake", "isolume.volumes.core", "isolume.app.cli"} <= set(MODULES)
+
+
+def test_the_cycle_finder_finds_cycles():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
+    assert _cycles(graph) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycles():
+    cycles = _cycles(_graph())
+    assert not cycles, "modules that import each other (directly or around a loop): " + \
+        "; ".join(" <-> ".join(cycle) for cycle in cycles)
+
+
+def test_no_module_imports_another_modules_private_names():
+    private = [f"{MODULES[name].relative_to(ROOT)}:{line} imports {target}.{imported}"
+               for name, path in MODULES.items()
+               for target, imported, line in _imports(name, path)
+               if imported is not None and imported.startswith("_") and target != name]
+    assert not private, "\n".join(private)
+
+
+def test_every_tracing_backend_offers_the_whole_protocol():
+    """The baker hands its passes to local threads or a Dask cluster through
+    `TracingBackend` alone: both implement each of its methods, with its parameters."""
+    import inspect
+
+    from isolume.baking.backend import ThreadBackend, TracingBackend
+    from isolume.baking.cluster import ClusterBackend
+
+    methods = [name for name, member in vars(TracingBackend).items()
+               if inspect.isfunction(member) and not name.startswith("_")]
+    assert "trace_pass" in methods and "close" in methods
+    for backend in (ThreadBackend, ClusterBackend):
+        for name in methods:
+            want = inspect.signature(getattr(TracingBackend, name)).parameters
+            got = inspect.signature(getattr(backend, name)).parameters
+            assert list(got) == list(want), f"{backend.__name__}.{name}"
+
+
+@pytest.mark.parametrize("package", sorted(PACKAGES.values()))
+def test_every_module_imports_in_a_fresh_interpreter(package):
+    """Each module of `package` imports on its own, in a fresh interpreter (an import
+    cycle that Python cannot resolve fails here)."""
+    names = sorted(name for name in MODULES if name.startswith(package))
+    code = ("import importlib, sys\n"
+            "bad = []\n"
+            f"for name in {names!r}:\n"
+            "    for loaded in [m for m in sys.modules if m.startswith('isolume')]:\n"
+            "        del sys.modules[loaded]\n"
+            "    try:\n"
+            "        importlib.import_module(name)\n"
+            "    except Exception as exc:\n"
+            "        bad.append(f'{name}: {type(exc).__name__}: {exc}')\n"
+            "print('\\n'.join(bad))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=ROOT.parent)
+    assert out.stdout.strip() == "", out.stdout
