@@ -1,4 +1,5 @@
-"""The picture-error measure of ``isolume bench lazy`` (`app.bench.view.PixelTruth`)."""
+"""The picture-error measure of ``isolume bench lazy`` (`app.bench.view.PixelTruth`) and the
+data folder of the view benchmarks (`app.bench.view.default_volume`)."""
 
 import numpy as np
 import pytest
@@ -35,3 +36,34 @@ def test_picture_error_is_zero_for_the_exact_lattice_and_sees_a_wrong_one():
     assert truth.error(lat) == pytest.approx(0.1, rel=1e-4)
     lat.samples[...] = 0  # nothing shown: the picture is black, 100 % off
     assert truth.error(lat) == pytest.approx(1.0)
+
+
+def test_the_data_folder_comes_from_the_option_the_variable_or_the_current_folder(
+        tmp_path, monkeypatch):
+    """--data, else $ISOLUME_DATA, else ../shared/data from the current folder; a named
+    folder without the engine scan is a one-line error, the unnamed default falls back to
+    the synthetic engine."""
+    from isolume.app.bench.view import DATA_ENV, DEFAULT_DATA, ENGINE, default_volume
+    from isolume.app.options import CLIError
+
+    data = tmp_path / "shared" / "data"
+    (data / ENGINE).parent.mkdir(parents=True)
+    (data / ENGINE).write_bytes(b"")
+    clone, elsewhere = tmp_path / "clone", tmp_path / "a" / "b"
+    clone.mkdir()
+    elsewhere.mkdir(parents=True)
+    monkeypatch.delenv(DATA_ENV, raising=False)
+    monkeypatch.chdir(elsewhere)
+    assert default_volume(None) == "synthetic:engine"
+    assert default_volume(str(data)) == str(data / ENGINE)
+    monkeypatch.setenv(DATA_ENV, str(data))
+    assert default_volume(None) == str(data / ENGINE)
+    with pytest.raises(CLIError, match=r"^--data .*: no volumes/engine") as info:
+        default_volume(str(clone))
+    assert "\n" not in str(info.value)
+    monkeypatch.setenv(DATA_ENV, str(clone))
+    with pytest.raises(CLIError, match=rf"^\${DATA_ENV} "):
+        default_volume(None)
+    monkeypatch.delenv(DATA_ENV)
+    monkeypatch.chdir(clone)
+    assert default_volume(None) == str(DEFAULT_DATA / ENGINE)

@@ -7,9 +7,9 @@ Two small end-to-end runs (OSMesa, as CI renders):
   reference has zero noise and every GI image is exact up to texture storage:
   RGB9_E5 keeps 9 mantissa bits of the largest channel (relative error ≤ 2⁻⁹ after
   rounding), RGBA16F 11 bits (SH coefficients, summed over the lobe: ≤ 2⁻⁹ too);
-* the 20³ nested shells under the default sun and sky (chart 1 only, 4 and 32 paths per
-  texel): occlusion and interreflection, so lattice noise is visible and falls with
-  samples; the reference rule must be met or its cap stated.
+* the 20³ nested shells under the charts' sun and sky (`charts.CHART_SCENE_ENV`; chart 1
+  only, 4 and 32 paths per texel): occlusion and interreflection, so lattice noise is
+  visible and falls with samples; the reference rule must be met or its cap stated.
 """
 
 import itertools
@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from PIL import Image as PILImage
 
-from isolume.app.charts import charts
+from isolume.app.charts import builders, charts, lighting, metrics, tracing
 from isolume.app.cli import main
 from isolume.app.render.renderer import SHADING_MODES
 from isolume.baking.reference import ReferenceImage
@@ -64,7 +64,7 @@ def _numbers(node):
 
 
 def _errors(record):
-    return [e["error"] for e in charts._image_entries(record)]
+    return [e["error"] for e in metrics.image_entries(record)]
 
 
 def test_writes_a_png_and_a_json_per_chart_with_finite_numbers(sphere):
@@ -88,7 +88,7 @@ def test_the_reference_rule_is_recorded_and_met(sphere):
     for record in records.values():
         ref = record["reference"]
         assert ref["noise"] == 0 and ref["holds"] is True and ref["capped"] is False
-        assert ref["noise"] <= charts.NOISE_RATIO * ref["smallest_error"]
+        assert ref["noise"] <= tracing.NOISE_RATIO * ref["smallest_error"]
         assert ref["smallest_error"] <= ref["smallest_error_in_this_chart"]
         assert ref["spp"] >= 64 and ref["surface_pixels"] > 300
 
@@ -135,7 +135,7 @@ def test_chart_numbers_are_consistent(sphere):
     lookups = {e["mode"] for e in records["chart3_lookup_normals"]["lookups"]}
     assert lookups == {n for n, m in SHADING_MODES.items() if m.lattice == "irradiance"}
     normals = records["chart3_lookup_normals"]["normals"]
-    assert [n["scheme"] for n in normals] == list(charts.NORMAL_SCHEMES)
+    assert [n["scheme"] for n in normals] == list(builders.NORMAL_SCHEMES)
     modes = records["chart4_shading_modes"]["modes"]
     assert [m["mode"] for m in modes] == list(SHADING_MODES)
     assert all(m["draws"] >= 10 and m["frame_ms_mean"] > 0 for m in modes)
@@ -159,7 +159,7 @@ def test_lattice_error_falls_with_samples_where_there_is_occlusion(tmp_path):
     assert pt[-1]["error"] < pt[0]["error"]
     ref = record["reference"]
     assert ref["noise"] > 0 and ref["smallest_error"] > 0
-    assert ref["holds"] == (ref["noise"] <= charts.NOISE_RATIO * ref["smallest_error"])
+    assert ref["holds"] == (ref["noise"] <= tracing.NOISE_RATIO * ref["smallest_error"])
     assert ref["holds"] or (ref["capped"] and ref["spp_needed"] > ref["spp"])
 
 
@@ -167,26 +167,26 @@ def test_lattice_error_falls_with_samples_where_there_is_occlusion(tmp_path):
 def test_relative_rmse_uses_pixels_both_mark_and_rgb_values():
     ref = ReferenceImage(np.array([[1.0, 1, 1], [2, 2, 2], [5, 5, 5]]), np.zeros((3, 3)),
                          np.array([True, True, False]))
-    image = charts.Image(np.array([[1.0, 1, 1], [2, 2, 5], [0, 0, 0]]),
+    image = metrics.Image(np.array([[1.0, 1, 1], [2, 2, 5], [0, 0, 0]]),
                          np.array([True, True, True]))
-    error, pixels = charts.relative_rmse(image, ref)
+    error, pixels = metrics.relative_rmse(image, ref)
     assert pixels == 2
     assert error == pytest.approx(math.sqrt(9 / 6) / 1.5)
-    assert charts.relative_rmse(charts.Image(image.linear, np.zeros(3, bool)), ref) == (None, 0)
+    assert metrics.relative_rmse(metrics.Image(image.linear, np.zeros(3, bool)), ref) == (None, 0)
 
 
 def test_reference_noise_is_rms_stderr_over_mean():
     ref = ReferenceImage(np.full((4, 3), 2.0), np.array([[0.1] * 3, [0.3] * 3, [9] * 3,
                                                          [0.0] * 3]),
                          np.array([True, True, False, True]))
-    assert charts.reference_noise(ref) == pytest.approx(math.sqrt((0.01 + 0.09) / 3) / 2)
+    assert metrics.reference_noise(ref) == pytest.approx(math.sqrt((0.01 + 0.09) / 3) / 2)
 
 
 def test_local_lighting_matches_the_environment():
     """Constant sky L: no key, πL ambient both ways, mean radiance L. Default sky with
     sun=3: the key is the sun (direction from sun_az/sun_el) and the ambient is the sky's
     gradient alone, E(±z) = 2π ∫ L(±t) t dt, by quadrature."""
-    flat = charts.local_lighting("constant:0.5,1,2")
+    flat = lighting.local_lighting("constant:0.5,1,2")
     assert flat.key == (0, 0, 0)
     np.testing.assert_allclose(flat.sky, np.pi * np.array([0.5, 1, 2]), rtol=1e-12)
     np.testing.assert_allclose(flat.ground, flat.sky, rtol=1e-12)
@@ -194,7 +194,7 @@ def test_local_lighting_matches_the_environment():
     from isolume.baking.environment import parse_env
 
     sky = parse_env("sky:sun=3")
-    lit = charts.local_lighting("sky:sun=3")
+    lit = lighting.local_lighting("sky:sun=3")
     np.testing.assert_allclose(lit.key, [3, 3, 3])
     np.testing.assert_allclose(lit.key_dir, sky.sun_direction, atol=1e-12)
     t, w = np.polynomial.legendre.leggauss(400)
@@ -240,7 +240,7 @@ def test_chart4_shows_both_direct_light_choices(tmp_path):
     assert status == 0
     record = json.loads((tmp_path / "chart4_shading_modes.json").read_text())
     rows = {m["mode"]: m for m in record["modes"]}
-    split, whole = rows["irradiance"], rows[charts.DIRECT_IN_LATTICE]
+    split, whole = rows["irradiance"], rows[builders.DIRECT_IN_LATTICE]
     assert split["lattice"]["config"]["direct_light"] == "pixels"
     assert whole["lattice"]["config"]["direct_light"] == "lattice"
     assert math.isfinite(split["error"]) and math.isfinite(whole["error"])

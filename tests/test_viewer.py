@@ -316,6 +316,48 @@ def test_keys_map_to_actions():
     assert key_action(glfw, glfw.KEY_Z, 0, modes) is None
 
 
+def test_actions_change_the_state_and_report_problems():
+    """Keys and the panel end in `Actions.apply`: it changes the viewer's state; a request
+    it cannot honour becomes the status message (no window needed)."""
+    from types import SimpleNamespace
+
+    from isolume.app.render.camera import Camera
+    from isolume.app.viewer.actions import ISO_STEPS, Actions
+    from isolume.app.viewer.draw import ViewState
+    from isolume.app.viewer.panel import Action
+    from isolume.app.viewer.state import ViewerState
+
+    requested = []
+    drawing = SimpleNamespace(modes=("lambert", "irradiance"), usable_modes=lambda: ("lambert",),
+                              renderer=SimpleNamespace(lattice=None),
+                              light_angles=lambda view, cam: (cam.azimuth, cam.elevation))
+    home = Camera(azimuth=10, elevation=20)
+    state = ViewerState(ViewState(1.0, "lambert", 1.0), home, home)
+    actions = Actions(SimpleNamespace(value_range=(0.0, 2.0)), state, drawing,
+                      SimpleNamespace(request=requested.append), illumination=None, saver=None)
+    actions.apply(Action("iso", 5.0))  # clamped inside the data range
+    assert state.view.iso == pytest.approx(2.0 - 2e-6) and requested == [state.view.iso]
+    actions.apply(Action("iso_step", -10))
+    assert state.view.iso == pytest.approx(2.0 - 2e-6 - 10 * 2.0 / ISO_STEPS)
+    actions.apply(Action("exposure_by", 1.25))
+    assert state.view.exposure == 1.25
+    actions.apply(Action("toggle_light"))
+    assert state.view.light == (10.0, 20.0)  # world-fixed where the camera light was
+    actions.apply(Action("toggle_light"))
+    assert state.view.light is None
+    state.dirty = False
+    actions.apply(Action("mode", "irradiance"))
+    assert state.view.shading == "lambert" and "needs a lattice" in state.message and state.dirty
+    actions.apply(Action("panel_rect", (10, 10, 200, 300)))
+    assert state.panel_rect == (10, 10, 200, 300) and state.panel_frames == 1
+    actions.move_camera("orbit", 30, 0)
+    assert state.camera.azimuth == 40 and state.interacting(time.perf_counter())
+    actions.apply(Action("reset_camera"))
+    assert state.camera == home
+    actions.apply(Action("quit"))
+    assert state.quit
+
+
 def test_interactive_quality_backs_off_then_recovers():
     from isolume.app.viewer.draw import INTERACTIVE_MS, RENDER_SCALES, Quality
 

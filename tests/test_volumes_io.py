@@ -1,4 +1,4 @@
-"""Tests for volumes/io.py: a round trip through every format, and every bad input.
+"""Tests for volumes/io: a round trip through every format, and every bad input.
 
 Every round trip writes an asymmetric (z, y, x) = (5, 7, 11) volume of distinct values
 with anisotropic spacing and a non-zero origin, so a swapped axis or a lost header field
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import isolume.volumes.io as vio
+import isolume.volumes.io.common as vio_common
 from isolume.volumes.core import VolumeError
 from isolume.volumes.io import load_file, parse_raw_name
 
@@ -238,7 +238,7 @@ def test_unreadable_file_reported(tmp_path, monkeypatch):
     def refuse(file, *args, **kwargs):
         raise PermissionError(13, "Permission denied", str(file))
 
-    monkeypatch.setattr(vio, "open", refuse, raising=False)
+    monkeypatch.setattr(vio_common, "open", refuse, raising=False)
     load_error(path, "permission denied")
 
 

@@ -27,20 +27,51 @@ from pathlib import Path
 
 import numpy as np
 
-ENGINE = Path(__file__).resolve().parents[2] / "shared" / "data" / "volumes" / \
-    "engine_zfp_256x256x128_uint8.raw.gz"
-"""The engine CT scan, when ../shared/data is present (else synthetic:engine)."""
+DATA_ENV = "ISOLUME_DATA"
+"""Environment variable naming the data folder (real volumes) when ``--data`` does not."""
+DEFAULT_DATA = Path("..") / "shared" / "data"
+"""The data folder when neither ``--data`` nor `DATA_ENV` names one, relative to the
+current directory (the ``shared/data`` beside a clone, run from the clone)."""
+ENGINE = Path("volumes") / "engine_zfp_256x256x128_uint8.raw.gz"
+"""The engine CT scan, inside the data folder."""
 
 
-def _default_volume() -> str:
-    return str(ENGINE) if ENGINE.exists() else "synthetic:engine"
+def data_folder(option: str | None) -> tuple[Path, str | None]:
+    """(folder, what named it): `option` (``--data``), else ``$ISOLUME_DATA``, else
+    `DEFAULT_DATA` (named by nothing: None)."""
+    if option:
+        return Path(option).expanduser(), "--data"
+    if os.environ.get(DATA_ENV):
+        return Path(os.environ[DATA_ENV]).expanduser(), f"${DATA_ENV}"
+    return DEFAULT_DATA, None
+
+
+def default_volume(data: str | None) -> str:
+    """The volume of a view benchmark given none: the engine CT scan (`ENGINE`) in the data
+    folder (`data_folder`), else synthetic:engine when the folder is the unnamed default.
+
+    Raises:
+        CLIError: the folder that ``--data`` or ``$ISOLUME_DATA`` names lacks the scan.
+    """
+    from isolume.app.options import CLIError
+
+    folder, named_by = data_folder(data)
+    engine = folder / ENGINE
+    if engine.is_file():
+        return str(engine)
+    if named_by is not None:
+        raise CLIError(f"{named_by} {folder}: no {ENGINE} in it (the engine CT scan, the "
+                       "default volume); name a folder that holds it, or give a VOLUME")
+    return "synthetic:engine"
 
 
 def _add_volume_and_iso(parser) -> None:
-    """The VOLUME argument and --iso option every view benchmark takes."""
+    """The VOLUME argument and the --data and --iso options every view benchmark takes."""
     parser.add_argument("volume", nargs="?", default=None,
-                        help="volume (default: the engine from ../shared/data, else "
-                        "synthetic:engine)")
+                        help=f"volume (default: DATA/{ENGINE}, else synthetic:engine)")
+    parser.add_argument("--data", metavar="DIR",
+                        help=f"data folder holding {ENGINE} (default ${DATA_ENV}, else "
+                        f"{DEFAULT_DATA} from the current folder)")
     parser.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
 
 
@@ -191,7 +222,7 @@ def frames(args) -> int:
     from isolume import volumes
     from isolume.app.options import isovalue, parse_size
 
-    volume = volumes.load(args.volume or _default_volume())
+    volume = volumes.load(args.volume or default_volume(args.data))
     iso = isovalue(volume, args.iso)
     size = parse_size(args.size)
     r = frame_times(volume, iso, size, args.frames, args.gl, args.rounds)
@@ -392,7 +423,7 @@ def lazy(args) -> int:
     from isolume.baking.lazy import View, view_iso_range, visible_cells
     from isolume.baking.preview import cell_corners
 
-    volume = volumes.load(args.volume or _default_volume())
+    volume = volumes.load(args.volume or default_volume(args.data))
     iso = isovalue(volume, args.iso)
     config = BakeConfig(samples=args.samples)
     if args.max_levels is not None:

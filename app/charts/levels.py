@@ -12,14 +12,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from isolume.app.charts.charts import Chart, _figure, _finish, _noise_line, _plain_log_ticks
+from isolume.app.charts.model import Chart, Run
+from isolume.app.charts.plotting import figure, finish, noise_line, plain_log_ticks
 
 POLICIES = (("auto", None), ("0.25 voxel", 0.25), ("0.5 voxel", 0.5), ("1 voxel", 1.0),
             ("2 voxels", 2.0))
 """(label, max_move): the automatic policy and fixed move limits."""
 
 
-def chart_levels(run) -> Chart:
+def chart_levels(run: Run) -> Chart:
     """Chart 5: error against bake time of irradiance lattices at chart 1's sample
     counts, one series per level policy (`POLICIES`)."""
     import dataclasses
@@ -56,7 +57,7 @@ def chart_levels(run) -> Chart:
 def plot_levels(record: dict, path: Path) -> None:
     """Log–log error against seconds, one line per policy, points labelled by samples
     and level count."""
-    plt, fig, (ax,) = _figure()
+    plt, fig, (ax,) = figure()
     styles = {"auto": ("o-", "automatic (from samples and cost)"),
               "0.25 voxel": ("v--", "fixed: move <= 0.25 voxel"),
               "0.5 voxel": ("s--", "fixed: move <= 0.5 voxel"),
@@ -72,14 +73,14 @@ def plot_levels(record: dict, path: Path) -> None:
         for p in points:
             ax.annotate(f"{p['samples']}·{p['levels']}L", (p["seconds"], p["error"]),
                         fontsize=6, xytext=(3, 3), textcoords="offset points")
-    _noise_line(ax, record)
+    noise_line(ax, record)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    _plain_log_ticks(ax)
+    plain_log_ticks(ax)
     ax.set_xlabel("bake wall time, s (fresh bake: plan, level scenes, tracing)")
     ax.set_ylabel("relative RMSE against path tracing")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     ax.text(0.01, 0.01, "labels: paths per texel · levels", transform=ax.transAxes,
             fontsize=6, color="0.4")
-    _finish(plt, fig, record, path)
+    finish(plt, fig, record, path)

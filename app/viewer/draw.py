@@ -56,6 +56,13 @@ class ViewState:
     show_ui: bool = True
 
 
+def frame_size(window) -> tuple[int, int]:
+    """(W, H) pixels of `window`'s framebuffer (an `app.render.glcontext.Window`), at
+    least 1 × 1 (a minimised window has none)."""
+    w, h = window.framebuffer_size
+    return max(w, 1), max(h, 1)
+
+
 def upload_box(textures, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> None:
     """Re-upload texels lo ≤ (z, y, x) < hi of `textures.lattice` into its GL textures
     (irradiance premultiplied by validity, and validity), as `LatticeTextures` stores them."""

@@ -97,7 +97,7 @@ def drag_target(button: int, shift: bool, ctrl: bool) -> str | None:
 @dataclass(frozen=True)
 class Action:
     """Something the user asked for through the panel or a key: name and value (applied by
-    `app.viewer.window.Viewer.apply`)."""
+    `app.viewer.actions.Actions.apply`)."""
 
     name: str
     value: object = None

@@ -238,11 +238,9 @@ def screenshot_paths(path: str | os.PathLike) -> tuple[Path, Path]:
 
 # -- running a script in the viewer -------------------------------------------------------
 class ScriptTarget(Protocol):
-    """What a script drives: the public interface of `app.viewer.window.Viewer`.
+    """What a script drives: the viewer's public interface, `app.viewer.actions.Actions`.
 
     Errors that the script should report raise `ValueError` (the viewer's `ViewerError`)."""
-
-    quit: bool
 
     def redraw(self) -> None: ...
     def request_iso(self, iso: float) -> None: ...

@@ -182,3 +182,83 @@ class MeshWorker:
                     return
                 self._results.append(MeshResult(request, iso, stage, mesh,
                                                 time.perf_counter() - t0))
+
+
+# -- the render thread's side -------------------------------------------------------------
+@dataclass
+class Extraction:
+    """Figures of one isovalue change: seconds to the coarse and full surface, frames drawn
+    meanwhile and the longest gap between frames (milliseconds); `requested` is the
+    `time.perf_counter` of the request."""
+
+    iso: float
+    requested: float
+    coarse_s: float | None = None
+    full_s: float | None = None
+    frames: int = 0
+    max_gap_ms: float = 0.0
+    triangles: int = 0
+
+
+class SurfaceFeed:
+    """What the render thread knows of the surfaces: it asks a `MeshWorker` for them and
+    notes which one arrived last and the figures of every isovalue change.
+
+    Attributes:
+        worker: the extraction thread.
+        stage: the stage ("coarse", "full") of the last surface received (None: none yet).
+        iso: that surface's isovalue (None: none yet).
+        info: the panel's line about it, e.g. "full resolution: 594,782 triangles, ...".
+        extractions: one `Extraction` per request, the newest last.
+    """
+
+    def __init__(self, volume: volumes.Volume, *, normals: str = "smooth",
+                 flip: bool = False) -> None:
+        self.worker = MeshWorker(volume, normals=normals, flip=flip)
+        self.stage: str | None = None
+        self.iso: float | None = None
+        self.info = "extracting..."
+        self.extractions: list[Extraction] = []
+
+    def request(self, iso: float) -> None:
+        """Ask for the surface at `iso` and start its `Extraction` record."""
+        self.worker.request(iso)
+        self.extractions.append(Extraction(iso, time.perf_counter()))
+
+    def take_error(self) -> str | None:
+        """The worker's last error, once (None: none)."""
+        error, self.worker.error = self.worker.error, None
+        return error
+
+    def poll(self) -> list[MeshResult]:
+        """Results that arrived since the last call (`MeshWorker.poll`)."""
+        return self.worker.poll()
+
+    def received(self, result: MeshResult) -> None:
+        """Note a coarse or full surface that is now shown."""
+        mesh = result.mesh
+        self.stage, self.iso = result.stage, result.iso
+        stage = "full resolution" if result.stage == "full" else "preview"
+        self.info = (mesh.message if mesh.empty else
+                     f"{stage}: {len(mesh.faces):,} triangles, {len(mesh.vertices):,} vertices")
+        record = self.extractions[-1]
+        if result.stage == "coarse":
+            record.coarse_s = result.seconds
+        else:
+            record.full_s, record.triangles = result.seconds, len(mesh.faces)
+
+    def stage_at(self, iso: float) -> str | None:
+        """The stage of the surface shown when it is the one at `iso`, else None."""
+        return self.stage if self.iso == iso else None
+
+    def ready(self, iso: float) -> bool:
+        """The full-resolution surface at `iso` is the one shown."""
+        return self.stage == "full" and self.iso == iso
+
+    @property
+    def pending(self) -> bool:
+        """The newest request's full surface has not arrived yet."""
+        return bool(self.extractions) and self.extractions[-1].full_s is None
+
+    def close(self) -> None:
+        self.worker.close()

@@ -1,0 +1,112 @@
+"""The GL side of ``isolume chart``: one headless context, renderer, mesh and camera for
+every image of a run (`app.render.renderer.SurfaceRenderer`; EGL by default, llvmpipe where
+there is no GPU), same mesh, camera and albedo for every image."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from isolume.app.charts.lighting import LocalLighting
+from isolume.app.charts.metrics import Image
+
+
+class GLScene:
+    """One headless context, renderer, mesh and camera for every image of a run."""
+
+    def __init__(self, volume, iso: float, camera, size: tuple[int, int], backend: str,
+                 lighting: LocalLighting, albedo: float, env_spec: str) -> None:
+        from isolume import volumes
+        from isolume.app.render.glcontext import create_headless
+        from isolume.app.render.renderer import SurfaceRenderer
+
+        self.volume, self.camera, self.size = volume, camera, size
+        self.lighting, self.albedo, self.env_spec = lighting, albedo, env_spec
+        self.mesh = volumes.isosurface(volume, iso)
+        self.gl = create_headless(backend)
+        self.ctx = self.gl.ctx
+        self.renderer = SurfaceRenderer(self.ctx)
+        self.renderer.set_mesh(self.mesh.vertices, self.mesh.normals, self.mesh.faces,
+                               iso=self.mesh.iso)
+        self.renderer.set_bounds(*volume.box)
+        self._lattice = None
+        self._texel_iso: dict = {}
+        self._env: dict = {}
+
+    @property
+    def gl_renderer(self) -> str:
+        info = self.ctx.info
+        return f"{info.get('GL_RENDERER')} ({info.get('GL_VERSION')}, {self.gl.backend})"
+
+    def settings(self, shading: str):
+        """`RenderSettings` of `shading`: the run's size and albedo, the local lighting."""
+        from isolume.app.render.renderer import RenderSettings
+
+        light = self.lighting
+        return RenderSettings(size=self.size, shading=shading, albedo=(self.albedo,) * 3,
+                              key_dir=light.key_dir, key_irradiance=light.key,
+                              head_irradiance=(0.0, 0.0, 0.0), sky_irradiance=light.sky,
+                              ground_irradiance=light.ground)
+
+    def use(self, shading: str, lattice=None) -> None:
+        """Upload what `shading` reads: the lattice (with texel isovalues for the
+        closest-isovalue lookup) and, for SH, the environment's coefficients."""
+        from isolume.app.render.renderer import SHADING_MODES
+
+        mode = SHADING_MODES[shading]
+        closest = mode.lookup == "closest" and lattice is not None
+        key = (id(lattice), closest)
+        if self._lattice != key:
+            self.renderer.set_lattice(lattice, self._texel_isovalues(lattice) if closest
+                                      else None)
+            self._lattice = key
+        if shading == "sh":
+            from isolume.baking.sh import transfer_blocks
+
+            self.renderer.set_environment(self._env_coeffs(int(lattice.meta["sh_order"]),
+                                                           transfer_blocks(lattice.meta)))
+
+    def _texel_isovalues(self, lattice) -> np.ndarray:
+        from isolume.baking.plan import texel_values
+
+        shape = lattice.geometry.shape
+        if shape not in self._texel_iso:
+            self._texel_iso[shape] = texel_values(self.volume, lattice.geometry)
+        return self._texel_iso[shape]
+
+    def _env_coeffs(self, order: int, blocks: int = 1) -> np.ndarray:
+        """`baking.sh.display_coefficients` of the chart's environment (cached)."""
+        from isolume.baking import sh
+        from isolume.baking.environment import parse_env
+
+        if (order, blocks) not in self._env:
+            self._env[order, blocks] = sh.display_coefficients(parse_env(self.env_spec),
+                                                               order, blocks)
+        return self._env[order, blocks]
+
+    def render(self, shading: str, lattice=None) -> Image:
+        """Draw `shading` (with `lattice` where it reads one) and read it back."""
+        self.use(shading, lattice)
+        frame = self.renderer.render(self.camera, self.settings(shading))
+        return Image(frame.linear.reshape(-1, 3).astype(np.float64), frame.mask.reshape(-1))
+
+    def frame_seconds(self, shading: str, lattice, draws: int, warmup: int = 3) -> np.ndarray:
+        """(draws,) wall seconds of single frames (linear pass + tone-mapping pass, ended by
+        ``ctx.finish()``, no read-back) after `warmup` untimed ones."""
+        self.use(shading, lattice)
+        settings = self.settings(shading)
+        times = []
+        for i in range(warmup + draws):
+            began = time.perf_counter()
+            targets = self.renderer.draw_hdr(self.camera, settings)
+            self.renderer.resolve(targets, settings)
+            self.ctx.finish()
+            if i >= warmup:
+                times.append(time.perf_counter() - began)
+        return np.array(times)
+
+    def release(self) -> None:
+        self.renderer.release()
+        self.gl.release()
+

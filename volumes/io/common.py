@@ -1,0 +1,109 @@
+"""What every volume file loader shares: the loaders' result type, the frames they name,
+the low-level errors that mean a bad file, optional reader libraries, and file reading
+with one-line errors."""
+
+from __future__ import annotations
+
+import importlib
+import re
+import struct
+import zipfile
+import zlib
+from collections.abc import Sequence
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from isolume.volumes.core import VolumeError
+
+OPTIONAL_MODULES = {
+    "nrrd": ("pynrrd", "nrrd"),
+    "nibabel": ("nibabel", "nifti"),
+    "tifffile": ("tifffile", "tiff"),
+    "pydicom": ("pydicom", "dicom"),
+}
+"""Optional reader module → (pip name, isolume extra)."""
+
+READ_ERRORS = (
+    OSError,
+    EOFError,
+    ValueError,
+    zlib.error,
+    struct.error,
+    zipfile.BadZipFile,
+    KeyError,
+    IndexError,
+    TypeError,
+)
+"""Low-level failures that mean "this file is not what its name says"; turned into a
+one-line VolumeError by `load_file` as a last resort."""
+
+Orientation = tuple[np.ndarray, np.ndarray]
+"""((3, 3) columns: the directions of index axes x, y, z in the file's frame, (3,) signs
+that take that frame to LPS)."""
+Loaded = tuple[np.ndarray, Sequence[float] | None, Sequence[float] | None,
+               Orientation | None]
+"""What a loader returns: (data [z, y, x], spacing xyz or None, origin xyz or None in the
+file's own frame, `Orientation` or None)."""
+LPS = np.ones(3)
+"""Signs from a frame that already is LPS (DICOM, ITK's MetaImage)."""
+RAS_TO_LPS = np.array([-1.0, -1.0, 1.0])
+"""Signs from RAS (NIfTI's frame) to LPS."""
+
+
+def one_line(exc: BaseException) -> str:
+    """Exception as ``Type: message`` on one line, at most ~200 characters."""
+    text = " ".join(str(exc).split())
+    if len(text) > 200:
+        text = text[:197] + "..."
+    name = type(exc).__name__
+    if name == "error":  # zlib.error, struct.error
+        name = f"{type(exc).__module__}.error"
+    return f"{name}: {text}" if text else name
+
+
+def optional_module(module: str, path: Path) -> ModuleType:
+    """Import an optional reader library or say which extra installs it."""
+    pip_name, extra = OPTIONAL_MODULES[module]
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise VolumeError(
+            f'reading {path} needs {pip_name}: pip install "isolume[{extra}]"'
+        ) from None
+
+
+def check_readable(path: Path) -> None:
+    """Open the file once so permission problems get a clear message."""
+    try:
+        with open(path, "rb") as f:
+            f.read(1)
+    except PermissionError:
+        raise VolumeError(f"{path}: cannot read the file: permission denied") from None
+    except OSError as exc:
+        raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
+
+
+def read_bytes(path: Path) -> bytes:
+    """Whole file contents, with OS errors as VolumeError."""
+    try:
+        with open(path, "rb") as f:
+            return f.read()
+    except PermissionError:
+        raise VolumeError(f"{path}: cannot read the file: permission denied") from None
+    except OSError as exc:
+        raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
+
+
+def natural_key(name: str) -> tuple[tuple[Any, ...], str]:
+    """Sort key putting ``slice2`` before ``slice10`` (digit runs compare as numbers)."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(p) if i % 2 else p.lower() for i, p in enumerate(parts)), name
+
+
+def byte_count(dims_xyz: Sequence[int], dtype: np.dtype) -> tuple[int, str]:
+    """Expected byte count of X*Y*Z samples, and the product written out."""
+    x, y, z = dims_xyz
+    return x * y * z * dtype.itemsize, f"{x}*{y}*{z}*{dtype.itemsize}"
