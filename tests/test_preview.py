@@ -164,7 +164,7 @@ def test_nothing_to_do_at_the_data_extreme(sphere):
 def test_shown_displayed_sampled_and_saved(tmp_path, sphere):
     """A display shows a preview while it rests on more paths than the texel's own
     samples, and looks it up like any value; a saved copy has no previews."""
-    from isolume.app.viewer.window import SharedLattice
+    from isolume.app.viewer.bake_client import SharedLattice
 
     vol, _ = sphere
     geometry = LatticeGeometry.for_volume(vol, 1.0)
@@ -196,7 +196,7 @@ def test_the_bake_process_shows_previews_before_its_plan(tmp_path):
     withdraws those outside the active set, and the lazy bake's own samples follow."""
     import time
 
-    from isolume.app.viewer.window import BakeLink, SharedLattice, lattice_meta
+    from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta
     from isolume.baking.lazy import View
 
     vol = volumes.load("synthetic:sphere:24")

@@ -243,13 +243,9 @@ def test_split_sh_under_a_turned_sky_is_closer_to_the_reference():
     """
     import dataclasses
 
-    from isolume.app.charts.charts import (
-        GLScene,
-        Image,
-        local_lighting,
-        reference_noise,
-        relative_rmse,
-    )
+    from isolume.app.charts.lighting import local_lighting
+    from isolume.app.charts.metrics import Image, reference_noise, relative_rmse
+    from isolume.app.charts.scene import GLScene
     from isolume.baking.reference import render_reference
 
     vol = volumes.load("synthetic:engine:32")

@@ -317,7 +317,7 @@ class PixelTruth:
         return float(np.sqrt(np.mean(rel**2)))
 
     def rmse(self, lattice) -> float:
-        """The charts' error (`app.charts.charts.relative_rmse`) of the luminance `lattice` shows:
+        """The charts' error (`app.charts.metrics.relative_rmse`) of the luminance `lattice` shows:
         RMS difference over the mean truth. Unlike `error`, a dark pixel weighs no more
         than a bright one (on CThead one crack of luminance 0.003, shown at 0.6, makes
         `error` 146 % alone)."""
@@ -417,7 +417,7 @@ def lazy(args) -> int:
 
     from isolume import volumes
     from isolume.app.options import isovalue, parse_size
-    from isolume.app.viewer.window import BakeLink, SharedLattice, lattice_meta
+    from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta
     from isolume.baking.config import BakeConfig
     from isolume.baking.lattice import LatticeGeometry
     from isolume.baking.lazy import View, view_iso_range, visible_cells

@@ -33,18 +33,13 @@ import numpy as np
 from isolume.app.charts.builders import CHART_BUILDERS
 from isolume.app.charts.lattices import LatticeStore
 from isolume.app.charts.lighting import local_lighting
-from isolume.app.charts.metrics import Image, image_entries, reference_noise, relative_rmse
+from isolume.app.charts.metrics import image_entries
 from isolume.app.charts.model import Chart, Plan, Run
 from isolume.app.charts.output import write_chart
 from isolume.app.charts.progress import say
 from isolume.app.charts.scene import GLScene
 from isolume.app.charts.tracing import NOISE_RATIO, Reference, settle_reference
 from isolume.app.options import CLIError, isovalue, load_volume, parse_size
-
-__all__ = ["HELP", "GLScene", "Image", "add_arguments", "crop_volume", "downsample_volume",
-           "local_lighting", "reference_noise", "relative_rmse", "run"]
-"""The command (`HELP`, `add_arguments`, `run`), its volume operations, and the scene and
-error pieces for drawing and scoring pictures as the charts do."""
 
 HELP = "charts of error against bake time, lattice resolution, lookups and shading modes"
 

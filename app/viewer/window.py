@@ -22,9 +22,8 @@ job:
 * `app.viewer.script`: ``--script`` drives the viewer without a person, through
   `app.viewer.actions.Actions` (the `app.viewer.script.ScriptTarget` protocol).
 
-`app.cli` takes the command from this module (``HELP``, `add_arguments`, `run`), and
-`app.bench.view` the lazy-bake client (`BakeLink`, `SharedLattice`, `lattice_meta`): both
-are re-exported here.
+`app.cli` takes the command from this module (``HELP`` and `add_arguments`, re-exported
+from `app.viewer.command`, and `run`).
 """
 
 from __future__ import annotations
@@ -38,9 +37,6 @@ import numpy as np
 
 from isolume import volumes
 from isolume.app.viewer.actions import Actions, check_mode
-from isolume.app.viewer.bake_client import BakeLink as BakeLink
-from isolume.app.viewer.bake_client import SharedLattice as SharedLattice
-from isolume.app.viewer.bake_client import lattice_meta as lattice_meta
 from isolume.app.viewer.command import HELP as HELP
 from isolume.app.viewer.command import Options, read_options, script_commands
 from isolume.app.viewer.command import add_arguments as add_arguments
