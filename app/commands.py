@@ -49,7 +49,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from isolume.app.render.camera import parse_view
     from isolume.app.render.images import check_output_path, write_image
     from isolume.app.render.offscreen import render_volume
-    from isolume.app.render.renderer import LATTICE_MODES, RenderSettings
+    from isolume.app.render.settings import LATTICE_MODES, RenderSettings
 
     out = check_output_path(args.out)
     vol = load_volume(args)
@@ -57,13 +57,13 @@ def cmd_render(args: argparse.Namespace) -> int:
     shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
     if lattice is not None and lattice.kind == "irradiance" and (args.env or args.light):
         raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
-                       f"lighting ({lattice.meta['config'].get('env') or 'no environment'}); "
+                       f"lighting ({lattice.config.env or 'no environment'}); "
                        "bake again for other light, or leave out --lattice")
     traced = view_light(args, vol) if lattice is None and shading == "irradiance" else None
     if args.albedo is not None:
         albedo = parse_albedo(args.albedo)
     elif lattice is not None:
-        albedo = tuple(lattice.meta["config"]["albedo"])
+        albedo = lattice.config.albedo
     else:
         albedo = (0.8, 0.8, 0.8)
     try:

@@ -81,15 +81,17 @@ def load_lattice(path: str | None, volume: volumes.Volume):
 def environment_coefficients(spec: str | None, lattice, window: str):
     """(n², 3) SH coefficients of the display environment for an SH lattice."""
     from isolume.baking import sh
-    from isolume.baking.environment import parse_env
+    from isolume.baking.lighting import lighting_of
 
-    spec = spec or lattice.meta["config"].get("env") or "constant:1,1,1"
+    baked = lattice.config.lighting.environment if lattice.config is not None else None
     order = int(lattice.meta["sh_order"])
     try:  # a split transfer (sun per pixel) also takes the sky without its sun
-        return sh.display_coefficients(parse_env(spec), order, sh.transfer_blocks(lattice.meta),
+        env = (lighting_of(spec).environment if spec
+               else baked or lighting_of("constant:1,1,1").environment)
+        return sh.display_coefficients(env, order, sh.transfer_blocks(lattice),
                                        window=None if window == "none" else window)
     except ValueError as exc:
-        raise CLIError(f"--env {spec}: {exc}") from None
+        raise CLIError(f"--env {spec or env.spec}: {exc}") from None
 
 
 def add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
@@ -108,7 +110,7 @@ def add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
 
 
 def add_render_options(p: argparse.ArgumentParser) -> None:
-    from isolume.app.render.renderer import SHADING_MODES, TONEMAPS
+    from isolume.app.render.settings import SHADING_MODES, TONEMAPS
     from isolume.baking.config import DEFAULT_ENV
 
     p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
@@ -162,6 +164,19 @@ def parse_albedo(text: str) -> tuple[float, float, float]:
     return values
 
 
+def parse_lighting(env: str | None, lights: list[str] | None, default: str = ""):
+    """The `baking.lighting.Lighting` of ``--env`` (None: `default`; "none": no
+    environment) and the ``--light`` specs (None: none), parsed once for the command.
+
+    Raises:
+        EnvSpecError, BakeError: a bad spec (one line, naming it).
+    """
+    from isolume.baking.lighting import lighting_of
+
+    env = default if env is None else env
+    return lighting_of("" if env == "none" else env, tuple(lights or ()))
+
+
 def view_light(args: argparse.Namespace, volume: volumes.Volume):
     """The `BakeConfig` of the global illumination ``render`` traces for its view (the
     lighting ``reference`` path-traces with the same arguments)."""
@@ -173,11 +188,10 @@ def view_light(args: argparse.Namespace, volume: volumes.Volume):
         raise CLIError(f"--samples {samples}: expected 1 to 4096 paths per texel")
     if args.workers is not None and args.workers < 1:
         raise CLIError(f"--workers {args.workers}: expected at least 1")
-    env = DEFAULT_ENV if args.env is None else args.env
-    return BakeConfig(
+    return BakeConfig.lit_by(
+        parse_lighting(args.env, args.light, DEFAULT_ENV),
         mode="irradiance", samples=samples, bounces=args.bounces,
-        albedo=parse_albedo(args.albedo or "0.8"), env="" if env == "none" else env,
-        lights=tuple(args.light or ()), seed=args.seed, normals=args.normals,
+        albedo=parse_albedo(args.albedo or "0.8"), seed=args.seed, normals=args.normals,
         flip_normals=args.flip_normals,
     )
 
@@ -185,11 +199,11 @@ def view_light(args: argparse.Namespace, volume: volumes.Volume):
 def bake_config(args: argparse.Namespace):
     from isolume.baking.config import BakeConfig
 
-    return BakeConfig(
+    return BakeConfig.lit_by(
+        parse_lighting(args.env, args.light),
         mode=args.mode, sh_order=args.sh_order, samples=args.samples, bounces=args.bounces,
         albedo=parse_albedo(args.albedo), scale=args.scale,
-        iso_range=tuple(args.iso_range) if args.iso_range else None,
-        env="" if args.env == "none" else args.env, lights=tuple(args.light or ()), seed=args.seed,
+        iso_range=tuple(args.iso_range) if args.iso_range else None, seed=args.seed,
         flip_normals=args.flip_normals, target_error=args.target_error,
         max_samples=max(args.max_samples, args.samples), max_levels=args.max_levels,
         max_move=args.max_move, direct_light=args.direct_light,

@@ -35,6 +35,7 @@ from isolume.app.options import (
     isovalue,
     load_volume,
     parse_albedo,
+    parse_lighting,
     parse_size,
 )
 from isolume.baking.config import DEFAULT_ENV
@@ -105,10 +106,10 @@ def _config(args: argparse.Namespace):
     """The `BakeConfig` of the lighting and the integrator (samples = --spp)."""
     from isolume.baking.config import BakeConfig
 
-    return BakeConfig(
+    return BakeConfig.lit_by(
+        parse_lighting(args.env, args.light),
         mode="irradiance", samples=args.spp, bounces=args.bounces,
-        albedo=parse_albedo(args.albedo), env="" if args.env == "none" else args.env,
-        lights=tuple(args.light or ()), seed=args.seed, flip_normals=args.flip_normals,
+        albedo=parse_albedo(args.albedo), seed=args.seed, flip_normals=args.flip_normals,
     )
 
 

@@ -32,24 +32,24 @@ from isolume.baking.backend import (
     TracingBackend,
 )
 from isolume.baking.config import BakeConfig
+from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
-from isolume.baking.integrator import Lighting, PathSettings, whole_paths
+from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
 from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
-from isolume.baking.lights import parse_light
 from isolume.baking.passes import PassSums, Tracing, commit_sums
 from isolume.baking.plan import Plan, make_plan
 
 
-def make_lighting(config: BakeConfig) -> Lighting:
-    """Parse the environment and lights of `config`; the lights' and the sun's direct light
-    is left to the renderer when `config.direct_light` is "pixels"."""
-    from isolume.baking.environment import ConstantEnvironment, SkyEnvironment, parse_env
-
-    env = parse_env(config.env) if config.env else None
+def tracing_lights(config: BakeConfig) -> TracingLights:
+    """What the integrator needs of `config`'s lighting: the environment, whether to sample
+    it, the lights and the compiled sky's parameters; the lights' and the sun's direct
+    light is left to the renderer when `config.direct_light` is "pixels"."""
+    lighting = config.lighting
+    env = lighting.environment
     sample_env = env is not None and not isinstance(env, ConstantEnvironment)
-    sky = kernels.sky_params(env) if type(env) is SkyEnvironment else None
-    return Lighting(env, sample_env, tuple(parse_light(s) for s in config.lights), sky,
-                    pixel_direct=config.direct_light == "pixels")
+    sky = kernels.sky_params(env) if lighting.sky is not None else None
+    return TracingLights(env, sample_env, lighting.lights, sky,
+                         pixel_direct=config.direct_light == "pixels")
 
 
 def path_settings(volume: volumes.Volume, config: BakeConfig) -> PathSettings:
@@ -59,7 +59,7 @@ def path_settings(volume: volumes.Volume, config: BakeConfig) -> PathSettings:
         bounces=config.bounces, albedo=config.albedo, hit_offset=2e-3 * h,
         sh_order=config.sh_order if config.mode == "sh" else None,
         rgb_transfer=config.mode == "sh" and not config.gray,
-        # issue 14 part 3: an SH bake with the sun per pixel keeps direct and indirect
+        # an SH bake with the sun per pixel keeps direct and indirect
         # transfer apart (`baking.integrator` module docs)
         sh_split=config.mode == "sh" and config.direct_light == "pixels",
     )
@@ -68,7 +68,7 @@ def path_settings(volume: volumes.Volume, config: BakeConfig) -> PathSettings:
 def _luminance_weights(channels: int, irradiance: bool, second_block: int = 0) -> np.ndarray:
     """(C,) weights of the brightness whose variance the error estimates use: luminance
     of RGB irradiance, the DC coefficient of SH transfer (of both blocks of a split
-    transfer, the second starting at `second_block`: issue 14 part 3)."""
+    transfer, the second starting at `second_block`)."""
     weights = np.zeros(channels)
     if irradiance:
         weights[:3] = LUMINANCE
@@ -154,7 +154,7 @@ class Baker:
             self.geometry = LatticeGeometry.for_volume(volume, config.scale)
             self.lattice = lattice or _new_lattice(volume, config, self.geometry,
                                                    self.settings.channels)
-            self.lighting = make_lighting(config)
+            self.lighting = tracing_lights(config)
             self.stats = BakeStats()
             kept = _kept_levels(lattice)
             self.backend.begin(volume, config, kept)  # beside the plan
@@ -198,7 +198,7 @@ class Baker:
         if replace(config, env=self.config.env, lights=self.config.lights) != self.config:
             raise ValueError("Baker.relight: only the env and the lights may change")
         self.config, self.lattice = config, lattice
-        self.lighting = make_lighting(config)
+        self.lighting = tracing_lights(config)
         self.job = replace(self.job, config=config, tracing=self._tracing())
         self.backend.start(self.job)
         self.texels_done = int(np.count_nonzero(self.samples_done()))

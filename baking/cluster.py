@@ -46,7 +46,7 @@ from isolume.baking import kernels
 from isolume.baking.backend import REPORT_S, BakeJob, PassReport, PassWork
 from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
-from isolume.baking.integrator import Lighting, PathSettings, WholePaths
+from isolume.baking.integrator import PathSettings, TracingLights, WholePaths
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.passes import (
     PassSums,
@@ -146,7 +146,7 @@ class _Job:
     config: BakeConfig
     geometry: LatticeGeometry
     levels: np.ndarray
-    lighting: Lighting
+    lighting: TracingLights
     settings: PathSettings
     seed_key: np.uint32
     weights: np.ndarray

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from isolume.baking.errors import BakeError
-from isolume.baking.lights import parse_light
+from isolume.baking.lighting import Lighting, lighting_of, remember
 
 MODES = ("irradiance", "sh")
 DEFAULT_ENV = "sky:sun=6,sun_az=-150,sun_el=40"
@@ -106,8 +106,6 @@ class BakeConfig:
                 raise BakeError(f"--iso-range {self.iso_range}: expected LO < HI")
             object.__setattr__(self, "iso_range", (lo, hi))
         object.__setattr__(self, "lights", tuple(self.lights))
-        for spec in self.lights:
-            parse_light(spec)
         if self.mode == "sh" and self.lights:
             raise BakeError(
                 "--mode sh takes only a distant environment (--env): point and directional "
@@ -116,6 +114,7 @@ class BakeConfig:
             )
         if not self.env and not self.lights:
             raise BakeError("nothing lights the scene: give --env and/or --light")
+        object.__setattr__(self, "_lighting", lighting_of(self.env, self.lights))
         if self.max_move is not None and not 0 < self.max_move <= 4:
             raise BakeError(f"--max-move {self.max_move:g}: expected (0, 4] voxels")
         if not 2 <= self.max_levels <= 1024:
@@ -134,19 +133,45 @@ class BakeConfig:
 
     def _choose_direct_light(self) -> None:
         """Resolve and check `direct_light` (see the class docs)."""
-        from isolume.baking.lights import has_pixel_lights
-
         if self.direct_light is None:
-            pixels = self.mode == "irradiance" and has_pixel_lights(self.env, self.lights)
+            pixels = self.mode == "irradiance" and bool(self.lighting.pixel_lights())
             object.__setattr__(self, "direct_light", "pixels" if pixels else "lattice")
         if self.direct_light not in DIRECT_LIGHT:
             raise BakeError(f"--direct-light {self.direct_light!r}: expected one of "
                             f"{', '.join(DIRECT_LIGHT)}")
         if (self.direct_light == "pixels" and self.mode == "sh"
-                and not has_pixel_lights(self.env, ())):
+                and self.lighting.sun is None):
             raise BakeError(f"--direct-light pixels with --mode sh needs a sky with a sun "
                             f"(--env {self.env!r} has none to shade per pixel); use "
                             "--direct-light lattice")
+
+    @property
+    def lighting(self) -> Lighting:
+        """The typed lighting of `env` and `lights` (`baking.lighting.Lighting`), parsed
+        when the config is made (once per process for the same specs: `lighting_of`)."""
+        return self._lighting
+
+    def __getstate__(self) -> dict:
+        """The fields alone: a config crosses to another process as its specs, and its
+        lighting is parsed there (`__setstate__`)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def __setstate__(self, state: dict) -> None:
+        for name, value in state.items():
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "_lighting", lighting_of(self.env, self.lights))
+
+    @classmethod
+    def lit_by(cls, lighting: Lighting, **settings) -> BakeConfig:
+        """A config lit by `lighting` (whose `lighting` property is that very value);
+        `settings`: the other fields."""
+        env, lights = remember(lighting).to_spec()
+        return cls(env=env, lights=lights, **settings)
+
+    def with_lighting(self, lighting: Lighting) -> BakeConfig:
+        """This config lit by `lighting` (whose `lighting` property is that very value)."""
+        env, lights = remember(lighting).to_spec()
+        return dataclasses.replace(self, env=env, lights=lights)
 
     @property
     def gray(self) -> bool:

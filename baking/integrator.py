@@ -8,7 +8,7 @@ and a cosine-sampled direction turns radiance into irradiance with the factor π
 * point and directional lights: deterministic shadow rays (hard shadows);
 * a non-constant environment: one light sample (importance sampled) and the escaping
   cosine-sampled continuation ray, combined with the power heuristic (compiled for the
-  procedural sky, `baking.kernels`; numpy for the others);
+  procedural sky, `baking.sky_kernels`; numpy for the others);
 * a constant environment: the cosine-sampled ray alone (it is already the ideal sampler).
 
 `trace_paths` goes a vertex at a time over all the paths, with one embreex batch per
@@ -33,7 +33,7 @@ The renderer forms ℓ_sf·T₀ + ℓ·T₁ with the rotated sky without its sun
 rotated sky ℓ, and adds the rotated sun's direct light per pixel: the first vertex does
 not see the sun, the bounces do (the sun's bounced light turns with the sky too).
 
-Split direct light (``Lighting.pixel_direct``, a bake with ``direct_light="pixels"``): at
+Split direct light (``TracingLights.pixel_direct``, a bake with ``direct_light="pixels"``): at
 the first vertex — the texel's own point — the point and directional lights add nothing
 and the procedural sky is seen without its sun, by the cosine-sampled ray alone: what is
 left of the sky is smooth, and cosine sampling alone is the better estimator for it (5 %
@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from isolume.baking import kernels
+from isolume.baking import kernels, sampling_kernels, sky_kernels
 from isolume.baking.lights import Light
 from isolume.baking.rays import RayStats
 from isolume.baking.sampling import power_heuristic
@@ -63,14 +63,15 @@ DIMS_PER_VERTEX = kernels.DIMS_PER_VERTEX
 
 
 @dataclass(frozen=True)
-class Lighting:
-    """What lights the scene.
+class TracingLights:
+    """What the integrator sees of a scene's lights (`baking.lighting.Lighting`, prepared
+    by `baking.bake.tracing_lights`).
 
     Attributes:
         env: the distant environment (`baking.environment.Environment`) or None.
         sample_env: True to importance-sample the environment (next-event estimation).
         lights: point and directional lights.
-        sky: `kernels.sky_params` of a procedural sky (sampled by compiled kernels), or
+        sky: `sky_kernels.sky_params` of a procedural sky (sampled by compiled kernels), or
             None for the numpy path of any other environment.
         pixel_direct: leave the lights' and the sun's direct light at the first vertex out
             (the renderer shades it per pixel; see the module docs).
@@ -93,7 +94,7 @@ class Lighting:
         first_env, first_sky, first_sample = self.env, self.sky, self.sample_env
         if self.pixel_direct and hasattr(self.env, "without_sun"):  # a procedural sky
             first_env, first_sample = self.env.without_sun(), False
-            first_sky = None if self.sky is None else kernels.sky_without_sun(self.sky)
+            first_sky = None if self.sky is None else sky_kernels.sky_without_sun(self.sky)
         object.__setattr__(self, "first_env", first_env)
         object.__setattr__(self, "first_sky", first_sky)
         object.__setattr__(self, "first_sample_env", first_sample)
@@ -160,7 +161,7 @@ def _direct_env(scene: Scene, pos, n, beta, keys, dim, env, stats) -> np.ndarray
     """(M, 3) MIS-weighted environment light sample, times beta (arguments as
     `_direct_lights`)."""
     out = np.zeros(beta.shape)
-    d, pdf = env.sample(kernels.uniform2(keys, dim))
+    d, pdf = env.sample(sampling_kernels.uniform2(keys, dim))
     cos = (n * d).sum(axis=1)
     ok = (cos > 0) & (pdf > 0)
     if not ok.any():
@@ -177,10 +178,10 @@ def _direct_env(scene: Scene, pos, n, beta, keys, dim, env, stats) -> np.ndarray
 def _direct_sky(scene: Scene, result, alive, pos, n, beta, keys, dim, sky, stats) -> None:
     """`_direct_env` for the procedural sky with the compiled sampler: adds the
     MIS-weighted light sample of each vertex to ``result[alive]`` (pos, n, beta: (3, M))."""
-    dirs, contrib, useful = kernels.sky_light_samples(sky, keys, dim, n)
-    idx, origins, shadow_dirs = kernels.shadow_rays(useful, pos, dirs)
+    dirs, contrib, useful = sky_kernels.sky_light_samples(sky, keys, dim, n)
+    idx, origins, shadow_dirs = sky_kernels.shadow_rays(useful, pos, dirs)
     blocked = scene.occluded(origins.T, shadow_dirs.T, None, stats)
-    kernels.add_unblocked(result, alive, idx, blocked, beta, contrib)
+    sky_kernels.add_unblocked(result, alive, idx, blocked, beta, contrib)
 
 
 def _escape_sh(beta: np.ndarray, dirs: np.ndarray, settings: PathSettings) -> np.ndarray:
@@ -194,7 +195,7 @@ def _escape_sh(beta: np.ndarray, dirs: np.ndarray, settings: PathSettings) -> np
 
 
 def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np.ndarray,
-                lighting: Lighting, settings: PathSettings, stats: RayStats | None = None,
+                lighting: TracingLights, settings: PathSettings, stats: RayStats | None = None,
                 dirs: np.ndarray | None = None) -> np.ndarray:
     """Estimate irradiance (or SH transfer) for P paths starting at texel points.
 
@@ -246,7 +247,7 @@ def trace_paths(scene: Scene, origins: np.ndarray, normals: np.ndarray, keys: np
             hits = scene.intersect(pos.T, dirs.T, stats)
             prim = hits["prim"]
         if irradiance and sky is not None:
-            kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n, sample_env)
+            sky_kernels.sky_add_escaped(sky, result, alive, prim, beta, dirs, n, sample_env)
         elif not constant and sees_env:
             _add_escaped(result, alive, prim < 0, beta.T, dirs.T, n.T, env, sample_env,
                          settings, vertex)
@@ -275,7 +276,7 @@ class WholePaths:
     use_sky: bool
 
 
-def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None:
+def whole_paths(lighting: TracingLights, settings: PathSettings) -> WholePaths | None:
     """`WholePaths` where `trace_whole_paths` covers the lighting (irradiance,
     a constant environment or the procedural sky, no point or directional lights), else
     None."""
@@ -285,7 +286,7 @@ def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None
         constant_radiance is not None or use_sky)
     if not covered:
         return None
-    no_sky = np.zeros(kernels.SKY_PARAMS)
+    no_sky = np.zeros(sky_kernels.SKY_PARAMS)
     return WholePaths(
         settings.bounces, np.asarray(settings.albedo, np.float32), settings.hit_offset,
         np.zeros(3) if use_sky else constant_radiance,
@@ -293,7 +294,7 @@ def whole_paths(lighting: Lighting, settings: PathSettings) -> WholePaths | None
         lighting.first_sample_env, use_sky)
 
 
-def _constant_radiance(lighting: Lighting, settings: PathSettings) -> np.ndarray | None:
+def _constant_radiance(lighting: TracingLights, settings: PathSettings) -> np.ndarray | None:
     """(3,) π·L that a cosine-sampled ray escaping to a constant environment brings, in
     an irradiance bake (where cosine sampling alone is the ideal sampler); else None."""
     rgb = getattr(lighting.env, "rgb", None) if not lighting.sample_env else None

@@ -11,12 +11,13 @@ Per-ray vectors are held one row per axis, (3, N) float32: the loops then run ei
 lanes wide, and Embree reads the transposed view, an (N, 3) array with strides, as it is.
 
 `trace_chunk` strings the kernels together for a whole chunk of paths and calls Embree
-itself, per ray (`intersect_rays`, `occluded_rays`, through the addresses in
-`trace.EmbreeCalls`): no Python, and so no wait for the GIL, between a chunk's rays.
+itself, per ray (`embree_kernels.intersect_rays`, `embree_kernels.occluded_rays`, through
+the addresses in `trace.EmbreeCalls`): no Python, and so no wait for the GIL, between a
+chunk's rays. The random numbers come from `baking.sampling_kernels`, the procedural
+sky's light samples and radiance from `baking.sky_kernels`.
 
-They mirror, and are tested against, the numpy reference functions: `pcg_hash` and
-`uniform` against `baking.rng` (bit for bit), `cosine_directions` against
-`baking.sampling.sample_cosine_hemisphere` + `to_world`.
+They mirror, and are tested against, the numpy reference functions: `cosine_directions`
+against `baking.sampling.sample_cosine_hemisphere` + `to_world`.
 """
 
 from __future__ import annotations
@@ -25,92 +26,30 @@ import math
 
 import numba
 import numpy as np
-from llvmlite import ir
-from numba.core import types
-from numba.extending import intrinsic
 
-_JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
+from isolume.baking.embree_kernels import intersect_rays, occluded_rays
+from isolume.baking.sampling_kernels import (
+    GOLDEN,
+    JIT,
+    dimension_key,
+    pcg_hash,
+    sincos_turns,
+    tangent_frame,
+    uniform_f32,
+)
+from isolume.baking.sky_kernels import (
+    SKY_PARAMS,
+    add_unblocked,
+    shadow_rays,
+    sky_add_escaped,
+    sky_light_samples,
+)
+from isolume.baking.sky_kernels import sky_params as sky_params  # for `baking.bake`
+
 DIMS_PER_VERTEX = 4  # 2 for the cosine-sampled direction, 2 for the light sample
 
-_MULT = np.uint32(747796405)
-_INC = np.uint32(2891336453)
-_M2 = np.uint32(277803737)
-_GOLDEN = np.uint32(0x9E3779B9)
-_INV_2_32 = 1.0 / 4294967296.0
 
-
-@numba.njit(**_JIT)
-def pcg_hash(x: np.uint32) -> np.uint32:
-    """PCG-RXS-M-XS hash of a 32-bit word (`baking.rng.pcg_hash`).
-
-    numba widens integer arithmetic to 64 bits; truncating every product and sum back to
-    32 bits lets LLVM keep the hash in 32-bit lanes, eight to a vector register (the
-    64-bit form, masked, vectorised four wide with emulated multiplies: 2.7× slower).
-    """
-    state = np.uint32(x * _MULT + _INC)
-    shift = np.uint32((state >> np.uint32(28)) + np.uint32(4))
-    word = np.uint32(np.uint32((state >> shift) ^ state) * _M2)
-    return np.uint32((word >> np.uint32(22)) ^ word)
-
-
-@numba.njit(**_JIT)
-def dimension_key(dim: int) -> np.uint32:
-    """The hash that selects random dimension `dim` (`baking.rng.uniform`)."""
-    return pcg_hash(np.uint32(np.uint32(dim) + _GOLDEN))
-
-
-@numba.njit(**_JIT)
-def uniform(key: np.uint32, dim_key: np.uint32) -> float:
-    """The uniform in [0, 1) of a path key and a dimension key (`baking.rng.uniform`)."""
-    return float(pcg_hash(np.uint32(key ^ dim_key))) * _INV_2_32
-
-
-@numba.njit(**_JIT)
-def _top31(key: np.uint32, dim_key: np.uint32) -> np.int32:
-    """The hash's top 31 bits as a signed 32-bit integer: it converts to floating point
-    in vector lanes (an unsigned 64-bit one does not)."""
-    return np.int32(pcg_hash(np.uint32(key ^ dim_key)) >> np.uint32(1))
-
-
-@numba.njit(**_JIT)
-def uniform31(key: np.uint32, dim_key: np.uint32) -> float:
-    """`uniform` from the hash's top 31 bits, within 2^-32 of `uniform`."""
-    return float(_top31(key, dim_key)) * 2.0**-31
-
-
-@numba.njit(**_JIT)
-def uniform_f32(key: np.uint32, dim_key: np.uint32) -> np.float32:
-    """`uniform31` in single precision, strictly below 1 (clamped to the largest float32
-    below 1, where rounding would reach 1). Converted to float32 directly: one rounding
-    of the same exact value as through float64."""
-    return min(np.float32(_top31(key, dim_key)) * np.float32(2.0**-31),
-               np.float32(1.0 - 2.0**-24))
-
-
-@numba.njit(**_JIT)
-def uniform2(keys: np.ndarray, dim: int) -> np.ndarray:
-    """(N, 2) float64 uniforms of dimensions `dim`, `dim + 1` (`baking.rng.uniform2`)."""
-    k0, k1 = dimension_key(dim), dimension_key(dim + 1)
-    out = np.empty((len(keys), 2))
-    for i in range(len(keys)):
-        out[i, 0] = uniform(keys[i], k0)
-        out[i, 1] = uniform(keys[i], k1)
-    return out
-
-
-@numba.njit(**_JIT)
-def _frame(nx, ny, nz):
-    """Tangents (tx, ty, tz), (bx, by, bz) completing the unit normal n to a right-handed
-    frame (Duff et al. 2017, branchless; `baking.sampling.orthonormal_basis`), in the
-    precision of n (float32 normals stay float32 inside vectorised loops)."""
-    one = np.float32(1.0)
-    sign = one if nz >= 0 else -one
-    a = -one / (sign + nz)
-    b = nx * ny * a
-    return one + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
-
-
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def path_starts(seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray, samples: np.ndarray,
                 texels: np.ndarray, origins: np.ndarray, normals: np.ndarray):
     """Keys, origins, normals and first directions of P paths (texel positions `pos`,
@@ -141,7 +80,7 @@ def path_starts(seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray, samples: 
             end += 1
         h = pcg_hash(np.uint32(np.uint32(ids[pos[i]]) ^ seed_key))
         for k in range(i, end):
-            keys[k] = pcg_hash(np.uint32(h + np.uint32(samples[k]) * _GOLDEN))
+            keys[k] = pcg_hash(np.uint32(h + np.uint32(samples[k]) * GOLDEN))
         for c in range(3):
             out_o[c, i:end] = origins[j, c]
             out_n[c, i:end] = normals[j, c]
@@ -150,13 +89,13 @@ def path_starts(seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray, samples: 
     return keys, out_o, out_n, dirs
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def on_upper(phase: float, weight: float, sample: int, golden: float) -> bool:
     """`baking.plan.Plan.on_upper` of one sample (the same float64 operations)."""
     return (phase + sample * golden) % 1.0 < weight
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def level_paths(here: np.ndarray, below: np.ndarray, done: np.ndarray,
                 remaining: np.ndarray, phase: np.ndarray, weight: np.ndarray,
                 golden: float):
@@ -203,34 +142,7 @@ def level_paths(here: np.ndarray, below: np.ndarray, done: np.ndarray,
     return pos[:count], samples[:count], texels[:k]
 
 
-@numba.njit(**_JIT)
-def sincos_turns(u):
-    """(cos 2πu, sin 2πu) for float32 u in [0, 1), in float32 to ~1e-7.
-
-    The angle is cut into quarter turns, each rotated about its middle (|x| ≤ π/4), where
-    Taylor series to x⁹ (sine) and x⁸ (cosine) are exact to 2e-9 and 3e-8; four times
-    cheaper than the libm calls, which were most of a cosine-sampled direction's cost.
-    """
-    quarter = np.float32(4.0) * u
-    q = np.floor(quarter)  # the quarter, 0 … 3, kept in floating point: integer
-    # conversions leave vector lanes (numba widens them to 64 bits, which AVX2 lacks)
-    x = (quarter - q - np.float32(0.5)) * np.float32(0.5 * math.pi)
-    x2 = x * x
-    s = x * (np.float32(1.0) + x2 * (np.float32(-1.0 / 6) + x2 * (np.float32(1.0 / 120) + x2 * (
-        np.float32(-1.0 / 5040) + x2 * np.float32(1.0 / 362880)))))
-    c = np.float32(1.0) + x2 * (np.float32(-0.5) + x2 * (np.float32(1.0 / 24) + x2 * (
-        np.float32(-1.0 / 720) + x2 * np.float32(1.0 / 40320))))
-    half = np.float32(math.sqrt(0.5))  # the quarter's middle, π/4: cos = sin = √½
-    cq, sq = half * (c - s), half * (c + s)  # cos, sin of the angle within the quarter
-    # turned by q quarters without branches (they mispredict: q is random): odd quarters
-    # swap the pair, the second half-turn negates it
-    half_turns = np.floor(np.float32(0.5) * q)
-    odd = q - np.float32(2.0) * half_turns
-    sign = np.float32(1.0) - np.float32(2.0) * half_turns
-    return sign * (cq - odd * (sq + cq)), sign * (sq + odd * (cq - sq))
-
-
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def cosine_directions(keys: np.ndarray, dim: int, normals: np.ndarray) -> np.ndarray:
     """(3, N) float32 world directions, cosine-distributed about the (3, N) float32 unit
     normals, from the float32 uniforms of dimensions `dim`, `dim + 1` of the (N,) uint32
@@ -247,7 +159,7 @@ def cosine_directions(keys: np.ndarray, dim: int, normals: np.ndarray) -> np.nda
     return out
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _fill_cosine_directions(keys: np.ndarray, dim: int, normals: np.ndarray,
                             out: np.ndarray) -> None:
     """out[:] = `cosine_directions` (keys, dim, normals)."""
@@ -255,13 +167,13 @@ def _fill_cosine_directions(keys: np.ndarray, dim: int, normals: np.ndarray,
     for i in range(len(keys)):
         lx, ly, lz = _cosine_local(keys[i], k0, k1)
         nx, ny, nz = normals[0, i], normals[1, i], normals[2, i]
-        tx, ty, tz, bx, by, bz = _frame(nx, ny, nz)
+        tx, ty, tz, bx, by, bz = tangent_frame(nx, ny, nz)
         out[0, i] = lx * tx + ly * bx + lz * nx
         out[1, i] = lx * ty + ly * by + lz * ny
         out[2, i] = lx * tz + ly * bz + lz * nz
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _cosine_local(key: np.uint32, k0: np.uint32, k1: np.uint32):
     """The cosine-distributed direction of a key (dimension keys k0, k1) in the frame
     whose z axis is the normal (Malley's method), float32."""
@@ -271,7 +183,7 @@ def _cosine_local(key: np.uint32, k0: np.uint32, k1: np.uint32):
     return r * c, r * si, np.sqrt(np.float32(1.0) - u0)
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def next_vertices(pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, ng: np.ndarray,
                   prim: np.ndarray, beta: np.ndarray, keys: np.ndarray, alive: np.ndarray,
                   albedo: np.ndarray, offset: float, result: np.ndarray,
@@ -327,7 +239,7 @@ def next_vertices(pos: np.ndarray, dirs: np.ndarray, t: np.ndarray, ng: np.ndarr
     return new_pos, new_n, new_beta, new_dirs, new_keys, new_alive
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def add_escaped(result: np.ndarray, alive: np.ndarray, prim: np.ndarray,
                 beta: np.ndarray, radiance: np.ndarray) -> None:
     """result[alive[i], :3] += beta[:, i] · radiance for every ray i that escaped
@@ -342,7 +254,7 @@ def add_escaped(result: np.ndarray, alive: np.ndarray, prim: np.ndarray,
             result[row, c] += beta[c, i] * radiance[c] * escaped
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def accumulate(pos: np.ndarray, estimates: np.ndarray, weights: np.ndarray,
                acc_sum: np.ndarray, acc_second: np.ndarray, acc_n: np.ndarray) -> None:
     """Add path estimates to the pass sums of their texels: each texel's paths are summed
@@ -378,7 +290,7 @@ def accumulate(pos: np.ndarray, estimates: np.ndarray, weights: np.ndarray,
         acc_n[p] += n
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def commit_means(ids: np.ndarray, positions: np.ndarray, values: np.ndarray,
                  samples: np.ndarray, second: np.ndarray, acc_sum: np.ndarray,
                  acc_second: np.ndarray, acc_n: np.ndarray) -> int:
@@ -414,224 +326,13 @@ def commit_means(ids: np.ndarray, positions: np.ndarray, values: np.ndarray,
     return fresh
 
 
-
-# -- the procedural sky (`baking.environment.SkyEnvironment`), compiled --------------------
-SKY_PARAMS = 19
-"""Length of `sky_params`: zenith, horizon, ground (3 each), sin(horizon blur), sun
-direction (3), cos(sun radius), sun radiance (3), sun probability, 1/(sun cone solid
-angle)."""
-
-
-def sky_params(env) -> np.ndarray:
-    """(SKY_PARAMS,) float64 description of a `SkyEnvironment` for the sky kernels."""
-    cone = 2.0 * math.pi * (1.0 - env.sun_cos_radius)
-    return np.concatenate([
-        env.zenith, env.horizon, env.ground, [math.sin(math.radians(env.horizon_blur))],
-        env.sun_direction, [env.sun_cos_radius], env.sun_radiance, [env.sun_probability],
-        [1.0 / cone if cone > 0 else 0.0],
-    ]).astype(np.float64)
-
-
-def sky_without_sun(p: np.ndarray) -> np.ndarray:
-    """`sky_params` of the same sky without its sun (no sun radiance, no sun sampling)."""
-    out = np.array(p, np.float64)
-    out[14:18] = 0.0
-    return out
-
-
-@numba.njit(**_JIT)
-def _sky_tuple(p: np.ndarray) -> tuple:
-    """The (SKY_PARAMS,) array as a tuple: helpers called per ray take it by value (an
-    array argument costs reference counting on every call, ten times the helper's
-    arithmetic). The helpers are inlined by numba itself (``inline="always"``): left to
-    LLVM they stay calls, and the loops calling them do not vectorise (65 vs 22 ns per
-    light sample)."""
-    return (p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10], p[11], p[12],
-            p[13], p[14], p[15], p[16], p[17], p[18])
-
-
-@numba.njit(**_JIT, inline="always")
-def _sky_sun(p: tuple, x: float, y: float, z: float) -> bool:
-    """Is unit direction (x, y, z) inside the sun's cone? (No branch: it is random.)"""
-    return (p[17] > 0) & (x * p[10] + y * p[11] + z * p[12] >= p[13])
-
-
-@numba.njit(**_JIT, inline="always")
-def _sky_pdf(p: tuple, x: float, y: float, z: float) -> float:
-    """Density (1/sr) of the sky's sampler at unit direction (x, y, z)."""
-    return (1.0 - p[17]) / (4.0 * math.pi) + (p[17] * p[18] if _sky_sun(p, x, y, z) else 0.0)
-
-
-@numba.njit(**_JIT, inline="always")
-def _sky_radiance(p: tuple, x: float, y: float, z: float):
-    """(r, g, b) sky radiance arriving from unit direction (x, y, z)."""
-    h = p[9]
-    t = min(max((z + h) / (2 * h), 0.0), 1.0) if h > 0 else 0.0
-    g = t * t * (3.0 - 2.0 * t) if h > 0 else (1.0 if z >= 0 else 0.0)
-    sun = 1.0 if _sky_sun(p, x, y, z) else 0.0
-    up = max(z, 0.0)
-    return (g * (p[3] + (p[0] - p[3]) * up) + (1.0 - g) * p[6] + sun * p[14],
-            g * (p[4] + (p[1] - p[4]) * up) + (1.0 - g) * p[7] + sun * p[15],
-            g * (p[5] + (p[2] - p[5]) * up) + (1.0 - g) * p[8] + sun * p[16])
-
-
-@numba.njit(**_JIT, inline="always")
-def _sky_sample(p: tuple, sun_frame: tuple, u0: float, u1: np.float32):
-    """The sky sampler's unit direction (x, y, z) for uniforms (u0, u1): the sun cone
-    with probability p_sun, else the whole sphere (`SkyEnvironment.sample`); `sun_frame`
-    is `_frame` of the sun direction, the angle's sine and cosine come from
-    `sincos_turns` (u1 in single precision, below 1). Both candidates are computed and
-    one is selected: a branch on the random u0 mispredicts every other time."""
-    p_sun = p[17]
-    c32, s32 = sincos_turns(u1)
-    cos_phi, sin_phi = float(c32), float(s32)
-    cos_t = 1.0 - (u0 / max(p_sun, 1e-300)) * (1.0 - p[13])
-    sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
-    tx, ty, tz, bx, by, bz = sun_frame
-    cx, cy = sin_t * cos_phi, sin_t * sin_phi
-    v = min((u0 - p_sun) / (1.0 - p_sun), 1.0 - 2.0**-53)
-    z = 1.0 - 2.0 * v
-    rho = math.sqrt(max(0.0, 1.0 - z * z))
-    in_sun = u0 < p_sun
-    return (cx * tx + cy * bx + cos_t * p[10] if in_sun else rho * cos_phi,
-            cx * ty + cy * by + cos_t * p[11] if in_sun else rho * sin_phi,
-            cx * tz + cy * bz + cos_t * p[12] if in_sun else z)
-
-
-@numba.njit(**_JIT)
-def sky_light_samples(p: np.ndarray, keys: np.ndarray, dim: int, normals: np.ndarray):
-    """One importance-sampled sky direction per path vertex, MIS-weighted against cosine
-    sampling (power heuristic), as `integrator._direct_env` does with numpy.
-
-    Args:
-        keys: (M,) path keys; normals: (3, M) unit normals of the vertices.
-
-    Returns:
-        dirs (3, M) float32, contributions (3, M) float64 = L·cos·w/pdf (to be multiplied
-        by the throughput where the shadow ray is not blocked; zero where not useful), and
-        useful (M,) bool (cos > 0 and pdf > 0).
-    """
-    k0, k1 = dimension_key(dim), dimension_key(dim + 1)
-    m = len(keys)
-    dirs = np.empty((3, m), np.float32)
-    contrib = np.empty((3, m))
-    useful = np.empty(m, np.bool_)
-    sun_frame = _frame(p[10], p[11], p[12])
-    p = _sky_tuple(p)
-    for i in range(m):  # no branches: the loop runs at 26 ns per vertex instead of 65
-        x, y, z = _sky_sample(p, sun_frame, uniform31(keys[i], k0), uniform_f32(keys[i], k1))
-        dirs[0, i], dirs[1, i], dirs[2, i] = x, y, z
-        cos = normals[0, i] * x + normals[1, i] * y + normals[2, i] * z
-        pdf = _sky_pdf(p, x, y, z)
-        ok = (cos > 0) & (pdf > 0)
-        useful[i] = ok
-        other = cos / math.pi
-        scale = cos * pdf / (pdf * pdf + other * other) if ok else 0.0  # L·cos·w/pdf
-        r, g, b = _sky_radiance(p, x, y, z)
-        contrib[0, i], contrib[1, i], contrib[2, i] = r * scale, g * scale, b * scale
-    return dirs, contrib, useful
-
-
-@numba.njit(**_JIT)
-def shadow_rays(useful: np.ndarray, pos: np.ndarray, dirs: np.ndarray):
-    """The shadow rays of the (M,) `useful` light samples of vertices at (3, M) `pos`
-    towards (3, M) `dirs`: their indices (K,) int64, origins (3, K) and directions
-    (3, K), float32."""
-    idx = np.flatnonzero(useful)
-    origins = np.empty((3, len(idx)), np.float32)
-    out = np.empty((3, len(idx)), np.float32)
-    for j in range(len(idx)):
-        for c in range(3):
-            origins[c, j] = pos[c, idx[j]]
-            out[c, j] = dirs[c, idx[j]]
-    return idx, origins, out
-
-
-@numba.njit(**_JIT)
-def add_unblocked(result: np.ndarray, alive: np.ndarray, idx: np.ndarray,
-                  blocked: np.ndarray, beta: np.ndarray, contrib: np.ndarray) -> None:
-    """result[alive[idx[j]], :3] += beta[:, idx[j]]·contrib[:, idx[j]] for every shadow
-    ray j that is not `blocked` (beta, contrib: (3, M))."""
-    for j in range(len(idx)):  # without branches: blocked rays add exactly 0
-        i = idx[j]
-        seen = np.float64(not blocked[j])
-        for c in range(3):
-            result[alive[i], c] += beta[c, i] * contrib[c, i] * seen
-
-
-@numba.njit(**_JIT)
-def sky_add_escaped(p: np.ndarray, result: np.ndarray, alive: np.ndarray, prim: np.ndarray,
-                    beta: np.ndarray, dirs: np.ndarray, normals: np.ndarray,
-                    mis: bool) -> None:
-    """result[alive[i], :3] += beta[:, i]·L(dir)·π·w for every cosine-sampled ray i that
-    escaped (prim < 0), w the power-heuristic weight against the sky's light sample when
-    `mis` (the vertex took one), else 1 (beta, dirs, normals: (3, M))."""
-    p = _sky_tuple(p)
-    m = len(prim)
-    added = np.empty((3, m))
-    for i in range(m):  # without branches, in SIMD lanes; hits get zero
-        x, y, z = float(dirs[0, i]), float(dirs[1, i]), float(dirs[2, i])
-        cos = normals[0, i] * x + normals[1, i] * y + normals[2, i] * z
-        own, pdf = cos / math.pi, _sky_pdf(p, x, y, z) if mis else 0.0
-        total = own * own + pdf * pdf
-        weight = math.pi * own * own / total if (total > 0) & (prim[i] < 0) else 0.0
-        r, g, b = _sky_radiance(p, x, y, z)
-        added[0, i], added[1, i], added[2, i] = r * weight, g * weight, b * weight
-    for i in range(m):  # without branches: `added` is 0 for rays that hit
-        row = alive[i]
-        for c in range(3):
-            result[row, c] += beta[c, i] * added[c, i]
-
-
 # -- a chunk of paths in one compiled call, Embree called per ray --------------------------
-_INVALID_ID = np.uint32(0xFFFFFFFF)  # RTC_INVALID_GEOMETRY_ID
-_ALL_GEOMETRY = np.uint32(0xFFFFFFFF)  # a ray mask that every geometry passes
 RAY_RECORD_ROWS = 7
 """Columns of a recording of traced rays: origin (3), direction (3), 1 for an occlusion
 query (0: closest hit)."""
 
 
-@intrinsic
-def _call_embree(typingctx, function, scene, ray):
-    """Call ``void function(RTCScene scene, RTCRay(Hit)* ray, NULL)``: `rtcIntersect1` or
-    `rtcOccluded1` at address `function` (all three arguments are 64-bit integers)."""
-    if not all(isinstance(t, types.Integer) and t.bitwidth == 64
-               for t in (function, scene, ray)):
-        return None
-
-    def codegen(context, builder, signature, args):
-        pointer = ir.IntType(8).as_pointer()
-        callee = ir.FunctionType(ir.VoidType(), [pointer, pointer, pointer])
-        target = builder.inttoptr(args[0], callee.as_pointer())
-        builder.call(target, [builder.inttoptr(args[1], pointer),
-                              builder.inttoptr(args[2], pointer), pointer(None)])
-        return context.get_dummy_value()
-
-    return types.void(function, scene, ray), codegen
-
-
-@numba.njit(**_JIT, inline="always")
-def _set_ray(ray, bits, ox, oy, oz, dx, dy, dz) -> None:
-    """Fill an RTCRayHit (`ray` float32, `bits` its uint32 view) for a query from (ox, oy,
-    oz) towards (dx, dy, dz), distances 0 … ∞, no hit yet."""
-    ray[0], ray[1], ray[2], ray[3] = ox, oy, oz, np.float32(0.0)
-    ray[4], ray[5], ray[6], ray[7] = dx, dy, dz, np.float32(0.0)
-    ray[8] = np.float32(np.inf)
-    bits[9], bits[10], bits[11] = _ALL_GEOMETRY, np.uint32(0), np.uint32(0)  # mask, id, flags
-    bits[18], bits[19] = _INVALID_ID, _INVALID_ID  # geomID, instID[0]
-
-
-@numba.njit(**_JIT)
-def _ray_buffer():
-    """An RTCRayHit (at most 96 bytes) on a 16-byte boundary: its float32 words, the same
-    words as uint32, and its address."""
-    storage = np.empty(40, np.float32)
-    first = (16 - storage.ctypes.data % 16) % 16 // 4
-    ray = storage[first:first + 24]
-    return ray, ray.view(np.uint32), ray.ctypes.data
-
-
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _record(record: np.ndarray, recorded: int, kind: float, pos: np.ndarray,
             dirs: np.ndarray) -> int:
     """Append the (3, M) rays to `record` (capacity, RAY_RECORD_ROWS) with their kind
@@ -648,47 +349,7 @@ def _record(record: np.ndarray, recorded: int, kind: float, pos: np.ndarray,
     return recorded + pos.shape[1]
 
 
-@numba.njit(**_JIT)
-def intersect_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray):
-    """Closest hits of (3, M) float32 rays (distances 0 … ∞), Embree called per ray
-    (`trace.EmbreeCalls`).
-
-    Returns:
-        t (M,) float32 distances, prim (M,) int32 triangle ids (-1: no hit), ng (M, 3)
-        float32 unnormalised facet normals — as embreex's ``run(..., output=1)``.
-    """
-    scene, intersect, _ = calls
-    ray, bits, address = _ray_buffer()
-    m = pos.shape[1]
-    t = np.empty(m, np.float32)
-    prim = np.empty(m, np.int32)
-    ng = np.empty((m, 3), np.float32)
-    for i in range(m):
-        _set_ray(ray, bits, pos[0, i], pos[1, i], pos[2, i], dirs[0, i], dirs[1, i],
-                 dirs[2, i])
-        _call_embree(intersect, scene, address)
-        t[i] = ray[8]
-        prim[i] = -1 if bits[18] == _INVALID_ID else np.int32(bits[17])
-        ng[i, 0], ng[i, 1], ng[i, 2] = ray[12], ray[13], ray[14]
-    return t, prim, ng
-
-
-@numba.njit(**_JIT)
-def occluded_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """(M,) bool: does anything block the (3, M) float32 rays (distances 0 … ∞)?"""
-    scene, _, occluded = calls
-    ray, bits, address = _ray_buffer()
-    m = pos.shape[1]
-    blocked = np.empty(m, np.bool_)
-    for i in range(m):
-        _set_ray(ray, bits, pos[0, i], pos[1, i], pos[2, i], dirs[0, i], dirs[1, i],
-                 dirs[2, i])
-        _call_embree(occluded, scene, address)
-        blocked[i] = ray[8] < 0  # tfar becomes -inf when something is hit
-    return blocked
-
-
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
                 samples: np.ndarray, texels: np.ndarray, origins: np.ndarray,
                 normals: np.ndarray, bounces: int, albedo: np.ndarray, offset: float,

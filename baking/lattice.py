@@ -23,9 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
+from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
 
 FORMAT_VERSION = 1
+CONFIG_VERSION = 1
+"""Version of the bake config a file's metadata holds (``meta["config"]``, written with
+``meta["config_version"]``); a file without one holds version 1's fields."""
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -113,7 +117,10 @@ class Lattice:
         samples: (Z, Y, X) uint32 paths averaged into each texel (0 = not computed).
         second: (Z, Y, X) float32 mean of the squared per-path luminance estimate.
         active: (Z, Y, X) bool, texels the bake must fill.
-        meta: format version, kind, volume identity, bake config, statistics.
+        meta: format version, kind, volume identity, statistics (JSON-ready).
+        config: the `BakeConfig` the lattice is baked with, or None. The file holds it as
+            a dict in its metadata (`save`, `load`: the only readers and writers of that
+            dict, with its version `CONFIG_VERSION`).
         preview: None, or (Z, Y, X, C) float32 estimates traced on the *displayed*
             isosurface (the lazy viewer's preview passes, `baking.preview`); never saved.
         preview_paths: None, or (Z, Y, X) uint16 paths behind each preview (0 = none).
@@ -129,30 +136,20 @@ class Lattice:
     meta: dict = field(default_factory=dict)
     preview: np.ndarray | None = None
     preview_paths: np.ndarray | None = None
+    config: BakeConfig | None = None
 
     @classmethod
-    def empty(cls, geometry: LatticeGeometry, channels: int, meta: dict) -> Lattice:
-        """A lattice with nothing computed."""
+    def empty(cls, geometry: LatticeGeometry, channels: int, meta: dict,
+              config: BakeConfig | None = None) -> Lattice:
+        """A lattice with nothing computed, baked with `config`."""
         shape = geometry.shape
         return cls(geometry, np.zeros((*shape, channels), np.float32),
                    np.zeros(shape, np.uint32), np.zeros(shape, np.float32),
-                   np.zeros(shape, bool), meta)
+                   np.zeros(shape, bool), meta, config=config)
 
     @property
     def kind(self) -> str:
         return self.meta.get("kind", "irradiance")
-
-    @property
-    def config(self):
-        """The `BakeConfig` the lattice was baked with (None when the file names none)."""
-        from .config import BakeConfig
-
-        d = self.meta.get("config")
-        return None if d is None else BakeConfig.from_dict(d)
-
-    @config.setter
-    def config(self, config) -> None:
-        self.meta["config"] = config.to_dict()
 
     @property
     def computed(self) -> np.ndarray:
@@ -229,6 +226,8 @@ class Lattice:
         meta = dict(self.meta, format_version=FORMAT_VERSION,
                     shape=list(self.geometry.shape), box_lo=list(self.geometry.lo),
                     box_hi=list(self.geometry.hi))
+        if self.config is not None:
+            meta.update(config=self.config.to_dict(), config_version=CONFIG_VERSION)
         fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
         try:
             with os.fdopen(fd, "wb") as f:
@@ -260,13 +259,15 @@ class Lattice:
         if version != FORMAT_VERSION:
             raise BakeError(f"{path}: lattice format version {version}, this isolume reads "
                             f"{FORMAT_VERSION}")
+        config = _config_from(meta.pop("config", None),
+                              meta.pop("config_version", CONFIG_VERSION), path)
         geometry = LatticeGeometry(tuple(meta["shape"]), tuple(meta["box_lo"]),
                                    tuple(meta["box_hi"]))
         if arrays["values"].shape[:3] != geometry.shape:
             raise BakeError(f"{path}: values of shape {arrays['values'].shape} do not match "
                             f"the lattice shape {geometry.shape}")
         lattice = cls(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                      arrays["active"], meta)
+                      arrays["active"], meta, config=config)
         if volume is not None:
             lattice.check_volume(volume, path)
         return lattice
@@ -281,6 +282,21 @@ class Lattice:
                 f"(hash {str(want.get('hash'))[:12]}), not for {volume.name!r} of shape "
                 f"{shape} (hash {volume.data_hash()[:12]}); bake it for this volume"
             )
+
+
+def _config_from(d: dict | None, version: int, path: Path) -> BakeConfig | None:
+    """The `BakeConfig` of the config dict of version `version` in the file `path` (None
+    for None).
+
+    Raises:
+        BakeError: a newer version than `CONFIG_VERSION`, or a bad config.
+    """
+    if d is None:
+        return None
+    if version > CONFIG_VERSION:
+        raise BakeError(f"{path}: bake config version {version}, this isolume reads up to "
+                        f"{CONFIG_VERSION}")
+    return BakeConfig.from_dict(d)
 
 
 def volume_identity(volume) -> dict:

@@ -41,7 +41,6 @@ light's value stays until then, and no mean averages paths of two lights.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -49,7 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry
+from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
 from isolume.baking.plan import Plan
 
 FIRST_TARGET = 4
@@ -68,6 +67,18 @@ vertices of its own each: `volumes.tracing_surface` — and Embree's BVH)."""
 VIEW_RANGE_FRACTION = 0.05
 """A lazy bake that follows the displayed isovalue bakes for the isovalues within this
 fraction of the data range on either side of it (`view_iso_range`)."""
+
+
+def new_lattice(volume, config) -> Lattice:
+    """An empty lattice for `volume` baked with `config`, with the metadata `baking.bake`
+    writes: what a lazy bake, or a view's traced light, fills."""
+    from isolume.baking.bake import path_settings
+
+    channels = path_settings(volume, config).channels
+    meta = {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
+            "scale": config.scale, "volume": volume_identity(volume), "channels": channels}
+    return Lattice.empty(LatticeGeometry.for_volume(volume, config.scale), channels, meta,
+                         config=config)
 
 
 # -- the iso range around the displayed surface --------------------------------------------
@@ -115,19 +126,14 @@ says "not turned" below it too)."""
 
 
 def turned_light(config) -> np.ndarray | None:
-    """(3,) unit vector towards the light a viewer turns under `config`: the first distant
-    light of `baking.lights.pixel_lights` (its first directional light, else its sky's
-    sun), the one `app.render.renderer.aimed_lights` aims. None when there is none or it is not
-    shaded per pixel: a lattice holding its direct light, or an SH transfer (its sky and
-    sun turn with the transfer; nothing to bake again)."""
-    from isolume.baking.lights import DirectionalLight, SunLight, pixel_lights
-
+    """(3,) unit vector towards the light a viewer turns under `config`
+    (`baking.lighting.Lighting.turnable`, the one `app.render.lights.aimed_lights` aims), or
+    None when there is none or it is not shaded per pixel: a lattice holding its direct
+    light, or an SH transfer (its sky and sun turn with the transfer; nothing to bake)."""
     if config.mode != "irradiance" or config.direct_light != "pixels":
         return None
-    for light in pixel_lights(config.env, config.lights):
-        if isinstance(light, DirectionalLight | SunLight):
-            return np.asarray(light.direction, np.float64)
-    return None
+    light = config.lighting.turnable()
+    return None if light is None else np.asarray(light.direction, np.float64)
 
 
 def same_direction(a, b) -> bool:
@@ -137,33 +143,12 @@ def same_direction(a, b) -> bool:
 
 
 def relit_config(config, direction):
-    """`config` with the light `turned_light` names pointing towards `direction` (3,): a
-    ``dir:`` light spec with the new vector, or the sky with the new ``sun_az``/``sun_el``
-    (`baking.environment.SkyEnvironment`: (cos el cos az, cos el sin az, sin el))."""
-    d = np.asarray(direction, np.float64)
-    d = d / np.linalg.norm(d)
-    xyz = ",".join(f"{v:.9g}" for v in d)
-    lights = list(config.lights)
-    for i, spec in enumerate(lights):
-        kind, _, rest = spec.partition(":")
-        if kind == "dir":
-            lights[i] = f"dir:{xyz}:{rest.split(':', 1)[1]}"
-            return dataclasses.replace(config, lights=tuple(lights))
+    """`config` with the light `turned_light` names pointing towards `direction` (3,)
+    (`baking.lighting.Lighting.turned`); ValueError when it names none."""
     if turned_light(config) is None:
-        raise ValueError(f"{config.env!r} {config.lights}: no per-pixel directional light "
-                         "or sun to turn")
-    head, _, body = config.env.partition(":")
-    entries: list[str] = []  # "key=v[,v,v]" of the sky spec
-    for token in filter(None, (t.strip() for t in body.split(","))):
-        if "=" in token:
-            entries.append(token)
-        else:
-            entries[-1] += "," + token
-    kept = [e for e in entries if e.split("=", 1)[0].strip() not in ("sun_az", "sun_el")]
-    az = math.degrees(math.atan2(d[1], d[0]))
-    el = math.degrees(math.asin(float(np.clip(d[2], -1.0, 1.0))))
-    env = f"{head}:" + ",".join([*kept, f"sun_az={az:.9g}", f"sun_el={el:.9g}"])
-    return dataclasses.replace(config, env=env)
+        env, lights = config.lighting.to_spec()
+        raise ValueError(f"{env!r} {lights}: no per-pixel directional light or sun to turn")
+    return config.with_lighting(config.lighting.turned(direction))
 
 
 class Relight:
@@ -198,9 +183,9 @@ class Relight:
         self.fresh = Lattice(
             shown.geometry, np.zeros((*shape, channels), np.float32),
             np.zeros(shape, np.uint32), np.zeros(shape, np.float32), shown.active,
-            {**shown.meta, "config": config.to_dict()},
+            dict(shown.meta),
             preview=np.zeros((*shape, channels), np.float32) if previews else None,
-            preview_paths=np.zeros(shape, np.uint16) if previews else None)
+            preview_paths=np.zeros(shape, np.uint16) if previews else None, config=config)
         self.shown, self.config = shown, config
         if published is None:
             published = np.zeros(shape, bool)

@@ -5,9 +5,9 @@
 * ``dir:X,Y,Z:R,G,B``: a distant light; (X, Y, Z) points *towards* the light, so its
   light travels along −(X, Y, Z); (R, G, B) is the irradiance at normal incidence.
 
-`pixel_lights` lists what a renderer shades per pixel when a lattice is baked with
-``direct_light="pixels"``: these lights and the procedural sky's sun (`SunLight`, a
-distant disc whose soft shadow edge comes from its angular radius).
+`baking.lighting.Lighting.pixel_lights` lists what a renderer shades per pixel when a
+lattice is baked with ``direct_light="pixels"``: these lights and the procedural sky's
+sun (`SunLight`, a distant disc whose soft shadow edge comes from its angular radius).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ class PointLight:
 
     @property
     def spec(self) -> str:
-        return "point:" + _join(self.position) + ":" + _join(self.intensity)
+        return light_spec("point", self.position, self.intensity)
 
     def towards(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For (N, 3) points: unit directions to the light, distances, irradiance (N, 3)."""
@@ -44,7 +44,7 @@ class DirectionalLight:
 
     @property
     def spec(self) -> str:
-        return "dir:" + _join(self.direction) + ":" + _join(self.irradiance)
+        return light_spec("dir", self.direction, self.irradiance)
 
     def towards(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For (N, 3) points: unit directions to the light, distances (inf), irradiance."""
@@ -71,35 +71,20 @@ class SunLight:
 Light = PointLight | DirectionalLight
 
 
-def has_pixel_lights(env_spec: str, light_specs: tuple[str, ...]) -> bool:
-    """True when `pixel_lights` of these specs is not empty (an image environment is not
-    read: it has no sun to split off)."""
-    return bool(light_specs) or _sun_of(env_spec) is not None
-
-
-def pixel_lights(env_spec: str, light_specs: tuple[str, ...]
-                 ) -> tuple[PointLight | DirectionalLight | SunLight, ...]:
-    """The lights shaded per pixel under ``direct_light="pixels"``: every ``--light`` and
-    the sun of a procedural sky (last)."""
-    sun = _sun_of(env_spec)
-    return tuple(parse_light(s) for s in light_specs) + (() if sun is None else (sun,))
-
-
-def _sun_of(env_spec: str) -> SunLight | None:
-    """The `SunLight` of a ``sky:...`` spec with a sun, else None."""
-    if not env_spec or env_spec.split(":", 1)[0].strip() != "sky":
-        return None
-    from isolume.baking.environment import parse_env
-
-    sky = parse_env(env_spec)
-    if sky.sun_probability == 0:
-        return None
-    return SunLight(tuple(float(v) for v in sky.sun_direction), tuple(sky.sun),
-                    float(sky.sun_radius))
+def light_spec(kind: str, xyz, rgb) -> str:
+    """The ``KIND:X,Y,Z:R,G,B`` spec of a light ("point" or "dir"), whose numbers read back
+    as the same floats."""
+    return f"{kind}:{_join(xyz)}:{_join(rgb)}"
 
 
 def _join(values) -> str:
-    return ",".join(f"{v:g}" for v in values)
+    """Numbers as a spec writes them: the shortest text that reads back the same float."""
+    return ",".join(_number(v) for v in values)
+
+
+def _number(value: float) -> str:
+    text = repr(float(value))
+    return text[:-2] if text.endswith(".0") else text
 
 
 def _triple(text: str, spec: str, what: str) -> tuple[float, float, float]:

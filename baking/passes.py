@@ -21,8 +21,8 @@ from isolume import volumes
 from isolume.baking import kernels
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import (
-    Lighting,
     PathSettings,
+    TracingLights,
     WholePaths,
     trace_paths,
     trace_whole_paths,
@@ -164,7 +164,7 @@ class Tracing:
     """
 
     ids: np.ndarray
-    lighting: Lighting
+    lighting: TracingLights
     settings: PathSettings
     seed_key: np.uint32
     weights: np.ndarray

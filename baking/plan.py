@@ -32,6 +32,7 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking.config import BakeConfig
+from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.rng import pcg_hash
@@ -359,7 +360,7 @@ def noise_free(config: BakeConfig) -> bool:
     """True when every path of a texel gives the same estimate: point and directional
     lights only (one shadow ray each), no bounces. The levels are then the only error,
     and are neither loosened by the samples nor capped by the scenes' cost."""
-    return not config.env and config.bounces == 0
+    return config.lighting.environment is None and config.bounces == 0
 
 
 def level_budget(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
@@ -375,7 +376,8 @@ def level_budget(volume: volumes.Volume, geometry: LatticeGeometry, config: Bake
     """
     if config.max_move is not None or noise_free(config):
         return config.max_levels
-    sampled = bool(config.lights) or not config.env.startswith("constant")
+    lighting = config.lighting
+    sampled = bool(lighting.lights) or not isinstance(lighting.environment, ConstantEnvironment)
     rays = texels * config.samples * (config.bounces + 1) * (2 if sampled else 1)
     voxels_per_cell = float(np.prod(np.asarray(volume.data.shape) / geometry.shape))
     triangles = 2 * crossed * voxels_per_cell ** (2 / 3)

@@ -30,7 +30,7 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels, rng
-from isolume.baking.bake import make_lighting, path_settings
+from isolume.baking.bake import path_settings, tracing_lights
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import whole_paths
 from isolume.baking.lattice import Lattice
@@ -236,7 +236,7 @@ def preview_tracing(volume: volumes.Volume, config: BakeConfig) -> Tracing:
     """What the previews trace with (lighting parsed once: an HDR map is read and its
     sampler built here, not at every preview step); `_trace` fills in the texels and
     their sums. Previews take their own random numbers (`SEED_SALT`)."""
-    lighting, settings = make_lighting(config), path_settings(volume, config)
+    lighting, settings = tracing_lights(config), path_settings(volume, config)
     return Tracing(np.zeros(0, np.int64), lighting, settings,
                    np.uint32(rng.seed_key(config.seed ^ SEED_SALT)),
                    np.zeros(settings.channels), PassSums(0, settings.channels),

@@ -41,10 +41,10 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import rng
-from isolume.baking.bake import make_lighting, path_settings
+from isolume.baking.bake import path_settings, tracing_lights
 from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
-from isolume.baking.integrator import Lighting, PathSettings, RayStats, trace_paths
+from isolume.baking.integrator import PathSettings, RayStats, TracingLights, trace_paths
 from isolume.baking.lattice import volume_identity
 
 STATE_VERSION = 1
@@ -165,7 +165,7 @@ def _stopped(stop: threading.Event | None) -> bool:
     return stop is not None and stop.is_set()
 
 
-def rotated_lighting(lighting: Lighting, rotation: np.ndarray | None) -> Lighting:
+def rotated_lighting(lighting: TracingLights, rotation: np.ndarray | None) -> TracingLights:
     """`lighting` with its environment turned by the (3, 3) `rotation` (None: unchanged).
     A procedural sky's compiled parameters describe the unturned sky: they are dropped, so
     the turned one is sampled through its own methods."""
@@ -177,7 +177,7 @@ def rotated_lighting(lighting: Lighting, rotation: np.ndarray | None) -> Lightin
                                sky=None)
 
 
-def background(lighting: Lighting, dirs: np.ndarray) -> np.ndarray:
+def background(lighting: TracingLights, dirs: np.ndarray) -> np.ndarray:
     """(N, 3) radiance seen along (N, 3) rays that miss the surface: the environment's,
     or black without one."""
     if lighting.env is None:
@@ -242,7 +242,7 @@ def pending_samples(positions, done, remaining) -> tuple[np.ndarray, np.ndarray]
     return pos, starts + np.arange(len(pos))
 
 
-def _trace_job(scene, hits: PrimaryHits, job: _Job, lighting: Lighting,
+def _trace_job(scene, hits: PrimaryHits, job: _Job, lighting: TracingLights,
                settings: PathSettings, seed: int):
     """Worker: trace one job's paths.
 
@@ -346,7 +346,7 @@ class ReferenceTracer:
         config = dataclasses.replace(config, direct_light="lattice")  # all the light
         self.volume, self.iso, self.config, self.smooth = volume, float(iso), config, smooth
         self.counters = TraceCounters()
-        self.lighting = rotated_lighting(make_lighting(config), env_rotation)  # bad specs first
+        self.lighting = rotated_lighting(tracing_lights(config), env_rotation)  # bad specs first
         self.settings = path_settings(volume, config)
         self.mesh = volumes.isosurface(volume, iso, normals="smooth" if smooth else "gradient",
                                        flip_normals=config.flip_normals)

@@ -39,7 +39,13 @@ from functools import lru_cache
 
 import numpy as np
 
-from isolume.baking import environment as _env
+from isolume.baking.environment import (
+    ConstantEnvironment,
+    ImageEnvironment,
+    RotatedEnvironment,
+    SkyEnvironment,
+    as_dirs,
+)
 
 __all__ = [
     "band_rotation",
@@ -151,9 +157,6 @@ def _azimuthal_factors(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
     return out
 
 
-_as_dirs = _env._as_dirs  # one validation of (N, 3) direction arrays for both modules
-
-
 def basis(dirs: np.ndarray, order: int) -> np.ndarray:
     """Real SH basis values.
 
@@ -162,7 +165,7 @@ def basis(dirs: np.ndarray, order: int) -> np.ndarray:
     column i = l(l+1)+m. Any order ≥ 1 (stable recurrences, tested to order 10).
     """
     order = _check_order(order)
-    d = _as_dirs(dirs)
+    d = as_dirs(dirs)
     return _legendre_bar(d[:, 2], order) * _azimuthal_factors(d[:, 0], d[:, 1], order)
 
 
@@ -247,17 +250,17 @@ def project_environment(env, order: int, window=None) -> np.ndarray:
 
 
 def _project_unwindowed(env, order: int) -> np.ndarray:
-    if isinstance(env, _env.ConstantEnvironment):
+    if isinstance(env, ConstantEnvironment):
         out = np.zeros((order * order, 3))
         out[0] = np.asarray(env.rgb) * math.sqrt(4.0 * math.pi)
         return out
-    if isinstance(env, _env.SkyEnvironment):
+    if isinstance(env, SkyEnvironment):
         return _project_sky(env, order)
-    if isinstance(env, _env.ImageEnvironment):
+    if isinstance(env, ImageEnvironment):
         if env.mapping == "latlong":
             return _project_latlong(env.pixels, order)
         return _project_by_pixel_centres(env, order)
-    if isinstance(env, _env.RotatedEnvironment):
+    if isinstance(env, RotatedEnvironment):
         return rotation(env.rotation, order) @ _project_unwindowed(env.inner, order)
     return project_function(env.radiance, order, n=_GENERIC_GRID_N)
 
@@ -367,12 +370,12 @@ def irradiance_coefficients(l_coeffs: np.ndarray, order: int | None = None) -> n
     return c[: order * order] * a.reshape((-1,) + (1,) * (c.ndim - 1))
 
 
-def transfer_blocks(meta: dict) -> int:
-    """Transfer blocks per texel of a lattice with metadata `meta`: 2 for an SH bake with
-    ``direct_light="pixels"`` (direct transfer T₀, then indirect T₁:
+def transfer_blocks(lattice) -> int:
+    """Transfer blocks per texel of `lattice` (a `baking.lattice.Lattice`): 2 for an SH bake
+    with ``direct_light="pixels"`` (direct transfer T₀, then indirect T₁:
     `baking.integrator`), else 1."""
-    config = meta.get("config") or {}
-    split = meta.get("kind") == "sh" and config.get("direct_light") == "pixels"
+    config = lattice.config
+    split = lattice.kind == "sh" and config is not None and config.direct_light == "pixels"
     return 2 if split else 1
 
 

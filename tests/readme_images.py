@@ -14,7 +14,7 @@ from PIL import Image, ImageDraw
 
 from isolume import volumes
 from isolume.app.render.offscreen import render_volume
-from isolume.app.render.renderer import RenderSettings
+from isolume.app.render.settings import RenderSettings
 from isolume.baking import BakeConfig, bake, sh
 from isolume.baking.environment import parse_env
 

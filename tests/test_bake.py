@@ -260,7 +260,7 @@ def test_level_approximation_error_shrinks_with_more_levels():
     The noise of (lattice - exact) is sqrt(2) standard errors per texel (independent
     estimates of equal variance); the finest scheme must come within 3x that.
     """
-    from isolume.baking.bake import make_lighting, path_settings
+    from isolume.baking.bake import path_settings, tracing_lights
     from isolume.baking.integrator import trace_paths
     from isolume.baking.passes import start_points
     from isolume.baking.plan import make_plan
@@ -275,7 +275,7 @@ def test_level_approximation_error_shrinks_with_more_levels():
     rng = np.random.default_rng(5)
     pick = np.sort(rng.choice(len(plan.ids), 12, replace=False))
     exact, stderr = [], []
-    lighting, settings = make_lighting(base), path_settings(vol, base)
+    lighting, settings = tracing_lights(base), path_settings(vol, base)
     for pos in pick:
         iso = float(plan.target[pos])
         mesh = volumes.isosurface(vol, iso)
@@ -319,7 +319,7 @@ def test_lattice_metadata(tmp_path):
     meta = lattice.meta
     assert meta["format_version"] == 1 and meta["kind"] == "irradiance"
     assert meta["volume"]["shape"] == [24, 24, 24] and meta["volume"]["hash"] == vol.data_hash()
-    assert BakeConfig.from_dict(meta["config"]) == config
+    assert lattice.config == config and "config" not in meta
     assert meta["rays_traced"] > 0 and meta["trace_seconds"] > 0
     assert lattice.values.shape == (24, 24, 24, 3) and lattice.samples.dtype == np.uint32
     assert not list(tmp_path.glob("*.tmp"))  # atomic write left no temporary

@@ -22,7 +22,7 @@ from PIL import Image as PILImage
 
 from isolume.app.charts import builders, charts, lighting, metrics, tracing
 from isolume.app.cli import main
-from isolume.app.render.renderer import SHADING_MODES
+from isolume.app.render.settings import SHADING_MODES
 from isolume.baking.reference import ReferenceImage
 
 CHART_NAMES = ("chart1_bake_time", "chart2_resolution", "chart3_lookup_normals",

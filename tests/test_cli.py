@@ -222,7 +222,7 @@ SCANS = [("engine_zfp_256x256x128_uint8.raw.gz", []),
 @pytest.mark.parametrize(("name", "extra"), SCANS)
 def test_default_pictures_of_real_scans_are_exposed_right(tmp_path, capsys, name, extra):
     """The default picture of the engine CT and CThead: the surface's median pixel lies in
-    100–180 of 255 and its 95th percentile at most 240 (issue 15; measured 158 / 142 and
+    100–180 of 255 and its 95th percentile at most 240 (measured 158 / 142 and
     190 / 200)."""
     if not (SHARED / name).exists():
         pytest.skip(f"{SHARED / name} not present (../shared is optional)")

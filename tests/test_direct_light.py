@@ -1,4 +1,4 @@
-"""Split direct light (issue 14): lattices without the lights' and the sun's direct light,
+"""Split direct light: lattices without the lights' and the sun's direct light,
 which the renderer adds per pixel with shadow maps.
 
 The baker's part is checked against the full estimate on the same paths (only the first
@@ -17,25 +17,22 @@ from test_viewer import _surface, _view, display  # noqa: F401  (display: an Xvf
 
 from isolume import volumes
 from isolume.app.render.camera import Camera
-from isolume.app.render.renderer import (
-    RenderError,
-    RenderSettings,
-    direct_tiles,
-    lattice_direct_lights,
-)
-from isolume.baking import kernels, rng
+from isolume.app.render.lights import lattice_direct_lights
+from isolume.app.render.settings import RenderError, RenderSettings, direct_tiles
+from isolume.baking import kernels, rng, sky_kernels
 from isolume.baking.config import BakeConfig
 from isolume.baking.environment import parse_env, sample_uniform_cone
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import (
-    Lighting,
     PathSettings,
+    TracingLights,
     trace_paths,
     trace_whole_paths,
     whole_paths,
 )
 from isolume.baking.lattice import Lattice, LatticeGeometry
-from isolume.baking.lights import DirectionalLight, PointLight, SunLight, parse_light, pixel_lights
+from isolume.baking.lighting import Lighting
+from isolume.baking.lights import DirectionalLight, PointLight, SunLight, parse_light
 from isolume.baking.trace import Scene
 
 
@@ -68,21 +65,22 @@ def test_bad_direct_light_settings_say_what_was_expected(changes, message):
 
 
 def test_pixel_lights_are_the_lights_then_the_sun():
-    lights = pixel_lights("sky:sun=2,sun_az=90,sun_el=30,sun_radius=1.5",
-                          ("dir:0,0,1:1,2,3", "point:1,2,3:4,4,4"))
+    lights = Lighting.parse("sky:sun=2,sun_az=90,sun_el=30,sun_radius=1.5",
+                            ("dir:0,0,1:1,2,3", "point:1,2,3:4,4,4")).pixel_lights()
     assert lights[:2] == (parse_light("dir:0,0,1:1,2,3"), parse_light("point:1,2,3:4,4,4"))
     sun = lights[2]
     assert isinstance(sun, SunLight) and sun.radius == 1.5 and sun.irradiance == (2, 2, 2)
     np.testing.assert_allclose(sun.direction, [0, np.cos(np.pi / 6), 0.5], atol=1e-12)
-    assert pixel_lights("sky", ()) == () and pixel_lights("constant:1", ()) == ()
+    assert Lighting.parse("sky", ()).pixel_lights() == ()
+    assert Lighting.parse("constant:1", ()).pixel_lights() == ()
 
 
 # -- the baker's split --------------------------------------------------------------------
 def test_bakes_leave_out_the_direct_light_their_config_sends_to_the_pixels():
-    from isolume.baking.bake import make_lighting
+    from isolume.baking.bake import tracing_lights
 
-    assert make_lighting(BakeConfig(env="sky:sun=3")).pixel_direct
-    assert not make_lighting(BakeConfig(env="sky:sun=3", direct_light="lattice")).pixel_direct
+    assert tracing_lights(BakeConfig(env="sky:sun=3")).pixel_direct
+    assert not tracing_lights(BakeConfig(env="sky:sun=3", direct_light="lattice")).pixel_direct
 
 
 @pytest.fixture(scope="module")
@@ -98,10 +96,10 @@ def engine_starts():
     return scene, origins.astype(np.float32), normals.astype(np.float32), vol
 
 
-def _lighting(env: str, lights=(), pixel_direct=False) -> Lighting:
+def _lighting(env: str, lights=(), pixel_direct=False) -> TracingLights:
     sky = parse_env(env)
-    return Lighting(sky, True, tuple(parse_light(s) for s in lights),
-                    kernels.sky_params(sky), pixel_direct=pixel_direct)
+    return TracingLights(sky, True, tuple(parse_light(s) for s in lights),
+                    sky_kernels.sky_params(sky), pixel_direct=pixel_direct)
 
 
 def _paths(engine_starts, samples: int):
@@ -148,7 +146,7 @@ def test_split_lattice_misses_exactly_the_first_vertex_direct_light(engine_start
     split = trace_paths(scene, origins, normals, keys, _lighting(env, lights, True), settings)
     points = len(engine_starts[1])
     difference = (full - split).reshape(points, samples, 3)
-    sun = pixel_lights(env, ())[0]
+    sun = Lighting.parse(env, ()).pixel_lights()[0]
     want = _direct_irradiance(scene, engine_starts[1], engine_starts[2],
                               [parse_light(s) for s in lights], sun)
     mean = difference.mean(axis=1)
@@ -210,8 +208,8 @@ class _Sums:
 def test_sunless_sky_parameters_are_those_of_the_sky_without_sun():
     for spec in ("sky:sun=3", "sky:sun=5,sun_el=10,sun_radius=2,horizon_blur=0"):
         sky = parse_env(spec)
-        np.testing.assert_array_equal(kernels.sky_without_sun(kernels.sky_params(sky)),
-                                      kernels.sky_params(sky.without_sun()))
+        np.testing.assert_array_equal(sky_kernels.sky_without_sun(sky_kernels.sky_params(sky)),
+                                      sky_kernels.sky_params(sky.without_sun()))
 
 
 # -- the renderer's shadows ---------------------------------------------------------------
@@ -445,8 +443,9 @@ def test_split_sh_sun_is_the_same_whether_the_transfer_is_deferred_or_not(render
     pictures, deferred = [], []
     for order in (3, 5):
         config = BakeConfig(mode="sh", sh_order=order, env="sky:sun=3", direct_light="pixels")
-        meta = {"kind": "sh", "sh_order": order, "config": config.to_dict()}
-        lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 0.5), 2 * order * order, meta)
+        meta = {"kind": "sh", "sh_order": order}
+        lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 0.5), 2 * order * order, meta,
+                                config=config)
         lattice.samples[...] = 1  # computed, and zero
         renderer.set_lattice(lattice)
         renderer.set_environment(sh.display_coefficients(parse_env("sky:sun=3"), order,
@@ -479,14 +478,15 @@ def test_bench_frames_times_the_sun_per_pixel_beside_phong_shadow():
 # -- the renderer reads the lattice's setting ---------------------------------------------
 def test_lattice_direct_lights_follow_the_bake_setting():
     config = BakeConfig(env="sky:sun=3", lights=("dir:0,0,1:1,1,1",))
-    meta = {"kind": "irradiance", "config": config.to_dict()}
     lattice = _zero_lattice((0, 0, 0), (1, 1, 1))
-    lattice.meta.update(meta)
+    lattice.meta["kind"], lattice.config = "irradiance", config
     lights = lattice_direct_lights(lattice)
     assert len(lights) == 2 and isinstance(lights[1], SunLight)
-    lattice.meta["config"] = dataclasses.replace(config, direct_light="lattice").to_dict()
+    lattice.config = dataclasses.replace(config, direct_light="lattice")
     assert lattice_direct_lights(lattice) == ()
-    del lattice.meta["config"]["direct_light"]  # a file from before the setting
+    old = config.to_dict()
+    del old["direct_light"]  # a file from before the setting
+    lattice.config = BakeConfig.from_dict(old)
     assert lattice_direct_lights(lattice) == ()
 
 
@@ -513,8 +513,8 @@ def test_sun_on_an_isosurface_matches_ray_cast_shadows(renderer):
     config = BakeConfig(samples=256, bounces=0, env="sky:zenith=0,horizon=0,ground=0,sun=3",
                         direct_light="pixels")
     lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 0.25), 3,
-                            {"kind": "irradiance", "config": config.to_dict(),
-                             "volume": volume_identity(vol)})
+                            {"kind": "irradiance", "volume": volume_identity(vol)},
+                            config=config)
     lattice.samples[...] = 1  # no light of its own: only the sun, per pixel
     renderer.set_lattice(lattice)
     camera = Camera(azimuth=200, elevation=35, distance=1.6,
@@ -540,11 +540,11 @@ def test_viewer_moves_the_sun_with_exact_shadows(display, tmp_path):  # noqa: F8
     """A lattice whose sun is shaded per pixel: turning the light in the viewer moves the
     sun's light and shadows (the lattice's part of the picture stays), "light camera" puts
     it back where it was baked."""
-    from isolume.app.viewer.bake_client import lattice_meta
+    from isolume.baking.lazy import new_lattice
 
     vol = volumes.load("synthetic:engine:48")
     config = BakeConfig(env="sky:sun=3", samples=1)
-    lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 1.0), 3, lattice_meta(vol, config))
+    lattice = new_lattice(vol, config)
     lattice.values[...] = 0.4
     lattice.samples[...] = 1
     lattice.active[...] = True
@@ -571,19 +571,19 @@ def test_viewer_moves_the_sun_with_exact_shadows(display, tmp_path):  # noqa: F8
 
 
 def test_viewer_light_note_says_when_the_bounced_light_is_stale(gl):
-    from isolume.app.viewer.bake_client import lattice_meta
     from isolume.app.viewer.draw import Drawing, ViewState
     from isolume.app.viewer.panel import direction_from_angles
+    from isolume.baking.lazy import new_lattice
 
     vol = volumes.load("synthetic:sphere:16")
     config = BakeConfig(env="sky:sun=3,sun_az=45,sun_el=40", samples=1)
-    lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 1.0), 3, lattice_meta(vol, config))
+    lattice = new_lattice(vol, config)
     drawing = Drawing(gl, vol, auto_exposure=False)
     try:
         assert drawing.show_lattice(lattice) is None
         state = ViewState(iso=0.5, shading="irradiance", exposure=1.0)
         assert "shaded per pixel" in drawing.light_note(state)
-        sun = pixel_lights(config.env, ())[0]
+        sun = Lighting.parse(config.env, ()).pixel_lights()[0]
         start = drawing.light_angles(state, None)  # the drag starts at the baked sun
         np.testing.assert_allclose(direction_from_angles(*start), sun.direction, atol=1e-9)
         state.light = (start[0] + 30.0, start[1])
@@ -599,7 +599,7 @@ def test_viewer_light_note_says_when_the_bounced_light_is_stale(gl):
 def test_several_lights_add_up(renderer):
     """Each light is one call of the specialised shader (`direct_sum`); together they
     give the sum of their pictures (the lattice's light counted once)."""
-    from isolume.app.render.renderer import direct_sum
+    from isolume.app.render.lights import direct_sum
 
     sun = SunLight(tuple(SUN), (2.0, 2.0, 2.0), 3.0)
     hard = DirectionalLight((-0.3, 0.4, 0.8), (1.0, 0.5, 0.25))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from isolume.app.render.camera import FRAME_FILL, Camera, frame_box
-from isolume.app.render.renderer import EXPOSURE_KEY, auto_exposure_scale
+from isolume.app.render.exposure import EXPOSURE_KEY, auto_exposure_scale
 
 
 def _ndc(camera: Camera, aspect: float, points) -> np.ndarray:

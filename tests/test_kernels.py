@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from isolume.baking import kernels, rng
+from isolume.baking import kernels, rng, sampling_kernels, sky_kernels
 from isolume.baking.lattice import LUMINANCE
 from isolume.baking.sampling import sample_cosine_hemisphere, to_world
 
@@ -18,15 +18,15 @@ def normals():
 def test_uniforms_equal_numpy_bit_for_bit():
     keys = rng.path_keys(7, np.arange(5000), np.arange(5000) % 13)
     for dim in (0, 1, 6, 1000):
-        np.testing.assert_array_equal(kernels.uniform2(keys, dim), rng.uniform2(keys, dim))
+        np.testing.assert_array_equal(sampling_kernels.uniform2(keys, dim), rng.uniform2(keys, dim))
 
 
 def test_31_bit_and_single_precision_uniforms_match_the_uniform():
     keys = rng.path_keys(11, np.arange(20000), np.arange(20000) % 7)
-    k0 = kernels.dimension_key(3)
-    got = np.array([kernels.uniform_f32(k, k0) for k in keys], np.float64)
+    k0 = sampling_kernels.dimension_key(3)
+    got = np.array([sampling_kernels.uniform_f32(k, k0) for k in keys], np.float64)
     np.testing.assert_allclose(got, rng.uniform(keys, 3), rtol=2**-23, atol=2**-31)
-    got31 = np.array([kernels.uniform31(k, k0) for k in keys])
+    got31 = np.array([sampling_kernels.uniform31(k, k0) for k in keys])
     assert np.all((rng.uniform(keys, 3) - got31 >= 0) & (rng.uniform(keys, 3) - got31 < 2**-31))
     assert got.max() < 1.0 and got.min() >= 0.0
     # a key whose hash is within 2^7 of 2^32, where rounding to float32 would give 1
@@ -35,7 +35,7 @@ def test_31_bit_and_single_precision_uniforms_match_the_uniform():
         near_one = x[rng.pcg_hash(x) >= np.uint32(2**32 - 128)]
         if len(near_one):
             break
-    assert kernels.uniform_f32(near_one[0], np.uint32(0)) == np.float32(1 - 2**-24)
+    assert sampling_kernels.uniform_f32(near_one[0], np.uint32(0)) == np.float32(1 - 2**-24)
 
 
 def test_path_starts_gather_keys_and_first_directions():
@@ -204,7 +204,7 @@ def test_sincos_turns_matches_libm():
     """|error| ≤ 3e-7: float32 rounding of the result (the series are exact to 3e-8)."""
     u = np.random.default_rng(3).random(20000).astype(np.float32)
     u = np.concatenate([u, np.float32([0, 0.125, 0.25, 0.5, 0.75, 1 - 2**-24])])
-    got = np.array([kernels.sincos_turns(x) for x in u])
+    got = np.array([sampling_kernels.sincos_turns(x) for x in u])
     angle = 2 * np.pi * u.astype(np.float64)
     np.testing.assert_allclose(got[:, 0], np.cos(angle), atol=3e-7)
     np.testing.assert_allclose(got[:, 1], np.sin(angle), atol=3e-7)
@@ -249,8 +249,8 @@ def test_shadow_rays_and_unblocked_sums_match_numpy():
     useful = gen.random(m) < 0.6
     pos = gen.random((m, 3)).astype(np.float32)
     dirs = gen.random((m, 3)).astype(np.float32)
-    idx, origins, out = kernels.shadow_rays(useful, np.ascontiguousarray(pos.T),
-                                            np.ascontiguousarray(dirs.T))
+    idx, origins, out = sky_kernels.shadow_rays(useful, np.ascontiguousarray(pos.T),
+                                                np.ascontiguousarray(dirs.T))
     np.testing.assert_array_equal(idx, np.flatnonzero(useful))
     np.testing.assert_array_equal(origins.T, pos[idx])
     np.testing.assert_array_equal(out.T, dirs[idx])
@@ -261,8 +261,8 @@ def test_shadow_rays_and_unblocked_sums_match_numpy():
     want = result.copy()
     kept = idx[~blocked]
     want[alive[kept]] += beta[kept] * contrib[kept]
-    kernels.add_unblocked(result, alive, idx, blocked, np.ascontiguousarray(beta.T),
-                          np.ascontiguousarray(contrib.T))
+    sky_kernels.add_unblocked(result, alive, idx, blocked, np.ascontiguousarray(beta.T),
+                              np.ascontiguousarray(contrib.T))
     np.testing.assert_allclose(result, want, rtol=1e-15)
 
 
@@ -274,10 +274,10 @@ def test_sky_light_samples_match_the_environment(spec, normals):
     from isolume.baking.sampling import power_heuristic
 
     env = parse_env(spec)
-    assert len(kernels.sky_params(env)) == kernels.SKY_PARAMS
+    assert len(sky_kernels.sky_params(env)) == sky_kernels.SKY_PARAMS
     keys = rng.path_keys(5, np.arange(len(normals)), np.zeros(len(normals), np.int64))
-    dirs, contrib, useful = kernels.sky_light_samples(kernels.sky_params(env), keys, 2,
-                                                      np.ascontiguousarray(normals.T))
+    dirs, contrib, useful = sky_kernels.sky_light_samples(sky_kernels.sky_params(env), keys,
+                                                          2, np.ascontiguousarray(normals.T))
     dirs, contrib = dirs.T, contrib.T
     d, pdf = env.sample(rng.uniform2(keys, 2))
     # the angle's sine and cosine in single precision (`sincos_turns`): within 3e-7
@@ -317,8 +317,9 @@ def test_sky_escaped_rays_match_the_environment(spec, mis, normals):
     beta = r.uniform(size=(m, 3)).astype(np.float32)
     alive = r.permutation(m)
     got, want = np.zeros((m, 3)), np.zeros((m, 3))
-    kernels.sky_add_escaped(kernels.sky_params(env), got, alive, prim,
-                            *(np.ascontiguousarray(a.T) for a in (beta, dirs, normals)), mis)
+    sky_kernels.sky_add_escaped(sky_kernels.sky_params(env), got, alive, prim,
+                                *(np.ascontiguousarray(a.T) for a in (beta, dirs, normals)),
+                                mis)
     _add_escaped(want, alive, prim < 0, beta, dirs, normals, env, mis,
                  PathSettings(bounces=0, albedo=(1, 1, 1), hit_offset=0.0))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)

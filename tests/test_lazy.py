@@ -349,7 +349,7 @@ def test_the_lazy_bake_plans_again_when_the_view_leaves_its_range():
             time.sleep(0.05)
         assert link.replans == 1
         assert wait_ready(deadline) == pytest.approx(view_iso_range(vol, 0.6))
-        assert link.ready["meta"]["config"]["iso_range"] == pytest.approx(
+        assert link.ready["config"]["iso_range"] == pytest.approx(
             view_iso_range(vol, 0.6))
         while link.near_fraction(0.6) != 1.0 and time.monotonic() < deadline:
             link.poll()

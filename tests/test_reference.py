@@ -16,7 +16,8 @@ from scipy import ndimage
 from isolume.app.cli import main
 from isolume.app.render.camera import Camera
 from isolume.app.render.images import read_exr
-from isolume.app.render.renderer import RenderSettings, default_camera
+from isolume.app.render.renderer import default_camera
+from isolume.app.render.settings import RenderSettings
 from isolume.baking import BakeConfig
 from isolume.baking.reference import PixelStats, ReferenceTracer, render_reference
 from isolume.volumes.synthetic import SPHERE_RADIUS, make

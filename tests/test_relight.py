@@ -121,12 +121,9 @@ def test_nothing_to_turn_in_an_sh_transfer_or_a_lattice_holding_its_direct_light
 def _empty(volume, config):
     """An empty lattice for `config` on `volume`, with the preview arrays the viewer's
     shared lattice has."""
-    from isolume.app.viewer.bake_client import lattice_meta
-    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.lazy import new_lattice
 
-    meta = lattice_meta(volume, config)
-    lattice = Lattice.empty(LatticeGeometry.for_volume(volume, config.scale),
-                            meta["channels"], meta)
+    lattice = new_lattice(volume, config)
     lattice.preview = np.zeros_like(lattice.values)
     lattice.preview_paths = np.zeros(lattice.samples.shape, np.uint16)
     return lattice
@@ -361,9 +358,9 @@ def test_the_viewers_lazy_bake_relights_a_turned_sun():
         assert 0 < turn["started_s"] <= turn["visible_s"] <= turn["surface_s"]
         relit = relit_config(dataclasses.replace(config, iso_range=view_iso_range(vol, ISO)),
                              turned)
-        assert link.relit_config == relit.to_dict()
+        assert link.relit_config == relit
         saved = link.snapshot(shared)
-        assert saved.meta["config"] == relit.to_dict()
+        assert saved.config == relit
         shown = shared.lattice
         on_screen = shared.relit.reshape(-1)
         scratch = Baker(vol, relit, workers=2)
@@ -390,20 +387,17 @@ def test_the_viewer_turns_the_bounced_light_of_irradiance_lattices_only(gl):
     """What the viewer asks the lazy bake to follow (`Drawing.turned_light`): the sun as
     drawn per pixel in the irradiance modes of a split lattice; nothing for an SH
     transfer (its sun turns with the transfer) nor in local shading modes."""
-    from isolume.app.viewer.bake_client import lattice_meta
     from isolume.app.viewer.draw import Drawing, ViewState
     from isolume.app.viewer.panel import direction_from_angles
-    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.lazy import new_lattice
 
     vol = volumes.load("synthetic:sphere:16")
-    geometry = LatticeGeometry.for_volume(vol, 1.0)
     drawing = Drawing(gl, vol)
     try:
         for mode, config in (("irradiance", BakeConfig(env=SUN)),
                              ("sh", BakeConfig(mode="sh", sh_order=3, env=SUN,
                                                direct_light="pixels"))):
-            meta = lattice_meta(vol, config)
-            assert drawing.show_lattice(Lattice.empty(geometry, meta["channels"], meta)) is None
+            assert drawing.show_lattice(new_lattice(vol, config)) is None
             state = ViewState(0.5, mode, 1.0)
             if mode == "sh":
                 assert drawing.turned_light(state) is None
@@ -460,7 +454,7 @@ def test_a_complete_lattice_file_is_re_baked_for_a_turned_sun(display, tmp_path)
     assert 0 < turn["started_s"] <= turn["visible_s"]
     relit = Lattice.load(tmp_path / "light-relit.npz", vol)
     want = relit_config(config, direction_from_angles(60.0, 40.0))
-    np.testing.assert_allclose(turned_light(BakeConfig.from_dict(relit.meta["config"])),
+    np.testing.assert_allclose(turned_light(relit.config),
                                turned_light(want), atol=1e-8)
     assert (relit.samples > 0).sum() > 1000
     before, after = (read_exr(tmp_path / f"{n}.exr")["RGB"] for n in ("before", "after"))
@@ -506,7 +500,7 @@ def test_a_turned_light_carries_over_when_the_bake_plans_again():
         _wait(link, lambda: link.replans == 1 and done(0.6)(), deadline, "the new plan")
         relit = relit_config(dataclasses.replace(config, iso_range=view_iso_range(vol, 0.6)),
                              turned)
-        assert link.relit_config == relit.to_dict()
+        assert link.relit_config == relit
         assert link.relit["surface_done"] == link.relit["surface"] > 0
         scratch = Baker(vol, relit, workers=2)
         try:

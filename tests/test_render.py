@@ -9,7 +9,8 @@ from PIL import Image
 
 from isolume import volumes
 from isolume.app.render.camera import Camera
-from isolume.app.render.renderer import RenderSettings, default_camera
+from isolume.app.render.renderer import default_camera
+from isolume.app.render.settings import RenderSettings
 from isolume.volumes.synthetic import SPHERE_RADIUS, make
 
 

@@ -1,4 +1,4 @@
-"""The comparison shading modes (issue 6): shadow maps, fog, occlusion, lattice lookups.
+"""The comparison shading modes: shadow maps, fog, occlusion, lattice lookups.
 
 Every check predicts pixels in numpy from the world positions of the `position` pass and
 compares them with what the shaders drew.
@@ -9,13 +9,10 @@ import pytest
 
 from isolume import volumes
 from isolume.app.render.camera import Camera
-from isolume.app.render.renderer import (
-    SHADING_MODES,
-    RenderError,
-    RenderSettings,
-    default_camera,
-    light_view_proj,
-)
+from isolume.app.render.renderer import default_camera
+from isolume.app.render.settings import SHADING_MODES, RenderError, RenderSettings
+from isolume.app.render.shadows import light_view_proj
+from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry, trilinear
 from isolume.baking.plan import texel_values
 from isolume.volumes.synthetic import make
@@ -346,9 +343,9 @@ def test_bspline_lookup_matches_the_cubic_b_spline(renderer, lookup_scene):
 
 # -- vicinity shading and ambient occlusion ---------------------------------------------
 def _occlusion_lattice(lattice, env="constant:2,2,2", bounces=0):
-    meta = {"kind": "irradiance", "config": {"env": env, "bounces": bounces, "lights": []}}
     return Lattice(lattice.geometry, lattice.values, lattice.samples, lattice.second,
-                   lattice.active, meta)
+                   lattice.active, {"kind": "irradiance"},
+                   config=BakeConfig(env=env, bounces=bounces))
 
 
 def test_vicinity_and_ao_read_a_constant_sky_lattice(renderer, lookup_scene):

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from isolume import volumes
-from isolume.app.render.renderer import RenderSettings, default_camera
+from isolume.app.render.renderer import default_camera
+from isolume.app.render.settings import RenderSettings
 from isolume.baking import BakeConfig, BakeError, bake, sh
 from isolume.baking.environment import parse_env, rotated
 from isolume.volumes.synthetic import make
@@ -138,7 +139,7 @@ def test_bytes_per_texel_of_sh_textures():
         sh_layout(8, False)
 
 
-# -- split transfer: the sun per pixel (issue 14 part 3) ----------------------------------
+# -- split transfer: the sun per pixel ----------------------------------
 def test_split_transfer_blocks_add_up_to_the_whole_transfer():
     """Same seed, same paths: direct block + indirect block = the unsplit transfer (up to
     float32 summation order), and the indirect block is not empty (bounces escape)."""
@@ -146,8 +147,8 @@ def test_split_transfer_blocks_add_up_to_the_whole_transfer():
     common = dict(mode="sh", sh_order=3, samples=8, bounces=2, env="sky:sun=3")
     split = bake(vol, BakeConfig(direct_light="pixels", **common), workers=2)
     whole = bake(vol, BakeConfig(**common), workers=2)
-    assert split.values.shape[-1] == 18 and sh.transfer_blocks(split.meta) == 2
-    assert sh.transfer_blocks(whole.meta) == 1
+    assert split.values.shape[-1] == 18 and sh.transfer_blocks(split) == 2
+    assert sh.transfer_blocks(whole) == 1
     total = split.values[..., :9] + split.values[..., 9:]
     scale = np.abs(whole.values).max()
     np.testing.assert_allclose(total, whole.values, atol=1e-6 * scale)
@@ -155,7 +156,8 @@ def test_split_transfer_blocks_add_up_to_the_whole_transfer():
 
 
 def test_split_sh_needs_a_sun_and_renders_only_with_both_skies(gl):
-    from isolume.app.render.renderer import RenderError, SurfaceRenderer
+    from isolume.app.render.renderer import SurfaceRenderer
+    from isolume.app.render.settings import RenderError
 
     with pytest.raises(BakeError, match="needs a sky with a sun"):
         BakeConfig(mode="sh", env="sky", direct_light="pixels")
@@ -208,7 +210,7 @@ def test_split_sh_on_a_convex_sphere_is_the_exact_sky_irradiance(gl):
     for name, lattice in (("split", split), ("whole", whole)):
         renderer.set_lattice(lattice)
         renderer.set_environment(sh.display_coefficients(sky, order,
-                                                         sh.transfer_blocks(lattice.meta)))
+                                                         sh.transfer_blocks(lattice)))
         frames[name] = renderer.render(camera, RenderSettings(
             size=size, shading="sh", tonemap="clamp", env_rotation=(az, 0.0)))
     renderer.release()
@@ -297,7 +299,7 @@ def test_cli_bakes_and_renders_a_split_sh_lattice(tmp_path, capsys):
                  "--samples", "2", "--env", "sky:sun=3", "--direct-light", "pixels",
                  "--out", str(lattice), "--workers", "2"]) == 0
     loaded = Lattice.load(lattice, volumes.load("synthetic:sphere:16"))
-    assert sh.transfer_blocks(loaded.meta) == 2 and loaded.values.shape[-1] == 8
+    assert sh.transfer_blocks(loaded) == 2 and loaded.values.shape[-1] == 8
     render = ["render", "synthetic:sphere:16", "--lattice", str(lattice), "--shading", "sh",
               "--size", "32x32", "--gl", "osmesa"]
     assert main([*render, "--env-rotation", "90,0", "--out", str(tmp_path / "a.png")]) == 0

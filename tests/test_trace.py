@@ -9,7 +9,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from isolume import volumes
-from isolume.baking import kernels, trace
+from isolume.baking import embree_kernels, trace
 from isolume.baking.trace import RayRecorder, Scene, _scene_handle, replay
 
 
@@ -104,14 +104,14 @@ def test_scenes_offer_embree_calls_that_answer_as_embreex():
     origins, dirs = _rays(mesh, 20000, 3)
     calls = tuple(scene.calls)
     rows_o, rows_d = np.ascontiguousarray(origins.T), np.ascontiguousarray(dirs.T)
-    t, prim, ng = kernels.intersect_rays(calls, rows_o, rows_d)
+    t, prim, ng = embree_kernels.intersect_rays(calls, rows_o, rows_d)
     want = scene._scene.run(origins, dirs, output=1)
     assert 0.2 < np.mean(prim >= 0) < 0.95
     np.testing.assert_array_equal(prim, want["primID"])
     hit = prim >= 0
     np.testing.assert_array_equal(t[hit], want["tfar"][hit])
     np.testing.assert_array_equal(ng[hit], want["Ng"][hit])
-    np.testing.assert_array_equal(kernels.occluded_rays(calls, rows_o, rows_d),
+    np.testing.assert_array_equal(embree_kernels.occluded_rays(calls, rows_o, rows_d),
                                   scene._scene.run(origins, dirs, query="OCCLUDED") != -1)
 
 

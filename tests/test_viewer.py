@@ -61,7 +61,7 @@ def _view(args, env_display, cwd, timeout=120):
     else:
         env["DISPLAY"] = env_display
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    cmd = [sys.executable, "-c", "import sys; from app.cli import main; sys.exit(main())",
+    cmd = [sys.executable, "-c", "import sys; from isolume.app.cli import main; sys.exit(main())",
            "view", *args]
     return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=timeout)

@@ -2,7 +2,7 @@
 
 It lives on the ground floor (`isolume.volumes` imports nothing of isolume's) so that every
 layer can raise it; each layer derives its own errors from it (`VolumeError`,
-`baking.errors.BakeError`, `app.render.renderer.RenderError`, …). The command line turns
+`baking.errors.BakeError`, `app.render.settings.RenderError`, …). The command line turns
 any of them into one line on stderr and exit status 2; anything else is a bug and keeps
 its traceback.
 """

@@ -1,4 +1,4 @@
-"""Cluster bake figures and the scaling model: ``python -m app.bench.cluster [VOLUME]``.
+"""Cluster bake figures and the scaling model: ``python -m isolume.app.bench.cluster [VOLUME]``.
 
 Bakes the same lattice four ways in one run — 1 and 2 threads (`bake.Baker`), 1 and 2
 worker processes of a local Dask cluster (a `bake.Baker` with a `cluster.ClusterBackend`;
@@ -90,7 +90,8 @@ def _row(name: str, wall: float, cpu: float, baker: Baker, base: float) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m app.bench.cluster", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m isolume.app.bench.cluster",
+                                     description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("volume", nargs="?", default="synthetic:engine")
     parser.add_argument("--samples", type=int, default=16)

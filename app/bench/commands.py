@@ -67,11 +67,12 @@ def bench_bake(args: argparse.Namespace) -> int:
     from isolume import volumes
     from isolume.baking.bake import Baker
     from isolume.baking.config import BakeConfig
+    from isolume.baking.lighting import lighting_of
 
     vol = volumes.load(args.volume)
-    config = BakeConfig(samples=args.samples, bounces=args.bounces, env=args.env,
-                        scale=args.scale,
-                        iso_range=tuple(args.iso_range) if args.iso_range else None)
+    config = BakeConfig.lit_by(lighting_of(args.env), samples=args.samples,
+                               bounces=args.bounces, scale=args.scale,
+                               iso_range=tuple(args.iso_range) if args.iso_range else None)
     workers = args.workers or os.cpu_count() or 1
     began = time.perf_counter()
     baker = Baker(vol, config, workers=workers)

@@ -95,12 +95,12 @@ def _filled_lattices(volume):
 
     geometry = LatticeGeometry.for_volume(volume, 1.0)
     # a constant sky without bounces: the occlusion modes accept it too
-    irr_config = BakeConfig(bounces=0, env="constant:1,1,1").to_dict()
-    irr = Lattice.empty(geometry, 3, {"kind": "irradiance", "config": irr_config})
+    irr_config = BakeConfig(bounces=0, env="constant:1,1,1")
+    irr = Lattice.empty(geometry, 3, {"kind": "irradiance"}, config=irr_config)
     irr.values[...] = 2.5
     irr.samples[...] = 1
-    sh_config = BakeConfig(mode="sh", sh_order=5).to_dict()
-    sh = Lattice.empty(geometry, 25, {"kind": "sh", "sh_order": 5, "config": sh_config})
+    sh_config = BakeConfig(mode="sh", sh_order=5)
+    sh = Lattice.empty(geometry, 25, {"kind": "sh", "sh_order": 5}, config=sh_config)
     sh.values[..., 0] = 1.5
     sh.samples[...] = 1
     return irr, sh
@@ -116,9 +116,9 @@ def _variants(mode: str) -> list[tuple[str, tuple | None]]:
     per pixel (`DIRECT_MODE`)."""
     if mode != "irradiance":
         return [(mode, None)]
-    from isolume.baking.lights import pixel_lights
+    from isolume.baking.lighting import lighting_of
 
-    return [(mode, None), (DIRECT_MODE, pixel_lights("sky:sun=3", ()))]
+    return [(mode, None), (DIRECT_MODE, lighting_of("sky:sun=3").pixel_lights())]
 
 
 def _time_mode(renderer, ctx, camera, settings, frames: int) -> tuple[list, list]:
@@ -140,7 +140,7 @@ def _time_mode(renderer, ctx, camera, settings, frames: int) -> tuple[list, list
 def _jobs(preview: bool) -> list[tuple[str, str, str | None, tuple | None]]:
     """(label, mode, lattice needed: None, "irr" or "sh", per-pixel lights) to time, grouped
     by the lattice they need (one upload per group and round)."""
-    from isolume.app.render.renderer import SHADING_MODES
+    from isolume.app.render.settings import SHADING_MODES
 
     jobs = []
     for mode, spec in SHADING_MODES.items():
@@ -164,7 +164,8 @@ def frame_times(volume, iso: float, size: tuple[int, int], frames: int = 20,
     """
     from isolume import volumes
     from isolume.app.render.glcontext import create_headless
-    from isolume.app.render.renderer import RenderSettings, SurfaceRenderer, default_camera
+    from isolume.app.render.renderer import SurfaceRenderer, default_camera
+    from isolume.app.render.settings import RenderSettings
     from isolume.baking.lattice import LatticeGeometry
     from isolume.baking.plan import texel_values
 
@@ -278,7 +279,8 @@ def visible_pixels_headless(volume, iso: float, size: tuple[int, int], backend: 
     position pass, as the viewer does)."""
     from isolume import volumes
     from isolume.app.render.glcontext import create_headless
-    from isolume.app.render.renderer import RenderSettings, SurfaceRenderer, default_camera
+    from isolume.app.render.renderer import SurfaceRenderer, default_camera
+    from isolume.app.render.settings import RenderSettings
 
     mesh = volumes.isosurface(volume, iso)
     camera = default_camera(volume)

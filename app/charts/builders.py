@@ -7,7 +7,7 @@ entries get their errors once the reference is final (`tracing.settle_reference`
 2. ``chart2_resolution``: error and GL texture memory against lattice resolution
    (`SCALES` per axis; paper Fig. 12).
 3. ``chart3_lookup_normals``: error per lattice lookup (paper Fig. 6: those that
-   `app.render.renderer.SHADING_MODES` offers) and per texel-normal scheme (paper Fig. 5).
+   `app.render.settings.SHADING_MODES` offers) and per texel-normal scheme (paper Fig. 5).
 4. ``chart4_shading_modes``: error and frame time of every shading mode (paper Table 2),
    local models lit to match the environment as well as they can be.
 5. ``chart5_levels``: error against bake time per isovalue-level policy
@@ -74,7 +74,7 @@ def chart_resolution(run: Run) -> Chart:
 
 def chart_lookup_normals(run: Run) -> Chart:
     """Chart 3: error per lattice lookup (Fig. 6) and per texel-normal scheme (Fig. 5)."""
-    from isolume.app.render.renderer import SHADING_MODES
+    from isolume.app.render.settings import SHADING_MODES
 
     base = run.lattice(samples=run.plan.chart_samples)
     lookups = []
@@ -116,7 +116,7 @@ def _chart4_rows(run: Run):
     """(row name, shading mode name, mode, baked lattice or None) of chart 4: every shading
     mode, and the irradiance lattice with the direct light in it as well, when the
     lighting has a sun or lights to shade per pixel."""
-    from isolume.app.render.renderer import SHADING_MODES
+    from isolume.app.render.settings import SHADING_MODES
 
     for name, mode in SHADING_MODES.items():
         baked = _mode_lattice(run, mode)

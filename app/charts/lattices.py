@@ -147,7 +147,7 @@ def texture_bytes(lattice, lookup: str = "trilinear") -> int:
     if lattice.kind == "irradiance":
         return texels * (4 + 1 + (4 if lookup == "closest" else 0))
     order = int(lattice.meta["sh_order"])
-    blocks = transfer_blocks(lattice.meta)
+    blocks = transfer_blocks(lattice)
     per_group, groups = sh_layout(order, lattice.values.shape[-1] != blocks * order * order,
                                   blocks)
     return texels * (8 * per_group * groups + 1)

@@ -41,7 +41,7 @@ class GLScene:
 
     def settings(self, shading: str):
         """`RenderSettings` of `shading`: the run's size and albedo, the local lighting."""
-        from isolume.app.render.renderer import RenderSettings
+        from isolume.app.render.settings import RenderSettings
 
         light = self.lighting
         return RenderSettings(size=self.size, shading=shading, albedo=(self.albedo,) * 3,
@@ -52,7 +52,7 @@ class GLScene:
     def use(self, shading: str, lattice=None) -> None:
         """Upload what `shading` reads: the lattice (with texel isovalues for the
         closest-isovalue lookup) and, for SH, the environment's coefficients."""
-        from isolume.app.render.renderer import SHADING_MODES
+        from isolume.app.render.settings import SHADING_MODES
 
         mode = SHADING_MODES[shading]
         closest = mode.lookup == "closest" and lattice is not None
@@ -65,7 +65,7 @@ class GLScene:
             from isolume.baking.sh import transfer_blocks
 
             self.renderer.set_environment(self._env_coeffs(int(lattice.meta["sh_order"]),
-                                                           transfer_blocks(lattice.meta)))
+                                                           transfer_blocks(lattice)))
 
     def _texel_isovalues(self, lattice) -> np.ndarray:
         from isolume.baking.plan import texel_values

@@ -84,7 +84,7 @@ class LatticeTextures:
             self.textures = [self.irradiance]
         elif self.kind == "sh":
             self.sh_order = int(lattice.meta["sh_order"])
-            blocks = transfer_blocks(lattice.meta)  # 2: direct, indirect transfer
+            blocks = transfer_blocks(lattice)  # 2: direct, indirect transfer
             self.sh_coefficients = blocks * self.sh_order**2
             rgb = lattice.values.shape[-1] != self.sh_coefficients
             self.sh_textures, self.sh_groups = sh_layout(self.sh_order, rgb, blocks)

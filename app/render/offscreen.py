@@ -6,13 +6,8 @@ import numpy as np
 
 from isolume import volumes
 from isolume.app.render.glcontext import create_headless
-from isolume.app.render.renderer import (
-    SHADING_MODES,
-    Frame,
-    RenderSettings,
-    SurfaceRenderer,
-    default_camera,
-)
+from isolume.app.render.renderer import SurfaceRenderer, default_camera
+from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
 
 
 def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarray | None:

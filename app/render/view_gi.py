@@ -47,14 +47,12 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     """
     import os
 
-    from isolume.app.viewer.bake_client import lattice_meta
-    from isolume.baking.lattice import Lattice, LatticeGeometry
-    from isolume.baking.lazy import visible_cells
+    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.lazy import new_lattice, visible_cells
     from isolume.baking.preview import cell_corners, estimate, preview_tracing, surface_scene
 
     geometry = LatticeGeometry.for_volume(volume, config.scale)
-    meta = lattice_meta(volume, config)
-    lattice = Lattice.empty(geometry, meta["channels"], meta)
+    lattice = new_lattice(volume, config)
     lattice.preview = np.zeros_like(lattice.values)
     lattice.preview_paths = np.zeros(geometry.shape, np.uint16)
     texels = cell_corners(geometry.shape, visible_cells(geometry, points))

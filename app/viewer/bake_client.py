@@ -7,7 +7,13 @@ building level scenes (marching cubes again) and the baker's own numpy work hold
 for hundreds of milliseconds. The lattice arrays live in shared memory (`SharedLattice`):
 the bake process writes texels and announces them; the viewer's side (`BakeLink`) sends
 views and receives the ids of changed texels, which the drawing side re-uploads
-(`app.viewer.draw.TexelUploader`). Nothing here touches GL.
+(`app.viewer.draw.TexelUploader`). Nothing here touches GL. Messages between the
+processes are plain data: a `BakeConfig` crosses as its dict (`BakeConfig.to_dict`, read
+back with `from_dict` on arrival), a boundary like a lattice file's.
+
+Length: both ends of one message protocol (the viewer's `BakeLink`, the bake process's
+`_BakeProcess`) and the shared arrays they address; split, each message's sender and
+receiver would sit in different modules.
 """
 
 from __future__ import annotations
@@ -20,6 +26,8 @@ import time
 import numpy as np
 
 from isolume import volumes
+from isolume.baking.config import BakeConfig
+from isolume.baking.lattice import Lattice, LatticeGeometry
 
 
 class SharedLattice:
@@ -43,10 +51,9 @@ class SharedLattice:
 
     @classmethod
     def create(cls, geometry, channels: int, meta: dict, source=None) -> SharedLattice:
-        """New shared arrays, zero or copied from the `source` lattice."""
+        """New shared arrays, zero or copied from the `source` lattice; `meta`: as
+        `lattice_meta` describes a lattice (its "config" a dict), or a lattice's own."""
         from multiprocessing import shared_memory
-
-        from isolume.baking.lattice import Lattice
 
         arrays, blocks = {}, []
         for name, (shape, dtype) in cls._layout(geometry, channels).items():
@@ -57,9 +64,11 @@ class SharedLattice:
             copied = None if source is None else getattr(source, name, None)
             arr[...] = 0 if copied is None else copied
             arrays[name] = arr
+        meta = dict(meta)
+        config = _config(meta.pop("config", None)) or getattr(source, "config", None)
         lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                          arrays["active"], dict(meta), preview=arrays["preview"],
-                          preview_paths=arrays["preview_paths"])
+                          arrays["active"], meta, preview=arrays["preview"],
+                          preview_paths=arrays["preview_paths"], config=config)
         return cls(lattice, blocks, owner=True, relit=arrays["relit"])
 
     def describe(self) -> dict:
@@ -67,14 +76,13 @@ class SharedLattice:
         g = self.lattice.geometry
         return {"names": [b.name for b in self.blocks], "shape": list(g.shape),
                 "lo": list(g.lo), "hi": list(g.hi), "channels": self.lattice.values.shape[-1],
-                "meta": self.lattice.meta}
+                "meta": self.lattice.meta,
+                "config": self.lattice.config and self.lattice.config.to_dict()}
 
     @classmethod
     def attach(cls, description: dict) -> SharedLattice:
         """The same arrays, in another process."""
         from multiprocessing import shared_memory
-
-        from isolume.baking.lattice import Lattice, LatticeGeometry
 
         geometry = LatticeGeometry(tuple(description["shape"]), tuple(description["lo"]),
                                    tuple(description["hi"]))
@@ -89,22 +97,21 @@ class SharedLattice:
             arrays[name] = np.ndarray(shape, dtype, buffer=block.buf)
         lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
                           arrays["active"], dict(description["meta"]),
-                          preview=arrays["preview"], preview_paths=arrays["preview_paths"])
+                          preview=arrays["preview"], preview_paths=arrays["preview_paths"],
+                          config=_config(description["config"]))
         return cls(lattice, blocks, owner=False, relit=arrays["relit"])
 
     def snapshot(self, relit: bool = False):
         """A private copy of the lattice (for saving while the bake goes on); `relit`:
         only the texels baked under the turned light (`relit`), the others as not
         computed (a lattice file holds one light)."""
-        from isolume.baking.lattice import Lattice
-
         lat = self.lattice
         samples = lat.samples.copy()
         if relit:
             samples[~self.relit] = 0
         values = np.where(samples[..., None] > 0, lat.values, 0).astype(np.float32)
         return Lattice(lat.geometry, values, samples, lat.second.copy(), lat.active.copy(),
-                       json.loads(json.dumps(lat.meta)))
+                       json.loads(json.dumps(lat.meta)), config=lat.config)
 
     def close(self) -> None:
         """Drop the arrays and release (and, as owner, unlink) the blocks."""
@@ -122,15 +129,18 @@ class SharedLattice:
         self.blocks = []
 
 
-def lattice_meta(volume: volumes.Volume, config) -> dict:
-    """Metadata of a new lattice baked with `config` for `volume` (as `baking.bake` writes
-    it)."""
-    from isolume.baking.bake import path_settings
-    from isolume.baking.lattice import volume_identity
+def _config(d: dict | None) -> BakeConfig | None:
+    """The `BakeConfig` of a message's config dict (None for None)."""
+    return None if d is None else BakeConfig.from_dict(d)
 
-    return {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
-            "scale": config.scale, "volume": volume_identity(volume),
-            "config": config.to_dict(), "channels": path_settings(volume, config).channels}
+
+def lattice_meta(volume: volumes.Volume, config) -> dict:
+    """How a bake process is told of a new lattice baked with `config` for `volume`
+    (`SharedLattice.create`): the metadata `baking.bake` writes, and the config as a dict
+    under "config"."""
+    from isolume.baking.lazy import new_lattice
+
+    return dict(new_lattice(volume, config).meta, config=config.to_dict())
 
 
 def scene_budget() -> float:
@@ -175,14 +185,13 @@ class _BakeProcess:
     def __init__(self, job: dict, inbox, outbox) -> None:
         import multiprocessing
 
-        from isolume.baking.config import BakeConfig
         from isolume.baking.lazy import turned_light
         from isolume.baking.preview import Previewer
 
         self.job, self.inbox, self.outbox = job, inbox, outbox
         self.shared = SharedLattice.attach(job["lattice"])
         self.volume = volumes.Volume(**job["volume"])
-        self.config = BakeConfig.from_dict(job["config"])  # the light and range baked now
+        self.config = _config(job["config"])  # the light and range baked now
         self.parent = multiprocessing.parent_process()
         self.workers = job["workers"] or os.cpu_count() or 1
         self.previewer = Previewer(self.volume, self.config, self.shared.lattice,
@@ -412,7 +421,7 @@ class _BakeProcess:
         active = lattice.active  # the Baker replaces the lattice's attribute
         if old_plan is not None:  # new levels: the Baker would keep the lattice's
             lattice.meta.pop("plan", None)
-        lattice.meta["config"] = self.config.to_dict()  # what a saved lattice was baked with
+        lattice.config = self.config  # what a saved lattice was baked with
         made = self._plan(self.config)
         if made is None:
             return None
@@ -435,11 +444,12 @@ class _BakeProcess:
             self._texels(drop_inactive(relight.fresh))
         if len(stale):
             self.outbox.put(("texels", stale))
-        lattice.meta["config"] = self.config.to_dict()  # (a turn during the plan)
+        lattice.config = self.config  # (a turn during the plan)
         self.outbox.put(("ready", {"seconds": time.perf_counter() - t0,
                                    "active": len(baker.plan.ids),
                                    "levels": len(baker.plan.levels),
-                                   "scene_cache": cache, "meta": baker.lattice.meta}))
+                                   "scene_cache": cache, "meta": baker.lattice.meta,
+                                   "config": baker.lattice.config.to_dict()}))
         return baker
 
     def _serve_light(self, baker):
@@ -502,6 +512,7 @@ class BakeLink:
                                    name="isolume-bake", daemon=True)
         self.process.start()
         self.ready: dict | None = None
+        self.ready_config: BakeConfig | None = None  # the config of the last "ready"
         self.progress = None
         self.stats: dict = {}
         self.error: str | None = None
@@ -519,7 +530,7 @@ class BakeLink:
         self.light_sent = self.light_baked  # that of the last view sent
         self.turns: list[dict] = []  # per turned light: direction, seconds to each stage
         self.relit: dict | None = None  # the last turned light's progress on screen
-        self.relit_config: dict | None = None  # the config it is baked with
+        self.relit_config: BakeConfig | None = None  # the config it is baked with
 
     def send_view(self, view) -> None:
         from isolume.baking.lazy import same_direction
@@ -551,9 +562,9 @@ class BakeLink:
                 self.progress, self.stats = message[1], message[2]
                 self.history.append((time.perf_counter() - self.started, message[1]))
             elif kind == "ready":
-                self.ready = message[1]
+                self.ready, self.ready_config = message[1], _config(message[1]["config"])
                 if self.relit_config is not None:  # planned again under the turned light
-                    self.relit_config = self.ready["meta"]["config"]
+                    self.relit_config = self.ready_config
             elif kind == "planning":
                 self.planning = (self.planning[0], message[1])
             elif kind == "replanning":  # the view left the baked iso range
@@ -567,7 +578,7 @@ class BakeLink:
             elif kind == "preview":
                 self.previews.append((time.perf_counter() - self.started, message[1]))
             elif kind == "relight":  # the bake goes on under a turned light
-                self.relit_config, self.relit = message[1]["config"], None
+                self.relit_config, self.relit = _config(message[1]["config"]), None
                 self._turn_event(message[1]["direction"], "started_s")
             elif kind == "relit":
                 self.relit = message[1]
@@ -645,8 +656,9 @@ class BakeLink:
         lattice = shared.snapshot(relit=relit)
         if self.ready is not None:
             lattice.meta.update(self.ready["meta"])
+            lattice.config = self.ready_config
         if relit:
-            lattice.meta["config"] = self.relit_config
+            lattice.config = self.relit_config
         return lattice
 
     def near_fraction(self, iso: float) -> float | None:

@@ -105,7 +105,7 @@ def read_options(args) -> Options:
     """Check the command line; raise `app.options.CLIError` with one-line messages."""
     from isolume.app.options import CLIError, parse_size
     from isolume.app.render.images import check_output_path
-    from isolume.app.render.renderer import SHADING_MODES
+    from isolume.app.render.settings import SHADING_MODES
     from isolume.app.viewer.script import load_script
 
     if args.shading is not None and args.shading not in SHADING_MODES:

@@ -224,13 +224,14 @@ class Drawing:
         on_gpu: the stage whose surface the renderer holds (None: none yet).
         uploader: re-uploads lazily baked texels (None: the lattice does not change).
         quality: the detail used while interacting.
-        auto_exposure: expose by `app.render.renderer.auto_exposure_scale`, smoothed in time.
+        auto_exposure: expose by `app.render.exposure.auto_exposure_scale`, smoothed in time.
         auto: the automatic exposure now (None before the first frame).
         adapting: the automatic exposure is still moving (keep drawing frames).
     """
 
     def __init__(self, ctx, volume: volumes.Volume, auto_exposure: bool = True) -> None:
-        from isolume.app.render.renderer import SHADING_MODES, RenderSettings, SurfaceRenderer
+        from isolume.app.render.renderer import SurfaceRenderer
+        from isolume.app.render.settings import SHADING_MODES, RenderSettings
 
         self.ctx, self.volume = ctx, volume
         self.renderer = SurfaceRenderer(ctx)
@@ -275,7 +276,7 @@ class Drawing:
         closest-isovalue lookup counts as usable with an irradiance lattice, its texel
         isovalues are computed when it is first chosen."""
         if self._usable is None:
-            from isolume.app.render.renderer import SHADING_MODES
+            from isolume.app.render.settings import SHADING_MODES
 
             lattice = self.renderer.lattice
             out = []
@@ -292,7 +293,7 @@ class Drawing:
 
     def ensure_texel_isovalues(self, mode: str) -> None:
         """Upload the texel isovalues the closest-isovalue lookup needs (once)."""
-        from isolume.app.render.renderer import SHADING_MODES
+        from isolume.app.render.settings import SHADING_MODES
         from isolume.baking.plan import texel_values
 
         textures = self.renderer.lattice
@@ -327,7 +328,7 @@ class Drawing:
     # -- the light -----------------------------------------------------------------------
     def settings(self, state: ViewState, size: tuple[int, int]):
         """The `RenderSettings` of a frame of `size` (W, H) pixels in `state`."""
-        from isolume.app.render.renderer import RenderSettings
+        from isolume.app.render.settings import RenderSettings
         from isolume.app.viewer.panel import direction_from_angles
 
         kw = {"size": size, "shading": state.shading, "exposure": state.exposure,
@@ -344,7 +345,7 @@ class Drawing:
     def _moved_lights(self, state: ViewState) -> tuple | None:
         """The per-pixel lights of the lattice shown with the sun (or first directional
         light) turned to the user's light direction; None when there is none to turn."""
-        from isolume.app.render.renderer import aimed_lights, first_distant_light
+        from isolume.app.render.lights import aimed_lights, first_distant_light
         from isolume.app.viewer.panel import direction_from_angles
 
         lights = self.renderer.lattice_lights
@@ -356,7 +357,8 @@ class Drawing:
         """What the light controls do to a lattice whose sun or lights are shaded per
         pixel, and whether its indirect light is stale; None for other lattices.
         `rebakes`: a lazy bake re-bakes the bounced light of a turned light."""
-        from isolume.app.render.renderer import LATTICE_MODES, first_distant_light
+        from isolume.app.render.lights import first_distant_light
+        from isolume.app.render.settings import LATTICE_MODES
 
         mode = LATTICE_MODES.get(state.shading)
         baked = first_distant_light(self.renderer.lattice_lights)
@@ -380,7 +382,7 @@ class Drawing:
         an irradiance lattice, `light_note`): what a lazy bake's bounced light must
         follow (`baking.lazy.View.light`). None in other modes and for other lattices
         (an SH transfer turns its sun with itself)."""
-        from isolume.app.render.renderer import first_distant_light
+        from isolume.app.render.lights import first_distant_light
         from isolume.baking.lights import SunLight
 
         if self.light_note(state) is None:
@@ -394,7 +396,7 @@ class Drawing:
     def light_angles(self, state: ViewState, camera) -> tuple[float, float]:
         """The light's (azimuth, elevation) in degrees (from the camera-fixed light if need
         be)."""
-        from isolume.app.render.renderer import first_distant_light, key_direction
+        from isolume.app.render.lights import first_distant_light, key_direction
         from isolume.app.viewer.panel import angles_from_direction
 
         if state.light is not None:
@@ -430,7 +432,7 @@ class Drawing:
         """Render at `scale` × the framebuffer `size` (W, H) and put it on the window.
 
         Raises:
-            ValueError: the shading mode lacks what it needs (`app.render.renderer.RenderError`).
+            ValueError: the shading mode lacks what it needs (`app.render.settings.RenderError`).
         """
         w, h = size
         small = (max(1, round(w * scale)), max(1, round(h * scale)))
@@ -456,7 +458,7 @@ class Drawing:
         `EXPOSURE_ADAPT_S`; returns the factor by which it changed."""
         if not self.auto_exposure:
             return 1.0
-        from isolume.app.render.renderer import auto_exposure_scale
+        from isolume.app.render.exposure import auto_exposure_scale
 
         rgba = self._sample_hdr(targets, size)
         goal = auto_exposure_scale(rgba[..., :3], rgba[..., 3] > 0)

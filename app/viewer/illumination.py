@@ -25,7 +25,7 @@ SETTLE_S = 0.2
 
 def lattice_modes() -> tuple[str, ...]:
     """The shading modes that read a lattice."""
-    from isolume.app.render.renderer import LATTICE_MODES
+    from isolume.app.render.settings import LATTICE_MODES
 
     return tuple(LATTICE_MODES)
 

@@ -57,7 +57,7 @@ BAKE_FRAME_SPACING = 4.0
 def run(args) -> int:
     """Entry point of ``isolume view``: bad input ends in one line on stderr, status 2.
 
-    (The errors are reported here rather than by `app.cli.main`: under ``python -m app.cli``
+    (The errors are reported here rather than by `app.cli.main`: under ``python -m isolume.app.cli``
     that module runs as ``__main__`` and its `CLIError` is not the one this module sees.)
     """
     from isolume.app.options import EXIT_USER_ERROR, CLIError
@@ -81,7 +81,7 @@ def _run(args) -> int:
         from isolume.baking.lattice import Lattice
 
         lattice = Lattice.load(options.lattice_path, volume)
-    from isolume.app.render.renderer import LATTICE_MODES
+    from isolume.app.render.settings import LATTICE_MODES
 
     if options.shading in LATTICE_MODES and lattice is None and not options.bake:
         raise ViewerError(f"--shading {options.shading} needs a lattice: pass --lattice FILE, or "
@@ -238,7 +238,7 @@ class Viewer:
         scale = drawing.quality.scale if interacting else 1.0
         try:
             drawing.draw(state.camera, state.view, (w, h), scale)
-        except ValueError as exc:  # app.render.renderer.RenderError: a mode without what it needs
+        except ValueError as exc:  # app.render.settings.RenderError: a mode without what it needs
             state.message = f"shading {state.view.shading!r}: {exc}; back to phong_hemi"
             state.view.shading = "phong_hemi"
             drawing.draw(state.camera, state.view, (w, h), scale)
