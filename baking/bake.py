@@ -36,7 +36,7 @@ from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
 from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
-from isolume.baking.passes import PassSums, Tracing, commit_sums
+from isolume.baking.passes import PassSums, Tracing, commit_facing, commit_sums
 from isolume.baking.plan import Plan, make_plan
 
 
@@ -221,6 +221,7 @@ class Baker:
             complete = work.upper_on(level)  # a texel's pass is complete with its upper level
             complete = complete[self._acc.n[complete] > 0]
             if len(complete):
+                commit_facing(self.lattice, self.volume, self.config, self.plan, complete)
                 self.texels_done += commit_sums(self.lattice, self.plan, self._acc, complete)
                 if after_level is not None:
                     after_level(complete)

@@ -8,8 +8,18 @@ s = 1 texel centres coincide with voxel samples, and a GL texture coordinate is 
 
 File: one ``.npz`` holding ``values [z,y,x,C]`` float32, ``samples [z,y,x]`` uint32,
 ``second [z,y,x]`` float32 (per-sample second moment of the luminance, for error
-estimates), ``active [z,y,x]`` bool, and ``meta`` (JSON). Written atomically (temporary file
-in the same folder, then rename), so an interrupted write never leaves a broken file.
+estimates), ``active [z,y,x]`` bool, ``facing [z,y,x,2]`` uint8 (`Lattice.facing`; a file
+without it loads with every facing unknown, and is looked up as before facings were kept)
+and ``meta`` (JSON). Written atomically (temporary file in the same folder, then rename),
+so an interrupted write never leaves a broken file.
+
+Side-aware lookup (`Lattice.sample` with normals; ``shaders/lattice.glsl`` the same): each
+texel keeps the mean direction its paths started along, its *facing* m (octahedral bytes,
+`baking.octahedral`). A point on a surface seen along the normal n (turned to the eye)
+weights each of its 8 trilinear texels by max(0, n·m)^`FACING_POWER` (1 for a texel of
+unknown facing), so a face of a wall thinner than two texels, or the other side of a sheet,
+does not show light gathered on the opposite face; where no texel faces its way, the plain
+trilinear mix is kept.
 """
 
 from __future__ import annotations
@@ -23,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from isolume.baking import octahedral
 from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
 
@@ -31,6 +42,14 @@ CONFIG_VERSION = 1
 """Version of the bake config a file's metadata holds (``meta["config"]``, written with
 ``meta["config_version"]``); a file without one holds version 1's fields."""
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+FACING_POWER = 2
+"""Exponent k of a texel's side weight max(0, n·m)^k in the side-aware lookup. Measured
+on rods 1–2 voxels thick lit from above (rms error of E on their surface at 1 texel per
+voxel): 0.23 plain, 0.15 with k = 1, 0.11 with k = 2; thin plates and a smooth sphere
+alike for k = 1, 2 and 4."""
+SIDE_FLOOR = 1e-3
+"""Below this fraction of the plain (valid-weighted) trilinear weight, the side-weighted
+weight counts as none: no texel faces the point's way, and the plain mix is used."""
 
 
 @dataclass(frozen=True)
@@ -106,6 +125,30 @@ def trilinear(grid: np.ndarray, coords_zyx: np.ndarray) -> np.ndarray:
     return np.einsum("nk,nkc->nc", w, corners)
 
 
+def side_weights(codes: np.ndarray, normals: np.ndarray,
+                 power: int = FACING_POWER) -> np.ndarray:
+    """(N, 8) side weights of N points' 8 lookup texels: max(0, n·m)^`power` for the
+    texels' (N, 8, 2) facing `codes` (`baking.octahedral`) and the points' (N, 3) unit
+    `normals` n (turned to the eye); 1 where a facing is unknown."""
+    m = octahedral.decode(codes)
+    cos = np.einsum("nkc,nc->nk", m, np.asarray(normals, np.float64))
+    return np.where(octahedral.known(codes), np.maximum(cos, 0.0) ** power, 1.0)
+
+
+def sided_mix(weights: np.ndarray, sides: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(N, C) the side-aware mix of (N, 8, C) texel `values` with (N, 8) lookup `weights`
+    (trilinear × valid) and (N, 8) `sides` (`side_weights`): weighted by both and
+    renormalised; where the sided weight is below `SIDE_FLOOR` of the plain one, the plain
+    mix. 0 where no texel has weight."""
+    plain = weights.sum(axis=1, keepdims=True)
+    sided_w = weights * sides
+    sided = sided_w.sum(axis=1, keepdims=True)
+    use = np.where(sided > SIDE_FLOOR * plain, sided_w, weights)
+    den = use.sum(axis=1, keepdims=True)
+    num = np.einsum("nk,nkc->nc", use, values)
+    return np.divide(num, den, out=np.zeros_like(num), where=den > 1e-6)
+
+
 @dataclass
 class Lattice:
     """An illumination lattice.
@@ -126,6 +169,12 @@ class Lattice:
         preview_paths: None, or (Z, Y, X) uint16 paths behind each preview (0 = none).
             A display shows the preview while the texel has fewer samples of its own
             than that, and the texel's own mean from then on (`displayed`).
+        facing: (Z, Y, X, 2) uint8 octahedral code (`baking.octahedral`) of the mean
+            direction the texel's paths started along (its start normals weighted like
+            its samples over its levels); `octahedral.UNKNOWN` where not computed, and
+            everywhere in files written before it was kept. Zeros when not given.
+        preview_facing: None, or (Z, Y, X, 2) uint8 the same of the previews' paths
+            (`ensure_preview_facing` makes it); shown where the preview is (`displayed_facing`).
     """
 
     geometry: LatticeGeometry
@@ -137,6 +186,12 @@ class Lattice:
     preview: np.ndarray | None = None
     preview_paths: np.ndarray | None = None
     config: BakeConfig | None = None
+    facing: np.ndarray | None = None
+    preview_facing: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.facing is None:
+            self.facing = np.zeros((*self.geometry.shape, 2), np.uint8)
 
     @classmethod
     def empty(cls, geometry: LatticeGeometry, channels: int, meta: dict,
@@ -180,6 +235,27 @@ class Lattice:
         return np.where(self.previewed(region)[..., None], self.preview[region],
                         own).astype(np.float32)
 
+    def ensure_preview_facing(self) -> np.ndarray:
+        """`preview_facing`, made (all unknown) if it is None."""
+        if self.preview_facing is None:
+            self.preview_facing = np.zeros((*self.geometry.shape, 2), np.uint8)
+        return self.preview_facing
+
+    def displayed_facing(self, region: tuple = (...,)) -> np.ndarray:
+        """(…, 2) uint8 facing codes a display uses in `region`, as `displayed` picks the
+        values: the preview's where `previewed`, else the texel's own where computed,
+        else unknown."""
+        own = np.where((self.samples[region] > 0)[..., None], self.facing[region], 0)
+        if self.preview_facing is None:
+            return own.astype(np.uint8)
+        return np.where(self.previewed(region)[..., None], self.preview_facing[region],
+                        own).astype(np.uint8)
+
+    def facing_known(self) -> bool:
+        """Whether any texel a display shows has a known facing (else the side-aware
+        lookup is the plain one)."""
+        return bool(octahedral.known(self.displayed_facing()).any())
+
     def standard_error(self) -> np.ndarray:
         """(Z, Y, X) float32 standard error of the luminance mean (inf where < 2 samples)."""
         lum = self.values[..., :3] @ LUMINANCE if self.kind == "irradiance" else self.values[..., 0]
@@ -201,23 +277,34 @@ class Lattice:
         typical = float(np.median(np.abs(lum[computed]))) if computed.any() else 1.0
         return self.standard_error() / np.maximum(np.abs(lum), floor_fraction * typical)
 
-    def sample(self, points_xyz: np.ndarray, normalized: bool = False) -> np.ndarray:
+    def sample(self, points_xyz: np.ndarray, normalized: bool = False,
+               normals: np.ndarray | None = None) -> np.ndarray:
         """(N, C) trilinear lookup at (N, 3) world points, as the GPU does it.
 
         Args:
             normalized: what the shader does while a bake is incomplete: weight only the
                 texels shown (`shown`, with the values `displayed`) and renormalise;
                 points with no such neighbour get 0.
+            normals: (N, 3) unit normals at the points, turned to the eye: the side-aware
+                lookup (`sided_mix`, with the facings `displayed_facing`), as the shader
+                does it for a lattice with known facings.
         """
         coords = self.geometry.to_texel_coords(points_xyz)
-        if not normalized:
+        if not normalized and normals is None:
             return trilinear(self.values, coords)
         idx, w = trilinear_corners(self.geometry.shape, coords)
         region = (idx[..., 0], idx[..., 1], idx[..., 2])
-        w = w * self.shown(region)
-        num = np.einsum("nk,nkc->nc", w, self.displayed(region).astype(np.float64))
-        den = w.sum(axis=1, keepdims=True)
-        return np.divide(num, den, out=np.zeros_like(num), where=den > 1e-6)
+        if normalized:
+            w = w * self.shown(region)
+            values = self.displayed(region).astype(np.float64)
+        else:
+            values = self.values[region].astype(np.float64)
+        if normals is None:
+            sides = np.ones_like(w)
+        else:
+            codes = self.displayed_facing(region) if normalized else self.facing[region]
+            sides = side_weights(codes, normals)
+        return sided_mix(w, sides, values)
 
     # -- files -------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
@@ -233,7 +320,7 @@ class Lattice:
             with os.fdopen(fd, "wb") as f:
                 np.savez_compressed(f, values=self.values, samples=self.samples,
                                     second=self.second, active=self.active,
-                                    meta=np.array(json.dumps(meta)))
+                                    facing=self.facing, meta=np.array(json.dumps(meta)))
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
@@ -252,6 +339,7 @@ class Lattice:
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("values", "samples", "second", "active", "meta")}
+                facing = z["facing"] if "facing" in z.files else None
             meta = json.loads(str(arrays["meta"]))
         except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
             raise BakeError(f"{path}: not a readable isolume lattice ({exc})") from None
@@ -266,8 +354,11 @@ class Lattice:
         if arrays["values"].shape[:3] != geometry.shape:
             raise BakeError(f"{path}: values of shape {arrays['values'].shape} do not match "
                             f"the lattice shape {geometry.shape}")
+        if facing is not None and facing.shape != (*geometry.shape, 2):
+            raise BakeError(f"{path}: facing of shape {facing.shape} does not match the "
+                            f"lattice shape {geometry.shape}")
         lattice = cls(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                      arrays["active"], meta, config=config)
+                      arrays["active"], meta, config=config, facing=facing)
         if volume is not None:
             lattice.check_volume(volume, path)
         return lattice

@@ -6,12 +6,10 @@ decides *which* texels to bake next and *how many* paths each gets; it knows not
 windows or threads (`serve` is the loop a worker thread or process runs).
 
 Which texels. A point p on the displayed isosurface ρ = iso is shaded by trilinear
-interpolation of the 8 texels at the corners of the lattice cell that contains p. The texels
-the picture needs are therefore the corners of the lattice cells whose corner values
-straddle iso ("surface texels"); among them, those of the cells under visible pixels
-("visible texels", found by the renderer from a world-position pass) come first. Within
-each group the texels nearest the eye come first, so the front of the surface fills in
-before the back.
+interpolation of the 8 texels at the corners of the lattice cell that contains p: the
+picture needs the corners of the cells whose corner values straddle iso ("surface
+texels"), those under visible pixels first ("visible texels", found by the renderer from a
+world-position pass), and within each group those nearest the eye first.
 
 How many paths. Rounds of growing targets (4, 16, 64, ... up to the bake's sample count):
 every texel of a group gets samples before any gets refined. The stage order is
@@ -20,13 +18,11 @@ first. Before any of it, the visible texels of every new view get previews trace
 displayed surface (`baking.preview`): the picture is right within seconds, and the
 texels' own values replace the previews once they rest on as many paths.
 
-Batches and level scenes. Each texel traces paths on its own isovalue's level surfaces
-(`baking.plan`), and the texels around one isosurface use almost every level: their values
-span the data's edge profile. A batch is one `Baker.run`, which sweeps the levels its
-texels use, building each level's scene once; batches are therefore large, and the bake
-keeps every level scene it can afford (`scene_cache_size`) so that later batches and rounds
-build none. Texels are committed level by level within a batch (and shown at once), and a
-new view interrupts a batch between two levels.
+Batches and level scenes. Texels trace paths on their own isovalues' level surfaces
+(`baking.plan`), and those around one isosurface use almost every level. A batch is one
+`Baker.run` sweeping its texels' levels, each scene built once and kept while affordable
+(`scene_cache_size`); texels are committed (and shown) level by level, and a new view
+interrupts a batch between two levels.
 
 Re-targeting. A new view (isovalue, eye, visible cells) rebuilds the stages; texels already
 at a stage's target are skipped, so finished work is kept — a texel's value holds for its
@@ -34,9 +30,8 @@ own isosurface whatever isovalue is displayed, which is the point of the method.
 
 A turned light. A lattice whose sun (or directional light) the display shades per pixel
 holds that light's bounces; when the viewer turns it, `Relight` bakes the same texels in
-the same order under the new direction (`relit_config`) into a lattice of its own, and
-puts each texel's new estimate on screen once it rests on `RELIGHT_PATHS` paths: the old
-light's value stays until then, and no mean averages paths of two lights.
+the same order under the new direction (`relit_config`) into a lattice of its own, shown
+texel by texel once it rests on `RELIGHT_PATHS` paths (no mean mixes two lights' paths).
 """
 
 from __future__ import annotations
@@ -58,9 +53,8 @@ TARGET_FACTOR = 4
 REPORT_S = 1.0
 """Seconds between progress reports within a batch."""
 BATCH_PATHS = 1 << 18
-"""Paths per batch (one `Baker.run`, a sweep over the isovalue levels its texels use).
-Large, because every batch visits every level it touches; a new view still interrupts a
-batch between two levels."""
+"""Paths per batch (one `Baker.run`): large, because every batch visits every level it
+touches; a new view still interrupts a batch between two levels."""
 SCENE_BYTES_PER_TRIANGLE = 130
 """Rough memory of one triangle of a level scene (mesh arrays — a triangle soup, three
 vertices of its own each: `volumes.tracing_surface` — and Embree's BVH)."""
@@ -213,9 +207,13 @@ class Relight:
         channels = shown.values.shape[-1]
         shown.values.reshape(-1, channels)[out] = fresh.values.reshape(-1, channels)[out]
         shown.second.reshape(-1)[out] = fresh.second.reshape(-1)[out]
+        shown.facing.reshape(-1, 2)[out] = fresh.facing.reshape(-1, 2)[out]
         if shown.preview is not None:
             shown.preview.reshape(-1, channels)[out] = fresh.preview.reshape(-1, channels)[out]
             shown.preview_paths.reshape(-1)[out] = fresh.preview_paths.reshape(-1)[out]
+            if fresh.preview_facing is not None:
+                shown.ensure_preview_facing().reshape(-1, 2)[out] = \
+                    fresh.preview_facing.reshape(-1, 2)[out]
         shown.samples.reshape(-1)[out] = fresh.samples.reshape(-1)[out]
         self.published[out] = True
         return out
@@ -549,12 +547,15 @@ class View:
         light: (3,) unit vector towards the light the display turns (`turned_light`:
             the first directional light, else the sky's sun) as it shades it per pixel;
             None: no opinion (the bake keeps its light).
+        points: (P, 3) float32 world surface points under the visible pixels, or None:
+            previews start there, on the side the eye sees (`preview.seen_starts`).
     """
 
     iso: float
     eye: tuple[float, float, float]
     visible: np.ndarray | None = None
     light: tuple[float, float, float] | None = None
+    points: np.ndarray | None = None
 
 
 @dataclass

@@ -6,7 +6,8 @@ points) on the level's scene (`level_scene`), in chunks of whole texels (`chunk_
 `trace_chunk`); the per-texel sums go to the pass sums (`PassSums`), and a texel complete
 on its upper level is merged into the lattice (`commit_sums`). A texel's paths and start
 point depend on that texel alone and its sums are added in sample order, so the lattice
-is the same bits whoever traces the chunks.
+is the same bits whoever traces the chunks. A texel's facing (`landing_facing`, committed
+by `commit_facing`) comes from the plan alone, so it is the same bits too.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from isolume import volumes
-from isolume.baking import kernels
+from isolume.baking import kernels, octahedral
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import (
     PathSettings,
@@ -65,6 +66,36 @@ def commit_sums(lattice: Lattice, plan: Plan, acc: PassSums, positions: np.ndarr
                                 lattice.values.reshape(-1, lattice.values.shape[-1]),
                                 lattice.samples.reshape(-1), lattice.second.reshape(-1),
                                 acc.sum, acc.second, acc.n)
+
+
+def landing_facing(volume: volumes.Volume, config: BakeConfig, plan: Plan,
+                   positions: np.ndarray) -> np.ndarray:
+    """(P, 2) uint8 facings (`baking.octahedral`) of the texels at the (P,) plan
+    `positions`: the mean of their start normals on their two levels (`start_points`'
+    normals at `Plan.landing`), weighted like their samples (1 − weight, weight); unknown
+    where that mean vanishes."""
+    positions = np.asarray(positions, np.int64)
+    share = np.stack([1 - plan.weight[positions], plan.weight[positions]], axis=1)
+    mean = np.zeros((len(positions), 3))
+    for side in (0, 1):
+        used = share[:, side] > 0
+        if used.any():
+            normals = volumes.normals_at(volume, plan.landing[positions[used], side],
+                                         smooth=config.normals == "smooth",
+                                         flip=config.flip_normals).astype(np.float64)
+            mean[used] += share[used, side, None] * normals
+    return octahedral.encode(mean)
+
+
+def commit_facing(lattice: Lattice, volume: volumes.Volume, config: BakeConfig, plan: Plan,
+                  positions: np.ndarray) -> None:
+    """Set the facings (`landing_facing`) of the texels at plan `positions` about to be
+    committed that have none yet, or no samples yet (a texel reset by another plan)."""
+    flat = plan.ids[positions]
+    codes = lattice.facing.reshape(-1, 2)
+    todo = ~octahedral.known(codes[flat]) | (lattice.samples.reshape(-1)[flat] == 0)
+    if todo.any():
+        codes[flat[todo]] = landing_facing(volume, config, plan, positions[todo])
 
 
 def chunk_bounds(pos: np.ndarray, workers: int):

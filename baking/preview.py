@@ -6,12 +6,15 @@ Embree scene each (`baking.plan`), seconds apiece on a CT scan, ~90 s for the en
 levels. The displayed surface, however, is one scene, and for the picture on screen it is
 the right one: the renderer interpolates these texels on exactly that surface. So before
 (and besides) the level-by-level bake, the corner texels of the visible cells get paths
-traced on the displayed isosurface, from their centres projected onto it, in passes of
-growing path counts (`PASSES`): a few paths on a coarse mesh within about a second, then
-more on the full one. They go to ``Lattice.preview`` with their path count in
-``Lattice.preview_paths``; a display shows a preview while the texel has fewer samples of
-its own (`Lattice.displayed`), so the picture never gets noisier when the bake's first
-samples arrive. Previews are never saved.
+traced on the displayed isosurface, in passes of growing path counts (`PASSES`), each
+texel from the visible point nearest it on the side the eye sees (`seen_starts`; a
+surface seen from its high-value side — a sheet between two fluids, a solid cut open by
+the volume's border — is lit where it is seen), else from its centre projected onto it:
+a few paths on a coarse mesh within about a second, then more on the full one. They go
+to ``Lattice.preview`` with their path count in ``Lattice.preview_paths`` and the start
+normals in ``Lattice.preview_facing``; a display shows a preview while the texel has fewer
+samples of its own (`Lattice.displayed`), so the picture never gets noisier when the
+bake's first samples arrive. Previews are never saved.
 
 Their error, measured on the engine CT at its default view against per-pixel path tracing
 of the displayed surface (`isolume bench lazy`): RMS over visible pixels 11.5 % at 4
@@ -25,18 +28,20 @@ from __future__ import annotations
 import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
 from isolume import volumes
-from isolume.baking import kernels, rng
+from isolume.baking import kernels, octahedral, rng
 from isolume.baking.bake import path_settings, tracing_lights
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import whole_paths
-from isolume.baking.lattice import Lattice
+from isolume.baking.lattice import Lattice, LatticeGeometry, trilinear_corners
 from isolume.baking.lazy import corner_offsets
 from isolume.baking.passes import PassSums, PathStarts, Tracing, trace_chunk
 from isolume.baking.plan import project_to_level
+from isolume.baking.reference import primary_hits
 
 PASSES = ((4, True), (64, False), (256, False))
 """(paths per texel, coarse mesh allowed) of the preview passes of a view, in order; the
@@ -87,22 +92,57 @@ def surface_scene(volume: volumes.Volume, iso: float, step: int):
 
 def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: float,
              flat: np.ndarray, scene, step: int, *, paths: int, tracing: Tracing,
-             workers: int = 1) -> None:
-    """Trace `paths` paths from each texel `flat` (K,) projected onto the surface ρ = `iso`
-    (whose `scene` has the given marching-cubes `step`) and store the means as the
-    texels' previews (``lattice.preview`` and ``preview_paths``, which must be set);
-    `tracing` is `preview_tracing` (volume, config).
+             workers: int = 1, seen: SeenSurface | None = None) -> None:
+    """Trace `paths` paths from each texel `flat` (K,) and store the means as the texels'
+    previews (``lattice.preview`` and ``preview_paths``, which must be set) for the
+    surface ρ = `iso` (whose `scene` has the given marching-cubes `step`); `tracing` is
+    `preview_tracing` (volume, config).
 
-    The texel centres move onto the surface (up to 2 voxels) by Newton steps along the
-    smoothed gradient, then along the plain one, which lands them on the raw field's
-    surface that the mesh shows; they start from there along the bake's (smoothed)
-    normal. Measured on the engine CT's 112 k visible texels at 64 paths against per-pixel
-    path tracing: plain steps and normals 3.2 % (and black marks on the synthetic
-    engine's thin posts), smoothed steps and normals 4.2 % (593 texels stalled short of the
-    surface, inside the material: black), both in turn 3.0 % (none). Texels whose start
-    would still be inside get no preview (`_outside`). A step-2 surface (the first pass
-    on large volumes) takes plain steps and normals (no smoothed grid to wait for) and a
-    larger offset.
+    With `seen` (the surface the view shows), each texel starts from the visible point
+    nearest it among those whose lookups read it (`seen_starts`): on the side of the
+    surface the eye sees, which is where the picture shows the light. Texels no visible
+    point reads, and every texel without `seen`, start from their centres projected onto
+    the surface (`projected_starts`).
+    """
+    origins = np.zeros((len(flat), 3))
+    normals = np.zeros((len(flat), 3))
+    usable = np.zeros(len(flat), bool)
+    if seen is not None:
+        found = seen_starts(flat, seen)
+        has = found >= 0
+        origins[has], normals[has] = seen.origins[found[has]], seen.normals[found[has]]
+        usable[has] = True
+    rest = ~usable
+    if rest.any():
+        o, n, ok = projected_starts(volume, config, lattice, iso, flat[rest], step)
+        origins[rest], normals[rest], usable[rest] = o, n, ok
+    if usable.any():  # values first: another process may be displaying them
+        sums = _trace(scene, tracing, flat[usable], origins[usable].astype(np.float32),
+                      normals[usable].astype(np.float32), workers, paths)
+        lattice.preview.reshape(-1, lattice.preview.shape[-1])[flat[usable]] = sums / paths
+        lattice.ensure_preview_facing().reshape(-1, 2)[flat[usable]] = octahedral.encode(
+            normals[usable])
+    lattice.preview_paths.reshape(-1)[flat] = np.where(usable, paths, 0)
+
+
+def projected_starts(volume: volumes.Volume, config: BakeConfig, lattice: Lattice,
+                     iso: float, flat: np.ndarray, step: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Start points of texels `flat` (K,) on the surface ρ = `iso` found from their centres.
+
+    The centres move onto the surface (up to 2 voxels) by Newton steps along the smoothed
+    gradient, then along the plain one, which lands them on the raw field's surface that
+    the mesh shows; they start from there along the bake's (smoothed) normal. Measured on
+    the engine CT's 112 k visible texels at 64 paths against per-pixel path tracing:
+    plain steps and normals 3.2 % (and black marks on the synthetic engine's thin posts),
+    smoothed steps and normals 4.2 % (593 texels stalled short of the surface, inside the
+    material: black), both in turn 3.0 % (none). A step-2 surface (the first pass on large
+    volumes) takes plain steps and normals (no smoothed grid to wait for) and a larger
+    offset.
+
+    Returns:
+        (K, 3) origins and (K, 3) unit normals, world units, and (K,) bool: the start lies
+        outside the material (`_outside`); the others must not be traced.
     """
     h = float(np.mean(volume.spacing))
     smooth = step == 1 and config.normals == "smooth"
@@ -114,12 +154,73 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
     normals = volumes.normals_at(volume, on_surface, smooth=smooth, flip=config.flip_normals)
     offset = COARSE_OFFSET_VOXELS if step == 2 else config.offset
     origins = on_surface + offset * h * normals
-    outside = _outside(volume, origins, iso, config.flip_normals)
-    if outside.any():  # values first: another process may be displaying them
-        sums = _trace(scene, tracing, flat[outside], origins[outside].astype(np.float32),
-                      normals[outside].astype(np.float32), workers, paths)
-        lattice.preview.reshape(-1, lattice.preview.shape[-1])[flat[outside]] = sums / paths
-    lattice.preview_paths.reshape(-1)[flat] = np.where(outside, paths, 0)
+    return origins, normals, _outside(volume, origins, iso, config.flip_normals)
+
+
+@dataclass(frozen=True)
+class SeenSurface:
+    """The surface points a view shows, the start points of paths there, and the point
+    each texel starts from.
+
+    Attributes:
+        points: (M, 3) world hit points of the eye's rays on the displayed surface.
+        origins: (M, 3) path start points off them, on the side the eye sees (checked:
+            `reference.clear_starts`).
+        normals: (M, 3) unit normals turned to the side the eye sees.
+        texels: (T,) sorted flat ids of the texels the points' trilinear lookups read.
+        nearest: (T,) index of the point nearest each of `texels` among those reading it.
+    """
+
+    points: np.ndarray
+    origins: np.ndarray
+    normals: np.ndarray
+    texels: np.ndarray
+    nearest: np.ndarray
+
+
+def seen_surface(scene, volume: volumes.Volume, config: BakeConfig,
+                 geometry: LatticeGeometry, eye: np.ndarray, points: np.ndarray
+                 ) -> SeenSurface:
+    """The visible surface of a view: rays from `eye` (3,) through the (N, 3) world
+    `points` a picture shows (its position pass), traced against `scene` and started as
+    `isolume reference` starts its pixels (`reference.primary_hits`), with the nearest
+    point of each texel of `geometry` they read (`nearest_points`)."""
+    points = np.asarray(points, np.float64)
+    dirs = points - np.asarray(eye, np.float64)[None, :]
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-30)
+    origins = np.broadcast_to(np.asarray(eye, np.float64), dirs.shape)
+    hits = primary_hits(scene, volume, origins, dirs, config,
+                        smooth=config.normals == "smooth")
+    texels, nearest = nearest_points(geometry, hits.points)
+    return SeenSurface(hits.points, hits.origins, hits.normals, texels, nearest)
+
+
+def nearest_points(geometry: LatticeGeometry, points: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(T,) sorted flat ids of the texels that trilinear lookups at (M, 3) world `points`
+    read, and (T,) the index of the point nearest each (world distance to its centre)."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    shape = geometry.shape
+    coords = geometry.to_texel_coords(points)  # (M, 3) z, y, x
+    idx, _ = trilinear_corners(shape, coords)  # (M, 8, 3)
+    read = ((idx[..., 0] * shape[1] + idx[..., 1]) * shape[2] + idx[..., 2]).reshape(-1)
+    size = geometry.texel_size[::-1]  # z, y, x
+    gap = ((idx - coords[:, None, :]) * size) ** 2
+    closeness = gap.sum(axis=2).reshape(-1) / (2.0 * float((size**2).sum()) + 1e-30)
+    order = np.argsort(read + closeness, kind="stable")  # closeness < 1: texel, then gap
+    texel = read[order]
+    first = np.r_[True, texel[1:] != texel[:-1]]
+    return texel[first], (order // 8)[first]
+
+
+def seen_starts(flat: np.ndarray, seen: SeenSurface) -> np.ndarray:
+    """(K,) index into `seen` of the visible point nearest each texel `flat` (K,) among
+    the points whose trilinear lookups read it; -1 where none does."""
+    if len(seen.texels) == 0 or len(flat) == 0:
+        return np.full(len(flat), -1, np.int64)
+    at = np.minimum(np.searchsorted(seen.texels, flat), len(seen.texels) - 1)
+    return np.where(seen.texels[at] == flat, seen.nearest[at], -1)
 
 
 def _outside(volume: volumes.Volume, origins: np.ndarray, iso: float, flip: bool) -> np.ndarray:
@@ -164,6 +265,8 @@ class Previewer:
         self._corners = np.zeros(0, np.int64)
         self._queue: list[list] = []  # [paths, coarse, texels still to do or None]
         self._scenes: dict[int, object] = {}  # by marching-cubes step
+        self._view: tuple[np.ndarray, np.ndarray] | None = None  # eye, visible points
+        self._seen: SeenSurface | None = None  # of `_view`, once traced
         self._started, self._pass_texels = 0.0, 0  # of the pass under way
         self._tracing = preview_tracing(volume, config)
 
@@ -172,9 +275,12 @@ class Previewer:
         """Preview work is waiting for `step`."""
         return bool(self._queue)
 
-    def set_view(self, iso: float, cells: np.ndarray) -> np.ndarray:
+    def set_view(self, iso: float, cells: np.ndarray, eye: np.ndarray | None = None,
+                 points: np.ndarray | None = None) -> np.ndarray:
         """A new view (isovalue, (N,) flat base ids of the visible cells): run its first
-        pass and queue the others.
+        pass and queue the others. With the `eye` (3,) and the (P, 3) world `points` the
+        view shows, full-mesh passes start texels on the side the eye sees
+        (`seen_starts`).
 
         Returns:
             (K,) flat ids of the texels whose previews changed.
@@ -182,6 +288,8 @@ class Previewer:
         if iso != self.iso:
             self._scenes.clear()
         self.iso = float(iso)
+        self._view, self._seen = (None, None) if points is None or eye is None else (
+            (np.asarray(eye, np.float64), np.asarray(points, np.float64)), None)
         self._corners = cell_corners(self.lattice.geometry.shape, cells)
         self._queue = [[paths, coarse, None] for paths, coarse in self.passes]
         return self.step(whole=True)
@@ -208,7 +316,8 @@ class Previewer:
                 self._queue.clear()
                 return flat[:0]
             estimate(self.volume, self.config, self.lattice, self.iso, flat, scene, step,
-                     paths=paths, tracing=self._tracing, workers=self.workers)
+                     paths=paths, tracing=self._tracing, workers=self.workers,
+                     seen=self._seen_surface(scene) if step == 1 else None)
             self._iso_of[flat] = self.iso
         if take >= len(todo):
             self._queue.pop(0)
@@ -224,6 +333,13 @@ class Previewer:
         fresh = (self._iso_of[flat] == np.float32(self.iso)) & (
             self.lattice.preview_paths.reshape(-1)[flat] >= paths)
         return flat[~fresh]
+
+    def _seen_surface(self, scene) -> SeenSurface | None:
+        """The view's visible surface on the full-mesh `scene`, found once per view."""
+        if self._seen is None and self._view is not None:
+            self._seen = seen_surface(scene, self.volume, self.config,
+                                      self.lattice.geometry, *self._view)
+        return self._seen
 
     def _scene(self, step: int):
         """The displayed surface's scene at marching-cubes `step`, made once per isovalue."""

@@ -137,12 +137,41 @@ def primary_hits(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.nd
     points = np.asarray(origins, np.float64)[pixels] + hits["t"][pixels, None] * d
     normals = volumes.normals_at(volume, points, smooth=smooth,
                                  flip=config.flip_normals).astype(np.float64)
-    normals = _to_visible_side(normals, hits["ng"][pixels], d)
+    normals = to_visible_side(normals, hits["ng"][pixels], d)
+    flat = ~(np.abs(np.linalg.norm(normals, axis=1) - 1.0) < 1e-3)  # no gradient (or NaN)
+    normals[flat] = -d[flat]  # there the eye's direction is the one side known
     h = float(np.mean(volume.spacing))
-    return PrimaryHits(pixels, points, points + config.offset * h * normals, normals)
+    origins = clear_starts(scene, points, points + config.offset * h * normals, d, h)
+    return PrimaryHits(pixels, points, origins, normals)
 
 
-def _to_visible_side(normals: np.ndarray, facet: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+def clear_starts(scene, points: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+                 h: float) -> np.ndarray:
+    """(M, 3) path start points checked against the surface they light: a start whose
+    step off the surface crosses a facet (a sub-voxel pocket, a fold thinner than the
+    offset, where every path would begin inside the material and come back black) moves
+    back along its primary ray instead, as far as the offset, which the ray has just
+    crossed in free space.
+
+    Args:
+        points: (M, 3) hit points on the surface, world units; origins: (M, 3) the
+            starts off it; dirs: (M, 3) unit primary ray directions; h: voxel size.
+    """
+    back = points - 1e-3 * h * dirs  # on the ray, just before the hit: free space
+    step = origins - back
+    length = np.linalg.norm(step, axis=1)
+    out = np.array(origins, np.float64)
+    traced = np.flatnonzero(length > 0)  # (Embree's traversal needs finite, non-zero rays)
+    if len(traced) == 0:
+        return out
+    blocked = scene.occluded(back[traced], step[traced] / length[traced, None],
+                             tfar=length[traced])
+    moved = traced[blocked]
+    out[moved] = points[moved] - length[moved, None] * dirs[moved]
+    return out
+
+
+def to_visible_side(normals: np.ndarray, facet: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """(M, 3) `normals` turned towards the eye: to the side of the hit facet the ray
     arrives from.
 

@@ -4,6 +4,23 @@
 // mapping needs no half-texel correction. Textures hold values * valid; dividing by the
 // matching lookup of `valid` interpolates over computed texels only (every lookup below
 // returns the pair (value * w, w) for that reason).
+//
+// FACING 1: the side-aware lookup (trilinear irradiance, LOOKUP 0, and SH transfer). Each
+// texel's facing m, the mean direction its paths started along, weights it by
+// max(0, n.m)^FACING_POWER for a point whose normal n is turned to the eye (1 where m is
+// unknown), so a face of a thin wall, or the other side of a sheet, does not show light
+// gathered on the opposite face; where these weights sum to below FACING_FLOOR of the
+// plain ones, the plain mix stays (baking.lattice.sided_mix is the same on the CPU).
+// Needs gbuffer.glsl (from_octahedral) included before it.
+#ifndef FACING
+#define FACING 0
+#endif
+#ifndef FACING_POWER
+#define FACING_POWER 2
+#endif
+#ifndef FACING_FLOOR
+#define FACING_FLOOR 1e-3
+#endif
 uniform sampler3D u_valid;       // 1 where the texel has been computed
 uniform vec3 u_box_lo;
 uniform vec3 u_box_size;
@@ -28,9 +45,6 @@ vec3 lattice_blend(float w, vec3 baked, vec3 n, vec3 albedo) {
     return mix(fallback, baked, smoothstep(0.0, 0.25, w));
 }
 
-#if SHADING == 5 || SHADING == 7
-uniform sampler3D u_irradiance;  // E * valid, GL_RGB9_E5
-
 // Continuous texel coordinates of `tc` (texel centres at integers, x y z order) and the
 // lower corner of the 2x2x2 texels around it, clamped like GL's CLAMP_TO_EDGE filtering.
 vec3 texel_coord(vec3 tc) {
@@ -44,6 +58,9 @@ ivec3 cell_base(vec3 c) {
 ivec3 cell_corner(ivec3 base, int k) {  // corner k = x + 2 y + 4 z of the cell
     return base + ivec3(k & 1, (k >> 1) & 1, (k >> 2) & 1);
 }
+
+#if SHADING == 5 || SHADING == 7
+uniform sampler3D u_irradiance;  // E * valid, GL_RGB9_E5
 
 // (E * w, w) of one texel.
 vec4 texel_pair(ivec3 t) {
@@ -122,19 +139,93 @@ vec4 irradiance_lookup(vec3 tc) {
     return sum;
 }
 #endif
+#endif
 
-// E over the computed texels of the lookup, and their weight w.
-vec3 lattice_irradiance(vec3 world, out float w) {
+#if SHADING == 6
+// SH transfer: E = sum_i tau_i l_i, with tau from SH_TEXTURES RGBA16F textures per colour
+// group and the rotated environment coefficients l in u_light (four per vec4, red first).
+// A split transfer holds the direct block, then the indirect one: l is then the sun-free
+// sky's coefficients followed by the whole sky's (app/lattice_gl.py), the same sum.
+SH_DECLARE
+uniform vec4 u_light[3 * SH_TEXTURES];
+
+// (E * w, w) of one texel.
+vec4 texel_pair(ivec3 t) {
+    return vec4(SH_IRRADIANCE_AT(t), texelFetch(u_valid, t, 0).r);
+}
+#endif
+
+#if FACING
+uniform sampler3D u_facing;  // the texels' facings m, octahedral RG8; (0, 0) unknown
+
+// The side weight of texel t at a point of normal n (turned to the eye).
+float side_weight(ivec3 t, vec3 n) {
+    vec2 code = texelFetch(u_facing, t, 0).rg;
+    if (code == vec2(0.0)) return 1.0;
+    float c = max(dot(n, from_octahedral(code * 2.0 - 1.0)), 0.0);
+#if FACING_POWER == 2
+    c *= c;
+#elif FACING_POWER != 1
+    c = pow(c, float(FACING_POWER));
+#endif
+    return c;
+}
+
+// (value * w, w) of the side-aware trilinear lookup at texture coordinate tc: the 8
+// texels' pairs weighted by trilinear weight x side weight, scaled to the plain lookup's
+// weight w (so the blend with local shading sees the same coverage); the plain lookup
+// where no texel faces n's way.
+vec4 sided_lookup(vec3 tc, vec3 n) {
+    vec3 size = vec3(textureSize(u_valid, 0));
+    vec3 c = clamp(tc * size - 0.5, vec3(0.0), size - 1.0);
+    ivec3 base = cell_base(c);
+    vec3 f = c - vec3(base);
+    vec4 plain = vec4(0.0);
+    vec4 sided = vec4(0.0);
+    for (int k = 0; k < 8; ++k) {
+        ivec3 t = cell_corner(base, k);
+        vec3 a = mix(1.0 - f, f, vec3(t - base));
+        vec4 pair = (a.x * a.y * a.z) * texel_pair(t);
+        plain += pair;
+        sided += side_weight(t, n) * pair;
+    }
+    return sided.w > FACING_FLOOR * plain.w ? sided * (plain.w / sided.w) : plain;
+}
+#endif
+
+#if SHADING == 5 || SHADING == 7
+// E over the computed texels of the lookup at a point of normal n (turned to the eye),
+// and their weight w.
+vec3 lattice_irradiance(vec3 world, vec3 n, out float w) {
+#if FACING && LOOKUP == 0
+    vec4 pair = sided_lookup(lattice_coord(world), n);
+#else
     vec4 pair = irradiance_lookup(lattice_coord(world));
+#endif
     w = pair.w;
     return max(pair.rgb / max(w, 1e-4), 0.0);
+}
+#endif
+
+#if SHADING == 6
+vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
+    vec3 tc = lattice_coord(world);
+#if FACING
+    vec4 pair = sided_lookup(tc, n);
+    float w = pair.w;
+    vec3 e = max(pair.rgb / max(w, 1e-4), 0.0);
+#else
+    float w = texture(u_valid, tc).r;
+    vec3 e = max(SH_IRRADIANCE(tc) / max(w, 1e-4), 0.0);
+#endif
+    return lattice_blend(w, albedo * e / PI, n, albedo);
 }
 #endif
 
 #if SHADING == 5
 vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
     float w;
-    vec3 e = lattice_irradiance(world, w);
+    vec3 e = lattice_irradiance(world, n, w);
     return lattice_blend(w, albedo * e / PI, n, albedo);
 }
 #endif
@@ -147,23 +238,8 @@ uniform vec3 u_sky_radiance;
 
 vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
     float w;
-    vec3 occlusion = lattice_irradiance(world, w) / (PI * u_sky_radiance);
+    vec3 occlusion = lattice_irradiance(world, n, w) / (PI * u_sky_radiance);
     return lattice_blend(w, albedo * occlusion * hemisphere_irradiance(n) / PI, n, albedo);
 }
 #endif
 
-#if SHADING == 6
-// SH transfer: E = sum_i tau_i l_i, with tau from SH_TEXTURES RGBA16F textures per colour
-// group and the rotated environment coefficients l in u_light (four per vec4, red first).
-// A split transfer holds the direct block, then the indirect one: l is then the sun-free
-// sky's coefficients followed by the whole sky's (app/lattice_gl.py), the same sum.
-SH_DECLARE
-uniform vec4 u_light[3 * SH_TEXTURES];
-
-vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
-    vec3 tc = lattice_coord(world);
-    float w = texture(u_valid, tc).r;
-    vec3 e = max(SH_IRRADIANCE(tc) / max(w, 1e-4), 0.0);
-    return lattice_blend(w, albedo * e / PI, n, albedo);
-}
-#endif

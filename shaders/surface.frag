@@ -39,11 +39,11 @@
 #if SHADOW
 #include "shadow.glsl"
 #endif
+#if DEFERRED || DIRECT || SHADING == 6
+#include "gbuffer.glsl"
+#endif
 #if SHADING == 6 && !DEFERRED
 #include "lattice.glsl"
-#endif
-#if DEFERRED || DIRECT
-#include "gbuffer.glsl"
 #endif
 
 uniform vec3 u_eye;

@@ -26,7 +26,7 @@ def cluster():
 
 
 def _same_bits(a: Lattice, b: Lattice) -> None:
-    for name in ("values", "samples", "second"):
+    for name in ("values", "samples", "second", "facing"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     assert a.meta["stats"]["paths"] == b.meta["stats"]["paths"]
     assert a.meta["rays_traced"] == b.meta["rays_traced"]
@@ -116,7 +116,7 @@ def test_interrupted_cluster_bake_keeps_whole_texels_and_resumes(cluster, tmp_pa
     shutil.copy(cut, copy)
     remote = bake(vol, config, out=cut, scheduler=cluster.scheduler_address)
     local = bake(vol, config, out=copy, workers=2)
-    for name in ("values", "samples", "second"):
+    for name in ("values", "samples", "second", "facing"):
         np.testing.assert_array_equal(getattr(local, name), getattr(remote, name))
     np.testing.assert_array_equal(Lattice.load(cut, vol).values, remote.values)
 

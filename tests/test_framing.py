@@ -61,14 +61,32 @@ def test_auto_exposure_is_the_key_over_the_log_average():
     mask[:3] = True
     expected = EXPOSURE_KEY / np.exp((8 * np.log(0.5) + 4 * np.log(2.0)) / 12)
     assert auto_exposure_scale(rgb, mask) == pytest.approx(expected)
-    # black pixels are floored at 1e-3 of the mean, not log(0)
-    rgb[0, 0] = 0.0
-    assert np.isfinite(auto_exposure_scale(rgb, mask))
     assert auto_exposure_scale(rgb, np.zeros_like(mask)) == 1.0
+    assert auto_exposure_scale(np.zeros_like(rgb), mask) == 1.0  # all black: no opinion
     weights = np.where(np.arange(4)[:, None] < 2, 1.0, 3.0) * np.ones((4, 4))
-    heavy = EXPOSURE_KEY / np.exp((7 * np.log(0.5) + 12 * np.log(2.0)
-                                   + np.log(1e-3 * 27.5 / 20)) / 20)  # floor: 1e-3 × mean
+    heavy = EXPOSURE_KEY / np.exp((8 * np.log(0.5) + 12 * np.log(2.0)) / 20)
     assert auto_exposure_scale(rgb, mask, weights=weights) == pytest.approx(heavy)
+
+
+@pytest.mark.parametrize("dark", [0.0, 1e-4])
+def test_auto_exposure_is_not_fooled_by_a_dark_half(dark):
+    """A surface half black (or in deep shadow below 2 % of its bright pixels) is exposed
+    as its lit half alone would be: the dark half carries no exposure information. The
+    log-average over every pixel would expose it 1/√dark times brighter (the lit half
+    blown out white)."""
+    rng = np.random.default_rng(3)
+    lit = rng.uniform(0.2, 0.8, (64, 64))
+    rgb = np.repeat(lit[..., None], 3, axis=2)
+    mask = np.ones((64, 64), bool)
+    alone = auto_exposure_scale(rgb, mask)
+    rgb[:, :32] = dark
+    assert auto_exposure_scale(rgb[:, 32:], mask[:, 32:]) == pytest.approx(
+        auto_exposure_scale(rgb, mask))
+    assert auto_exposure_scale(rgb, mask) == pytest.approx(alone, rel=0.1)
+    # a dim but lit gradient (above 2 % of the bright pixels) is metered, not dropped
+    rgb[:, :32] = 0.05
+    dim = auto_exposure_scale(rgb, mask)
+    assert dim > 1.5 * alone
 
 
 def test_viewer_exposure_adapts_smoothly_in_stops():

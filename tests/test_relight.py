@@ -424,6 +424,7 @@ screenshot before.png
 light 60 40
 wait-light 1 120
 screenshot after.png
+wait-bake 0.2 120
 save-lattice
 quit
 """
@@ -433,7 +434,8 @@ def test_a_complete_lattice_file_is_re_baked_for_a_turned_sun(display, tmp_path)
     """``view --lattice FILE`` of a complete bake: turning its sun starts a lazy bake with
     the file's config that re-bakes the bounced light around the view; the picture's
     bounced light changes, the file keeps its whole bake, and ``save-lattice`` writes
-    the turned sun's texels beside it."""
+    the turned sun's texels beside it (once the bake, not only the previews that put the
+    turned light on screen first, has reached a fifth of the texels near the surface)."""
     import json
 
     from isolume.app.render.images import read_exr

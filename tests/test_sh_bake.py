@@ -104,9 +104,12 @@ def test_env_rotation_equals_rotating_the_environment_itself(gl, shells_sh):
 
 
 def test_sh_shading_matches_lattice_sum_at_surface_points(gl, shells_sh):
-    """Pixel radiance = albedo/pi * sum_i tau_i(x) l_i with tau trilinear at the pixel's
-    world position (read back with the position pass); tolerance: RGBA16F storage of tau
-    (relative 2^-11 per coefficient) summed over 16 coefficients."""
+    """Pixel radiance = albedo/pi * sum_i tau_i(x) l_i with tau trilinear (side-aware, with
+    the pixel's shading normal) at the pixel's world position (read back with the position
+    pass); tolerance: RGBA16F storage of tau (relative 2^-11 per coefficient) summed over
+    16 coefficients."""
+    from test_facing import surface_normals
+
     from isolume.app.render.renderer import SurfaceRenderer
 
     vol, lattice = shells_sh
@@ -116,12 +119,14 @@ def test_sh_shading_matches_lattice_sum_at_surface_points(gl, shells_sh):
     renderer = SurfaceRenderer(gl)
     mesh = volumes.isosurface(vol, 0.5)
     renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces)
-    pos = renderer.render(default_camera(vol, (30, 30, 1.6)),
+    camera = default_camera(vol, (30, 30, 1.6))
+    pos = renderer.render(camera,
                           RenderSettings(size=(96, 96), shading="position", tonemap="clamp"))
     renderer.release()
     mask = frame.mask & pos.mask
-    points = pos.linear[mask]
-    tau = lattice.sample(points, normalized=True)
+    points = pos.linear[mask].astype(np.float64)
+    tau = lattice.sample(points, normalized=True,
+                         normals=surface_normals(mesh, points, camera.eye))
     expected = 0.8 * np.clip(tau @ coeffs, 0, None) / np.pi
     got = frame.linear[mask]
     err = np.abs(got - expected)

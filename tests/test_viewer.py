@@ -132,6 +132,7 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
     (check,) = stats["checks"]
     assert check["texels"] > 0 and check["valid_mismatch"] == 0
     assert check["max_rel_error"] <= RGB9E5_RELATIVE and check["uncomputed_nonzero"] == 0
+    assert check["facing_mismatch"] == 0
     progress = stats["bake"]["progress"]
     assert progress["surface_started"] == progress["surface"] > 0
     # the panel is drawn over the picture in the window, not in the screenshots
@@ -253,6 +254,8 @@ def test_uploaded_regions_equal_the_lattice(gl):
     values = lattice.values.reshape(-1, 3)
     values[flat] = rng.uniform(0.01, 4.0, (900, 3)) * rng.uniform(0.1, 10.0, (900, 1))
     lattice.samples.reshape(-1)[flat] = rng.integers(1, 64, 900)
+    lattice.facing.reshape(-1, 2)[flat] = rng.integers(1, 256, (900, 2))
+    assert not textures.facing_known
     uploader.mark(flat)
     assert uploader.pending > 0
     while uploader.pending:
@@ -261,6 +264,7 @@ def test_uploaded_regions_equal_the_lattice(gl):
     assert result["texels"] == 900 and result["valid_mismatch"] == 0
     assert result["max_rel_error"] <= RGB9E5_RELATIVE
     assert result["uncomputed_nonzero"] == 0
+    assert result["facing_mismatch"] == 0 and textures.facing_known
     # a texel changed but not marked is not re-uploaded
     values[flat[0]] *= 2
     assert check_textures(textures)["max_rel_error"] > 0.4

@@ -10,6 +10,9 @@
   ray over the whole bake's wall time: planning, level scenes and tracing). Also the
   full-bake figures (time, active texels, levels, rays, the level scenes' cost split
   into marching cubes and Embree).
+* ``bench frames`` and ``bench lazy``: `app.bench.view`; ``bench accuracy``: the default
+  render's and a default bake's lighting against path tracing on every scan
+  (`app.bench.accuracy`).
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ import argparse
 import json
 import time
 
-HELP = "benchmarks: baker throughput against bare embreex, frame times, lazy GI"
+HELP = ("benchmarks: baker throughput against bare embreex, frame times, lazy GI, lighting "
+        "accuracy")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         bench = _view_module()
         if bench is not None and hasattr(bench, f"add_{name}_arguments"):
             getattr(bench, f"add_{name}_arguments")(sub.add_parser(name, help=module))
+    accuracy = _accuracy_module()
+    accuracy.add_arguments(sub.add_parser("accuracy", help=accuracy.HELP))
 
 
 _VIEW_BENCHES = {"frames": "frame time per shading mode (llvmpipe, EGL)",
@@ -50,9 +56,17 @@ def _view_module():
     return view
 
 
+def _accuracy_module():
+    from isolume.app.bench import accuracy
+
+    return accuracy
+
+
 def run(args: argparse.Namespace) -> int:
     if args.bench == "bake":
         return bench_bake(args)
+    if args.bench == "accuracy":
+        return _accuracy_module().run(args)
     return getattr(_view_module(), args.bench)(args)
 
 

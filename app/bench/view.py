@@ -89,7 +89,9 @@ def add_frames_arguments(parser) -> None:
 
 
 def _filled_lattices(volume):
-    """An irradiance lattice and a 5-band gray SH lattice with every texel computed."""
+    """An irradiance lattice and a 5-band gray SH lattice with every texel computed, each
+    with a known facing (+z): the side-aware lookup the shader runs on baked lattices."""
+    from isolume.baking import octahedral
     from isolume.baking.config import BakeConfig
     from isolume.baking.lattice import Lattice, LatticeGeometry
 
@@ -103,6 +105,8 @@ def _filled_lattices(volume):
     sh = Lattice.empty(geometry, 25, {"kind": "sh", "sh_order": 5}, config=sh_config)
     sh.values[..., 0] = 1.5
     sh.samples[...] = 1
+    for lattice in (irr, sh):
+        lattice.facing[...] = octahedral.encode(np.array([0.0, 0.0, 1.0]))
     return irr, sh
 
 
@@ -303,18 +307,21 @@ class PixelTruth:
         points: (P, 3) world points where the pixels' rays meet the displayed mesh.
         luminance: (P,) mean radiance luminance; noise: (P,) its standard error.
         albedo: (3,) the surface albedo (radiance = albedo·E/π).
+        normals: (P, 3) unit normals there, turned to the eye (the side-aware lookup's).
     """
 
     points: np.ndarray
     luminance: np.ndarray
     noise: np.ndarray
     albedo: np.ndarray
+    normals: np.ndarray
 
     def error(self, lattice) -> float:
         """RMS over the pixels of the relative difference between the luminance `lattice`
         shows there (`Lattice.sample`, normalized like the shader) and the truth; the
         truth is floored at 1 % of its median, as `Lattice.relative_error` does."""
-        shown = lattice.sample(self.points, normalized=True)[:, :3] * self.albedo / np.pi
+        shown = lattice.sample(self.points, normalized=True, normals=self.normals)[:, :3] \
+            * self.albedo / np.pi
         rel = (_luminance(shown) - self.luminance) / self._floored()
         return float(np.sqrt(np.mean(rel**2)))
 
@@ -323,7 +330,8 @@ class PixelTruth:
         RMS difference over the mean truth. Unlike `error`, a dark pixel weighs no more
         than a bright one (on CThead one crack of luminance 0.003, shown at 0.6, makes
         `error` 146 % alone)."""
-        shown = lattice.sample(self.points, normalized=True)[:, :3] * self.albedo / np.pi
+        shown = lattice.sample(self.points, normalized=True, normals=self.normals)[:, :3] \
+            * self.albedo / np.pi
         diff = _luminance(shown) - self.luminance
         return float(np.sqrt(np.mean(diff**2)) / np.mean(self.luminance))
 
@@ -353,7 +361,8 @@ def pixel_truth(volume, config, iso: float, camera, size: tuple[int, int],
         # the channels share their paths: the luminance's standard error is at most the
         # weighted sum of theirs
         return PixelTruth(tracer.hits.points, image.radiance[hit] @ LUMINANCE,
-                          image.stderr[hit] @ LUMINANCE, np.array(config.albedo))
+                          image.stderr[hit] @ LUMINANCE, np.array(config.albedo),
+                          tracer.hits.normals)
 
 
 def visible_error(lattice, flat: np.ndarray) -> float:
@@ -463,7 +472,8 @@ def lazy(args) -> int:
     shared = SharedLattice.create(geometry, meta["channels"], meta)
     t0 = time.perf_counter()
     link = BakeLink(volume, config, shared, workers, iso, follow_iso=not args.wide_range)
-    link.send_view(View(iso, tuple(float(v) for v in camera.eye), cells))
+    link.send_view(View(iso, tuple(float(v) for v in camera.eye), cells, None,
+                        points.astype(np.float32)))
     visible_flat = subset = None
     trace, subset_lum = [], []
     corners = cell_corners(geometry.shape, cells)  # every texel the picture reads

@@ -1,4 +1,4 @@
-"""Automatic exposure: the scale that brings a frame's surface pixels to middle grey."""
+"""Automatic exposure: the scale that brings a frame's lit surface pixels to middle grey."""
 
 from __future__ import annotations
 
@@ -8,11 +8,19 @@ EXPOSURE_KEY = 0.18
 """Automatic exposure brings the log-average luminance of the surface pixels to this value
 (the photographers' middle grey, the "key" of Reinhard et al. 2002 that game engines'
 eye adaptation also aims at): under the ACES curve it displays at about 140 of 255."""
+BRIGHT_QUANTILE = 0.95
+"""The meter's reference of a bright pixel: this quantile of the surface's luminance."""
+DARK_FRACTION = 0.02
+"""Surface pixels darker than this fraction of the `BRIGHT_QUANTILE` luminance (deep
+shadow, unlit patches, black) are left out of the log-average: they carry no exposure
+information, and a surface half in such darkness would otherwise be exposed so bright that
+its lit half blows out white."""
+REC709 = np.array([0.2126, 0.7152, 0.0722])
 
 
 def auto_exposure_scale(linear: np.ndarray, mask: np.ndarray, key: float = EXPOSURE_KEY,
                         weights: np.ndarray | None = None) -> float:
-    """The exposure that brings the log-average luminance of the surface pixels to `key`.
+    """The exposure that brings the log-average luminance of the lit surface pixels to `key`.
 
     Args:
         linear: (..., 3) linear radiance.
@@ -20,16 +28,26 @@ def auto_exposure_scale(linear: np.ndarray, mask: np.ndarray, key: float = EXPOS
         weights: (...) optional weight of each pixel (e.g. the surface fraction of a block).
 
     Returns:
-        key / exp(mean(log L)) over the surface pixels (luminance L, Rec. 709 weights,
-        floored at 10⁻³ of the mean so that black pixels do not dominate); 1 when there
-        are no surface pixels or they are all black.
+        key / exp(mean(log L)) over the surface pixels whose luminance L (Rec. 709
+        weights) is at least `DARK_FRACTION` of the surface's `BRIGHT_QUANTILE`
+        luminance; 1 when there are no surface pixels or they are all black.
     """
-    lum = np.asarray(linear, np.float64)[mask] @ np.array([0.2126, 0.7152, 0.0722])
+    lum = np.asarray(linear, np.float64)[mask] @ REC709
     w = np.ones(len(lum)) if weights is None else np.asarray(weights, np.float64)[mask]
     if len(lum) == 0 or not w.sum() > 0:
         return 1.0
-    mean = float(np.average(lum, weights=w))
-    if not mean > 0:
+    bright = weighted_quantile(lum, w, BRIGHT_QUANTILE)
+    lit = (lum >= DARK_FRACTION * bright) & (lum > 0) & (w > 0)
+    if not lit.any():
         return 1.0
-    log_average = float(np.exp(np.average(np.log(np.maximum(lum, 1e-3 * mean)), weights=w)))
+    log_average = float(np.exp(np.average(np.log(lum[lit]), weights=w[lit])))
     return key / log_average
+
+
+def weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
+    """The `q` quantile (0..1) of (N,) `values` with (N,) non-negative `weights`: the
+    smallest value whose cumulative weight reaches `q` of the total."""
+    order = np.argsort(values, kind="stable")
+    cumulative = np.cumsum(weights[order])
+    at = int(np.searchsorted(cumulative, q * cumulative[-1]))
+    return float(values[order][min(at, len(values) - 1)])

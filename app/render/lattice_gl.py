@@ -15,6 +15,10 @@ bake fills the lattice. Optionally a third, R32F texture holds each texel's own 
 ρ(x_t), for the closest-isovalue lookup (paper Fig. 6a); it depends on the volume only,
 so a bake never changes it.
 
+Facing: an RG8 texture of each shown texel's facing (`baking.Lattice.displayed_facing`:
+octahedral bytes, (0, 0) unknown), read with texelFetch by the side-aware lookup
+(``lattice.glsl``, FACING 1: `facing_known`); 2 bytes per texel beside irradiance's 5.
+
 numpy (z, y, x, c) arrays map to GL (width, height, depth) = (x, y, z): x varies fastest
 in memory, as GL expects.
 """
@@ -25,7 +29,7 @@ import moderngl
 import numpy as np
 
 from isolume.app.render.glcontext import store_rgb9e5
-from isolume.baking.lattice import Lattice
+from isolume.baking.lattice import FACING_POWER, SIDE_FLOOR, Lattice
 from isolume.baking.sh import transfer_blocks
 
 MAX_TEXTURE_UNITS = 16  # guaranteed by GL 3.3 for fragment shaders
@@ -41,7 +45,7 @@ def sh_layout(order: int, rgb: bool, blocks: int = 1) -> tuple[int, int]:
     """
     per_group = -(-blocks * order * order // 4)
     groups = 3 if rgb else 1
-    if SH_FIRST_UNIT + per_group * groups > MAX_TEXTURE_UNITS:
+    if SH_FIRST_UNIT + per_group * groups + 1 > MAX_TEXTURE_UNITS:  # + the facings
         limit = "7" if not rgb else "4"
         split = " split" if blocks > 1 else ""
         raise ValueError(f"SH order {order}{split} needs {per_group * groups} textures; the "
@@ -62,6 +66,9 @@ class LatticeTextures:
             coefficients, then the whole sky's).
         texel_iso: R32F texture of the texel isovalues ρ(x_t), or None (not given, or an
             SH lattice: the lookup variants read irradiance lattices only).
+        facing: RG8 texture of the texels' facings (`baking.Lattice.displayed_facing`).
+        facing_known: whether any uploaded texel has a known facing (the FACING define:
+            without one, the lookup is the plain trilinear one, exactly).
     """
 
     def __init__(self, ctx: moderngl.Context, lattice: Lattice,
@@ -96,6 +103,11 @@ class LatticeTextures:
         for tex in (*self.textures, self.valid):
             tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
             tex.repeat_x = tex.repeat_y = tex.repeat_z = False  # clamp to edge
+        facing = lattice.displayed_facing()
+        self.facing = ctx.texture3d((x, y, z), 2, np.ascontiguousarray(facing).tobytes(),
+                                    dtype="f1", alignment=1)
+        self.facing.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.facing_known = bool(facing.any())
         self.texel_iso = None
         if texel_isovalues is not None and self.kind == "irradiance":
             self.texel_iso = self._texel_iso_texture(texel_isovalues)
@@ -147,10 +159,36 @@ class LatticeTextures:
         else:
             self._write_sh(z0, z1)
         self.valid.write(self._valid_bytes(shown), viewport=viewport)
+        self._write_facing(np.s_[z0:z1], viewport)
+
+    def write_box(self, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> None:
+        """Re-upload texels lo ≤ (z, y, x) < hi of an irradiance lattice (values, valid
+        mask and facings; the viewer's block-wise uploads)."""
+        lat = self.lattice
+        (z0, y0, x0), (z1, y1, x1) = lo, hi
+        region = np.s_[z0:z1, y0:y1, x0:x1]
+        premultiplied = np.ascontiguousarray(lat.displayed(region)[..., :3])  # 0: not shown
+        viewport = (x0, y0, z0, x1 - x0, y1 - y0, z1 - z0)
+        self.irradiance.write(premultiplied.tobytes(), viewport=viewport, alignment=4)
+        self.valid.write(self._valid_bytes(lat.shown(region)), viewport=viewport,
+                         alignment=1)
+        self._write_facing(region, viewport)
+
+    def _write_facing(self, region: tuple, viewport: tuple) -> None:
+        """Upload the facings of `region` (slices of (Z, Y, X)) into `viewport`."""
+        facing = np.ascontiguousarray(self.lattice.displayed_facing(region))
+        self.facing.write(facing.tobytes(), viewport=viewport, alignment=1)
+        self.facing_known = self.facing_known or bool(facing.any())
+
+    @property
+    def units(self) -> int:
+        """Texture units `bind` takes."""
+        return 2 + len(self.textures) + (self.texel_iso is not None)  # + valid, facing
 
     def bind(self, program: moderngl.Program) -> None:
-        """Bind the textures (valid on unit 1, the rest from unit 2, texel isovalues last)
-        and set the uniforms that map world positions to texture coordinates."""
+        """Bind the textures (valid on unit 1, the rest from unit 2, then the texel
+        isovalues, the facings last) and set the uniforms that map world positions to
+        texture coordinates."""
         self.valid.use(location=1)
         values = {"u_valid": 1, "u_box_lo": tuple(self.box_lo),
                   "u_box_size": tuple(self.box_size)}
@@ -162,9 +200,18 @@ class LatticeTextures:
             unit = SH_FIRST_UNIT + len(self.textures)
             self.texel_iso.use(location=unit)
             values["u_texel_iso"] = unit
+        unit = SH_FIRST_UNIT + len(self.textures) + (self.texel_iso is not None)
+        self.facing.use(location=unit)
+        values["u_facing"] = unit
         for name, value in values.items():
             if name in program:
                 program[name].value = value
+
+    def facing_defines(self) -> tuple[tuple[str, object], ...]:
+        """Shader defines of the side-aware lookup: FACING (1 once a texel's facing is
+        known), its power and floor (`baking.lattice.FACING_POWER`, `SIDE_FLOOR`)."""
+        return (("FACING", int(self.facing_known)), ("FACING_POWER", FACING_POWER),
+                ("FACING_FLOOR", SIDE_FLOOR))
 
     def sh_defines(self) -> tuple[tuple[str, object], ...]:
         """Shader defines that declare and sum the SH textures (GLSL 3.3 cannot index
@@ -172,18 +219,24 @@ class LatticeTextures:
 
         ``SH_DECLARE`` declares ``u_sh0..``; ``SH_IRRADIANCE(tc)`` is the RGB sum
         Σ_j dot(texture(u_sh_j, tc), u_light[j]) per colour, with ``u_light`` holding the
-        environment's coefficients packed four per vec4, red group first.
+        environment's coefficients packed four per vec4, red group first;
+        ``SH_IRRADIANCE_AT(t)`` the same of the one texel t (texelFetch, the side-aware
+        lookup).
         """
         n = self.sh_textures
         declare = " ".join(f"uniform sampler3D u_sh{i};" for i in range(n * self.sh_groups))
-        channels = []
-        for c in range(3):
-            group = c if self.sh_groups == 3 else 0
-            terms = [f"dot(texture(u_sh{group * n + j}, tc), u_light[{c * n + j}])"
-                     for j in range(n)]
-            channels.append(" + ".join(terms))
+        def total(fetch: str) -> str:  # fetch: the read of texture {i}
+            channels = []
+            for c in range(3):
+                group = c if self.sh_groups == 3 else 0
+                terms = [f"dot({fetch.format(i=group * n + j)}, u_light[{c * n + j}])"
+                         for j in range(n)]
+                channels.append(" + ".join(terms))
+            return f"vec3({', '.join(channels)})"
+
         return (("SH_TEXTURES", n), ("SH_DECLARE", declare),
-                ("SH_IRRADIANCE(tc)", f"vec3({', '.join(channels)})"))
+                ("SH_IRRADIANCE(tc)", total("texture(u_sh{i}, tc)")),
+                ("SH_IRRADIANCE_AT(t)", total("texelFetch(u_sh{i}, t, 0)")))
 
     def light_uniform(self, coeffs: np.ndarray) -> np.ndarray:
         """(3 * textures, 4) float32: (n², 3) environment coefficients packed for
@@ -194,7 +247,7 @@ class LatticeTextures:
         return packed.reshape(3 * n, 4)
 
     def release(self) -> None:
-        for tex in (*self.textures, self.valid):
+        for tex in (*self.textures, self.valid, self.facing):
             tex.release()
         if self.texel_iso is not None:
             self.texel_iso.release()

@@ -62,7 +62,7 @@ def render_volume(
             position = renderer.render(camera, replace(settings, shading="position",
                                                        auto_exposure=False))
             lattice = view_lattice(volume, view_light, iso, position.linear[position.mask],
-                                   workers=workers, progress=progress)
+                                   camera.eye, workers=workers, progress=progress)
         renderer.set_lattice(lattice, _texel_isovalues(volume, lattice, settings.shading))
         renderer.set_environment(env_coeffs)
         frame = renderer.render(camera, settings)

@@ -258,10 +258,13 @@ class SurfaceRenderer:
 
     def _lattice_defines(self, settings: RenderSettings) -> tuple:
         """The defines the surface and the deferred program share: the mode's, the SH
-        sum's, DEFERRED (`_lattice_deferred`) and DIRECT (per-pixel lights)."""
+        sum's, FACING (the side-aware lookup, for a lattice with known facings),
+        DEFERRED (`_lattice_deferred`) and DIRECT (per-pixel lights)."""
         defines = shading_mode(settings.shading).defines()
         if settings.shading == "sh":
             defines += self.lattice.sh_defines()
+        if shading_mode(settings.shading).lattice is not None:
+            defines += self.lattice.facing_defines()
         defines += (("DEFERRED", int(self._lattice_deferred(settings))),)
         if self.direct_lights(settings):
             defines += (("DIRECT", 1),)
@@ -280,9 +283,7 @@ class SurfaceRenderer:
         if mode.lattice is None:
             return False
         atlas = len(DIRECT_UNITS) if self.direct_lights(settings) else 0
-        lattice = self.lattice
-        units = 1 + len(lattice.textures) + (lattice.texel_iso is not None)  # + valid mask
-        return units + 1 + atlas <= MAX_TEXTURE_UNITS  # + the G-buffer
+        return self.lattice.units + 1 + atlas <= MAX_TEXTURE_UNITS  # + the G-buffer
 
     def _deferred(self, settings: RenderSettings) -> bool:
         """Whether the settings' frame has a `_deferred_pass`: a deferred lattice, or

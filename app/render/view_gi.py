@@ -3,11 +3,12 @@
 A lattice baked for every isovalue takes minutes; one picture needs only the texels that
 its pixels read. So, as the lazy viewer's previews do (`baking.preview`), the corner texels
 of the lattice cells under the visible pixels get paths traced on the *displayed*
-isosurface (one Embree scene), from their centres projected onto it, in one pass of
-`paths` paths each; the picture is then drawn by the ordinary lattice shading
-("irradiance": trilinear lookups, and whatever the renderer adds per pixel for the
-lattice's configuration). The lattice is used for this picture only, never saved: its
-texels hold values for the displayed isovalue, not their own.
+isosurface (one Embree scene), each from the visible surface point nearest it, on the side
+the eye sees (`baking.preview.seen_starts`), in one pass of `paths` paths each; the
+picture is then drawn by the ordinary lattice shading ("irradiance": side-aware trilinear
+lookups, and whatever the renderer adds per pixel for the lattice's configuration). The
+lattice is used for this picture only, never saved: its texels hold values for the
+displayed isovalue, not their own.
 
 Its error against per-pixel path tracing (`isolume reference` with the same arguments) is
 the previews': a few per cent at 64 paths (README, "The first picture").
@@ -28,8 +29,8 @@ CHUNK_PATHS = 1 << 19
 """Paths traced between progress reports (about a second on 2 cores)."""
 
 
-def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray, *,
-                 workers: int | None = None, progress: bool = True):
+def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
+                 eye: np.ndarray, *, workers: int | None = None, progress: bool = True):
     """A lattice lit for the view whose visible surface points are `points`.
 
     Args:
@@ -38,6 +39,8 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
         iso: the displayed isovalue.
         points: (N, 3) world positions of the surface under the visible pixels (the
             renderer's position pass).
+        eye: (3,) world position of the camera: each texel's paths start at the visible
+            point nearest it, on the side the eye sees (`baking.preview.seen_starts`).
         workers: tracing threads (None: all cores).
         progress: report on stderr.
 
@@ -49,7 +52,13 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
 
     from isolume.baking.lattice import LatticeGeometry
     from isolume.baking.lazy import new_lattice, visible_cells
-    from isolume.baking.preview import cell_corners, estimate, preview_tracing, surface_scene
+    from isolume.baking.preview import (
+        cell_corners,
+        estimate,
+        preview_tracing,
+        seen_surface,
+        surface_scene,
+    )
 
     geometry = LatticeGeometry.for_volume(volume, config.scale)
     lattice = new_lattice(volume, config)
@@ -61,11 +70,12 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     if scene is None:
         return lattice
     tracing = preview_tracing(volume, config)
+    seen = seen_surface(scene, volume, config, geometry, eye, points)
     chunk = max(256, CHUNK_PATHS // int(config.samples))
     for lo in range(0, len(texels), chunk):
         estimate(volume, config, lattice, iso, texels[lo:lo + chunk], scene, 1,
                  paths=int(config.samples), tracing=tracing,
-                 workers=workers or os.cpu_count() or 1)
+                 workers=workers or os.cpu_count() or 1, seen=seen)
         report.update(min(lo + chunk, len(texels)))
     report.done(int((lattice.preview_paths > 0).sum()))
     return lattice

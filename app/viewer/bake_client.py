@@ -47,6 +47,7 @@ class SharedLattice:
         return {"values": ((*shape, channels), "float32"), "samples": (shape, "uint32"),
                 "second": (shape, "float32"), "active": (shape, "bool"),
                 "preview": ((*shape, channels), "float32"), "preview_paths": (shape, "uint16"),
+                "facing": ((*shape, 2), "uint8"), "preview_facing": ((*shape, 2), "uint8"),
                 "relit": (shape, "bool")}
 
     @classmethod
@@ -66,10 +67,8 @@ class SharedLattice:
             arrays[name] = arr
         meta = dict(meta)
         config = _config(meta.pop("config", None)) or getattr(source, "config", None)
-        lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                          arrays["active"], meta, preview=arrays["preview"],
-                          preview_paths=arrays["preview_paths"], config=config)
-        return cls(lattice, blocks, owner=True, relit=arrays["relit"])
+        return cls(_shared_lattice(geometry, arrays, meta, config), blocks, owner=True,
+                   relit=arrays["relit"])
 
     def describe(self) -> dict:
         """What `attach` needs (picklable)."""
@@ -95,10 +94,8 @@ class SharedLattice:
             block = shared_memory.SharedMemory(name=block_name)
             blocks.append(block)
             arrays[name] = np.ndarray(shape, dtype, buffer=block.buf)
-        lattice = Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                          arrays["active"], dict(description["meta"]),
-                          preview=arrays["preview"], preview_paths=arrays["preview_paths"],
-                          config=_config(description["config"]))
+        lattice = _shared_lattice(geometry, arrays, dict(description["meta"]),
+                                  _config(description["config"]))
         return cls(lattice, blocks, owner=False, relit=arrays["relit"])
 
     def snapshot(self, relit: bool = False):
@@ -110,8 +107,9 @@ class SharedLattice:
         if relit:
             samples[~self.relit] = 0
         values = np.where(samples[..., None] > 0, lat.values, 0).astype(np.float32)
+        facing = np.where(samples[..., None] > 0, lat.facing, 0).astype(np.uint8)
         return Lattice(lat.geometry, values, samples, lat.second.copy(), lat.active.copy(),
-                       json.loads(json.dumps(lat.meta)), config=lat.config)
+                       json.loads(json.dumps(lat.meta)), config=lat.config, facing=facing)
 
     def close(self) -> None:
         """Drop the arrays and release (and, as owner, unlink) the blocks."""
@@ -127,6 +125,14 @@ class SharedLattice:
                 except FileNotFoundError:
                     pass
         self.blocks = []
+
+
+def _shared_lattice(geometry, arrays: dict, meta: dict, config) -> Lattice:
+    """The `Lattice` of `SharedLattice._layout`'s `arrays` (shared memory)."""
+    return Lattice(geometry, arrays["values"], arrays["samples"], arrays["second"],
+                   arrays["active"], meta, preview=arrays["preview"],
+                   preview_paths=arrays["preview_paths"], config=config,
+                   facing=arrays["facing"], preview_facing=arrays["preview_facing"])
 
 
 def _config(d: dict | None) -> BakeConfig | None:
@@ -255,7 +261,8 @@ class _BakeProcess:
         if view is self.lit or view.visible is None or not len(view.visible):
             return
         self.lit, self.relit_previews = view, 0
-        self._announce(self.previewer.set_view(view.iso, view.visible))
+        self._announce(self.previewer.set_view(view.iso, view.visible, view.eye,
+                                               view.points))
 
     def preview_step(self) -> bool:
         """A slice of the queued preview passes; False when there was none (or when the

@@ -65,15 +65,9 @@ def frame_size(window) -> tuple[int, int]:
 
 def upload_box(textures, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> None:
     """Re-upload texels lo ≤ (z, y, x) < hi of `textures.lattice` into its GL textures
-    (irradiance premultiplied by validity, and validity), as `LatticeTextures` stores them."""
-    lat = textures.lattice
-    (z0, y0, x0), (z1, y1, x1) = lo, hi
-    region = np.s_[z0:z1, y0:y1, x0:x1]
-    premultiplied = np.ascontiguousarray(lat.displayed(region)[..., :3])  # 0 where not shown
-    valid = np.where(lat.shown(region), 255, 0).astype(np.uint8)
-    viewport = (x0, y0, z0, x1 - x0, y1 - y0, z1 - z0)
-    textures.irradiance.write(premultiplied.tobytes(), viewport=viewport, alignment=4)
-    textures.valid.write(valid.tobytes(), viewport=viewport, alignment=1)
+    (irradiance premultiplied by validity, validity and facings), as `LatticeTextures`
+    stores them (`LatticeTextures.write_box`)."""
+    textures.write_box(lo, hi)
 
 
 class TexelUploader:
@@ -134,17 +128,20 @@ def check_textures(textures) -> dict:
         largest |GL − lattice| / max(RGB) over those texels (RGB9_E5 keeps 9 mantissa
         bits: ≤ 2⁻⁹ when rounding),
         "valid_mismatch": texels whose validity differs, "uncomputed_nonzero": texels not
-        shown with a non-zero value}; SH lattices: the validity only.
+        shown with a non-zero value, "facing_mismatch": texels whose facing code differs};
+        SH lattices: the validity and the facings only.
     """
     lat = textures.lattice
     z, y, x = lat.geometry.shape
     gl_valid = np.frombuffer(textures.valid.read(), np.uint8).reshape(z, y, x)
+    gl_facing = np.frombuffer(textures.facing.read(alignment=1), np.uint8).reshape(z, y, x, 2)
+    facing_mismatch = int((gl_facing != lat.displayed_facing()).any(axis=-1).sum())
     computed = lat.shown()
     if textures.kind != "irradiance":  # SH packing is LatticeTextures' own: validity only
         return {"texels": int(computed.sum()), "computed": int((lat.samples > 0).sum()),
                 "max_rel_error": None,
                 "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
-                "uncomputed_nonzero": None}
+                "uncomputed_nonzero": None, "facing_mismatch": facing_mismatch}
     gl_rgb = np.frombuffer(textures.irradiance.read(), np.float32).reshape(z, y, x, 3)
     want = lat.displayed()[..., :3][computed].astype(np.float64)
     got = gl_rgb[computed].astype(np.float64)
@@ -153,7 +150,8 @@ def check_textures(textures) -> dict:
     return {"texels": int(computed.sum()), "computed": int((lat.samples > 0).sum()),
             "max_rel_error": float(rel.max()) if len(rel) else 0.0,
             "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
-            "uncomputed_nonzero": int((gl_rgb[~computed] != 0).any(axis=-1).sum())}
+            "uncomputed_nonzero": int((gl_rgb[~computed] != 0).any(axis=-1).sum()),
+            "facing_mismatch": facing_mismatch}
 
 
 @dataclass

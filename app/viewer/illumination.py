@@ -138,7 +138,7 @@ class Illumination:
         points = self.drawing.visible_points(state.camera, state.view, size)
         cells = visible_cells(self.shared.lattice.geometry, points)
         self.bake.send_view(View(state.view.iso, tuple(float(v) for v in state.camera.eye),
-                                 cells, key[3]))
+                                 cells, key[3], points.astype("float32")))
         self._view_sent = key
 
     def _bake_turned_file(self) -> None:
