@@ -47,9 +47,12 @@ FACING_POWER = 2
 on rods 1–2 voxels thick lit from above (rms error of E on their surface at 1 texel per
 voxel): 0.23 plain, 0.15 with k = 1, 0.11 with k = 2; thin plates and a smooth sphere
 alike for k = 1, 2 and 4."""
-SIDE_FLOOR = 1e-3
-"""Below this fraction of the plain (valid-weighted) trilinear weight, the side-weighted
-weight counts as none: no texel faces the point's way, and the plain mix is used."""
+SIDE_BLEND = 0.1
+"""The side-aware lookup is used whole where the side-weighted weight is at least this
+fraction of the plain (valid-weighted) trilinear weight, and blends into the plain mix
+below it (smoothstep from 0): where hardly any texel faces the point's way (a surface seen
+from the side its texels were not lit on), one texel with a sliver of side weight must not
+decide the colour — it made such points black."""
 
 
 @dataclass(frozen=True)
@@ -138,15 +141,23 @@ def side_weights(codes: np.ndarray, normals: np.ndarray,
 def sided_mix(weights: np.ndarray, sides: np.ndarray, values: np.ndarray) -> np.ndarray:
     """(N, C) the side-aware mix of (N, 8, C) texel `values` with (N, 8) lookup `weights`
     (trilinear × valid) and (N, 8) `sides` (`side_weights`): weighted by both and
-    renormalised; where the sided weight is below `SIDE_FLOOR` of the plain one, the plain
-    mix. 0 where no texel has weight."""
-    plain = weights.sum(axis=1, keepdims=True)
-    sided_w = weights * sides
-    sided = sided_w.sum(axis=1, keepdims=True)
-    use = np.where(sided > SIDE_FLOOR * plain, sided_w, weights)
-    den = use.sum(axis=1, keepdims=True)
-    num = np.einsum("nk,nkc->nc", use, values)
-    return np.divide(num, den, out=np.zeros_like(num), where=den > 1e-6)
+    renormalised, blended into the plain (renormalised) mix by smoothstep(0, `SIDE_BLEND`)
+    of the sided weight's fraction of the plain one. 0 where no texel has weight."""
+    plain_w = weights.sum(axis=1, keepdims=True)
+    sided_w = (weights * sides).sum(axis=1, keepdims=True)
+    plain = _mean(weights, plain_w, values)
+    sided = np.where(sided_w > 0, _mean(weights * sides, sided_w, values), plain)
+    x = np.clip(np.divide(sided_w, plain_w, out=np.zeros_like(plain_w), where=plain_w > 0)
+                / SIDE_BLEND, 0.0, 1.0)
+    out = plain + x * x * (3.0 - 2.0 * x) * (sided - plain)
+    return np.where(plain_w > 1e-6, out, 0.0)
+
+
+def _mean(weights: np.ndarray, total: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(N, C) the (N, 8)-`weights`ed mean of (N, 8, C) `values` whose (N, 1) weight sum is
+    `total` (0 where it is 0)."""
+    num = np.einsum("nk,nkc->nc", weights, values)
+    return np.divide(num, total, out=np.zeros_like(num), where=total > 0)
 
 
 @dataclass
@@ -354,9 +365,10 @@ class Lattice:
         if arrays["values"].shape[:3] != geometry.shape:
             raise BakeError(f"{path}: values of shape {arrays['values'].shape} do not match "
                             f"the lattice shape {geometry.shape}")
-        if facing is not None and facing.shape != (*geometry.shape, 2):
-            raise BakeError(f"{path}: facing of shape {facing.shape} does not match the "
-                            f"lattice shape {geometry.shape}")
+        if facing is not None and (facing.shape != (*geometry.shape, 2)
+                                   or facing.dtype != np.uint8):
+            raise BakeError(f"{path}: facing of shape {facing.shape} and type {facing.dtype} "
+                            f"does not match the lattice shape {geometry.shape} (uint8 codes)")
         lattice = cls(geometry, arrays["values"], arrays["samples"], arrays["second"],
                       arrays["active"], meta, config=config, facing=facing)
         if volume is not None:

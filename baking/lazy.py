@@ -208,12 +208,12 @@ class Relight:
         shown.values.reshape(-1, channels)[out] = fresh.values.reshape(-1, channels)[out]
         shown.second.reshape(-1)[out] = fresh.second.reshape(-1)[out]
         shown.facing.reshape(-1, 2)[out] = fresh.facing.reshape(-1, 2)[out]
-        if shown.preview is not None:
+        if shown.preview is not None:  # values and facings before the path counts
             shown.preview.reshape(-1, channels)[out] = fresh.preview.reshape(-1, channels)[out]
-            shown.preview_paths.reshape(-1)[out] = fresh.preview_paths.reshape(-1)[out]
             if fresh.preview_facing is not None:
                 shown.ensure_preview_facing().reshape(-1, 2)[out] = \
                     fresh.preview_facing.reshape(-1, 2)[out]
+            shown.preview_paths.reshape(-1)[out] = fresh.preview_paths.reshape(-1)[out]
         shown.samples.reshape(-1)[out] = fresh.samples.reshape(-1)[out]
         self.published[out] = True
         return out

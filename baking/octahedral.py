@@ -11,7 +11,8 @@ The code (0, 0) is reserved: `UNKNOWN`, no direction (a texel not computed yet, 
 lattice file written before facings were kept). The square's corner (0, 0) is the
 direction −z, as are the other three corners, so −z is stored as (255, 255) instead. A
 zero-length or non-finite vector encodes to `UNKNOWN`; `decode` gives (0, 0, 0) for it.
-``shaders/lattice.glsl`` decodes the same bytes (`facing_direction`).
+``shaders/gbuffer.glsl`` decodes the same bytes (`from_octahedral`, used by
+``shaders/lattice.glsl``'s `side_weight`).
 """
 
 from __future__ import annotations

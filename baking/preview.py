@@ -187,7 +187,9 @@ def seen_surface(scene, volume: volumes.Volume, config: BakeConfig,
     point of each texel of `geometry` they read (`nearest_points`)."""
     points = np.asarray(points, np.float64)
     dirs = points - np.asarray(eye, np.float64)[None, :]
-    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-30)
+    length = np.linalg.norm(dirs, axis=1)
+    usable = np.isfinite(length) & (length > 0)  # (Embree needs finite, non-zero rays)
+    dirs = dirs[usable] / length[usable, None]
     origins = np.broadcast_to(np.asarray(eye, np.float64), dirs.shape)
     hits = primary_hits(scene, volume, origins, dirs, config,
                         smooth=config.normals == "smooth")
@@ -208,7 +210,7 @@ def nearest_points(geometry: LatticeGeometry, points: np.ndarray
     size = geometry.texel_size[::-1]  # z, y, x
     gap = ((idx - coords[:, None, :]) * size) ** 2
     closeness = gap.sum(axis=2).reshape(-1) / (2.0 * float((size**2).sum()) + 1e-30)
-    order = np.argsort(read + closeness, kind="stable")  # closeness < 1: texel, then gap
+    order = np.lexsort((closeness, read))  # by texel, then nearest first
     texel = read[order]
     first = np.r_[True, texel[1:] != texel[:-1]]
     return texel[first], (order // 8)[first]
@@ -305,7 +307,7 @@ class Previewer:
             return np.zeros(0, np.int64)
         paths, coarse, todo = self._queue[0]
         if todo is None:
-            todo = self._todo(paths)
+            todo = self._todo(paths, mesh_step(self.volume, coarse))
             self._started, self._pass_texels = time.perf_counter(), len(todo)
         take = len(todo) if whole else max(1, PATHS_PER_STEP // paths)
         flat, self._queue[0][2] = todo[:take], todo[take:]
@@ -325,14 +327,31 @@ class Previewer:
                               "seconds": time.perf_counter() - self._started})
         return flat
 
-    def _todo(self, paths: int) -> np.ndarray:
-        """Visible corner texels a pass of `paths` paths still has to preview."""
+    def _todo(self, paths: int, step: int) -> np.ndarray:
+        """Visible corner texels a pass of `paths` paths on the mesh of marching-cubes
+        `step` still has to preview: all but those previewed for the same isovalue with as
+        many paths, on the side this view sees (`_seen_other_side`)."""
         flat = self._corners[self.lattice.samples.reshape(-1)[self._corners] < paths]
         if self.only_active:
             flat = flat[self.lattice.active.reshape(-1)[flat]]
         fresh = (self._iso_of[flat] == np.float32(self.iso)) & (
             self.lattice.preview_paths.reshape(-1)[flat] >= paths)
+        if step == 1 and fresh.any():
+            fresh[fresh] = ~self._seen_other_side(flat[fresh])
         return flat[~fresh]
+
+    def _seen_other_side(self, flat: np.ndarray) -> np.ndarray:
+        """(K,) bool: the view sees the previews of texels `flat` (K,) from the side
+        opposite the one they were lit on (a sheet or a thin wall orbited round)."""
+        if self._view is None or self.lattice.preview_facing is None:
+            return np.zeros(len(flat), bool)
+        seen = self._seen_surface(self._scene(1))
+        found = seen_starts(flat, seen)
+        lit = octahedral.decode(self.lattice.preview_facing.reshape(-1, 2)[flat])
+        turned = np.zeros(len(flat), bool)
+        has = found >= 0
+        turned[has] = (lit[has] * seen.normals[found[has]]).sum(axis=1) < 0
+        return turned
 
     def _seen_surface(self, scene) -> SeenSurface | None:
         """The view's visible surface on the full-mesh `scene`, found once per view."""

@@ -9,8 +9,9 @@
 // texel's facing m, the mean direction its paths started along, weights it by
 // max(0, n.m)^FACING_POWER for a point whose normal n is turned to the eye (1 where m is
 // unknown), so a face of a thin wall, or the other side of a sheet, does not show light
-// gathered on the opposite face; where these weights sum to below FACING_FLOOR of the
-// plain ones, the plain mix stays (baking.lattice.sided_mix is the same on the CPU).
+// gathered on the opposite face; where these weights sum to less than FACING_BLEND of the
+// plain ones, the lookup blends into the plain mix (smoothstep from 0: no texel facing
+// the point's way leaves the plain mix; baking.lattice.sided_mix is the same on the CPU).
 // Needs gbuffer.glsl (from_octahedral) included before it.
 #ifndef FACING
 #define FACING 0
@@ -18,8 +19,8 @@
 #ifndef FACING_POWER
 #define FACING_POWER 2
 #endif
-#ifndef FACING_FLOOR
-#define FACING_FLOOR 1e-3
+#ifndef FACING_BLEND
+#define FACING_BLEND 0.1
 #endif
 uniform sampler3D u_valid;       // 1 where the texel has been computed
 uniform vec3 u_box_lo;
@@ -173,8 +174,8 @@ float side_weight(ivec3 t, vec3 n) {
 
 // (value * w, w) of the side-aware trilinear lookup at texture coordinate tc: the 8
 // texels' pairs weighted by trilinear weight x side weight, scaled to the plain lookup's
-// weight w (so the blend with local shading sees the same coverage); the plain lookup
-// where no texel faces n's way.
+// weight w (so the blend with local shading sees the same coverage), blended into the
+// plain lookup where few texels face n's way.
 vec4 sided_lookup(vec3 tc, vec3 n) {
     vec3 size = vec3(textureSize(u_valid, 0));
     vec3 c = clamp(tc * size - 0.5, vec3(0.0), size - 1.0);
@@ -189,7 +190,8 @@ vec4 sided_lookup(vec3 tc, vec3 n) {
         plain += pair;
         sided += side_weight(t, n) * pair;
     }
-    return sided.w > FACING_FLOOR * plain.w ? sided * (plain.w / sided.w) : plain;
+    vec4 side = sided.w > 0.0 ? sided * (plain.w / sided.w) : plain;
+    return mix(plain, side, smoothstep(0.0, FACING_BLEND, sided.w / max(plain.w, 1e-30)));
 }
 #endif
 

@@ -18,7 +18,7 @@ from isolume.app.render.camera import Camera
 from isolume.app.render.settings import RenderSettings
 from isolume.baking import BakeConfig, Lattice, bake, octahedral
 from isolume.baking.lattice import (
-    SIDE_FLOOR,
+    SIDE_BLEND,
     LatticeGeometry,
     side_weights,
     trilinear,
@@ -234,7 +234,8 @@ def _plane_frames(renderer, lattice, elevation: float, **settings):
 
 def _sure(lattice: Lattice, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """(N,) points away from where float32 may change the answer: cell boundaries, the
-    fallback's threshold, the blend with local shading (< 0.25 of computed weight)."""
+    ends of the blend into the plain mix, the blend with local shading (< 0.25 of computed
+    weight)."""
     coords = lattice.geometry.to_texel_coords(points)
     idx, w = trilinear_corners(lattice.geometry.shape, coords)
     region = (idx[..., 0], idx[..., 1], idx[..., 2])
@@ -242,8 +243,8 @@ def _sure(lattice: Lattice, points: np.ndarray, normals: np.ndarray) -> np.ndarr
     ratio = (w * side_weights(lattice.displayed_facing(region), normals)).sum(1) / w.sum(1)
     inside = np.clip(coords, 0, np.array(lattice.geometry.shape) - 1)
     near_boundary = (np.abs(inside - np.round(inside)) < 1e-3).any(axis=1)
-    near_floor = np.abs(np.log(np.maximum(ratio, 1e-30) / SIDE_FLOOR)) < 1.0
-    return (w.sum(1) > 0.27) & ~near_boundary & ~near_floor
+    near_blend = (ratio < 1e-3) | (np.abs(ratio - SIDE_BLEND) < 1e-3)
+    return (w.sum(1) > 0.27) & ~near_boundary & ~near_blend
 
 
 @pytest.mark.parametrize("elevation", [50.0, -50.0])

@@ -68,6 +68,18 @@ def test_auto_exposure_is_the_key_over_the_log_average():
     assert auto_exposure_scale(rgb, mask, weights=weights) == pytest.approx(heavy)
 
 
+def test_auto_exposure_meters_the_lit_pixels_of_a_mostly_unlit_surface():
+    """Most of the surface black, a few pixels lit, one nearly black, some NaN: the lit
+    pixels alone set the exposure."""
+    lum = np.zeros(1000)
+    lum[:30] = 1.0
+    lum[30:40] = 1e-9
+    lum[40:60] = np.nan
+    rgb = np.repeat(lum[:, None], 3, axis=1)
+    mask = np.ones(1000, bool)
+    assert auto_exposure_scale(rgb, mask) == pytest.approx(EXPOSURE_KEY)
+
+
 @pytest.mark.parametrize("dark", [0.0, 1e-4])
 def test_auto_exposure_is_not_fooled_by_a_dark_half(dark):
     """A surface half black (or in deep shadow below 2 % of its bright pixels) is exposed

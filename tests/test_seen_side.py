@@ -86,3 +86,25 @@ def test_view_gi_matches_the_reference_on_the_side_the_eye_sees(make, view):
     assert image.mean() / ref.mean() == pytest.approx(1.0, abs=0.05)
     lit = ref > 0.05 * ref.mean()
     assert (image[lit] <= 0).mean() <= 0.005
+
+
+def test_each_texel_starts_from_the_nearest_point_that_reads_it():
+    """`nearest_points` against a brute-force search, on small lattices whose edge texels
+    are read from up to 1.5 texels away (clamped lookups) and at coarse scales."""
+    from isolume.baking.lattice import LatticeGeometry, trilinear_corners
+    from isolume.baking.preview import nearest_points
+
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        shape = tuple(int(n) for n in rng.integers(2, 5, 3))
+        geometry = LatticeGeometry(shape, (0.0, 0.0, 0.0), tuple(rng.uniform(1, 3, 3)))
+        points = rng.uniform(-0.2, 1.2, (int(rng.integers(1, 12)), 3)) * geometry.hi
+        texels, nearest = nearest_points(geometry, points)
+        idx, _ = trilinear_corners(shape, geometry.to_texel_coords(points))
+        read = (idx[..., 0] * shape[1] + idx[..., 1]) * shape[2] + idx[..., 2]
+        assert np.array_equal(texels, np.unique(read))
+        for texel, point in zip(texels, nearest, strict=True):
+            readers = np.flatnonzero((read == texel).any(axis=1))
+            gaps = np.linalg.norm(points[readers] - geometry.centres(np.array([texel])), axis=1)
+            assert np.linalg.norm(points[point] - geometry.centres(np.array([texel]))) \
+                == pytest.approx(gaps.min())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 EXPOSURE_KEY = 0.18
-"""Automatic exposure brings the log-average luminance of the surface pixels to this value
+"""Automatic exposure brings the log-average luminance of the lit surface pixels to this value
 (the photographers' middle grey, the "key" of Reinhard et al. 2002 that game engines'
 eye adaptation also aims at): under the ACES curve it displays at about 140 of 255."""
 BRIGHT_QUANTILE = 0.95
@@ -29,17 +29,17 @@ def auto_exposure_scale(linear: np.ndarray, mask: np.ndarray, key: float = EXPOS
 
     Returns:
         key / exp(mean(log L)) over the surface pixels whose luminance L (Rec. 709
-        weights) is at least `DARK_FRACTION` of the surface's `BRIGHT_QUANTILE`
-        luminance; 1 when there are no surface pixels or they are all black.
+        weights) is at least `DARK_FRACTION` of the `BRIGHT_QUANTILE` luminance of the
+        surface's lit (L > 0) pixels; non-finite pixels are left out; 1 when no surface
+        pixel is lit.
     """
     lum = np.asarray(linear, np.float64)[mask] @ REC709
     w = np.ones(len(lum)) if weights is None else np.asarray(weights, np.float64)[mask]
-    if len(lum) == 0 or not w.sum() > 0:
+    positive = np.isfinite(lum) & (lum > 0) & np.isfinite(w) & (w > 0)
+    if not positive.any():
         return 1.0
-    bright = weighted_quantile(lum, w, BRIGHT_QUANTILE)
-    lit = (lum >= DARK_FRACTION * bright) & (lum > 0) & (w > 0)
-    if not lit.any():
-        return 1.0
+    lum, w = lum[positive], w[positive]
+    lit = lum >= DARK_FRACTION * weighted_quantile(lum, w, BRIGHT_QUANTILE)
     log_average = float(np.exp(np.average(np.log(lum[lit]), weights=w[lit])))
     return key / log_average
 

@@ -29,7 +29,7 @@ import moderngl
 import numpy as np
 
 from isolume.app.render.glcontext import store_rgb9e5
-from isolume.baking.lattice import FACING_POWER, SIDE_FLOOR, Lattice
+from isolume.baking.lattice import FACING_POWER, SIDE_BLEND, Lattice
 from isolume.baking.sh import transfer_blocks
 
 MAX_TEXTURE_UNITS = 16  # guaranteed by GL 3.3 for fragment shaders
@@ -209,9 +209,9 @@ class LatticeTextures:
 
     def facing_defines(self) -> tuple[tuple[str, object], ...]:
         """Shader defines of the side-aware lookup: FACING (1 once a texel's facing is
-        known), its power and floor (`baking.lattice.FACING_POWER`, `SIDE_FLOOR`)."""
+        known), its power and blend (`baking.lattice.FACING_POWER`, `SIDE_BLEND`)."""
         return (("FACING", int(self.facing_known)), ("FACING_POWER", FACING_POWER),
-                ("FACING_FLOOR", SIDE_FLOOR))
+                ("FACING_BLEND", SIDE_BLEND))
 
     def sh_defines(self) -> tuple[tuple[str, object], ...]:
         """Shader defines that declare and sum the SH textures (GLSL 3.3 cannot index

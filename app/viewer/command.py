@@ -30,8 +30,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--size", default="1024x768", help="window size WxH (screen units)")
     parser.add_argument("--exposure", type=float, default=1.0,
                         help="linear exposure multiplier on the automatic exposure (which "
-                        "brings the log-average of the surface's luminance to middle grey "
-                        "and adapts smoothly)")
+                        "brings the log-average of the lit surface's luminance to middle "
+                        "grey and adapts smoothly)")
     parser.add_argument("--no-auto-exposure", action="store_true",
                         help="no automatic exposure: --exposure is the whole linear scale")
     parser.add_argument("--frames", type=int, metavar="N",
