@@ -5,6 +5,7 @@ with one-line errors."""
 from __future__ import annotations
 
 import importlib
+import os
 import re
 import struct
 import zipfile
@@ -12,7 +13,7 @@ import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -107,3 +108,57 @@ def byte_count(dims_xyz: Sequence[int], dtype: np.dtype) -> tuple[int, str]:
     """Expected byte count of X*Y*Z samples, and the product written out."""
     x, y, z = dims_xyz
     return x * y * z * dtype.itemsize, f"{x}*{y}*{z}*{dtype.itemsize}"
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this machine can still give a process (Linux ``MemAvailable``,
+    else physical memory), or None where neither is known."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_fits_in_memory(nbytes: int, where: str, what: str) -> None:
+    """Refuse, before anything is read, samples whose `nbytes` (as the header or the file
+    name gives them: `what`) exceed the memory this machine has available."""
+    free = available_memory()
+    if free is not None and nbytes > free:
+        raise VolumeError(
+            f"{where}: {what} needs {nbytes / 1e9:.3g} GB of samples, more than the "
+            f"{free / 1e9:.3g} GB of memory available; crop or downsample it first"
+        )
+
+
+def read_bounded(f: BinaryIO, nbytes: int, where: str, compressed: bool) -> np.ndarray:
+    """Exactly `nbytes` bytes of a stream as a writable uint8 array; refuses a stream that
+    holds fewer, or more (it reads at most one byte past them: a file that lies about its
+    size, or a decompression bomb, costs no more memory than the samples promised)."""
+    what = "decompressed bytes" if compressed else "bytes"
+    buf = np.empty(nbytes, np.uint8)
+    view = memoryview(buf)
+    got = 0
+    while got < nbytes:
+        n = f.readinto(view[got:])
+        if not n:
+            raise VolumeError(f"{where}: expected {nbytes} {what} of samples, the data ends "
+                              f"after {got}: truncated, or the header's sizes are wrong")
+        got += n
+    if f.read(1):
+        raise VolumeError(f"{where}: expected {nbytes} {what} of samples, the data holds "
+                          "more: the header's sizes or type are wrong")
+    return buf
+
+
+def inflate_bounded(payload: bytes | memoryview, nbytes: int, wbits: int) -> bytes:
+    """zlib/gzip inflate of `payload` that stops one byte past the `nbytes` expected (a
+    decompression bomb costs no more memory than the samples promised); the caller
+    compares the length with `nbytes`."""
+    return zlib.decompressobj(wbits).decompress(payload, nbytes + 1)

@@ -10,7 +10,15 @@ from pathlib import Path
 import numpy as np
 
 from isolume.volumes.core import VolumeError
-from isolume.volumes.io.common import LPS, Loaded, byte_count, one_line, read_bytes
+from isolume.volumes.io.common import (
+    LPS,
+    Loaded,
+    byte_count,
+    check_fits_in_memory,
+    inflate_bounded,
+    one_line,
+    read_bytes,
+)
 
 _MET_TYPES = {
     "MET_UCHAR": "u1",
@@ -73,13 +81,14 @@ def load_metaimage(path: Path) -> Loaded:
         payload, data_where = memoryview(read_bytes(data_path)), str(data_path)
 
     expected, product = byte_count(dims, dtype)
+    check_fits_in_memory(expected, data_where, f"DimSize {' '.join(map(str, dims))}")
     header_size = 0
     if "headersize" in fields:
         header_size = int(_meta_numbers(fields, "HeaderSize", where, count=1)[0])
     if header_size > 0:
         payload = payload[header_size:]
     if compressed:
-        payload = _meta_inflate(payload, fields, data_where, where)
+        payload = _meta_inflate(payload, fields, data_where, where, expected)
     elif header_size == -1:  # MetaIO: the data are the last bytes of the file
         payload = payload[max(0, len(payload) - expected) :]
     if len(payload) != expected:
@@ -187,14 +196,15 @@ def _meta_dtype(fields: dict[str, str], where: str) -> np.dtype:
 
 
 def _meta_inflate(
-    payload: memoryview, fields: dict[str, str], data_where: str, where: str
+    payload: memoryview, fields: dict[str, str], data_where: str, where: str, expected: int
 ) -> bytes:
-    """zlib (or gzip) inflate of ``CompressedData = True`` MetaImage data."""
+    """zlib (or gzip) inflate of ``CompressedData = True`` MetaImage data, stopped one
+    byte past the `expected` bytes (`inflate_bounded`)."""
     if "compresseddatasize" in fields:
         size = int(_meta_numbers(fields, "CompressedDataSize", where, count=1)[0])
         payload = payload[:size]
     try:
-        return zlib.decompress(payload, zlib.MAX_WBITS | 32)
+        return inflate_bounded(payload, expected, zlib.MAX_WBITS | 32)
     except zlib.error as exc:
         raise VolumeError(
             f"{data_where}: corrupt compressed MetaImage data ({one_line(exc)}); "

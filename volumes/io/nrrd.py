@@ -3,19 +3,56 @@
 
 from __future__ import annotations
 
+import gzip
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
 from isolume.volumes.core import VolumeError
-from isolume.volumes.io.common import READ_ERRORS, Loaded, one_line, optional_module
+from isolume.volumes.io.common import (
+    READ_ERRORS,
+    Loaded,
+    check_fits_in_memory,
+    one_line,
+    optional_module,
+    read_bounded,
+)
+
+_TYPES = {
+    **dict.fromkeys(("signed char", "int8", "int8_t"), "i1"),
+    **dict.fromkeys(("uchar", "unsigned char", "uint8", "uint8_t"), "u1"),
+    **dict.fromkeys(("short", "short int", "signed short", "signed short int", "int16",
+                     "int16_t"), "i2"),
+    **dict.fromkeys(("ushort", "unsigned short", "unsigned short int", "uint16", "uint16_t"),
+                    "u2"),
+    **dict.fromkeys(("int", "signed int", "int32", "int32_t"), "i4"),
+    **dict.fromkeys(("uint", "unsigned int", "uint32", "uint32_t"), "u4"),
+    **dict.fromkeys(("longlong", "long long", "long long int", "signed long long",
+                     "signed long long int", "int64", "int64_t"), "i8"),
+    **dict.fromkeys(("ulonglong", "unsigned long long", "unsigned long long int", "uint64",
+                     "uint64_t"), "u8"),
+    "float": "f4",
+    "double": "f8",
+}
+"""NRRD ``type`` names -> numpy type codes (the NRRD format's list)."""
 
 
 def load_nrrd(path: Path) -> Loaded:
-    """NRRD / NHDR via pynrrd -> (Z, Y, X); spacing from space directions or spacings."""
+    """NRRD / NHDR -> (Z, Y, X); spacing from space directions or spacings.
+
+    The header (pynrrd) says how many bytes the samples take; a header that needs more
+    memory than the machine has is refused before any sample is read, and attached raw
+    or gzip data are read (and inflated) at most one byte past that size; other
+    encodings and detached data are read by pynrrd once the size is checked.
+    """
     nrrd = optional_module("nrrd", path)
     try:
-        data, header = nrrd.read(str(path), index_order="C")
+        with open(path, "rb") as fh:
+            header = nrrd.read_header(fh)
+            data = _bounded_data(header, fh, path)
+        if data is None:
+            data, header = nrrd.read(str(path), index_order="C")
     except OSError as exc:
         raise VolumeError(f"{path}: cannot read the NRRD data: {one_line(exc)}") from None
     except (nrrd.NRRDError, *READ_ERRORS) as exc:
@@ -87,3 +124,30 @@ def _nrrd_origin(header: dict) -> np.ndarray | None:
         if arr.shape == (3,) and np.isfinite(arr).all():
             return arr
     return None
+
+
+def _bounded_data(header: dict, fh: BinaryIO, path: Path) -> np.ndarray | None:
+    """(Z, Y, X) samples of attached raw or gzip data read after the header in `fh`, at
+    most one byte past the size the header gives; None where pynrrd must read them
+    (detached data, skips, other encodings). Either way the header's size must fit in
+    memory (`check_fits_in_memory`)."""
+    sizes = [int(s) for s in np.atleast_1d(header.get("sizes", []))]
+    kind = _TYPES.get(str(header.get("type", "")).strip().lower())
+    if kind is None or not sizes or min(sizes) < 1:
+        return None  # pynrrd's own message names what is wrong
+    dtype = np.dtype(kind).newbyteorder(
+        ">" if str(header.get("endian", "little")).lower() == "big" else "<")
+    expected = int(np.prod(sizes, dtype=np.int64)) * dtype.itemsize
+    check_fits_in_memory(expected, str(path), f"sizes {' '.join(map(str, sizes))} "
+                         f"{header.get('type')}")
+    encoding = str(header.get("encoding", "raw")).lower()
+    detached = any(k in header for k in ("data file", "datafile"))
+    skips = any(k in header for k in ("line skip", "lineskip", "byte skip", "byteskip"))
+    if detached or skips or encoding not in ("raw", "gzip", "gz"):
+        return None
+    if encoding == "raw":
+        buf = read_bounded(fh, expected, str(path), compressed=False)
+    else:
+        with gzip.GzipFile(fileobj=fh) as stream:
+            buf = read_bounded(stream, expected, str(path), compressed=True)
+    return buf.view(dtype).reshape(sizes[::-1])

@@ -15,7 +15,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from isolume.volumes.core import VolumeError
-from isolume.volumes.io.common import Loaded, byte_count, one_line
+from isolume.volumes.io.common import Loaded, byte_count, check_fits_in_memory, one_line
 
 #: dtype names accepted in raw file names and for ``dtype=`` (little-endian on disk).
 RAW_DTYPES: dict[str, str] = {
@@ -130,32 +130,47 @@ def load_raw(
         )
     dtype = dtype.newbyteorder(byteorder)
     expected, product = byte_count(dims, dtype)
+    x, y, z = dims
     compressed = path.name.lower().endswith(".gz")
+    size = f"{product} = {expected} bytes for {x}x{y}x{z} {dtype.name}"
+    if not compressed:  # the file's size says it before anything is read
+        _check_size(path, expected, size, how)
+    check_fits_in_memory(expected, where, f"{x}x{y}x{z} {dtype.name} ({how})")
     buf, actual = _read_raw_samples(path, expected, compressed)
     if actual != expected:
-        x, y, z = dims
         what = "decompressed bytes" if compressed else "bytes"
         problem = (
             f"only {actual} {what}: the file is truncated, or the dims/dtype {how} are wrong"
             if actual < expected
-            else f"{actual} {what}: the dims/dtype {how} do not match the file size"
+            else f"more {what}: the dims/dtype {how} do not match the file"
         )
-        raise VolumeError(
-            f"{where}: expected {product} = {expected} bytes for {x}x{y}x{z} "
-            f"{dtype.name}, got {problem}"
-        )
-    x, y, z = dims
+        raise VolumeError(f"{where}: expected {size}, got {problem}")
     return buf.view(dtype).reshape(z, y, x), None, None, None
 
 
+def _check_size(path: Path, expected: int, size: str, how: str) -> None:
+    """Refuse an uncompressed raw file whose length is not the `expected` bytes."""
+    try:
+        actual = path.stat().st_size
+    except OSError as exc:
+        raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
+    if actual < expected:
+        raise VolumeError(f"{path}: expected {size}, got only {actual} bytes: the file is "
+                          f"truncated, or the dims/dtype {how} are wrong")
+    if actual > expected:
+        raise VolumeError(f"{path}: expected {size}, got {actual} bytes: the dims/dtype "
+                          f"{how} do not match the file size")
+
+
 def _read_raw_samples(path: Path, expected: int, compressed: bool) -> tuple[np.ndarray, int]:
-    """Read ``expected`` bytes into a writable uint8 array; also count the file's total."""
+    """Read ``expected`` bytes into a writable uint8 array, and how many the stream
+    holds: fewer, exactly, or ``expected + 1`` for more (it stops one byte past them)."""
     try:
         with open(path, "rb") as plain:
             if not compressed:
-                return _read_counting(plain, expected)
+                return _read_at_most(plain, expected)
             with gzip.GzipFile(fileobj=plain) as f:
-                return _read_counting(f, expected)
+                return _read_at_most(f, expected)
     except (gzip.BadGzipFile, EOFError, zlib.error) as exc:
         raise VolumeError(
             f"{path}: corrupt gzip data ({one_line(exc)}); expected a gzip-compressed raw file"
@@ -166,8 +181,9 @@ def _read_raw_samples(path: Path, expected: int, compressed: bool) -> tuple[np.n
         raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
 
 
-def _read_counting(f: BinaryIO, nbytes: int) -> tuple[np.ndarray, int]:
-    """First ``nbytes`` of a stream as uint8 (fewer at EOF) and the stream's total length."""
+def _read_at_most(f: BinaryIO, nbytes: int) -> tuple[np.ndarray, int]:
+    """First ``nbytes`` of a stream as uint8 (fewer at EOF) and its length, counted up to
+    ``nbytes + 1``: a stream that holds more is not read (nor decompressed) further."""
     buf = np.empty(nbytes, np.uint8)
     view = memoryview(buf)
     got = 0
@@ -176,10 +192,7 @@ def _read_counting(f: BinaryIO, nbytes: int) -> tuple[np.ndarray, int]:
         if not n:
             break
         got += n
-    total = got
-    while chunk := f.read(1 << 20):
-        total += len(chunk)
-    return buf[:got], total
+    return buf[:got], got + (got == nbytes and len(f.read(1)))
 
 
 def manifest_spacing(path: Path) -> tuple[float, float, float] | None:
