@@ -54,19 +54,28 @@ def build_parser() -> argparse.ArgumentParser:
         prog="isolume", description="Isosurfaces with precomputed global illumination."
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("info", help="describe a volume and suggest isovalues")
+    p = sub.add_parser("info", help="describe a volume and suggest isovalues",
+                       description="Describe a volume (shape, type, spacing, placement, "
+                       "value histogram) and suggest isovalues that show its structure.")
     add_volume_options(p, optional=False)
-    p = sub.add_parser("render", help="render an isosurface off-screen to PNG or EXR")
+    p = sub.add_parser("render", help="render an isosurface off-screen to PNG or EXR",
+                       description="Render an isosurface off-screen to PNG (sRGB) or EXR "
+                       "(linear). Without --lattice the view's global illumination is "
+                       "traced for the texels the picture reads (64 paths each).")
     add_volume_options(p, optional=True)
     p.add_argument("--out", required=True, help="FILE.png (sRGB) or FILE.exr (linear)")
     add_render_options(p)
-    p = sub.add_parser("bake", help="bake an illumination lattice with Embree path tracing")
+    p = sub.add_parser("bake", help="bake an illumination lattice with Embree path tracing",
+                       description="Bake an illumination lattice for every isovalue (or "
+                       "--iso-range) with Embree path tracing; Ctrl-C keeps the finished "
+                       "texels.")
     add_volume_options(p, optional=False)
     add_bake_options(p)
     for name in COMMAND_MODULES:
         module = _command_module(name)
         if module is not None:
-            p = sub.add_parser(name, help=module.HELP)
+            p = sub.add_parser(name, help=module.HELP,
+                               description=module.HELP[:1].upper() + module.HELP[1:] + ".")
             module.add_arguments(p)
     return parser
 

@@ -143,12 +143,16 @@ def add_render_options(p: argparse.ArgumentParser) -> None:
                    "the log-average of the surface's luminance to middle grey)")
     p.add_argument("--no-auto-exposure", action="store_true",
                    help="no automatic exposure: --exposure is the whole linear scale")
-    p.add_argument("--tonemap", default="aces", choices=list(TONEMAPS))
+    p.add_argument("--tonemap", default="aces", choices=list(TONEMAPS),
+                   help="tone curve from exposed radiance to the picture (default aces)")
     p.add_argument("--albedo", default=None,
                    help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
-    p.add_argument("--normals", default="smooth", choices=["smooth", "gradient"])
+    p.add_argument("--normals", default="smooth", choices=["smooth", "gradient"],
+                   help="shading normals: B-spline-smoothed gradient (the paper's) or plain "
+                   "central differences (default smooth)")
     p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
-    p.add_argument("--gl", default="auto", choices=["auto", "egl", "osmesa"])
+    p.add_argument("--gl", default="auto", choices=["auto", "egl", "osmesa"],
+                   help="headless GL: EGL, OSMesa, or whichever works (auto)")
 
 
 def parse_albedo(text: str) -> tuple[float, float, float]:
@@ -215,7 +219,9 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
     from isolume.baking.config import DEFAULT_ENV
 
     p.add_argument("--out", required=True, help="lattice file FILE.npz (resumed if present)")
-    p.add_argument("--mode", default="irradiance", choices=["irradiance", "sh"])
+    p.add_argument("--mode", default="irradiance", choices=["irradiance", "sh"],
+                   help="irradiance (static lights) or SH radiance transfer (an environment "
+                   "that can turn) (default irradiance)")
     p.add_argument("--sh-order", type=int, default=5, help="SH bands (n² coefficients)")
     p.add_argument("--samples", type=int, default=100,
                    help="paths per texel (the minimum, with --target-error)")
@@ -226,13 +232,17 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (0 = direct)")
     p.add_argument("--albedo", default="0.8", help="A or R,G,B")
     p.add_argument("--scale", type=float, default=1.0, help="texels per voxel per axis")
-    p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"))
+    p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="bake only the texels of isovalues LO..HI (default: every isovalue "
+                   "above the noise)")
     p.add_argument("--env", default=DEFAULT_ENV,
                    help="constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular] | none "
                    f"(default {DEFAULT_ENV})")
     p.add_argument("--light", action="append", metavar="SPEC",
                    help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="random seed: the same seed gives the same lattice with any "
+                   "--workers (default 0)")
     p.add_argument("--max-levels", type=int, default=64, metavar="K",
                    help="cap on isovalue levels (fewer: faster, texels move farther onto "
                    "their levels)")

@@ -347,6 +347,9 @@ class Lattice:
         path = Path(path)
         if not path.is_file():
             raise BakeError(f"{path}: lattice file not found")
+        if not zipfile.is_zipfile(path):
+            raise BakeError(f"{path}: not a lattice file: expected the .npz archive that "
+                            "isolume bake writes")
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("values", "samples", "second", "active", "meta")}
@@ -380,10 +383,13 @@ class Lattice:
         want = self.meta.get("volume", {})
         if want.get("hash") != volume.data_hash():
             shape = list(volume.data.shape)
+            same_file = want.get("source") and want.get("source") == volume.source
+            hint = ("the same file, placed otherwise: load it with the --up (and --dims, "
+                    "--dtype) the bake was given" if same_file else "bake it for this volume")
             raise BakeError(
                 f"{path}: baked for volume {want.get('name')!r} of shape {want.get('shape')} "
                 f"(hash {str(want.get('hash'))[:12]}), not for {volume.name!r} of shape "
-                f"{shape} (hash {volume.data_hash()[:12]}); bake it for this volume"
+                f"{shape} (hash {volume.data_hash()[:12]}); {hint}"
             )
 
 

@@ -306,7 +306,7 @@ def test_lattice_file_refuses_another_volume(tmp_path):
     with pytest.raises(BakeError, match=r"baked for volume 'sphere'.*not for 'torus'"):
         Lattice.load(path, make("torus", 24))
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(BakeError, match=r"junk\.npz: not a readable isolume lattice"):
+    with pytest.raises(BakeError, match=r"junk\.npz: not a lattice file"):
         Lattice.load(tmp_path / "junk.npz")
 
 

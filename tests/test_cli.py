@@ -264,3 +264,48 @@ def test_render_view_bake_and_reference_default_to_the_same_lighting():
         assert getattr(args, "env", None) in (None, DEFAULT_ENV), argv
     assert parser.parse_args(["reference", "v.npy", "--out", "a.exr"]).env == DEFAULT_ENV
     assert parser.parse_args(["bake", "v.npy", "--out", "l.npz"]).env == DEFAULT_ENV
+
+
+def test_a_text_file_given_as_a_lattice_is_one_line(tmp_path, capsys):
+    text = tmp_path / "notes.npz"
+    text.write_text("not a lattice\n")
+    status, _, err = _run(capsys, "render", "synthetic:sphere:16", "--lattice", str(text),
+                          "--out", str(tmp_path / "x.png"))
+    assert status == 2 and err.count("\n") == 1
+    assert "not a lattice file" in err and "pickle" not in err
+
+
+def test_a_lattice_baked_with_another_up_names_up(tmp_path, capsys):
+    """The same raw file loaded with another --up has other samples: the refusal says to
+    load it as the bake did."""
+    raw = tmp_path / "blob_12x10x8_uint8.raw"
+    z, y, x = np.mgrid[:8, :10, :12]
+    ((np.hypot(np.hypot(x - 5.5, y - 4.5), z - 3.0) < 3.5) * 200).astype(np.uint8).tofile(raw)
+    lattice = tmp_path / "l.npz"
+    status, _, err = _run(capsys, "bake", str(raw), "--samples", "1", "--bounces", "0",
+                          "--env", "constant:1,1,1", "--out", str(lattice))
+    assert status == 0, err
+    status, _, err = _run(capsys, "render", str(raw), "--up", "-z", "--lattice", str(lattice),
+                          "--out", str(tmp_path / "x.png"))
+    assert status == 2 and err.count("\n") == 1 and "--up" in err, err
+
+
+def test_every_command_has_a_description_and_every_option_a_help_text():
+    import argparse
+
+    from isolume.app.cli import build_parser
+
+    missing = []
+
+    def walk(parser, name):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub_name, sub in action.choices.items():
+                    if not sub.description:
+                        missing.append(f"{name} {sub_name}: description")
+                    walk(sub, f"{name} {sub_name}")
+            elif action.option_strings and not action.help:
+                missing.append(f"{name} {action.option_strings[-1]}")
+
+    walk(build_parser(), "isolume")
+    assert not missing, missing

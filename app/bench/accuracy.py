@@ -86,7 +86,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "as render's --up (repeatable)")
     p.add_argument("--view", default="30,30", help="AZ,EL[,DIST] as render (default 30,30)")
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
-    p.add_argument("--gl", default="auto", choices=["auto", "egl", "osmesa"])
+    p.add_argument("--gl", default="auto", choices=["auto", "egl", "osmesa"],
+                   help="headless GL: EGL, OSMesa, or whichever works (auto)")
 
 
 # -- settings --------------------------------------------------------------------------------

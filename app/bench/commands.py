@@ -27,23 +27,29 @@ HELP = ("benchmarks: baker throughput against bare embreex, frame times, lazy GI
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="bench", required=True)
-    p = sub.add_parser("bake", help="baker rays/s against bare embreex, full-bake figures")
+    p = sub.add_parser("bake", help="baker rays/s against bare embreex, full-bake figures",
+                       description="The baker's rays per second against bare embreex on "
+                       "the same rays, and the figures of a whole bake.")
     p.add_argument("volume", nargs="?", default="synthetic:engine",
                    help="volume (default synthetic:engine)")
-    p.add_argument("--samples", type=int, default=32)
-    p.add_argument("--bounces", type=int, default=2)
-    p.add_argument("--env", default="constant:1,1,1")
+    p.add_argument("--samples", type=int, default=32, help="paths per texel (default 32)")
+    p.add_argument("--bounces", type=int, default=2, help="bounces per path (default 2)")
+    p.add_argument("--env", default="constant:1,1,1",
+                   help="environment light (default constant:1,1,1)")
     p.add_argument("--scale", type=float, default=1.0, help="lattice texels per voxel")
     p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"),
                    help="isovalues to bake (default: around the suggested ones)")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=int, default=None,
+                   help="tracing threads (default: all cores)")
     p.add_argument("--json", help="also write the figures to this JSON file")
     for name, module in _VIEW_BENCHES.items():
         bench = _view_module()
         if bench is not None and hasattr(bench, f"add_{name}_arguments"):
-            getattr(bench, f"add_{name}_arguments")(sub.add_parser(name, help=module))
+            getattr(bench, f"add_{name}_arguments")(
+                sub.add_parser(name, help=module, description=_sentence(module)))
     accuracy = _accuracy_module()
-    accuracy.add_arguments(sub.add_parser("accuracy", help=accuracy.HELP))
+    accuracy.add_arguments(sub.add_parser("accuracy", help=accuracy.HELP,
+                                          description=_sentence(accuracy.HELP)))
 
 
 _VIEW_BENCHES = {"frames": "frame time per shading mode (llvmpipe, EGL)",
@@ -198,3 +204,10 @@ def _print_bake_figures(f: dict) -> None:
           f"{f['end_to_end_ratio']:.2f} end to end (rays over the whole bake's wall time); "
           f"{f['chunk_ratio']:.2f} inside the compiled chunks (Embree and the path arithmetic "
           "per thread, without the loop's waits and lay-out)")
+
+
+def _sentence(text: str) -> str:
+    """`text` (an argparse help string, "%%" for "%") as a description: capitalised, with
+    a full stop."""
+    text = text.replace("%%", "%")
+    return text[:1].upper() + text[1:].rstrip(".") + "."

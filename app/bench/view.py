@@ -80,7 +80,8 @@ def add_frames_arguments(parser) -> None:
     """Options of ``isolume bench frames``."""
     _add_volume_and_iso(parser)
     parser.add_argument("--size", default="512x512", help="WxH pixels")
-    parser.add_argument("--gl", default="egl", choices=["egl", "osmesa", "auto"])
+    parser.add_argument("--gl", default="egl", choices=["egl", "osmesa", "auto"],
+                        help="headless GL (default egl)")
     parser.add_argument("--frames", type=int, default=20, help="timed frames per mode")
     parser.add_argument("--rounds", type=int, default=4,
                         help="rounds the frames are split into, every mode once per round "
@@ -272,8 +273,10 @@ def add_lazy_arguments(parser) -> None:
     parser.add_argument("--reference", type=int, default=0, metavar="N",
                         help="also measure against N visible texels baked separately to "
                         "--reference-samples (0: off)")
-    parser.add_argument("--reference-samples", type=int, default=4096)
-    parser.add_argument("--gl", default="egl", choices=["egl", "osmesa", "auto"])
+    parser.add_argument("--reference-samples", type=int, default=4096,
+                        help="paths per pixel of the path-traced truth (default 4096)")
+    parser.add_argument("--gl", default="egl", choices=["egl", "osmesa", "auto"],
+                        help="headless GL (default egl)")
     parser.add_argument("--json", help="also write the figures to this JSON file")
 
 

@@ -88,7 +88,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    f"(default {CHART_SCENE_ENV})")
     p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (default 2)")
     p.add_argument("--albedo", type=float, default=0.8, help="gray diffuse reflectance")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
     p.add_argument("--gl", default="egl", choices=["egl", "osmesa", "auto"],
                    help="headless GL backend (default egl)")

@@ -64,7 +64,9 @@ def add_arguments(parser) -> None:
                         "builds fewer scenes and converges sooner, texels move farther "
                         "onto their levels and a few come out wrong; default 64)")
     parser.add_argument("--no-ui", action="store_true", help="no control panel")
-    parser.add_argument("--normals", default="smooth", choices=["smooth", "gradient"])
+    parser.add_argument("--normals", default="smooth", choices=["smooth", "gradient"],
+                        help="shading normals: B-spline-smoothed gradient or plain central "
+                        "differences (default smooth)")
     parser.add_argument("--flip-normals", action="store_true",
                         help="material less dense than air")
 

@@ -153,7 +153,7 @@ def load_file(
                 suffix = path.suffix or "(none)"
                 raise VolumeError(
                     f"{where}: unknown file type {suffix!r}; supported: {SUPPORTED_FORMATS}; "
-                    "for a headerless raw file pass --dims X Y Z and --dtype"
+                    "for a headerless raw file pass --dims X,Y,Z and --dtype"
                 )
         check_readable(path)
     if kind != "raw" and (dims_xyz is not None or raw_dtype is not None or byteorder != "<"):

@@ -125,7 +125,7 @@ def load_raw(
     if dims is None or dtype is None:
         raise VolumeError(
             f"{where}: cannot tell the size and type of this raw file: name it "
-            "NAME_XxYxZ_DTYPE.raw (e.g. skull_256x256x256_uint8.raw) or pass --dims X Y Z "
+            "NAME_XxYxZ_DTYPE.raw (e.g. skull_256x256x256_uint8.raw) or pass --dims X,Y,Z "
             f"and --dtype ({', '.join(RAW_DTYPES)})"
         )
     dtype = dtype.newbyteorder(byteorder)
