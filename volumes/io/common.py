@@ -133,7 +133,7 @@ def check_fits_in_memory(nbytes: int, where: str, what: str) -> None:
     if free is not None and nbytes > free:
         raise VolumeError(
             f"{where}: {what} needs {nbytes / 1e9:.3g} GB of samples, more than the "
-            f"{free / 1e9:.3g} GB of memory available; crop or downsample it first"
+            f"{free / 1e9:.3g} GB of memory available; crop or downsample the file first"
         )
 
 
