@@ -19,6 +19,7 @@ from isolume.app.options import (
     add_bake_options,
     add_render_options,
     add_volume_options,
+    description_of,
 )
 from isolume.volumes.errors import IsolumeError
 
@@ -75,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
         module = _command_module(name)
         if module is not None:
             p = sub.add_parser(name, help=module.HELP,
-                               description=module.HELP[:1].upper() + module.HELP[1:] + ".")
+                               description=description_of(module.HELP))
             module.add_arguments(p)
     return parser
 

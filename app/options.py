@@ -262,3 +262,10 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
                    "for N worker processes here; the same lattice (pip install "
                    "'isolume[cluster]')")
     p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
+
+
+def description_of(help_text: str) -> str:
+    """A subcommand's one-line `help_text` (an argparse help string, "%%" for "%") as its
+    description: capitalised, with a full stop."""
+    text = help_text.replace("%%", "%")
+    return text[:1].upper() + text[1:].rstrip(".") + "."

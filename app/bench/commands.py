@@ -21,6 +21,8 @@ import argparse
 import json
 import time
 
+from isolume.app.options import description_of
+
 HELP = ("benchmarks: baker throughput against bare embreex, frame times, lazy GI, lighting "
         "accuracy")
 
@@ -46,10 +48,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         bench = _view_module()
         if bench is not None and hasattr(bench, f"add_{name}_arguments"):
             getattr(bench, f"add_{name}_arguments")(
-                sub.add_parser(name, help=module, description=_sentence(module)))
+                sub.add_parser(name, help=module, description=description_of(module)))
     accuracy = _accuracy_module()
     accuracy.add_arguments(sub.add_parser("accuracy", help=accuracy.HELP,
-                                          description=_sentence(accuracy.HELP)))
+                                          description=description_of(accuracy.HELP)))
 
 
 _VIEW_BENCHES = {"frames": "frame time per shading mode (llvmpipe, EGL)",
@@ -204,10 +206,3 @@ def _print_bake_figures(f: dict) -> None:
           f"{f['end_to_end_ratio']:.2f} end to end (rays over the whole bake's wall time); "
           f"{f['chunk_ratio']:.2f} inside the compiled chunks (Embree and the path arithmetic "
           "per thread, without the loop's waits and lay-out)")
-
-
-def _sentence(text: str) -> str:
-    """`text` (an argparse help string, "%%" for "%") as a description: capitalised, with
-    a full stop."""
-    text = text.replace("%%", "%")
-    return text[:1].upper() + text[1:].rstrip(".") + "."

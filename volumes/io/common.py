@@ -137,21 +137,31 @@ def check_fits_in_memory(nbytes: int, where: str, what: str) -> None:
         )
 
 
-def read_bounded(f: BinaryIO, nbytes: int, where: str, compressed: bool) -> np.ndarray:
-    """Exactly `nbytes` bytes of a stream as a writable uint8 array; refuses a stream that
-    holds fewer, or more (it reads at most one byte past them: a file that lies about its
-    size, or a decompression bomb, costs no more memory than the samples promised)."""
-    what = "decompressed bytes" if compressed else "bytes"
+def read_at_most(f: BinaryIO, nbytes: int) -> tuple[np.ndarray, int]:
+    """First `nbytes` of a stream as a writable uint8 array (fewer at its end) and the
+    stream's length counted up to ``nbytes + 1``: a stream that holds more is not read
+    (nor decompressed) further, so a file that lies about its size, or a decompression
+    bomb, costs no more memory than the samples promised."""
     buf = np.empty(nbytes, np.uint8)
     view = memoryview(buf)
     got = 0
     while got < nbytes:
         n = f.readinto(view[got:])
         if not n:
-            raise VolumeError(f"{where}: expected {nbytes} {what} of samples, the data ends "
-                              f"after {got}: truncated, or the header's sizes are wrong")
+            break
         got += n
-    if f.read(1):
+    return buf[:got], got + (got == nbytes and len(f.read(1)))
+
+
+def read_bounded(f: BinaryIO, nbytes: int, where: str, compressed: bool) -> np.ndarray:
+    """Exactly `nbytes` bytes of a stream (`read_at_most`); refuses a stream that holds
+    fewer, or more."""
+    what = "decompressed bytes" if compressed else "bytes"
+    buf, count = read_at_most(f, nbytes)
+    if count < nbytes:
+        raise VolumeError(f"{where}: expected {nbytes} {what} of samples, the data ends "
+                          f"after {count}: truncated, or the header's sizes are wrong")
+    if count > nbytes:
         raise VolumeError(f"{where}: expected {nbytes} {what} of samples, the data holds "
                           "more: the header's sizes or type are wrong")
     return buf

@@ -10,12 +10,18 @@ import operator
 import re
 import zlib
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 
 from isolume.volumes.core import VolumeError
-from isolume.volumes.io.common import Loaded, byte_count, check_fits_in_memory, one_line
+from isolume.volumes.io.common import (
+    Loaded,
+    byte_count,
+    check_fits_in_memory,
+    one_line,
+    read_at_most,
+)
 
 #: dtype names accepted in raw file names and for ``dtype=`` (little-endian on disk).
 RAW_DTYPES: dict[str, str] = {
@@ -168,9 +174,9 @@ def _read_raw_samples(path: Path, expected: int, compressed: bool) -> tuple[np.n
     try:
         with open(path, "rb") as plain:
             if not compressed:
-                return _read_at_most(plain, expected)
+                return read_at_most(plain, expected)
             with gzip.GzipFile(fileobj=plain) as f:
-                return _read_at_most(f, expected)
+                return read_at_most(f, expected)
     except (gzip.BadGzipFile, EOFError, zlib.error) as exc:
         raise VolumeError(
             f"{path}: corrupt gzip data ({one_line(exc)}); expected a gzip-compressed raw file"
@@ -179,20 +185,6 @@ def _read_raw_samples(path: Path, expected: int, compressed: bool) -> tuple[np.n
         raise VolumeError(f"{path}: cannot read the file: permission denied") from None
     except OSError as exc:
         raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
-
-
-def _read_at_most(f: BinaryIO, nbytes: int) -> tuple[np.ndarray, int]:
-    """First ``nbytes`` of a stream as uint8 (fewer at EOF) and its length, counted up to
-    ``nbytes + 1``: a stream that holds more is not read (nor decompressed) further."""
-    buf = np.empty(nbytes, np.uint8)
-    view = memoryview(buf)
-    got = 0
-    while got < nbytes:
-        n = f.readinto(view[got:])
-        if not n:
-            break
-        got += n
-    return buf[:got], got + (got == nbytes and len(f.read(1)))
 
 
 def manifest_spacing(path: Path) -> tuple[float, float, float] | None:
