@@ -208,7 +208,7 @@ def bake_config(args: argparse.Namespace):
         mode=args.mode, sh_order=args.sh_order, samples=args.samples, bounces=args.bounces,
         albedo=parse_albedo(args.albedo), scale=args.scale,
         iso_range=tuple(args.iso_range) if args.iso_range else None, seed=args.seed,
-        flip_normals=args.flip_normals, target_error=args.target_error,
+        flip_normals=args.flip_normals, sides=args.sides, target_error=args.target_error,
         max_samples=max(args.max_samples, args.samples), max_levels=args.max_levels,
         max_move=args.max_move, direct_light=args.direct_light,
     )
@@ -233,8 +233,9 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--albedo", default="0.8", help="A or R,G,B")
     p.add_argument("--scale", type=float, default=1.0, help="texels per voxel per axis")
     p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"),
-                   help="bake only the texels of isovalues LO..HI (default: every isovalue "
-                   "above the noise)")
+                   help="bake only the texels of isovalues LO..HI (default: the isovalues "
+                   "`isolume info` suggests, with a margin of a quarter of their spread on "
+                   "either side)")
     p.add_argument("--env", default=DEFAULT_ENV,
                    help="constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular] | none "
                    f"(default {DEFAULT_ENV})")
@@ -262,6 +263,11 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
                    "for N worker processes here; the same lattice (pip install "
                    "'isolume[cluster]')")
     p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
+    p.add_argument("--sides", default="seen", choices=["seen", "normals"],
+                   help="which side of the surface each texel is lit on: the side a camera "
+                   "outside the volume sees (both, on alternate texels, where both can be "
+                   "seen: sheets, scans cut by the box) or the side the normals point to "
+                   "(default seen)")
 
 
 def description_of(help_text: str) -> str:

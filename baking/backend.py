@@ -332,8 +332,8 @@ class ThreadBackend:
         plan = job.plan
         pos, samples, start = lay_out_level(
             job.volume, job.geometry, job.config, float(plan.levels[level]), plan.ids,
-            plan.phase, plan.weight, work.lower_on(level), work.upper_on(level), work.done,
-            work.remaining, plan.landing)
+            plan.phase, plan.weight, plan.high, work.lower_on(level), work.upper_on(level),
+            work.done, work.remaining, plan.landing)
         scene = self._scene(level) if len(pos) else None
         return _LevelWork(level, pos, samples, start, scene)
 

@@ -362,11 +362,11 @@ def _finish_meta(lattice: Lattice, plan: Plan, stats: BakeStats, previous: dict)
     lattice.meta["plan"] = {
         "active_texels": len(plan.ids),
         "unreachable_texels": plan.unreachable,
+        "high_side_texels": int(np.count_nonzero(plan.high)),
         "total_texels": int(math.prod(lattice.geometry.shape)),
         "levels": [float(v) for v in plan.levels],
         "iso_range": [float(v) for v in plan.iso_range],
         "move_limit_voxels": plan.move_limit,
-        "noise_sigma": plan.noise,
         "move_voxels_p50": float(np.percentile(plan.move_voxels, 50)),
         "move_voxels_p90": float(np.percentile(plan.move_voxels, 90)),
         "move_voxels_max": float(plan.move_voxels.max()),

@@ -231,15 +231,16 @@ def forget(token: str) -> None:
 
 
 def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
-               weight: np.ndarray, done: np.ndarray, remaining: np.ndarray,
-               upper: np.ndarray) -> _Partial:
+               weight: np.ndarray, high: np.ndarray, done: np.ndarray,
+               remaining: np.ndarray, upper: np.ndarray) -> _Partial:
     """Worker: trace the pending paths of T texels on level `level`.
 
     Args:
-        ids: (T,) sorted flat lattice ids of the texels; phase, weight: (T,) their plan
-            phases and upper-level weights; done, remaining: (T,) int64 samples they have
-            and still need; upper: (T,) bool, True where `level` is the texel's upper
-            level (its samples that go up are traced), False where it is the lower.
+        ids: (T,) sorted flat lattice ids of the texels; phase, weight, high: (T,) their
+            plan phases, upper-level weights and lit sides; done, remaining: (T,) int64
+            samples they have and still need; upper: (T,) bool, True where `level` is the
+            texel's upper level (its samples that go up are traced), False where it is the
+            lower.
 
     Returns:
         the texels' pass sums formed from zero, and counters.
@@ -249,7 +250,7 @@ def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
     scene, scene_seconds = state.scene(level)
     pos, samples, start = lay_out_level(
         job.volume, job.geometry, job.config, float(job.levels[level]), ids, phase, weight,
-        np.flatnonzero(~upper), np.flatnonzero(upper), done, remaining)
+        high, np.flatnonzero(~upper), np.flatnonzero(upper), done, remaining)
     acc = PassSums(len(ids), job.settings.channels)
     paths, rays, seconds = 0, 0, 0.0
     if len(pos):
@@ -521,7 +522,7 @@ class ClusterBackend:
         for index, (lo, hi) in enumerate(task_groups(texels, expected, PATHS_PER_TASK)):
             part = texels[lo:hi]
             args = (plan.ids[part].astype(np.int64), plan.phase[part], plan.weight[part],
-                    work.done[part], work.remaining[part], upper[lo:hi])
+                    plan.high[part], work.done[part], work.remaining[part], upper[lo:hi])
             future = self.client.submit(
                 trace_task, self._scattered, level, *args,
                 key=f"isolume-{self.token}-{self._passes}-{level}-{index}",

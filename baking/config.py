@@ -20,6 +20,8 @@ that the first picture shows shape by cast shadows as well as by the sky's soft 
 what the analytic tests use)."""
 DIRECT_LIGHT = ("pixels", "lattice")
 """Where the direct light of point/directional lights and the sky's sun is computed."""
+SIDES = ("seen", "normals")
+"""Which side of its surface a texel is lit on (`BakeConfig.sides`)."""
 
 
 @dataclass(frozen=True)
@@ -46,8 +48,9 @@ class BakeConfig:
         normals: "smooth" (cubic-B-spline-smoothed gradient, the paper's) or "gradient"
             (plain central differences, paper Fig. 5 left) for the texel normals.
         flip_normals: normals from low to high values.
-        noise_sigmas: a lattice cell is skipped when its value span is below this many
-            noise standard deviations (flat regions carry no displayable surface).
+        sides: "seen" (each texel lit on the side of its surface that a camera outside
+            the volume can see, both sides in a checkerboard where both can be seen:
+            `baking.sides`) or "normals" (the side the normals point to, everywhere).
         target_error: None for a fixed `samples` per texel; else keep doubling the samples
             of each texel whose relative standard error (of its luminance, or of the SH DC
             term) exceeds this, from `samples` up to `max_samples` ("model no more than a
@@ -80,7 +83,7 @@ class BakeConfig:
     offset: float = 0.25
     normals: str = "smooth"
     flip_normals: bool = False
-    noise_sigmas: float = 3.0
+    sides: str = "seen"
     target_error: float | None = None
     max_samples: int = 4096
     direct_light: str | None = None
@@ -127,6 +130,8 @@ class BakeConfig:
                             f"{self.samples}")
         if self.normals not in ("smooth", "gradient"):
             raise BakeError(f"normals {self.normals!r}: expected 'smooth' or 'gradient'")
+        if self.sides not in SIDES:
+            raise BakeError(f"--sides {self.sides!r}: expected one of {', '.join(SIDES)}")
         if not 0 <= self.offset <= 2:
             raise BakeError(f"offset {self.offset:g}: expected 0 to 2 voxels")
         self._choose_direct_light()
@@ -191,6 +196,8 @@ class BakeConfig:
         """Inverse of `to_dict` (unknown keys are an error)."""
         d = dict(d)
         d.setdefault("direct_light", "lattice")  # files from before the field: all in it
+        d.setdefault("sides", "normals")  # files from before the field: the normals' side
+        d.pop("noise_sigmas", None)  # files from when noisy cells were left out
         d["lights"] = tuple(d.get("lights", ()))
         d["albedo"] = tuple(d.get("albedo", (0.8, 0.8, 0.8)))
         if d.get("iso_range") is not None:

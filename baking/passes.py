@@ -80,11 +80,19 @@ def landing_facing(volume: volumes.Volume, config: BakeConfig, plan: Plan,
     for side in (0, 1):
         used = share[:, side] > 0
         if used.any():
-            normals = volumes.normals_at(volume, plan.landing[positions[used], side],
-                                         smooth=config.normals == "smooth",
-                                         flip=config.flip_normals).astype(np.float64)
+            normals = lit_normals(volume, config, plan.landing[positions[used], side],
+                                  plan.high[positions[used]])
             mean[used] += share[used, side, None] * normals
     return octahedral.encode(mean)
+
+
+def lit_normals(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
+                high: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 unit normals at (N, 3) world points on a level, towards each point's
+    lit side: lower values, higher where `high` (N,) bool (`Plan.high`)."""
+    normals = volumes.normals_at(volume, points,
+                                 smooth=config.normals == "smooth").astype(np.float64)
+    return np.where(np.asarray(high, bool)[:, None], -normals, normals)
 
 
 def commit_facing(lattice: Lattice, volume: volumes.Volume, config: BakeConfig, plan: Plan,
@@ -118,21 +126,22 @@ def chunk_bounds(pos: np.ndarray, workers: int):
 
 
 def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
-                 config: BakeConfig, on_level: np.ndarray | None = None
+                 config: BakeConfig, high: np.ndarray, on_level: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Texel centres moved onto a level surface (at most the plan's `newton_reach`) and
-    offset along the normal. `on_level` (N, 3): where that move lands, when the plan
-    already projected them (`Plan.landing`: the same computation).
+    """Texel centres (N, 3) moved onto a level surface (at most the plan's `newton_reach`)
+    and offset along the normal of their lit side (`high` (N,): `Plan.high`). `on_level`
+    (N, 3): where that move lands, when the plan already projected them (`Plan.landing`:
+    the same computation).
 
     Returns:
-        origins (N, 3) world, normals (N, 3) unit (high → low values unless flipped).
+        origins (N, 3) world, normals (N, 3) unit (high → low values, low → high where
+        `high`).
     """
     h = float(np.mean(volume.spacing))
     if on_level is None:
         on_level = project_to_level(volume, centres, level,
                                     max_move=newton_reach(volume, config))
-    normals = volumes.normals_at(volume, on_level, smooth=config.normals == "smooth",
-                                 flip=config.flip_normals).astype(np.float64)
+    normals = lit_normals(volume, config, on_level, high)
     return on_level + config.offset * h * normals, normals
 
 
@@ -152,7 +161,7 @@ class PathStarts:
 
 def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
                   iso: float, ids: np.ndarray, phase: np.ndarray, weight: np.ndarray,
-                  here: np.ndarray, below: np.ndarray, done: np.ndarray,
+                  high: np.ndarray, here: np.ndarray, below: np.ndarray, done: np.ndarray,
                   remaining: np.ndarray, landing: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray, PathStarts]:
     """The pending paths of the level surface ρ = `iso` and their texels' start points
@@ -160,8 +169,9 @@ def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: Bak
     texel's paths and start point depend on that texel alone.
 
     Args:
-        ids, phase, weight: (T,) the plan's lattice ids, level phases and upper weights,
-            of all its texels or of any subset (positions then index the subset).
+        ids, phase, weight, high: (T,) the plan's lattice ids, level phases, upper
+            weights and lit sides, of all its texels or of any subset (positions then
+            index the subset).
         here, below, done, remaining: as `kernels.level_paths` (positions into `ids`).
         landing: (T, 2, 3) the plan's `Plan.landing` of the same texels, or None to
             project them here (cluster tasks, which are not sent it).
@@ -176,7 +186,7 @@ def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: Bak
     if landing is not None:  # the texels of `here` land on their lower level, `below` upper
         on_level = landing[texels, np.isin(texels, below).astype(np.int64)]
     origins, normals = start_points(volume, geometry.centres(ids[texels]), iso, config,
-                                    on_level)
+                                    high[texels], on_level)
     return pos, samples, PathStarts(texels, origins.astype(np.float32),
                                     normals.astype(np.float32))
 

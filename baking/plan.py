@@ -1,8 +1,11 @@
 """What to bake: active texels, isovalue levels, and where each texel's paths start.
 
 * Active texels ("only what the scene needs"): the corners of lattice cells through which
-  a displayable isosurface can pass, i.e. cells whose value span overlaps the iso range
-  and exceeds the noise (a flat, noisy region carries no surface worth showing).
+  a displayable isosurface can pass, i.e. cells whose value span overlaps the iso range.
+  Noise is no reason to leave a cell out: marching cubes draws the surface of noise in
+  the range (grains in the air of a CT), and a cell left out draws it unlit.
+* Sides: a texel is lit on the side of its surface a camera outside the volume sees
+  (`baking.sides`: both sides, on alternate texels, where both are seen).
 * Targets: a texel is lit on the isosurface of its value *clamped to the iso range*. The
   corner texels of the cells a displayed surface crosses carry values far outside the
   range (air and metal on either side of an edge); only isovalues inside the range are
@@ -36,11 +39,8 @@ from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.rng import pcg_hash
+from isolume.baking.sides import choose_sides
 
-_BSPLINE = np.array([1.0, 4.0, 1.0]) / 6.0
-# Residual of the separable B-spline smoother on white noise: var(x - k*x) / sigma^2 =
-# 1 - 2 k0 + sum k^2 with k0 = (4/6)^3, sum k^2 = (18/36)^3.
-_RESIDUAL_VARIANCE = 1 - 2 * (4 / 6) ** 3 + (18 / 36) ** 3
 GOLDEN_FRACTION = 0.6180339887498949
 MAX_REACH = 4.0
 """Newton moves onto a level are limited to MAX_REACH × max_move voxels."""
@@ -65,61 +65,6 @@ on the 2-core machine: 0.17 s for the engine CT's 8.4 M voxels, 0.1 s for its 58
 triangles, at 1.4 M rays/s per thread."""
 
 
-def noise_sigma(volume: volumes.Volume, iso_range: tuple[float, float]) -> float:
-    """Robust estimate of the data's noise standard deviation (value units).
-
-    The residual after B-spline smoothing is noise plus curvature; in the flatter half of
-    the voxels whose values lie in the iso range (smoothed gradient below its median) it is
-    mostly noise. Its median absolute deviation, scaled to a standard deviation for white
-    noise, is the estimate. Computed at up to ~2 M voxels (every `stride`-th along each
-    axis; the smoothing uses their full-resolution neighbours).
-    """
-    data = volume.data
-    stride = max(1, math.ceil((data.size / 2e6) ** (1 / 3)))
-    residual = _smoothing_residual(data, stride)
-    inner = tuple(slice(1, n - 1, stride) for n in data.shape)
-    sub = data[inner]
-    gmag = np.linalg.norm(volumes.gradient_grid(volume)[inner], axis=-1)
-    inside = (sub >= iso_range[0]) & (sub <= iso_range[1])
-    if inside.sum() < 64:
-        return 0.0
-    flat = inside & (gmag <= np.median(gmag[inside]))
-    residual = residual[flat]
-    mad = np.median(np.abs(residual - np.median(residual)))
-    return float(1.4826 * mad / np.sqrt(_RESIDUAL_VARIANCE))
-
-
-def _smoothing_residual(data: np.ndarray, stride: int) -> np.ndarray:
-    """ρ − (B-spline-smoothed ρ) at the inner voxels ``[1:-1:stride]`` of each axis of the
-    (Z, Y, X) `data`, from their 27 full-resolution neighbours (float32)."""
-    weights = np.array([wz * wy * wx for wz in _BSPLINE for wy in _BSPLINE for wx in _BSPLINE],
-                       np.float32)
-    shape = tuple(len(range(1, n - 1, stride)) for n in data.shape)
-    out = np.empty(shape, np.float32)
-    _residual_kernel(data, weights, stride, out)
-    return out
-
-
-@numba.njit(nogil=True, cache=True)
-def _residual_kernel(data: np.ndarray, weights: np.ndarray, stride: int,
-                     out: np.ndarray) -> None:
-    """out[k, j, i] = ρ(c) − Σ weights[9a + 3b + d] ρ(c + (a, b, d) − 1), c = 1 + stride ·
-    (k, j, i), in float32 in that order: one pass, no temporaries."""
-    for k in range(out.shape[0]):
-        z = 1 + k * stride
-        for j in range(out.shape[1]):
-            y = 1 + j * stride
-            for i in range(out.shape[2]):
-                x = 1 + i * stride
-                acc = np.float32(data[z, y, x])
-                for a in range(3):
-                    for b in range(3):
-                        for d in range(3):
-                            acc -= weights[9 * a + 3 * b + d] * np.float32(
-                                data[z + a - 1, y + b - 1, x + d - 1])
-                out[k, j, i] = acc
-
-
 @dataclass
 class Plan:
     """The texels to bake and their levels.
@@ -134,13 +79,14 @@ class Plan:
         weight: (T,) fraction of paths on the upper level, in [0, 1].
         phase: (T,) per-texel offset of the level-assignment sequence, in [0, 1).
         active: (Z, Y, X) bool mask of the active texels.
-        noise: estimated noise sigma of the data (value units).
         move_voxels: (T,) distance from the texel to its farther level, voxels.
         move_limit: the level spacing's move limit, voxels (`move_limit`).
         reach: largest Newton move onto a level, world units (`newton_reach`).
         landing: (T, 2, 3) float64 world point where each texel's Newton steps land on its
             lower (0) and upper (1) level — the start points' projection, done once (NaN
             where a texel does not use the level).
+        high: (T,) bool: the texel is lit on the high-value side of its levels (its
+            normals point from low to high values; `baking.sides`).
         unreachable: texels that cannot reach one or both bracketing levels within
             `reach`; they use one level only.
     """
@@ -154,11 +100,11 @@ class Plan:
     weight: np.ndarray
     phase: np.ndarray
     active: np.ndarray
-    noise: float
     move_voxels: np.ndarray
     move_limit: float
     reach: float
     landing: np.ndarray
+    high: np.ndarray
     unreachable: int = 0
 
     def on_upper(self, positions: np.ndarray, samples: np.ndarray) -> np.ndarray:
@@ -241,15 +187,13 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     lo, hi = resolved_iso_range(volume, config)
     say("texel values")
     rho = texel_values(volume, geometry)
-    say("noise estimate")
-    noise = noise_sigma(volume, (lo, hi))
-    min_span = max(config.noise_sigmas * noise, MIN_SPAN_FRACTION * (vmax - vmin))
+    min_span = MIN_SPAN_FRACTION * (vmax - vmin)
     active, crossed = select_cells(rho, lo, hi, min_span, 0.5 * (lo + hi))
     ids = np.flatnonzero(active)
     if len(ids) == 0:
         raise BakeError(
             f"{volume.source or volume.name}: no isosurface in --iso-range [{lo:g}, {hi:g}] "
-            f"rises above the noise (sigma {noise:.3g}); nothing to bake"
+            "(no lattice cell's values span any of it); nothing to bake"
         )
     texel_rho = rho.reshape(-1)[ids].astype(np.float64)
     target = np.clip(texel_rho, lo, hi)
@@ -273,22 +217,36 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     # move leaves it floating in front of that surface rather than buried behind it.
     reach = newton_reach(volume, config)
     tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
+    say(f"seen sides on {len(levels)} levels")
+    high = lit_sides(volume, config, geometry, ids, centres, levels, lower, weight, reach)
     say(f"paths onto {len(levels)} levels")
     uses_lo, uses_hi = weight < 1, weight > 0
     landing = np.full((len(ids), 2, 3), np.nan)
-    ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol, uses_lo,
-                              landing[:, 0])
-    ok_hi, move_hi = _reaches(volume, config, centres, levels[lower + 1], reach, tol,
+    ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol, high,
+                              uses_lo, landing[:, 0])
+    ok_hi, move_hi = _reaches(volume, config, centres, levels[lower + 1], reach, tol, high,
                               uses_hi | ~ok_lo, landing[:, 1])
-    ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol,
+    ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol, high,
                               ~uses_lo & ~ok_hi, landing[:, 0], ok_lo, move_lo)  # fallback
-    outside = 0.0 if config.flip_normals else 1.0
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
+    outside = np.where(high, 0.0, 1.0)  # the level whose lit side the texel lies on
     weight = np.where(needed, weight, np.where(ok_hi, 1.0, np.where(ok_lo, 0.0, outside)))
     move = np.maximum(np.where(weight < 1, move_lo, 0.0), np.where(weight > 0, move_hi, 0.0)) / h
     phase = pcg_hash(ids.astype(np.uint32) ^ np.uint32(config.seed & 0xFFFFFFFF)) / 2.0**32
-    return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase, active, noise,
-                move, limit, reach, landing, int(np.count_nonzero(~needed)))
+    return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase, active,
+                move, limit, reach, landing, high, int(np.count_nonzero(~needed)))
+
+
+def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
+              ids: np.ndarray, centres: np.ndarray, levels: np.ndarray, lower: np.ndarray,
+              weight: np.ndarray, reach: float) -> np.ndarray:
+    """(T,) bool: is each texel lit on the high-value side of its surfaces
+    (`baking.sides.choose_sides`, probed on its nearer level)?"""
+    if config.sides == "normals":
+        return np.full(len(ids), bool(config.flip_normals))
+    nearer = lower + (weight >= 0.5)
+    points = project_to_level(volume, centres, levels[nearer], max_move=reach)
+    return choose_sides(volume, config, geometry, ids, points, levels, nearer)
 
 
 def resolved_iso_range(volume: volumes.Volume, config: BakeConfig) -> tuple[float, float]:
@@ -478,13 +436,13 @@ def project_to_level(volume: volumes.Volume, points: np.ndarray, level,
 
 
 def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
-             levels: np.ndarray, reach: float, tol: np.ndarray, which: np.ndarray,
-             landed: np.ndarray, ok: np.ndarray | None = None,
+             levels: np.ndarray, reach: float, tol: np.ndarray, high: np.ndarray,
+             which: np.ndarray, landed: np.ndarray, ok: np.ndarray | None = None,
              moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Can each point be moved onto its level within `reach` world units, and do its paths
-    start outside that level's surface (`starts_outside`)? Decided for the (N,) `which`
-    points only, whose landing points are written into `landed` (N, 3); the others keep
-    `ok` (default True) and `moved` (default 0).
+    start on its lit side (`high`, (N,) bool) of that level's surface (`starts_outside`)?
+    Decided for the (N,) `which` points only, whose landing points are written into
+    `landed` (N, 3); the others keep `ok` (default True) and `moved` (default 0).
 
     Returns:
         ok: (N,) bool; moved: (N,) distance of the (clamped) move, world units.
@@ -496,17 +454,17 @@ def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
                                          max_move=reach)
         ok[which] = (np.abs(volumes.value_at(volume, landed[which]) - levels[which])
                      <= tol[which]) & starts_outside(volume, config, landed[which],
-                                                     levels[which])
+                                                     levels[which], high[which])
         moved[which] = np.linalg.norm(landed[which] - points[which], axis=1)
     return ok, moved
 
 
 def starts_outside(volume: volumes.Volume, config: BakeConfig, landed: np.ndarray,
-                   levels: np.ndarray) -> np.ndarray:
+                   levels: np.ndarray, high: np.ndarray) -> np.ndarray:
     """(N,) bool: does the start point of paths from (N, 3) points `landed` on the surfaces
-    ρ = `levels` (N,) — moved `config.offset` voxels along the normal, as
-    `baking.passes.start_points` moves it — lie on the side of the level the normal points
-    to (lower values; higher with `flip_normals`)?
+    ρ = `levels` (N,) — moved `config.offset` voxels along the normal of its lit side, as
+    `baking.passes.start_points` moves it — lie on that side of the level (lower values;
+    higher where `high`)?
 
     Not where the level is the thin shell around a ridge or a valley whose extreme barely
     passes it — a cooling fin whose peak lies just below the displayed isovalue, next to
@@ -518,7 +476,12 @@ def starts_outside(volume: volumes.Volume, config: BakeConfig, landed: np.ndarra
     if config.offset <= 0 or len(landed) == 0:
         return np.ones(len(landed), bool)
     h = float(np.mean(volume.spacing))
-    beyond = volumes.values_along_normals(volume, landed, config.offset * h,
-                                          smooth=config.normals == "smooth",
-                                          flip=config.flip_normals) - levels
-    return beyond > 0 if config.flip_normals else beyond < 0
+    smooth = config.normals == "smooth"
+    out = np.empty(len(landed), bool)
+    for flip in (False, True):
+        these = high == flip
+        if these.any():
+            beyond = volumes.values_along_normals(volume, landed[these], config.offset * h,
+                                                  smooth=smooth, flip=flip) - levels[these]
+            out[these] = beyond > 0 if flip else beyond < 0
+    return out

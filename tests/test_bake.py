@@ -93,6 +93,8 @@ def test_point_light_inverse_square_and_cosine_on_a_plane():
     two planes with the texel's own sample split. Tolerance: the trilinear field places a
     level within 0.02 voxel of the analytic plane (test_isosurface), and
     |d ln E / dz| <= 3 / (d - z) = 10 / world unit here, so 0.5 %; 1 % for the worst texel.
+    Texels lit on the normals' side (the plane's top; it spans the box, so `baking.sides`
+    would light its underside too, on alternate texels).
     """
     from isolume.baking.plan import make_plan
 
@@ -100,7 +102,7 @@ def test_point_light_inverse_square_and_cosine_on_a_plane():
     d, intensity, samples = 0.3, 0.5, 32
     config = BakeConfig(samples=samples, bounces=0, env="",
                         lights=(f"point:0,0,{d}:{intensity},{intensity},{intensity}",),
-                        iso_range=(0.3, 0.7), direct_light="lattice")
+                        iso_range=(0.3, 0.7), direct_light="lattice", sides="normals")
     lattice = bake(vol, config, workers=2)
     plan = make_plan(vol, lattice.geometry, config)
     h, width = vol.spacing[0], 1.2 * vol.spacing[0]
@@ -141,6 +143,8 @@ def test_closed_cavity_follows_the_geometric_series(bounces):
     level spheres within 0.02 voxel (test_isosurface) and Newton steps stopped within
     0.1 level spacing <= 0.05 voxel (max_move 0.5): 2 * 0.07 h / R = 0.6 % for the start
     point, and again 2 * 0.02 h / R = 0.2 % for each bounce vertex on the mesh: 1 % at worst.
+    Texels lit on the normals' side, inside the cavity (seen from outside the box is its
+    other side, which `baking.sides` would light).
     """
     from isolume.baking.plan import make_plan
 
@@ -148,7 +152,7 @@ def test_closed_cavity_follows_the_geometric_series(bounces):
     vol = _sdf_volume(lambda x, y, z: radius - np.sqrt(x * x + y * y + z * z), size=48)
     config = BakeConfig(samples=samples, bounces=bounces, albedo=(albedo,) * 3, env="",
                         lights=(f"point:0,0,0:{intensity},{intensity},{intensity}",),
-                        iso_range=(0.4, 0.6), direct_light="lattice")
+                        iso_range=(0.4, 0.6), direct_light="lattice", sides="normals")
     lattice = bake(vol, config, workers=2)
     plan = make_plan(vol, lattice.geometry, config)
     h, width = vol.spacing[0], 1.2 * vol.spacing[0]
@@ -281,7 +285,7 @@ def test_level_approximation_error_shrinks_with_more_levels():
         mesh = volumes.isosurface(vol, iso)
         scene = Scene(mesh.vertices, mesh.faces)
         centre = geometry.centres(plan.ids[[pos]])
-        origin, normal = start_points(vol, centre, iso, base)
+        origin, normal = start_points(vol, centre, iso, base, plan.high[[pos]])
         keys = path_keys(99, np.full(samples, plan.ids[pos]), np.arange(samples))
         est = trace_paths(scene, np.repeat(origin, samples, 0), np.repeat(normal, samples, 0),
                           keys, lighting, settings)[:, 0]

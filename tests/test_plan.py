@@ -212,13 +212,13 @@ def test_levels_start_where_the_plan_landed_their_texels():
     done = np.zeros(len(plan.ids), np.int64)
     remaining = np.full(len(plan.ids), 8, np.int64)
     args = (vol, geometry, config, float(plan.levels[level]), plan.ids, plan.phase,
-            plan.weight, here, below, done, remaining)
+            plan.weight, plan.high, here, below, done, remaining)
     _, _, reused = lay_out_level(*args, plan.landing)
     _, _, fresh = lay_out_level(*args)
     np.testing.assert_array_equal(reused.origins, fresh.origins)
     np.testing.assert_array_equal(reused.normals, fresh.normals)
     origins, _ = start_points(vol, geometry.centres(plan.ids[fresh.texels]),
-                              float(plan.levels[level]), config)
+                              float(plan.levels[level]), config, plan.high[fresh.texels])
     np.testing.assert_array_equal(fresh.origins, origins.astype(np.float32))
 
 
@@ -270,6 +270,6 @@ def test_paths_start_outside_the_thin_shell_of_a_fin_below_the_isovalue(monkeypa
     inside = _starts_inside(vol, plan, config).sum()
     assert inside <= plan.unreachable
     monkeypatch.setattr(plan_module, "starts_outside",
-                        lambda volume, config, landed, levels: np.ones(len(landed), bool))
+                        lambda volume, config, landed, levels, high: np.ones(len(landed), bool))
     unchecked, _ = _plan(vol, samples=4, bounces=0, iso_range=(0.2, 0.5), max_move=0.5)
     assert _starts_inside(vol, unchecked, config).sum() >= max(50, 5 * inside)
