@@ -34,6 +34,8 @@ COMMAND_MODULES = {
     "reference": "isolume.app.reference",
     "chart": "isolume.app.charts.charts",
     "bench": "isolume.app.bench.commands",
+    "movie": "isolume.app.movie",
+    "export": "isolume.app.export",
 }
 """Commands that live in their own modules. Each module provides ``HELP`` (one line),
 ``add_arguments(parser)`` and ``run(args) -> int``, and is imported only when present."""

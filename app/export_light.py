@@ -1,0 +1,212 @@
+"""The light leaving each vertex of an exported isosurface (``isolume export``).
+
+A vertex keeps one colour whatever the eye, so it shows the light on the side its normal
+points to: the low-value side, outside the material (``--flip-normals`` turns it). Its
+outgoing radiance is albedo·E/π of a diffuse surface, E the irradiance there, as
+``isolume render`` shades its pixels:
+
+* from a lattice (`lattice_radiance`): E of the side-aware trilinear lookup over the
+  computed texels (`baking.lattice.Lattice.sample`, the shader's lookup on the CPU); for
+  an SH lattice the transfer dotted with the environment's coefficients, turned by
+  ``--env-rotation`` (`sh_irradiance`, the shader's sum);
+* without one (`traced_lattice`): global illumination traced for the surface as render
+  traces it for a view (`app.render.view_gi`): the texels the vertices' lookups read get
+  paths on the exported isosurface (`baking.preview.estimate`), each from the vertex
+  nearest it, off the surface along its normal; then the same lookup;
+* plus the lights the lattice leaves to the pixels (`app.render.lights.lattice_direct_lights`:
+  ``--light`` lights and the sky's sun of a lattice baked with direct light "pixels", the
+  default under a sun). The renderer shadow-maps them per pixel; here every vertex traces
+  Embree shadow rays from where the renderer looks them up (the lattice's start offset
+  along the normal): one per point or directional light, `SUN_RAYS` spread over the sun's
+  disc, whose unblocked fraction is the soft penumbra the renderer filters from its map.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from isolume import volumes
+
+SUN_RAYS = 32
+"""Shadow rays per vertex over the sun's disc: the penumbra in steps of 1/32 of the sun."""
+TEXELS_PER_REPORT = 4096
+"""Texels traced between progress updates of the traced global illumination."""
+VERTICES_PER_REPORT = 1 << 16
+"""Vertices whose shadow rays are traced between progress updates."""
+COVERED = 1e-6
+"""A vertex whose lookup weight over computed texels is below this has no lattice light."""
+
+
+def lattice_radiance(lattice, points: np.ndarray, normals: np.ndarray, albedo,
+                     env_coeffs: np.ndarray | None = None,
+                     env_rotation: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """(V, 3) linear radiance albedo·E/π of the lattice's light at the vertices.
+
+    Args:
+        lattice: `baking.lattice.Lattice`, irradiance or SH transfer.
+        points: (V, 3) world positions; normals: (V, 3) unit normals (the lit side).
+        albedo: (3,) diffuse reflectance.
+        env_coeffs: (m, 3) environment coefficients of an SH lattice
+            (`app.options.environment_coefficients`); None for irradiance.
+        env_rotation: (azimuth, elevation) degrees the environment turns by (SH).
+
+    Returns:
+        Radiance in the lattice's units (irradiance / sr); 0 where no computed texel is
+        read (`coverage`).
+    """
+    values = lattice.sample(points, normalized=True, normals=normals)
+    if lattice.kind == "sh":
+        irradiance = sh_irradiance(values, lattice, env_coeffs, env_rotation)
+    else:
+        irradiance = values[:, :3]
+    return np.asarray(albedo, np.float64) * np.maximum(irradiance, 0.0) / np.pi
+
+
+def sh_irradiance(transfer: np.ndarray, lattice, env_coeffs: np.ndarray,
+                  env_rotation: tuple[float, float]) -> np.ndarray:
+    """(V, 3) irradiance E_c = Σ_k τ_k,c ℓ_k,c of (V, C) SH `transfer` vectors (gray: one
+    per coefficient, coloured: three) under (m, 3) `env_coeffs` turned by `env_rotation`
+    (each transfer block's coefficients alike, as `SurfaceRenderer` turns them)."""
+    from isolume.baking import sh
+
+    order = int(lattice.meta["sh_order"])
+    blocks = sh.transfer_blocks(lattice)
+    turn = sh.rotation(sh.rotation_from_az_el(*env_rotation), order)
+    coeffs = np.asarray(env_coeffs, np.float64)[: blocks * order * order]
+    light = np.concatenate([turn @ block for block in np.split(coeffs, blocks)])  # (K, 3)
+    tau = transfer.reshape(len(transfer), len(light), -1)  # (V, K, 1 or 3)
+    if tau.shape[-1] == 1:
+        return tau[..., 0] @ light
+    return np.einsum("vkc,kc->vc", tau, light)
+
+
+def coverage(lattice, points: np.ndarray) -> np.ndarray:
+    """(V,) weight of the computed texels in the trilinear lookups at (V, 3) world points
+    (1 where all 8 are computed, 0 where none is)."""
+    from isolume.baking.lattice import trilinear_corners
+
+    idx, weights = trilinear_corners(lattice.geometry.shape,
+                                     lattice.geometry.to_texel_coords(points))
+    return (weights * lattice.shown((idx[..., 0], idx[..., 1], idx[..., 2]))).sum(axis=1)
+
+
+def traced_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
+                   normals: np.ndarray, scene, *, workers: int | None = None,
+                   progress: bool = False):
+    """A lattice lit for the whole surface ρ = `iso`: `config.samples` paths for each
+    texel the vertices' lookups read, traced on `scene` (`baking.trace.Scene` of that
+    surface), from the vertex nearest the texel, `config.offset` voxels off it along its
+    normal.
+
+    Args:
+        config: `baking.config.BakeConfig` of the lighting (`app.options.view_light`).
+        points: (V, 3) world vertex positions; normals: (V, 3) their unit normals.
+        workers: tracing threads (None: all cores).
+        progress: a tqdm bar on stderr.
+
+    Returns:
+        A `baking.lattice.Lattice` whose previews hold the texels' estimates for this
+        surface (as `app.render.view_gi.view_lattice` makes them for a view).
+    """
+    from tqdm import tqdm
+
+    from isolume.baking.lazy import new_lattice
+    from isolume.baking.preview import (
+        SeenSurface,
+        estimate,
+        nearest_points,
+        preview_tracing,
+    )
+
+    lattice = new_lattice(volume, config)
+    lattice.preview = np.zeros_like(lattice.values)
+    lattice.preview_paths = np.zeros(lattice.geometry.shape, np.uint16)
+    texels, nearest = nearest_points(lattice.geometry, points)
+    h = float(np.mean(volume.spacing))
+    seen = SeenSurface(points, points + config.offset * h * normals, normals, texels, nearest)
+    tracing = preview_tracing(volume, config)
+    threads = workers or os.cpu_count() or 1
+    with tqdm(total=len(texels), unit="texel", desc="global illumination",
+              disable=not progress, dynamic_ncols=True) as bar:
+        for lo in range(0, len(texels), TEXELS_PER_REPORT):
+            chunk = texels[lo:lo + TEXELS_PER_REPORT]
+            estimate(volume, config, lattice, iso, chunk, scene, 1,
+                     paths=int(config.samples), tracing=tracing, workers=threads, seen=seen)
+            bar.update(len(chunk))
+    return lattice
+
+
+def direct_radiance(scene, lights, points: np.ndarray, normals: np.ndarray, offset: float,
+                    albedo, *, progress: bool = False) -> np.ndarray:
+    """(V, 3) linear radiance albedo·E/π of the direct light of `lights` at the vertices,
+    shadowed by `scene`.
+
+    Args:
+        scene: `baking.trace.Scene` of the exported surface.
+        lights: `baking.lights.PointLight`, `DirectionalLight` and `SunLight` values.
+        points: (V, 3) world positions; normals: (V, 3) unit normals (the lit side).
+        offset: world distance the shadow rays start off the surface along the normal.
+        albedo: (3,) diffuse reflectance.
+        progress: a tqdm bar on stderr.
+    """
+    from tqdm import tqdm
+
+    from isolume.baking.lights import SunLight
+
+    origins = np.asarray(points, np.float64) + offset * np.asarray(normals, np.float64)
+    irradiance = np.zeros((len(points), 3))
+    with tqdm(total=len(points) * len(lights), unit="vertex", desc="direct light",
+              disable=not progress, dynamic_ncols=True) as bar:
+        for light in lights:
+            for lo in range(0, len(points), VERTICES_PER_REPORT):
+                part = slice(lo, lo + VERTICES_PER_REPORT)
+                shade = sun_irradiance if isinstance(light, SunLight) else light_irradiance
+                irradiance[part] += shade(scene, light, origins[part], normals[part])
+                bar.update(len(origins[part]))
+    return np.asarray(albedo, np.float64) * irradiance / np.pi
+
+
+def light_irradiance(scene, light, origins: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(N, 3) irradiance of a point or directional light at (N, 3) shadow-ray `origins`
+    with (N, 3) unit `normals`: one shadow ray each (a hard shadow)."""
+    dirs, dist, rgb = light.towards(origins)
+    cos = np.einsum("nc,nc->n", normals, dirs)
+    out = np.zeros((len(origins), 3))
+    lit = np.flatnonzero(cos > 0)
+    if len(lit):
+        blocked = scene.occluded(origins[lit], dirs[lit], dist[lit] * (1 - 1e-5))
+        seen = lit[~blocked]
+        out[seen] = rgb[seen] * cos[seen, None]
+    return out
+
+
+def sun_irradiance(scene, sun, origins: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(N, 3) irradiance of the sky's sun (`baking.lights.SunLight`) at (N, 3) shadow-ray
+    `origins` with (N, 3) unit `normals`: the disc's irradiance times the mean over
+    `SUN_RAYS` directions spread evenly over it of max(0, n·ω) where ω is unblocked."""
+    dirs = disc_directions(np.asarray(sun.direction, np.float64), sun.radius, SUN_RAYS)
+    seen = np.zeros(len(origins))
+    for d in dirs:
+        cos = normals @ d
+        lit = np.flatnonzero(cos > 0)
+        if len(lit):
+            blocked = scene.occluded(origins[lit], np.broadcast_to(d, (len(lit), 3)))
+            seen[lit[~blocked]] += cos[lit[~blocked]]
+    return np.asarray(sun.irradiance, np.float64)[None, :] * (seen / len(dirs))[:, None]
+
+
+def disc_directions(centre: np.ndarray, radius_deg: float, count: int) -> np.ndarray:
+    """(count, 3) unit directions spread evenly by solid angle over the cone of angular
+    radius `radius_deg` around the unit vector `centre` (3,) (Vogel's spiral on the
+    tangent-plane disc: radius √((k + ½)/count), angle k times the golden angle)."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(centre[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(centre, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(centre, u)
+    k = np.arange(count)
+    r = np.tan(np.radians(radius_deg)) * np.sqrt((k + 0.5) / count)
+    angle = k * np.pi * (3.0 - np.sqrt(5.0))
+    d = centre + r[:, None] * (np.cos(angle)[:, None] * u + np.sin(angle)[:, None] * v)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)

@@ -1,0 +1,293 @@
+"""``isolume movie``: turntables, light orbits and isovalue sweeps drawn with one fixed
+exposure, each frame the picture ``isolume render`` draws for its shot at that exposure."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from isolume import volumes
+from isolume.app.cli import main
+from isolume.app.movie_stage import make_shots, metered_shots, turn_steps
+from isolume.baking import bake
+from isolume.baking.config import DEFAULT_ENV, BakeConfig
+
+GL = ("--gl", "osmesa")
+SIZE = ("--size", "64x64")
+SWEEP = (0.4, 0.6)
+"""The iso range of the test lattices (the sphere's surface sits at 0.5)."""
+
+
+def _run(capsys, *argv):
+    status = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def _movie(capsys, *argv):
+    """Run ``isolume movie`` with `argv` on OSMesa; fails the test on an error."""
+    status, out, err = _run(capsys, "movie", *GL, *argv)
+    assert status == 0, err
+    return out, err
+
+
+def _frames(folder):
+    """[(H, W, 3) uint8 pixels, text chunks] of the PNG frames in `folder`, in order."""
+    frames = []
+    for path in sorted(folder.glob("frame_*.png")):
+        with Image.open(path) as image:
+            frames.append((np.asarray(image.convert("RGB")), dict(image.text)))
+    return frames
+
+
+def _render(capsys, tmp_path, *argv):
+    """(H, W, 3) uint8 pixels of ``isolume render`` with `argv`."""
+    out = tmp_path / "render.png"
+    status, _, err = _run(capsys, "render", *GL, *argv, "--out", out)
+    assert status == 0, err
+    return np.asarray(Image.open(out).convert("RGB"))
+
+
+def _exposure_of(frames) -> str:
+    """The one exposure every frame was drawn with (as the frames store it)."""
+    exposures = {text["exposure"] for _, text in frames}
+    assert len(exposures) == 1, exposures
+    return exposures.pop()
+
+
+@pytest.fixture(scope="module")
+def lattices(tmp_path_factory):
+    """{"irradiance", "sh"}: small lattices of the sphere baked for `SWEEP` under the sky
+    and sun of `DEFAULT_ENV`, the irradiance one with its sun left to the pixels."""
+    folder = tmp_path_factory.mktemp("lattices")
+    vol = volumes.load("synthetic:sphere:24")
+    paths = {}
+    for mode in ("irradiance", "sh"):
+        config = BakeConfig(mode=mode, sh_order=3, samples=4, bounces=1, iso_range=SWEEP,
+                            env=DEFAULT_ENV, max_levels=4)
+        paths[mode] = folder / f"{mode}.npz"
+        bake(vol, config, out=paths[mode], workers=2)
+    return paths
+
+
+# -- the shots ------------------------------------------------------------------------------
+def test_a_whole_turn_loops_and_a_part_ends_on_its_angle():
+    assert turn_steps(4, 360) == [0, 90, 180, 270]
+    assert turn_steps(3, -720) == [0, -240, -480]
+    assert turn_steps(3, 90) == [0, 45, 90]
+    assert turn_steps(1, 360) == [0]
+
+
+def test_shots_change_one_thing_each():
+    spin = make_shots("turntable", 4, 30.0, 0.5, 360.0)
+    assert [s.azimuth for s in spin] == [30, 120, 210, 300]
+    assert {(s.iso, s.turn) for s in spin} == {(0.5, 0.0)}
+    orbit = make_shots("light", 3, 30.0, 0.5, 90.0)
+    assert [s.turn for s in orbit] == [0, 45, 90] and {s.azimuth for s in orbit} == {30}
+    sweep = make_shots("iso", 5, 30.0, 0.5, 360.0, (0.4, 0.6))
+    assert [s.iso for s in sweep] == pytest.approx([0.4, 0.45, 0.5, 0.55, 0.6])
+    assert sweep[0].iso == 0.4 and sweep[-1].iso == 0.6
+    assert [s.index for s in metered_shots(sweep, 3)] == [0, 2, 4]
+    assert [s.index for s in metered_shots(sweep, 1)] == [0]
+
+
+# -- turntable ------------------------------------------------------------------------------
+def test_turntable_frames_differ_and_repeat_to_the_byte(tmp_path, capsys):
+    runs = []
+    for name in ("a", "b"):
+        out, _ = _movie(capsys, "synthetic:engine:32", *SIZE, "--frames", 4,
+                        "--out", f"{tmp_path / name}/")
+        assert "4 frames 64x64" in out
+        runs.append(sorted((tmp_path / name).glob("frame_*.png")))
+    assert [p.name for p in runs[0]] == [f"frame_000{i}.png" for i in range(4)]
+    for a, b in zip(*runs, strict=True):
+        assert a.read_bytes() == b.read_bytes()
+    frames = _frames(tmp_path / "a")
+    for i in range(4):
+        for j in range(i):
+            assert np.abs(frames[i][0].astype(int) - frames[j][0]).mean() > 1, (i, j)
+    _exposure_of(frames)
+    assert [text["azimuth"] for _, text in frames] == ["30.0", "120.0", "210.0", "300.0"]
+
+
+def test_turntable_frame_is_the_render_at_its_azimuth_and_exposure(tmp_path, capsys):
+    _movie(capsys, "synthetic:sphere:24", *SIZE, "--frames", 4, "--view", "10,20",
+           "--out", f"{tmp_path / 'spin'}/")
+    frames = _frames(tmp_path / "spin")
+    exposure = _exposure_of(frames)
+    for pixels, text in frames[1:3]:
+        picture = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--view",
+                          f"{text['azimuth']},20", "--no-auto-exposure", "--exposure",
+                          exposure)
+        np.testing.assert_array_equal(pixels, picture)
+
+
+def test_exposure_is_metered_once_for_the_movie(tmp_path, capsys):
+    """The metered exposure is not any one frame's own: a frame rendered with automatic
+    exposure at its azimuth differs from the movie's frame."""
+    _movie(capsys, "synthetic:engine:32", *SIZE, "--frames", 4, "--out",
+           f"{tmp_path / 'spin'}/")
+    frames = _frames(tmp_path / "spin")
+    exposure = float(_exposure_of(frames))
+    status, out, err = _run(capsys, "render", *GL, "synthetic:engine:32", *SIZE, "--view",
+                            f"{frames[1][1]['azimuth']},30", "--out", tmp_path / "auto.png")
+    assert status == 0, err
+    own = float(out.rsplit("exposure ", 1)[1].rstrip(")\n"))
+    assert abs(own / exposure - 1) > 0.01
+
+
+def test_no_auto_exposure_keeps_the_given_exposure(tmp_path, capsys):
+    _movie(capsys, "synthetic:sphere:24", *SIZE, "--frames", 2, "--no-auto-exposure",
+           "--exposure", "0.3", "--out", f"{tmp_path / 'fixed'}/")
+    assert _exposure_of(_frames(tmp_path / "fixed")) == "0.3"
+
+
+# -- isovalue sweep -------------------------------------------------------------------------
+def test_sweep_frames_are_the_lattice_renders_at_their_isovalues(tmp_path, capsys, lattices):
+    lattice = lattices["irradiance"]
+    out, _ = _movie(capsys, "synthetic:sphere:24", *SIZE, "--kind", "iso", "--frames", 3,
+                    "--lattice", lattice, "--out", f"{tmp_path / 'sweep'}/")
+    assert "isovalues 0.4 to 0.6" in out  # the range the lattice serves
+    frames = _frames(tmp_path / "sweep")
+    assert [float(text["isovalue"]) for _, text in frames] == [0.4, 0.5, 0.6]
+    exposure = _exposure_of(frames)
+    for pixels, text in frames:
+        picture = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--lattice", lattice,
+                          "--iso", text["isovalue"], "--no-auto-exposure", "--exposure",
+                          exposure)
+        assert np.abs(pixels.astype(int) - picture).max() <= 1
+    sizes = [(pixels != pixels[0, 0]).any(axis=2).sum() for pixels, _ in frames]
+    assert sizes[0] > sizes[1] > sizes[2]  # a lower isovalue: a larger sphere
+
+
+def test_sweep_without_lattice_bakes_one_for_its_range(tmp_path, capsys):
+    kept = tmp_path / "kept.npz"
+    _, err = _movie(capsys, "synthetic:sphere:24", *SIZE, "--kind", "iso", "--frames", 2,
+                    "--iso-range", 0.45, 0.55, "--samples", 4, "--save-lattice", kept,
+                    "--out", f"{tmp_path / 'sweep'}/")
+    assert "baking one for isovalues 0.45 to 0.55" in err and kept.exists()
+    frames = _frames(tmp_path / "sweep")
+    pixels, text = frames[1]
+    assert text["isovalue"] == "0.55"
+    picture = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--lattice", kept,
+                      "--iso", "0.55", "--no-auto-exposure", "--exposure", text["exposure"])
+    assert np.abs(pixels.astype(int) - picture).max() <= 1
+
+
+# -- light orbit ----------------------------------------------------------------------------
+def test_light_orbit_without_lattice_traces_each_frame_under_the_turned_sun(tmp_path,
+                                                                            capsys):
+    _movie(capsys, "synthetic:engine:32", *SIZE, "--kind", "light", "--frames", 4,
+           "--out", f"{tmp_path / 'orbit'}/")
+    frames = _frames(tmp_path / "orbit")
+    exposure = _exposure_of(frames)
+    # DEFAULT_ENV's sun at azimuth -150 turned by 90 and 180 degrees
+    for (pixels, text), sun_az in zip(frames[1:3], (-60, 30), strict=True):
+        assert text["light turn"] == repr(90.0 * int(text["frame"]))
+        picture = _render(capsys, tmp_path, "synthetic:engine:32", *SIZE, "--env",
+                          f"sky:sun=6,sun_az={sun_az},sun_el=40", "--no-auto-exposure",
+                          "--exposure", exposure)
+        np.testing.assert_array_equal(pixels, picture)
+
+
+def test_light_orbit_turns_an_sh_lattice_environment(tmp_path, capsys, lattices):
+    lattice = lattices["sh"]
+    _movie(capsys, "synthetic:sphere:24", *SIZE, "--kind", "light", "--frames", 3,
+           "--degrees", 90, "--env-rotation", "10,0", "--lattice", lattice,
+           "--out", f"{tmp_path / 'orbit'}/")
+    frames = _frames(tmp_path / "orbit")
+    exposure = _exposure_of(frames)
+    assert [text["light turn"] for _, text in frames] == ["0.0", "45.0", "90.0"]
+    for pixels, text in frames:
+        rotation = 10 + float(text["light turn"])
+        picture = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--lattice",
+                          lattice, "--env-rotation", f"{rotation},0", "--no-auto-exposure",
+                          "--exposure", exposure)
+        assert np.abs(pixels.astype(int) - picture).max() <= 1
+    assert np.abs(frames[0][0].astype(int) - frames[2][0]).mean() > 0.5
+
+
+def test_light_orbit_turns_an_irradiance_lattice_sun_per_pixel(tmp_path, capsys, lattices):
+    lattice = lattices["irradiance"]
+    _, err = _movie(capsys, "synthetic:sphere:24", *SIZE, "--kind", "light", "--frames", 2,
+                    "--degrees", 180, "--lattice", lattice, "--iso", 0.5,
+                    "--out", f"{tmp_path / 'orbit'}/")
+    assert "bounces" in err
+    frames = _frames(tmp_path / "orbit")
+    first = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--lattice", lattice,
+                    "--iso", 0.5, "--no-auto-exposure", "--exposure", _exposure_of(frames))
+    np.testing.assert_array_equal(frames[0][0], first)
+    assert np.abs(frames[0][0].astype(int) - frames[1][0]).mean() > 1  # the sun moved
+
+
+def test_light_orbit_turns_the_key_light_of_a_local_mode(tmp_path, capsys):
+    _movie(capsys, "synthetic:engine:32", *SIZE, "--kind", "light", "--frames", 3,
+           "--shading", "lambert_shadow", "--out", f"{tmp_path / 'orbit'}/")
+    frames = _frames(tmp_path / "orbit")
+    first = _render(capsys, tmp_path, "synthetic:engine:32", *SIZE, "--shading",
+                    "lambert_shadow", "--no-auto-exposure", "--exposure", _exposure_of(frames))
+    assert np.abs(frames[0][0].astype(int) - first).max() <= 1
+    assert np.abs(frames[0][0].astype(int) - frames[1][0]).mean() > 1
+
+
+# -- MP4 ------------------------------------------------------------------------------------
+def test_mp4_holds_every_frame(tmp_path, capsys):
+    import imageio_ffmpeg
+
+    movie = tmp_path / "spin.mp4"
+    _movie(capsys, "synthetic:engine:32", "--size", "64x48", "--frames", 5, "--fps", 10,
+           "--crf", 0, "--out", movie)
+    _movie(capsys, "synthetic:engine:32", "--size", "64x48", "--frames", 5,
+           "--out", f"{tmp_path / 'png'}/")
+    frames, seconds = imageio_ffmpeg.count_frames_and_secs(str(movie))
+    assert frames == 5 and seconds == pytest.approx(0.5, abs=0.05)
+    reader = imageio_ffmpeg.read_frames(str(movie))
+    meta = next(reader)
+    assert tuple(meta["size"]) == (64, 48)
+    decoded = np.frombuffer(next(reader), np.uint8).reshape(48, 64, 3)
+    reader.close()
+    png = _frames(tmp_path / "png")[0][0]
+    assert np.abs(decoded.astype(int) - png).mean() < 4  # yuv420p: colour per 2×2 block
+
+
+# -- one-line errors ------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("make_args", "expected"),
+    [
+        (lambda t: ["--size", "63x64", "--out", t / "x.mp4"], "even width and height"),
+        (lambda t: ["--out", t / "x.gif"], "expected FILE.mp4 or a folder"),
+        (lambda t: ["--out", t / "missing" / "x.mp4"], "does not exist"),
+        (lambda t: ["--out", f"{t / 'missing' / 'frames'}/"], "does not exist"),
+        (lambda t: ["--frames", "0", "--out", f"{t}/"], "--frames 0"),
+        (lambda t: ["--fps", "0", "--out", f"{t}/"], "--fps 0"),
+        (lambda t: ["--crf", "60", "--out", t / "x.mp4"], "--crf 60"),
+        (lambda t: ["--degrees", "inf", "--out", f"{t}/"], "--degrees"),
+        (lambda t: ["--iso-range", "0.4", "0.6", "--out", f"{t}/"], "only for --kind iso"),
+        (lambda t: ["--kind", "iso", "--iso-range", "0.6", "0.4", "--out", f"{t}/"],
+         "LO < HI"),
+        (lambda t: ["--kind", "iso", "--iso-range", "0.4", "7", "--out", f"{t}/"],
+         "outside the data range"),
+        (lambda t: ["--save-lattice", t / "l.npz", "--out", f"{t}/"], "--save-lattice"),
+        (lambda t: ["--kind", "iso", "--save-lattice", t / "l.txt", "--out", f"{t}/"],
+         "must end in .npz"),
+        (lambda t: ["--kind", "light", "--env", "constant:1,1,1", "--out", f"{t}/"],
+         "has neither"),
+        (lambda t: ["--view", "1,2,3,4", "--out", f"{t}/"], "AZ,EL"),
+    ],
+)
+def test_bad_input_gives_one_line_and_status_2(tmp_path, capsys, make_args, expected):
+    status, _, err = _run(capsys, "movie", "synthetic:sphere:16", *GL, "--frames", 2,
+                          *make_args(tmp_path))
+    assert status == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("isolume: error:"), err
+    assert expected in lines[0]
+
+
+def test_a_lattice_refuses_a_sweep_beyond_its_range(tmp_path, capsys, lattices):
+    status, _, err = _run(capsys, "movie", "synthetic:sphere:24", *GL, "--kind", "iso",
+                          "--lattice", lattices["irradiance"], "--iso-range", 0.3, 0.6,
+                          "--out", f"{tmp_path}/")
+    assert status == 2 and "baked for isovalues 0.4 to 0.6" in err
+    assert len(err.strip().splitlines()) == 1
