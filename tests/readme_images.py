@@ -1,4 +1,4 @@
-"""Regenerate the README pictures (synthetic volumes only): ``python tests/readme_images.py``.
+"""Regenerate the docs' pictures (synthetic volumes only): ``python tests/readme_images.py``.
 
 Writes docs/images/engine_gi_vs_local.png (lattice irradiance | Phong with hemisphere
 ambient, same mesh and camera) and docs/images/sh_rotation.png (an SH-transfer lattice

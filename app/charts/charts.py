@@ -47,10 +47,10 @@ DEFAULT_VOLUME = "synthetic:engine:64"
 CHART_SCENE_ENV = "sky:sun=3"
 """The environment the charts are drawn under unless ``--env`` says otherwise: a sky with
 a sun of irradiance 3 at the sky's default place (azimuth 45°, elevation 40°). Every
-published chart (``docs/charts``, the README's figures) was measured under it, so the
-charts keep it rather than the command line's default lighting
-(`baking.config.DEFAULT_ENV`, a sun placed for the first picture's cast shadows): a run
-with the default options reproduces them."""
+published chart (``docs/charts``, the figures of docs/performance.md and docs/baker.md)
+was measured under it, so the charts keep it rather than the command line's default
+lighting (`baking.config.DEFAULT_ENV`, a sun placed for the first picture's cast
+shadows): a run with the default options reproduces them."""
 SAMPLES = (16, 64, 256, 1024)
 SAMPLES_QUICK = (16, 64, 256)
 CHART_SAMPLES = 256
