@@ -43,6 +43,9 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def load_volume(args: argparse.Namespace) -> volumes.Volume:
+    """The volume of the options `add_volume_options` adds: the file or synthetic spec,
+    raw dims and type, spacing, the part (``--crop``, ``--downsample``, ``--level``),
+    then turned by ``--up``."""
     options = {}
     if getattr(args, "dims", None):
         options["dims"] = tuple(int(v) for v in floats(args.dims, 3, "--dims"))
@@ -50,7 +53,10 @@ def load_volume(args: argparse.Namespace) -> volumes.Volume:
         options["dtype"] = args.dtype
     if getattr(args, "spacing", None):
         options["spacing"] = floats(args.spacing, 3, "--spacing")
-    volume = volumes.load(args.volume, **options)
+    if getattr(args, "volume_level", None) is not None:
+        options["level"] = args.volume_level
+    volume = volumes.load(args.volume, crop=getattr(args, "volume_crop", None),
+                          downsample=getattr(args, "volume_downsample", 1), **options)
     if getattr(args, "up", None):
         volume = volumes.turn_up(volume, args.up)
     return volume
@@ -107,6 +113,22 @@ def add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
                    help="the volume's axis that points up: x, y, z, -x, -y or -z (after the "
                    "orientation its header gives; e.g. -z for raw slices that run top "
                    "to bottom; default z)")
+    add_part_options(p)
+
+
+def add_part_options(p: argparse.ArgumentParser) -> None:
+    """``--crop``, ``--downsample`` and ``--level``: which part of the volume to read (into
+    ``args.volume_crop``, ``volume_downsample``, ``volume_level``, read by `load_volume`)."""
+    p.add_argument("--crop", dest="volume_crop", metavar="X0:X1,Y0:Y1,Z0:Z1", default=None,
+                   help="read only these voxels: index ranges along x, y, z from 0, end "
+                   "exclusive, of the volume as its header places it (before --up); ':' "
+                   "for a whole axis, '100:' from voxel 100 on; the world position is kept")
+    p.add_argument("--downsample", dest="volume_downsample", metavar="N", type=int, default=1,
+                   help="means of N×N×N-voxel blocks (after --crop; spacing × N, the last "
+                   "voxels that fill no whole block left out; default 1)")
+    p.add_argument("--level", dest="volume_level", metavar="K", type=int, default=None,
+                   help="level of an OME-Zarr multiscale image (0: full resolution, the "
+                   "default; --crop and --downsample count in its voxels)")
 
 
 def add_render_options(p: argparse.ArgumentParser) -> None:

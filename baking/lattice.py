@@ -385,7 +385,8 @@ class Lattice:
             shape = list(volume.data.shape)
             same_file = want.get("source") and want.get("source") == volume.source
             hint = ("the same file, placed otherwise: load it with the --up (and --dims, "
-                    "--dtype) the bake was given" if same_file else "bake it for this volume")
+                    "--dtype, --crop, --downsample, --level) the bake was given"
+                    if same_file else "bake it for this volume")
             raise BakeError(
                 f"{path}: baked for volume {want.get('name')!r} of shape {want.get('shape')} "
                 f"(hash {str(want.get('hash'))[:12]}), not for {volume.name!r} of shape "

@@ -52,7 +52,7 @@ def test_a_raw_gz_bomb_stops_one_byte_past_its_name(tmp_path):
 def test_a_raw_file_named_bigger_than_memory_is_refused_before_reading(tmp_path):
     path = tmp_path / "huge_100000x100000x100000_uint8.raw.gz"
     path.write_bytes(gzip.compress(bytes(PROMISED)))
-    _refused_cheaply(path, "1e+06 GB", "memory available", "crop or downsample")
+    _refused_cheaply(path, "1e+06 GB", "memory available", "--crop X0:X1,Y0:Y1,Z0:Z1")
 
 
 def test_an_uncompressed_raw_file_of_the_wrong_size_is_refused_unread(tmp_path):

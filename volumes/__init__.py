@@ -3,6 +3,8 @@
 Public API::
 
     volumes.load(spec) -> Volume          # file path or "synthetic:NAME[:SIZE]"
+    volumes.load(spec, crop="0:128,:,64:", downsample=2)   # a part, in the same world place
+    volumes.crop_downsample(volume, crop, downsample) -> Volume   # the same, in memory
     volumes.isosurface(volume, iso) -> Mesh
     volumes.suggest_isovalues(volume) -> tuple[float, ...]
     volumes.turn_up(volume, "-z") -> Volume   # the volume's -z axis pointing up
@@ -25,16 +27,19 @@ from isolume.volumes.field import (
 )
 from isolume.volumes.mesh import Mesh, check_isovalue, isosurface, marching_cubes
 from isolume.volumes.orientation import UP_AXES, turn_up
+from isolume.volumes.region import CROP_SYNTAX, crop_downsample
 from isolume.volumes.stats import histogram_lines, suggest_isovalues
 from isolume.volumes.synthetic import DEFAULT
 
 __all__ = [
+    "CROP_SYNTAX",
     "DEFAULT",
     "UP_AXES",
     "Mesh",
     "Volume",
     "VolumeError",
     "check_isovalue",
+    "crop_downsample",
     "gradient_at",
     "gradient_grid",
     "histogram_lines",
@@ -52,19 +57,29 @@ __all__ = [
 ]
 
 
-def load(spec: str | os.PathLike | None = None, **options) -> Volume:
-    """Load a volume from a file path or build ``synthetic:NAME[:SIZE]``.
+def load(spec: str | os.PathLike | None = None, *, crop: str | None = None,
+         downsample: int = 1, **options) -> Volume:
+    """Load a volume from a file path or build ``synthetic:NAME[:SIZE]``, or a part of it.
 
     Args:
         spec: path or synthetic spec; None gives the built-in default (`DEFAULT`).
-        **options: for files, ``dims``, ``dtype``, ``spacing``, ``origin`` (see
-            `volumes.io.load_file`).
+        crop: ``X0:X1,Y0:Y1,Z0:Z1`` voxel index ranges along x, y, z (end exclusive,
+            see `CROP_SYNTAX`); None for the whole volume.
+        downsample: N ≥ 1: means of N³-voxel blocks, spacing × N (`volumes.region`).
+        **options: for files, ``dims``, ``dtype``, ``spacing``, ``origin``, ``level``
+            (see `volumes.io.load_file`).
+
+    Files read lazily where their format allows (raw, NRRD raw, ``.npy``, Zarr): only the
+    part is read. A synthetic volume is built whole, then cut.
     """
     spec = DEFAULT if spec is None else spec
     if isinstance(spec, str) and spec.startswith("synthetic:"):
         from isolume.volumes.synthetic import parse
 
-        return parse(spec)
+        if options.get("level") is not None:
+            raise VolumeError(f"{spec}: --level {options['level']} only applies to OME-Zarr "
+                              "multiscale images")
+        return crop_downsample(parse(spec), crop, downsample)
     from isolume.volumes.io import load_file
 
-    return load_file(spec, **options)
+    return load_file(spec, crop=crop, downsample=downsample, **options)

@@ -73,10 +73,7 @@ class Volume:
                 "undefined values would be wrong, so they are refused — replace them "
                 "(e.g. numpy.nan_to_num) before loading"
             )
-        spacing = _triple(self.spacing, "spacing", where)
-        if min(spacing) <= 0:
-            raise VolumeError(f"{where}: spacing must be positive in x, y, z, got {spacing}")
-        origin = _triple(self.origin, "origin", where)
+        spacing, origin = checked_geometry(self.spacing, self.origin, where)
         object.__setattr__(self, "data", data)
         object.__setattr__(self, "spacing", spacing)
         object.__setattr__(self, "origin", origin)
@@ -133,6 +130,19 @@ class Volume:
             h.update(self.data.tobytes())
             self._cache["hash"] = h.hexdigest()
         return self._cache["hash"]
+
+
+def checked_geometry(spacing, origin, where: str) -> tuple[tuple[float, float, float],
+                                                           tuple[float, float, float]]:
+    """(spacing, origin) as float triples, x, y, z: spacing positive, both finite.
+
+    Raises:
+        VolumeError: one line naming `where` and the bad value.
+    """
+    spacing = _triple(spacing, "spacing", where)
+    if min(spacing) <= 0:
+        raise VolumeError(f"{where}: spacing must be positive in x, y, z, got {spacing}")
+    return spacing, _triple(origin, "origin", where)
 
 
 def _triple(value, what: str, where: str) -> tuple[float, float, float]:

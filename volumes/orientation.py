@@ -33,7 +33,8 @@ class Placement:
     """Samples reordered so that their axes run along world +x, +y, +z.
 
     Attributes:
-        data: (Z, Y, X) the samples in world axis order.
+        data: (Z, Y, X) the samples in world axis order: a view of the samples given
+            (transposed and flipped, nothing read or copied).
         spacing: (3,) voxel size along world x, y, z.
         origin: (3,) world position of the first sample.
         residual_deg: the largest angle between an index axis and the world axis it was
@@ -105,7 +106,7 @@ def place(data: np.ndarray, spacing, origin, directions: np.ndarray | None,
         if signs[a] < 0:
             arr = np.flip(arr, axis=a)
     order = [world.index(w) for w in range(3)]  # index axis placed along world axis w
-    arr = np.ascontiguousarray(arr.transpose(order).transpose(2, 1, 0))
+    arr = arr.transpose(order).transpose(2, 1, 0)
     cosines = np.clip(np.abs(d[list(world), [0, 1, 2]]), -1.0, 1.0)
     axes = ", ".join(f"{'+' if signs[a] > 0 else '-'}{'xyz'[world[a]]}" for a in range(3))
     return Placement(arr, tuple(float(v) for v in spacing[order]),

@@ -16,6 +16,9 @@ Supported inputs (chosen by extension, or by what a folder holds):
 * ``.tif`` / ``.tiff`` multi-page stack (page = z) or a folder of 2-D TIFF slices sorted
   naturally by name (``slice2`` before ``slice10``) — needs tifffile (extra ``tiff``).
 * a folder holding a DICOM series — needs pydicom (extra ``dicom``).
+* a ``.zarr`` folder (Zarr format 2 or 3): a 3-D array, or an OME-Zarr multiscale image
+  whose ``level`` is picked, spacing and origin from its coordinate transformations —
+  needs zarr (extra ``zarr``); see :mod:`volumes.io.zarr_folder`.
 
 Every loader returns samples indexed ``[z, y, x]`` with spacing and origin in (x, y, z)
 order, world units (millimetres for medical formats); see :mod:`volumes.core`.
@@ -27,13 +30,19 @@ comes up upright); ``orientation=False`` keeps the file's index order instead. `
 and ``origin`` passed to :func:`load_file` override what a file says (along its index axes,
 before the orientation is applied).
 
+``crop`` (voxel index ranges) and ``downsample`` (block means) pick a part of the volume
+as placed, in the same world place (:mod:`volumes.region`). Uncompressed raw files, NRRD
+raw data and ``.npy`` files are then mapped (numpy memmap) and Zarr chunks read on
+demand, so only the part is read, a slab of z planes at a time: memory holds the result
+and one slab. Other formats are read whole, then cut.
+
 Every bad input raises :class:`VolumeError` with a one-line message that names the file,
 the offending value and what was expected.
 
 Each format family has its module (`raw`, `nrrd`, `metaimage`, `nifti`, `arrays` for
-``.npy``/``.npz``, `tiff`, `dicom`; file reading with one-line errors in `common`); this
-module picks the loader by extension or folder content and places the result
-(:func:`load_file`).
+``.npy``/``.npz``, `tiff`, `dicom`, `zarr_folder`; file reading with one-line errors in
+`common`); this module picks the loader by extension or folder content, places the result
+and cuts the part asked for (:func:`load_file`).
 """
 
 from __future__ import annotations
@@ -45,9 +54,16 @@ from typing import Any
 
 import numpy as np
 
-from isolume.volumes.core import Volume, VolumeError
+from isolume.volumes.core import Volume, VolumeError, checked_geometry
 from isolume.volumes.io.arrays import load_npy, load_npz
-from isolume.volumes.io.common import READ_ERRORS, Loaded, check_readable, natural_key, one_line
+from isolume.volumes.io.common import (
+    READ_ERRORS,
+    Loaded,
+    check_fits_in_memory,
+    check_readable,
+    natural_key,
+    one_line,
+)
 from isolume.volumes.io.dicom import load_dicom_folder, looks_like_dicom, read_dicom_series
 from isolume.volumes.io.metaimage import load_metaimage
 from isolume.volumes.io.nifti import load_nifti
@@ -63,7 +79,17 @@ from isolume.volumes.io.raw import (
     resolve_dtype,
 )
 from isolume.volumes.io.tiff import TIFF_SUFFIXES, load_tiff_file, load_tiff_folder
-from isolume.volumes.orientation import place
+from isolume.volumes.io.zarr_folder import load_zarr, looks_like_zarr
+from isolume.volumes.orientation import Placement, place
+from isolume.volumes.region import (
+    Crop,
+    check_factor,
+    check_sample_type,
+    join_placement,
+    parse_crop,
+    read_region,
+    resolve_region,
+)
 
 __all__ = ["RAW_DTYPES", "SUPPORTED_FORMATS", "load_file", "parse_raw_name"]
 
@@ -71,7 +97,7 @@ __all__ = ["RAW_DTYPES", "SUPPORTED_FORMATS", "load_file", "parse_raw_name"]
 SUPPORTED_FORMATS = (
     "NAME_XxYxZ_DTYPE.raw[.gz] (other raw files with --dims and --dtype), .nrrd, .nhdr, "
     ".mhd, .mha, .nii, .nii.gz, .npy, .npz, .tif/.tiff stacks, a folder of TIFF slices, "
-    "a folder holding a DICOM series"
+    "a folder holding a DICOM series, .zarr folders (Zarr arrays, OME-Zarr images)"
 )
 
 # Extension (lower case, longest first where one ends another) -> format key.
@@ -88,6 +114,7 @@ _SUFFIXES: tuple[tuple[str, str], ...] = (
     (".npz", "npz"),
     (".tiff", "tiff"),
     (".tif", "tiff"),
+    (".zarr", "zarr"),
 )
 
 _FORMAT_LABELS = {
@@ -99,6 +126,7 @@ _FORMAT_LABELS = {
     "npz": ".npz",
     "tiff": "TIFF",
     "folder": "folder",
+    "zarr": "Zarr",
 }
 
 
@@ -114,11 +142,14 @@ def load_file(
     origin: tuple[float, float, float] | None = None,
     endian: str = "little",
     orientation: bool = True,
+    crop: str | Crop | None = None,
+    downsample: int = 1,
+    level: int | None = None,
 ) -> Volume:
     """Read a volume file or folder (see the module docstring for the formats).
 
     Args:
-        path: file, or folder of TIFF slices / DICOM files.
+        path: file, or folder of TIFF slices / DICOM files, or ``.zarr`` folder.
         dims: (X, Y, Z) sample counts of a raw file; overrides the file name.
         dtype: sample type of a raw file (``uint8`` … ``float64``); overrides the file name.
         spacing: (3,) voxel size x, y, z, world units; overrides the file's header.
@@ -127,47 +158,41 @@ def load_file(
             Default: the header's, or (0, 0, 0).
         endian: byte order of a raw file, ``"little"`` (default) or ``"big"``.
         orientation: apply the header's orientation (see the module docstring).
+        crop: ``X0:X1,Y0:Y1,Z0:Z1`` voxel index ranges (or a parsed `Crop`) of the
+            volume as placed (after the orientation); None for all of it.
+        downsample: block edge N ≥ 1: means of N³-voxel blocks (`volumes.region`).
+        level: multiscale level of an OME-Zarr image (None: 0, the full resolution).
 
     Returns:
-        A :class:`Volume` with (Z, Y, X) float32 data, named after the file stem.
+        A :class:`Volume` with (Z, Y, X) float32 data, named after the file stem. With
+        a crop or downsampling, raw, NRRD raw and ``.npy`` files are mapped and Zarr
+        chunks read lazily, so only the part is read, slab by slab; other formats are
+        read whole first.
 
     Raises:
         VolumeError: one line naming the file and what is wrong with it.
     """
     path = Path(path).expanduser()
     where = str(path)
+    crop = parse_crop(crop) if isinstance(crop, str) else crop
+    factor = check_factor(downsample)
     dims_xyz = check_dims(dims, where, "given") if dims is not None else None
     raw_dtype = resolve_dtype(dtype, where, "given") if dtype is not None else None
     byteorder = check_endian(endian, where)
-
-    if not _exists(path):
-        raise VolumeError(f"{where}: no such file or directory")
-    if path.is_dir():
-        kind = "folder"
-    else:
-        kind = _format_of(path)
-        if kind is None:
-            if dims_xyz is not None and raw_dtype is not None:
-                kind = "raw"
-            else:
-                suffix = path.suffix or "(none)"
-                raise VolumeError(
-                    f"{where}: unknown file type {suffix!r}; supported: {SUPPORTED_FORMATS}; "
-                    "for a headerless raw file pass --dims X,Y,Z and --dtype"
-                )
-        check_readable(path)
+    kind = _kind_of(path, dims_xyz is not None and raw_dtype is not None)
     if kind != "raw" and (dims_xyz is not None or raw_dtype is not None or byteorder != "<"):
         raise VolumeError(
             f"{where}: --dims/--dtype/--endian only apply to raw files, but this is a "
             f"{_FORMAT_LABELS[kind]} input that records them itself"
         )
+    if level is not None and kind != "zarr":
+        raise VolumeError(f"{where}: --level {level} only applies to OME-Zarr multiscale "
+                          f"images (.zarr folders); this is a {_FORMAT_LABELS[kind]} input")
 
+    lazy = crop is not None or factor > 1
     try:
-        if kind == "raw":
-            data, spacing0, origin0, frame = load_raw(path, dims_xyz, raw_dtype, byteorder)
-            spacing0 = manifest_spacing(path)
-        else:
-            data, spacing0, origin0, frame = _LOADERS[kind](path)
+        (data, spacing0, origin0, frame), note = _read(kind, path, dims_xyz, raw_dtype,
+                                                      byteorder, lazy, level)
     except VolumeError:
         raise
     except READ_ERRORS as exc:
@@ -175,23 +200,93 @@ def load_file(
             f"{where}: could not read this {_FORMAT_LABELS[kind]} input: {one_line(exc)}"
         ) from exc
 
-    if not data.flags.writeable and data.dtype == np.float32:
-        data = np.array(data)  # Volume keeps native float32 as is; give it its own copy
+    spacing, origin = checked_geometry(_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
+                                       _pick(origin, origin0, (0.0, 0.0, 0.0)), where)
+    placed, placement = _placed(data, spacing, origin, frame if orientation else None,
+                                _placement_label(kind, frame, orientation), where)
+    placement = join_placement(placement, note)
+    if lazy or not isinstance(placed.data, np.ndarray):
+        return _read_part(placed, crop, factor, path, placement)
+    samples = placed.data
+    if not samples.flags.writeable and samples.dtype == np.float32:
+        samples = np.array(samples)  # Volume keeps native float32 as is; give it its own
+    return Volume(samples, spacing=placed.spacing, origin=placed.origin,
+                  name=_volume_name(path), source=where, placement=placement)
+
+
+def _kind_of(path: Path, raw_given: bool) -> str:
+    """Format key of `path`: by what a folder holds, else by extension, else raw when
+    `raw_given` (dims and dtype both given).
+
+    Raises:
+        VolumeError: no such path, an unknown extension, an unreadable file.
+    """
+    where = str(path)
+    if not _exists(path):
+        raise VolumeError(f"{where}: no such file or directory")
+    if path.is_dir():
+        return "zarr" if looks_like_zarr(path) else "folder"
+    kind = _format_of(path)
+    if kind is None:
+        if not raw_given:
+            suffix = path.suffix or "(none)"
+            raise VolumeError(
+                f"{where}: unknown file type {suffix!r}; supported: {SUPPORTED_FORMATS}; "
+                "for a headerless raw file pass --dims X,Y,Z and --dtype"
+            )
+        kind = "raw"
+    check_readable(path)
+    return kind
+
+
+def _read(kind: str, path: Path, dims_xyz, raw_dtype, byteorder: str, lazy: bool,
+          level: int | None) -> tuple[Loaded, str]:
+    """The loader's result for `kind`, and a note on what was taken ("" for most)."""
+    if kind == "zarr":
+        return load_zarr(path, level)
+    if kind == "raw":
+        data, _, origin0, frame = load_raw(path, dims_xyz, raw_dtype, byteorder, lazy)
+        return (data, manifest_spacing(path), origin0, frame), ""
+    loader = _LAZY_LOADERS.get(kind) if lazy else None
+    return (loader(path, lazy=True) if loader else _LOADERS[kind](path)), ""
+
+
+def _placement_label(kind: str, frame, orientation: bool) -> str:
+    """How the samples are placed in the world, for `isolume info`."""
     label = _FORMAT_LABELS[kind] if kind != "folder" else "DICOM"
-    if frame is None or not orientation:
-        why = "left out (orientation=False)" if frame is not None else (
-            f"as stored: the {label} input gives no orientation (--up AXIS turns it)")
-        return Volume(data, spacing=_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
-                      origin=_pick(origin, origin0, (0.0, 0.0, 0.0)), name=_volume_name(path),
-                      source=where, placement=why)
-    volume = Volume(data, spacing=_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
-                    origin=_pick(origin, origin0, (0.0, 0.0, 0.0)), source=where)
+    if frame is None:
+        return f"as stored: the {label} input gives no orientation (--up AXIS turns it)"
+    if not orientation:
+        return "left out (orientation=False)"
+    return f"{label} orientation, in LPS"
+
+
+def _placed(data, spacing, origin, frame, label: str, where: str) -> tuple[Placement, str]:
+    """(samples placed along world +x, +y, +z, the placement line): `frame` applied
+    (a view of `data`, nothing read), or `data` as it is where `frame` is None."""
+    if frame is None:
+        return Placement(data, spacing, origin, 0.0), label
     directions, to_lps = frame
-    placed = place(volume.data, volume.spacing, to_lps * np.asarray(volume.origin),
-                   to_lps[:, None] * directions, where)
-    return Volume(placed.data, spacing=placed.spacing, origin=placed.origin,
+    placed = place(data, spacing, to_lps * np.asarray(origin), to_lps[:, None] * directions,
+                   where)
+    return placed, placed.describe(label)
+
+
+def _read_part(placed: Placement, crop: Crop | None, factor: int, path: Path,
+               placement: str) -> Volume:
+    """The `crop` / `factor` part of the placed samples (a lazy array: memmap, Zarr),
+    read slab by slab, as a Volume in the same world place."""
+    where = str(path)
+    data = placed.data
+    check_sample_type(data.dtype, where)
+    z, y, x = data.shape
+    region = resolve_region((x, y, z), crop, factor, where)
+    check_fits_in_memory(region.nbytes, where,
+                         f"reading {' x '.join(map(str, region.shape_xyz))} float32 voxels")
+    return Volume(read_region(data, region), spacing=region.spacing(placed.spacing),
+                  origin=region.origin(placed.spacing, placed.origin),
                   name=_volume_name(path), source=where,
-                  placement=placed.describe(f"{label} orientation, in LPS"))
+                  placement=join_placement(placement, region.describe()))
 
 
 def _exists(path: Path) -> bool:
@@ -213,7 +308,8 @@ def _format_of(path: Path) -> str | None:
 def _volume_name(path: Path) -> str:
     """File stem without the format extension or the raw ``_XxYxZ_dtype`` suffix."""
     if path.is_dir():
-        return path.name or path.resolve().name or str(path)
+        name = path.name or path.resolve().name or str(path)
+        return name[:-5] if name.lower().endswith(".zarr") and len(name) > 5 else name
     match = match_raw_name(path.name)
     if match is not None:
         return match[0]
@@ -270,3 +366,9 @@ _LOADERS: dict[str, Callable[[Path], Loaded]] = {
     "tiff": load_tiff_file,
     "folder": _load_folder,
 }
+
+_LAZY_LOADERS: dict[str, Callable[..., Loaded]] = {
+    "nrrd": load_nrrd,
+    "npy": load_npy,
+}
+"""Loaders that map the samples with ``lazy=True`` (raw files and Zarr folders too)."""

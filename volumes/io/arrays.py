@@ -11,11 +11,12 @@ from isolume.volumes.core import VolumeError
 from isolume.volumes.io.common import READ_ERRORS, Loaded, one_line
 
 
-def load_npy(path: Path) -> Loaded:
-    """``.npy`` holding a (Z, Y, X) array."""
+def load_npy(path: Path, lazy: bool = False) -> Loaded:
+    """``.npy`` holding a (Z, Y, X) array; with `lazy`, mapped read-only
+    (``mmap_mode="r"``: nothing is read until sliced)."""
     _check_magic(path, b"\x93NUMPY", "a .npy array file")
     try:
-        arr = np.load(path, allow_pickle=False)
+        arr = np.load(path, mmap_mode="r" if lazy else None, allow_pickle=False)
     except READ_ERRORS as exc:
         raise VolumeError(f"{path}: not a valid .npy array file: {one_line(exc)}") from None
     return _check_numpy_array(arr, str(path)), None, None, None
@@ -59,9 +60,9 @@ def _check_magic(path: Path, magic: bytes, what: str) -> None:
 
 
 def _check_numpy_array(arr: np.ndarray, where: str) -> np.ndarray:
-    """A 3-D numeric array; booleans become uint8."""
+    """A 3-D numeric array; booleans are viewed as uint8 (no copy)."""
     if arr.ndim != 3:
         raise VolumeError(f"{where}: expected a 3-D array indexed [z, y, x], got shape {arr.shape}")
     if arr.dtype == np.bool_:
-        arr = arr.astype(np.uint8)
+        arr = arr.view(np.uint8)
     return arr

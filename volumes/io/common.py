@@ -24,6 +24,7 @@ OPTIONAL_MODULES = {
     "nibabel": ("nibabel", "nifti"),
     "tifffile": ("tifffile", "tiff"),
     "pydicom": ("pydicom", "dicom"),
+    "zarr": ("zarr", "zarr"),
 }
 """Optional reader module → (pip name, isolume extra)."""
 
@@ -133,7 +134,9 @@ def check_fits_in_memory(nbytes: int, where: str, what: str) -> None:
     if free is not None and nbytes > free:
         raise VolumeError(
             f"{where}: {what} needs {nbytes / 1e9:.3g} GB of samples, more than the "
-            f"{free / 1e9:.3g} GB of memory available; crop or downsample the file first"
+            f"{free / 1e9:.3g} GB of memory available; load a part of it (--crop "
+            "X0:X1,Y0:Y1,Z0:Z1, --downsample N; read without the whole file from raw, NRRD "
+            "raw, .npy and Zarr)"
         )
 
 

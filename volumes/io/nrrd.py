@@ -38,19 +38,21 @@ _TYPES = {
 """NRRD ``type`` names -> numpy type codes (the NRRD format's list)."""
 
 
-def load_nrrd(path: Path) -> Loaded:
+def load_nrrd(path: Path, lazy: bool = False) -> Loaded:
     """NRRD / NHDR -> (Z, Y, X); spacing from space directions or spacings.
 
     The header (pynrrd) says how many bytes the samples take; a header that needs more
     memory than the machine has is refused before any sample is read, and attached raw
     or gzip data are read (and inflated) at most one byte past that size; other
-    encodings and detached data are read by pynrrd once the size is checked.
+    encodings and detached data are read by pynrrd once the size is checked. With
+    `lazy`, raw data (attached, or one detached data file) without skips is mapped
+    instead (a read-only numpy memmap: nothing is read until sliced).
     """
     nrrd = optional_module("nrrd", path)
     try:
         with open(path, "rb") as fh:
             header = nrrd.read_header(fh)
-            data = _bounded_data(header, fh, path)
+            data = _bounded_data(header, fh, path, lazy)
         if data is None:
             data, header = nrrd.read(str(path), index_order="C")
     except OSError as exc:
@@ -126,11 +128,11 @@ def _nrrd_origin(header: dict) -> np.ndarray | None:
     return None
 
 
-def _bounded_data(header: dict, fh: BinaryIO, path: Path) -> np.ndarray | None:
+def _bounded_data(header: dict, fh: BinaryIO, path: Path, lazy: bool) -> np.ndarray | None:
     """(Z, Y, X) samples of attached raw or gzip data read after the header in `fh`, at
-    most one byte past the size the header gives; None where pynrrd must read them
-    (detached data, skips, other encodings). Either way the header's size must fit in
-    memory (`check_fits_in_memory`)."""
+    most one byte past the size the header gives, or with `lazy` raw data mapped
+    (`_mapped_data`); None where pynrrd must read them (detached data, skips, other
+    encodings). Samples read must fit in memory (`check_fits_in_memory`)."""
     sizes = [int(s) for s in np.atleast_1d(header.get("sizes", []))]
     kind = _TYPES.get(str(header.get("type", "")).strip().lower())
     if kind is None or not sizes or min(sizes) < 1:
@@ -138,12 +140,15 @@ def _bounded_data(header: dict, fh: BinaryIO, path: Path) -> np.ndarray | None:
     dtype = np.dtype(kind).newbyteorder(
         ">" if str(header.get("endian", "little")).lower() == "big" else "<")
     expected = int(np.prod(sizes, dtype=np.int64)) * dtype.itemsize
+    encoding = str(header.get("encoding", "raw")).lower()
+    detached = _data_file(header)
+    skips = any(k in header for k in ("line skip", "lineskip", "byte skip", "byteskip"))
+    if lazy and encoding == "raw" and not skips and detached != "":
+        source = (path, fh.tell()) if detached is None else (path.parent / detached, 0)
+        return _mapped_data(*source, dtype, sizes, expected)
     check_fits_in_memory(expected, str(path), f"sizes {' '.join(map(str, sizes))} "
                          f"{header.get('type')}")
-    encoding = str(header.get("encoding", "raw")).lower()
-    detached = any(k in header for k in ("data file", "datafile"))
-    skips = any(k in header for k in ("line skip", "lineskip", "byte skip", "byteskip"))
-    if detached or skips or encoding not in ("raw", "gzip", "gz"):
+    if detached is not None or skips or encoding not in ("raw", "gzip", "gz"):
         return None
     if encoding == "raw":
         buf = read_bounded(fh, expected, str(path), compressed=False)
@@ -151,3 +156,28 @@ def _bounded_data(header: dict, fh: BinaryIO, path: Path) -> np.ndarray | None:
         with gzip.GzipFile(fileobj=fh) as stream:
             buf = read_bounded(stream, expected, str(path), compressed=True)
     return buf.view(dtype).reshape(sizes[::-1])
+
+
+def _data_file(header: dict) -> str | None:
+    """The one detached data file a header names; None for attached data, "" for a
+    list or a pattern of files."""
+    name = header.get("data file", header.get("datafile"))
+    if name is None:
+        return None
+    name = str(name).strip()
+    return "" if name.upper().startswith("LIST") or "%" in name or " " in name else name
+
+
+def _mapped_data(file: Path, offset: int, dtype: np.dtype, sizes: list[int],
+                 expected: int) -> np.ndarray:
+    """(Z, Y, X) read-only memmap of the `expected` bytes of raw samples from `offset` in
+    `file`, whose length must be exactly that."""
+    try:
+        held = file.stat().st_size - offset
+    except OSError as exc:
+        raise VolumeError(f"{file}: cannot read the NRRD data: {one_line(exc)}") from None
+    if held != expected:
+        problem = "only " + str(held) if held < expected else "more"
+        raise VolumeError(f"{file}: expected {expected} bytes of samples, the data holds "
+                          f"{problem}: truncated, or the header's sizes or type are wrong")
+    return np.memmap(file, dtype, mode="r", offset=offset, shape=tuple(sizes[::-1]))

@@ -117,8 +117,13 @@ def load_raw(
     dims: tuple[int, int, int] | None,
     dtype: np.dtype | None,
     byteorder: str,
+    lazy: bool = False,
 ) -> Loaded:
-    """Headerless samples, x fastest -> (Z, Y, X) array; no spacing or origin."""
+    """Headerless samples, x fastest -> (Z, Y, X) array; no spacing or origin.
+
+    With `lazy`, an uncompressed file is mapped (a read-only numpy memmap: nothing is
+    read until sliced, and no memory check on the whole); compressed files are read whole.
+    """
     where = str(path)
     from_name = match_raw_name(path.name)
     how = "given"
@@ -141,6 +146,8 @@ def load_raw(
     size = f"{product} = {expected} bytes for {x}x{y}x{z} {dtype.name}"
     if not compressed:  # the file's size says it before anything is read
         _check_size(path, expected, size, how)
+        if lazy:
+            return np.memmap(path, dtype, mode="r", shape=(z, y, x)), None, None, None
     check_fits_in_memory(expected, where, f"{x}x{y}x{z} {dtype.name} ({how})")
     buf, actual = _read_raw_samples(path, expected, compressed)
     if actual != expected:
