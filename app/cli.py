@@ -4,7 +4,9 @@ The options live in `app.options`, the ``info``, ``render`` and ``bake`` command
 `app.commands`, the other commands in their own modules (`COMMAND_MODULES`). Every user
 error (an `IsolumeError`: bad file, bad value, missing GL) ends in a one-line message on
 stderr and exit status 2; no tracebacks. Heavy modules are imported inside the commands
-so that ``isolume info`` and ``isolume bake`` never load OpenGL.
+so that ``isolume info`` and ``isolume bake`` never load OpenGL. ``--state FILE`` (render,
+movie, view) gives a command the defaults of a view saved in the viewer
+(`app.state.apply_state`): options given on the command line win.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from isolume.app.options import (
     add_volume_options,
     description_of,
 )
+from isolume.app.state import add_state_argument, apply_state
 from isolume.volumes.errors import IsolumeError
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
@@ -66,8 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "(linear). Without --lattice the view's global illumination is "
                        "traced for the texels the picture reads (64 paths each).")
     add_volume_options(p, optional=True)
-    p.add_argument("--out", required=True, help="FILE.png (sRGB) or FILE.exr (linear)")
+    p.add_argument("--out", help="FILE.png (sRGB) or FILE.exr (linear) (required; with "
+                   "--state, by default beside the state file: NAME-WxH.png)")
     add_render_options(p)
+    add_state_argument(p)
     p = sub.add_parser("bake", help="bake an illumination lattice with Embree path tracing",
                        description="Bake an illumination lattice for every isovalue (or "
                        "--iso-range) with Embree path tracing; Ctrl-C keeps the finished "
@@ -97,10 +102,11 @@ def _join_negative_axes(argv: Sequence[str]) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``isolume`` console script; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(_join_negative_axes(sys.argv[1:] if argv is None else argv))
+    words = _join_negative_axes(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(words)
     command = COMMANDS.get(args.command) or _command_module(args.command).run
     try:
-        return command(args)
+        return command(apply_state(args, words[1:]))  # --state FILE: the file's defaults
     except IsolumeError as exc:
         message = " ".join(str(exc).split())
         print(f"isolume: error: {message}", file=sys.stderr)

@@ -50,7 +50,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     from isolume.app.render.images import check_output_path, write_image
     from isolume.app.render.offscreen import render_volume
     from isolume.app.render.settings import LATTICE_MODES, RenderSettings
+    from isolume.app.state import light_settings
 
+    if args.out is None:
+        raise CLIError("render: --out FILE.png or FILE.exr is required (or --state FILE)")
     out = check_output_path(args.out)
     vol = load_volume(args)
     lattice = load_lattice(args.lattice, vol)
@@ -72,6 +75,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             size=parse_size(args.size), shading=shading, exposure=args.exposure,
             auto_exposure=not args.no_auto_exposure, tonemap=args.tonemap, albedo=albedo,
             env_rotation=floats(args.env_rotation, 2, "--env-rotation"),
+            **light_settings(args.light_angles, lattice),
         )
     except ValueError as exc:
         raise CLIError(str(exc)) from None
@@ -89,7 +93,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         if refused:
             raise CLIError(refused)
     frame, mesh = render_volume(
-        vol, iso, settings, view=view, backend=args.gl,
+        vol, iso, settings, view=view, camera=args.camera, backend=args.gl,
         normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,
         env_coeffs=env_coeffs, view_light=traced, workers=args.workers, progress=True,
     )

@@ -42,6 +42,7 @@ from isolume.app.options import (
     parse_size,
     view_light,
 )
+from isolume.app.state import add_state_argument, light_settings
 
 if TYPE_CHECKING:
     import numpy as np
@@ -104,6 +105,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="MP4 quality: x264's constant rate factor, 0 (lossless) to 51 "
                    f"(default {DEFAULT_CRF})")
     add_render_options(p)
+    add_state_argument(p)
 
 
 @dataclass(frozen=True)
@@ -200,7 +202,8 @@ def shading_look(args: argparse.Namespace, request: Request, vol: volumes.Volume
     try:
         settings = RenderSettings(
             size=request.size, shading=shading, exposure=args.exposure, tonemap=args.tonemap,
-            albedo=albedo, env_rotation=floats(args.env_rotation, 2, "--env-rotation"))
+            albedo=albedo, env_rotation=floats(args.env_rotation, 2, "--env-rotation"),
+            **light_settings(args.light_angles, lattice))
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     if shading in LATTICE_MODES and lattice is None and traced is None:
@@ -322,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
     if iso_range is not None and traced is not None:
         lattice, traced = bake_sweep(vol, traced, iso_range, args), None
     az, el, dist = request.view
-    scene = Scene(vol, look.settings, el, dist, normals=args.normals,
+    scene = Scene(vol, look.settings, el, dist, base=args.camera, normals=args.normals,
                   flip_normals=args.flip_normals, lattice=lattice, env_coeffs=look.env_coeffs,
                   traced=traced, workers=args.workers)
     if request.kind == "light":

@@ -136,7 +136,7 @@ def light_turn(shading: str, lattice: Lattice | None, traced: BakeConfig | None,
                            f"{env or 'none'} {' '.join(lights)} has neither: add --light "
                            "dir:X,Y,Z:R,G,B or a sky with a sun")
         return LightTurn("traced", tuple(light.direction))
-    light = first_distant_light(lattice_direct_lights(lattice))
+    light = first_distant_light(settings.direct_lights or lattice_direct_lights(lattice))
     if light is None:
         raise CLIError(f"--kind light: {source} holds all of its light (no sun or directional "
                        "light left to the pixels); bake with --direct-light pixels or --mode "
@@ -154,6 +154,8 @@ class Scene:
             the movie's fixed exposure).
         elevation: the camera's elevation, degrees.
         distance: the camera's distance, volume diagonals (None: the default).
+        base: the camera the shots turn (a saved view's: its target, pan, elevation and
+            distance), or None: `app.render.renderer.default_camera`.
         normals, flip_normals: how the mesh's normals are made (`volumes.isosurface`).
         lattice: the illumination lattice every frame reads, or None.
         env_coeffs: (n², 3) SH coefficients of the environment ("sh"), or None.
@@ -167,6 +169,7 @@ class Scene:
     settings: RenderSettings
     elevation: float
     distance: float | None
+    base: Camera | None = None
     normals: str = "smooth"
     flip_normals: bool = False
     lattice: Lattice | None = None
@@ -176,7 +179,10 @@ class Scene:
     workers: int | None = None
 
     def camera(self, shot: Shot) -> Camera:
-        """The camera of `shot` (`app.render.renderer.default_camera`)."""
+        """The camera of `shot`: `base`, or `app.render.renderer.default_camera`, at the
+        shot's azimuth."""
+        if self.base is not None:
+            return replace(self.base, azimuth=shot.azimuth)
         return default_camera(self.volume, (shot.azimuth, self.elevation, self.distance))
 
     def frame_settings(self, shot: Shot, exposure: float) -> RenderSettings:

@@ -36,6 +36,8 @@ frames 5
 sleep 0.25
 screenshot "out dir/shot.png"   # quoted paths may hold spaces
 window-shot ui.png
+save-view
+save-view "saved views/v.view.json"
 save-lattice
 save-lattice lazy.npz
 check-lattice
@@ -65,6 +67,8 @@ def test_every_command_parses_with_converted_arguments():
         ("sleep", (0.25,)),
         ("screenshot", ("out dir/shot.png",)),
         ("window-shot", ("ui.png",)),
+        ("save-view", ()),
+        ("save-view", ("saved views/v.view.json",)),
         ("save-lattice", ()),
         ("save-lattice", ("lazy.npz",)),
         ("check-lattice", ()),
@@ -145,7 +149,7 @@ class FakeViewer:
 
     def __getattr__(self, name):
         if name in ("request_iso", "set_mode", "set_exposure", "move_camera", "reset_camera",
-                    "screenshot", "save_lattice"):
+                    "screenshot", "save_view", "save_lattice"):
             return lambda *args, **kw: self.calls.append((name, *args))
         raise AttributeError(name)
 
@@ -203,14 +207,15 @@ def test_script_drives_the_public_interface_in_order(tmp_path):
     shot = tmp_path / "w.png"
     _run_script(f"iso 0.4\norbit 30 -10\nzoom 1.5\npan 0.1 0.2\nreset\nlight 45 30\n"
                 f"light camera\nmode phong\nexposure 2\nwait-mesh\nwait-bake 0.6\n"
-                f"check-lattice\nwindow-shot {shot}\nsave-lattice\nscreenshot s.png\nquit\n",
+                f"check-lattice\nwindow-shot {shot}\nsave-lattice\nscreenshot s.png\n"
+                f"save-view v.view.json\nquit\n",
                 viewer)
     assert viewer.calls == [
         ("request_iso", 0.4), ("move_camera", "orbit", 30.0, -10.0),
         ("move_camera", "zoom", 1.5), ("move_camera", "pan", 0.1, 0.2), ("reset_camera",),
         ("set_light", (45.0, 30.0), True), ("set_light", None, True), ("set_mode", "phong"),
         ("set_exposure", 2.0), ("hold_bake", True), ("check_lattice",), ("hold_bake", False),
-        ("save_lattice", None), ("screenshot", "s.png")]
+        ("save_lattice", None), ("screenshot", "s.png"), ("save_view", "v.view.json")]
     assert viewer.frames >= 2 and viewer.polls == 3  # waited for the mesh and the bake
     assert shot.exists()
 

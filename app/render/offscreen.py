@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from isolume import volumes
+from isolume.app.render.camera import Camera
 from isolume.app.render.glcontext import create_headless
 from isolume.app.render.renderer import SurfaceRenderer, default_camera
 from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
@@ -26,6 +27,7 @@ def render_volume(
     settings: RenderSettings,
     *,
     view: tuple[float, float, float | None] | None = None,
+    camera: Camera | None = None,
     backend: str = "auto",
     normals: str = "smooth",
     flip_normals: bool = False,
@@ -35,7 +37,9 @@ def render_volume(
     workers: int | None = None,
     progress: bool = False,
 ) -> tuple[Frame, volumes.Mesh]:
-    """Extract the isosurface at `iso` and render it in a fresh headless context.
+    """Extract the isosurface at `iso` and render it in a fresh headless context, seen
+    from `camera`, or (None) from the orbit `view` (azimuth, elevation degrees, distance
+    in diagonals or None) around the volume (`default_camera`).
 
     `lattice` (a `baking.Lattice`) is needed by the lattice shading modes, `env_coeffs`
     ((n², 3) SH coefficients of the environment) by "sh". Without a lattice, `view_light`
@@ -53,7 +57,7 @@ def render_volume(
         renderer = SurfaceRenderer(gl.ctx)
         renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_bounds(*volume.box)
-        camera = default_camera(volume, view)
+        camera = camera or default_camera(volume, view)
         if lattice is None and view_light is not None and len(mesh.faces):
             from dataclasses import replace
 

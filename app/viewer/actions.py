@@ -1,5 +1,5 @@
 """What the user can do in the viewer: change the isovalue, shading mode, exposure, light
-and camera, take screenshots, save the lattice, hold the lazy bake.
+and camera, take screenshots, save the view and the lattice, hold the lazy bake.
 
 Keys and drags (`app.viewer.input`), the panel's `app.viewer.panel.Action`s (`Actions.apply`)
 and scripts (`Actions` is the `app.viewer.script.ScriptTarget`) all end here; the methods
@@ -140,6 +140,7 @@ class Actions:
                 None if view.light is not None else self.light_angles()),
             "reset_camera": self.reset_camera,
             "screenshot": self.screenshot,
+            "save_view": self.save_view,
             "save_lattice": self.save_lattice,
             "pause_bake": lambda: self.illumination.pause(value),
             "toggle_bake": lambda: self.illumination.toggle_pause(),
@@ -160,6 +161,10 @@ class Actions:
     def window_pixels(self) -> np.ndarray:
         """(H, W, 3) uint8 of the window's back buffer, top row first (UI included)."""
         return self.saver.window_pixels()
+
+    def save_view(self, path: str | os.PathLike | None = None) -> Path:
+        """Write what is on screen as a state file (`app.viewer.saving.Saver.save_view`)."""
+        return self.saver.save_view(path)
 
     def save_lattice(self, path: str | os.PathLike | None = None) -> Path | None:
         """Write the lattice (`app.viewer.saving.Saver.save_lattice`)."""

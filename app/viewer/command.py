@@ -8,6 +8,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from isolume.app.render.camera import Camera
+from isolume.app.state import VolumeSource, add_state_argument
+
 HELP = "open the interactive viewer (live isovalue, light, lazy global illumination)"
 
 DEFAULT_BAKE_SAMPLES = 256
@@ -69,6 +72,7 @@ def add_arguments(parser) -> None:
                         "differences (default smooth)")
     parser.add_argument("--flip-normals", action="store_true",
                         help="material less dense than air")
+    add_state_argument(parser)
 
 
 @dataclass(frozen=True)
@@ -81,6 +85,10 @@ class Options:
         screenshot, stats, lattice_path: files written on exit (None: none).
         bake: whether a lazy bake may run; bake_*: the lazy bake's settings.
         ui: whether the control panel is drawn.
+        source: the volume as the command line names it (for saved views).
+        camera: the camera to start from (``--state``; None: the first surface framed).
+        light: (azimuth, elevation) degrees of a world-fixed light to start with
+            (``--state``; None: the light follows the camera).
     """
 
     size: tuple[int, int]
@@ -101,6 +109,9 @@ class Options:
     normals: str
     flip_normals: bool
     lattice_path: Path | None
+    source: VolumeSource
+    camera: Camera | None
+    light: tuple[float, float] | None
 
 
 def read_options(args) -> Options:
@@ -138,6 +149,7 @@ def read_options(args) -> Options:
         bake_samples=args.bake_samples, bake_workers=args.bake_workers,
         bake_max_levels=args.bake_max_levels, ui=not args.no_ui, normals=args.normals,
         flip_normals=args.flip_normals, lattice_path=lattice,
+        source=VolumeSource.from_args(args), camera=args.camera, light=args.light_angles,
     )
 
 

@@ -166,7 +166,8 @@ def key_action(glfw, key: int, mods: int, modes: tuple[str, ...]) -> Action | No
         glfw.KEY_MINUS: ("exposure_by", 0.8), glfw.KEY_KP_SUBTRACT: ("exposure_by", 0.8),
         glfw.KEY_R: ("reset_camera", None), glfw.KEY_L: ("toggle_light", None),
         glfw.KEY_F12: ("screenshot", None), glfw.KEY_P: ("screenshot", None),
-        glfw.KEY_S: ("save_lattice", None), glfw.KEY_B: ("toggle_bake", None),
+        glfw.KEY_V: ("save_view", None), glfw.KEY_S: ("save_lattice", None),
+        glfw.KEY_B: ("toggle_bake", None),
         glfw.KEY_H: ("toggle_ui", None), glfw.KEY_F1: ("toggle_ui", None),
         glfw.KEY_ESCAPE: ("quit", None), glfw.KEY_Q: ("quit", None),
     }
@@ -177,7 +178,7 @@ KEYS_HELP = (
     "drag: rotate   shift/middle-drag: pan   wheel: zoom   R: reset",
     "ctrl/right-drag: light   L: light on camera",
     "left/right or [ ]: isovalue (shift: x10)   1-9: mode",
-    "+/-: exposure   F12/P: screenshot   S: save lattice",
+    "+/-: exposure   F12/P: screenshot   V: save view   S: save lattice",
     "B: pause bake   H: hide panel   Esc/Q: quit",
 )
 
@@ -281,6 +282,9 @@ def _status_section(imgui, model: PanelModel, actions: list[Action]) -> None:
     imgui.same_line()
     if imgui.button("screenshot"):
         actions.append(Action("screenshot"))
+    imgui.same_line()
+    if imgui.button("save view"):
+        actions.append(Action("save_view"))
     if model.message:
         imgui.text_wrapped(model.message)
     if imgui.collapsing_header("keys"):

@@ -1,34 +1,44 @@
 """What the viewer writes to files: screenshots (PNG and EXR), the window's pixels, the
-lazily baked lattice and the ``--stats`` figures (JSON)."""
+lazily baked lattice, saved views (`app.state`) and the ``--stats`` figures (JSON)."""
 
 from __future__ import annotations
 
 import json
 import os
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from isolume import volumes
+from isolume.app.state import SUFFIX, SavedView
+from isolume.app.viewer.command import Options
 from isolume.app.viewer.draw import Drawing, frame_size
 from isolume.app.viewer.illumination import Illumination
 from isolume.app.viewer.state import ViewerError, ViewerState
 
 
 class Saver:
-    """Writes the view, the window and the lattice; every file written is announced on
-    stdout and in the status message.
+    """Writes the view, the window, the lattice and saved views; every file written is
+    announced on stdout and in the status message.
 
     Attributes:
+        options: the viewer's options (the volume as named, for saved views).
         lattice_path: ``--lattice`` (None: none), the default file of `save_lattice`.
     """
 
     def __init__(self, volume: volumes.Volume, window, drawing: Drawing, state: ViewerState,
-                 illumination: Illumination, lattice_path: Path | None) -> None:
+                 illumination: Illumination, options: Options) -> None:
         """`window`: the `app.render.glcontext.Window` drawn into."""
         self.volume, self.window, self.drawing = volume, window, drawing
-        self.state, self.illumination, self.lattice_path = state, illumination, lattice_path
+        self.state, self.illumination, self.options = state, illumination, options
+        self.lattice_path = options.lattice_path
+
+    def _stamped(self, suffix: str) -> Path:
+        """isolume-NAME-DATE-TIME + `suffix` in the working folder: the file a screenshot
+        or a saved view goes to when no name is given."""
+        return Path(f"isolume-{self.volume.name}-{time.strftime('%Y%m%d-%H%M%S')}{suffix}")
 
     def screenshot(self, path: str | os.PathLike | None = None) -> tuple[Path, Path]:
         """Write the current view (without the panel) as PNG (sRGB) and EXR (linear
@@ -40,10 +50,7 @@ class Saver:
         from isolume.app.render.images import write_exr, write_png
         from isolume.app.viewer.script import screenshot_paths
 
-        if path is None:
-            stamp = time.strftime("%Y%m%d-%H%M%S")
-            path = Path(f"isolume-{self.volume.name}-{stamp}.png")
-        png, exr = screenshot_paths(path)
+        png, exr = screenshot_paths(self._stamped(".png") if path is None else path)
         if not png.parent.is_dir():
             raise ViewerError(f"screenshot {png}: directory {png.parent} does not exist")
         state = self.state
@@ -74,6 +81,58 @@ class Saver:
         done = int((lattice.samples > 0).sum())
         self._announce(f"saved {path} ({done:,} texels computed)")
         return path
+
+    def save_view(self, path: str | os.PathLike | None = None) -> Path:
+        """Write what is on screen as a state file (`app.state.SavedView`) to `path`
+        (default: beside the screenshots, isolume-NAME-DATE-TIME.view.json); returns it.
+
+        Raises:
+            ViewerError: the directory does not exist.
+        """
+        path = self._stamped(SUFFIX) if path is None else Path(path)
+        if not path.parent.is_dir():
+            raise ViewerError(f"save view {path}: directory {path.parent} does not exist")
+        self.saved_view().save(path)
+        self._announce(f"saved the view in {path} (isolume render --state {path})")
+        return path
+
+    def saved_view(self) -> SavedView:
+        """The `app.state.SavedView` of what is on screen: the volume as named, the camera,
+        the isovalue, the shading, the exposure, the light and the lattice file shown."""
+        state, view, options = self.state, self.state.view, self.options
+        size = frame_size(self.window)
+        lattice = self._lattice_file()
+        env, lights = self._lighting(lattice)
+        return SavedView(
+            **asdict(options.source), iso=float(view.iso), camera=state.camera,
+            size=f"{size[0]}x{size[1]}", shading=view.shading, exposure=float(view.exposure),
+            auto_exposure=options.auto_exposure,
+            tonemap=self.drawing.settings(view, size).tonemap,
+            albedo=",".join(repr(float(a)) for a in self.drawing.albedo), env=env,
+            lights=lights, light_angles=view.light,
+            lattice=None if lattice is None else str(lattice.absolute()),
+            normals=options.normals, flip_normals=options.flip_normals)
+
+    def _lattice_file(self) -> Path | None:
+        """``--lattice`` when a lattice is shown (from it, or baked lazily into it and
+        written there on exit), else None."""
+        if self.drawing.renderer.lattice is None:
+            return None
+        return self.lattice_path
+
+    def _lighting(self, lattice: Path | None) -> tuple[str | None, tuple[str, ...]]:
+        """(``--env``, ``--light`` specs) of the light on screen: none for a lattice file
+        (its own light); else the lazy bake's environment, its sun or directional light
+        turned as the user turned it (`baking.lighting.Lighting.turned`)."""
+        if lattice is not None:
+            return None, ()
+        env = self.options.bake_env
+        turned = self.drawing.turned_light(self.state.view)
+        if turned is None:
+            return env, ()
+        from isolume.baking.lighting import lighting_of
+
+        return lighting_of(env).turned(turned[1]).to_spec()
 
     def _announce(self, message: str) -> None:
         self.state.message = message

@@ -20,6 +20,7 @@ distances are in units of the volume's diagonal, times are seconds::
     sleep 0.5                # keep rendering for 0.5 s
     screenshot out.png       # out.png (sRGB) and out.exr (linear radiance)
     window-shot ui.png       # the whole window, UI included (PNG)
+    save-view [FILE]         # what is on screen as a state file (isolume render --state)
     save-lattice [FILE]      # write the lattice (default: --lattice FILE)
     check-lattice            # compare the GL textures with the lattice (tests)
     quit
@@ -134,6 +135,7 @@ _SPECS: dict[str, _Spec] = {
     "sleep": _Spec((_positive,), (), "sleep SECONDS"),
     "screenshot": _Spec((_text,), (), "screenshot FILE.png|FILE.exr"),
     "window-shot": _Spec((_text,), (), "window-shot FILE.png"),
+    "save-view": _Spec((), (_text,), "save-view [FILE]"),
     "save-lattice": _Spec((), (_text,), "save-lattice [FILE.npz]"),
     "check-lattice": _Spec((), (), "check-lattice"),
     "quit": _Spec((), (), "quit"),
@@ -252,6 +254,7 @@ class ScriptTarget(Protocol):
     def request_quit(self) -> None: ...
     def screenshot(self, path: str | os.PathLike | None = None) -> tuple[Path, Path]: ...
     def window_pixels(self) -> np.ndarray: ...
+    def save_view(self, path: str | os.PathLike | None = None) -> Path: ...
     def save_lattice(self, path: str | os.PathLike | None = None) -> Path | None: ...
     def surface_ready(self) -> bool: ...
     def bake_progress(self) -> tuple[float | None, str | None]: ...
@@ -318,6 +321,7 @@ class ScriptRunner:
             "exposure": lambda: viewer.set_exposure(args[0]),
             "reset": viewer.reset_camera,
             "quit": viewer.request_quit,
+            "save-view": lambda: viewer.save_view(args[0] if args else None),
             "save-lattice": lambda: viewer.save_lattice(args[0] if args else None),
             "screenshot": lambda: viewer.screenshot(args[0]),
             "orbit": lambda: viewer.move_camera("orbit", args[0], args[1]),

@@ -18,7 +18,8 @@ job:
 * `app.viewer.draw`: the drawing and the lighting (`Drawing`: the surface and lattice on
   the GPU, re-uploads of baked texels, the light, the detail while moving). Texels not
   computed yet fall back to local shading (tinted);
-* `app.viewer.saving`: screenshots, the lattice and ``--stats`` on disk;
+* `app.viewer.saving`: screenshots, saved views (`app.state`), the lattice and ``--stats``
+  on disk;
 * `app.viewer.script`: ``--script`` drives the viewer without a person, through
   `app.viewer.actions.Actions` (the `app.viewer.script.ScriptTarget` protocol).
 
@@ -151,9 +152,10 @@ class Viewer:
         self.volume, self.options = volume, options
         self.window = create_window(options.size, f"isolume — {volume.name}")
         self.drawing = Drawing(self.window.ctx, volume, options.auto_exposure)
-        home = default_camera(volume)
+        home = options.camera or default_camera(volume)  # a saved camera is not framed
         self.ui = self._make_ui() if options.ui else None
-        self.state = ViewerState(ViewState(iso, "phong_hemi", options.exposure), home, home)
+        self.state = ViewerState(ViewState(iso, "phong_hemi", options.exposure, options.light),
+                                 home, home, framed=options.camera is not None)
         self.illumination = Illumination(volume, self.drawing, self.state, options)
         self.illumination.start(lattice, iso)
         shown = self.drawing.renderer.lattice  # the default shading follows the lattice
@@ -163,7 +165,7 @@ class Viewer:
         self.drawing.ensure_texel_isovalues(shading)
         self.surfaces = SurfaceFeed(volume, normals=options.normals, flip=options.flip_normals)
         self.saver = Saver(volume, self.window, self.drawing, self.state, self.illumination,
-                           options.lattice_path)
+                           options)
         self.actions = Actions(volume, self.state, self.drawing, self.surfaces,
                                self.illumination, self.saver)
         self.reduced = False
