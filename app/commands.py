@@ -107,6 +107,27 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+CHEAPER_AFTER_MINUTES = 1.0
+"""A bake expected to take longer than this says how to make it cheaper."""
+
+
+def say_outlook(outlook) -> None:
+    """Tell, before any path, what a bake will trace and roughly how long it will take
+    (`baking.bake.BakeOutlook`), and how to make it cheaper when that exceeds
+    `CHEAPER_AFTER_MINUTES`."""
+    line = (f"bake: {outlook.texels:,} texels on {outlook.levels} levels, "
+            f"{outlook.paths:,} paths to trace")
+    minutes = outlook.minutes()
+    if minutes is not None:
+        line += f", roughly {minutes:.1f} min on {outlook.threads} threads"
+    print(line, file=sys.stderr, flush=True)
+    if minutes is not None and minutes > CHEAPER_AFTER_MINUTES:
+        print("bake: cheaper: --iso-range LO HI around the isovalues you will show, "
+              "--samples 32, --scale 0.5, or isolume view (bakes what is visible first); "
+              "Ctrl-C keeps the finished texels and the same command resumes",
+              file=sys.stderr, flush=True)
+
+
 def cmd_bake(args: argparse.Namespace) -> int:
     """Bake an illumination lattice (resumes when --out holds a compatible one)."""
     from isolume.app.render.images import check_output_path
@@ -118,7 +139,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
     vol = load_volume(args)
     try:
         lattice = bake(vol, config, out=out, workers=args.workers, progress=True,
-                       scheduler=args.scheduler)
+                       scheduler=args.scheduler, outlook=say_outlook)
     except KeyboardInterrupt:
         if out.exists():
             done = Lattice.load(out)

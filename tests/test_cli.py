@@ -309,3 +309,22 @@ def test_every_command_has_a_description_and_every_option_a_help_text():
 
     walk(build_parser(), "isolume")
     assert not missing, missing
+
+
+def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypatch):
+    """The outlook line counts the paths of the plan (texels × samples) and the rough
+    minutes; a bake expected to run past a minute names the cheaper options."""
+    import importlib
+
+    bake_module = importlib.import_module("isolume.baking.bake")
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
+                          "--bounces", "0", "--out", str(tmp_path / "s.npz"))
+    assert status == 0, err
+    line = next(x for x in err.splitlines() if x.startswith("bake: ") and "texels" in x)
+    texels = int(line.split()[1].replace(",", ""))
+    assert f"{2 * texels:,} paths to trace" in line and "min on" in line
+    assert "cheaper" not in err
+    monkeypatch.setattr(bake_module, "PATHS_PER_THREAD_SECOND", 1e-3)
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
+                          "--bounces", "0", "--out", str(tmp_path / "t.npz"))
+    assert status == 0 and "--iso-range" in err and "--scale 0.5" in err, err
