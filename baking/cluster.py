@@ -61,6 +61,9 @@ PATHS_PER_TASK = 65536
 """Expected paths per task: ~0.1–0.3 s of tracing, against ~2 ms of Dask overhead."""
 LOCAL_PREFIX = "local:"
 CONNECT_TIMEOUT_S = 20.0
+TASK_TRIES = 3
+"""A task Dask cancels (its worker lost with its inputs) is queued at most this often in
+all before the bake stops with the cluster's error."""
 SCENES_PER_WORKER = 3
 """Level scenes a worker process keeps (its own levels arrive in order; one more for a
 stolen task)."""
@@ -365,6 +368,18 @@ class _Level:
         return len(self.results) == len(self.texels)
 
 
+@dataclass(frozen=True)
+class _Task:
+    """One queued task: its level, its index there, `trace_task`'s arguments after the
+    level, its try (from 0) and the workers it prefers."""
+
+    level: int
+    index: int
+    args: tuple
+    try_: int
+    prefer: list | None
+
+
 class ClusterBackend:
     """A `TracingBackend` whose paths are traced by tasks on a Dask cluster; the lattice,
     the commits and the checkpoints stay with the `Baker` on this machine.
@@ -426,6 +441,7 @@ class ClusterBackend:
             raise BakeError(f"--scheduler {address}: no worker joined within "
                             f"{CONNECT_TIMEOUT_S:.0f} s (start some with "
                             "`dask worker ADDRESS`)") from None
+        self._shared = shared
         self._scattered = self.client.scatter(shared, broadcast=True, hash=False)
         self.traffic.job_bytes = _nbytes(shared)
         self.job = job
@@ -438,7 +454,7 @@ class ClusterBackend:
 
         self._passes += 1  # task keys must not repeat an earlier pass's (Dask reuses results)
         levels: dict[int, _Level] = {}
-        owner: dict = {}  # future -> (level, task index)
+        owner: dict = {}  # future -> its _Task
         stream = as_completed()
         next_submit, next_apply = work.first, work.first
         try:
@@ -452,7 +468,7 @@ class ClusterBackend:
                     next_apply += 1
                     continue
                 future = next(stream)
-                self._receive(future, owner, levels, report, next_apply)
+                self._receive(future, owner, levels, report, next_apply, stream)
         except BaseException:
             self.client.cancel(list(owner))
             raise
@@ -523,26 +539,46 @@ class ClusterBackend:
             part = texels[lo:hi]
             args = (plan.ids[part].astype(np.int64), plan.phase[part], plan.weight[part],
                     plan.high[part], work.done[part], work.remaining[part], upper[lo:hi])
-            future = self.client.submit(
-                trace_task, self._scattered, level, *args,
-                key=f"isolume-{self.token}-{self._passes}-{level}-{index}",
-                workers=prefer, allow_other_workers=True, priority=-level, pure=False)
-            owner[future] = (level, index)
-            stream.add(future)
+            self._submit_task(_Task(level, index, args, 0, prefer), owner, stream)
             slices.append(part)
-            self.traffic.tasks += 1
-            self.traffic.bytes_sent += sum(a.nbytes for a in args)
         return _Level(slices, {})
 
+    def _submit_task(self, task: _Task, owner: dict, stream) -> None:
+        """Queue one task (`trace_task`), its `try_` in its key (Dask reuses the results
+        of a key it has seen)."""
+        future = self.client.submit(
+            trace_task, self._scattered, task.level, *task.args,
+            key=f"isolume-{self.token}-{self._passes}-{task.level}-{task.index}-{task.try_}",
+            workers=task.prefer, allow_other_workers=True, priority=-task.level, pure=False)
+        owner[future] = task
+        stream.add(future)
+        self.traffic.tasks += 1
+        self.traffic.bytes_sent += sum(a.nbytes for a in task.args)
+
+    def _resubmit(self, future, task: _Task, owner: dict, stream) -> bool:
+        """Queue a task that Dask cancelled (a worker lost in flight can take a task's
+        inputs with it) once more, with the job scattered again if its copies are gone;
+        False after `TASK_TRIES` tries."""
+        if future.status != "cancelled" or task.try_ + 1 >= TASK_TRIES:
+            return False
+        if self._scattered.status != "finished":
+            self._scattered = self.client.scatter(self._shared, broadcast=True, hash=False)
+        self._submit_task(_Task(task.level, task.index, task.args, task.try_ + 1,
+                                task.prefer), owner, stream)
+        return True
+
     def _receive(self, future, owner: dict, levels: dict[int, _Level], report: PassReport,
-                 next_apply: int) -> None:
+                 next_apply: int, stream) -> None:
         """Take one finished task's result (once per task, whatever Dask re-ran)."""
-        level, index = owner.pop(future)
+        task = owner.pop(future)
+        level, index = task.level, task.index
         try:
             part: _Partial = future.result()
         except BakeError:
             raise
         except Exception as exc:
+            if self._resubmit(future, task, owner, stream):
+                return
             raise BakeError(f"cluster task {future.key} failed on the cluster: "
                             f"{type(exc).__name__}: {exc}") from None
         results = levels[level].results

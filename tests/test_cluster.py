@@ -236,3 +236,42 @@ def test_target_error_refinement_on_the_cluster_equals_the_local_one(cluster):
     remote = bake(vol, config, scheduler=cluster.scheduler_address)
     assert local.samples.max() > 8  # some texels were refined
     _same_bits(local, remote)
+
+
+def test_a_task_dask_cancels_is_queued_again(cluster, monkeypatch):
+    """A worker lost in flight can take a task's inputs with it: Dask cancels the task.
+    The backend queues it once more (a new key) and the lattice is the local one to the
+    bit; a task cancelled at every try stops the bake with the cluster's error."""
+    config = BakeConfig(samples=4, bounces=1, env="constant:1,1,1")
+    vol = make("engine", 24)
+    local = bake(vol, config, workers=2)
+    cluster_module.fingerprint()  # of the code as it is, before the patch below
+    submit = cluster_module.ClusterBackend._submit_task
+    cancelled = []
+
+    def cancelling(self, task, owner, stream, every=False):
+        submit(self, task, owner, stream)
+        if every or not cancelled:
+            future = next(f for f, t in owner.items() if t is task)
+            self.client.cancel([future])
+            cancelled.append(future.key)
+
+    monkeypatch.setattr(cluster_module.ClusterBackend, "_submit_task", cancelling)
+    with distributed.Client(cluster) as client:
+        baker = Baker(vol, config, backend=cluster_module.ClusterBackend(client=client))
+        try:
+            baker.run()
+        finally:
+            baker.close()
+    assert len(cancelled) == 1
+    _same_bits(local, baker.lattice)
+    monkeypatch.setattr(cluster_module.ClusterBackend, "_submit_task",
+                        lambda self, task, owner, stream: cancelling(self, task, owner,
+                                                                     stream, every=True))
+    with distributed.Client(cluster) as client:
+        baker = Baker(vol, config, backend=cluster_module.ClusterBackend(client=client))
+        with pytest.raises(BakeError, match="failed on the cluster"):
+            try:
+                baker.run()
+            finally:
+                baker.close()
