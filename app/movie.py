@@ -88,6 +88,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"frames in the movie (default {DEFAULT_FRAMES})")
     p.add_argument("--fps", type=float, default=DEFAULT_FPS,
                    help=f"frames per second of the MP4 (default {DEFAULT_FPS:g})")
+    p.add_argument("--turntable-light", choices=["camera", "world"], default=None,
+                   help="--kind turntable: the light turns with the camera, as on a real "
+                   "turntable where the object turns under the lamps (camera), or stays put "
+                   "while the camera circles (world) (default camera where the picture's "
+                   "light can turn, else world, said on stderr)")
     p.add_argument("--degrees", type=float, default=360.0,
                    help="turn over the movie about the up axis, degrees: a whole number of "
                    "turns loops seamlessly (default 360)")
@@ -151,6 +156,8 @@ def check_request(args: argparse.Namespace) -> Request:
         raise CLIError(f"--meter-frames {args.meter_frames}: expected at least 1")
     if not 0 <= args.crf <= 51:
         raise CLIError(f"--crf {args.crf}: expected 0 (lossless) to 51")
+    if args.turntable_light is not None and args.kind != "turntable":
+        raise CLIError("--turntable-light: only for --kind turntable")
     if args.iso_range is not None and args.kind != "iso":
         raise CLIError("--iso-range: only for --kind iso (the isovalue sweep)")
     if args.save_lattice is not None and (args.kind != "iso" or args.lattice is not None):
@@ -328,12 +335,18 @@ def run(args: argparse.Namespace) -> int:
     scene = Scene(vol, look.settings, el, dist, base=args.camera, normals=args.normals,
                   flip_normals=args.flip_normals, lattice=lattice, env_coeffs=look.env_coeffs,
                   traced=traced, workers=args.workers)
+    first = scene.camera(Shot(0, az, iso))
+    follows = False
     if request.kind == "light":
-        first = scene.camera(Shot(0, az, iso))
         scene = replace(scene, light=light_turn(look.settings.shading, lattice, traced, first,
                                                 look.settings, args.lattice))
+    elif request.kind == "turntable" and args.turntable_light != "world":
+        turn = turntable_light(args, look, lattice, traced, first)
+        follows = turn is not None
+        scene = replace(scene, light=turn)
     report_light(scene, args.lattice)
-    shots = make_shots(request.kind, request.frames, az, iso, request.degrees, iso_range)
+    shots = make_shots(request.kind, request.frames, az, iso, request.degrees, iso_range,
+                       light_follows=follows)
     t0 = time.perf_counter()
     with Stage(scene, args.gl) as stage:
         exposure, metered = movie_exposure(args, stage, shots)
@@ -344,6 +357,24 @@ def run(args: argparse.Namespace) -> int:
         print(f"isolume: warning: {empty} isovalue(s) show no surface", file=sys.stderr)
     print(summary(request, vol, scene, shots, exposure, metered, seconds))
     return 0
+
+
+def turntable_light(args: argparse.Namespace, look, lattice, traced, first):
+    """How a turntable's light turns with its camera (`app.movie_stage.LightTurn`), or None
+    where it cannot and ``--turntable-light`` did not ask for it (said on stderr).
+
+    Raises:
+        CLIError: ``--turntable-light camera`` asked for a turn the light cannot make.
+    """
+    try:
+        return light_turn(look.settings.shading, lattice, traced, first, look.settings,
+                          args.lattice, asked="--turntable-light camera")
+    except CLIError as exc:
+        if args.turntable_light == "camera":
+            raise
+        print(f"isolume: the light stays put while the camera circles ({exc})",
+              file=sys.stderr)
+        return None
 
 
 def report_light(scene: Scene, source: str | None) -> None:

@@ -73,13 +73,15 @@ def turn_steps(frames: int, degrees: float) -> list[float]:
 
 
 def make_shots(kind: str, frames: int, azimuth: float, iso: float, degrees: float,
-               iso_range: tuple[float, float] | None = None) -> list[Shot]:
+               iso_range: tuple[float, float] | None = None,
+               light_follows: bool = False) -> list[Shot]:
     """The (frames,) shots of a movie of `kind` (one of `KINDS`) from the starting
     `azimuth` (degrees) at isovalue `iso`; the sweep runs over `iso_range` (lo, hi),
-    both ends shown."""
+    both ends shown. A turntable whose `light_follows` turns the light with the camera
+    (the object turns under the lights, as on a real turntable)."""
     if kind == "turntable":
-        return [Shot(i, azimuth + turn, iso) for i, turn in enumerate(turn_steps(frames,
-                                                                                 degrees))]
+        return [Shot(i, azimuth + turn, iso, turn if light_follows else 0.0)
+                for i, turn in enumerate(turn_steps(frames, degrees))]
     if kind == "light":
         return [Shot(i, azimuth, iso, turn) for i, turn in enumerate(turn_steps(frames,
                                                                                 degrees))]
@@ -113,9 +115,11 @@ class LightTurn:
 
 
 def light_turn(shading: str, lattice: Lattice | None, traced: BakeConfig | None,
-               camera: Camera, settings: RenderSettings, source: str | None) -> LightTurn:
+               camera: Camera, settings: RenderSettings, source: str | None,
+               asked: str = "--kind light") -> LightTurn:
     """How the light turns for `shading` with `lattice` (from file `source`) or `traced`
-    (the `BakeConfig` of the light traced per view).
+    (the `BakeConfig` of the light traced per view); `asked`: the option that asks for
+    the turn (in the messages).
 
     Raises:
         CLIError: nothing in the picture's light can turn.
@@ -126,19 +130,19 @@ def light_turn(shading: str, lattice: Lattice | None, traced: BakeConfig | None,
     if mode.lattice == "sh":
         return LightTurn("environment")
     if mode.lattice == "occlusion":
-        raise CLIError(f"--kind light: shading {shading} shows a constant sky, which has "
+        raise CLIError(f"{asked}: shading {shading} shows a constant sky, which has "
                        "no direction to turn")
     if traced is not None:
         light = traced.lighting.turnable()
         if light is None:
             env, lights = traced.lighting.to_spec()
-            raise CLIError(f"--kind light turns a directional light or the sky's sun; --env "
+            raise CLIError(f"{asked} turns a directional light or the sky's sun; --env "
                            f"{env or 'none'} {' '.join(lights)} has neither: add --light "
                            "dir:X,Y,Z:R,G,B or a sky with a sun")
         return LightTurn("traced", tuple(light.direction))
     light = first_distant_light(settings.direct_lights or lattice_direct_lights(lattice))
     if light is None:
-        raise CLIError(f"--kind light: {source} holds all of its light (no sun or directional "
+        raise CLIError(f"{asked}: {source} holds all of its light (no sun or directional "
                        "light left to the pixels); bake with --direct-light pixels or --mode "
                        "sh, or leave out --lattice to trace each frame's light")
     return LightTurn("pixels", tuple(light.direction))

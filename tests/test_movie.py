@@ -97,7 +97,7 @@ def test_turntable_frames_differ_and_repeat_to_the_byte(tmp_path, capsys):
     runs = []
     for name in ("a", "b"):
         out, _ = _movie(capsys, "synthetic:engine:32", *SIZE, "--frames", 4,
-                        "--out", f"{tmp_path / name}/")
+                        "--turntable-light", "world", "--out", f"{tmp_path / name}/")
         assert "4 frames 64x64" in out
         runs.append(sorted((tmp_path / name).glob("frame_*.png")))
     assert [p.name for p in runs[0]] == [f"frame_000{i}.png" for i in range(4)]
@@ -113,7 +113,7 @@ def test_turntable_frames_differ_and_repeat_to_the_byte(tmp_path, capsys):
 
 def test_turntable_frame_is_the_render_at_its_azimuth_and_exposure(tmp_path, capsys):
     _movie(capsys, "synthetic:sphere:24", *SIZE, "--frames", 4, "--view", "10,20",
-           "--out", f"{tmp_path / 'spin'}/")
+           "--turntable-light", "world", "--out", f"{tmp_path / 'spin'}/")
     frames = _frames(tmp_path / "spin")
     exposure = _exposure_of(frames)
     for pixels, text in frames[1:3]:
@@ -121,6 +121,46 @@ def test_turntable_frame_is_the_render_at_its_azimuth_and_exposure(tmp_path, cap
                           f"{text['azimuth']},20", "--no-auto-exposure", "--exposure",
                           exposure)
         np.testing.assert_array_equal(pixels, picture)
+
+
+def test_a_turntable_turns_the_light_with_the_camera(tmp_path, capsys):
+    """On a real turntable the object turns under the lamps: a sphere under the default
+    sky and sun, its light traced per frame, looks the same in every frame (mean
+    brightness within 1 %; measured 0.05 % at 128²), while a camera circling under a
+    light that stays put sees its lit and its shadowed side (measured 16 %). The first
+    frame is the plain render. (The local modes' key light is placed from the camera in
+    either case.)"""
+    shading = "irradiance"
+    means = {}
+    for light in ("camera", "world"):
+        folder = tmp_path / light
+        _movie(capsys, "synthetic:sphere:24", *SIZE, "--frames", 6, "--shading", shading,
+               "--turntable-light", light, "--out", f"{folder}/")
+        frames = _frames(folder)
+        means[light] = np.array([pixels.astype(float).mean() for pixels, _ in frames])
+        if light == "camera":
+            first = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--shading",
+                            shading, "--no-auto-exposure", "--exposure",
+                            _exposure_of(frames))
+            np.testing.assert_array_equal(frames[0][0], first)
+    spread = {k: np.ptp(v) / v.mean() for k, v in means.items()}
+    assert spread["camera"] < 0.01 < 0.05 < spread["world"], spread
+
+
+def test_a_light_that_cannot_turn_stays_put_unless_asked(tmp_path, capsys):
+    """A lattice that holds all its light cannot turn it: the turntable says so and keeps
+    the light in place; asked for with --turntable-light camera, it is a one-line error."""
+    lattice = tmp_path / "all.npz"
+    bake(volumes.load("synthetic:sphere:24"), BakeConfig(samples=2, bounces=0, env="sky:sun=3",
+                                        direct_light="lattice", iso_range=(0.4, 0.6)),
+         workers=2).save(lattice)
+    _, err = _movie(capsys, "synthetic:sphere:24", *SIZE, "--frames", 2, "--lattice",
+                    lattice, "--out", f"{tmp_path / 'put'}/")
+    assert "the light stays put" in err
+    status, _, err = _run(capsys, "movie", *GL, "synthetic:sphere:24", *SIZE, "--frames", 2,
+                          "--lattice", lattice, "--turntable-light", "camera", "--out",
+                          f"{tmp_path / 'no'}/")
+    assert status == 2 and err.count("\n") == 1 and "--turntable-light camera" in err, err
 
 
 def test_exposure_is_metered_once_for_the_movie(tmp_path, capsys):
