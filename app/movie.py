@@ -84,6 +84,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kind", default="turntable", choices=KINDS,
                    help="what turns or changes: the camera's azimuth (turntable), the "
                    "light's (light) or the isovalue (iso) (default turntable)")
+    p.add_argument("--turntable", dest="kind", action="store_const", const="turntable",
+                   help="the same as --kind turntable")
+    p.add_argument("--sweep", metavar="LO:HI", default=None,
+                   help="the same as --kind iso --iso-range LO HI (default: no sweep)")
     p.add_argument("--frames", type=int, default=DEFAULT_FRAMES,
                    help=f"frames in the movie (default {DEFAULT_FRAMES})")
     p.add_argument("--fps", type=float, default=DEFAULT_FPS,
@@ -140,8 +144,22 @@ class Request:
     crf: int
 
 
+def apply_sweep(args: argparse.Namespace) -> None:
+    """``--sweep LO:HI`` as ``--kind iso --iso-range LO HI`` (in `args`)."""
+    if args.sweep is None:
+        return
+    if args.iso_range is not None:
+        raise CLIError("--sweep and --iso-range: give one of them")
+    try:
+        lo, hi = (float(v) for v in args.sweep.split(":"))
+    except ValueError:
+        raise CLIError(f"--sweep {args.sweep!r}: expected LO:HI, e.g. 0.2:0.6") from None
+    args.kind, args.iso_range = "iso", [lo, hi]
+
+
 def check_request(args: argparse.Namespace) -> Request:
     """The options that need no volume, checked first (`CLIError`, `OutputError`: one line)."""
+    apply_sweep(args)
     from isolume.app.movie_output import check_movie_output, is_folder
     from isolume.app.render.camera import parse_view
     from isolume.app.render.images import check_output_path

@@ -331,3 +331,23 @@ def test_a_lattice_refuses_a_sweep_beyond_its_range(tmp_path, capsys, lattices):
                           "--out", f"{tmp_path}/")
     assert status == 2 and "baked for isovalues 0.4 to 0.6" in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_sweep_and_turntable_shorthands(tmp_path, capsys):
+    """``--sweep LO:HI`` draws the frames of ``--kind iso --iso-range LO HI`` and
+    ``--turntable`` those of ``--kind turntable``; a malformed sweep is one line."""
+    pairs = [(["--sweep", "0.35:0.65"], ["--kind", "iso", "--iso-range", "0.35", "0.65"]),
+             (["--turntable"], ["--kind", "turntable"])]
+    for short, long in pairs:
+        folders = []
+        for name, options in (("short", short), ("long", long)):
+            folder = tmp_path / f"{long[1]}-{name}"
+            _movie(capsys, "synthetic:sphere:24", *SIZE, "--frames", 3, *options,
+                   "--out", f"{folder}/")
+            folders.append(sorted(folder.glob("frame_*.png")))
+        assert len(folders[0]) == 3
+        for a, b in zip(*folders, strict=True):
+            assert a.read_bytes() == b.read_bytes()
+    status, _, err = _run(capsys, "movie", *GL, "synthetic:sphere:24", "--sweep", "0.3",
+                          "--out", f"{tmp_path / 'bad'}/")
+    assert status == 2 and err.count("\n") == 1 and "LO:HI" in err, err
