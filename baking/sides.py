@@ -69,7 +69,7 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
         if scene.empty:
             continue
         open_low, open_high = open_rays(scene, volume, config, ids[on], points[on],
-                                        float(levels[k]))
+                                        float(levels[k]), default)
         high[on] = side_rule(open_low, open_high, parity(geometry, ids[on]), default)
     return high
 
@@ -101,13 +101,19 @@ def level_surface(volume: volumes.Volume, iso: float):
 
 
 def open_rays(scene, volume: volumes.Volume, config: BakeConfig, ids: np.ndarray,
-              points: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+              points: np.ndarray, level: float, default: bool
+              ) -> tuple[np.ndarray, np.ndarray]:
     """How many of `PROBES` rays, cosine-distributed about each side's normal from the
     (N, 3) `points` on the level ρ = `level` (offset from the surface along that normal),
     meet nothing. Cosine-distributed, because a camera sees a patch in proportion to its
     projected area. None, on a side whose offset origin does not lie on that side of the
     level (a wall or a fold thinner than the offset: a path from there would start on the
     other side).
+
+    The side other than the `default` one (high-value when False) is probed first; the
+    default side only where that one is open, since where it is closed `side_rule` lights
+    the default side whatever the default side's count (left 0 there). On a closed object
+    that halves the rays.
 
     Returns:
         open_low, open_high: (N,) int counts for the low- and the high-value side.
@@ -116,14 +122,22 @@ def open_rays(scene, volume: volumes.Volume, config: BakeConfig, ids: np.ndarray
                                  ).astype(np.float64)  # towards low values
     offset = max(config.offset, PROBE_OFFSET_VOXELS) * float(np.mean(volume.spacing))
     key = np.uint32(seed_key(config.seed ^ SALT))
-    counts = []
-    for sign in (1.0, -1.0):
-        origins = points + sign * offset * normals
-        unblocked = unblocked_rays(scene, key, ids, origins, sign * normals)
-        beyond = volumes.value_at(volume, origins) - level
-        on_side = beyond < 0 if sign > 0 else beyond > 0
-        counts.append(np.where(on_side, unblocked, 0))
-    return counts[0], counts[1]
+
+    def count(sign: float, which: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(points), np.int64)
+        if which.any():
+            origins = points[which] + sign * offset * normals[which]
+            unblocked = unblocked_rays(scene, key, ids[which], origins,
+                                       sign * normals[which])
+            beyond = volumes.value_at(volume, origins) - level
+            on_side = beyond < 0 if sign > 0 else beyond > 0
+            out[which] = np.where(on_side, unblocked, 0)
+        return out
+
+    other_sign = 1.0 if default else -1.0  # the low side's normal is +normals
+    other = count(other_sign, np.ones(len(points), bool))
+    mine = count(-other_sign, other > 0)
+    return (other, mine) if default else (mine, other)
 
 
 def unblocked_rays(scene, key: np.uint32, ids: np.ndarray, origins: np.ndarray,
