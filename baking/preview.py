@@ -277,6 +277,11 @@ class Previewer:
         """Preview work is waiting for `step`."""
         return bool(self._queue)
 
+    @property
+    def next_paths(self) -> int | None:
+        """Paths per texel of the pass `step` works on next (None: idle)."""
+        return self._queue[0][0] if self._queue else None
+
     def set_view(self, iso: float, cells: np.ndarray, eye: np.ndarray | None = None,
                  points: np.ndarray | None = None) -> np.ndarray:
         """A new view (isovalue, (N,) flat base ids of the visible cells): run its first

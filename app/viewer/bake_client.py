@@ -29,6 +29,9 @@ from isolume import volumes
 from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 
+PLAN_PREVIEW_PATHS = 64
+"""Preview passes of at most this many paths go on while a plan is made (`_plan`)."""
+
 
 class SharedLattice:
     """A `baking.Lattice` whose arrays live in shared memory blocks.
@@ -330,10 +333,11 @@ class _BakeProcess:
         return True
 
     def _plan(self, config):
-        """Make the Baker for `config` on a thread; meanwhile every new view gets its first
-        preview pass, but the further passes wait: the plan takes seconds, they take tens
-        (CThead: the plan was ready after 29 s with the passes going on beside it). Its
-        stages are reported as ``("planning", stage)``. None when told to stop."""
+        """Make the Baker for `config` on a thread; meanwhile every new view gets its
+        preview passes up to `PLAN_PREVIEW_PATHS` paths (the picture within 1.2× of the
+        fully baked error), and the further passes wait: the plan takes seconds, they take
+        tens (CThead: the plan was ready after 29 s with every pass going on beside it).
+        Its stages are reported as ``("planning", stage)``. None when told to stop."""
         import threading
 
         from isolume.baking.bake import Baker
@@ -355,7 +359,11 @@ class _BakeProcess:
         planner = threading.Thread(target=make, name="isolume-plan", daemon=True)
         planner.start()
         while planner.is_alive():
-            message = self.receive_within(0.1)
+            paths = self.previewer.next_paths
+            beside = paths is not None and paths <= PLAN_PREVIEW_PATHS
+            if beside:
+                self.preview_step()
+            message = self.receive_within(None if beside else 0.1)
             if message is not None and not self._keep(message):
                 return None
         if "error" in made:
