@@ -217,11 +217,14 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     # move leaves it floating in front of that surface rather than buried behind it.
     reach = newton_reach(volume, config)
     tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
-    say(f"seen sides on {len(levels)} levels")
-    high = lit_sides(volume, config, geometry, ids, centres, levels, lower, weight, reach)
     say(f"paths onto {len(levels)} levels")
     uses_lo, uses_hi = weight < 1, weight > 0
     landing = np.full((len(ids), 2, 3), np.nan)
+    for side, uses in ((0, uses_lo), (1, uses_hi)):
+        landing[uses, side] = project_to_level(volume, centres[uses],
+                                               levels[lower + side][uses], max_move=reach)
+    say(f"seen sides on {len(levels)} levels")
+    high = lit_sides(volume, config, geometry, ids, landing, levels, lower, weight)
     ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol, high,
                               uses_lo, landing[:, 0])
     ok_hi, move_hi = _reaches(volume, config, centres, levels[lower + 1], reach, tol, high,
@@ -238,15 +241,16 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
 
 
 def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
-              ids: np.ndarray, centres: np.ndarray, levels: np.ndarray, lower: np.ndarray,
-              weight: np.ndarray, reach: float) -> np.ndarray:
+              ids: np.ndarray, landing: np.ndarray, levels: np.ndarray, lower: np.ndarray,
+              weight: np.ndarray) -> np.ndarray:
     """(T,) bool: is each texel lit on the high-value side of its surfaces
-    (`baking.sides.choose_sides`, probed on its nearer level)?"""
+    (`baking.sides.choose_sides`, probed where it lands on its nearer level: `landing`
+    (T, 2, 3) as `Plan.landing`, set for the levels the texel uses)?"""
     if config.sides == "normals":
         return np.full(len(ids), bool(config.flip_normals))
-    nearer = lower + (weight >= 0.5)
-    points = project_to_level(volume, centres, levels[nearer], max_move=reach)
-    return choose_sides(volume, config, geometry, ids, points, levels, nearer)
+    upper = weight >= 0.5
+    points = np.where(upper[:, None], landing[:, 1], landing[:, 0])
+    return choose_sides(volume, config, geometry, ids, points, levels, lower + upper)
 
 
 def resolved_iso_range(volume: volumes.Volume, config: BakeConfig) -> tuple[float, float]:
@@ -442,7 +446,8 @@ def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
     """Can each point be moved onto its level within `reach` world units, and do its paths
     start on its lit side (`high`, (N,) bool) of that level's surface (`starts_outside`)?
     Decided for the (N,) `which` points only, whose landing points are written into
-    `landed` (N, 3); the others keep `ok` (default True) and `moved` (default 0).
+    `landed` (N, 3) where it holds none yet (NaN); the others keep `ok` (default True) and
+    `moved` (default 0).
 
     Returns:
         ok: (N,) bool; moved: (N,) distance of the (clamped) move, world units.
@@ -450,8 +455,10 @@ def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
     ok = np.ones(len(points), bool) if ok is None else ok.copy()
     moved = np.zeros(len(points)) if moved is None else moved.copy()
     if which.any():
-        landed[which] = project_to_level(volume, points[which], levels[which],
-                                         max_move=reach)
+        todo = which & np.isnan(landed[:, 0])
+        if todo.any():
+            landed[todo] = project_to_level(volume, points[todo], levels[todo],
+                                            max_move=reach)
         ok[which] = (np.abs(volumes.value_at(volume, landed[which]) - levels[which])
                      <= tol[which]) & starts_outside(volume, config, landed[which],
                                                      levels[which], high[which])
