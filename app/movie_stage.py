@@ -240,6 +240,8 @@ class Stage:
         self._iso: float | None = None
         self._triangles = 0
         self._kept: dict[int, Lattice] = {}
+        self._traced_scene: tuple[float, object] | None = None  # (iso, Embree scene)
+        self._tracing: tuple[BakeConfig, object] | None = None  # (light, preview_tracing)
         if scene.lattice is not None:
             self.renderer.set_lattice(scene.lattice, self._texel_isovalues(scene.lattice))
 
@@ -287,13 +289,28 @@ class Stage:
             from isolume.app.render.view_gi import view_lattice
 
             position = self.renderer.render(camera, replace(settings, shading="position"))
-            lattice = view_lattice(self.scene.volume, self.scene.traced_config(shot),
-                                   shot.iso, position.linear[position.mask], camera.eye,
-                                   workers=self.scene.workers, progress=False)
+            config = self.scene.traced_config(shot)
+            scene, tracing = self._traced(shot.iso, config)
+            lattice = view_lattice(self.scene.volume, config, shot.iso,
+                                   position.linear[position.mask], camera.eye,
+                                   workers=self.scene.workers, progress=False, scene=scene,
+                                   tracing=tracing)
         if keep and lattice is not None:
             self._kept[shot.index] = lattice
         self.renderer.set_lattice(lattice, None if lattice is None
                                   else self._texel_isovalues(lattice))
+
+    def _traced(self, iso: float, config: BakeConfig):
+        """The Embree scene of the surface ρ = `iso` and the preview tracing of `config`
+        the frames' traced light uses, each made once (a turntable or a light orbit keeps
+        one isovalue; a light that turns is a new `config` every frame)."""
+        from isolume.baking.preview import preview_tracing, surface_scene
+
+        if self._traced_scene is None or self._traced_scene[0] != iso:
+            self._traced_scene = (iso, surface_scene(self.scene.volume, iso, 1))
+        if self._tracing is None or self._tracing[0] != config:
+            self._tracing = (config, preview_tracing(self.scene.volume, config))
+        return self._traced_scene[1], self._tracing[1]
 
     def draw(self, shot: Shot, exposure: float, keep: bool = False) -> Frame:
         """Draw `shot` with the linear `exposure`; `keep`: keep its traced light for one

@@ -30,7 +30,8 @@ CHUNK_PATHS = 1 << 19
 
 
 def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
-                 eye: np.ndarray, *, workers: int | None = None, progress: bool = True):
+                 eye: np.ndarray, *, workers: int | None = None, progress: bool = True,
+                 scene=None, tracing=None):
     """A lattice lit for the view whose visible surface points are `points`.
 
     Args:
@@ -43,6 +44,10 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
             point nearest it, on the side the eye sees (`baking.preview.seen_starts`).
         workers: tracing threads (None: all cores).
         progress: report on stderr.
+        scene, tracing: the Embree scene of the surface ρ = `iso`
+            (`baking.preview.surface_scene` at step 1) and the `preview_tracing` of
+            (volume, config), when the caller keeps them for several views (a movie);
+            None: made here.
 
     Returns:
         A `baking.lattice.Lattice` whose previews (``preview``, ``preview_paths``) hold
@@ -66,10 +71,11 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     lattice.preview_paths = np.zeros(geometry.shape, np.uint16)
     texels = cell_corners(geometry.shape, visible_cells(geometry, points))
     report = _Progress(progress, int(config.samples), len(texels))
-    scene = surface_scene(volume, iso, 1) if len(texels) else None
-    if scene is None:
+    if scene is None and len(texels):
+        scene = surface_scene(volume, iso, 1)
+    if scene is None or not len(texels):
         return lattice
-    tracing = preview_tracing(volume, config)
+    tracing = tracing or preview_tracing(volume, config)
     seen = seen_surface(scene, volume, config, geometry, eye, points)
     chunk = max(256, CHUNK_PATHS // int(config.samples))
     for lo in range(0, len(texels), chunk):
