@@ -10,6 +10,7 @@ from isolume import volumes
 from isolume.app.options import (
     CLIError,
     bake_config,
+    check_served,
     environment_coefficients,
     floats,
     isovalue,
@@ -86,12 +87,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume "
                        "bake); without one, irradiance is traced for the view")
     iso = isovalue(vol, args.iso)
-    if lattice is not None:
-        from isolume.baking.plan import outside_served_range
-
-        refused = outside_served_range(lattice.meta, iso, args.lattice)
-        if refused:
-            raise CLIError(refused)
+    check_served(lattice, iso, args.lattice)
     frame, mesh = render_volume(
         vol, iso, settings, view=view, camera=args.camera, backend=args.gl,
         normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,

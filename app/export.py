@@ -23,6 +23,7 @@ from isolume import volumes
 from isolume.app.options import (
     CLIError,
     add_volume_options,
+    check_served,
     environment_coefficients,
     floats,
     isovalue,
@@ -196,12 +197,7 @@ def _served_isovalue(args: argparse.Namespace, volume: volumes.Volume, lattice) 
     """The isovalue to export (--iso, or the first suggested), checked against the data
     range and the isovalues the lattice serves."""
     iso = isovalue(volume, args.iso)
-    if lattice is not None:
-        from isolume.baking.plan import outside_served_range
-
-        refused = outside_served_range(lattice.meta, iso, args.lattice)
-        if refused:
-            raise CLIError(refused)
+    check_served(lattice, iso, args.lattice)
     return iso
 
 

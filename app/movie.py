@@ -33,6 +33,7 @@ from isolume.app.options import (
     CLIError,
     add_render_options,
     add_volume_options,
+    check_served,
     environment_coefficients,
     floats,
     isovalue,
@@ -245,7 +246,7 @@ def sweep_range(args: argparse.Namespace, vol: volumes.Volume, lattice: Lattice 
     """(lo, hi) isovalues of a sweep: ``--iso-range``, else the lattice's served range
     (`baking.plan.served_range`), else `SWEEP_FRACTION` of the data range around `iso`;
     each end checked against the data and the lattice."""
-    from isolume.baking.plan import outside_served_range, served_range
+    from isolume.baking.plan import served_range
 
     vmin, vmax = vol.value_range
     half = SWEEP_FRACTION * (vmax - vmin)
@@ -255,22 +256,8 @@ def sweep_range(args: argparse.Namespace, vol: volumes.Volume, lattice: Lattice 
         raise CLIError(f"--iso-range {lo:g} {hi:g}: expected LO < HI")
     for value in (lo, hi):
         volumes.check_isovalue(vol, value)
-        refused = lattice is not None and outside_served_range(lattice.meta, value,
-                                                               args.lattice)
-        if refused:
-            raise CLIError(refused)
+        check_served(lattice, value, args.lattice)
     return float(lo), float(hi)
-
-
-def check_served(args: argparse.Namespace, lattice: Lattice | None, iso: float) -> None:
-    """`CLIError` when `lattice` was not baked for isovalue `iso` (as ``render``)."""
-    if lattice is None:
-        return
-    from isolume.baking.plan import outside_served_range
-
-    refused = outside_served_range(lattice.meta, iso, args.lattice)
-    if refused:
-        raise CLIError(refused)
 
 
 def bake_sweep(vol: volumes.Volume, traced: BakeConfig, iso_range: tuple[float, float],
@@ -345,7 +332,7 @@ def run(args: argparse.Namespace) -> int:
     iso = isovalue(vol, args.iso)
     iso_range = sweep_range(args, vol, lattice, iso) if request.kind == "iso" else None
     if iso_range is None:
-        check_served(args, lattice, iso)
+        check_served(lattice, iso, args.lattice)
     traced = look.traced
     if iso_range is not None and traced is not None:
         lattice, traced = bake_sweep(vol, traced, iso_range, args), None

@@ -84,6 +84,18 @@ def load_lattice(path: str | None, volume: volumes.Volume):
     return Lattice.load(path, volume)
 
 
+def check_served(lattice, iso: float, source: str | None) -> None:
+    """`CLIError` (one line) when `lattice` (from file `source`; None: nothing to check)
+    was not baked for isovalue `iso` (`baking.plan.outside_served_range`)."""
+    if lattice is None:
+        return
+    from isolume.baking.plan import outside_served_range
+
+    refused = outside_served_range(lattice.meta, iso, source)
+    if refused:
+        raise CLIError(refused)
+
+
 def environment_coefficients(spec: str | None, lattice, window: str):
     """(n², 3) SH coefficients of the display environment for an SH lattice."""
     from isolume.baking import sh
