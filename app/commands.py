@@ -11,14 +11,11 @@ from isolume.app.options import (
     CLIError,
     bake_config,
     check_served,
-    environment_coefficients,
-    floats,
     isovalue,
     load_lattice,
     load_volume,
-    parse_albedo,
     parse_size,
-    view_light,
+    shading_look,
 )
 
 
@@ -50,48 +47,24 @@ def cmd_render(args: argparse.Namespace) -> int:
     from isolume.app.render.camera import parse_view
     from isolume.app.render.images import check_output_path, write_image
     from isolume.app.render.offscreen import render_volume
-    from isolume.app.render.settings import LATTICE_MODES, RenderSettings
-    from isolume.app.state import light_settings
 
     if args.out is None:
         raise CLIError("render: --out FILE.png or FILE.exr is required (or --state FILE)")
     out = check_output_path(args.out)
     vol = load_volume(args)
     lattice = load_lattice(args.lattice, vol)
-    shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
-    if lattice is not None and lattice.kind == "irradiance" and (args.env or args.light):
-        raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
-                       f"lighting ({lattice.config.env or 'no environment'}); "
-                       "bake again for other light, or leave out --lattice")
-    traced = view_light(args, vol) if lattice is None and shading == "irradiance" else None
-    if args.albedo is not None:
-        albedo = parse_albedo(args.albedo)
-    elif lattice is not None:
-        albedo = lattice.config.albedo
-    else:
-        albedo = (0.8, 0.8, 0.8)
     try:
-        view = parse_view(args.view)
-        settings = RenderSettings(
-            size=parse_size(args.size), shading=shading, exposure=args.exposure,
-            auto_exposure=not args.no_auto_exposure, tonemap=args.tonemap, albedo=albedo,
-            env_rotation=floats(args.env_rotation, 2, "--env-rotation"),
-            **light_settings(args.light_angles, lattice),
-        )
+        view, size = parse_view(args.view), parse_size(args.size)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
-    env_coeffs = None
-    if shading == "sh" and lattice is not None:
-        env_coeffs = environment_coefficients(args.env, lattice, args.sh_window)
-    if shading in LATTICE_MODES and lattice is None and traced is None:
-        raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume "
-                       "bake); without one, irradiance is traced for the view")
+    look = shading_look(args, vol, lattice, size)
+    settings, traced = look.settings, look.traced
     iso = isovalue(vol, args.iso)
     check_served(lattice, iso, args.lattice)
     frame, mesh = render_volume(
         vol, iso, settings, view=view, camera=args.camera, backend=args.gl,
         normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,
-        env_coeffs=env_coeffs, view_light=traced, workers=args.workers, progress=True,
+        env_coeffs=look.env_coeffs, view_light=traced, workers=args.workers, progress=True,
     )
     if mesh.empty:
         print(f"isolume: warning: {mesh.message}", file=sys.stderr)

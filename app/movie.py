@@ -11,6 +11,7 @@ frames are drawn by `app.movie_stage`, written by `app.movie_output`.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -28,26 +29,24 @@ from isolume.app.movie_stage import (
     make_shots,
     meter,
     metered_shots,
+    turn_steps,
 )
 from isolume.app.options import (
     CLIError,
     add_render_options,
     add_volume_options,
     check_served,
-    environment_coefficients,
-    floats,
     isovalue,
     load_lattice,
     load_volume,
-    parse_albedo,
     parse_size,
-    view_light,
+    shading_look,
 )
-from isolume.app.state import add_state_argument, light_settings
+from isolume.app.state import add_state_argument
 
 if TYPE_CHECKING:
-    import numpy as np
 
+    from isolume.app.render.camera import Camera
     from isolume.app.render.settings import RenderSettings
     from isolume.baking.config import BakeConfig
     from isolume.baking.lattice import Lattice
@@ -194,53 +193,6 @@ def check_request(args: argparse.Namespace) -> Request:
                    is_folder(args.out), args.crf)
 
 
-@dataclass(frozen=True)
-class Look:
-    """How the frames are shaded, as ``isolume render`` would with the same options.
-
-    Attributes:
-        settings: the frames' `RenderSettings` (the movie's exposure replaces its own).
-        traced: the `BakeConfig` of the light traced per view (no lattice), or None.
-        env_coeffs: (n², 3) SH coefficients of the environment ("sh"), or None.
-    """
-
-    settings: RenderSettings
-    traced: BakeConfig | None = None
-    env_coeffs: np.ndarray | None = None
-
-
-def shading_look(args: argparse.Namespace, request: Request, vol: volumes.Volume,
-                 lattice: Lattice | None) -> Look:
-    """The `Look` of `args` for `vol` and `lattice` (None: none); `CLIError` where
-    ``isolume render`` refuses the same options."""
-    from isolume.app.render.settings import LATTICE_MODES, RenderSettings
-
-    shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
-    if lattice is not None and lattice.kind == "irradiance" and (args.env or args.light):
-        raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
-                       f"lighting ({lattice.config.env or 'no environment'}); "
-                       "bake again for other light, or leave out --lattice")
-    traced = view_light(args, vol) if lattice is None and shading == "irradiance" else None
-    if args.albedo is not None:
-        albedo = parse_albedo(args.albedo)
-    else:
-        albedo = lattice.config.albedo if lattice is not None else (0.8, 0.8, 0.8)
-    try:
-        settings = RenderSettings(
-            size=request.size, shading=shading, exposure=args.exposure, tonemap=args.tonemap,
-            albedo=albedo, env_rotation=floats(args.env_rotation, 2, "--env-rotation"),
-            **light_settings(args.light_angles, lattice))
-    except ValueError as exc:
-        raise CLIError(str(exc)) from None
-    if shading in LATTICE_MODES and lattice is None and traced is None:
-        raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume "
-                       "bake); without one, irradiance is traced for each frame")
-    env_coeffs = None
-    if shading == "sh" and lattice is not None:
-        env_coeffs = environment_coefficients(args.env, lattice, args.sh_window)
-    return Look(settings, traced, env_coeffs)
-
-
 def sweep_range(args: argparse.Namespace, vol: volumes.Volume, lattice: Lattice | None,
                 iso: float) -> tuple[float, float]:
     """(lo, hi) isovalues of a sweep: ``--iso-range``, else the lattice's served range
@@ -276,12 +228,16 @@ def bake_sweep(vol: volumes.Volume, traced: BakeConfig, iso_range: tuple[float, 
     return bake(vol, config, out=out, workers=args.workers, progress=True)
 
 
-def frame_text(kind: str, shot: Shot, elevation: float, exposure: float,
+def frame_text(kind: str, shot: Shot, camera: Camera, exposure: float,
                settings: RenderSettings) -> dict[str, str]:
-    """The PNG text chunks of a frame: what it shows and the exposure it was drawn with
-    (numbers as Python reads them back exactly)."""
+    """The PNG text chunks of a frame: what it shows, from which `camera` (the whole
+    camera as a state file's ``camera`` holds it: `app.state`), and the exposure it was
+    drawn with (numbers as Python reads them back exactly)."""
+    from dataclasses import asdict
+
     return {"Software": "isolume movie", "kind": kind, "frame": str(shot.index),
-            "azimuth": repr(shot.azimuth), "elevation": repr(elevation),
+            "azimuth": repr(shot.azimuth), "elevation": repr(camera.elevation),
+            "camera": json.dumps(asdict(camera)),
             "isovalue": repr(shot.iso), "light turn": repr(shot.turn),
             "exposure": repr(exposure), "shading": settings.shading,
             "tonemap": settings.tonemap}
@@ -309,13 +265,12 @@ def write_frames(request: Request, stage: Stage, shots: list[Shot], exposure: fl
 
     writer = (PngFrames(request.out, request.frames) if request.folder
               else Mp4Frames(request.out, request.size, request.fps, request.crf, comment))
-    elevation = stage.scene.elevation
     with writer, tqdm(total=len(shots), unit="frame", desc=request.kind, file=sys.stderr,
                       dynamic_ncols=True) as bar:
         for shot in shots:
             frame = stage.draw(shot, exposure)
             writer.write(shot.index, frame.srgb, frame_text(
-                request.kind, shot, elevation, exposure, stage.scene.settings))
+                request.kind, shot, stage.scene.camera(shot), exposure, stage.scene.settings))
             bar.update()
     others = writer.others() if request.folder else []
     if others:
@@ -323,12 +278,26 @@ def write_frames(request: Request, stage: Stage, shots: list[Shot], exposure: fl
               "files (not of this movie)", file=sys.stderr)
 
 
+def movie_camera(volume, request: Request, iso: float,
+                 iso_range: tuple[float, float] | None):
+    """The camera of the first frame at ``--view`` (`request.view`) that frames the surface
+    of every frame (the sweep's `iso_range`, else `iso`) from every azimuth the movie
+    turns to (`app.render.renderer.framed_camera`), so that nothing zooms."""
+    from isolume.app.render.renderer import framed_camera
+
+    az = request.view[0]
+    azimuths = (tuple(az + t for t in turn_steps(request.frames, request.degrees))
+                if request.kind == "turntable" else ())
+    lo, hi = iso_range if iso_range is not None else (iso, None)
+    return framed_camera(volume, lo, request.view, request.size, iso_hi=hi, azimuths=azimuths)
+
+
 def run(args: argparse.Namespace) -> int:
     """Render the movie; returns the exit status."""
     request = check_request(args)
     vol = load_volume(args)
     lattice = load_lattice(args.lattice, vol)
-    look = shading_look(args, request, vol, lattice)
+    look = shading_look(args, vol, lattice, request.size, per="frame")
     iso = isovalue(vol, args.iso)
     iso_range = sweep_range(args, vol, lattice, iso) if request.kind == "iso" else None
     if iso_range is None:
@@ -336,8 +305,9 @@ def run(args: argparse.Namespace) -> int:
     traced = look.traced
     if iso_range is not None and traced is not None:
         lattice, traced = bake_sweep(vol, traced, iso_range, args), None
-    az, el, dist = request.view
-    scene = Scene(vol, look.settings, el, dist, base=args.camera, normals=args.normals,
+    az = request.view[0]
+    camera = args.camera or movie_camera(vol, request, iso, iso_range)
+    scene = Scene(vol, look.settings, camera, normals=args.normals,
                   flip_normals=args.flip_normals, lattice=lattice, env_coeffs=look.env_coeffs,
                   traced=traced, workers=args.workers)
     first = scene.camera(Shot(0, az, iso))

@@ -32,7 +32,7 @@ from isolume.app.render.lights import (
     key_direction,
     lattice_direct_lights,
 )
-from isolume.app.render.renderer import SurfaceRenderer, default_camera
+from isolume.app.render.renderer import SurfaceRenderer
 from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
 
 if TYPE_CHECKING:
@@ -156,10 +156,8 @@ class Scene:
         volume: the field.
         settings: the frames' look (its exposure and automatic exposure are replaced by
             the movie's fixed exposure).
-        elevation: the camera's elevation, degrees.
-        distance: the camera's distance, volume diagonals (None: the default).
-        base: the camera the shots turn (a saved view's: its target, pan, elevation and
-            distance), or None: `app.render.renderer.default_camera`.
+        base: the camera every shot turns to its azimuth (a saved view's, or one that
+            frames every shot: `app.movie.movie_camera`).
         normals, flip_normals: how the mesh's normals are made (`volumes.isosurface`).
         lattice: the illumination lattice every frame reads, or None.
         env_coeffs: (n², 3) SH coefficients of the environment ("sh"), or None.
@@ -171,9 +169,7 @@ class Scene:
 
     volume: volumes.Volume
     settings: RenderSettings
-    elevation: float
-    distance: float | None
-    base: Camera | None = None
+    base: Camera
     normals: str = "smooth"
     flip_normals: bool = False
     lattice: Lattice | None = None
@@ -183,11 +179,8 @@ class Scene:
     workers: int | None = None
 
     def camera(self, shot: Shot) -> Camera:
-        """The camera of `shot`: `base`, or `app.render.renderer.default_camera`, at the
-        shot's azimuth."""
-        if self.base is not None:
-            return replace(self.base, azimuth=shot.azimuth)
-        return default_camera(self.volume, (shot.azimuth, self.elevation, self.distance))
+        """The camera of `shot`: `base` at the shot's azimuth."""
+        return replace(self.base, azimuth=shot.azimuth)
 
     def frame_settings(self, shot: Shot, exposure: float) -> RenderSettings:
         """The settings of `shot`: the fixed linear `exposure` (no automatic exposure) and

@@ -1,6 +1,6 @@
 """``isolume reference``: a path-traced reference image of the displayed isosurface.
 
-Same camera as ``isolume render`` (`app.render.renderer.default_camera`, pixel-centre rays from
+Same camera as ``isolume render`` (`app.render.renderer.framed_camera`, pixel-centre rays from
 `Camera.primary_rays`), same lighting as ``isolume bake`` (the baker's integrator). Writes
 
 * ``FILE.exr``: linear radiance (``RGB``), its per-pixel standard error (``stderr.R/G/B``)
@@ -53,7 +53,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spp", type=int, default=64, help="samples (paths) per pixel (default 64)")
     p.add_argument("--size", default="512x512", help="WxH pixels (default 512x512)")
     p.add_argument("--view", default="30,30",
-                   help="AZ,EL[,DIST]: degrees, diagonals (default 30,30)")
+                   help="AZ,EL[,DIST]: azimuth and elevation (degrees) around the surface's "
+                   "box, DIST in the box's diagonals (default 30,30 and as near as frames "
+                   "the box)")
     p.add_argument("--env", default=DEFAULT_ENV,
                    help="constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular] | none "
                    f"(default {DEFAULT_ENV}, as render, view and bake)")
@@ -90,16 +92,18 @@ def _check_numbers(args: argparse.Namespace) -> None:
         raise CLIError(f"--workers {args.workers}: expected at least 1")
 
 
-def _camera(args: argparse.Namespace, volume):
-    """(camera, (width, height)) from --view and --size, as ``isolume render`` makes them."""
+def _camera(args: argparse.Namespace, volume, iso: float):
+    """(camera, (width, height)) from --view and --size, as ``isolume render`` makes them
+    for the surface at `iso`."""
     from isolume.app.render.camera import parse_view
-    from isolume.app.render.renderer import default_camera
+    from isolume.app.render.renderer import framed_camera
 
     try:
         view = parse_view(args.view)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
-    return default_camera(volume, view), parse_size(args.size)
+    size = parse_size(args.size)
+    return framed_camera(volume, iso, view, size), size
 
 
 def _config(args: argparse.Namespace):
@@ -235,7 +239,7 @@ def run(args: argparse.Namespace) -> int:
     rotation = _env_rotation(args.env_rotation)
     volume = load_volume(args)
     iso = isovalue(volume, args.iso)
-    camera, size = _camera(args, volume)
+    camera, size = _camera(args, volume, iso)
     origins, dirs = camera.primary_rays(*size)
     with ReferenceTracer(volume, iso, origins, dirs, config, smooth=args.normals == "smooth",
                          env_rotation=rotation, workers=args.workers) as tracer:

@@ -14,7 +14,7 @@ from isolume.app.cli import build_parser, main
 from isolume.app.export_files import Z_UP_TO_Y_UP, srgb_bytes, tone
 from isolume.app.options import environment_coefficients, view_light
 from isolume.app.render.offscreen import render_volume
-from isolume.app.render.renderer import default_camera
+from isolume.app.render.renderer import framed_camera
 from isolume.app.render.settings import RenderSettings
 from isolume.baking import BakeConfig, bake
 
@@ -148,7 +148,7 @@ def _seen_vertices(volume, mesh, mask: np.ndarray) -> tuple[np.ndarray, ...]:
     from isolume.baking.trace import Scene
 
     w, h = SIZE
-    camera = default_camera(volume)
+    camera = framed_camera(volume, mesh.iso, None, SIZE)
     points = np.asarray(mesh.vertices, np.float64)
     clip = np.c_[points, np.ones(len(points))] @ camera.view_proj(w / h).T
     ndc = clip[:, :2] / clip[:, 3:]

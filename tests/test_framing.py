@@ -2,11 +2,13 @@
 automatic exposure brings the surface to middle grey."""
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from isolume.app.render.camera import FRAME_FILL, Camera, frame_box
+from isolume import volumes
+from isolume.app.render.camera import FRAME_FILL, Camera, frame_points
 from isolume.app.render.exposure import EXPOSURE_KEY, auto_exposure_scale
 
 
@@ -22,13 +24,12 @@ def _ndc(camera: Camera, aspect: float, points) -> np.ndarray:
 @pytest.mark.parametrize("view", [(30.0, 30.0), (200.0, -60.0)])
 def test_the_box_fills_the_free_part_and_sits_in_its_middle(aspect, free, view):
     lo, hi = np.array([5.0, -2.0, 10.0]), np.array([9.0, 6.0, 11.0])
-    camera = frame_box(Camera(azimuth=view[0], elevation=view[1]), lo, hi, aspect, free)
+    corners = _corners(lo, hi)
+    camera = frame_points(Camera(azimuth=view[0], elevation=view[1]), corners, aspect, free)
     centre = _ndc(camera, aspect, [(lo + hi) / 2])[0]
     left, right = 2 * np.asarray(free) - 1
     assert centre == pytest.approx(((left + right) / 2, 0.0), abs=1e-9)
     # the corners stay inside the free part and fill FRAME_FILL of it one way
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])
     ndc = _ndc(camera, aspect, corners)
     middle = (left + right) / 2
     fill = max(np.abs(ndc[:, 0] - middle).max() / ((right - left) / 2),
@@ -41,9 +42,31 @@ def test_the_box_fills_the_free_part_and_sits_in_its_middle(aspect, free, view):
     assert near < depth.min() and depth.max() < far
 
 
+def _corners(lo, hi) -> np.ndarray:
+    """(8, 3) corners of the box `lo`..`hi`."""
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                     for z in (lo[2], hi[2])])
+
+
+@pytest.mark.parametrize(("aspect", "free"), [(1.0, (0.0, 1.0)), (4 / 3, (0.35, 1.0)),
+                                              (0.6, (0.2, 0.9))])
+def test_centred_framing_puts_the_extent_of_the_points_in_the_middle(aspect, free):
+    """A lopsided cloud: its projections' extent, not its box centre, sits in the middle
+    of the free part and fills FRAME_FILL of it one way."""
+    rng = np.random.default_rng(1)
+    points = np.r_[rng.normal(0, 1, (500, 3)), [[6.0, 0, 0], [0, 0, 4.0]]]
+    camera = frame_points(Camera(azimuth=20, elevation=35), points, aspect, free, centre=True)
+    ndc = _ndc(camera, aspect, points)
+    left, right = 2 * np.asarray(free) - 1
+    low, high = ndc.min(axis=0), ndc.max(axis=0)
+    assert (low + high) / 2 == pytest.approx(((left + right) / 2, 0.0), abs=2e-3)
+    fill = max((high[0] - low[0]) / (right - left), (high[1] - low[1]) / 2)
+    assert fill == pytest.approx(FRAME_FILL, abs=2e-3)
+
+
 def test_orbiting_keeps_the_target_where_it_was_framed():
     lo, hi = np.zeros(3), np.ones(3)
-    camera = frame_box(Camera(), lo, hi, 1.5, (0.3, 1.0))
+    camera = frame_points(Camera(), _corners(lo, hi), 1.5, (0.3, 1.0))
     from dataclasses import replace
 
     for az, el in [(0, 0), (120, 45), (300, -80)]:
@@ -114,3 +137,70 @@ def test_viewer_exposure_adapts_smoothly_in_stops():
     assert a == pytest.approx(adapted_exposure(1.0, 0.1, 0.3))
     path = [adapted_exposure(1.0, 0.1, t) for t in np.linspace(0, 3, 30)]
     assert all(0.1 < b < a <= 1.0 for a, b in itertools.pairwise(path))  # no overshoot
+
+
+# -- the surface's points and the camera of render, reference and movie ------------------------
+def test_level_points_are_the_marching_cubes_vertices():
+    vol = volumes.load("synthetic:engine:48")
+    for iso in vol.suggested_iso:
+        mesh = volumes.isosurface(vol, iso, normals="none", keep_degenerate=True)
+        points = volumes.level_points(vol, iso)
+        assert len(points) == len(mesh.vertices)
+        np.testing.assert_allclose(points.min(axis=0), mesh.vertices.min(axis=0), atol=1e-5)
+        np.testing.assert_allclose(points.max(axis=0), mesh.vertices.max(axis=0), atol=1e-5)
+
+
+def test_level_points_of_a_range_and_under_a_limit():
+    vol = volumes.load("synthetic:sphere:32")
+    both = volumes.level_points(vol, 0.3, 0.7)
+    for iso in (0.3, 0.7):
+        one = volumes.level_points(vol, iso)
+        assert (both.min(axis=0) <= one.min(axis=0)).all()
+        assert (both.max(axis=0) >= one.max(axis=0)).all()
+    full = volumes.level_points(vol, 0.5)
+    few = volumes.level_points(vol, 0.5, limit=500)
+    assert 250 <= len(few) <= 500
+    np.testing.assert_array_equal(few, volumes.level_points(vol, 0.5, limit=500))
+    voxel = max(vol.spacing)
+    np.testing.assert_allclose(few.min(axis=0), full.min(axis=0), atol=2 * voxel)
+    np.testing.assert_allclose(few.max(axis=0), full.max(axis=0), atol=2 * voxel)
+    assert len(volumes.level_points(vol, vol.value_range[1] + 1)) == 0
+
+
+@pytest.fixture(scope="module")
+def small_ball(tmp_path_factory) -> Path:
+    """A .npy volume: a ball of radius 5 voxels in a corner of a 48³ box."""
+    z, y, x = np.mgrid[:48, :48, :48].astype(np.float32)
+    field = 8.0 - np.sqrt((x - 12) ** 2 + (y - 10) ** 2 + (z - 34) ** 2)
+    path = tmp_path_factory.mktemp("ball") / "ball.npy"
+    np.save(path, np.clip(field, 0, 8).astype(np.float32))
+    return path
+
+
+def _extent(mask: np.ndarray) -> tuple[float, float, float, float]:
+    """(width, height) of the mask's extent as fractions of the picture, and its centre
+    (x, y) in pixels from the picture's middle."""
+    rows, cols = np.nonzero(mask)
+    h, w = mask.shape
+    return ((np.ptp(cols) + 1) / w, (np.ptp(rows) + 1) / h,
+            (cols.min() + cols.max() + 1) / 2 - w / 2, (rows.min() + rows.max() + 1) / 2 - h / 2)
+
+
+def test_render_and_reference_frame_a_small_object_in_the_middle(small_ball, tmp_path, capsys):
+    """`render` and `reference` frame the surface, not its volume's box: the ball fills
+    FRAME_FILL of the picture one way, in the middle, and both see the same pixels."""
+    from isolume.app.cli import main
+    from isolume.app.render.images import read_exr
+
+    common = [str(small_ball), "--iso", "3", "--size", "64x48"]
+    assert main(["render", *common, "--shading", "lambert", "--gl", "osmesa",
+                 "--out", str(tmp_path / "r.exr")]) == 0
+    assert main(["reference", *common, "--spp", "1", "--bounces", "0",
+                 "--out", str(tmp_path / "ref.exr")]) == 0
+    capsys.readouterr()
+    rendered = read_exr(tmp_path / "r.exr")["RGB"].max(axis=-1) > 0
+    traced = read_exr(tmp_path / "ref.exr")["mask"] > 0
+    width, height, dx, dy = _extent(rendered)
+    assert max(width, height) >= FRAME_FILL - 2 / 48 and min(width, height) > 0.5
+    assert abs(dx) <= 1 and abs(dy) <= 1
+    assert (rendered != traced).mean() < 0.02  # outline pixels only

@@ -3,6 +3,8 @@ exposure, each frame the picture ``isolume render`` draws for its shot at that e
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -47,6 +49,16 @@ def _render(capsys, tmp_path, *argv):
     status, _, err = _run(capsys, "render", *GL, *argv, "--out", out)
     assert status == 0, err
     return np.asarray(Image.open(out).convert("RGB"))
+
+
+def _state_of(tmp_path, text):
+    """A state file holding only the camera of a frame (its ``camera`` text)."""
+    from isolume.app.render.camera import Camera
+    from isolume.app.state import SavedView
+
+    values = json.loads(text["camera"])
+    camera = Camera(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+    return str(SavedView(camera=camera).save(tmp_path / "frame.view.json"))
 
 
 def _exposure_of(frames) -> str:
@@ -117,10 +129,13 @@ def test_turntable_frame_is_the_render_at_its_azimuth_and_exposure(tmp_path, cap
     frames = _frames(tmp_path / "spin")
     exposure = _exposure_of(frames)
     for pixels, text in frames[1:3]:
-        picture = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--view",
-                          f"{text['azimuth']},20", "--no-auto-exposure", "--exposure",
-                          exposure)
+        picture = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--no-auto-exposure",
+                          "--exposure", exposure, "--state", _state_of(tmp_path, text))
         np.testing.assert_array_equal(pixels, picture)
+    # one distance frames the surface from every azimuth: no zooming
+    cameras = [json.loads(text["camera"]) for _, text in frames]
+    assert len({(c["distance"], tuple(c["target"]), tuple(c["pan"])) for c in cameras}) == 1
+    assert [c["azimuth"] for c in cameras] == [10.0, 100.0, 190.0, 280.0]
 
 
 def test_a_turntable_turns_the_light_with_the_camera(tmp_path, capsys):
@@ -141,7 +156,7 @@ def test_a_turntable_turns_the_light_with_the_camera(tmp_path, capsys):
         if light == "camera":
             first = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--shading",
                             shading, "--no-auto-exposure", "--exposure",
-                            _exposure_of(frames))
+                            _exposure_of(frames), "--state", _state_of(tmp_path, frames[0][1]))
             np.testing.assert_array_equal(frames[0][0], first)
     spread = {k: np.ptp(v) / v.mean() for k, v in means.items()}
     assert spread["camera"] < 0.01 < 0.05 < spread["world"], spread
@@ -195,8 +210,10 @@ def test_sweep_frames_are_the_lattice_renders_at_their_isovalues(tmp_path, capsy
     for pixels, text in frames:
         picture = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--lattice", lattice,
                           "--iso", text["isovalue"], "--no-auto-exposure", "--exposure",
-                          exposure)
+                          exposure, "--state", _state_of(tmp_path, text))
         assert np.abs(pixels.astype(int) - picture).max() <= 1
+    # one camera frames every frame's sphere
+    assert len({text["camera"] for _, text in frames}) == 1
     sizes = [(pixels != pixels[0, 0]).any(axis=2).sum() for pixels, _ in frames]
     assert sizes[0] > sizes[1] > sizes[2]  # a lower isovalue: a larger sphere
 
@@ -211,7 +228,8 @@ def test_sweep_without_lattice_bakes_one_for_its_range(tmp_path, capsys):
     pixels, text = frames[1]
     assert text["isovalue"] == "0.55"
     picture = _render(capsys, tmp_path, "synthetic:sphere:24", *SIZE, "--lattice", kept,
-                      "--iso", "0.55", "--no-auto-exposure", "--exposure", text["exposure"])
+                      "--iso", "0.55", "--no-auto-exposure", "--exposure", text["exposure"],
+                      "--state", _state_of(tmp_path, text))
     assert np.abs(pixels.astype(int) - picture).max() <= 1
 
 

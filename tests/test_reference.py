@@ -109,12 +109,14 @@ def test_directional_light_follows_the_cosine_law(sphere):
 
 
 def _gl_frame(vol, iso, settings, view):
-    """The GL renderer's frame (OSMesa), or skip where there is no OSMesa."""
+    """The GL renderer's frame (OSMesa) seen by `default_camera` from `view`, or skip where
+    there is no OSMesa."""
     from isolume.app.render.glcontext import GLUnavailable
     from isolume.app.render.offscreen import render_volume
 
     try:
-        frame, _ = render_volume(vol, iso, settings, view=view, backend="osmesa")
+        frame, _ = render_volume(vol, iso, settings, camera=default_camera(vol, view),
+                                 backend="osmesa")
     except GLUnavailable as exc:
         pytest.skip(f"no OSMesa: {exc}")
     return frame

@@ -56,8 +56,8 @@ def _pictures(volume: Volume, view: tuple[float, float, float]):
     """(view GI luminance, reference luminance) over the pixels both show, linear."""
     settings = RenderSettings(size=SIZE, shading="irradiance", auto_exposure=False,
                               tonemap="clamp", albedo=SKY.albedo)
-    frame, _ = render_volume(volume, 0.5, settings, view=view, view_light=SKY, workers=2)
     camera = default_camera(volume, view)
+    frame, _ = render_volume(volume, 0.5, settings, camera=camera, view_light=SKY, workers=2)
     origins, dirs = camera.primary_rays(*SIZE)
     image, _ = render_reference(volume, 0.5, origins, dirs,
                                 BakeConfig(samples=256, bounces=0, env="constant:1,1,1",

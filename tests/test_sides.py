@@ -100,8 +100,8 @@ def test_a_baked_cut_open_slab_matches_the_reference_from_above_and_below(view):
                        workers=2)
         settings = RenderSettings(size=SIZE, shading="irradiance", auto_exposure=False,
                                   tonemap="clamp", albedo=config.albedo)
-        frame, _ = render_volume(volume, 0.5, settings, view=view, lattice=lattice)
         camera = default_camera(volume, view)
+        frame, _ = render_volume(volume, 0.5, settings, camera=camera, lattice=lattice)
         origins, dirs = camera.primary_rays(*SIZE)
         image, _ = render_reference(volume, 0.5, origins, dirs,
                                     BakeConfig(samples=256, bounces=0,

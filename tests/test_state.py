@@ -14,7 +14,7 @@ from test_viewer import _view, display  # noqa: F401 (display: the Xvfb fixture)
 from isolume import volumes
 from isolume.app.cli import main
 from isolume.app.render.camera import Camera
-from isolume.app.render.renderer import default_camera
+from isolume.app.render.renderer import framed_camera
 from isolume.app.state import (
     FORMAT,
     VERSION,
@@ -32,7 +32,7 @@ LOOK = ["--shading", "lambert", "--size", "64x64", "--gl", "osmesa"]
 
 def _saved(**changes) -> SavedView:
     """A state of `VOLUME` with the camera ``render --view 40,20,2`` uses."""
-    camera = default_camera(volumes.load(VOLUME), (40.0, 20.0, 2.0))
+    camera = framed_camera(volumes.load(VOLUME), 0.45, (40.0, 20.0, 2.0))
     saved = SavedView(volume=VOLUME, iso=0.45, camera=camera, size="64x64", shading="lambert",
                       exposure=1.3, auto_exposure=True, tonemap="reinhard",
                       albedo="0.6,0.7,0.8")
@@ -139,7 +139,7 @@ def test_render_from_a_state_equals_render_with_the_same_options(tmp_path, capsy
 def test_options_given_win_over_the_state(tmp_path, capsys):
     state = str(_saved().save(tmp_path / "v.view.json"))
     # --tonemap aces is the option's default: given, it still wins over reinhard
-    changed = ["--tonemap", "aces", "--size", "48x40", "--iso", "0.6"]
+    changed = ["--tonemap", "aces", "--size", "48x40", "--exposure", "0.9"]
     got = _render(capsys, "--state", state, *changed, "--view", "10,5",
                   "--out", str(tmp_path / "s.png"))
     # --view turns the saved camera; without a distance it keeps the saved one

@@ -6,6 +6,7 @@ Public API::
     volumes.load(spec, crop="0:128,:,64:", downsample=2)   # a part, in the same world place
     volumes.crop_downsample(volume, crop, downsample) -> Volume   # the same, in memory
     volumes.isosurface(volume, iso) -> Mesh
+    volumes.level_points(volume, iso) -> (N, 3)   # points of that surface (for framing)
     volumes.suggest_isovalues(volume) -> tuple[float, ...]
     volumes.turn_up(volume, "-z") -> Volume   # the volume's -z axis pointing up
 """
@@ -25,7 +26,7 @@ from isolume.volumes.field import (
     values_along_normals,
     values_on_grid,
 )
-from isolume.volumes.mesh import Mesh, check_isovalue, isosurface, marching_cubes
+from isolume.volumes.mesh import Mesh, check_isovalue, isosurface, level_points, marching_cubes
 from isolume.volumes.orientation import UP_AXES, turn_up
 from isolume.volumes.region import CROP_SYNTAX, crop_downsample
 from isolume.volumes.stats import histogram_lines, suggest_isovalues
@@ -44,6 +45,7 @@ __all__ = [
     "gradient_grid",
     "histogram_lines",
     "isosurface",
+    "level_points",
     "load",
     "marching_cubes",
     "newton_to_level",

@@ -139,3 +139,68 @@ def isosurface(
         n, _ = normals_from_gradient(gradient_at(volume, world, smooth=normals == "smooth"),
                                      flip=flip_normals)
     return Mesh(world.astype(np.float32), faces.astype(np.uint32), n, iso)
+
+
+LEVEL_SLAB = 32
+"""z layers of the volume `level_points` reads at a time (its memory: a few such layers)."""
+
+LEVEL_POINTS = 100_000
+"""At most this many points from `level_points` (spread evenly over the crossings)."""
+
+
+def level_points(volume: Volume, lo: float, hi: float | None = None,
+                 limit: int = LEVEL_POINTS) -> np.ndarray:
+    """World points of the isosurfaces at the isovalues `lo`..`hi` (`hi` None: `lo`
+    alone): where a level in that range crosses an edge between two neighbouring samples,
+    placed by linear interpolation as marching cubes places its vertices (at both ends of
+    the range). Every crossing up to `limit` of them, else a random subset (the same each
+    time; a regular stride would alias with the grid).
+
+    Returns:
+        (N, 3) float64 world xyz, N ≤ `limit`; (0, 3) when no level in the range crosses.
+    """
+    lo = float(lo)
+    hi = lo if hi is None else float(hi)
+    data = volume.data
+    rng = np.random.default_rng(0)
+    found: list[np.ndarray] = []
+    kept, rate = 0, 1.0
+    for k0 in range(0, data.shape[0] - 1, LEVEL_SLAB):
+        k1 = min(k0 + LEVEL_SLAB, data.shape[0] - 1)
+        # z edges k0..k1; the edges within a layer: layers k0..k1-1 (and the last layer
+        # with the last slab)
+        layers = data[k0:k1 + 1] if k1 == data.shape[0] - 1 else data[k0:k1]
+        for part, axis in ((data[k0:k1 + 1], 0), (layers, 1), (layers, 2)):
+            points = _edge_crossings(part, axis, lo, hi)
+            if rate < 1.0:
+                points = points[rng.random(len(points)) < rate]
+            points[:, 0] += k0
+            found.append(points)
+            kept += len(points)
+        if kept > 2 * limit:  # thin out what was kept, and what is to come, alike
+            points = np.concatenate(found)
+            found = [points[rng.random(len(points)) < 0.5]]
+            kept, rate = len(found[0]), rate / 2
+    zyx = np.concatenate(found) if found else np.zeros((0, 3))
+    if len(zyx) > limit:
+        zyx = zyx[np.sort(rng.choice(len(zyx), limit, replace=False))]
+    return volume.index_to_world(zyx)
+
+
+def _edge_crossings(layers: np.ndarray, axis: int, lo: float, hi: float) -> np.ndarray:
+    """(M, 3) voxel indices (z, y, x; z from the first of `layers`) of the points where the
+    levels `lo` and `hi` cross the edges along `axis` of `layers` ((K, Y, X) samples): two
+    points per edge crossed by the range, one where `lo` = `hi`."""
+    n = layers.shape[axis] - 1
+    a = np.take(layers, np.arange(n), axis=axis)
+    b = np.take(layers, np.arange(1, n + 1), axis=axis)
+    index = np.nonzero((np.minimum(a, b) <= hi) & (np.maximum(a, b) >= lo) & (a != b))
+    a, b = a[index].astype(np.float64), b[index].astype(np.float64)
+    lower, upper = np.minimum(a, b), np.maximum(a, b)
+    coords = np.stack(index, axis=1).astype(np.float64)
+    ends = []
+    for level in ((lo,) if lo == hi else (lo, hi)):
+        at = coords.copy()
+        at[:, axis] += (np.clip(level, lower, upper) - a) / (b - a)
+        ends.append(at)
+    return np.concatenate(ends)

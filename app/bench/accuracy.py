@@ -430,10 +430,11 @@ def settle_reference(volume, iso: float, shots: list[Shot], config, sweep: Sweep
         reference_noise,
         relative_rmse,
     )
-    from isolume.app.render.renderer import default_camera
+    from isolume.app.render.renderer import framed_camera
     from isolume.baking.reference import PixelStats, ReferenceTracer
 
-    origins, dirs = default_camera(volume, sweep.view).primary_rays(*sweep.size)
+    camera = framed_camera(volume, iso, sweep.view, sweep.size)
+    origins, dirs = camera.primary_rays(*sweep.size)
     config = replace(config, seed=config.seed + 1)
     began = time.perf_counter()
     with ReferenceTracer(volume, iso, origins, dirs, config, smooth=config.normals == "smooth",

@@ -121,47 +121,58 @@ def parse_view(text: str) -> tuple[float, float, float | None]:
 
 
 FRAME_FILL = 0.9
-"""Framing leaves the box's projected corners within this fraction of the free part's
-half-width and half-height."""
+"""Framing brings the points' projections within this fraction of the free part's
+half-width or half-height, whichever binds."""
 
 
-def frame_box(camera: Camera, lo, hi, aspect: float,
-              free: tuple[float, float] = (0.0, 1.0)) -> Camera:
-    """`camera` (its azimuth, elevation and field of view) aimed at the box `lo`..`hi`
-    ((3,) world) so that the box's projected corners fill `FRAME_FILL` of the free part of
-    the picture (its width or its height, whichever binds) around its middle.
+def frame_points(camera: Camera, points, aspect: float,
+                 free: tuple[float, float] = (0.0, 1.0), centre: bool = False) -> Camera:
+    """`camera` (its azimuth, elevation and field of view) aimed at the (N, 3) world
+    `points` (a surface's, or a box's corners) so that their projections fill
+    `FRAME_FILL` of the free part of the picture (its width or its height, whichever
+    binds).
 
     Args:
         aspect: width / height of the picture.
         free: (left, right) edges of the free part, fractions of the width (what a panel
             on the left leaves: (panel's right edge / width, 1)).
+        centre: also pan so that the projections' extent sits in the middle of the free
+            part (a still picture); False: the points' box centre sits there, so that
+            orbiting turns the surface about the middle (the viewer, a turntable).
 
     Returns:
-        A camera whose target is the box centre, whose `scale` is the box diagonal and whose
-        `pan` shifts the picture so that the target shows at the middle of the free part
-        (the pan turns with the view, so orbiting keeps it there).
+        A camera whose target is the points' box centre, whose `scale` is that box's
+        diagonal and whose `pan` shifts the picture as asked (the pan turns with the view).
     """
-    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    points = np.asarray(points, np.float64)
+    lo, hi = points.min(axis=0), points.max(axis=0)
     scale = max(float(np.linalg.norm(hi - lo)), 1e-9)
     t = np.tan(np.radians(camera.fov_y) / 2)
     left, right = free
-    middle = left + right - 1.0  # the free part's middle, x in normalised device coords
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])
-    # start where the bounding sphere fits, then move in until the corners fill the part
-    half = FRAME_FILL * min(t, t * aspect * (right - left))
+    width, middle = right - left, left + right - 1.0  # of the free part, in NDC x
+    # start where the bounding sphere fits, then move in until the points fill the part
+    half = FRAME_FILL * min(t, t * aspect * width)
     distance = 0.5 * scale / np.sin(np.arctan(half))
+    shift = np.array([-middle, 0.0])  # NDC offset of the target from the picture's middle
     framed = camera
-    for _ in range(8):
+    for _ in range(16):
         framed = replace(camera, target=tuple((lo + hi) / 2), scale=scale,
                          distance=float(distance / scale),
-                         pan=(float(-middle * t * aspect * distance / scale), 0.0))
-        ndc = _project(framed, aspect, corners)
-        fill = max(np.abs(ndc[:, 0] - middle).max() / (right - left),
-                   np.abs(ndc[:, 1]).max()) / FRAME_FILL
-        if abs(fill - 1.0) < 1e-3:
+                         pan=(float(shift[0] * t * aspect * distance / scale),
+                              float(shift[1] * t * distance / scale)))
+        ndc = _project(framed, aspect, points)
+        low, high = ndc.min(axis=0), ndc.max(axis=0)
+        if centre:
+            off = (low + high) / 2 - (middle, 0.0)
+            shift += off
+            fill = max((high[0] - low[0]) / width, high[1] - low[1]) / 2 / FRAME_FILL
+        else:
+            off = np.zeros(2)
+            fill = max(np.abs(ndc[:, 0] - middle).max() / width,
+                       np.abs(ndc[:, 1]).max()) / FRAME_FILL
+        if abs(fill - 1.0) < 1e-3 and np.abs(off).max() < 1e-3:
             break
-        # a distant box's projection shrinks as 1/distance; about the centre, by less
+        # a distant set's projection shrinks as 1/distance; about the centre, by less
         distance *= 1.0 + 0.9 * (fill - 1.0)
     return framed
 

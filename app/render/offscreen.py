@@ -7,7 +7,7 @@ import numpy as np
 from isolume import volumes
 from isolume.app.render.camera import Camera
 from isolume.app.render.glcontext import create_headless
-from isolume.app.render.renderer import SurfaceRenderer, default_camera
+from isolume.app.render.renderer import SurfaceRenderer, framed_camera
 from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
 
 
@@ -39,7 +39,7 @@ def render_volume(
 ) -> tuple[Frame, volumes.Mesh]:
     """Extract the isosurface at `iso` and render it in a fresh headless context, seen
     from `camera`, or (None) from the orbit `view` (azimuth, elevation degrees, distance
-    in diagonals or None) around the volume (`default_camera`).
+    in diagonals or None) around the surface's box (`framed_camera`).
 
     `lattice` (a `baking.Lattice`) is needed by the lattice shading modes, `env_coeffs`
     ((n², 3) SH coefficients of the environment) by "sh". Without a lattice, `view_light`
@@ -57,7 +57,7 @@ def render_volume(
         renderer = SurfaceRenderer(gl.ctx)
         renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_bounds(*volume.box)
-        camera = camera or default_camera(volume, view)
+        camera = camera or framed_camera(volume, iso, view, settings.size)
         if lattice is None and view_light is not None and len(mesh.faces):
             from dataclasses import replace
 

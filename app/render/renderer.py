@@ -30,7 +30,7 @@ import moderngl
 import numpy as np
 
 from isolume import shaders
-from isolume.app.render.camera import Camera
+from isolume.app.render.camera import Camera, frame_points
 from isolume.app.render.exposure import auto_exposure_scale
 from isolume.app.render.lattice_gl import MAX_TEXTURE_UNITS, LatticeTextures
 from isolume.app.render.lights import (
@@ -468,3 +468,34 @@ def default_camera(volume, view: tuple[float, float, float | None] | None = None
         azimuth=az, elevation=el, distance=1.8 if dist is None else dist,
         target=tuple((lo + hi) / 2), scale=volume.diagonal,
     )
+
+
+def framed_camera(volume, iso: float, view: tuple[float, float, float | None] | None = None,
+                  size: tuple[int, int] = (512, 512), *, iso_hi: float | None = None,
+                  azimuths: tuple[float, ...] = ()) -> Camera:
+    """The camera of ``render``, ``reference`` and ``movie``: at `view`'s azimuth and
+    elevation (degrees; None: 30, 30), aimed at the surface at `iso` (the surfaces
+    `iso`..`iso_hi`: their points, `volumes.level_points`; the volume's sample box's
+    corners when there are none). Without a distance it frames them in a `size` (width,
+    height) picture, centred (`app.render.camera.frame_points`); with `azimuths` (a
+    turntable's), far enough back to frame them from each, their box centre in the
+    middle; with a distance, it stands that many of their box's diagonals from its
+    centre."""
+    from isolume import volumes
+
+    az, el, dist = view if view is not None else (30.0, 30.0, None)
+    points = volumes.level_points(volume, iso, iso_hi)
+    if len(points) == 0 or np.ptp(points, axis=0).max() < 1e-6 * volume.diagonal:
+        lo, hi = volume.sample_box  # nothing, or a point: show the volume
+        points = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                           for z in (lo[2], hi[2])])
+    camera = Camera(azimuth=az, elevation=el)
+    if dist is not None:
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        return replace(camera, distance=dist, target=tuple((lo + hi) / 2),
+                       scale=float(np.linalg.norm(hi - lo)))
+    aspect = size[0] / size[1]
+    if not azimuths:
+        return frame_points(camera, points, aspect, centre=True)
+    framed = [frame_points(replace(camera, azimuth=a), points, aspect) for a in azimuths]
+    return replace(framed[0], azimuth=az, distance=max(f.distance for f in framed))

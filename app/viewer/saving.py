@@ -41,8 +41,9 @@ class Saver:
         return Path(f"isolume-{self.volume.name}-{time.strftime('%Y%m%d-%H%M%S')}{suffix}")
 
     def screenshot(self, path: str | os.PathLike | None = None) -> tuple[Path, Path]:
-        """Write the current view (without the panel) as PNG (sRGB) and EXR (linear
-        radiance, before exposure) next to each other; returns both paths.
+        """Write the current view as PNG (sRGB) and EXR (linear radiance, before exposure)
+        next to each other, framed in the whole window (`ViewerState.whole_window`: without
+        the panel, nor the room left for it); returns both paths.
 
         Raises:
             ViewerError: the directory does not exist.
@@ -54,7 +55,7 @@ class Saver:
         if not png.parent.is_dir():
             raise ViewerError(f"screenshot {png}: directory {png.parent} does not exist")
         state = self.state
-        frame = self.drawing.frame(state.camera, state.view, frame_size(self.window))
+        frame = self.drawing.frame(state.whole_window(), state.view, frame_size(self.window))
         write_png(png, frame.srgb)
         write_exr(exr, frame.linear)
         self._announce(f"wrote {png} and {exr}")
@@ -97,14 +98,15 @@ class Saver:
         return path
 
     def saved_view(self) -> SavedView:
-        """The `app.state.SavedView` of what is on screen: the volume as named, the camera,
-        the isovalue, the shading, the exposure, the light and the lattice file shown."""
+        """The `app.state.SavedView` of what is on screen: the volume as named, the camera
+        (framed in the whole window, as screenshots are), the isovalue, the shading, the
+        exposure, the light and the lattice file shown."""
         state, view, options = self.state, self.state.view, self.options
         size = frame_size(self.window)
         lattice = self._lattice_file()
         env, lights = self._lighting(lattice)
         return SavedView(
-            **asdict(options.source), iso=float(view.iso), camera=state.camera,
+            **asdict(options.source), iso=float(view.iso), camera=state.whole_window(),
             size=f"{size[0]}x{size[1]}", shading=view.shading, exposure=float(view.exposure),
             auto_exposure=options.auto_exposure,
             tonemap=self.drawing.settings(view, size).tonemap,

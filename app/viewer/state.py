@@ -7,7 +7,7 @@ Data flows one way: input (`app.viewer.input`) → actions (`app.viewer.actions`
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from isolume.app.render.camera import Camera
 from isolume.app.viewer.draw import ViewState
@@ -31,6 +31,9 @@ class ViewerState:
         view: isovalue, shading mode, exposure, light and panel visibility.
         camera: the camera now; home: where ``R`` (reset) returns to.
         framed: the first surface has been framed (`home` aims at it).
+        panel_shift: (pan per unit of distance, distance ratio) between a camera framed in
+            the part of the window the panel leaves free and the same view framed in the
+            whole window (`whole_window`); (0, 1) without a panel.
         panel_rect: (x, y, width, height) of the panel in window units (None: not drawn
             yet); panel_frames: frames the panel has been drawn (its size settles in two).
         message: the status line (the last note or error).
@@ -46,6 +49,7 @@ class ViewerState:
     camera: Camera
     home: Camera
     framed: bool = False
+    panel_shift: tuple[float, float] = (0.0, 1.0)
     panel_rect: tuple[float, float, float, float] | None = None
     panel_frames: int = 0
     message: str = ""
@@ -55,6 +59,22 @@ class ViewerState:
     last_input: float = 0.0
     last_motion: float = 0.0
     drag: Drag | None = None
+
+    def whole_window(self) -> Camera:
+        """The camera now, framed in the whole window rather than beside the panel: what
+        screenshots and saved views show."""
+        per_distance, ratio = self.panel_shift
+        camera = self.camera
+        own = camera.pan[0] - per_distance * camera.distance  # the user's own pan
+        return replace(camera, distance=camera.distance * ratio, pan=(own, camera.pan[1]))
+
+    def beside_panel(self, camera: Camera) -> Camera:
+        """`camera` framed in the whole window (a saved view's) moved to the part the panel
+        leaves free; `whole_window` undoes it."""
+        per_distance, ratio = self.panel_shift
+        distance = camera.distance / ratio
+        return replace(camera, distance=distance,
+                       pan=(camera.pan[0] + per_distance * distance, camera.pan[1]))
 
     def redraw(self) -> None:
         """Something on screen changed: draw again."""

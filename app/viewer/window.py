@@ -152,10 +152,10 @@ class Viewer:
         self.volume, self.options = volume, options
         self.window = create_window(options.size, f"isolume — {volume.name}")
         self.drawing = Drawing(self.window.ctx, volume, options.auto_exposure)
-        home = options.camera or default_camera(volume)  # a saved camera is not framed
+        home = options.camera or default_camera(volume)
         self.ui = self._make_ui() if options.ui else None
         self.state = ViewerState(ViewState(iso, "phong_hemi", options.exposure, options.light),
-                                 home, home, framed=options.camera is not None)
+                                 home, home)
         self.illumination = Illumination(volume, self.drawing, self.state, options)
         self.illumination.start(lattice, iso)
         shown = self.drawing.renderer.lattice  # the default shading follows the lattice
@@ -305,10 +305,12 @@ class Viewer:
             self.state.redraw()
 
     def _frame_first_surface(self) -> None:
-        """Aim the camera at the first surface's bounding box, in the part of the window
-        the panel leaves free (once the panel has its size); that view becomes the one `R`
-        returns to. A camera the user (or a script) has moved already stays where it is."""
-        from isolume.app.render.camera import frame_box
+        """Aim the camera at the first surface (its vertices), in the part of the window
+        the panel leaves free (once the panel has its size), or move a saved view's camera
+        (framed in the whole window) there; that view becomes the one `R` returns to. A
+        camera the user (or a script) has moved already stays where it is."""
+        from isolume.app.render.camera import frame_points
+        from isolume.volumes.mesh import LEVEL_POINTS
 
         state, shown = self.state, self.input.ui_shown
         meshes = [m for m in self.drawing.meshes.values() if not m.empty]
@@ -320,8 +322,11 @@ class Viewer:
         if shown and state.panel_rect is not None:
             x, _, width, _ = state.panel_rect
             left = min(max((x + width + 10) / max(w, 1), 0.0), 0.5)  # at most half
-        home = frame_box(state.home, mesh.vertices.min(axis=0), mesh.vertices.max(axis=0),
-                         w / max(h, 1), (left, 1.0))
+        points = mesh.vertices[::-(-len(mesh.vertices) // LEVEL_POINTS)]
+        beside = frame_points(state.home, points, w / max(h, 1), (left, 1.0))
+        whole = frame_points(state.home, points, w / max(h, 1))
+        state.panel_shift = (beside.pan[0] / beside.distance, whole.distance / beside.distance)
+        home = beside if self.options.camera is None else state.beside_panel(state.home)
         if state.camera == state.home:
             state.camera = home
         state.home, state.framed = home, True
