@@ -113,6 +113,10 @@ class SavedView:
         shading, tonemap, normals: as the options of the same names.
         exposure: the linear exposure multiplier; auto_exposure: whether it multiplies the
             automatic exposure.
+        shown_exposure: the linear exposure of the picture as the viewer showed it (the
+            multiplier times the automatic exposure as it stood); ``render`` and ``movie``
+            draw with it, fixed, unless ``--exposure`` or ``--no-auto-exposure`` is given
+            (``view`` meters again).
         albedo: ``A`` or ``R,G,B``.
         env, lights: the lighting specs (``--env``, ``--light``); None and (): the
             lattice's own, or the command's default.
@@ -137,6 +141,7 @@ class SavedView:
     shading: str | None = None
     exposure: float | None = None
     auto_exposure: bool | None = None
+    shown_exposure: float | None = None
     tonemap: str | None = None
     albedo: str | None = None
     env: str | None = None
@@ -317,7 +322,8 @@ _READERS: dict[str, Callable[[object], object]] = {
     "volume": _text, "dims": _text, "dtype": _text, "spacing": _text, "up": _text,
     "crop": _text, "downsample": _whole, "level": _whole,
     "iso": _number, "camera": _camera, "size": _size, "shading": _choice(tuple(SHADING_MODES)),
-    "exposure": _positive, "auto_exposure": _flag, "tonemap": _choice(tuple(TONEMAPS)),
+    "exposure": _positive, "auto_exposure": _flag, "shown_exposure": _positive,
+    "tonemap": _choice(tuple(TONEMAPS)),
     "albedo": _albedo, "env": _text, "lights": _texts, "light_angles": _angles,
     "lattice": _text, "normals": _choice(("smooth", "gradient")),
     "flip_normals": _flag,
@@ -400,7 +406,8 @@ def apply_state(args: argparse.Namespace, words: Sequence[str]) -> argparse.Name
     gives and the command has, unless the command's `words` (after its name) give it
     (`given_options`); ``args.camera``, the saved `Camera` (its azimuth, elevation and
     distance those of an explicit ``--view``); ``args.light_angles``
-    (`SavedView.light_angles`); and ``args.out``, where the command has one and none is
+    (`SavedView.light_angles`); the exposure shown, fixed (`SavedView.shown_exposure`),
+    for a picture or movie; and ``args.out``, where the command has one and none is
     given, `picture_beside` the file.
 
     Raises:
@@ -420,6 +427,9 @@ def apply_state(args: argparse.Namespace, words: Sequence[str]) -> argparse.Name
         if not Path(volume).exists():
             raise StateError(f"--state {path}: volume {volume} no longer exists (name "
                              "the volume on the command line to use another)")
+    if (saved.shown_exposure is not None and args.command != "view"
+            and not given & {"exposure", "no_auto_exposure"}):
+        args.exposure, args.no_auto_exposure = saved.shown_exposure, True
     args.camera = _camera_with_view(saved.camera, args.view if "view" in given else None)
     args.light_angles = saved.light_angles
     if getattr(args, "out", "") is None:  # render without --out
