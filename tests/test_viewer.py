@@ -154,6 +154,23 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
     np.testing.assert_array_equal(_surface(tmp_path / "again.exr")[0], gi)
 
 
+def test_wait_gi_ends_when_the_first_preview_is_on_screen(display, tmp_path):
+    """``wait-gi`` waits for the lazy bake's first preview pass (the plan's texels come
+    later), and the screenshot after it shows its light: it differs from the one taken as
+    the surface arrived."""
+    (tmp_path / "s.txt").write_text("wait-mesh\nscreenshot local.png\nwait-gi 120\nframes 1\n"
+                                    "screenshot gi.png\nquit\n")
+    run = _view(["synthetic:engine:48", "--size", "160x120", "--script", "s.txt",
+                 "--stats", "stats.json"], display, tmp_path)
+    assert run.returncode == 0, run.stderr
+    previews = json.loads((tmp_path / "stats.json").read_text())["bake"]["previews"]
+    assert previews and previews[0]["paths"] > 0
+    local, mask = _surface(tmp_path / "local.exr")
+    gi, gi_mask = _surface(tmp_path / "gi.exr")
+    both = mask & gi_mask
+    assert both.mean() > 0.05 and np.abs(gi[both] - local[both]).mean() > 0.01
+
+
 def test_frames_keep_coming_while_the_full_surface_is_extracted(display, tmp_path):
     """A 256³ volume (its full surface takes a few tenths of a second): the isovalue change
     shows a preview first, and frames are drawn until the full-resolution surface replaces

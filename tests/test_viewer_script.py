@@ -29,6 +29,8 @@ light camera
 exposure 0.8
 wait-mesh
 wait-mesh 5
+wait-gi
+wait-gi 20
 wait-bake 0.5
 wait-bake 1 30
 wait-light 1 30
@@ -60,6 +62,8 @@ def test_every_command_parses_with_converted_arguments():
         ("exposure", (0.8,)),
         ("wait-mesh", ()),
         ("wait-mesh", (5.0,)),
+        ("wait-gi", ()),
+        ("wait-gi", (20.0,)),
         ("wait-bake", (0.5,)),
         ("wait-bake", (1.0, 30.0)),
         ("wait-light", (1.0, 30.0)),
@@ -170,6 +174,9 @@ class FakeViewer:
     def surface_ready(self) -> bool:
         return self.frames >= 2
 
+    def gi_shown(self) -> bool:
+        return self.frames >= 3
+
     def bake_progress(self):
         if not self.bake:
             raise ValueError("no lazy bake is running")
@@ -206,7 +213,7 @@ def test_script_drives_the_public_interface_in_order(tmp_path):
     viewer = FakeViewer()
     shot = tmp_path / "w.png"
     _run_script(f"iso 0.4\norbit 30 -10\nzoom 1.5\npan 0.1 0.2\nreset\nlight 45 30\n"
-                f"light camera\nmode phong\nexposure 2\nwait-mesh\nwait-bake 0.6\n"
+                f"light camera\nmode phong\nexposure 2\nwait-mesh\nwait-gi\nwait-bake 0.6\n"
                 f"check-lattice\nwindow-shot {shot}\nsave-lattice\nscreenshot s.png\n"
                 f"save-view v.view.json\nquit\n",
                 viewer)
@@ -216,7 +223,7 @@ def test_script_drives_the_public_interface_in_order(tmp_path):
         ("set_light", (45.0, 30.0), True), ("set_light", None, True), ("set_mode", "phong"),
         ("set_exposure", 2.0), ("hold_bake", True), ("check_lattice",), ("hold_bake", False),
         ("save_lattice", None), ("screenshot", "s.png"), ("save_view", "v.view.json")]
-    assert viewer.frames >= 2 and viewer.polls == 3  # waited for the mesh and the bake
+    assert viewer.frames >= 3 and viewer.polls == 3  # waited: mesh, light on screen, bake
     assert shot.exists()
 
 
@@ -225,8 +232,13 @@ def test_script_errors_name_the_line():
         _run_script("iso 0.4\nwait-bake 0.5\n", FakeViewer(bake=False))
     with pytest.raises(ScriptError, match="script line 1: wait-mesh waited"):
         _run_script("wait-mesh 0.001\n", _NeverReady(), limit=10_000_000)
+    with pytest.raises(ScriptError, match=r"script line 1: wait-gi waited .* for global"):
+        _run_script("wait-gi 0.001\n", _NeverReady(), limit=10_000_000)
 
 
 class _NeverReady(FakeViewer):
     def surface_ready(self) -> bool:
+        return False
+
+    def gi_shown(self) -> bool:
         return False

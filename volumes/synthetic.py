@@ -150,19 +150,9 @@ def make(name: str, size: int | None = None) -> Volume:
     Returns:
         Volume with spacing 1/(size-1) (isotropic), centred at the world origin.
     """
-    spec = _SPECS.get(name)
-    if spec is None:
-        raise VolumeError(
-            f"synthetic:{name}: unknown synthetic volume; expected one of {', '.join(NAMES)}"
-        )
-    size = spec.default_size if size is None else int(size)
-    if not 8 <= size <= 1024:
-        raise VolumeError(f"synthetic:{name}:{size}: size must be between 8 and 1024 samples")
-    h = 1.0 / (size - 1)
-    counts = [max(2, round(a * (size - 1)) + 1) for a in spec.aspect]  # x, y, z
-    axes = [(np.arange(n) - (n - 1) / 2) * h for n in counts]
-    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-    data = spec.builder(x, y, z, 1.2 * h).astype(np.float32)
+    spec, size = _checked(name, size)
+    h, axes = _axes(spec, size)
+    data = layers(name, size, 0, len(axes[2]))
     origin = tuple(float(a[0]) for a in axes)
     label = f"synthetic:{name}:{size}"
     return Volume(
@@ -173,6 +163,43 @@ def make(name: str, size: int | None = None) -> Volume:
         source=label,
         suggested_iso=spec.iso,
     )
+
+
+def shape(name: str, size: int | None = None) -> tuple[int, int, int]:
+    """(Z, Y, X) samples of ``synthetic:NAME:SIZE``."""
+    spec, size = _checked(name, size)
+    _, axes = _axes(spec, size)
+    return len(axes[2]), len(axes[1]), len(axes[0])
+
+
+def layers(name: str, size: int | None, k0: int, k1: int) -> np.ndarray:
+    """(k1 - k0, Y, X) float32 z layers k0..k1-1 of ``synthetic:NAME:SIZE``: the same
+    samples as `make`'s, a part at a time (a volume larger than memory, written layer by
+    layer)."""
+    spec, size = _checked(name, size)
+    h, axes = _axes(spec, size)
+    z, y, x = np.meshgrid(axes[2][k0:k1], axes[1], axes[0], indexing="ij")
+    return spec.builder(x, y, z, 1.2 * h).astype(np.float32)
+
+
+def _checked(name: str, size: int | None) -> tuple[_Spec, int]:
+    """The spec of `name` and its size (the default for None), or VolumeError."""
+    spec = _SPECS.get(name)
+    if spec is None:
+        raise VolumeError(
+            f"synthetic:{name}: unknown synthetic volume; expected one of {', '.join(NAMES)}"
+        )
+    size = spec.default_size if size is None else int(size)
+    if not 8 <= size <= 1024:
+        raise VolumeError(f"synthetic:{name}:{size}: size must be between 8 and 1024 samples")
+    return spec, size
+
+
+def _axes(spec: _Spec, size: int) -> tuple[float, list[np.ndarray]]:
+    """(spacing, [x, y, z] sample coordinates, world units)."""
+    h = 1.0 / (size - 1)
+    counts = [max(2, round(a * (size - 1)) + 1) for a in spec.aspect]  # x, y, z
+    return h, [(np.arange(n) - (n - 1) / 2) * h for n in counts]
 
 
 def parse(spec: str) -> Volume:

@@ -4,15 +4,15 @@
   rays, measured in the same run: a plain bake is timed, then the same bake (the same
   rays: bakes are deterministic) runs again with the rays it traces on each level scene
   recorded and, as soon as the level is done, traced again on that scene straight
-  through embreex with the same number of threads. (Until this split the timed bake was
-  the recording one, and paid for copying every ray: 2.9 GB for the full engine CT
-  bake.) Two ratios: the tracing loop's (level scenes excluded), and end to end (every
+  through embreex with the same number of threads (the timed bake copies no ray). Two
+  ratios: the tracing loop's (level scenes excluded), and end to end (every
   ray over the whole bake's wall time: planning, level scenes and tracing). Also the
   full-bake figures (time, active texels, levels, rays, the level scenes' cost split
   into marching cubes and Embree).
 * ``bench frames`` and ``bench lazy``: `app.bench.view`; ``bench accuracy``: the default
   render's and a default bake's lighting against path tracing on every scan
-  (`app.bench.accuracy`).
+  (`app.bench.accuracy`); ``bench scale``: peak memory and time against the volume's size
+  (`app.bench.scale`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import time
 from isolume.app.options import description_of
 
 HELP = ("benchmarks: baker throughput against bare embreex, frame times, lazy GI, lighting "
-        "accuracy")
+        "accuracy, memory and time against size")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,6 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     accuracy = _accuracy_module()
     accuracy.add_arguments(sub.add_parser("accuracy", help=accuracy.HELP,
                                           description=description_of(accuracy.HELP)))
+    from isolume.app.bench import scale
+
+    scale.add_arguments(sub.add_parser("scale", help=scale.HELP,
+                                       description=description_of(scale.HELP)))
 
 
 _VIEW_BENCHES = {"frames": "frame time per shading mode (llvmpipe, EGL)",
@@ -75,6 +79,10 @@ def run(args: argparse.Namespace) -> int:
         return bench_bake(args)
     if args.bench == "accuracy":
         return _accuracy_module().run(args)
+    if args.bench == "scale":
+        from isolume.app.bench import scale
+
+        return scale.run(args)
     return getattr(_view_module(), args.bench)(args)
 
 

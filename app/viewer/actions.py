@@ -175,6 +175,11 @@ class Actions:
         """The full-resolution surface of the requested isovalue is on screen."""
         return self.surfaces.ready(self.state.view.iso)
 
+    def gi_shown(self) -> bool:
+        """Global illumination of the displayed isovalue is on screen
+        (`app.viewer.illumination.Illumination.gi_shown`)."""
+        return self.illumination.gi_shown()
+
     def bake_progress(self) -> tuple[float | None, str | None]:
         """The lazy bake's progress near the surface
         (`app.viewer.illumination.Illumination.bake_progress`)."""

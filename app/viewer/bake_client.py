@@ -676,6 +676,12 @@ class BakeLink:
             lattice.config = self.relit_config
         return lattice
 
+    def gi_received(self, iso: float) -> bool:
+        """Whether light for `iso` has arrived: a preview pass of it, or estimates of the
+        texels near its surface."""
+        return (any(done["iso"] == iso for _, done in self.previews)
+                or bool(self.near_fraction(iso)))
+
     def near_fraction(self, iso: float) -> float | None:
         """Fraction of the texels near the surface at `iso` that have an estimate (None:
         no progress reported for that isovalue yet)."""

@@ -45,9 +45,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--script", metavar="FILE",
                         help="commands, one per line: iso V | orbit DAZ DEL | zoom F | "
                         "pan DX DY | reset | mode NAME | light AZ EL | light camera | "
-                        "exposure X | wait-mesh [T] | wait-bake FRACTION [T] | "
+                        "exposure X | wait-mesh [T] | wait-gi [T] | wait-bake FRACTION [T] | "
                         "wait-light FRACTION [T] | frames N | sleep S | screenshot FILE | "
-                        "window-shot FILE | save-lattice [FILE] | check-lattice | quit")
+                        "window-shot FILE | save-view [FILE] | save-lattice [FILE] | "
+                        "check-lattice | quit")
     parser.add_argument("--stats", metavar="FILE.json",
                         help="write frame times, extraction and bake figures on exit")
     parser.add_argument("--no-bake", action="store_true",

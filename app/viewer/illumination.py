@@ -181,6 +181,14 @@ class Illumination:
         return self.bake is None or self.bake.paused_ack
 
     # -- questions -----------------------------------------------------------------------
+    def gi_shown(self) -> bool:
+        """Whether global illumination of the displayed isovalue is on screen: a lattice
+        shown without a lazy bake, or the lazy bake's first preview pass of that isovalue,
+        or estimates of the texels near its surface, received."""
+        if self.bake is None:
+            return self.drawing.renderer.lattice is not None
+        return self.bake.gi_received(self.state.view.iso)
+
     def bake_progress(self) -> tuple[float | None, str | None]:
         """(fraction of the texels near the displayed surface with an estimate, None
         before the bake reports on this isovalue; the bake's error or None).

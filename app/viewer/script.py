@@ -13,6 +13,8 @@ distances are in units of the volume's diagonal, times are seconds::
     light camera             # light fixed to the camera again
     exposure 0.8             # linear exposure multiplier
     wait-mesh [TIMEOUT]      # until the full-resolution surface is on screen
+    wait-gi [TIMEOUT]        # until global illumination of the isovalue is on screen (the
+                             # lazy bake's first preview pass, or a lattice's texels)
     wait-bake 0.5 [TIMEOUT]  # until 50 % of the texels near the surface have an estimate
     wait-light 1 [TIMEOUT]   # until 100 % of the visible texels show the bounced light
                              # of the sun (or light) as turned (a lazy bake re-bakes it)
@@ -129,6 +131,7 @@ _SPECS: dict[str, _Spec] = {
     "light": _Spec((_text,), (_elevation,), "light AZIMUTH ELEVATION | light camera"),
     "exposure": _Spec((_positive,), (), "exposure VALUE"),
     "wait-mesh": _Spec((), (_positive,), "wait-mesh [TIMEOUT]"),
+    "wait-gi": _Spec((), (_positive,), "wait-gi [TIMEOUT]"),
     "wait-bake": _Spec((_fraction,), (_positive,), "wait-bake FRACTION [TIMEOUT]"),
     "wait-light": _Spec((_fraction,), (_positive,), "wait-light FRACTION [TIMEOUT]"),
     "frames": _Spec((_count,), (), "frames N"),
@@ -257,6 +260,7 @@ class ScriptTarget(Protocol):
     def save_view(self, path: str | os.PathLike | None = None) -> Path: ...
     def save_lattice(self, path: str | os.PathLike | None = None) -> Path | None: ...
     def surface_ready(self) -> bool: ...
+    def gi_shown(self) -> bool: ...
     def bake_progress(self) -> tuple[float | None, str | None]: ...
     def relit_progress(self) -> tuple[float | None, str | None]: ...
     def hold_bake(self, held: bool) -> None: ...
@@ -346,7 +350,7 @@ class ScriptRunner:
         elif name == "window-shot":
             self.pending_window_shot = Path(args[0])
             self.frames_left = 1
-        elif name == "wait-mesh":
+        elif name in ("wait-mesh", "wait-gi"):
             self.deadline = now + (args[0] if args else DEFAULT_TIMEOUT)
         elif name == "check-lattice":
             self.deadline = now + DEFAULT_TIMEOUT
@@ -374,6 +378,8 @@ class ScriptRunner:
             return True
         if name == "wait-mesh":
             return viewer.surface_ready() or self._timeout(now, "the full-resolution surface")
+        if name == "wait-gi":
+            return viewer.gi_shown() or self._timeout(now, "global illumination on screen")
         if name in ("wait-bake", "wait-light"):
             progress = viewer.bake_progress if name == "wait-bake" else viewer.relit_progress
             fraction, error = progress()
