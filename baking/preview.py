@@ -414,7 +414,7 @@ def drop_inactive(lattice: Lattice) -> np.ndarray:
 
 def warm_up(volume: volumes.Volume) -> None:
     """Do ahead of the first view what the first preview pass would otherwise do on it: load
-    the compiled kernels and build the plain gradient grid (together ~1 s on a CT scan)."""
+    the compiled kernels, the projection's among them (~1 s)."""
     kernels.warm_up()
     centre = np.mean(volume.sample_box, axis=0)[None, :]
     project_to_level(volume, centre, float(volume.data.mean()), 0.0, smooth=False)

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from isolume import volumes
 from isolume.volumes import Volume, VolumeError
@@ -126,12 +127,51 @@ def test_compiled_trilinear_equals_scipy_map_coordinates():
         np.testing.assert_array_equal(_interpolate(grid, idx), _map_coordinates(grid, idx))
 
 
+def _gradient_grid(vol) -> np.ndarray:
+    """(Z, Y, X, 3) float32 smoothed gradient at the voxels, with scipy: the central
+    difference along one axis, the B-spline weights [1, 4, 1] / 6 along the other two."""
+    spline, central = np.array([1.0, 4.0, 1.0]) / 6.0, np.array([-0.5, 0.0, 0.5])
+    data = vol.data.astype(np.float64)
+    out = []
+    for axis, h in zip((2, 1, 0), vol.spacing, strict=True):  # x, y, z
+        g = data
+        for a in range(3):
+            g = ndimage.correlate1d(g, central if a == axis else spline, axis=a,
+                                    mode="nearest")
+        out.append(g / h)
+    return np.stack(out, axis=-1).astype(np.float32)
+
+
+@pytest.mark.parametrize("smooth", [True, False])
+def test_gradients_are_the_voxel_stencils_interpolated(smooth):
+    """`gradient_at` (the voxels' gradients computed where a lookup needs them) against
+    scipy's filters over the whole grid, interpolated by scipy, inside, outside and on the
+    faces; plain differences without the B-spline weights."""
+    vol = make("torus", 24)
+    grid = _gradient_grid(vol) if smooth else np.stack(
+        [np.gradient(vol.data.astype(np.float64), h, axis=a, edge_order=1)
+         for a, h in zip((2, 1, 0), vol.spacing, strict=True)], axis=-1).astype(np.float32)
+    if not smooth:  # np.gradient's one-sided edges: compare inside only
+        grid = grid[1:-1, 1:-1, 1:-1]
+    r = np.random.default_rng(8)
+    last = np.array(vol.data.shape) - 1
+    index = (r.uniform(-2, last + 2, size=(4000, 3)) if smooth  # outside too: clamped
+             else r.uniform(1, last - 1, size=(4000, 3)))
+    index[:10] = np.floor(index[:10])
+    points = vol.index_to_world(index)
+    expected = _map_coordinates(grid, index if smooth else index - 1)
+    got = volumes.gradient_at(vol, points, smooth=smooth)
+    scale = np.abs(grid).max()
+    np.testing.assert_allclose(got, expected, atol=1e-6 * scale)
+    assert np.isnan(volumes.gradient_at(vol, np.full((1, 3), np.nan))).all()
+
+
 def test_newton_projection_matches_the_plain_iteration():
     """`newton_to_level` against the same damped Newton steps written with scipy lookups:
     each step at most one voxel long, four steps plus one per voxel of `max_move` (it stops
     once a step moves less than 1e-4 voxel: the points agree to 2e-4 voxel)."""
     vol = make("torus", 40)
-    grad = volumes.gradient_grid(vol)
+    grad = _gradient_grid(vol)
     r = np.random.default_rng(3)
     start = vol.index_to_world(r.uniform(2, 37, size=(3000, 3)))
     levels = r.uniform(0.2, 0.8, 3000)

@@ -19,7 +19,6 @@ from isolume.volumes.core import Volume, VolumeError
 from isolume.volumes.cubes import tracing_surface
 from isolume.volumes.field import (
     gradient_at,
-    gradient_grid,
     newton_to_level,
     normals_at,
     value_at,
@@ -42,7 +41,6 @@ __all__ = [
     "check_isovalue",
     "crop_downsample",
     "gradient_at",
-    "gradient_grid",
     "histogram_lines",
     "isosurface",
     "level_points",

@@ -4,9 +4,11 @@ The paper's normals (§4.1.1) come from the gradient of the field smoothed with 
 tricubic B-spline kernel (support 4×4×4 voxels). Here the field is taken as the uniform
 cubic B-spline whose control points are the samples; its exact gradient at a voxel centre
 is the separable product of the central difference ``[-1, 0, 1]/2`` along one axis and the
-B-spline weights ``[1, 4, 1]/6`` along the other two. That gradient grid is computed once
-per volume (cached) and interpolated trilinearly between voxel centres, which is what the
-GPU would do with it as a texture.
+B-spline weights ``[1, 4, 1]/6`` along the other two, rounded to float32; between voxel
+centres it is interpolated trilinearly, which is what the GPU would do with it as a
+texture. The voxel gradients are computed where a lookup needs them (the eight around the
+point, 27 samples each) rather than stored for the whole volume: no 12 bytes per voxel, the
+same bits.
 
 Normals point from high values to low values: ``n = -∇ρ / |∇ρ|`` (out of the material when
 the material is denser than its surroundings); ``flip=True`` reverses them.
@@ -15,7 +17,6 @@ the material is denser than its surroundings); ``flip=True`` reverses them.
 from __future__ import annotations
 
 import os
-import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
@@ -23,68 +24,81 @@ import numpy as np
 
 from isolume.volumes.core import Volume
 
-_GRID_LOCK = threading.Lock()
-
 _BSPLINE = np.array([1.0, 4.0, 1.0]) / 6.0
-_CENTRAL = np.array([-0.5, 0.0, 0.5])  # correlate1d: out[i] = (f[i+1] - f[i-1]) / 2
+_PLAIN = np.array([0.0, 1.0, 0.0])
 
 
-def _gradient_grid(volume: Volume, smooth: bool) -> np.ndarray:
-    """(Z, Y, X, 3) float32 gradient (d/dx, d/dy, d/dz) per world unit at voxel centres."""
-    data = np.ascontiguousarray(volume.data, np.float32)
-    out = np.empty((*data.shape, 3), np.float32)
-    weights = _BSPLINE if smooth else np.array([0.0, 1.0, 0.0])
-    inverse = 0.5 / np.asarray(volume.spacing, np.float64)  # central difference / 2h
-    _gradient_stencil(data, weights, inverse, out)
-    return out
+def _stencil(volume: Volume, smooth: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the compiled gradient lookups read: the (Z, Y, X) samples, the weights (3,)
+    across the difference's axis (the B-spline's [1, 4, 1] / 6 when `smooth`, else
+    [0, 1, 0]: plain central differences) and 1 / (2 h) per axis (x, y, z)."""
+    return (volume.data, _BSPLINE if smooth else _PLAIN,
+            0.5 / np.asarray(volume.spacing, np.float64))
 
 
-@numba.njit(nogil=True, cache=True, parallel=True)
-def _gradient_stencil(data: np.ndarray, w: np.ndarray, inverse: np.ndarray,
-                      out: np.ndarray) -> None:
-    """out[z, y, x] = (gx, gy, gz): along each axis the central difference, along the
-    other two the weights `w` (3,) — the B-spline's [1, 4, 1] / 6, or [0, 1, 0] for plain
-    differences — with edge samples repeated past the border ("nearest"). One pass over
-    the (Z, Y, X) data, slabs of z in parallel, without the GIL."""
+@numba.njit(nogil=True, cache=True)
+def _voxel_gradient(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: int, y: int,
+                    x: int, out: np.ndarray, k: int) -> None:
+    """out[k] = (gx, gy, gz), float32, at voxel (z, y, x) of the (Z, Y, X) `data`: along
+    each axis the central difference, along the other two the weights `w` (3,), edge
+    samples repeated past the border ("nearest"), times `inverse` (x, y, z)."""
     nz, ny, nx = data.shape
-    for slab in numba.prange(nz):
-        z = np.int64(slab)
-        zs = np.array([max(z - 1, 0), z, min(z + 1, nz - 1)])
-        ys = np.empty(3, np.int64)
-        xs = np.empty(3, np.int64)
-        for y in range(ny):
-            ys[0], ys[1], ys[2] = max(y - 1, 0), y, min(y + 1, ny - 1)
-            for x in range(nx):
-                xs[0], xs[1], xs[2] = max(x - 1, 0), x, min(x + 1, nx - 1)
-                gx = 0.0
-                gy = 0.0
-                gz = 0.0
-                for a in range(3):
-                    for b in range(3):
-                        wab = w[a] * w[b]
-                        gx += wab * (data[zs[a], ys[b], xs[2]] - data[zs[a], ys[b], xs[0]])
-                        gy += wab * (data[zs[a], ys[2], xs[b]] - data[zs[a], ys[0], xs[b]])
-                        gz += wab * (data[zs[2], ys[a], xs[b]] - data[zs[0], ys[a], xs[b]])
-                out[z, y, x, 0] = gx * inverse[0]
-                out[z, y, x, 1] = gy * inverse[1]
-                out[z, y, x, 2] = gz * inverse[2]
+    z0, z2 = max(z - 1, 0), min(z + 1, nz - 1)
+    y0, y2 = max(y - 1, 0), min(y + 1, ny - 1)
+    x0, x2 = max(x - 1, 0), min(x + 1, nx - 1)
+    zs, ys, xs = (z0, z, z2), (y0, y, y2), (x0, x, x2)
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    for a in range(3):
+        for b in range(3):
+            wab = w[a] * w[b]
+            gx += wab * (data[zs[a], ys[b], xs[2]] - data[zs[a], ys[b], xs[0]])
+            gy += wab * (data[zs[a], ys[2], xs[b]] - data[zs[a], ys[0], xs[b]])
+            gz += wab * (data[zs[2], ys[a], xs[b]] - data[zs[0], ys[a], xs[b]])
+    out[k, 0] = gx * inverse[0]
+    out[k, 1] = gy * inverse[1]
+    out[k, 2] = gz * inverse[2]
 
 
-def gradient_grid(volume: Volume, smooth: bool = True) -> np.ndarray:
-    """Cached (Z, Y, X, 3) float32 gradient grid, world units (value per world unit).
+@numba.njit(nogil=True, cache=True)
+def _gradient_lerp(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: float, y: float,
+                   x: float, corners: np.ndarray, out: np.ndarray) -> None:
+    """out[:] = the gradient at the fractional index (z, y, x): the trilinear interpolation
+    (as `_lerp3`, clamped at the border) of the eight surrounding voxels' gradients
+    (`_voxel_gradient`, into the (8, 3) float32 scratch `corners`)."""
+    nz, ny, nx = data.shape
+    z0, z1, fz = _axis_weights(z, nz)
+    y0, y1, fy = _axis_weights(y, ny)
+    x0, x1, fx = _axis_weights(x, nx)
+    k = 0
+    for zz in (z0, z1):
+        for yy in (y0, y1):
+            for xx in (x0, x1):
+                _voxel_gradient(data, w, inverse, zz, yy, xx, corners, k)
+                k += 1
+    for c in range(3):
+        a = (1 - fx) * corners[0, c] + fx * corners[1, c]
+        b = (1 - fx) * corners[2, c] + fx * corners[3, c]
+        d = (1 - fx) * corners[4, c] + fx * corners[5, c]
+        e = (1 - fx) * corners[6, c] + fx * corners[7, c]
+        out[c] = (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
 
-    Args:
-        smooth: True for the cubic-B-spline-smoothed gradient (the paper's), False for
-            plain central differences (paper Fig. 5, left).
-    """
-    key = "grad_smooth" if smooth else "grad_plain"
-    grid = volume._cache.get(key)
-    if grid is None:
-        with _GRID_LOCK:  # built once even when threads ask at once (the lazy bake's plan
-            if key not in volume._cache:  # and its previews)
-                volume._cache[key] = _gradient_grid(volume, smooth)
-            grid = volume._cache[key]
-    return grid
+
+@numba.njit(nogil=True, cache=True)
+def _gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, index_zyx: np.ndarray,
+               out: np.ndarray) -> None:
+    """out[i] = the gradient at index_zyx[i] (N, 3) (`_gradient_lerp`); NaN where an
+    index is NaN."""
+    corners = np.empty((8, 3), np.float32)
+    g = np.empty(3)
+    for i in range(index_zyx.shape[0]):
+        z, y, x = index_zyx[i, 0], index_zyx[i, 1], index_zyx[i, 2]
+        if z != z or y != y or x != x:
+            out[i, :] = np.nan
+        else:
+            _gradient_lerp(data, w, inverse, z, y, x, corners, g)
+            out[i, 0], out[i, 1], out[i, 2] = g[0], g[1], g[2]
 
 
 @numba.njit(nogil=True, cache=True)
@@ -124,7 +138,8 @@ def _trilinear(grid: np.ndarray, index_zyx: np.ndarray, out: np.ndarray) -> None
 
 
 @numba.njit(nogil=True, cache=True)
-def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
+def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.ndarray,
+            origin: np.ndarray, spacing: np.ndarray,
             points: np.ndarray, levels: np.ndarray, max_move: float, iterations: int,
             out: np.ndarray) -> None:
     """Newton steps p += (level − ρ(p)) ∇ρ / |∇ρ|² from each (N, 3) world point, the
@@ -138,6 +153,7 @@ def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.
     neighbour directions is taken instead (`_nearest_crossing`)."""
     value = np.empty(1)
     g = np.empty(3)
+    corners = np.empty((8, 3), np.float32)
     voxel = min(spacing[0], spacing[1], spacing[2])
     tiny = 1e-4 * voxel
     steps = iterations + int(max_move / voxel)
@@ -148,7 +164,7 @@ def _newton(data: np.ndarray, grad: np.ndarray, origin: np.ndarray, spacing: np.
             zi, yi, xi = ((pz - origin[2]) / spacing[2], (py - origin[1]) / spacing[1],
                           (px - origin[0]) / spacing[0])
             _lerp3(data, zi, yi, xi, value)
-            _lerp3(grad, zi, yi, xi, g)
+            _gradient_lerp(samples, w, inverse, zi, yi, xi, corners, g)
             g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
             step = (levels[i] - value[0]) / g2
             length = abs(step) * np.sqrt(g2)
@@ -241,7 +257,7 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
     points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
     levels = np.ascontiguousarray(np.broadcast_to(levels, (len(points),)), np.float64)
     out = np.empty_like(points)
-    fixed = (volume.data[..., None], gradient_grid(volume, smooth),
+    fixed = (volume.data[..., None], *_stencil(volume, smooth),
              np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64))
 
     def steps(lo: int, hi: int) -> None:
@@ -300,17 +316,19 @@ MIN_SHARE = 1 << 14
 
 
 @numba.njit(nogil=True, cache=True)
-def _along_normals(data: np.ndarray, grad: np.ndarray, origin: np.ndarray,
-                   spacing: np.ndarray, points: np.ndarray, distance: float, sign: float,
-                   out: np.ndarray) -> None:
+def _along_normals(data: np.ndarray, samples: np.ndarray, w: np.ndarray,
+                   inverse: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
+                   points: np.ndarray, distance: float, sign: float, out: np.ndarray) -> None:
     """out[i] = trilinear value at points[i] + distance · n, n = sign · ∇ρ/|∇ρ| there (sign
     −1: `normals_from_gradient`'s normals, +1 flipped; (0, 0, −sign) where ∇ρ = 0)."""
     g = np.empty(3)
     value = np.empty(1)
+    corners = np.empty((8, 3), np.float32)
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        _lerp3(grad, (z - origin[2]) / spacing[2], (y - origin[1]) / spacing[1],
-               (x - origin[0]) / spacing[0], g)
+        _gradient_lerp(samples, w, inverse, (z - origin[2]) / spacing[2],
+                       (y - origin[1]) / spacing[1], (x - origin[0]) / spacing[0], corners,
+                       g)
         norm = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
         if norm > 0:
             x += distance * sign * g[0] / norm
@@ -328,7 +346,7 @@ def values_along_normals(volume: Volume, points_xyz: np.ndarray, distance: float
     compiled pass on threads — where a path starting there would begin."""
     points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
     out = np.empty(len(points))
-    fixed = (volume.data[..., None], gradient_grid(volume, smooth),
+    fixed = (volume.data[..., None], *_stencil(volume, smooth),
              np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64))
 
     def part(lo: int, hi: int) -> None:
@@ -358,8 +376,17 @@ def value_at(volume: Volume, points_xyz: np.ndarray) -> np.ndarray:
 
 
 def gradient_at(volume: Volume, points_xyz: np.ndarray, smooth: bool = True) -> np.ndarray:
-    """(N, 3) float32 gradient at (N, 3) world points, value per world unit."""
-    return _interpolate(gradient_grid(volume, smooth), volume.world_to_index(points_xyz))
+    """(N, 3) float32 gradient at (N, 3) world points, value per world unit (clamped at
+    the border; NaN at NaN points), in one compiled pass on threads."""
+    index = np.ascontiguousarray(volume.world_to_index(points_xyz), np.float64).reshape(-1, 3)
+    out = np.empty((len(index), 3), np.float32)
+    fixed = _stencil(volume, smooth)
+
+    def part(lo: int, hi: int) -> None:
+        _gradients(*fixed, index[lo:hi], out[lo:hi])
+
+    on_threads(part, len(index), 8)
+    return out
 
 
 def normals_from_gradient(grad: np.ndarray, flip: bool = False) -> tuple[np.ndarray, np.ndarray]:

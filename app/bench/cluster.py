@@ -44,7 +44,7 @@ def predict(workers: int, master_s: float, setup_s: float, scene_s: float, level
 
     Args:
         master_s: the master's serial seconds (the plan); setup_s: a worker's own set-up
-            for the bake (kernels loaded, the volume's gradient grid), in parallel on all;
+            for the bake (kernels loaded), in parallel on all;
         scene_s: seconds per level scene; levels: K; paths: P; path_s: seconds per path
             on one thread;
         job_bytes: the scattered job, sent from the scheduler's machine to every worker
@@ -165,7 +165,7 @@ def _scene_cpu_seconds(volume, config: BakeConfig, levels: np.ndarray, count: in
 
 def _setup_seconds(volume) -> float:
     """A worker's set-up for a bake: its kernels loaded (cold process, numba's cache) and
-    the volume's gradient grid built (`volumes.normals_at`, once per volume)."""
+    its first normals (`volumes.normals_at`: the gradient kernels loaded)."""
     import subprocess
     import sys
 

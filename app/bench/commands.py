@@ -167,7 +167,7 @@ def _bare_rate(vol, config, workers: int) -> dict:
 def _bake_figures(vol, args, workers: int, baker, wall: float, plan_seconds: float,
                   bare: dict) -> dict:
     """The figures of one `bench_bake` run (JSON-ready). `wall`: the plain bake's `run`
-    seconds; `plan_seconds`: making its `Baker` (plan, kernels, gradient grid)."""
+    seconds; `plan_seconds`: making its `Baker` (plan, kernels)."""
     stats = baker.stats
     assert stats.rays == bare["rays"], "the replayed bake must trace exactly the timed one's rays"
     plan = baker.lattice.meta["plan"]

@@ -27,11 +27,9 @@ def chart_levels(run: Run) -> Chart:
 
     import numpy as np
 
-    from isolume import volumes
     from isolume.baking import kernels
     from isolume.baking.bake import Baker
 
-    volumes.gradient_grid(run.volume)  # once per process: not any one bake's time
     kernels.warm_up()
     warm = Baker(run.volume, dataclasses.replace(run.config, samples=1), workers=run.workers)
     try:

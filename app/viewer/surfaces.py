@@ -27,19 +27,6 @@ PREVIEW_TARGET_TRIANGLES = 35_000
 """The preview's step grows (to at most 4) so that it has about this many triangles."""
 
 
-def mesh_normals(vertices: np.ndarray, faces: np.ndarray, flip: bool = False) -> np.ndarray:
-    """(V, 3) float32 unit vertex normals from area-weighted face normals of a marching-cubes
-    mesh in world units (they point from high to low values like the field's; `flip`
-    reverses them). Cheap: used for previews before the smoothed gradient is ready."""
-    p = vertices.astype(np.float64)[faces]
-    fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    idx = faces.reshape(-1)
-    vn = np.stack([np.bincount(idx, np.repeat(fn[:, c], 3), minlength=len(vertices))
-                   for c in range(3)], axis=1)
-    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
-    return (-vn if flip else vn).astype(np.float32)
-
-
 def preview_step(full_triangles: int | None) -> int:
     """Marching-cubes step of the preview surface, given the full surface's triangle count
     last time (triangles fall with the square of the step)."""
@@ -59,8 +46,8 @@ def extract_surface(volume: volumes.Volume, iso: float, *, step: int = 1,
 
     Args:
         step: marching-cubes step in voxels.
-        normals: "smooth" (cubic-B-spline gradient, as `volumes.isosurface`), "gradient"
-            (central differences) or "mesh" (from the triangles, cheapest).
+        normals: "smooth" (cubic-B-spline gradient, as `volumes.isosurface`) or "gradient"
+            (central differences).
         cancelled: called between slabs; True abandons the work (returns None).
 
     Returns:
@@ -80,10 +67,7 @@ def extract_surface(volume: volumes.Volume, iso: float, *, step: int = 1,
         return volumes.Mesh.empty_at(iso, f"no surface at isovalue {iso:g}")
     world = volume.index_to_world(verts).astype(np.float32)
     faces = faces.astype(np.uint32)
-    if normals == "mesh":
-        n = mesh_normals(world, faces, flip)
-    else:
-        n = volumes.normals_at(volume, world, smooth=normals == "smooth", flip=flip)
+    n = volumes.normals_at(volume, world, smooth=normals == "smooth", flip=flip)
     return volumes.Mesh(world, faces, n, iso)
 
 
@@ -112,7 +96,6 @@ class MeshWorker:
         self._latest = 0
         self._results: list[MeshResult] = []
         self._closed = False
-        self._gradient_ready = False
         self._full_triangles: int | None = None
         self.error: str | None = None
         self._thread = threading.Thread(target=self._loop, name="isolume-mesh", daemon=True)
@@ -167,15 +150,11 @@ class MeshWorker:
         coarse = preview_step(self._full_triangles)
         stages = [("coarse", coarse), ("full", 1)] if self.coarse else [("full", 1)]
         for stage, step in self._stages(stages):
-            normals = self.normals
-            if stage == "coarse" and not self._gradient_ready and normals == "smooth":
-                normals = "mesh"  # the smoothed gradient grid takes seconds the first time
-            mesh = extract_surface(self.volume, iso, step=step, normals=normals,
+            mesh = extract_surface(self.volume, iso, step=step, normals=self.normals,
                                    flip=self.flip, cancelled=lambda r=request: self._stale(r))
             if mesh is None:
                 return
             if stage == "full":
-                self._gradient_ready = True
                 self._full_triangles = len(mesh.faces) or self._full_triangles
             with self._cv:
                 if self._stale(request):
