@@ -7,6 +7,7 @@ import argparse
 import sys
 
 from isolume import volumes
+from isolume.app.look import shading_look
 from isolume.app.options import (
     CLIError,
     bake_config,
@@ -15,7 +16,6 @@ from isolume.app.options import (
     load_lattice,
     load_volume,
     parse_size,
-    shading_look,
 )
 
 

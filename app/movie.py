@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from isolume import volumes
+from isolume.app.look import shading_look
 from isolume.app.movie_stage import (
     KINDS,
     Scene,
@@ -40,7 +41,6 @@ from isolume.app.options import (
     load_lattice,
     load_volume,
     parse_size,
-    shading_look,
 )
 from isolume.app.state import add_state_argument
 

@@ -123,6 +123,10 @@ def parse_view(text: str) -> tuple[float, float, float | None]:
 FRAME_FILL = 0.9
 """Framing brings the points' projections within this fraction of the free part's
 half-width or half-height, whichever binds."""
+FRAME_OUTLIERS = 0.001
+"""Framing leaves out this fraction of the points on each side (specks of noise far from
+the object; what lies just past it stays within the margin that `FRAME_FILL` leaves).
+Sets of under a thousand points (a box's corners) are framed whole."""
 
 
 def frame_points(camera: Camera, points, aspect: float,
@@ -161,15 +165,17 @@ def frame_points(camera: Camera, points, aspect: float,
                          pan=(float(shift[0] * t * aspect * distance / scale),
                               float(shift[1] * t * distance / scale)))
         ndc = _project(framed, aspect, points)
-        low, high = ndc.min(axis=0), ndc.max(axis=0)
         if centre:
+            low = np.quantile(ndc, FRAME_OUTLIERS, axis=0, method="lower")
+            high = np.quantile(ndc, 1 - FRAME_OUTLIERS, axis=0, method="higher")
             off = (low + high) / 2 - (middle, 0.0)
             shift += off
             fill = max((high[0] - low[0]) / width, high[1] - low[1]) / 2 / FRAME_FILL
         else:
             off = np.zeros(2)
-            fill = max(np.abs(ndc[:, 0] - middle).max() / width,
-                       np.abs(ndc[:, 1]).max()) / FRAME_FILL
+            reach = np.quantile(np.abs(ndc - (middle, 0.0)), 1 - FRAME_OUTLIERS, axis=0,
+                                method="higher")
+            fill = max(reach[0] / width, reach[1]) / FRAME_FILL
         if abs(fill - 1.0) < 1e-3 and np.abs(off).max() < 1e-3:
             break
         # a distant set's projection shrinks as 1/distance; about the centre, by less

@@ -172,8 +172,10 @@ class Actions:
 
     # -- what scripts wait for -----------------------------------------------------------
     def surface_ready(self) -> bool:
-        """The full-resolution surface of the requested isovalue is on screen."""
-        return self.surfaces.ready(self.state.view.iso)
+        """The full-resolution surface of the requested isovalue is on screen, the camera
+        framing the first surface (`Viewer._frame_first_surface`) where there is one."""
+        shown = any(not m.empty for m in self.drawing.meshes.values())
+        return self.surfaces.ready(self.state.view.iso) and (self.state.framed or not shown)
 
     def gi_shown(self) -> bool:
         """Global illumination of the displayed isovalue is on screen

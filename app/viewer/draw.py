@@ -453,19 +453,22 @@ class Drawing:
     def _adapt(self, targets, size: tuple[int, int]) -> float:
         """Move the automatic exposure towards the frame's own (`auto_exposure_scale` of
         `EXPOSURE_PROBE` pixels across the HDR target of `size`) with time constant
-        `EXPOSURE_ADAPT_S`; returns the factor by which it changed."""
+        `EXPOSURE_ADAPT_S`, or straight to it on the first frame that shows the surface
+        (frames before it have none to meter); returns the factor by which it changed."""
         if not self.auto_exposure:
             return 1.0
         from isolume.app.render.exposure import auto_exposure_scale
 
         rgba = self._sample_hdr(targets, size)
-        goal = auto_exposure_scale(rgba[..., :3], rgba[..., 3] > 0)
+        surface = rgba[..., 3] > 0
         now = time.perf_counter()
         before = self.auto
-        if before is None or not (rgba[..., 3] > 0).any():
-            self.auto = goal if before is None else before
-        else:
-            self.auto = adapted_exposure(before, goal, now - self._adapted_at)
+        if not surface.any():  # nothing to meter: keep the exposure (none yet: none)
+            self._adapted_at, self.adapting = now, False
+            return 1.0
+        goal = auto_exposure_scale(rgba[..., :3], surface)
+        self.auto = goal if before is None else adapted_exposure(before, goal,
+                                                                 now - self._adapted_at)
         self._adapted_at = now
         self.adapting = abs(math.log(goal / self.auto)) > 0.01
         return 1.0 if before is None else self.auto / before
@@ -489,8 +492,17 @@ class Drawing:
 
     def frame(self, camera, state: ViewState, size: tuple[int, int]):
         """An off-screen `app.render.renderer` frame (sRGB and linear radiance) of `size` (W, H),
-        exposed as the window is."""
-        return self.renderer.render(camera, self.exposed(self.settings(state, size)))
+        exposed as the window is (`metered`)."""
+        return self.renderer.render(camera, self.metered(camera, state, size))
+
+    def metered(self, camera, state: ViewState, size: tuple[int, int]):
+        """The `RenderSettings` of a frame of `size` exposed as the window is; while no
+        window frame has shown the surface yet, the automatic exposure is first metered on
+        this one (as the window's first frame with the surface would)."""
+        settings = self.settings(state, size)
+        if self.auto_exposure and self.auto is None:
+            self._adapt(self.renderer.draw_hdr(camera, settings), size)
+        return self.exposed(settings)
 
     def visible_points(self, camera, state: ViewState, size: tuple[int, int]) -> np.ndarray:
         """(N, 3) world positions of the surface under the pixels of a view of `size`

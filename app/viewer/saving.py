@@ -109,7 +109,7 @@ class Saver:
             **asdict(options.source), iso=float(view.iso), camera=state.whole_window(),
             size=f"{size[0]}x{size[1]}", shading=view.shading, exposure=float(view.exposure),
             auto_exposure=options.auto_exposure,
-            shown_exposure=float(self.drawing.exposed(self.drawing.settings(view, size)).exposure),
+            shown_exposure=float(self.drawing.metered(state.whole_window(), view, size).exposure),
             tonemap=self.drawing.settings(view, size).tonemap,
             albedo=",".join(repr(float(a)) for a in self.drawing.albedo), env=env,
             lights=lights, light_angles=view.light,

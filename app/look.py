@@ -1,0 +1,70 @@
+"""How ``render`` and ``movie`` shade a picture from their options: the render settings,
+the light traced for the view when there is no lattice, the SH environment."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+import numpy as np
+
+from isolume import volumes
+from isolume.app.options import (
+    CLIError,
+    environment_coefficients,
+    floats,
+    parse_albedo,
+    view_light,
+)
+from isolume.app.state import light_settings
+
+
+@dataclass(frozen=True)
+class Look:
+    """How ``render`` (and each frame of ``movie``) shades its picture.
+
+    Attributes:
+        settings: the picture's `app.render.settings.RenderSettings`.
+        traced: the `BakeConfig` of the light traced for the view (no lattice), or None.
+        env_coeffs: (n², 3) SH coefficients of the environment ("sh"), or None.
+    """
+
+    settings: object
+    traced: object | None = None
+    env_coeffs: np.ndarray | None = None
+
+
+def shading_look(args: argparse.Namespace, vol: volumes.Volume, lattice,
+                 size: tuple[int, int], per: str = "view") -> Look:
+    """The `Look` of the render options `args` for `vol` and `lattice` (None: none) in a
+    `size` (width, height) picture; `CLIError` for options that contradict each other or
+    the lattice. `per` ("view" or "frame") says, in the errors, what is traced without a
+    lattice."""
+    from isolume.app.render.settings import LATTICE_MODES, RenderSettings
+
+    shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
+    if lattice is not None and lattice.kind == "irradiance" and (args.env or args.light):
+        raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
+                       f"lighting ({lattice.config.env or 'no environment'}); "
+                       "bake again for other light, or leave out --lattice")
+    traced = view_light(args, vol) if lattice is None and shading == "irradiance" else None
+    if args.albedo is not None:
+        albedo = parse_albedo(args.albedo)
+    else:
+        albedo = lattice.config.albedo if lattice is not None else (0.8, 0.8, 0.8)
+    try:
+        settings = RenderSettings(
+            size=size, shading=shading, exposure=args.exposure,
+            auto_exposure=not args.no_auto_exposure, tonemap=args.tonemap, albedo=albedo,
+            env_rotation=floats(args.env_rotation, 2, "--env-rotation"),
+            **light_settings(args.light_angles, lattice))
+    except ValueError as exc:
+        raise CLIError(str(exc)) from None
+    if shading in LATTICE_MODES and lattice is None and traced is None:
+        where = "the view" if per == "view" else "each frame"
+        raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume "
+                       f"bake); without one, irradiance is traced for {where}")
+    env_coeffs = None
+    if shading == "sh" and lattice is not None:
+        env_coeffs = environment_coefficients(args.env, lattice, args.sh_window)
+    return Look(settings, traced, env_coeffs)
