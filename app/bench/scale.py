@@ -86,7 +86,7 @@ def write_synthetic(size: int, folder: Path) -> Path:
     z, y, x = synthetic.shape("engine", size)
     path = folder / f"engine{size}_{x}x{y}x{z}_uint8.raw"
     if not path.exists():
-        with _partial(path) as out:
+        with _PartialFile(path) as out:
             for k0 in range(0, z, LAYERS):
                 part = synthetic.layers("engine", size, k0, min(k0 + LAYERS, z))
                 out.write(np.rint(np.clip(part, 0, 1) * 255).astype(np.uint8).tobytes())
@@ -107,7 +107,7 @@ def write_upsampled(source: str, size: int, folder: Path) -> Path:
     path = folder / f"{volume.name}{size}_{x}x{y}x{z}_uint8.raw"
     if not path.exists():
         steps = (shape - 1) / np.maximum(new - 1, 1)
-        with _partial(path) as out:
+        with _PartialFile(path) as out:
             for k0 in range(0, z, LAYERS):
                 k = np.arange(k0, min(k0 + LAYERS, z))
                 grid = np.meshgrid(k * steps[0], np.arange(y) * steps[1],
@@ -117,7 +117,7 @@ def write_upsampled(source: str, size: int, folder: Path) -> Path:
     return path
 
 
-class _partial:
+class _PartialFile:
     """A file written under a temporary name and renamed when complete (an interrupted
     write leaves no file that looks whole)."""
 
