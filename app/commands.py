@@ -69,7 +69,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if mesh.empty:
         print(f"isolume: warning: {mesh.message}", file=sys.stderr)
     write_image(out, frame.linear, frame.srgb)
-    lighting = f", lighting {traced.env}" if traced is not None else ""
+    lighting = f", lighting {traced.env or 'no environment'}" if traced is not None else ""
     print(f"wrote {out} ({settings.size[0]}x{settings.size[1]}, {vol.name} at iso {iso:.6g}, "
           f"{len(mesh.faces):,} triangles, shading {settings.shading}{lighting}, exposure "
           f"{frame.exposure:.3g})")

@@ -22,6 +22,7 @@ import numpy as np
 from isolume import volumes
 from isolume.app.options import (
     CLIError,
+    add_light_options,
     add_volume_options,
     check_served,
     environment_coefficients,
@@ -54,53 +55,13 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``isolume export``."""
-    from isolume.app.render.settings import TONEMAPS
-    from isolume.app.render.view_gi import DEFAULT_PATHS
-    from isolume.baking.config import DEFAULT_ENV
 
     p.description, p.epilog = DESCRIPTION, EXAMPLES
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     add_volume_options(p, optional=True)
     p.add_argument("--out", required=True,
                    help="FILE.glb (glTF binary, +Y up) or FILE.ply (binary, +Z up)")
-    p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
-    p.add_argument("--lattice", help="illumination lattice from `isolume bake` (default: "
-                   "global illumination traced for the exported surface)")
-    p.add_argument("--env", default=None,
-                   help="the lighting: constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular]"
-                   f" | none (default: the lattice's with --lattice, else {DEFAULT_ENV})")
-    p.add_argument("--light", action="append", metavar="SPEC",
-                   help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable; without "
-                   "--lattice; default none)")
-    p.add_argument("--samples", type=int, default=None,
-                   help="paths per texel of the traced global illumination (without "
-                   f"--lattice; default {DEFAULT_PATHS})")
-    p.add_argument("--bounces", type=int, default=2,
-                   help="diffuse bounces of that illumination (default 2)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--workers", type=int, default=None,
-                   help="tracing threads (default: all cores)")
-    p.add_argument("--albedo", default=None,
-                   help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
-    p.add_argument("--env-rotation", default="0,0",
-                   help="AZ,EL degrees the environment of an SH lattice turns by (default 0,0)")
-    p.add_argument("--sh-window", default="none", choices=["none", "hanning", "lanczos"],
-                   help="window against ringing of the environment's SH projection (SH "
-                   "lattices; default none)")
-    p.add_argument("--exposure", type=float, default=1.0,
-                   help="linear exposure multiplier on the automatic exposure, which brings "
-                   "the area-weighted log-average luminance of the surface to middle grey "
-                   "(default 1)")
-    p.add_argument("--no-auto-exposure", action="store_true",
-                   help="no automatic exposure: --exposure is the whole linear scale")
-    p.add_argument("--tonemap", default="aces", choices=list(TONEMAPS),
-                   help="tone curve from exposed radiance to the colours (default aces)")
-    p.add_argument("--normals", default="smooth", choices=["smooth", "gradient"],
-                   help="vertex normals: B-spline-smoothed gradient or plain central "
-                   "differences (default smooth)")
-    p.add_argument("--flip-normals", action="store_true",
-                   help="material less dense than air: normals (and the lit side) towards "
-                   "higher values (default off)")
+    add_light_options(p, "the exported surface")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -143,51 +143,70 @@ def add_part_options(p: argparse.ArgumentParser) -> None:
                    "default; --crop and --downsample count in its voxels)")
 
 
-def add_render_options(p: argparse.ArgumentParser) -> None:
-    from isolume.app.render.settings import SHADING_MODES, TONEMAPS
+def add_light_options(p: argparse.ArgumentParser, traced_for: str) -> None:
+    """The options ``render``, ``movie`` and ``export`` share: the isovalue, the lattice,
+    the lighting and the light traced for `traced_for` without a lattice ("this view"),
+    the albedo, the SH environment's turn and window, exposure and tone curve, normals."""
+    from isolume.app.render.settings import TONEMAPS
+    from isolume.app.render.view_gi import DEFAULT_PATHS
     from isolume.baking.config import DEFAULT_ENV
 
     p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
-    p.add_argument("--shading", default=None,
-                   help=f"one of {', '.join(SHADING_MODES)} (default: the lattice's kind "
-                   "with --lattice, else irradiance: global illumination traced for this "
-                   "view)")
-    p.add_argument("--lattice", help="illumination lattice from `isolume bake`")
+    p.add_argument("--lattice", help="illumination lattice from `isolume bake` (default: "
+                   f"global illumination traced for {traced_for})")
     p.add_argument("--env", default=None,
-                   help="the lighting: constant:R,G,B | sky[:k=v,...] | "
-                   "FILE.exr/.hdr[@angular] (default: the lattice's with --lattice, else "
-                   f"{DEFAULT_ENV})")
+                   help="the lighting: constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr[@angular]"
+                   f" | none (default: the lattice's with --lattice, else {DEFAULT_ENV})")
     p.add_argument("--light", action="append", metavar="SPEC",
-                   help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable; without --lattice)")
+                   help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable; without "
+                   "--lattice; default none)")
     p.add_argument("--samples", type=int, default=None,
-                   help="paths per texel of the global illumination traced for this view "
-                   "(without --lattice; default 64)")
+                   help="paths per texel of the traced global illumination (without "
+                   f"--lattice; default {DEFAULT_PATHS})")
     p.add_argument("--bounces", type=int, default=2,
                    help="diffuse bounces of that illumination (default 2)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--workers", type=int, default=None,
                    help="tracing threads (default: all cores)")
-    p.add_argument("--env-rotation", default="0,0", help="AZ,EL degrees (--shading sh)")
+    p.add_argument("--albedo", default=None,
+                   help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
+    p.add_argument("--env-rotation", default="0,0",
+                   help="AZ,EL degrees the environment of an SH lattice turns by (default 0,0)")
     p.add_argument("--sh-window", default="none", choices=["none", "hanning", "lanczos"],
-                   help="window against ringing of the environment's SH projection")
-    p.add_argument("--size", default="512x512", help="WxH pixels")
+                   help="window against ringing of the environment's SH projection (SH "
+                   "lattices; default none)")
+    p.add_argument("--exposure", type=float, default=1.0,
+                   help="linear exposure multiplier on the automatic exposure, which brings "
+                   "the area-weighted log-average luminance of the surface to middle grey "
+                   "(default 1)")
+    p.add_argument("--no-auto-exposure", action="store_true",
+                   help="no automatic exposure: --exposure is the whole linear scale")
+    p.add_argument("--tonemap", default="aces", choices=list(TONEMAPS),
+                   help="tone curve from exposed radiance to the displayed colours "
+                   "(default aces)")
+    p.add_argument("--normals", default="smooth", choices=["smooth", "gradient"],
+                   help="normals: B-spline-smoothed gradient (the paper's) or plain central "
+                   "differences (default smooth)")
+    p.add_argument("--flip-normals", action="store_true",
+                   help="material less dense than air: normals (and the lit side) towards "
+                   "higher values (default off)")
+
+
+def add_render_options(p: argparse.ArgumentParser) -> None:
+    """The options of a picture (``render``, ``movie``): `add_light_options` for this
+    view, the shading mode, the size, the camera and the GL back end."""
+    from isolume.app.render.settings import SHADING_MODES
+
+    add_light_options(p, "this view")
+    p.add_argument("--shading", default=None,
+                   help=f"one of {', '.join(SHADING_MODES)} (default: the lattice's kind "
+                   "with --lattice, else irradiance: global illumination traced for this "
+                   "view)")
+    p.add_argument("--size", default="512x512", help="WxH pixels (default 512x512)")
     p.add_argument("--view", default="30,30",
                    help="AZ,EL[,DIST]: azimuth and elevation (degrees) around the surface's "
                    "box, DIST in the box's diagonals (default 30,30 and as near as frames "
                    "the box)")
-    p.add_argument("--exposure", type=float, default=1.0,
-                   help="linear exposure multiplier on the automatic exposure (which brings "
-                   "the log-average of the surface's luminance to middle grey)")
-    p.add_argument("--no-auto-exposure", action="store_true",
-                   help="no automatic exposure: --exposure is the whole linear scale")
-    p.add_argument("--tonemap", default="aces", choices=list(TONEMAPS),
-                   help="tone curve from exposed radiance to the picture (default aces)")
-    p.add_argument("--albedo", default=None,
-                   help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
-    p.add_argument("--normals", default="smooth", choices=["smooth", "gradient"],
-                   help="shading normals: B-spline-smoothed gradient (the paper's) or plain "
-                   "central differences (default smooth)")
-    p.add_argument("--flip-normals", action="store_true", help="material less dense than air")
     p.add_argument("--gl", default="auto", choices=["auto", "egl", "osmesa"],
                    help="headless GL: EGL, OSMesa, or whichever works (auto)")
 

@@ -70,13 +70,14 @@ class VolumeSource:
     """The volume as the command line names it (the viewer's, kept for its saved views).
 
     Attributes:
-        volume: a file path or ``synthetic:NAME[:SIZE]``.
+        volume: a file path or ``synthetic:NAME[:SIZE]`` (None: a state file that names
+            none).
         dims, dtype, spacing, up, crop: the load options' text (``--dims X,Y,Z`` ...), or
             None.
         downsample, level: ``--downsample N`` and ``--level K``, or None.
     """
 
-    volume: str
+    volume: str | None = None
     dims: str | None = None
     dtype: str | None = None
     spacing: str | None = None
@@ -99,13 +100,13 @@ class VolumeSource:
 
 
 @dataclass(frozen=True)
-class SavedView:
+class SavedView(VolumeSource):
     """What a state file holds; None (``null`` in the file): not saved, the command's
     default applies.
 
     Attributes:
-        volume, dims, dtype, spacing, up, crop, downsample, level: the volume
-            (`VolumeSource`).
+        volume, dims, dtype, spacing, up, crop, downsample, level: the volume (the fields
+            of `VolumeSource`, first in the file).
         iso: the isovalue, field units.
         camera: the whole camera (degrees; distance and pan in units of its scale, a world
             length; target in world units).
@@ -127,14 +128,6 @@ class SavedView:
         flip_normals: material less dense than air.
     """
 
-    volume: str | None = None
-    dims: str | None = None
-    dtype: str | None = None
-    spacing: str | None = None
-    up: str | None = None
-    crop: str | None = None
-    downsample: int | None = None
-    level: int | None = None
     iso: float | None = None
     camera: Camera | None = None
     size: str | None = None

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from PIL import Image as PILImage
 
-from isolume.app.charts import builders, charts, lighting, metrics, tracing
+from isolume.app.charts import builders, lighting, metrics, tracing
 from isolume.app.cli import main
 from isolume.app.render.settings import SHADING_MODES
 from isolume.baking.reference import ReferenceImage
@@ -206,23 +206,25 @@ def test_local_lighting_matches_the_environment():
 
 
 def test_downsample_and_crop_keep_world_positions():
+    """What the charts' --crop and --downsample read (`volumes.crop_downsample`)."""
+    from isolume import volumes
     from isolume.volumes.synthetic import make
 
     vol = make("torus", 32)
-    small = charts.downsample_volume(vol, 2)
+    small = volumes.crop_downsample(vol, None, 2)
     assert small.data.shape == tuple(n // 2 for n in vol.data.shape)
     assert small.spacing == tuple(2 * s for s in vol.spacing)
     np.testing.assert_allclose(small.data[1, 2, 3], vol.data[2:4, 4:6, 6:8].mean(), rtol=1e-6)
     # block (1, 2, 3) sits at the centre of voxels (2..3, 4..5, 6..7)
     np.testing.assert_allclose(small.index_to_world(np.array([[1, 2, 3]])),
                                vol.index_to_world(np.array([[2.5, 4.5, 6.5]])))
-    part = charts.crop_volume(vol, "4:20,:,10:")
+    part = volumes.crop_downsample(vol, "4:20,:,10:")
     assert part.data.shape == (vol.data.shape[0] - 10, vol.data.shape[1], 16)
     np.testing.assert_array_equal(part.data, vol.data[10:, :, 4:20])
     np.testing.assert_allclose(part.index_to_world(np.zeros((1, 3))),
                                vol.index_to_world(np.array([[10, 0, 4]])))
-    with pytest.raises(charts.CLIError):
-        charts.crop_volume(vol, "4:5,:,:")
+    with pytest.raises(volumes.VolumeError):
+        volumes.crop_downsample(vol, "4:5,:,:")
 
 
 def test_bad_options_are_one_line_errors(tmp_path, capsys):

@@ -22,7 +22,7 @@ standard errors) is at most a quarter of the smaller error it measures, or up to
 `app.bench.accuracy_output`.
 
 Volumes larger than ``--max-size`` along an axis are reduced by block means of F³ voxels
-(`app.charts.charts.downsample_volume`) after the isovalues are suggested. A volume that
+(`volumes.crop_downsample`) after the isovalues are suggested. A volume that
 cannot be read, or a case that fails, is one line on stderr and a record in the JSON;
 the sweep goes on (exit status 1 when anything failed).
 """
@@ -299,7 +299,6 @@ def prepare(spec: str, sweep: Sweep) -> Prepared:
         IsolumeError: unreadable volume, or no isovalue to suggest.
     """
     from isolume import volumes
-    from isolume.app.charts.charts import downsample_volume
 
     volume = volumes.load(spec)
     name, source = volume.name, volume.source or spec
@@ -314,7 +313,7 @@ def prepare(spec: str, sweep: Sweep) -> Prepared:
              "placement": volume.placement or None}
     factor = block_factor(volume.shape_xyz, sweep.max_size)
     if factor > 1:
-        volume = downsample_volume(volume, factor)
+        volume = volumes.crop_downsample(volume, None, factor)
     notes.update(block=factor, dims=list(volume.shape_xyz))
     isovalues = suggested[:1] if sweep.first_only else suggested
     return Prepared(volume, name, source, tuple(isovalues), tuple(suggested), notes)

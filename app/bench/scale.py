@@ -355,10 +355,11 @@ def run_one(plan: Plan, source: str, size: int, command: str, volume: Path,
                                        plan.time_cap, shot if command == "view" else None,
                                        env)
     run.status, run.seconds, run.peak_mb = status, secs, peak
-    run.texels = texels_of("bake" if command in ("bake", "render_lattice") else command, text)
-    if command == "render_lattice":
+    if command == "render_lattice":  # the lattice's active texels, as its bake said
         run.texels = next((r.texels for r in reversed(plan.runs) if r.source == source
                            and r.size == size and r.command == "bake"), None)
+    else:
+        run.texels = texels_of(command, text)
     if status != "ok":
         run.note = (text.strip().splitlines() or [""])[-1][:200]
     return run

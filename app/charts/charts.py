@@ -28,8 +28,6 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
-
 from isolume.app.charts.builders import CHART_BUILDERS
 from isolume.app.charts.lattices import LatticeStore
 from isolume.app.charts.lighting import local_lighting
@@ -130,59 +128,16 @@ def _plan(args: argparse.Namespace) -> Plan:
 
 
 # -- the volume -------------------------------------------------------------------------
-def crop_volume(volume, text: str):
-    """The sub-volume of ``X0:X1,Y0:Y1,Z0:Z1`` voxel index ranges (end exclusive; an empty
-    bound means the edge), same spacing, origin at its first voxel."""
-    from isolume import volumes
-
-    parts = text.split(",")
-    if len(parts) != 3:
-        raise CLIError(f"--crop {text!r}: expected X0:X1,Y0:Y1,Z0:Z1")
-    slices = []
-    for part, n in zip(parts, volume.shape_xyz, strict=True):
-        lo, _, hi = part.partition(":")
-        try:
-            s = slice(int(lo) if lo else 0, int(hi) if hi else n)
-        except ValueError:
-            raise CLIError(f"--crop {text!r}: expected integer voxel indices") from None
-        start, stop, _ = s.indices(n)
-        if stop - start < 2:
-            raise CLIError(f"--crop {text!r}: each range must hold at least 2 voxels")
-        slices.append(slice(start, stop))
-    sx, sy, sz = slices
-    origin = np.array(volume.origin) + np.array([sx.start, sy.start, sz.start]) * volume.spacing
-    return volumes.Volume(volume.data[sz, sy, sx], spacing=volume.spacing,
-                          origin=tuple(origin), name=volume.name,
-                          source=f"{volume.source or volume.name}[crop {text}]")
-
-
-def downsample_volume(volume, factor: int):
-    """Block means of `factor`³ voxels (the trailing partial blocks are dropped): (Z, Y, X)
-    → (Z // f, Y // f, X // f), spacing × f, origin at the first block's centre."""
-    from isolume import volumes
-
-    f = int(factor)
-    z, y, x = (n // f for n in volume.data.shape)
-    if min(z, y, x) < 2:
-        raise CLIError(f"--downsample {f}: leaves fewer than 2 voxels along an axis")
-    data = volume.data[: z * f, : y * f, : x * f].reshape(z, f, y, f, x, f).mean(axis=(1, 3, 5))
-    origin = np.array(volume.origin) + (f - 1) / 2 * np.array(volume.spacing)
-    return volumes.Volume(data, spacing=tuple(f * s for s in volume.spacing),
-                          origin=tuple(origin), name=volume.name,
-                          source=f"{volume.source or volume.name}[downsample {f}]")
-
-
 def _prepare_volume(args: argparse.Namespace):
     """(volume, notes): the volume to chart after --crop and --downsample."""
+    from isolume import volumes
+
     args.volume = args.volume or DEFAULT_VOLUME
-    volume, notes = load_volume(args), []
+    volume = volumes.crop_downsample(load_volume(args), args.crop, args.downsample)
+    notes = []
     if args.crop:
-        volume = crop_volume(volume, args.crop)
         notes.append(f"sub-volume: voxels {args.crop} (x, y, z; end exclusive)")
-    if args.downsample < 1:
-        raise CLIError(f"--downsample {args.downsample}: expected a factor ≥ 1")
     if args.downsample > 1:
-        volume = downsample_volume(volume, args.downsample)
         notes.append(f"downsampled by {args.downsample} per axis (block means)")
     return volume, notes
 
