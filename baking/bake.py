@@ -78,12 +78,17 @@ def _luminance_weights(channels: int, irradiance: bool, second_block: int = 0) -
     return weights
 
 
+def lattice_meta(volume: volumes.Volume, config: BakeConfig, channels: int) -> dict:
+    """The metadata that identifies the volume and the bake of a lattice of `channels`
+    values per texel."""
+    return {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
+            "scale": config.scale, "volume": volume_identity(volume), "channels": channels}
+
+
 def _new_lattice(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
                  channels: int) -> Lattice:
     """An empty lattice with the metadata that identifies the volume and the bake."""
-    meta = {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
-            "scale": config.scale, "volume": volume_identity(volume), "channels": channels}
-    lattice = Lattice.empty(geometry, channels, meta)
+    lattice = Lattice.empty(geometry, channels, lattice_meta(volume, config, channels))
     lattice.config = config
     return lattice
 

@@ -252,6 +252,17 @@ class Lattice:
             self.preview_facing = np.zeros((*self.geometry.shape, 2), np.uint8)
         return self.preview_facing
 
+    def store_preview(self, flat: np.ndarray, paths: np.ndarray, values: np.ndarray,
+                      codes: np.ndarray) -> None:
+        """Store the previews of (N,) texels `flat` (``preview`` and ``preview_paths``
+        must be set): (N,) `paths` behind each (0: none could start), and for those with
+        paths, in order, (M, C) means and (M, 2) facing codes. The values go first: another
+        process may be displaying them as soon as their paths are set."""
+        traced = np.asarray(flat)[np.asarray(paths) > 0]
+        self.preview.reshape(-1, self.preview.shape[-1])[traced] = values
+        self.ensure_preview_facing().reshape(-1, 2)[traced] = codes
+        self.preview_paths.reshape(-1)[flat] = paths
+
     def displayed_facing(self, region: tuple = (...,)) -> np.ndarray:
         """(…, 2) uint8 facing codes a display uses in `region`, as `displayed` picks the
         values: the preview's where `previewed`, else the texel's own where computed,
@@ -414,3 +425,4 @@ def volume_identity(volume) -> dict:
     return {"name": volume.name, "source": volume.source, "shape": list(volume.data.shape),
             "spacing": list(volume.spacing), "origin": list(volume.origin),
             "hash": volume.data_hash()}
+

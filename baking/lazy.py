@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
+from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry
 from isolume.baking.plan import Plan
 
 FIRST_TARGET = 4
@@ -65,14 +65,12 @@ fraction of the data range on either side of it (`view_iso_range`)."""
 
 def new_lattice(volume, config) -> Lattice:
     """An empty lattice for `volume` baked with `config`, with the metadata `baking.bake`
-    writes: what a lazy bake, or a view's traced light, fills."""
-    from isolume.baking.bake import path_settings
+    writes: what a lazy bake, or a surface's traced light, fills."""
+    from isolume.baking.bake import lattice_meta, path_settings
 
     channels = path_settings(volume, config).channels
-    meta = {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
-            "scale": config.scale, "volume": volume_identity(volume), "channels": channels}
-    return Lattice.empty(LatticeGeometry.for_volume(volume, config.scale), channels, meta,
-                         config=config)
+    return Lattice.empty(LatticeGeometry.for_volume(volume, config.scale), channels,
+                         lattice_meta(volume, config, channels), config=config)
 
 
 # -- the iso range around the displayed surface --------------------------------------------

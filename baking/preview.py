@@ -94,8 +94,9 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
              flat: np.ndarray, scene, step: int, *, paths: int, tracing: Tracing,
              workers: int = 1, seen: SeenSurface | None = None) -> None:
     """Trace `paths` paths from each texel `flat` (K,) and store the means as the texels'
-    previews (``lattice.preview`` and ``preview_paths``, which must be set) for the
-    surface ρ = `iso` (whose `scene` has the given marching-cubes `step`); `tracing` is
+    previews (`store_preview` of a `Lattice` whose ``preview`` and ``preview_paths`` are
+    set, or of a `baking.view_texels.PreviewLattice` holding the texels) for the surface
+    ρ = `iso` (whose `scene` has the given marching-cubes `step`); `tracing` is
     `preview_tracing` (volume, config).
 
     With `seen` (the surface the view shows), each texel starts from the visible point
@@ -116,13 +117,12 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
     if rest.any():
         o, n, ok = projected_starts(volume, config, lattice, iso, flat[rest], step)
         origins[rest], normals[rest], usable[rest] = o, n, ok
-    if usable.any():  # values first: another process may be displaying them
+    means, codes = np.zeros((0, lattice.values.shape[-1])), np.zeros((0, 2), np.uint8)
+    if usable.any():
         sums = _trace(scene, tracing, flat[usable], origins[usable].astype(np.float32),
                       normals[usable].astype(np.float32), workers, paths)
-        lattice.preview.reshape(-1, lattice.preview.shape[-1])[flat[usable]] = sums / paths
-        lattice.ensure_preview_facing().reshape(-1, 2)[flat[usable]] = octahedral.encode(
-            normals[usable])
-    lattice.preview_paths.reshape(-1)[flat] = np.where(usable, paths, 0)
+        means, codes = sums / paths, octahedral.encode(normals[usable])
+    lattice.store_preview(flat, np.where(usable, paths, 0), means, codes)
 
 
 def projected_starts(volume: volumes.Volume, config: BakeConfig, lattice: Lattice,

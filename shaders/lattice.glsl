@@ -1,9 +1,12 @@
-// Lattice lookup: world position -> texture coordinate -> the stored illumination.
-// The lattice spans the volume's world box [u_box_lo, u_box_lo + u_box_size]; GL places
-// texel centres at (i + 0.5) / n, exactly where the lattice's texel centres are, so the
-// mapping needs no half-texel correction. Textures hold values * valid; dividing by the
-// matching lookup of `valid` interpolates over computed texels only (every lookup below
-// returns the pair (value * w, w) for that reason).
+// Lattice lookup: world position -> lattice coordinate -> the stored illumination.
+// The lattice spans the volume's world box [u_box_lo, u_box_lo + u_box_size] with texel
+// centres at (i + 0.5) / n of it, as GL places them. The texels live in bricks of BRICK^3
+// in the slots of atlas textures (app/render/bricks.py): u_bricks sends the brick of a
+// cell's lower corner to its slot, which holds the brick and a one-texel apron, so the
+// eight texels of any cell, and a hardware trilinear fetch inside it, come from one slot.
+// Textures hold values * valid; dividing by the matching lookup of `valid` interpolates
+// over computed texels only (every lookup below returns the pair (value * w, w) for that
+// reason).
 //
 // FACING 1: the side-aware lookup (trilinear irradiance, LOOKUP 0, and SH transfer). Each
 // texel's facing m, the mean direction its paths started along, weights it by
@@ -22,7 +25,12 @@
 #ifndef FACING_BLEND
 #define FACING_BLEND 0.1
 #endif
-uniform sampler3D u_valid;       // 1 where the texel has been computed
+#define BRICK 8
+#define STORED 9
+uniform sampler3D u_state;       // R: 1 where the texel has been computed; GB: its facing
+uniform usampler3D u_bricks;     // per brick: the (x, y, z) of its slot, in slots
+uniform vec3 u_lattice_size;     // texels of the lattice, x y z
+uniform vec3 u_atlas_size;       // texels of the atlases, x y z
 uniform vec3 u_box_lo;
 uniform vec3 u_box_size;
 
@@ -49,11 +57,25 @@ vec3 lattice_blend(float w, vec3 baked, vec3 n, vec3 albedo) {
 // Continuous texel coordinates of `tc` (texel centres at integers, x y z order) and the
 // lower corner of the 2x2x2 texels around it, clamped like GL's CLAMP_TO_EDGE filtering.
 vec3 texel_coord(vec3 tc) {
-    return tc * vec3(textureSize(u_valid, 0)) - 0.5;
+    return tc * u_lattice_size - 0.5;
 }
 
 ivec3 cell_base(vec3 c) {
-    return clamp(ivec3(floor(c)), ivec3(0), textureSize(u_valid, 0) - 2);
+    return clamp(ivec3(floor(c)), ivec3(0), ivec3(u_lattice_size) - 2);
+}
+
+// What turns lattice texels of the cell whose lower corner is `base` into atlas texels:
+// atlas texel = lattice texel + atlas_shift(base).
+ivec3 atlas_shift(ivec3 base) {
+    ivec3 brick = base / BRICK;
+    return ivec3(texelFetch(u_bricks, brick, 0).xyz) * STORED - brick * BRICK;
+}
+
+// The atlas texture coordinate that filters like the lattice coordinate `tc` (clamped to
+// the edge texels like CLAMP_TO_EDGE).
+vec3 atlas_coord(vec3 tc) {
+    vec3 c = clamp(texel_coord(tc), vec3(0.0), u_lattice_size - 1.0);
+    return (c + vec3(atlas_shift(cell_base(c))) + 0.5) / u_atlas_size;
 }
 
 ivec3 cell_corner(ivec3 base, int k) {  // corner k = x + 2 y + 4 z of the cell
@@ -63,27 +85,29 @@ ivec3 cell_corner(ivec3 base, int k) {  // corner k = x + 2 y + 4 z of the cell
 #if SHADING == 5 || SHADING == 7
 uniform sampler3D u_irradiance;  // E * valid, GL_RGB9_E5
 
-// (E * w, w) of one texel.
+// (E * w, w) of one atlas texel.
 vec4 texel_pair(ivec3 t) {
-    return vec4(texelFetch(u_irradiance, t, 0).rgb, texelFetch(u_valid, t, 0).r);
+    return vec4(texelFetch(u_irradiance, t, 0).rgb, texelFetch(u_state, t, 0).r);
 }
 
 #if LOOKUP == 0
 // Hardware trilinear filtering.
 vec4 irradiance_lookup(vec3 tc) {
-    return vec4(texture(u_irradiance, tc).rgb, texture(u_valid, tc).r);
+    vec3 a = atlas_coord(tc);
+    return vec4(texture(u_irradiance, a).rgb, texture(u_state, a).r);
 }
 #elif LOOKUP == 1
 // The computed texel, of the 8 around the point, whose centre is nearest (world distance).
 vec4 irradiance_lookup(vec3 tc) {
     vec3 c = texel_coord(tc);
     ivec3 base = cell_base(c);
-    vec3 texel_size = u_box_size / vec3(textureSize(u_valid, 0));
+    ivec3 shift = atlas_shift(base);
+    vec3 texel_size = u_box_size / u_lattice_size;
     vec4 best = vec4(0.0);
     float best_d2 = 1e30;
     for (int k = 0; k < 8; ++k) {
         ivec3 t = cell_corner(base, k);
-        vec4 pair = texel_pair(t);
+        vec4 pair = texel_pair(t + shift);
         vec3 d = (c - vec3(t)) * texel_size;
         if (pair.w > 0.5 && dot(d, d) < best_d2) {
             best = pair;
@@ -100,10 +124,11 @@ uniform float u_iso;            // displayed isovalue
 
 vec4 irradiance_lookup(vec3 tc) {
     ivec3 base = cell_base(texel_coord(tc));
+    ivec3 shift = atlas_shift(base);
     vec4 best = vec4(0.0);
     float best_gap = 1e30;
     for (int k = 0; k < 8; ++k) {
-        ivec3 t = cell_corner(base, k);
+        ivec3 t = cell_corner(base, k) + shift;
         vec4 pair = texel_pair(t);
         float gap = abs(texelFetch(u_texel_iso, t, 0).r - u_iso);
         if (pair.w > 0.5 && gap < best_gap) {
@@ -120,7 +145,7 @@ vec4 irradiance_lookup(vec3 tc) {
 // w1 / g0 and g1 = w2 + w3 at i + 1 + w3 / g1. Texels past the edge repeat the edge
 // texel (GL's CLAMP_TO_EDGE), as in the 64-texel sum with clamped indices.
 vec4 irradiance_lookup(vec3 tc) {
-    vec3 size = vec3(textureSize(u_valid, 0));
+    vec3 size = u_lattice_size;
     vec3 c = texel_coord(tc);
     vec3 i = floor(c);
     vec3 a = c - i;
@@ -135,7 +160,8 @@ vec4 irradiance_lookup(vec3 tc) {
         ivec3 s = ivec3(k & 1, (k >> 1) & 1, (k >> 2) & 1);
         vec3 p = vec3(h[s.x].x, h[s.y].y, h[s.z].z);
         float weight = g[s.x].x * g[s.y].y * g[s.z].z;
-        sum += weight * vec4(texture(u_irradiance, p).rgb, texture(u_valid, p).r);
+        vec3 a = atlas_coord(p);
+        sum += weight * vec4(texture(u_irradiance, a).rgb, texture(u_state, a).r);
     }
     return sum;
 }
@@ -150,18 +176,17 @@ vec4 irradiance_lookup(vec3 tc) {
 SH_DECLARE
 uniform vec4 u_light[3 * SH_TEXTURES];
 
-// (E * w, w) of one texel.
+// (E * w, w) of one atlas texel.
 vec4 texel_pair(ivec3 t) {
-    return vec4(SH_IRRADIANCE_AT(t), texelFetch(u_valid, t, 0).r);
+    return vec4(SH_IRRADIANCE_AT(t), texelFetch(u_state, t, 0).r);
 }
 #endif
 
 #if FACING
-uniform sampler3D u_facing;  // the texels' facings m, octahedral RG8; (0, 0) unknown
-
-// The side weight of texel t at a point of normal n (turned to the eye).
+// The side weight of atlas texel t at a point of normal n (turned to the eye): its facing
+// m is the state's GB, octahedral; (0, 0) unknown.
 float side_weight(ivec3 t, vec3 n) {
-    vec2 code = texelFetch(u_facing, t, 0).rg;
+    vec2 code = texelFetch(u_state, t, 0).gb;
     if (code == vec2(0.0)) return 1.0;
     float c = max(dot(n, from_octahedral(code * 2.0 - 1.0)), 0.0);
 #if FACING_POWER == 2
@@ -177,18 +202,19 @@ float side_weight(ivec3 t, vec3 n) {
 // weight w (so the blend with local shading sees the same coverage), blended into the
 // plain lookup where few texels face n's way.
 vec4 sided_lookup(vec3 tc, vec3 n) {
-    vec3 size = vec3(textureSize(u_valid, 0));
+    vec3 size = u_lattice_size;
     vec3 c = clamp(tc * size - 0.5, vec3(0.0), size - 1.0);
     ivec3 base = cell_base(c);
+    ivec3 shift = atlas_shift(base);
     vec3 f = c - vec3(base);
     vec4 plain = vec4(0.0);
     vec4 sided = vec4(0.0);
     for (int k = 0; k < 8; ++k) {
         ivec3 t = cell_corner(base, k);
         vec3 a = mix(1.0 - f, f, vec3(t - base));
-        vec4 pair = (a.x * a.y * a.z) * texel_pair(t);
+        vec4 pair = (a.x * a.y * a.z) * texel_pair(t + shift);
         plain += pair;
-        sided += side_weight(t, n) * pair;
+        sided += side_weight(t + shift, n) * pair;
     }
     vec4 side = sided.w > 0.0 ? sided * (plain.w / sided.w) : plain;
     return mix(plain, side, smoothstep(0.0, FACING_BLEND, sided.w / max(plain.w, 1e-30)));
@@ -217,8 +243,9 @@ vec3 lattice_radiance(vec3 world, vec3 n, vec3 albedo) {
     float w = pair.w;
     vec3 e = max(pair.rgb / max(w, 1e-4), 0.0);
 #else
-    float w = texture(u_valid, tc).r;
-    vec3 e = max(SH_IRRADIANCE(tc) / max(w, 1e-4), 0.0);
+    vec3 a = atlas_coord(tc);
+    float w = texture(u_state, a).r;
+    vec3 e = max(SH_IRRADIANCE(a) / max(w, 1e-4), 0.0);
 #endif
     return lattice_blend(w, albedo * e / PI, n, albedo);
 }

@@ -240,7 +240,8 @@ def _sure(lattice: Lattice, points: np.ndarray, normals: np.ndarray) -> np.ndarr
     idx, w = trilinear_corners(lattice.geometry.shape, coords)
     region = (idx[..., 0], idx[..., 1], idx[..., 2])
     w = w * lattice.shown(region)
-    ratio = (w * side_weights(lattice.displayed_facing(region), normals)).sum(1) / w.sum(1)
+    sided = (w * side_weights(lattice.displayed_facing(region), normals)).sum(1)
+    ratio = np.divide(sided, w.sum(1), out=np.zeros(len(w)), where=w.sum(1) > 0)
     inside = np.clip(coords, 0, np.array(lattice.geometry.shape) - 1)
     near_boundary = (np.abs(inside - np.round(inside)) < 1e-3).any(axis=1)
     near_blend = (ratio < 1e-3) | (np.abs(ratio - SIDE_BLEND) < 1e-3)
@@ -303,3 +304,31 @@ def test_a_lattice_without_facings_draws_the_plain_lookup(renderer):
     lattice.ensure_preview_facing()[2, 3, 4] = (200, 100)
     assert tuple(lattice.displayed_facing()[2, 3, 4]) == (200, 100)
     assert lattice.facing_known()
+
+
+@pytest.mark.parametrize("with_facing", [True, False])
+def test_a_sparse_lattice_is_read_through_its_bricks(renderer, with_facing):
+    """A 24³ lattice (3 bricks a side) whose texels are shown in one region only: just the
+    bricks a lookup can read them from get atlas slots, and the picture is
+    `Lattice.sample`'s — the side-aware lookup (texel fetches) or, without facings, GL's
+    trilinear filtering — across brick boundaries and where whole bricks have no slot."""
+    geometry = LatticeGeometry((24, 24, 24), (-1.0,) * 3, (1.0,) * 3)
+    rng = np.random.default_rng(5)
+    values = rng.uniform(0.1, 1.0, (*geometry.shape, 3)).astype(np.float32)
+    _, y, x = np.indices(geometry.shape)
+    samples = ((x < 14) & (y >= 5) & (rng.random(geometry.shape) > 1 / 6)).astype(np.uint32)
+    facing = (octahedral.encode(rng.normal(size=(*geometry.shape, 3))) if with_facing
+              else None)
+    lattice = Lattice(geometry, values, samples, np.zeros(geometry.shape, np.float32),
+                      np.ones(geometry.shape, bool), {"kind": "irradiance"}, facing=facing)
+    radiance, points, normals = _plane_frames(renderer, lattice, 50.0, shading="irradiance")
+    textures = renderer.lattice
+    assert textures.used - 1 == 2 * 3 * 3  # x: bricks 0, 1 of 3; every y and z brick
+    want = lattice.sample(points, normalized=True, normals=normals if with_facing else None)
+    sure = _sure(lattice, points, normals)
+    coords = geometry.to_texel_coords(points)
+    assert 0.2 < sure.mean() < 0.8 and (coords[:, 2] > 16).mean() > 0.1  # a brick unseen
+    weight = trilinear((samples > 0)[..., None].astype(np.float64), coords)[:, 0]
+    tolerance = 2.0**-9 + 1e-5 if with_facing else _filtered_atol(weight)
+    error = np.abs(radiance - want).max(axis=1)
+    assert (error <= tolerance)[sure].all(), error[sure].max()

@@ -278,6 +278,7 @@ def test_uploaded_regions_equal_the_lattice(gl):
         uploader.upload(budget_s=0.0)  # one block per call
     result = check_textures(textures)
     assert result["texels"] == 900 and result["valid_mismatch"] == 0
+    assert result["missing_bricks"] == 0
     assert result["max_rel_error"] <= RGB9E5_RELATIVE
     assert result["uncomputed_nonzero"] == 0
     assert result["facing_mismatch"] == 0 and textures.facing_known

@@ -127,7 +127,7 @@ class Volume:
             h = hashlib.sha256()
             h.update(np.asarray(self.data.shape, np.int64).tobytes())
             h.update(np.asarray(self.spacing, np.float64).tobytes())
-            h.update(self.data.tobytes())
+            h.update(memoryview(np.ascontiguousarray(self.data)).cast("B"))  # no copy
             self._cache["hash"] = h.hexdigest()
         return self._cache["hash"]
 

@@ -189,9 +189,10 @@ _TEX_IMAGE_3D = ctypes.CFUNCTYPE(
 )
 
 
-def store_rgb9e5(ctx: moderngl.Context, texture: moderngl.Texture3D, rgb) -> None:
+def store_rgb9e5(ctx: moderngl.Context, texture: moderngl.Texture3D, rgb=None) -> None:
     """Re-specify a bound-able 3-D texture's storage as GL_RGB9_E5 (4 bytes per texel,
-    shared-exponent HDR) filled from (Z, Y, X, 3) float32 `rgb`.
+    shared-exponent HDR) of the texture's size, filled from (Z, Y, X, 3) float32 `rgb`
+    (None: left undefined, to be written later).
 
     moderngl cannot request that internal format, so this calls glTexImage3D through the
     context's own function loader; later ``texture.write`` of float RGB data converts into
@@ -205,11 +206,14 @@ def store_rgb9e5(ctx: moderngl.Context, texture: moderngl.Texture3D, rgb) -> Non
     address = proc("glTexImage3D")
     if not address:
         raise GLUnavailable("glTexImage3D is not available")
-    data = np.ascontiguousarray(rgb, np.float32)
-    depth, height, width = data.shape[:3]
+    width, height, depth = texture.size
+    data = None if rgb is None else np.ascontiguousarray(rgb, np.float32)
+    if data is not None and data.shape[:3] != (depth, height, width):
+        raise ValueError(f"RGB data of shape {data.shape[:3]} for a texture of "
+                         f"{(depth, height, width)} texels (z, y, x)")
     texture.use(location=0)
     _TEX_IMAGE_3D(address)(_GL_TEXTURE_3D, 0, _GL_RGB9_E5, width, height, depth, 0, _GL_RGB,
-                           _GL_FLOAT, data.ctypes.data)
+                           _GL_FLOAT, None if data is None else data.ctypes.data)
 
 
 # -- windows (the interactive viewer) ------------------------------------------------

@@ -1,23 +1,27 @@
-"""Illumination lattices as 3-D textures.
+"""Illumination lattices as 3-D textures, stored sparsely in brick atlases.
 
-SH transfer: ⌈n²/4⌉ RGBA16F textures holding τ·valid, four coefficients each (three such
-groups for coloured transfer, one per channel), plus the same `valid` texture. The shader
-forms E = Σ τ_i ℓ_i with the environment's coefficients ℓ (rotated on the CPU) as uniforms.
-GL 3.3 guarantees 16 texture units in a fragment shader: gray transfer up to order 7,
-coloured up to order 4.
+Every texture holds the lattice's bricks that a lookup can read a shown texel from, in the
+slots of an atlas, and one integer texture, the indirection, sends each brick of the
+lattice to its slot (`app.render.bricks`: 8³ bricks stored with a one-texel apron, so
+hardware trilinear filtering works inside a slot): texture memory follows the shown
+texels, not the volume's box. The shader maps a lattice texel t of a cell whose lower
+corner is in brick b to the atlas texel t + 9·slot(b) − 8·b (``lattice.glsl``).
 
-Irradiance: one GL_RGB9_E5 texture (4 bytes per texel, shared exponent: relative error
-≤ 2⁻⁹ of the brightest channel) holding E·valid, plus one R8 texture holding `valid`
-(1 where the texel has samples). Both are filtered trilinearly by the hardware; the shader
-divides the two, which interpolates over computed texels only, and falls back to local
-shading where no neighbour is computed yet. Sub-regions can be re-uploaded while a lazy
-bake fills the lattice. Optionally a third, R32F texture holds each texel's own isovalue
-ρ(x_t), for the closest-isovalue lookup (paper Fig. 6a); it depends on the volume only,
-so a bake never changes it.
+SH transfer: ⌈n²/4⌉ RGBA16F atlases holding τ·valid, four coefficients each (three such
+groups for coloured transfer, one per channel). The shader forms E = Σ τ_i ℓ_i with the
+environment's coefficients ℓ (rotated on the CPU) as uniforms. GL 3.3 guarantees 16
+texture units in a fragment shader: gray transfer up to order 7, coloured up to order 4.
 
-Facing: an RG8 texture of each shown texel's facing (`baking.Lattice.displayed_facing`:
-octahedral bytes, (0, 0) unknown), read with texelFetch by the side-aware lookup
-(``lattice.glsl``, FACING 1: `facing_known`); 2 bytes per texel beside irradiance's 5.
+Irradiance: one GL_RGB9_E5 atlas (4 bytes per texel, shared exponent: relative error
+≤ 2⁻⁹ of the brightest channel) holding E·valid. Both kinds share an RGB8 atlas of each
+texel's state: R its validity (1 where the texel has samples), GB its facing
+(`baking.Lattice.displayed_facing`: octahedral bytes, (0, 0) unknown), read with
+texelFetch by the side-aware lookup (``lattice.glsl``, FACING 1). Filtered trilinearly,
+E·valid over valid interpolates over computed texels only, and the shader falls back to
+local shading where no neighbour is computed yet. Bricks can be re-uploaded while a lazy
+bake fills the lattice (`LatticeTextures.write_bricks`). Optionally an R32F atlas holds
+each texel's own isovalue ρ(x_t), for the closest-isovalue lookup (paper Fig. 6a); it
+depends on the volume only.
 
 numpy (z, y, x, c) arrays map to GL (width, height, depth) = (x, y, z): x varies fastest
 in memory, as GL expects.
@@ -28,12 +32,33 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
+from isolume.app.render.bricks import (
+    GROWTH,
+    STORED,
+    AtlasLayout,
+    assemble_layer,
+    block_region,
+    brick_grid,
+    needed_bricks,
+)
 from isolume.app.render.glcontext import store_rgb9e5
+from isolume.baking import octahedral
+from isolume.baking.errors import BakeError
 from isolume.baking.lattice import FACING_POWER, SIDE_BLEND, Lattice
 from isolume.baking.sh import transfer_blocks
 
 MAX_TEXTURE_UNITS = 16  # guaranteed by GL 3.3 for fragment shaders
-SH_FIRST_UNIT = 2  # units 0: HDR resolve input or shadow map, 1: valid mask
+SH_FIRST_UNIT = 2  # units 0: HDR resolve input or shadow map, 1: the texels' state
+_LOWER = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)])
+"""(8, 3) z, y, x offsets to a brick's lower neighbours (itself first): their aprons
+copy its first texels."""
+
+
+def _marked(bricks: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """(BZ, BY, BX) bool, True at (N, 3) `bricks`."""
+    out = np.zeros(shape, bool)
+    out[tuple(np.asarray(bricks).T)] = True
+    return out
 
 
 def sh_layout(order: int, rgb: bool, blocks: int = 1) -> tuple[int, int]:
@@ -45,7 +70,7 @@ def sh_layout(order: int, rgb: bool, blocks: int = 1) -> tuple[int, int]:
     """
     per_group = -(-blocks * order * order // 4)
     groups = 3 if rgb else 1
-    if SH_FIRST_UNIT + per_group * groups + 1 > MAX_TEXTURE_UNITS:  # + the facings
+    if SH_FIRST_UNIT + per_group * groups + 1 > MAX_TEXTURE_UNITS:  # + the indirection
         limit = "7" if not rgb else "4"
         split = " split" if blocks > 1 else ""
         raise ValueError(f"SH order {order}{split} needs {per_group * groups} textures; the "
@@ -64,9 +89,12 @@ class LatticeTextures:
         sh_coefficients: transfer coefficients per colour: n², or 2n² for a split
             transfer (direct, then indirect; `u_light` then holds the sun-free sky's
             coefficients, then the whole sky's).
-        texel_iso: R32F texture of the texel isovalues ρ(x_t), or None (not given, or an
+        slot: (BZ, BY, BX) int32 each brick's atlas slot (0: none, the empty slot).
+        layout: the atlas's `AtlasLayout`; ``used`` slots of it are taken (slot 0 too).
+        state: RGB8 atlas of the texels' validity and facings.
+        values: the atlases of the values (irradiance: one RGB9_E5; SH: RGBA16F each).
+        texel_iso: R32F atlas of the texel isovalues ρ(x_t), or None (not given, or an
             SH lattice: the lookup variants read irradiance lattices only).
-        facing: RG8 texture of the texels' facings (`baking.Lattice.displayed_facing`).
         facing_known: whether any uploaded texel has a known facing (the FACING define:
             without one, the lookup is the plain trilinear one, exactly).
     """
@@ -75,134 +103,206 @@ class LatticeTextures:
                  texel_isovalues: np.ndarray | None = None) -> None:
         """Upload `lattice`; `texel_isovalues` is (Z, Y, X) ρ at the texel centres (value
         units, `baking.plan.texel_values`) for the closest-isovalue lookup."""
-        if texel_isovalues is not None and np.shape(texel_isovalues) != lattice.geometry.shape:
+        shape = lattice.geometry.shape
+        if texel_isovalues is not None and np.shape(texel_isovalues) != shape:
             raise ValueError(f"texel isovalues of shape {np.shape(texel_isovalues)}, the "
-                             f"lattice has {lattice.geometry.shape}")
+                             f"lattice has {shape}")
+        if lattice.kind not in ("irradiance", "sh"):
+            raise ValueError(f"lattice kind {lattice.kind!r} is not drawable")
         self.ctx = ctx
         self.lattice = lattice
         self.kind = lattice.kind
-        z, y, x = lattice.geometry.shape
-        shown = lattice.shown()
-        self.valid = ctx.texture3d((x, y, z), 1, self._valid_bytes(shown), dtype="f1")
+        self.shape = tuple(int(n) for n in shape)
         self.sh_order = self.sh_groups = self.sh_textures = self.sh_coefficients = 0
-        if self.kind == "irradiance":
-            self.irradiance = ctx.texture3d((x, y, z), 3, dtype="f4")
-            store_rgb9e5(ctx, self.irradiance, lattice.displayed()[..., :3])
-            self.textures = [self.irradiance]
-        elif self.kind == "sh":
+        if self.kind == "sh":
             self.sh_order = int(lattice.meta["sh_order"])
             blocks = transfer_blocks(lattice)  # 2: direct, indirect transfer
             self.sh_coefficients = blocks * self.sh_order**2
             rgb = lattice.values.shape[-1] != self.sh_coefficients
             self.sh_textures, self.sh_groups = sh_layout(self.sh_order, rgb, blocks)
-            self.textures = [ctx.texture3d((x, y, z), 4, dtype="f2")
-                             for _ in range(self.sh_textures * self.sh_groups)]
-            self._write_sh(0, z)
-        else:
-            raise ValueError(f"lattice kind {self.kind!r} is not drawable")
-        for tex in (*self.textures, self.valid):
-            tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
-            tex.repeat_x = tex.repeat_y = tex.repeat_z = False  # clamp to edge
-        facing = lattice.displayed_facing()
-        self.facing = ctx.texture3d((x, y, z), 2, np.ascontiguousarray(facing).tobytes(),
-                                    dtype="f1", alignment=1)
-        self.facing.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.facing_known = bool(facing.any())
-        self.texel_iso = None
-        if texel_isovalues is not None and self.kind == "irradiance":
-            self.texel_iso = self._texel_iso_texture(texel_isovalues)
+        self._rho = (None if texel_isovalues is None or self.kind != "irradiance"
+                     else np.asarray(texel_isovalues, np.float32))
+        self.slot = np.zeros(brick_grid(self.shape), np.int32)
+        self.facing_known = False
+        self.values: list[moderngl.Texture3D] = []
+        self.state = self.texel_iso = self.indirection = None
+        self._build(needed_bricks(lattice.shown, self.shape))
         lo, hi = np.array(lattice.geometry.lo), np.array(lattice.geometry.hi)
         self.box_lo, self.box_size = lo, hi - lo
 
-    def _texel_iso_texture(self, rho: np.ndarray) -> moderngl.Texture3D:
-        """R32F texture of (Z, Y, X) texel isovalues, read with texelFetch only."""
-        z, y, x = self.lattice.geometry.shape
-        data = np.ascontiguousarray(rho, np.float32).tobytes()
-        tex = self.ctx.texture3d((x, y, z), 1, data, dtype="f4")
-        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        return tex
+    # -- the atlas ---------------------------------------------------------------------
+    def _build(self, needed: np.ndarray, at_least: int = 0) -> None:
+        """Give every `needed` (BZ, BY, BX) brick a slot in fresh atlases of at least
+        `at_least` slots (and `GROWTH` × the slots taken) and upload them all."""
+        bricks = np.argwhere(needed)
+        self.used = len(bricks) + 1
+        max_size = int(self.ctx.info["GL_MAX_3D_TEXTURE_SIZE"])
+        slots = max(int(np.ceil(self.used * GROWTH)), at_least)
+        try:
+            self.layout = AtlasLayout.for_slots(slots, max_size)
+        except ValueError as exc:
+            raise BakeError(f"lattice of {self.shape[::-1]} texels: {exc}") from None
+        self.slot[...] = 0
+        self.slot[tuple(bricks.T)] = np.arange(1, self.used, dtype=np.int32)
+        self.owner = np.zeros((self.layout.capacity, 3), np.int64)  # slot -> brick
+        self.owner[1:self.used] = bricks
+        self._release_atlases()
+        self._make_atlases()
+        for layer in range(self.layout.dims[0]):
+            slots = self.layout.layer_slots(layer)
+            if slots.start >= self.used:
+                break
+            self._upload_layer(layer, slots)
+        self._write_indirection()
 
-    def _sh_groups(self, z0: int, z1: int) -> list[np.ndarray]:
-        """(z, y, x, 4) float16 arrays, one per texture: τ·valid, four coefficients each."""
+    def _make_atlases(self) -> None:
+        """Empty atlases of `layout`'s size and the indirection texture."""
+        size = self.layout.texels_xyz
+        ctx = self.ctx
+        self.state = ctx.texture3d(size, 3, dtype="f1")
+        if self.kind == "irradiance":
+            self.values = [ctx.texture3d(size, 3, dtype="f4")]
+            store_rgb9e5(ctx, self.values[0])
+        else:
+            self.values = [ctx.texture3d(size, 4, dtype="f2")
+                           for _ in range(self.sh_textures * self.sh_groups)]
+        for tex in (*self.values, self.state):
+            tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            tex.repeat_x = tex.repeat_y = tex.repeat_z = False  # clamp to edge
+        if self._rho is not None:
+            self.texel_iso = ctx.texture3d(size, 1, dtype="f4")
+            self.texel_iso.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        bz, by, bx = self.slot.shape
+        self.indirection = ctx.texture3d((bx, by, bz), 3, dtype="u2")
+        self.indirection.filter = (moderngl.NEAREST, moderngl.NEAREST)
+
+    def _textures(self) -> list[moderngl.Texture3D]:
+        """The atlases in upload order: the state, the values, the texel isovalues."""
+        return [self.state, *self.values] + ([self.texel_iso] if self._rho is not None
+                                              else [])
+
+    def blocks(self, bricks: np.ndarray) -> list[np.ndarray]:
+        """The `STORED`³ blocks of (M, 3) z, y, x `bricks`, one (M, 9, 9, 9, C) array per
+        atlas (`_textures` order) as uploaded: state RGB8 (validity 255 or 0, facing
+        code), values premultiplied by validity (0 where not shown), texel isovalues."""
         lat = self.lattice
-        values = lat.displayed(np.s_[z0:z1])  # zero where nothing is shown
-        n2 = self.sh_coefficients
-        values = values.reshape(*values.shape[:3], n2, -1)  # (..., n², 1 or 3)
-        padded = np.zeros((*values.shape[:3], self.sh_textures * 4, values.shape[-1]),
-                          np.float16)
-        padded[..., :n2, :] = values
-        out = []
-        for channel in range(self.sh_groups):
-            for t in range(self.sh_textures):
-                out.append(np.ascontiguousarray(padded[..., 4 * t:4 * t + 4, channel]))
+        region = block_region(bricks, self.shape)
+        shown = lat.shown(region)
+        facing = lat.displayed_facing(region)
+        self.facing_known = self.facing_known or bool(octahedral.known(facing).any())
+        state = np.concatenate([np.where(shown, 255, 0).astype(np.uint8)[..., None], facing],
+                               axis=-1)
+        values = lat.displayed(region)  # zero where nothing is shown
+        if self.kind == "irradiance":
+            out = [state, np.ascontiguousarray(values[..., :3])]
+        else:
+            out = [state, *self._sh_groups(values)]
+        if self._rho is not None:
+            out.append(self._rho[region][..., None])
         return out
 
-    def _write_sh(self, z0: int, z1: int) -> None:
-        _, y, x = self.lattice.geometry.shape
-        for tex, data in zip(self.textures, self._sh_groups(z0, z1), strict=True):
-            tex.write(data.tobytes(), viewport=(0, 0, z0, x, y, z1 - z0))
+    def _sh_groups(self, values: np.ndarray) -> list[np.ndarray]:
+        """(…, 4) float16 arrays, one per SH atlas, of (…, C) transfer values: four
+        coefficients each."""
+        n2 = self.sh_coefficients
+        values = values.reshape(*values.shape[:-1], n2, -1)  # (..., n², 1 or 3)
+        padded = np.zeros((*values.shape[:-2], self.sh_textures * 4, values.shape[-1]),
+                          np.float16)
+        padded[..., :n2, :] = values
+        return [np.ascontiguousarray(padded[..., 4 * t:4 * t + 4, channel])
+                for channel in range(self.sh_groups) for t in range(self.sh_textures)]
 
-    @staticmethod
-    def _valid_bytes(shown: np.ndarray) -> bytes:
-        return np.where(shown, 255, 0).astype(np.uint8).tobytes()
+    def _upload_layer(self, layer: int, slots: range) -> None:
+        """Upload the atlas z-layer `layer` (its `slots`; those past `used` stay zero)."""
+        taken = np.arange(slots.start, min(slots.stop, self.used))
+        parts = self.blocks(self.owner[taken])
+        for part in parts:
+            part[taken == 0] = 0  # slot 0 stays empty
+        width, height, _ = self.layout.texels_xyz
+        viewport = (0, 0, layer * STORED, width, height, STORED)
+        for tex, part in zip(self._textures(), parts, strict=True):
+            full = np.zeros((len(slots), *part.shape[1:]), part.dtype)
+            full[:len(taken)] = part
+            data = assemble_layer(full, self.layout)
+            tex.write(np.ascontiguousarray(data).tobytes(), viewport=viewport, alignment=1)
 
-    def update(self, z0: int, z1: int) -> None:
-        """Re-upload slabs z0 ≤ z < z1 of the lattice (after a lazy bake filled them); the
-        texel isovalues do not change with the bake and stay as uploaded."""
-        lat = self.lattice
-        _, y, x = lat.geometry.shape
-        viewport = (0, 0, z0, x, y, z1 - z0)
-        shown = lat.shown(np.s_[z0:z1])
-        if self.kind == "irradiance":
-            values = np.ascontiguousarray(lat.displayed(np.s_[z0:z1])[..., :3])
-            self.irradiance.write(values.tobytes(), viewport=viewport)
-        else:
-            self._write_sh(z0, z1)
-        self.valid.write(self._valid_bytes(shown), viewport=viewport)
-        self._write_facing(np.s_[z0:z1], viewport)
+    def _write_indirection(self) -> None:
+        """Upload each brick's slot corner (x, y, z in slots) to the indirection."""
+        corners = self.layout.corners(self.slot.reshape(-1)).astype(np.uint16)
+        self.indirection.write(corners.tobytes(), alignment=1)
 
-    def write_box(self, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> None:
-        """Re-upload texels lo ≤ (z, y, x) < hi of an irradiance lattice (values, valid
-        mask and facings; the viewer's block-wise uploads)."""
-        lat = self.lattice
-        (z0, y0, x0), (z1, y1, x1) = lo, hi
-        region = np.s_[z0:z1, y0:y1, x0:x1]
-        premultiplied = np.ascontiguousarray(lat.displayed(region)[..., :3])  # 0: not shown
-        viewport = (x0, y0, z0, x1 - x0, y1 - y0, z1 - z0)
-        self.irradiance.write(premultiplied.tobytes(), viewport=viewport, alignment=4)
-        self.valid.write(self._valid_bytes(lat.shown(region)), viewport=viewport,
-                         alignment=1)
-        self._write_facing(region, viewport)
+    def write_bricks(self, bricks: np.ndarray) -> int:
+        """Re-upload (N, 3) z, y, x bricks whose texels changed (a lazy bake), with the
+        bricks whose aprons copy them; bricks that come to need a slot get one (all slots
+        taken: the atlases are made again, larger). Returns the bricks written."""
+        if not len(bricks):
+            return 0
+        grid = np.array(self.slot.shape)
+        near = (np.asarray(bricks, np.int64)[:, None, :] - _LOWER[None]).reshape(-1, 3)
+        near = np.unique(near[(near >= 0).all(axis=1) & (near < grid).all(axis=1)], axis=0)
+        region = block_region(near, self.shape)
+        fresh = near[self.lattice.shown(region).any(axis=(1, 2, 3))
+                     & (self.slot[tuple(near.T)] == 0)]
+        if self.used + len(fresh) > self.layout.capacity:
+            self._build((self.slot > 0) | _marked(fresh, self.slot.shape),
+                        at_least=2 * self.layout.capacity)
+            return len(near)
+        if len(fresh):
+            self.slot[tuple(fresh.T)] = np.arange(self.used, self.used + len(fresh))
+            self.owner[self.used:self.used + len(fresh)] = fresh
+            self.used += len(fresh)
+            self._write_indirection()
+        near = near[self.slot[tuple(near.T)] > 0]
+        corners = self.layout.corners(self.slot[tuple(near.T)]) * STORED
+        parts = self.blocks(near)
+        for tex, part in zip(self._textures(), parts, strict=True):
+            for corner, block in zip(corners, part, strict=True):
+                tex.write(np.ascontiguousarray(block).tobytes(),
+                          viewport=(*(int(v) for v in corner), STORED, STORED, STORED),
+                          alignment=1)
+        return len(near)
 
-    def _write_facing(self, region: tuple, viewport: tuple) -> None:
-        """Upload the facings of `region` (slices of (Z, Y, X)) into `viewport`."""
-        facing = np.ascontiguousarray(self.lattice.displayed_facing(region))
-        self.facing.write(facing.tobytes(), viewport=viewport, alignment=1)
-        self.facing_known = self.facing_known or bool(facing.any())
+    def read_blocks(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        """What the atlases hold: ((M, 3) z, y, x bricks with a slot, one (M, 9, 9, 9, C)
+        array per atlas in `_textures` order; the irradiance as float32)."""
+        taken = np.arange(1, self.used)
+        corners = self.layout.corners(taken) * STORED
+        out = []
+        for tex in self._textures():
+            dtype = {"f1": np.uint8, "f2": np.float16, "f4": np.float32}[tex.dtype]
+            width, height, depth = tex.size
+            atlas = np.frombuffer(tex.read(alignment=1), dtype).reshape(
+                depth, height, width, tex.components)
+            steps = np.arange(STORED)
+            x, y, z = (corners[:, a, None] + steps for a in range(3))
+            out.append(atlas[z[:, :, None, None], y[:, None, :, None], x[:, None, None, :]])
+        return self.owner[taken], out
 
     @property
     def units(self) -> int:
         """Texture units `bind` takes."""
-        return 2 + len(self.textures) + (self.texel_iso is not None)  # + valid, facing
+        return 2 + len(self.values) + (self.texel_iso is not None)  # + state, indirection
 
     def bind(self, program: moderngl.Program) -> None:
-        """Bind the textures (valid on unit 1, the rest from unit 2, then the texel
-        isovalues, the facings last) and set the uniforms that map world positions to
-        texture coordinates."""
-        self.valid.use(location=1)
-        values = {"u_valid": 1, "u_box_lo": tuple(self.box_lo),
-                  "u_box_size": tuple(self.box_size)}
-        for i, tex in enumerate(self.textures):
+        """Bind the atlases (the state on unit 1, the values from unit 2, then the texel
+        isovalues, the indirection last) and set the uniforms that map world positions to
+        atlas texels."""
+        self.state.use(location=1)
+        values = {"u_state": 1, "u_box_lo": tuple(self.box_lo),
+                  "u_box_size": tuple(self.box_size),
+                  "u_lattice_size": tuple(float(n) for n in self.shape[::-1]),
+                  "u_atlas_size": tuple(float(n) for n in self.layout.texels_xyz)}
+        for i, tex in enumerate(self.values):
             tex.use(location=SH_FIRST_UNIT + i)
             values["u_irradiance" if self.kind == "irradiance" else f"u_sh{i}"] = (
                 SH_FIRST_UNIT + i)
+        unit = SH_FIRST_UNIT + len(self.values)
         if self.texel_iso is not None:
-            unit = SH_FIRST_UNIT + len(self.textures)
             self.texel_iso.use(location=unit)
             values["u_texel_iso"] = unit
-        unit = SH_FIRST_UNIT + len(self.textures) + (self.texel_iso is not None)
-        self.facing.use(location=unit)
-        values["u_facing"] = unit
+            unit += 1
+        self.indirection.use(location=unit)
+        values["u_bricks"] = unit
         for name, value in values.items():
             if name in program:
                 program[name].value = value
@@ -246,8 +346,11 @@ class LatticeTextures:
         packed[:, : coeffs.shape[0]] = np.asarray(coeffs, np.float32).T
         return packed.reshape(3 * n, 4)
 
+    def _release_atlases(self) -> None:
+        for tex in (*self.values, self.state, self.texel_iso, self.indirection):
+            if tex is not None:
+                tex.release()
+        self.values, self.state, self.texel_iso, self.indirection = [], None, None, None
+
     def release(self) -> None:
-        for tex in (*self.textures, self.valid, self.facing):
-            tex.release()
-        if self.texel_iso is not None:
-            self.texel_iso.release()
+        self._release_atlases()

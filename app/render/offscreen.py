@@ -62,11 +62,13 @@ def render_volume(
             from dataclasses import replace
 
             from isolume.app.render.view_gi import view_lattice
+            from isolume.baking.trace import Scene
 
             position = renderer.render(camera, replace(settings, shading="position",
                                                        auto_exposure=False))
             lattice = view_lattice(volume, view_light, iso, position.linear[position.mask],
-                                   camera.eye, workers=workers, progress=progress)
+                                   camera.eye, workers=workers, progress=progress,
+                                   scene=Scene(mesh.vertices, mesh.faces))
         renderer.set_lattice(lattice, _texel_isovalues(volume, lattice, settings.shading))
         renderer.set_environment(env_coeffs)
         frame = renderer.render(camera, settings)

@@ -44,19 +44,20 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
             point nearest it, on the side the eye sees (`baking.preview.seen_starts`).
         workers: tracing threads (None: all cores).
         progress: report on stderr.
-        scene, tracing: the Embree scene of the surface ρ = `iso`
-            (`baking.preview.surface_scene` at step 1) and the `preview_tracing` of
-            (volume, config), when the caller keeps them for several views (a movie);
-            None: made here.
+        scene, tracing: the Embree scene of the surface ρ = `iso` at marching-cubes
+            step 1 (`baking.preview.surface_scene`, or one of the displayed mesh) and the
+            `preview_tracing` of (volume, config), when the caller has them (the
+            displayed mesh, a movie's several views); None: made here.
 
     Returns:
-        A `baking.lattice.Lattice` whose previews (``preview``, ``preview_paths``) hold
-        the estimates of the texels the picture reads; nothing else is computed.
+        A `baking.view_texels.PreviewLattice` holding the estimates of the texels the
+        picture reads, and nothing else (its memory follows them, not the volume's box).
     """
     import os
 
+    from isolume.baking.bake import lattice_meta, path_settings
     from isolume.baking.lattice import LatticeGeometry
-    from isolume.baking.lazy import new_lattice, visible_cells
+    from isolume.baking.lazy import visible_cells
     from isolume.baking.preview import (
         cell_corners,
         estimate,
@@ -64,12 +65,13 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
         seen_surface,
         surface_scene,
     )
+    from isolume.baking.view_texels import PreviewLattice
 
     geometry = LatticeGeometry.for_volume(volume, config.scale)
-    lattice = new_lattice(volume, config)
-    lattice.preview = np.zeros_like(lattice.values)
-    lattice.preview_paths = np.zeros(geometry.shape, np.uint16)
     texels = cell_corners(geometry.shape, visible_cells(geometry, points))
+    channels = path_settings(volume, config).channels
+    lattice = PreviewLattice(geometry, texels, channels,
+                             lattice_meta(volume, config, channels), config)
     report = _Progress(progress, int(config.samples), len(texels))
     if scene is None and len(texels):
         scene = surface_scene(volume, iso, 1)
@@ -83,7 +85,7 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
                  paths=int(config.samples), tracing=tracing,
                  workers=workers or os.cpu_count() or 1, seen=seen)
         report.update(min(lo + chunk, len(texels)))
-    report.done(int((lattice.preview_paths > 0).sum()))
+    report.done(int((lattice.paths > 0).sum()))
     return lattice
 
 

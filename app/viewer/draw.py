@@ -18,11 +18,12 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from isolume import volumes
+from isolume.app.render.bricks import BRICK, brick_grid, needed_bricks
 
-BRICK = 8
-"""Texels per side of the blocks re-uploaded after the bake commits texels."""
 UPLOAD_BUDGET_S = 0.006
 """Seconds per frame spent re-uploading texels (the rest waits for the next frame)."""
+UPLOAD_BATCH = 16
+"""Bricks re-uploaded between two looks at the clock."""
 INTERACTIVE_MS = 33.0
 """Frame time aimed at while the camera or light moves (≈ 30 fps)."""
 RENDER_SCALES = (1.0, 0.75, 0.5, 0.35)
@@ -63,23 +64,14 @@ def frame_size(window) -> tuple[int, int]:
     return max(w, 1), max(h, 1)
 
 
-def upload_box(textures, lo: tuple[int, int, int], hi: tuple[int, int, int]) -> None:
-    """Re-upload texels lo ≤ (z, y, x) < hi of `textures.lattice` into its GL textures
-    (irradiance premultiplied by validity, validity and facings), as `LatticeTextures`
-    stores them (`LatticeTextures.write_box`)."""
-    textures.write_box(lo, hi)
-
-
 class TexelUploader:
-    """Tracks which BRICK³ blocks hold newly committed texels and re-uploads them.
-
-    Irradiance lattices are re-uploaded block by block (`upload_box`); SH lattices, whose
-    packing `LatticeTextures` does per z-slab, by the z-slabs of the dirty blocks."""
+    """Tracks which bricks (`app.render.bricks.BRICK`³ texels) hold newly committed texels
+    and re-uploads them (`LatticeTextures.write_bricks`) within a time budget."""
 
     def __init__(self, textures) -> None:
         self.textures = textures
         self.shape = tuple(textures.lattice.geometry.shape)
-        self.dirty = np.zeros([-(-n // BRICK) for n in self.shape], bool)
+        self.dirty = np.zeros(brick_grid(self.shape), bool)
         self.uploaded = 0
 
     def mark(self, flat_ids: np.ndarray) -> None:
@@ -91,28 +83,19 @@ class TexelUploader:
 
     @property
     def pending(self) -> int:
-        """Blocks waiting for upload."""
+        """Bricks waiting for upload."""
         return int(self.dirty.sum())
 
     def upload(self, budget_s: float | None = UPLOAD_BUDGET_S) -> int:
-        """Upload dirty blocks until `budget_s` seconds are spent (None: all); returns how
-        many were uploaded."""
+        """Upload dirty bricks, `UPLOAD_BATCH` at a time, until `budget_s` seconds are
+        spent (None: all); returns how many were uploaded."""
         t0, n = time.perf_counter(), 0
-        if self.textures.kind != "irradiance":
-            for k in np.flatnonzero(self.dirty.any(axis=(1, 2))):
-                self.textures.update(int(k) * BRICK, min((int(k) + 1) * BRICK, self.shape[0]))
-                n += int(self.dirty[k].sum())
-                self.dirty[k] = False
-                if budget_s is not None and time.perf_counter() - t0 > budget_s:
-                    break
-            self.uploaded += n
-            return n
-        for b in np.argwhere(self.dirty):
-            lo = tuple(int(v) * BRICK for v in b)
-            hi = tuple(min(v + BRICK, s) for v, s in zip(lo, self.shape, strict=True))
-            upload_box(self.textures, lo, hi)
-            self.dirty[tuple(b)] = False
-            n += 1
+        dirty = np.argwhere(self.dirty)
+        for lo in range(0, len(dirty), UPLOAD_BATCH):
+            batch = dirty[lo:lo + UPLOAD_BATCH]
+            self.textures.write_bricks(batch)
+            self.dirty[tuple(batch.T)] = False
+            n += len(batch)
             if budget_s is not None and time.perf_counter() - t0 > budget_s:
                 break
         self.uploaded += n
@@ -120,38 +103,35 @@ class TexelUploader:
 
 
 def check_textures(textures) -> dict:
-    """Read the GL textures back and compare them with the lattice.
+    """Read the GL atlases back and compare them with the lattice.
 
     Returns:
-        {"texels": texels shown (computed or previewed), "computed": texels
-        with samples, "max_rel_error":
-        largest |GL − lattice| / max(RGB) over those texels (RGB9_E5 keeps 9 mantissa
-        bits: ≤ 2⁻⁹ when rounding),
+        {"texels": texels shown (computed or previewed), "computed": texels with samples,
+        "missing_bricks": bricks a lookup can read a shown texel from that have no slot,
+        "max_rel_error": largest |GL − lattice| / max(RGB) over the shown texels of the
+        uploaded bricks (RGB9_E5 keeps 9 mantissa bits: ≤ 2⁻⁹ when rounding),
         "valid_mismatch": texels whose validity differs, "uncomputed_nonzero": texels not
-        shown with a non-zero value, "facing_mismatch": texels whose facing code differs};
-        SH lattices: the validity and the facings only.
+        shown with a non-zero value, "facing_mismatch": texels whose facing code
+        differs}; SH lattices: the validity and the facings only.
     """
     lat = textures.lattice
-    z, y, x = lat.geometry.shape
-    gl_valid = np.frombuffer(textures.valid.read(), np.uint8).reshape(z, y, x)
-    gl_facing = np.frombuffer(textures.facing.read(alignment=1), np.uint8).reshape(z, y, x, 2)
-    facing_mismatch = int((gl_facing != lat.displayed_facing()).any(axis=-1).sum())
-    computed = lat.shown()
-    if textures.kind != "irradiance":  # SH packing is LatticeTextures' own: validity only
-        return {"texels": int(computed.sum()), "computed": int((lat.samples > 0).sum()),
-                "max_rel_error": None,
-                "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
-                "uncomputed_nonzero": None, "facing_mismatch": facing_mismatch}
-    gl_rgb = np.frombuffer(textures.irradiance.read(), np.float32).reshape(z, y, x, 3)
-    want = lat.displayed()[..., :3][computed].astype(np.float64)
-    got = gl_rgb[computed].astype(np.float64)
-    scale = np.maximum(want.max(axis=1, keepdims=True), 1e-30)
-    rel = np.abs(got - want) / scale
-    return {"texels": int(computed.sum()), "computed": int((lat.samples > 0).sum()),
-            "max_rel_error": float(rel.max()) if len(rel) else 0.0,
-            "valid_mismatch": int(((gl_valid > 127) != computed).sum()),
-            "uncomputed_nonzero": int((gl_rgb[~computed] != 0).any(axis=-1).sum()),
-            "facing_mismatch": facing_mismatch}
+    shown = lat.shown()
+    needed = needed_bricks(lat.shown, textures.shape)
+    bricks, got = textures.read_blocks()
+    want = textures.blocks(bricks)
+    valid = want[0][..., 0] > 127
+    result = {"texels": int(shown.sum()), "computed": int((lat.samples > 0).sum()),
+              "missing_bricks": int((needed & (textures.slot == 0)).sum()),
+              "valid_mismatch": int(((got[0][..., 0] > 127) != valid).sum()),
+              "facing_mismatch": int((got[0][..., 1:] != want[0][..., 1:]).any(axis=-1).sum()),
+              "max_rel_error": None, "uncomputed_nonzero": None}
+    if textures.kind == "irradiance":  # SH packing is LatticeTextures' own: validity only
+        gl_rgb, rgb = got[1].astype(np.float64), want[1].astype(np.float64)
+        scale = np.maximum(rgb[valid].max(axis=1, keepdims=True), 1e-30)
+        rel = np.abs(gl_rgb[valid] - rgb[valid]) / scale
+        result.update(max_rel_error=float(rel.max()) if len(rel) else 0.0,
+                      uncomputed_nonzero=int((gl_rgb[~valid] != 0).any(axis=-1).sum()))
+    return result
 
 
 @dataclass

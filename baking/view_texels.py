@@ -1,0 +1,104 @@
+"""A lattice that holds previews at a fixed set of texels only: a view's traced light.
+
+One picture's light (``isolume render`` without a lattice file, a movie's frames) needs the
+texels its pixels read — a few hundred thousand of a box that may hold a hundred million.
+`PreviewLattice` keeps their estimates in arrays over those texels (sorted flat ids), so
+its memory follows the picture, and answers what a display reads of a `baking.Lattice`:
+`shown`, `displayed` and `displayed_facing` over a z-slab or at index arrays
+(`app.render.lattice_gl` uploads from them), and `store_preview` (what
+`baking.preview.estimate` writes).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from isolume.baking.config import BakeConfig
+from isolume.baking.lattice import LatticeGeometry
+
+
+class PreviewLattice:
+    """Previews at (K,) texels of a lattice's geometry, nothing elsewhere.
+
+    Attributes:
+        geometry: texel placement (the whole lattice's).
+        texels: (K,) sorted unique flat [z, y, x] ids of the texels held.
+        values: (K, C) float32 preview estimates (irradiance or SH transfer).
+        facing: (K, 2) uint8 octahedral codes of the previews' start normals.
+        paths: (K,) uint16 paths behind each preview (0: none; not shown).
+        meta, config: as `baking.Lattice`'s (kind, volume identity; the lighting).
+    """
+
+    def __init__(self, geometry: LatticeGeometry, texels: np.ndarray, channels: int,
+                 meta: dict, config: BakeConfig | None = None) -> None:
+        self.geometry = geometry
+        self.texels = np.asarray(texels, np.int64)
+        if len(self.texels) and np.any(np.diff(self.texels) <= 0):
+            raise ValueError("texels must be sorted and unique")
+        self.values = np.zeros((len(self.texels), channels), np.float32)
+        self.facing = np.zeros((len(self.texels), 2), np.uint8)
+        self.paths = np.zeros(len(self.texels), np.uint16)
+        self.meta = meta
+        self.config = config
+
+    @property
+    def kind(self) -> str:
+        return self.meta.get("kind", "irradiance")
+
+    def _rows(self, flat: np.ndarray) -> np.ndarray:
+        """(N,) rows of (N,) flat texel ids in the arrays; every id must be held."""
+        rows = np.searchsorted(self.texels, flat)
+        if len(flat) and (rows.max() >= len(self.texels)
+                          or not np.array_equal(self.texels[rows], flat)):
+            raise ValueError("previews stored at texels this lattice does not hold")
+        return rows
+
+    def store_preview(self, flat: np.ndarray, paths: np.ndarray, values: np.ndarray,
+                      codes: np.ndarray) -> None:
+        """Store the previews of (N,) texels `flat`: (N,) `paths` behind each (0: none
+        could start), and for those with paths, in order, (M, C) means and (M, 2) facing
+        codes."""
+        rows = self._rows(np.asarray(flat, np.int64))
+        traced = rows[np.asarray(paths) > 0]
+        self.values[traced] = values
+        self.facing[traced] = codes
+        self.paths[rows] = paths
+
+    def _find(self, region) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, held) of the texels of `region` — a z-slab (a slice of z) or a tuple of
+        z, y, x index arrays that broadcast — each of the region's shape: the row of the
+        texel in the arrays, and whether it is held."""
+        shape = self.geometry.shape
+        if isinstance(region, slice):
+            z0, z1, _ = region.indices(shape[0])
+            layer = shape[1] * shape[2]
+            lo, hi = np.searchsorted(self.texels, [z0 * layer, z1 * layer])
+            rows = np.zeros((max(z1 - z0, 0), shape[1], shape[2]), np.int64)
+            held = np.zeros(rows.shape, bool)
+            local = self.texels[lo:hi] - z0 * layer
+            rows.reshape(-1)[local] = np.arange(lo, hi)
+            held.reshape(-1)[local] = True
+            return rows, held
+        flat = np.ravel_multi_index(np.broadcast_arrays(*region), shape)
+        rows = np.minimum(np.searchsorted(self.texels, flat), max(len(self.texels) - 1, 0))
+        held = (self.texels[rows] == flat) if len(self.texels) else np.zeros(flat.shape, bool)
+        return rows, held
+
+    def shown(self, region: slice | tuple = slice(None)) -> np.ndarray:
+        """Bool mask of the texels in `region` that hold a preview."""
+        rows, held = self._find(region)
+        return held & (self.paths[rows] > 0) if len(self.texels) else held
+
+    def displayed(self, region: slice | tuple = slice(None)) -> np.ndarray:
+        """(…, C) float32 preview values in `region` (0 where none is shown)."""
+        rows, _ = self._find(region)
+        if not len(self.texels):
+            return np.zeros((*rows.shape, self.values.shape[1]), np.float32)
+        return np.where(self.shown(region)[..., None], self.values[rows], 0).astype(np.float32)
+
+    def displayed_facing(self, region: slice | tuple = slice(None)) -> np.ndarray:
+        """(…, 2) uint8 facing codes in `region` (unknown where no preview is shown)."""
+        rows, _ = self._find(region)
+        if not len(self.texels):
+            return np.zeros((*rows.shape, 2), np.uint8)
+        return np.where(self.shown(region)[..., None], self.facing[rows], 0).astype(np.uint8)

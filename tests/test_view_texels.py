@@ -1,0 +1,53 @@
+"""`baking.view_texels.PreviewLattice`: previews at a set of texels answer as a dense
+lattice holding the same previews does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from isolume.baking.lattice import Lattice, LatticeGeometry
+from isolume.baking.view_texels import PreviewLattice
+
+
+def _pair(seed: int = 4):
+    """A PreviewLattice and a dense Lattice with the same previews at random texels (a
+    tenth of them traced with no path)."""
+    geometry = LatticeGeometry((11, 13, 17), (0.0,) * 3, (1.0,) * 3)
+    rng = np.random.default_rng(seed)
+    texels = np.sort(rng.choice(11 * 13 * 17, 400, replace=False))
+    sparse = PreviewLattice(geometry, texels, 3, {"kind": "irradiance"})
+    dense = Lattice.empty(geometry, 3, {"kind": "irradiance"})
+    dense.preview = np.zeros((*geometry.shape, 3), np.float32)
+    dense.preview_paths = np.zeros(geometry.shape, np.uint16)
+    for part in np.array_split(rng.permutation(texels), 3):
+        paths = np.where(rng.random(len(part)) < 0.1, 0, 64)
+        values = rng.uniform(0.1, 2.0, ((paths > 0).sum(), 3))
+        codes = rng.integers(1, 256, ((paths > 0).sum(), 2)).astype(np.uint8)
+        for lattice in (sparse, dense):
+            lattice.store_preview(part, paths, values, codes)
+    return sparse, dense
+
+
+def test_slabs_and_index_arrays_read_as_the_dense_lattice():
+    sparse, dense = _pair()
+    rng = np.random.default_rng(1)
+    regions = [np.s_[0:9], np.s_[8:11], np.s_[10:20],
+               tuple(rng.integers(0, n, (5, 1, 1)) for n in (11, 13, 17)),
+               (rng.integers(0, 11, 50), rng.integers(0, 13, 50), rng.integers(0, 17, 50))]
+    for region in regions:
+        np.testing.assert_array_equal(sparse.shown(region), dense.shown(region))
+        np.testing.assert_array_equal(sparse.displayed(region), dense.displayed(region))
+        np.testing.assert_array_equal(sparse.displayed_facing(region),
+                                      dense.displayed_facing(region))
+    assert sparse.shown(np.s_[:]).sum() == (sparse.paths > 0).sum() > 300
+
+
+def test_it_holds_only_its_texels():
+    sparse, _ = _pair()
+    assert sparse.values.shape == (400, 3)
+    missing = np.setdiff1d(np.arange(100), sparse.texels)[:3]
+    with pytest.raises(ValueError, match="does not hold"):
+        sparse.store_preview(missing, np.full(3, 8), np.ones((3, 3)), np.ones((3, 2)))
+    with pytest.raises(ValueError, match="sorted"):
+        PreviewLattice(sparse.geometry, np.array([5, 3]), 3, {})
