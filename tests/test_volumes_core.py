@@ -220,3 +220,37 @@ def test_values_along_normals_equal_lookups_at_the_moved_points(flip):
     moved = points + distance * volumes.normals_at(vol, points, flip=flip).astype(np.float64)
     np.testing.assert_allclose(volumes.values_along_normals(vol, points, distance, flip=flip),
                                volumes.value_at(vol, moved), rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "int16", "uint16"])
+def test_integer_samples_stay_as_stored_and_answer_as_float32(dtype):
+    """A volume of 8- or 16-bit samples keeps them (a quarter or half of float32's
+    memory), and every reader answers to the bit as for the same samples as float32: the
+    identity hash, the suggested isovalues, the meshes, gradients and values, the level
+    crossings and the tracing surface (integer differences must not wrap)."""
+    from isolume.volumes import field
+    from isolume.volumes.cubes import tracing_surface
+
+    rng = np.random.default_rng(4)
+    sphere = make("sphere", 24).data
+    low = -200 if dtype == "int16" else 0
+    data = (low + sphere * 230 + rng.integers(0, 25, sphere.shape)).astype(dtype)
+    stored, floats = Volume(data), Volume(data.astype(np.float32))
+    assert stored.data.dtype == np.dtype(dtype) and stored.data.nbytes < floats.data.nbytes
+    assert stored.data_hash() == floats.data_hash()
+    isos = volumes.suggest_isovalues(stored)
+    assert isos == volumes.suggest_isovalues(floats) and len(isos) == 2
+    a, b = volumes.isosurface(stored, isos[0]), volumes.isosurface(floats, isos[0])
+    for name in ("vertices", "faces", "normals"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    points = a.vertices[::5].astype(np.float64) + 0.3
+    for smooth in (True, False):
+        np.testing.assert_array_equal(field.gradient_at(stored, points, smooth),
+                                      field.gradient_at(floats, points, smooth))
+    np.testing.assert_array_equal(volumes.value_at(stored, points),
+                                  volumes.value_at(floats, points))
+    np.testing.assert_array_equal(volumes.level_points(stored, isos[0]),
+                                  volumes.level_points(floats, isos[0]))
+    for x, y in zip(tracing_surface(stored, isos[1]), tracing_surface(floats, isos[1]),
+                    strict=True):
+        np.testing.assert_array_equal(x, y)

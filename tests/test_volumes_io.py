@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import isolume.volumes.io.common as vio_common
-from isolume.volumes.core import VolumeError
+from isolume.volumes.core import STORED_TYPES, VolumeError
 from isolume.volumes.io import load_file, parse_raw_name
 
 SHAPE = (5, 7, 11)  # z, y, x
@@ -38,7 +38,7 @@ def sample_data(dtype: str = "int16") -> np.ndarray:
 def assert_volume(vol, expected, spacing=SPACING, origin=ORIGIN, name=None) -> None:
     """Same samples in [z, y, x] order, and the world position of voxels as written."""
     assert vol.data.shape == SHAPE
-    assert vol.data.dtype == np.float32
+    assert vol.data.dtype in STORED_TYPES  # the file's type, or float32 (e.g. rescaled)
     np.testing.assert_array_equal(vol.data, np.asarray(expected, np.float32))
     world = vol.index_to_world(INDICES)
     want = np.asarray(origin) + INDICES[:, ::-1] * np.asarray(spacing)

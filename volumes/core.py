@@ -2,8 +2,11 @@
 
 Conventions (DESIGN §2), stated once here and tested in ``tests/test_volumes_core.py``:
 
-* ``data`` is ``float32`` indexed ``[z, y, x]`` (the on-disk order of raw files: x varies
-  fastest).
+* ``data`` is indexed ``[z, y, x]`` (the on-disk order of raw files: x varies fastest) and
+  holds the samples in their stored type when every value of that type is a float32
+  exactly (`STORED_TYPES`: 8- and 16-bit integers, float32), else as float32; whatever
+  reads it computes with float32 (or wider) values, so a volume's results do not depend
+  on the type it is kept in.
 * ``spacing`` and ``origin`` are given in (x, y, z) order, world units.
 * The world position of voxel ``(k, j, i)`` (``data[k, j, i]``) is
   ``origin + (i, j, k) * spacing``.
@@ -25,12 +28,20 @@ class VolumeError(IsolumeError):
     """Bad volume input: the message names the file or value and what was expected."""
 
 
+STORED_TYPES = (np.dtype(np.uint8), np.dtype(np.int8), np.dtype(np.uint16),
+                np.dtype(np.int16), np.dtype(np.float32))
+"""Sample types a `Volume` keeps as they are (a 512³ CT of bytes stays 128 MiB, not 512);
+any other is converted to float32."""
+HASH_CHUNK = 1 << 22
+"""Samples converted to float32 at a time by `Volume.data_hash`."""
+
+
 @dataclass(frozen=True, eq=False)
 class Volume:
     """A scalar field sampled on a rectilinear grid.
 
     Attributes:
-        data: (Z, Y, X) float32 samples.
+        data: (Z, Y, X) samples: a type of `STORED_TYPES`.
         spacing: (3,) voxel size in x, y, z, world units (> 0).
         origin: (3,) world position of voxel (0, 0, 0), x, y, z.
         name: short human-readable name (file stem or synthetic spec).
@@ -62,8 +73,9 @@ class Volume:
             )
         if not np.issubdtype(data.dtype, np.number) or np.iscomplexobj(data):
             raise VolumeError(f"{where}: expected real numbers, got dtype {data.dtype}")
-        data = np.ascontiguousarray(data, dtype=np.float32)
-        finite = np.isfinite(data)
+        kept = data.dtype.newbyteorder("=")
+        data = np.ascontiguousarray(data, dtype=kept if kept in STORED_TYPES else np.float32)
+        finite = np.isfinite(data) if data.dtype.kind == "f" else np.ones(1, bool)
         if not finite.all():
             bad = int(data.size - np.count_nonzero(finite))
             if not finite.any():
@@ -120,14 +132,18 @@ class Volume:
         return np.asarray(index_zyx, np.float64)[:, ::-1] * self.spacing + self.origin
 
     def data_hash(self) -> str:
-        """SHA-256 of the float32 data, shape and spacing, hex (identifies a volume)."""
+        """SHA-256 of the samples as float32, shape and spacing, hex (identifies a volume,
+        whatever type its samples are kept in)."""
         if "hash" not in self._cache:
             import hashlib
 
             h = hashlib.sha256()
             h.update(np.asarray(self.data.shape, np.int64).tobytes())
             h.update(np.asarray(self.spacing, np.float64).tobytes())
-            h.update(memoryview(np.ascontiguousarray(self.data)).cast("B"))  # no copy
+            flat = self.data.reshape(-1)
+            for lo in range(0, flat.size, HASH_CHUNK):
+                part = np.ascontiguousarray(flat[lo:lo + HASH_CHUNK], np.float32)
+                h.update(memoryview(part).cast("B"))
             self._cache["hash"] = h.hexdigest()
         return self._cache["hash"]
 

@@ -127,7 +127,8 @@ def _fill(data: np.ndarray, iso: float, count: np.ndarray, table: np.ndarray,
                         a, b = corner_pairs[edge, 0], corner_pairs[edge, 1]
                         za, ya, xa = k + (a >> 2), j + (a >> 1 & 1), i + (a & 1)
                         zb, yb, xb = k + (b >> 2), j + (b >> 1 & 1), i + (b & 1)
-                        va, vb = data[za, ya, xa], data[zb, yb, xb]
+                        va = np.float32(data[za, ya, xa])  # integers would wrap
+                        vb = np.float32(data[zb, yb, xb])
                         f = (iso - va) / (vb - va)
                         out[v, 0] = origin[0] + (xa + f * (xb - xa)) * spacing[0]
                         out[v, 1] = origin[1] + (ya + f * (yb - ya)) * spacing[1]
@@ -144,7 +145,7 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
         (row t is 3t, 3t + 1, 3t + 2). Both empty where nothing crosses `iso`.
     """
     count, table = case_table()
-    data = np.ascontiguousarray(volume.data, np.float32)
+    data = np.ascontiguousarray(volume.data)  # the kernels compile for its type
     layers = max(data.shape[0] - 1, 0)
     cells_per_layer = max(data.shape[1] - 1, 0) * max(data.shape[2] - 1, 0)
     totals = np.zeros(layers, np.int64)

@@ -53,9 +53,13 @@ def _voxel_gradient(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: int
     for a in range(3):
         for b in range(3):
             wab = w[a] * w[b]
-            gx += wab * (data[zs[a], ys[b], xs[2]] - data[zs[a], ys[b], xs[0]])
-            gy += wab * (data[zs[a], ys[2], xs[b]] - data[zs[a], ys[0], xs[b]])
-            gz += wab * (data[zs[2], ys[a], xs[b]] - data[zs[0], ys[a], xs[b]])
+            # float32 samples (exact for every stored type): integers would wrap
+            gx += wab * (np.float32(data[zs[a], ys[b], xs[2]])
+                         - np.float32(data[zs[a], ys[b], xs[0]]))
+            gy += wab * (np.float32(data[zs[a], ys[2], xs[b]])
+                         - np.float32(data[zs[a], ys[0], xs[b]]))
+            gz += wab * (np.float32(data[zs[2], ys[a], xs[b]])
+                         - np.float32(data[zs[0], ys[a], xs[b]]))
     out[k, 0] = gx * inverse[0]
     out[k, 1] = gy * inverse[1]
     out[k, 2] = gz * inverse[2]
@@ -359,13 +363,14 @@ def values_along_normals(volume: Volume, points_xyz: np.ndarray, distance: float
 
 def _interpolate(grid: np.ndarray, index_zyx: np.ndarray) -> np.ndarray:
     """Trilinear interpolation of a (Z, Y, X[, C]) grid at (N, 3) fractional indices,
-    clamped at the border: (N[, C]) in the grid's dtype. A compiled loop: the same result
-    as ``scipy.ndimage.map_coordinates(order=1, mode="nearest")``, an order of magnitude
-    faster, and without the GIL (bake workers keep tracing meanwhile)."""
+    clamped at the border: (N[, C]) in the grid's float type (float32 for integer
+    samples). A compiled loop: the same result as ``scipy.ndimage.map_coordinates(
+    order=1, mode="nearest")``, an order of magnitude faster, and without the GIL (bake
+    workers keep tracing meanwhile)."""
     scalar = grid.ndim == 3
     cube = grid[..., None] if scalar else grid
     index = np.ascontiguousarray(index_zyx, np.float64).reshape(-1, 3)
-    out = np.empty((len(index), cube.shape[-1]), grid.dtype)
+    out = np.empty((len(index), cube.shape[-1]), np.result_type(grid.dtype, np.float32))
     _trilinear(cube, index, out)
     return out[:, 0] if scalar else out
 

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from isolume.volumes.core import Volume, VolumeError
+from isolume.volumes.core import STORED_TYPES, Volume, VolumeError
 
 CROP_SYNTAX = ("X0:X1,Y0:Y1,Z0:Z1 (voxel index ranges along x, y, z from 0, end exclusive; "
                "':' for a whole axis, '100:' from voxel 100 on, ':50' up to voxel 50)")
@@ -89,7 +89,7 @@ class Region:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the result, float32."""
+        """Bytes of the result at most (float32 samples)."""
         return 4 * int(np.prod(self.shape_xyz, dtype=np.int64))
 
     def spacing(self, spacing) -> tuple[float, float, float]:
@@ -214,8 +214,9 @@ def read_region(array, region: Region) -> np.ndarray:
         region: the part to read, in `array`'s voxels.
 
     Returns:
-        (Z', Y', X') float32, with (X', Y', Z') = ``region.shape_xyz``: block means of
-        ``factor``³ voxels (the samples themselves for factor 1). Memory: the result,
+        (Z', Y', X'), with (X', Y', Z') = ``region.shape_xyz``: float32 block means of
+        ``factor``³ voxels, or for factor 1 the samples themselves (in their own type
+        where `Volume` keeps it: `STORED_TYPES`, else float32). Memory: the result,
         plus at most `SLAB_BYTES` of source samples (or the z planes of one output plane
         where those are more) and their float64 means.
     """
@@ -225,7 +226,8 @@ def read_region(array, region: Region) -> np.ndarray:
     ys, xs = slice(y0, y0 + ny * f), slice(x0, x0 + nx * f)
     plane_bytes = f * (ny * f) * (nx * f) * np.dtype(array.dtype).itemsize
     rows = max(1, SLAB_BYTES // plane_bytes)
-    out = np.empty((nz, ny, nx), np.float32)
+    kept = np.dtype(array.dtype).newbyteorder("=")
+    out = np.empty((nz, ny, nx), kept if f == 1 and kept in STORED_TYPES else np.float32)
     for k0 in range(0, nz, rows):
         k1 = min(nz, k0 + rows)
         slab = np.asarray(array[z0 + k0 * f: z0 + k1 * f, ys, xs])

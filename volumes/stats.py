@@ -11,10 +11,11 @@ _MAX_SAMPLES = 2_000_000
 
 
 def _subsample(volume: Volume) -> np.ndarray:
-    """A flat, regularly strided subset of at most ~2 M values (deterministic)."""
+    """A flat, regularly strided subset of at most ~2 M values (deterministic), float32
+    (scikit-image bins integer samples otherwise: one bin per value)."""
     flat = volume.data.reshape(-1)
     stride = max(1, flat.size // _MAX_SAMPLES)
-    return flat[::stride]
+    return flat[::stride].astype(np.float32)
 
 
 def suggest_isovalues(volume: Volume, count: int = 2) -> tuple[float, ...]:

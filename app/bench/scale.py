@@ -101,6 +101,7 @@ def write_upsampled(source: str, size: int, folder: Path) -> Path:
     from isolume import volumes
 
     volume = volumes.load(source)
+    samples = np.asarray(volume.data, np.float32)  # interpolated in float, as before storing
     shape = np.array(volume.data.shape)
     new = np.maximum(2, np.rint((shape - 1) * (size - 1) / (shape.max() - 1)).astype(int) + 1)
     z, y, x = (int(n) for n in new)
@@ -112,7 +113,7 @@ def write_upsampled(source: str, size: int, folder: Path) -> Path:
                 k = np.arange(k0, min(k0 + LAYERS, z))
                 grid = np.meshgrid(k * steps[0], np.arange(y) * steps[1],
                                    np.arange(x) * steps[2], indexing="ij")
-                part = ndimage.map_coordinates(volume.data, grid, order=1, mode="nearest")
+                part = ndimage.map_coordinates(samples, grid, order=1, mode="nearest")
                 out.write(np.rint(np.clip(part, 0, 255)).astype(np.uint8).tobytes())
     return path
 
