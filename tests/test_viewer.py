@@ -165,6 +165,12 @@ def test_wait_gi_ends_when_the_first_preview_is_on_screen(display, tmp_path):
     assert run.returncode == 0, run.stderr
     previews = json.loads((tmp_path / "stats.json").read_text())["bake"]["previews"]
     assert previews and previews[0]["paths"] > 0
+    from isolume.app.bench.scale import first_gi
+
+    said = [line for line in run.stderr.splitlines() if line.startswith("script line")]
+    assert [line.split(" done")[0] for line in said] == ["script line 1: wait-mesh",
+                                                         "script line 3: wait-gi"]
+    assert 0 < first_gi(run.stderr) < 120  # seconds after the start, as bench scale reads
     local, mask = _surface(tmp_path / "local.exr")
     gi, gi_mask = _surface(tmp_path / "gi.exr")
     both = mask & gi_mask

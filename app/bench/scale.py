@@ -10,7 +10,9 @@ user would run it, with its defaults:
 * ``bake`` (``--samples``, 16 by default, to a lattice file), then ``render --lattice``;
 * ``view``: the viewer under a display (Xvfb where none is set) until global
   illumination is on screen (its script's ``wait-gi``: the lazy bake's first preview
-  pass), then a frame and a screenshot: the seconds from launch to that screenshot.
+  pass), then a frame and a screenshot: the seconds from the program's start to the
+  first global illumination on screen, as the script reports it (the run itself goes on
+  to the screenshot: the full-resolution surface, drawn once more off-screen).
 
 Peak memory is the largest sum of the resident memory of the command's processes
 (sampled every 50 ms: the viewer's bake process counts). A run whose memory or time,
@@ -145,7 +147,8 @@ class Run:
     Attributes:
         source, size, command: what ran; voxels: the volume's sample count.
         status: "ok", "failed", "timeout" or "skipped".
-        seconds: wall time (the viewer: to its first screenshot); peak_mb: largest sum of
+        seconds: wall time (the viewer: to global illumination on screen, `first_gi`);
+        peak_mb: largest sum of
         resident memory, MiB; texels: what it lit (None: not told); note: why it was
         skipped or failed, or what it printed last.
     """
@@ -231,6 +234,15 @@ TEXELS = {
     "bake": re.compile(r"([\d,]+) of [\d,]+ texels active"),
 }
 """What each command prints about the texels it lit."""
+FIRST_GI = re.compile(r"wait-gi done ([\d.]+) s after the start")
+"""What the viewer's script prints when global illumination is on screen."""
+
+
+def first_gi(text: str) -> float | None:
+    """Seconds from the viewer's start to global illumination on screen, as its script
+    said (None: it did not)."""
+    found = FIRST_GI.findall(text)
+    return float(found[-1]) if found else None
 
 
 def texels_of(command: str, text: str) -> int | None:
@@ -356,6 +368,8 @@ def run_one(plan: Plan, source: str, size: int, command: str, volume: Path,
                                        plan.time_cap, shot if command == "view" else None,
                                        env)
     run.status, run.seconds, run.peak_mb = status, secs, peak
+    if command == "view" and status == "ok":
+        run.seconds = first_gi(text)
     if command == "render_lattice":  # the lattice's active texels, as its bake said
         run.texels = next((r.texels for r in reversed(plan.runs) if r.source == source
                            and r.size == size and r.command == "bake"), None)

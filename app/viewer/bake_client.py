@@ -64,9 +64,10 @@ class SharedLattice:
             size = max(1, int(np.prod(shape)) * np.dtype(dtype).itemsize)
             block = shared_memory.SharedMemory(create=True, size=size)
             blocks.append(block)
-            arr = np.ndarray(shape, dtype, buffer=block.buf)
+            arr = np.ndarray(shape, dtype, buffer=block.buf)  # zeros: a new block is
             copied = None if source is None else getattr(source, name, None)
-            arr[...] = 0 if copied is None else copied
+            if copied is not None:  # (pages are taken where written, not all at once)
+                arr[...] = copied
             arrays[name] = arr
         meta = dict(meta)
         config = _config(meta.pop("config", None)) or getattr(source, "config", None)

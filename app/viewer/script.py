@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import os
 import shlex
+import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -44,6 +45,7 @@ from typing import Protocol
 
 import numpy as np
 
+from isolume.app import STARTED
 from isolume.volumes.errors import IsolumeError
 
 DEFAULT_TIMEOUT = 120.0
@@ -290,10 +292,15 @@ class ScriptRunner:
         return self.current.name in ("frames", "sleep", "wait-mesh", "window-shot")
 
     def step(self, viewer: ScriptTarget) -> None:
-        """Run commands until one has to wait."""
+        """Run commands until one has to wait; a finished ``wait-*`` says on stderr when
+        it ended, in seconds since the program started (`isolume.app.STARTED`)."""
         while True:
             if self.current is not None and not self._finished(viewer):
                 return
+            if self.current is not None and self.current.name.startswith("wait-"):
+                print(f"script line {self.current.line}: {self.current.name} done "
+                      f"{time.perf_counter() - STARTED:.1f} s after the start",
+                      file=sys.stderr, flush=True)
             self.current = None
             if not self.commands:
                 return
