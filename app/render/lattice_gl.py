@@ -42,8 +42,8 @@ from isolume.app.render.bricks import (
     needed_bricks,
 )
 from isolume.app.render.glcontext import store_rgb9e5
+from isolume.app.render.settings import RenderError
 from isolume.baking import octahedral
-from isolume.baking.errors import BakeError
 from isolume.baking.lattice import FACING_POWER, SIDE_BLEND, Lattice
 from isolume.baking.sh import transfer_blocks
 
@@ -141,7 +141,7 @@ class LatticeTextures:
         try:
             self.layout = AtlasLayout.for_slots(slots, max_size)
         except ValueError as exc:
-            raise BakeError(f"lattice of {self.shape[::-1]} texels: {exc}") from None
+            raise RenderError(f"lattice of {self.shape[::-1]} texels: {exc}") from None
         self.slot[...] = 0
         self.slot[tuple(bricks.T)] = np.arange(1, self.used, dtype=np.int32)
         self.owner = np.zeros((self.layout.capacity, 3), np.int64)  # slot -> brick
