@@ -108,7 +108,8 @@ def traced_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarra
 
     Returns:
         A `baking.lattice.Lattice` whose previews hold the texels' estimates for this
-        surface (as `app.render.view_gi.view_lattice` makes them for a view).
+        surface (`app.render.view_gi.view_lattice` holds a view's in a
+        `baking.view_texels.PreviewLattice`).
     """
     from tqdm import tqdm
 

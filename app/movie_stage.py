@@ -38,6 +38,7 @@ from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
     from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import PreviewLattice
 
 KINDS = ("turntable", "light", "iso")
 """What a movie changes: the camera's azimuth, the light's azimuth, or the isovalue."""
@@ -232,7 +233,7 @@ class Stage:
         self._texel_iso: np.ndarray | None = None
         self._iso: float | None = None
         self._triangles = 0
-        self._kept: dict[int, Lattice] = {}
+        self._kept: dict[int, PreviewLattice] = {}  # traced light kept for a shot
         self._traced_scene: tuple[float, object] | None = None  # (iso, Embree scene)
         self._tracing: tuple[BakeConfig, object] | None = None  # (light, preview_tracing)
         if scene.lattice is not None:
@@ -249,7 +250,7 @@ class Stage:
         self.renderer.release()
         self._gl.release()
 
-    def _texel_isovalues(self, lattice: Lattice) -> np.ndarray | None:
+    def _texel_isovalues(self, lattice: Lattice | PreviewLattice) -> np.ndarray | None:
         """(Z, Y, X) field values at the lattice's texel centres when the shading reads
         them ("irradiance_closest"), computed once."""
         if SHADING_MODES[self.scene.settings.shading].lookup != "closest":

@@ -425,4 +425,3 @@ def volume_identity(volume) -> dict:
     return {"name": volume.name, "source": volume.source, "shape": list(volume.data.shape),
             "spacing": list(volume.spacing), "origin": list(volume.origin),
             "hash": volume.data_hash()}
-

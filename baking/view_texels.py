@@ -84,21 +84,28 @@ class PreviewLattice:
         held = (self.texels[rows] == flat) if len(self.texels) else np.zeros(flat.shape, bool)
         return rows, held
 
-    def shown(self, region: slice | tuple = slice(None)) -> np.ndarray:
-        """Bool mask of the texels in `region` that hold a preview."""
+    def _shown(self, region) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, shown) of the texels of `region` (`_find`): shown where a preview is."""
         rows, held = self._find(region)
-        return held & (self.paths[rows] > 0) if len(self.texels) else held
+        return rows, (held & (self.paths[rows] > 0) if len(self.texels) else held)
+
+    def shown(self, region: slice | tuple = slice(None)) -> np.ndarray:
+        """Bool mask of the texels in `region` (a z-slice, or z, y, x index arrays) that
+        hold a preview."""
+        return self._shown(region)[1]
 
     def displayed(self, region: slice | tuple = slice(None)) -> np.ndarray:
         """(…, C) float32 preview values in `region` (0 where none is shown)."""
-        rows, _ = self._find(region)
-        if not len(self.texels):
-            return np.zeros((*rows.shape, self.values.shape[1]), np.float32)
-        return np.where(self.shown(region)[..., None], self.values[rows], 0).astype(np.float32)
+        return self._picked(region, self.values)
 
     def displayed_facing(self, region: slice | tuple = slice(None)) -> np.ndarray:
         """(…, 2) uint8 facing codes in `region` (unknown where no preview is shown)."""
-        rows, _ = self._find(region)
+        return self._picked(region, self.facing)
+
+    def _picked(self, region, held: np.ndarray) -> np.ndarray:
+        """(…, C) rows of the (K, C) array `held` at the texels of `region` that show a
+        preview, zeros elsewhere, in its type."""
+        rows, shown = self._shown(region)
         if not len(self.texels):
-            return np.zeros((*rows.shape, 2), np.uint8)
-        return np.where(self.shown(region)[..., None], self.facing[rows], 0).astype(np.uint8)
+            return np.zeros((*rows.shape, held.shape[1]), held.dtype)
+        return np.where(shown[..., None], held[rows], 0).astype(held.dtype)

@@ -18,16 +18,20 @@ from isolume.app.render.bricks import (
 
 
 def _needed_brute(shown: np.ndarray) -> np.ndarray:
-    """Bricks whose 9³ block (its 8³ texels and the next texel on each high side) holds a
-    shown texel, by looking at every brick."""
+    """Bricks that hold the lower corner of a cell (texel ≤ n − 2 along each axis) and
+    whose 9³ block (its 8³ texels and the next texel on each high side) holds a shown
+    texel, by looking at every brick."""
     out = np.zeros(brick_grid(shown.shape), bool)
     for b in np.ndindex(out.shape):
         lo = [BRICK * v for v in b]
-        out[b] = shown[lo[0]:lo[0] + STORED, lo[1]:lo[1] + STORED, lo[2]:lo[2] + STORED].any()
+        base = all(v <= n - 2 for v, n in zip(lo, shown.shape, strict=True))
+        out[b] = base and shown[lo[0]:lo[0] + STORED, lo[1]:lo[1] + STORED,
+                                lo[2]:lo[2] + STORED].any()
     return out
 
 
-@pytest.mark.parametrize("shape", [(8, 8, 8), (9, 17, 23), (2, 31, 16), (40, 3, 25)])
+@pytest.mark.parametrize("shape", [(8, 8, 8), (9, 17, 23), (2, 31, 16), (40, 3, 25),
+                                   (17, 9, 33)])
 def test_needed_bricks_are_those_whose_block_holds_a_shown_texel(shape):
     rng = np.random.default_rng(sum(shape))
     for density in (0.0, 0.002, 0.02, 0.5):
@@ -43,6 +47,11 @@ def test_a_texel_on_a_brick_face_needs_the_bricks_below_it_too():
     shown[8, 8, 8] = True
     needed = needed_bricks(shown.__getitem__, shown.shape)
     assert needed.sum() == 8 and needed[:2, :2, :2].all()
+    # a lattice of 9 texels: texel 8 is only ever read through brick 0's apron
+    corner = np.zeros((9, 9, 9), bool)
+    corner[8, 8, 8] = True
+    needed = needed_bricks(corner.__getitem__, corner.shape)
+    assert needed.sum() == 1 and needed[0, 0, 0]
 
 
 def test_blocks_are_read_with_their_apron_and_clamped_at_the_edge():
@@ -67,6 +76,16 @@ def test_the_atlas_places_each_slot_once_within_its_size():
         assert max(layout.texels_xyz) <= 2048
     with pytest.raises(ValueError, match="do not fit"):
         AtlasLayout.for_slots(10**6, 64)
+
+
+def test_an_atlas_grows_only_as_far_as_gl_allows():
+    """Room to grow is given up before the slots in use: 56³ slots fit 512 texels a
+    side."""
+    assert AtlasLayout.with_room(1000, 1250, 512).capacity >= 1250
+    full = AtlasLayout.with_room(101_614, 203_228, 512)
+    assert 101_614 <= full.capacity <= 56**3 and max(full.texels_xyz) <= 512
+    with pytest.raises(ValueError, match="do not fit"):
+        AtlasLayout.with_room(56**3 + 1, 56**3 + 1, 512)
 
 
 def test_an_assembled_layer_holds_each_block_at_its_slot():

@@ -281,7 +281,7 @@ def test_uploaded_regions_equal_the_lattice(gl):
     uploader.mark(flat)
     assert uploader.pending > 0
     while uploader.pending:
-        uploader.upload(budget_s=0.0)  # one block per call
+        uploader.upload(budget_s=0.0)  # one batch of bricks per call
     result = check_textures(textures)
     assert result["texels"] == 900 and result["valid_mismatch"] == 0
     assert result["missing_bricks"] == 0

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 
-from isolume.volumes.core import Volume, VolumeError
+from isolume.volumes.core import STORED_TYPES, Volume, VolumeError
 from isolume.volumes.cubes import tracing_surface
 from isolume.volumes.field import (
     gradient_at,
@@ -34,6 +34,7 @@ from isolume.volumes.synthetic import DEFAULT
 __all__ = [
     "CROP_SYNTAX",
     "DEFAULT",
+    "STORED_TYPES",
     "UP_AXES",
     "Mesh",
     "Volume",

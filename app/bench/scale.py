@@ -103,7 +103,7 @@ def write_upsampled(source: str, size: int, folder: Path) -> Path:
     from isolume import volumes
 
     volume = volumes.load(source)
-    samples = np.asarray(volume.data, np.float32)  # interpolated in float, as before storing
+    samples = np.asarray(volume.data, np.float32)  # trilinear on float32 samples
     shape = np.array(volume.data.shape)
     new = np.maximum(2, np.rint((shape - 1) * (size - 1) / (shape.max() - 1)).astype(int) + 1)
     z, y, x = (int(n) for n in new)
@@ -148,9 +148,8 @@ class Run:
         source, size, command: what ran; voxels: the volume's sample count.
         status: "ok", "failed", "timeout" or "skipped".
         seconds: wall time (the viewer: to global illumination on screen, `first_gi`);
-        peak_mb: largest sum of
-        resident memory, MiB; texels: what it lit (None: not told); note: why it was
-        skipped or failed, or what it printed last.
+        peak_mb: largest sum of resident memory, MiB; texels: what it lit (None: not
+        told); note: why it was skipped or failed, or what it printed last.
     """
 
     source: str

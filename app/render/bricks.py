@@ -45,20 +45,22 @@ def _blocks_any(mask: np.ndarray, axis: int) -> np.ndarray:
     return np.moveaxis(own | padded[BRICK::BRICK], 0, axis)
 
 
-def needed_bricks(shown: Callable[[tuple], np.ndarray], shape: tuple[int, int, int]
+def needed_bricks(shown: Callable[[slice], np.ndarray], shape: tuple[int, int, int]
                   ) -> np.ndarray:
-    """(BZ, BY, BX) bool: the bricks whose `STORED`³ block holds a shown texel.
+    """(BZ, BY, BX) bool: the bricks whose `STORED`³ block holds a shown texel, among
+    those a cell's lower corner can lie in (a last brick of one texel along an axis is
+    read through the apron of the brick below it).
 
     Args:
-        shown: region (a tuple of slices of (Z, Y, X)) → bool mask of the texels shown
-            there (`baking.Lattice.shown`); read one row of bricks (9 z-layers) at a time.
+        shown: a slice of z → (z, Y, X) bool mask of the texels shown in those layers
+            (`baking.Lattice.shown`); read one row of bricks (9 z-layers) at a time.
         shape: (Z, Y, X) texels.
     """
-    bz, by, bx = brick_grid(shape)
-    out = np.zeros((bz, by, bx), bool)
+    out = np.zeros(brick_grid(shape), bool)
+    bz, by, bx = (-(-(int(n) - 1) // BRICK) for n in shape)  # bricks holding a cell's base
     for k in range(bz):
         layers = shown(np.s_[k * BRICK:min((k + 1) * BRICK + 1, shape[0])]).any(axis=0)
-        out[k] = _blocks_any(_blocks_any(layers, 0), 1)
+        out[k, :by, :bx] = _blocks_any(_blocks_any(layers, 0), 1)[:by, :bx]
     return out
 
 
@@ -98,6 +100,17 @@ class AtlasLayout:
                              f"of {max_texels} texels a side ({most ** 3:,} bricks); bake "
                              "or render with a coarser lattice (--scale)")
         return cls((az, ay, ax))
+
+    @classmethod
+    def with_room(cls, used: int, room: int, max_texels: int) -> AtlasLayout:
+        """An atlas of `room` slots where GL allows one (sides within `max_texels`), else
+        the largest it allows; at least `used` slots.
+
+        Raises:
+            ValueError: when even the largest atlas has fewer than `used` slots.
+        """
+        most = (max_texels // STORED) ** 3
+        return cls.for_slots(max(used, min(room, most)), max_texels)
 
     @property
     def capacity(self) -> int:

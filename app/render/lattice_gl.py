@@ -137,9 +137,9 @@ class LatticeTextures:
         bricks = np.argwhere(needed)
         self.used = len(bricks) + 1
         max_size = int(self.ctx.info["GL_MAX_3D_TEXTURE_SIZE"])
-        slots = max(int(np.ceil(self.used * GROWTH)), at_least)
+        room = max(int(np.ceil(self.used * GROWTH)), at_least)
         try:
-            self.layout = AtlasLayout.for_slots(slots, max_size)
+            self.layout = AtlasLayout.with_room(self.used, room, max_size)
         except ValueError as exc:
             raise RenderError(f"lattice of {self.shape[::-1]} texels: {exc}") from None
         self.slot[...] = 0
@@ -189,7 +189,6 @@ class LatticeTextures:
         region = block_region(bricks, self.shape)
         shown = lat.shown(region)
         facing = lat.displayed_facing(region)
-        self.facing_known = self.facing_known or bool(octahedral.known(facing).any())
         state = np.concatenate([np.where(shown, 255, 0).astype(np.uint8)[..., None], facing],
                                axis=-1)
         values = lat.displayed(region)  # zero where nothing is shown
@@ -212,10 +211,16 @@ class LatticeTextures:
         return [np.ascontiguousarray(padded[..., 4 * t:4 * t + 4, channel])
                 for channel in range(self.sh_groups) for t in range(self.sh_textures)]
 
+    def _uploaded(self, bricks: np.ndarray) -> list[np.ndarray]:
+        """`blocks` of (M, 3) bricks about to be uploaded; notes a known facing."""
+        parts = self.blocks(bricks)
+        self.facing_known = self.facing_known or bool(octahedral.known(parts[0][..., 1:]).any())
+        return parts
+
     def _upload_layer(self, layer: int, slots: range) -> None:
         """Upload the atlas z-layer `layer` (its `slots`; those past `used` stay zero)."""
         taken = np.arange(slots.start, min(slots.stop, self.used))
-        parts = self.blocks(self.owner[taken])
+        parts = self._uploaded(self.owner[taken])
         for part in parts:
             part[taken == 0] = 0  # slot 0 stays empty
         width, height, _ = self.layout.texels_xyz
@@ -254,7 +259,7 @@ class LatticeTextures:
             self._write_indirection()
         near = near[self.slot[tuple(near.T)] > 0]
         corners = self.layout.corners(self.slot[tuple(near.T)]) * STORED
-        parts = self.blocks(near)
+        parts = self._uploaded(near)
         for tex, part in zip(self._textures(), parts, strict=True):
             for corner, block in zip(corners, part, strict=True):
                 tex.write(np.ascontiguousarray(block).tobytes(),

@@ -64,9 +64,10 @@ class SharedLattice:
             size = max(1, int(np.prod(shape)) * np.dtype(dtype).itemsize)
             block = shared_memory.SharedMemory(create=True, size=size)
             blocks.append(block)
-            arr = np.ndarray(shape, dtype, buffer=block.buf)  # zeros: a new block is
+            arr = np.ndarray(shape, dtype, buffer=block.buf)
             copied = None if source is None else getattr(source, name, None)
-            if copied is not None:  # (pages are taken where written, not all at once)
+            # a new block is zeros already: filling it would take all its pages at once
+            if copied is not None:
                 arr[...] = copied
             arrays[name] = arr
         meta = dict(meta)

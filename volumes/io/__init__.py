@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from isolume.volumes.core import Volume, VolumeError, checked_geometry
+from isolume.volumes.core import STORED_TYPES, Volume, VolumeError, checked_geometry
 from isolume.volumes.io.arrays import load_npy, load_npz
 from isolume.volumes.io.common import (
     READ_ERRORS,
@@ -164,7 +164,8 @@ def load_file(
         level: multiscale level of an OME-Zarr image (None: 0, the full resolution).
 
     Returns:
-        A :class:`Volume` with (Z, Y, X) float32 data, named after the file stem. With
+        A :class:`Volume` with (Z, Y, X) samples (`Volume`: their stored type, or
+        float32), named after the file stem. With
         a crop or downsampling, raw, NRRD raw and ``.npy`` files are mapped and Zarr
         chunks read lazily, so only the part is read, slab by slab; other formats are
         read whole first.
@@ -208,8 +209,8 @@ def load_file(
     if lazy or not isinstance(placed.data, np.ndarray):
         return _read_part(placed, crop, factor, path, placement)
     samples = placed.data
-    if not samples.flags.writeable and samples.dtype == np.float32:
-        samples = np.array(samples)  # Volume keeps native float32 as is; give it its own
+    if not samples.flags.writeable and samples.dtype.newbyteorder("=") in STORED_TYPES:
+        samples = np.array(samples)  # Volume keeps these types as they are: its own copy
     return Volume(samples, spacing=placed.spacing, origin=placed.origin,
                   name=_volume_name(path), source=where, placement=placement)
 
@@ -282,7 +283,7 @@ def _read_part(placed: Placement, crop: Crop | None, factor: int, path: Path,
     z, y, x = data.shape
     region = resolve_region((x, y, z), crop, factor, where)
     check_fits_in_memory(region.nbytes, where,
-                         f"reading {' x '.join(map(str, region.shape_xyz))} float32 voxels")
+                         f"reading {' x '.join(map(str, region.shape_xyz))} voxels")
     return Volume(read_region(data, region), spacing=region.spacing(placed.spacing),
                   origin=region.origin(placed.spacing, placed.origin),
                   name=_volume_name(path), source=where,
