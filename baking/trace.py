@@ -199,8 +199,10 @@ class Scene:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         self.empty = len(faces) == 0
-        self.faces = np.ascontiguousarray(faces, np.int32)
-        self.vertices = np.ascontiguousarray(vertices, np.float32)
+        faces = np.asarray(faces)  # uint32 indices (< 2³¹) read as int32 without a copy
+        self.faces = padded(faces.view(np.int32) if faces.dtype == np.uint32 else faces,
+                            np.int32)
+        self.vertices = padded(vertices, np.float32)
         self.recorder: RayRecorder | None = None  # benchmarks: a copy of every batch
         self.built_by = ""
         """How the Embree scene was built: "native", "embreex", or "" (empty)."""
@@ -266,6 +268,25 @@ _GEOMETRY_TRIANGLE = 0
 _BUFFER_INDEX, _BUFFER_VERTEX = 0, 1
 _FORMAT_UINT3, _FORMAT_FLOAT3 = 0x5003, 0x9003
 _BYTES_PER_ITEM = 12  # three 32-bit values per vertex and per triangle
+PAD_BYTES = 16
+"""Bytes readable past the end of an array Embree shares: it loads 16 bytes at a time
+(rtcSetSharedGeometryBuffer: the last element must be readable with 16-byte loads)."""
+
+
+def padded(array: np.ndarray, dtype) -> np.ndarray:
+    """`array` as a C-contiguous `dtype` array whose buffer goes on at least `PAD_BYTES`
+    past its end, as Embree's shared buffers need: `array` itself when its buffer does
+    (`volumes.tracing_surface` allocates so), else a padded copy."""
+    a = np.ascontiguousarray(array, dtype)
+    base = a
+    while isinstance(base.base, np.ndarray):
+        base = base.base
+    if base is not a and base.flags.c_contiguous and (
+            a.ctypes.data + a.nbytes + PAD_BYTES <= base.ctypes.data + base.nbytes):
+        return a
+    flat = np.empty(a.size + -(-PAD_BYTES // a.itemsize), a.dtype)
+    flat[:a.size] = a.reshape(-1)
+    return flat[:a.size].reshape(a.shape)
 
 
 class _NativeBuild(NamedTuple):
@@ -274,7 +295,7 @@ class _NativeBuild(NamedTuple):
 
     scene_device: ctypes._CFuncPtr
     new_geometry: ctypes._CFuncPtr
-    new_buffer: ctypes._CFuncPtr
+    shared_buffer: ctypes._CFuncPtr
     commit_geometry: ctypes._CFuncPtr
     attach: ctypes._CFuncPtr
     release_geometry: ctypes._CFuncPtr
@@ -303,8 +324,8 @@ def _native_build() -> _NativeBuild | None:
         build = _NativeBuild(
             _typed(lib, "rtcGetSceneDevice", p, p),
             _typed(lib, "rtcNewGeometry", p, p, ctypes.c_int),
-            _typed(lib, "rtcSetNewGeometryBuffer", p, p, ctypes.c_int, u, ctypes.c_int,
-                   ctypes.c_size_t, ctypes.c_size_t),
+            _typed(lib, "rtcSetSharedGeometryBuffer", None, p, ctypes.c_int, u, ctypes.c_int,
+                   p, ctypes.c_size_t, ctypes.c_size_t, ctypes.c_size_t),
             _typed(lib, "rtcCommitGeometry", None, p),
             _typed(lib, "rtcAttachGeometry", u, p, p),
             _typed(lib, "rtcReleaseGeometry", None, p),
@@ -319,9 +340,10 @@ def _native_build() -> _NativeBuild | None:
 
 def _attach_native(build: _NativeBuild, scene, vertices: np.ndarray,
                    faces: np.ndarray) -> bool:
-    """Give embreex's scene a triangle geometry made with Embree's own API — buffers
-    allocated by Embree, filled with one memory copy each — and commit it (the BVH build,
-    without the GIL). embreex's `run` then finds the scene committed and traces it.
+    """Give embreex's scene a triangle geometry made with Embree's own API — on the
+    arrays themselves (shared buffers: no copy; they must outlive the scene and be
+    `padded`) — and commit it (the BVH build, without the GIL). embreex's `run` then finds
+    the scene committed and traces it.
 
     Returns:
         False (nothing attached) when the scene's handle cannot be verified or Embree
@@ -340,10 +362,8 @@ def _attach_native(build: _NativeBuild, scene, vertices: np.ndarray,
         try:
             for kind, fmt, array in ((_BUFFER_VERTEX, _FORMAT_FLOAT3, vertices),
                                      (_BUFFER_INDEX, _FORMAT_UINT3, faces)):
-                target = build.new_buffer(geometry, kind, 0, fmt, _BYTES_PER_ITEM, len(array))
-                if not target:
-                    return False
-                ctypes.memmove(target, array.ctypes.data, array.nbytes)
+                build.shared_buffer(geometry, kind, 0, fmt, array.ctypes.data, 0,
+                                    _BYTES_PER_ITEM, len(array))
             build.commit_geometry(geometry)
             if build.device_error(device) != 0:
                 return False

@@ -24,8 +24,8 @@ def _rays(mesh, count: int, seed: int):
 
 @pytest.mark.parametrize("native", [True, False])
 def test_scene_answers_exactly_as_embreex_given_numpy_arrays(native, monkeypatch):
-    """The mesh reaches Embree by Embree's own API (`native`: one memory copy per buffer,
-    the BVH built without the GIL), or, where that is unavailable, through embreex from
+    """The mesh reaches Embree by Embree's own API (`native`: the arrays shared, not
+    copied, the BVH built without the GIL), or, where that is unavailable, through embreex from
     object arrays (a faster copy than numpy's): every hit, distance, barycentric and normal
     must equal those of a scene that embreex built from the numpy arrays."""
     if not native:
@@ -45,6 +45,25 @@ def test_scene_answers_exactly_as_embreex_given_numpy_arrays(native, monkeypatch
         np.testing.assert_array_equal(got[key], want[theirs])
     np.testing.assert_array_equal(scene.occluded(origins, dirs),
                                   plain.run(origins, dirs, query="OCCLUDED") != -1)
+
+
+def test_embree_shares_padded_arrays_and_copies_the_others_padded():
+    """Embree reads 16 bytes at a shared buffer's last element: the tracing surface's
+    arrays are allocated with room after them and shared as they are; a marching-cubes
+    mesh's are copied once into padded buffers (uint32 faces read as int32)."""
+    volume = volumes.load("synthetic:engine:48")
+    vertices, faces = volumes.tracing_surface(volume, 0.3)
+    scene = Scene(vertices, faces)
+    assert scene.vertices is vertices and scene.faces is faces
+    mesh = volumes.isosurface(volume, 0.3, normals="none")
+    for array, dtype in ((mesh.vertices, np.float32), (mesh.faces, np.int32)):
+        copy = trace.padded(array, dtype)
+        assert copy is not array and copy.dtype == dtype
+        np.testing.assert_array_equal(copy, array)
+        room = copy.base.nbytes - copy.nbytes
+        assert room >= trace.PAD_BYTES and trace.padded(copy, dtype) is copy
+    inner = vertices[:-2]  # a view that ends inside the buffer: readable past its end
+    assert trace.padded(inner, np.float32) is inner
 
 
 def test_strided_rays_are_traced_as_contiguous_ones():

@@ -153,7 +153,7 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
     on_threads(lambda lo, hi: _count(data, float(iso), count, lo, hi, totals), layers,
                 cells_per_layer)
     firsts = np.concatenate([[0], np.cumsum(totals)])
-    vertices = np.empty((3 * int(firsts[-1]), 3), np.float32)
+    vertices = _padded_empty((3 * int(firsts[-1]), 3), np.float32)
     origin = np.asarray(volume.origin, np.float64)
     spacing = np.asarray(volume.spacing, np.float64)
 
@@ -162,5 +162,16 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
               int(firsts[lo]))
 
     on_threads(fill_layers, layers, cells_per_layer)
-    faces = np.arange(len(vertices), dtype=np.int32).reshape(-1, 3)
+    faces = np.arange(len(vertices) + PAD_ITEMS, dtype=np.int32)[:len(vertices)].reshape(-1, 3)
     return vertices, faces
+
+
+PAD_ITEMS = 4
+"""Values allocated past the end of the tracing surface's arrays: Embree shares them
+(`baking.trace.padded`) and reads up to 16 bytes at their last element."""
+
+
+def _padded_empty(shape: tuple[int, int], dtype) -> np.ndarray:
+    """An uninitialised (N, 3) array followed by `PAD_ITEMS` more values in its buffer."""
+    flat = np.empty(int(np.prod(shape)) + PAD_ITEMS, dtype)
+    return flat[:int(np.prod(shape))].reshape(shape)
