@@ -48,21 +48,25 @@ def test_scene_answers_exactly_as_embreex_given_numpy_arrays(native, monkeypatch
 
 
 def test_embree_shares_padded_arrays_and_copies_the_others_padded():
-    """Embree reads 16 bytes at a shared buffer's last element: the tracing surface's
-    arrays are allocated with room after them and shared as they are; a marching-cubes
-    mesh's are copied once into padded buffers (uint32 faces read as int32)."""
+    """Embree reads 16 bytes at a shared buffer's last element: the tracing surface's and
+    the marching-cubes mesh's arrays are allocated with room after them and shared as
+    they are (uint32 faces read as int32); other arrays are copied once into padded
+    buffers."""
     volume = volumes.load("synthetic:engine:48")
     vertices, faces = volumes.tracing_surface(volume, 0.3)
     scene = Scene(vertices, faces)
     assert scene.vertices is vertices and scene.faces is faces
     mesh = volumes.isosurface(volume, 0.3, normals="none")
-    for array, dtype in ((mesh.vertices, np.float32), (mesh.faces, np.int32)):
+    scene = Scene(mesh.vertices, mesh.faces)
+    assert scene.vertices is mesh.vertices and np.shares_memory(scene.faces, mesh.faces)
+    for array, dtype in ((np.array(mesh.vertices), np.float32),
+                         (np.array(mesh.faces), np.int32)):
         copy = trace.padded(array, dtype)
         assert copy is not array and copy.dtype == dtype
         np.testing.assert_array_equal(copy, array)
         room = copy.base.nbytes - copy.nbytes
         assert room >= trace.PAD_BYTES and trace.padded(copy, dtype) is copy
-    inner = vertices[:-2]  # a view that ends inside the buffer: readable past its end
+    inner = np.array(vertices)[:-2]  # a view that ends inside its buffer, 24 bytes early
     assert trace.padded(inner, np.float32) is inner
 
 

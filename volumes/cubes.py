@@ -153,7 +153,7 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
     on_threads(lambda lo, hi: _count(data, float(iso), count, lo, hi, totals), layers,
                 cells_per_layer)
     firsts = np.concatenate([[0], np.cumsum(totals)])
-    vertices = _padded_empty((3 * int(firsts[-1]), 3), np.float32)
+    vertices = padded_empty((3 * int(firsts[-1]), 3), np.float32)
     origin = np.asarray(volume.origin, np.float64)
     spacing = np.asarray(volume.spacing, np.float64)
 
@@ -167,11 +167,18 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
 
 
 PAD_ITEMS = 4
-"""Values allocated past the end of the tracing surface's arrays: Embree shares them
+"""Values allocated past the end of a surface's arrays: Embree shares them
 (`baking.trace.padded`) and reads up to 16 bytes at their last element."""
 
 
-def _padded_empty(shape: tuple[int, int], dtype) -> np.ndarray:
+def padded_empty(shape: tuple[int, int], dtype) -> np.ndarray:
     """An uninitialised (N, 3) array followed by `PAD_ITEMS` more values in its buffer."""
     flat = np.empty(int(np.prod(shape)) + PAD_ITEMS, dtype)
     return flat[:int(np.prod(shape))].reshape(shape)
+
+
+def padded_copy(array: np.ndarray, dtype) -> np.ndarray:
+    """`array` as `dtype` in a buffer with `PAD_ITEMS` more values after it."""
+    out = padded_empty(array.shape, dtype)
+    out[...] = array
+    return out

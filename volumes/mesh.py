@@ -8,6 +8,7 @@ import numpy as np
 from skimage import measure
 
 from isolume.volumes.core import Volume, VolumeError
+from isolume.volumes.cubes import padded_copy
 from isolume.volumes.field import gradient_at, normals_from_gradient
 
 
@@ -138,7 +139,8 @@ def isosurface(
     else:
         n, _ = normals_from_gradient(gradient_at(volume, world, smooth=normals == "smooth"),
                                      flip=flip_normals)
-    return Mesh(world.astype(np.float32), faces.astype(np.uint32), n, iso)
+    # with room after them, so that Embree can share them (`baking.trace.padded`)
+    return Mesh(padded_copy(world, np.float32), padded_copy(faces, np.uint32), n, iso)
 
 
 LEVEL_SLAB = 32
