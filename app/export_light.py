@@ -6,7 +6,7 @@ outgoing radiance is albedo·E/π of a diffuse surface, E the irradiance there, 
 ``isolume render`` shades its pixels:
 
 * from a lattice (`lattice_radiance`): E of the side-aware trilinear lookup over the
-  computed texels (`baking.lattice.Lattice.sample`, the shader's lookup on the CPU); for
+  computed texels (`baking.lattice.shown_lookup`, the shader's lookup on the CPU); for
   an SH lattice the transfer dotted with the environment's coefficients, turned by
   ``--env-rotation`` (`sh_irradiance`, the shader's sum);
 * without one (`traced_lattice`): global illumination traced for the surface as render
@@ -28,6 +28,7 @@ import os
 import numpy as np
 
 from isolume import volumes
+from isolume.baking.lattice import shown_lookup
 
 SUN_RAYS = 32
 """Shadow rays per vertex over the sun's disc: the penumbra in steps of 1/32 of the sun."""
@@ -45,7 +46,8 @@ def lattice_radiance(lattice, points: np.ndarray, normals: np.ndarray, albedo,
     """(V, 3) linear radiance albedo·E/π of the lattice's light at the vertices.
 
     Args:
-        lattice: `baking.lattice.Lattice`, irradiance or SH transfer.
+        lattice: `baking.lattice.Lattice`, irradiance or SH transfer, or the
+            `baking.view_texels.PreviewLattice` of `traced_lattice`.
         points: (V, 3) world positions; normals: (V, 3) unit normals (the lit side).
         albedo: (3,) diffuse reflectance.
         env_coeffs: (m, 3) environment coefficients of an SH lattice
@@ -56,7 +58,7 @@ def lattice_radiance(lattice, points: np.ndarray, normals: np.ndarray, albedo,
         Radiance in the lattice's units (irradiance / sr); 0 where no computed texel is
         read (`coverage`).
     """
-    values = lattice.sample(points, normalized=True, normals=normals)
+    values = shown_lookup(lattice, points, normals)
     if lattice.kind == "sh":
         irradiance = sh_irradiance(values, lattice, env_coeffs, env_rotation)
     else:
@@ -107,24 +109,22 @@ def traced_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarra
         progress: a tqdm bar on stderr.
 
     Returns:
-        A `baking.lattice.Lattice` whose previews hold the texels' estimates for this
-        surface (`app.render.view_gi.view_lattice` holds a view's in a
-        `baking.view_texels.PreviewLattice`).
+        A `baking.view_texels.PreviewLattice` holding the estimates of the texels the
+        vertices' lookups read, and nothing else.
     """
     from tqdm import tqdm
 
-    from isolume.baking.lazy import new_lattice
+    from isolume.baking.lattice import LatticeGeometry
     from isolume.baking.preview import (
         SeenSurface,
         estimate,
         nearest_points,
         preview_tracing,
     )
+    from isolume.baking.view_texels import PreviewLattice
 
-    lattice = new_lattice(volume, config)
-    lattice.preview = np.zeros_like(lattice.values)
-    lattice.preview_paths = np.zeros(lattice.geometry.shape, np.uint16)
-    texels, nearest = nearest_points(lattice.geometry, points)
+    texels, nearest = nearest_points(LatticeGeometry.for_volume(volume, config.scale), points)
+    lattice = PreviewLattice.for_texels(volume, config, texels)
     h = float(np.mean(volume.spacing))
     seen = SeenSurface(points, points + config.offset * h * normals, normals, texels, nearest)
     tracing = preview_tracing(volume, config)

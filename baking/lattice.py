@@ -153,6 +153,22 @@ def sided_mix(weights: np.ndarray, sides: np.ndarray, values: np.ndarray) -> np.
     return np.where(plain_w > 1e-6, out, 0.0)
 
 
+def shown_lookup(lattice, points_xyz: np.ndarray, normals: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """(N, C) the shader's lookup at (N, 3) world points of what a display shows of
+    `lattice` (a `Lattice`, or anything with its ``geometry``, ``shown``, ``displayed``
+    and ``displayed_facing``: `baking.view_texels.PreviewLattice`): trilinear over the
+    shown texels, renormalised (0 where none is), side-aware (`sided_mix`) with the
+    points' (N, 3) unit `normals` turned to the eye."""
+    coords = lattice.geometry.to_texel_coords(points_xyz)
+    idx, w = trilinear_corners(lattice.geometry.shape, coords)
+    region = (idx[..., 0], idx[..., 1], idx[..., 2])
+    w = w * lattice.shown(region)
+    sides = (np.ones_like(w) if normals is None
+             else side_weights(lattice.displayed_facing(region), normals))
+    return sided_mix(w, sides, lattice.displayed(region).astype(np.float64))
+
+
 def _mean(weights: np.ndarray, total: np.ndarray, values: np.ndarray) -> np.ndarray:
     """(N, C) the (N, 8)-`weights`ed mean of (N, 8, C) `values` whose (N, 1) weight sum is
     `total` (0 where it is 0)."""
@@ -311,22 +327,15 @@ class Lattice:
                 lookup (`sided_mix`, with the facings `displayed_facing`), as the shader
                 does it for a lattice with known facings.
         """
+        if normalized:
+            return shown_lookup(self, points_xyz, normals)
         coords = self.geometry.to_texel_coords(points_xyz)
-        if not normalized and normals is None:
+        if normals is None:
             return trilinear(self.values, coords)
         idx, w = trilinear_corners(self.geometry.shape, coords)
         region = (idx[..., 0], idx[..., 1], idx[..., 2])
-        if normalized:
-            w = w * self.shown(region)
-            values = self.displayed(region).astype(np.float64)
-        else:
-            values = self.values[region].astype(np.float64)
-        if normals is None:
-            sides = np.ones_like(w)
-        else:
-            codes = self.displayed_facing(region) if normalized else self.facing[region]
-            sides = side_weights(codes, normals)
-        return sided_mix(w, sides, values)
+        return sided_mix(w, side_weights(self.facing[region], normals),
+                         self.values[region].astype(np.float64))
 
     # -- files -------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:

@@ -26,6 +26,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from isolume.baking.rays import RayStats
+from isolume.volumes.cubes import PAD_BYTES, padded_copy
 
 _MISS = -1
 
@@ -268,15 +269,14 @@ _GEOMETRY_TRIANGLE = 0
 _BUFFER_INDEX, _BUFFER_VERTEX = 0, 1
 _FORMAT_UINT3, _FORMAT_FLOAT3 = 0x5003, 0x9003
 _BYTES_PER_ITEM = 12  # three 32-bit values per vertex and per triangle
-PAD_BYTES = 16
-"""Bytes readable past the end of an array Embree shares: it loads 16 bytes at a time
-(rtcSetSharedGeometryBuffer: the last element must be readable with 16-byte loads)."""
 
 
 def padded(array: np.ndarray, dtype) -> np.ndarray:
     """`array` as a C-contiguous `dtype` array whose buffer goes on at least `PAD_BYTES`
-    past its end, as Embree's shared buffers need: `array` itself when its buffer does
-    (`volumes.tracing_surface` allocates so), else a padded copy."""
+    past its end, as Embree's shared buffers need (rtcSetSharedGeometryBuffer: the last
+    element must be readable with 16-byte loads): `array` itself when its buffer does
+    (`volumes.tracing_surface` and `volumes.isosurface` allocate so), else a
+    `padded_copy`."""
     a = np.ascontiguousarray(array, dtype)
     base = a
     while isinstance(base.base, np.ndarray):
@@ -284,9 +284,7 @@ def padded(array: np.ndarray, dtype) -> np.ndarray:
     if base is not a and base.flags.c_contiguous and (
             a.ctypes.data + a.nbytes + PAD_BYTES <= base.ctypes.data + base.nbytes):
         return a
-    flat = np.empty(a.size + -(-PAD_BYTES // a.itemsize), a.dtype)
-    flat[:a.size] = a.reshape(-1)
-    return flat[:a.size].reshape(a.shape)
+    return padded_copy(a, dtype)
 
 
 class _NativeBuild(NamedTuple):

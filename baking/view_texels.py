@@ -5,8 +5,9 @@ texels its pixels read — a few hundred thousand of a box that may hold a hundr
 `PreviewLattice` keeps their estimates in arrays over those texels (sorted flat ids), so
 its memory follows the picture, and answers what a display reads of a `baking.Lattice`:
 `shown`, `displayed` and `displayed_facing` over a z-slab or at index arrays
-(`app.render.lattice_gl` uploads from them), and `store_preview` (what
-`baking.preview.estimate` writes).
+(`app.render.lattice_gl` uploads from them, `baking.lattice.shown_lookup` looks it up on
+the CPU), and `store_preview` (what `baking.preview.estimate` writes). ``export`` holds
+the light of a whole surface the same way.
 """
 
 from __future__ import annotations
@@ -40,6 +41,16 @@ class PreviewLattice:
         self.paths = np.zeros(len(self.texels), np.uint16)
         self.meta = meta
         self.config = config
+
+    @classmethod
+    def for_texels(cls, volume, config: BakeConfig, texels: np.ndarray) -> PreviewLattice:
+        """Nothing yet at (K,) sorted flat `texels` of the lattice of `volume` baked with
+        `config` (its geometry and metadata, as `baking.bake` makes them)."""
+        from isolume.baking.bake import lattice_meta, path_settings
+
+        channels = path_settings(volume, config).channels
+        return cls(LatticeGeometry.for_volume(volume, config.scale), texels, channels,
+                   lattice_meta(volume, config, channels), config)
 
     @property
     def kind(self) -> str:

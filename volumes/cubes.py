@@ -162,23 +162,25 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
               int(firsts[lo]))
 
     on_threads(fill_layers, layers, cells_per_layer)
-    faces = np.arange(len(vertices) + PAD_ITEMS, dtype=np.int32)[:len(vertices)].reshape(-1, 3)
+    faces = padded_empty((len(vertices) // 3, 3), np.int32)
+    faces.reshape(-1)[:] = np.arange(len(vertices), dtype=np.int32)
     return vertices, faces
 
 
-PAD_ITEMS = 4
-"""Values allocated past the end of a surface's arrays: Embree shares them
-(`baking.trace.padded`) and reads up to 16 bytes at their last element."""
+PAD_BYTES = 16
+"""Bytes allocated past the end of a surface's arrays: Embree shares them
+(`baking.trace.padded`) and reads 16 bytes at a time, up to the last element's end."""
 
 
 def padded_empty(shape: tuple[int, int], dtype) -> np.ndarray:
-    """An uninitialised (N, 3) array followed by `PAD_ITEMS` more values in its buffer."""
-    flat = np.empty(int(np.prod(shape)) + PAD_ITEMS, dtype)
-    return flat[:int(np.prod(shape))].reshape(shape)
+    """An uninitialised (N, 3) array followed by `PAD_BYTES` more in its buffer."""
+    n = int(np.prod(shape))
+    flat = np.empty(n + -(-PAD_BYTES // np.dtype(dtype).itemsize), dtype)
+    return flat[:n].reshape(shape)
 
 
 def padded_copy(array: np.ndarray, dtype) -> np.ndarray:
-    """`array` as `dtype` in a buffer with `PAD_ITEMS` more values after it."""
+    """`array` as `dtype` in a buffer with `PAD_BYTES` more after it."""
     out = padded_empty(array.shape, dtype)
     out[...] = array
     return out

@@ -33,6 +33,12 @@ def brick_grid(shape: tuple[int, int, int]) -> tuple[int, int, int]:
     return tuple(-(-int(n) // BRICK) for n in shape)
 
 
+def cell_bricks(shape: tuple[int, int, int]) -> tuple[int, int, int]:
+    """Bricks along z, y, x that hold the lower corner of a cell (texel ≤ n − 2): a last
+    brick of one texel is read only through the apron of the brick below it."""
+    return tuple(-(-(int(n) - 1) // BRICK) for n in shape)
+
+
 def _blocks_any(mask: np.ndarray, axis: int) -> np.ndarray:
     """Along `axis` (length n) of a bool array: for each brick j, whether any of the
     elements 8j … 8j + 8 (its own and its apron) is set; length ceil(n / 8)."""
@@ -48,8 +54,7 @@ def _blocks_any(mask: np.ndarray, axis: int) -> np.ndarray:
 def needed_bricks(shown: Callable[[slice], np.ndarray], shape: tuple[int, int, int]
                   ) -> np.ndarray:
     """(BZ, BY, BX) bool: the bricks whose `STORED`³ block holds a shown texel, among
-    those a cell's lower corner can lie in (a last brick of one texel along an axis is
-    read through the apron of the brick below it).
+    those a cell's lower corner can lie in (`cell_bricks`).
 
     Args:
         shown: a slice of z → (z, Y, X) bool mask of the texels shown in those layers
@@ -57,7 +62,7 @@ def needed_bricks(shown: Callable[[slice], np.ndarray], shape: tuple[int, int, i
         shape: (Z, Y, X) texels.
     """
     out = np.zeros(brick_grid(shape), bool)
-    bz, by, bx = (-(-(int(n) - 1) // BRICK) for n in shape)  # bricks holding a cell's base
+    bz, by, bx = cell_bricks(shape)
     for k in range(bz):
         layers = shown(np.s_[k * BRICK:min((k + 1) * BRICK + 1, shape[0])]).any(axis=0)
         out[k, :by, :bx] = _blocks_any(_blocks_any(layers, 0), 1)[:by, :bx]

@@ -39,6 +39,7 @@ from isolume.app.render.bricks import (
     assemble_layer,
     block_region,
     brick_grid,
+    cell_bricks,
     needed_bricks,
 )
 from isolume.app.render.glcontext import store_rgb9e5
@@ -242,12 +243,12 @@ class LatticeTextures:
         taken: the atlases are made again, larger). Returns the bricks written."""
         if not len(bricks):
             return 0
-        grid = np.array(self.slot.shape)
+        grid = np.array(cell_bricks(self.shape))
         near = (np.asarray(bricks, np.int64)[:, None, :] - _LOWER[None]).reshape(-1, 3)
         near = np.unique(near[(near >= 0).all(axis=1) & (near < grid).all(axis=1)], axis=0)
-        region = block_region(near, self.shape)
-        fresh = near[self.lattice.shown(region).any(axis=(1, 2, 3))
-                     & (self.slot[tuple(near.T)] == 0)]
+        parts = self._uploaded(near)
+        shows = parts[0][..., 0].any(axis=(1, 2, 3))  # a shown texel in its block
+        fresh = near[shows & (self.slot[tuple(near.T)] == 0)]
         if self.used + len(fresh) > self.layout.capacity:
             self._build((self.slot > 0) | _marked(fresh, self.slot.shape),
                         at_least=2 * self.layout.capacity)
@@ -257,11 +258,11 @@ class LatticeTextures:
             self.owner[self.used:self.used + len(fresh)] = fresh
             self.used += len(fresh)
             self._write_indirection()
-        near = near[self.slot[tuple(near.T)] > 0]
+        slotted = self.slot[tuple(near.T)] > 0
+        near = near[slotted]
         corners = self.layout.corners(self.slot[tuple(near.T)]) * STORED
-        parts = self._uploaded(near)
         for tex, part in zip(self._textures(), parts, strict=True):
-            for corner, block in zip(corners, part, strict=True):
+            for corner, block in zip(corners, part[slotted], strict=True):
                 tex.write(np.ascontiguousarray(block).tobytes(),
                           viewport=(*(int(v) for v in corner), STORED, STORED, STORED),
                           alignment=1)

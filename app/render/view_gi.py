@@ -55,7 +55,6 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     """
     import os
 
-    from isolume.baking.bake import lattice_meta, path_settings
     from isolume.baking.lattice import LatticeGeometry
     from isolume.baking.lazy import visible_cells
     from isolume.baking.preview import (
@@ -69,9 +68,7 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
 
     geometry = LatticeGeometry.for_volume(volume, config.scale)
     texels = cell_corners(geometry.shape, visible_cells(geometry, points))
-    channels = path_settings(volume, config).channels
-    lattice = PreviewLattice(geometry, texels, channels,
-                             lattice_meta(volume, config, channels), config)
+    lattice = PreviewLattice.for_texels(volume, config, texels)
     report = _Progress(progress, int(config.samples), len(texels))
     if scene is None and len(texels):
         scene = surface_scene(volume, iso, 1)
