@@ -21,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import moderngl
+import numpy as np
 
 from isolume.volumes.errors import IsolumeError
 
@@ -187,33 +188,52 @@ _TEX_IMAGE_3D = ctypes.CFUNCTYPE(
     None, ctypes.c_uint, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int,
     ctypes.c_int, ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p,
 )
+_GET_TEX_IMAGE = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_int, ctypes.c_uint,
+                                  ctypes.c_uint, ctypes.c_void_p)
 
 
-def store_rgb9e5(ctx: moderngl.Context, texture: moderngl.Texture3D, rgb=None) -> None:
-    """Re-specify a bound-able 3-D texture's storage as GL_RGB9_E5 (4 bytes per texel,
-    shared-exponent HDR) of the texture's size, filled from (Z, Y, X, 3) float32 `rgb`
-    (None: left undefined, to be written later).
+def rgb9e5_texture(ctx: moderngl.Context, size: tuple[int, int, int]) -> moderngl.Texture3D:
+    """A 3-D texture of `size` (width, height, depth) texels stored as GL_RGB9_E5 (4 bytes
+    per texel, shared-exponent HDR), its contents undefined until written.
 
-    moderngl cannot request that internal format, so this calls glTexImage3D through the
-    context's own function loader; later ``texture.write`` of float RGB data converts into
-    the same storage.
+    moderngl cannot request that internal format: it makes a one-texel float RGB texture,
+    whose storage glTexImage3D (through the context's own function loader) re-specifies at
+    `size`, so no float storage of the whole size (12 bytes per texel) is ever allocated.
+    ``texture.write`` of float RGB data with a viewport converts into it. moderngl keeps
+    the texture's `size` as (1, 1, 1): read it back with `read_rgb9e5`.
     """
-    import numpy as np
+    texture = ctx.texture3d((1, 1, 1), 3, dtype="f4")
+    width, height, depth = size
+    texture.use(location=0)
+    _TEX_IMAGE_3D(_gl_function(ctx, "glTexImage3D"))(
+        _GL_TEXTURE_3D, 0, _GL_RGB9_E5, width, height, depth, 0, _GL_RGB, _GL_FLOAT, None)
+    return texture
 
+
+def read_rgb9e5(ctx: moderngl.Context, texture: moderngl.Texture3D,
+                size: tuple[int, int, int]) -> np.ndarray:
+    """(depth, height, width, 3) float32 contents of an `rgb9e5_texture` of `size`."""
+    width, height, depth = size
+    out = np.empty((depth, height, width, 3), np.float32)
+    texture.use(location=0)
+    _GET_TEX_IMAGE(_gl_function(ctx, "glGetTexImage"))(_GL_TEXTURE_3D, 0, _GL_RGB, _GL_FLOAT,
+                                                       out.ctypes.data)
+    return out
+
+
+def _gl_function(ctx: moderngl.Context, name: str) -> int:
+    """Address of the GL entry point `name` through `ctx`'s function loader.
+
+    Raises:
+        GLUnavailable: the context has no loader, or the loader lacks `name`.
+    """
     proc = (ctx.extra or {}).get("proc_address")
     if proc is None:
-        raise GLUnavailable("this GL context has no function loader for glTexImage3D")
-    address = proc("glTexImage3D")
+        raise GLUnavailable(f"this GL context has no function loader for {name}")
+    address = proc(name)
     if not address:
-        raise GLUnavailable("glTexImage3D is not available")
-    width, height, depth = texture.size
-    data = None if rgb is None else np.ascontiguousarray(rgb, np.float32)
-    if data is not None and data.shape[:3] != (depth, height, width):
-        raise ValueError(f"RGB data of shape {data.shape[:3]} for a texture of "
-                         f"{(depth, height, width)} texels (z, y, x)")
-    texture.use(location=0)
-    _TEX_IMAGE_3D(address)(_GL_TEXTURE_3D, 0, _GL_RGB9_E5, width, height, depth, 0, _GL_RGB,
-                           _GL_FLOAT, None if data is None else data.ctypes.data)
+        raise GLUnavailable(f"{name} is not available")
+    return address
 
 
 # -- windows (the interactive viewer) ------------------------------------------------
@@ -250,7 +270,7 @@ class Window:
     Attributes:
         handle: the glfw window.
         ctx: moderngl context of the window (``ctx.extra["proc_address"]`` resolves GL
-            entry points, as `app.render.glcontext.store_rgb9e5` needs).
+            entry points, as `app.render.glcontext.rgb9e5_texture` needs).
         glfw: the glfw module.
     """
 

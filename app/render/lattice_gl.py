@@ -42,7 +42,7 @@ from isolume.app.render.bricks import (
     cell_bricks,
     needed_bricks,
 )
-from isolume.app.render.glcontext import store_rgb9e5
+from isolume.app.render.glcontext import read_rgb9e5, rgb9e5_texture
 from isolume.app.render.settings import RenderError
 from isolume.baking import octahedral
 from isolume.baking.lattice import FACING_POWER, SIDE_BLEND, Lattice
@@ -162,8 +162,7 @@ class LatticeTextures:
         ctx = self.ctx
         self.state = ctx.texture3d(size, 3, dtype="f1")
         if self.kind == "irradiance":
-            self.values = [ctx.texture3d(size, 3, dtype="f4")]
-            store_rgb9e5(ctx, self.values[0])
+            self.values = [rgb9e5_texture(ctx, size)]
         else:
             self.values = [ctx.texture3d(size, 4, dtype="f2")
                            for _ in range(self.sh_textures * self.sh_groups)]
@@ -275,14 +274,21 @@ class LatticeTextures:
         corners = self.layout.corners(taken) * STORED
         out = []
         for tex in self._textures():
-            dtype = {"f1": np.uint8, "f2": np.float16, "f4": np.float32}[tex.dtype]
-            width, height, depth = tex.size
-            atlas = np.frombuffer(tex.read(alignment=1), dtype).reshape(
-                depth, height, width, tex.components)
+            atlas = self._read_atlas(tex)
             steps = np.arange(STORED)
             x, y, z = (corners[:, a, None] + steps for a in range(3))
             out.append(atlas[z[:, :, None, None], y[:, None, :, None], x[:, None, None, :]])
         return self.owner[taken], out
+
+    def _read_atlas(self, tex: moderngl.Texture3D) -> np.ndarray:
+        """(depth, height, width, C) contents of one atlas texture (the RGB9E5 irradiance
+        as float32)."""
+        width, height, depth = self.layout.texels_xyz
+        if self.kind == "irradiance" and tex is self.values[0]:
+            return read_rgb9e5(self.ctx, tex, self.layout.texels_xyz)
+        dtype = {"f1": np.uint8, "f2": np.float16, "f4": np.float32}[tex.dtype]
+        return np.frombuffer(tex.read(alignment=1), dtype).reshape(depth, height, width,
+                                                                    tex.components)
 
     @property
     def units(self) -> int:

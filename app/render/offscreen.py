@@ -45,8 +45,10 @@ def render_volume(
     ((n², 3) SH coefficients of the environment) by "sh". Without a lattice, `view_light`
     (a `baking.config.BakeConfig`) lights this view instead: a position pass finds the
     visible surface and `app.render.view_gi.view_lattice` traces the texels it reads (`workers`
-    threads, `progress` on stderr). The shadow map and the fog are fitted to the volume's
-    world box; "irradiance_closest" gets the texel isovalues computed from `volume` here.
+    threads, `progress` on stderr) on an Embree scene of the mesh, while GL holds no copy of
+    the mesh (it is uploaded again for the picture). The shadow map and the fog are fitted
+    to the volume's world box; "irradiance_closest" gets the texel isovalues computed from
+    `volume` here.
 
     Returns:
         (frame, mesh): the picture and the mesh that was drawn.
@@ -66,9 +68,11 @@ def render_volume(
 
             position = renderer.render(camera, replace(settings, shading="position",
                                                        auto_exposure=False))
+            renderer.release_mesh()  # GL's copy and Embree's scene are not held at once
             lattice = view_lattice(volume, view_light, iso, position.linear[position.mask],
                                    camera.eye, workers=workers, progress=progress,
                                    scene=Scene(mesh.vertices, mesh.faces))
+            renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_lattice(lattice, _texel_isovalues(volume, lattice, settings.shading))
         renderer.set_environment(env_coeffs)
         frame = renderer.render(camera, settings)

@@ -57,6 +57,11 @@ from isolume.app.render.shadows import (
     active_parts,
 )
 
+VERTEX_BYTES = 24
+"""Bytes per vertex in the mesh's vertex buffer: position and normal, float32 xyz each."""
+VERTEX_CHUNK = 1 << 20
+"""Vertices interleaved and written to the vertex buffer at a time (24 MiB)."""
+
 
 class SurfaceRenderer:
     """Renders one isosurface mesh with the shading modes of `app.render.settings`."""
@@ -101,22 +106,32 @@ class SurfaceRenderer:
     def set_mesh(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray,
                  iso: float | None = None) -> None:
         """Upload a mesh: (V, 3) float32 world positions, (V, 3) normals, (F, 3) indices;
-        `iso` is the isovalue it was extracted at (needed by "irradiance_closest")."""
-        for obj in self._mesh_objects:
-            obj.release()
-        self._mesh_objects, self._triangles = [], len(faces)
-        self._mesh_generation += 1
+        `iso` is the isovalue it was extracted at (needed by "irradiance_closest"). The
+        vertex buffer is filled `VERTEX_CHUNK` vertices at a time (no interleaved copy of
+        the whole mesh)."""
+        self.release_mesh()
         self._iso = None if iso is None else float(iso)
         if len(faces) == 0:
-            self._mesh_box = None
             return
+        self._triangles = len(faces)
         self._mesh_box = (vertices.min(axis=0).astype(np.float64),
                           vertices.max(axis=0).astype(np.float64))
-        interleaved = np.hstack([vertices, normals]).astype(np.float32)
-        vbo = self.ctx.buffer(interleaved.tobytes())
-        ibo = self.ctx.buffer(np.ascontiguousarray(faces, np.uint32).tobytes())
+        vbo = self.ctx.buffer(reserve=len(vertices) * VERTEX_BYTES)
+        for lo in range(0, len(vertices), VERTEX_CHUNK):
+            hi = min(lo + VERTEX_CHUNK, len(vertices))
+            vbo.write(np.hstack([vertices[lo:hi], normals[lo:hi]]).astype(np.float32),
+                      offset=lo * VERTEX_BYTES)
+        ibo = self.ctx.buffer(np.ascontiguousarray(faces, np.uint32))
         self._mesh_objects = [vbo, ibo]
         self._vertex_buffers = (vbo, ibo)
+
+    def release_mesh(self) -> None:
+        """Free the mesh's GL buffers (the renderer then draws no surface until the next
+        `set_mesh`)."""
+        for obj in self._mesh_objects:
+            obj.release()
+        self._mesh_objects, self._triangles, self._mesh_box = [], 0, None
+        self._mesh_generation += 1
 
     def set_bounds(self, lo, hi) -> None:
         """Scene box (lo, hi), each (3,) world xyz, usually the volume's `box`: the shadow
