@@ -10,7 +10,8 @@ traced on the displayed isosurface, in passes of growing path counts (`PASSES`),
 texel from the visible point nearest it on the side the eye sees (`seen_starts`; a
 surface seen from its high-value side — a sheet between two fluids, a solid cut open by
 the volume's border — is lit where it is seen), else from its centre projected onto it:
-a few paths on a coarse mesh within about a second, then more on the full one. They go
+a few paths on a coarse mesh within about a second (one each where a view has so many
+texels that more would take longer: `FIRST_PASS_PATHS`), then more on the full one. They go
 to ``Lattice.preview`` with their path count in ``Lattice.preview_paths`` and the start
 normals in ``Lattice.preview_facing``; a display shows a preview while the texel has fewer
 samples of its own (`Lattice.displayed`), so the picture never gets noisier when the
@@ -47,6 +48,11 @@ PASSES = ((4, True), (64, False), (256, False))
 """(paths per texel, coarse mesh allowed) of the preview passes of a view, in order; the
 path counts are capped at the bake's `samples` (the previews give way to a finished
 bake)."""
+FIRST_PASS_PATHS = 1 << 19
+"""Paths a view's first preview pass traces at most, when later passes follow (about a
+second and a half on 2 cores): a view of more texels than `PASSES`' first count allows
+gets fewer paths each, down to one (the 512³ foot CT's 493 k visible texels: one each;
+the engine CT's 112 k keep four)."""
 COARSE_VOXELS = 1 << 22
 """Volumes with more voxels than this (e.g. 256×256×64) get a step-2 surface for the first
 pass (4× fewer triangles, 4× faster to extract and to hand to Embree); smaller ones the
@@ -235,6 +241,12 @@ def _outside(volume: volumes.Volume, origins: np.ndarray, iso: float, flip: bool
     return rho >= iso if flip else rho <= iso
 
 
+def first_pass_paths(paths: int, texels: int) -> int:
+    """Paths per texel of a first preview pass of `paths` paths over `texels` texels: as
+    many as `FIRST_PASS_PATHS` allows, between 1 and `paths`."""
+    return int(np.clip(FIRST_PASS_PATHS // max(texels, 1), 1, paths))
+
+
 def pass_plan(samples: int) -> list[tuple[int, bool]]:
     """(paths, coarse mesh allowed) of the preview passes for a bake of `samples` paths
     per texel: `PASSES` with the path counts capped at `samples`."""
@@ -299,7 +311,18 @@ class Previewer:
             (np.asarray(eye, np.float64), np.asarray(points, np.float64)), None)
         self._corners = cell_corners(self.lattice.geometry.shape, cells)
         self._queue = [[paths, coarse, None] for paths, coarse in self.passes]
+        if len(self._queue) > 1:
+            self._queue[0][0] = first_pass_paths(self._queue[0][0], len(self._corners))
         return self.step(whole=True)
+
+    def prepare(self, iso: float) -> None:
+        """Build the surface scene a first pass at isovalue `iso` traces, ahead of the view
+        (the bake process does it for the viewer's first isovalue while the window opens:
+        on the 512³ foot CT that is 3 to 4 seconds of marching cubes and BVH)."""
+        if iso != self.iso:
+            self._scenes.clear()
+        self.iso = float(iso)
+        self._scene(mesh_step(self.volume, self.passes[0][1]))
 
     def step(self, whole: bool = False) -> np.ndarray:
         """Do the next slice (`PATHS_PER_STEP` paths; the rest of the pass if `whole`) of

@@ -10,7 +10,13 @@ from isolume.baking.bake import Baker
 from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lazy import visible_cells
-from isolume.baking.preview import Previewer, cell_corners, pass_plan
+from isolume.baking.preview import (
+    FIRST_PASS_PATHS,
+    Previewer,
+    cell_corners,
+    first_pass_paths,
+    pass_plan,
+)
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +58,38 @@ def test_pass_plan_grows_and_stops_at_the_bake_samples():
     assert pass_plan(100) == [(4, True), (64, False), (100, False)]
     assert pass_plan(4) == [(4, True)]
     assert pass_plan(2) == [(2, True)]
+
+
+def test_a_first_pass_over_many_texels_takes_fewer_paths_each():
+    assert first_pass_paths(4, 1000) == 4
+    assert first_pass_paths(4, FIRST_PASS_PATHS // 4) == 4
+    assert first_pass_paths(4, FIRST_PASS_PATHS // 2) == 2
+    assert first_pass_paths(4, FIRST_PASS_PATHS) == 1
+    assert first_pass_paths(4, 100 * FIRST_PASS_PATHS) == 1
+
+
+def test_a_view_of_many_texels_gets_one_path_each_first_then_the_full_passes(sphere,
+                                                                            monkeypatch):
+    """Over the budget, the first pass traces one path per texel and says so in its path
+    counts; the next pass still brings every texel to its own count. A scene prepared
+    for the isovalue beforehand is the one the first pass traces."""
+    vol, mesh = sphere
+    config = BakeConfig(env="constant:1", bounces=0, samples=16)
+    lat = _empty(vol, config)
+    cells = visible_cells(lat.geometry, mesh.vertices)
+    texels = len(cell_corners(lat.geometry.shape, cells))
+    monkeypatch.setattr("isolume.baking.preview.FIRST_PASS_PATHS", texels)
+    previewer = Previewer(vol, config, lat)
+    previewer.prepare(0.5)
+    prepared = dict(previewer._scenes)
+    assert len(prepared) == 1
+    first = previewer.set_view(0.5, cells)
+    assert previewer._scenes == prepared  # not made again
+    assert len(first) == texels and (lat.preview_paths.reshape(-1)[first] == 1).all()
+    while previewer.busy:
+        previewer.step()
+    assert [(d["paths"], d["texels"]) for d in previewer.done] == [(1, texels), (16, texels)]
+    assert (lat.preview_paths.reshape(-1)[first] == 16).all()
 
 
 @pytest.mark.parametrize("coarse", [False, True])

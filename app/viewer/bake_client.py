@@ -378,6 +378,7 @@ class _BakeProcess:
 
         preview_warm_up(self.volume)  # while the viewer opens its window
         self.outbox.put(("started", {"seconds": time.time() - self.job["started"]}))
+        self.previewer.prepare(self.job["iso"])  # while it makes its first surface
         message = self.receive(True)  # the first view gets its first preview before the plan
         while not isinstance(message, View):
             if not self._keep(message):
