@@ -10,7 +10,7 @@ the volume as loaded, turned by ``--up`` where asked), two pictures are measured
   `app.options.view_light` from the render command's defaults);
 * **bake**: a bake with ``isolume bake``'s defaults (`app.options.bake_config`: the
   default sky, 100 paths per texel, 2 bounces, scale 1) restricted, for time, to the iso
-  range a lazy bake serves for that isovalue (`baking.lazy.view_iso_range`: ±5 % of the
+  range a lazy bake serves for that isovalue (`baking.lazy.view_iso_range`: ±3 % of the
   data range around it), then the picture drawn with that lattice;
 
 both against the per-pixel path-traced reference of ``isolume reference``
@@ -527,7 +527,7 @@ def _settings_record(sweep: Sweep, specs: list[str]) -> dict:
         "bake": None if sweep.skip_bake else {
             "samples": bake_ns.samples, "bounces": bake_ns.bounces, "env": bake_ns.env,
             "scale": bake_ns.scale, "max_levels": bake_ns.max_levels,
-            "iso_range": "baking.lazy.view_iso_range: ±5 % of the data range around iso"},
+            "iso_range": "baking.lazy.view_iso_range: ±3 % of the data range around iso"},
         "reference": {"start_spp": START_SPP, "max_spp": sweep.ref_spp,
                       "seed": "the render's + 1",
                       "rule": f"noise <= {NOISE_RATIO:g} x the smallest error less the noise"},
