@@ -283,9 +283,9 @@ class LatticeTextures:
     def _read_atlas(self, tex: moderngl.Texture3D) -> np.ndarray:
         """(depth, height, width, C) contents of one atlas texture (the RGB9E5 irradiance
         as float32)."""
-        width, height, depth = self.layout.texels_xyz
         if self.kind == "irradiance" and tex is self.values[0]:
             return read_rgb9e5(self.ctx, tex, self.layout.texels_xyz)
+        width, height, depth = self.layout.texels_xyz
         dtype = {"f1": np.uint8, "f2": np.float16, "f4": np.float32}[tex.dtype]
         return np.frombuffer(tex.read(alignment=1), dtype).reshape(depth, height, width,
                                                                     tex.components)

@@ -119,8 +119,8 @@ class SurfaceRenderer:
         vbo = self.ctx.buffer(reserve=len(vertices) * VERTEX_BYTES)
         for lo in range(0, len(vertices), VERTEX_CHUNK):
             hi = min(lo + VERTEX_CHUNK, len(vertices))
-            vbo.write(np.hstack([vertices[lo:hi], normals[lo:hi]]).astype(np.float32),
-                      offset=lo * VERTEX_BYTES)
+            chunk = np.hstack([vertices[lo:hi], normals[lo:hi]]).astype(np.float32, copy=False)
+            vbo.write(chunk, offset=lo * VERTEX_BYTES)
         ibo = self.ctx.buffer(np.ascontiguousarray(faces, np.uint32))
         self._mesh_objects = [vbo, ibo]
         self._vertex_buffers = (vbo, ibo)
