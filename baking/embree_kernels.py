@@ -63,8 +63,9 @@ def intersect_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray):
     (`trace.EmbreeCalls`).
 
     Returns:
-        t (M,) float32 distances, prim (M,) int32 triangle ids (-1: no hit), ng (M, 3)
-        float32 unnormalised facet normals — as embreex's ``run(..., output=1)``.
+        t (M,) float32 distances, prim (M,) int32 triangle ids in their pieces (-1: no
+        hit), ng (M, 3) float32 unnormalised facet normals — as embreex's
+        ``run(..., output=1)``.
     """
     scene, intersect, _ = calls
     ray, bits, address = _ray_buffer()

@@ -138,6 +138,39 @@ def test_scenes_offer_embree_calls_that_answer_as_embreex():
                                   scene._scene.run(origins, dirs, query="OCCLUDED") != -1)
 
 
+def test_a_large_mesh_is_built_as_instanced_pieces_that_answer_as_one_scene(monkeypatch):
+    """Above `PIECE_TRIANGLES` the mesh becomes slabs of consecutive faces, each an Embree
+    scene of its own, instanced untransformed: the same rays hit and miss, both through
+    embreex's `run` and through the compiled chunk call's Embree calls; distances and
+    normals agree to float32 rounding (the instance's ray transform)."""
+    mesh = volumes.isosurface(volumes.load("synthetic:engine:48"), 0.3, normals="none")
+    limit = trace.PIECE_TRIANGLES
+    for faces, count in ((10, 1), (limit, 1), (limit + 1, 2), (2 * limit + 1, 3)):
+        pieces = trace._pieces(faces)
+        assert len(pieces) == count and max(n for _, n in pieces) <= limit
+        counts = [n for _, n in pieces]
+        assert [first for first, _ in pieces] == list(np.cumsum([0, *counts[:-1]]))
+        assert sum(n for _, n in pieces) == faces
+    whole = Scene(mesh.vertices, mesh.faces)
+    monkeypatch.setattr(trace, "PIECE_TRIANGLES", len(mesh.faces) // 3 + 1)
+    pieces = Scene(mesh.vertices, mesh.faces)
+    assert (whole.pieces, pieces.pieces) == (1, 3) and pieces.built_by == "native"
+    origins, dirs = _rays(mesh, 20000, 4)
+    want = whole.intersect(origins, dirs)
+    rows_o, rows_d = np.ascontiguousarray(origins.T), np.ascontiguousarray(dirs.T)
+    t, prim, ng = embree_kernels.intersect_rays(tuple(pieces.calls), rows_o, rows_d)
+    for got in (pieces.intersect(origins, dirs), {"prim": prim, "t": t, "ng": ng}):
+        hit = want["prim"] >= 0
+        assert 0.2 < hit.mean() < 0.95
+        np.testing.assert_array_equal(got["prim"] >= 0, hit)
+        np.testing.assert_allclose(got["t"][hit], want["t"][hit], rtol=1e-5)
+        np.testing.assert_allclose(got["ng"][hit], want["ng"][hit], rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(pieces.occluded(origins, dirs), whole.occluded(origins, dirs))
+    np.testing.assert_array_equal(embree_kernels.occluded_rays(tuple(pieces.calls), rows_o,
+                                                               rows_d),
+                                  whole.occluded(origins, dirs))
+
+
 def test_scene_handle_is_refused_for_another_layout():
     """Only an object laid out as embreex declares EmbreeScene gives a handle."""
 
