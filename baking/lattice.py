@@ -176,6 +176,16 @@ def _mean(weights: np.ndarray, total: np.ndarray, values: np.ndarray) -> np.ndar
     return np.divide(num, total, out=np.zeros_like(num), where=total > 0)
 
 
+TRAPPED_PATHS = 64
+"""Under a distant environment, a texel whose displayed light rests on at least this many
+paths and is exactly zero is *trapped*: every path stayed in a pocket of the level it was
+lit on that is sealed from the sky (with 64 paths, a texel that sees the sky through even
+5 % of its hemisphere escapes with 96 % probability). The surface a display draws through
+it is not that pocket — it is seen — so `Lattice.shown` leaves the texel out and the
+lookups take its neighbours, or the local shading where no neighbour shows light. Lights
+without an environment leave texels honestly dark in shadow: there nothing is trapped."""
+
+
 @dataclass
 class Lattice:
     """An illumination lattice.
@@ -240,11 +250,17 @@ class Lattice:
 
     def shown(self, region: tuple = (...,)) -> np.ndarray:
         """Bool mask of the texels a display uses in `region` (a tuple of slices of
-        (Z, Y, X)): those computed, and those holding a preview."""
-        mask = self.samples[region] > 0
+        (Z, Y, X)): those computed or holding a preview, except those `trapped`."""
+        samples = self.samples[region]
+        mask = samples > 0
+        paths = samples
         if self.preview_paths is not None:
-            mask |= self.preview_paths[region] > 0
-        return mask
+            previews = self.preview_paths[region]
+            mask |= previews > 0
+            paths = np.maximum(samples, previews)  # what `displayed` shows rests on these
+        if self.config is None or not self.config.env:
+            return mask
+        return mask & ~((paths >= TRAPPED_PATHS) & ~self.displayed(region).any(axis=-1))
 
     def previewed(self, region: tuple = (...,)) -> np.ndarray:
         """Bool mask of the texels in `region` whose preview is shown: it rests on more

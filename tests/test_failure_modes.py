@@ -219,6 +219,34 @@ def test_features_thinner_than_a_texel_leak_light():
     assert leaks[0.5] <= 0.55
 
 
+def test_texels_lit_in_a_sealed_pocket_are_trapped_and_not_shown():
+    """A block with a sealed spherical cavity, under the constant sky: the texels lit on
+    the cavity's wall have every one of their 64 paths trapped (exactly zero light), so
+    a display leaves them out (`Lattice.shown`) and takes neighbours or local shading
+    instead of black; texels on the block's outside are shown and lit. Under a light
+    without an environment a zero is honest shadow, and nothing is left out."""
+    x, y, z, h, axis = _grid(32)
+    block = _step(np.maximum(np.maximum(np.abs(x), np.abs(y)), np.abs(z)) - 0.35, 1.2 * h)
+    cavity = _step(np.sqrt(x * x + y * y + z * z) - 0.14, 1.2 * h)
+    vol = _volume(block - cavity, h, axis, "sealed pocket")
+    centres = None
+    for env, lights in (("constant:1,1,1", ()), ("", ("dir:0,0,1:1,1,1",))):
+        lattice = bake(vol, BakeConfig(samples=64, bounces=1, env=env, lights=lights,
+                                       iso_range=(0.3, 0.7)), workers=2)
+        computed = lattice.samples >= 64
+        if centres is None:
+            centres = lattice.geometry.all_centres().reshape(*lattice.geometry.shape, 3)
+        r = np.linalg.norm(centres, axis=-1)
+        pocket, outside = computed & (r < 0.2), computed & (r > 0.3)
+        assert pocket.sum() > 50 and outside.sum() > 500
+        if env:
+            assert not lattice.values[pocket].any()  # the cause: every path trapped
+            assert not lattice.shown()[pocket].any()
+            assert lattice.shown()[outside].all() and lattice.values[outside].min() > 0
+        else:
+            assert lattice.shown()[computed].all()
+
+
 def test_isovalues_at_the_data_extremes():
     """At the maximum the isosurface is empty (a message, not an exception); an iso range
     entirely at or beyond the extremes is refused with a clear error."""

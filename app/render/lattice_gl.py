@@ -14,11 +14,11 @@ texture units in a fragment shader: gray transfer up to order 7, coloured up to 
 
 Irradiance: one GL_RGB9_E5 atlas (4 bytes per texel, shared exponent: relative error
 ≤ 2⁻⁹ of the brightest channel) holding E·valid. Both kinds share an RGB8 atlas of each
-texel's state: R its validity (1 where the texel has samples), GB its facing
+texel's state: R its validity (1 where `baking.Lattice.shown`), GB its facing
 (`baking.Lattice.displayed_facing`: octahedral bytes, (0, 0) unknown), read with
 texelFetch by the side-aware lookup (``lattice.glsl``, FACING 1). Filtered trilinearly,
-E·valid over valid interpolates over computed texels only, and the shader falls back to
-local shading where no neighbour is computed yet. Bricks can be re-uploaded while a lazy
+E·valid over valid interpolates over the shown texels only, and the shader falls back to
+local shading where no neighbour is shown. Bricks can be re-uploaded while a lazy
 bake fills the lattice (`LatticeTextures.write_bricks`). Optionally an R32F atlas holds
 each texel's own isovalue ρ(x_t), for the closest-isovalue lookup (paper Fig. 6a); it
 depends on the volume only.
