@@ -214,8 +214,8 @@ class Scene:
         if not self.empty:
             self._scene = rtcore_scene.EmbreeScene()
             self.built_by = _attach_mesh(self._scene, self.vertices, self.faces)
-        self.pieces = len(_pieces(len(faces))) if self.built_by == "native" else 1
-        """Embree scenes the triangles were built as (`PIECE_TRIANGLES`)."""
+        self.pieces = {"native": len(_pieces(len(faces))), "embreex": 1}.get(self.built_by, 0)
+        """Embree scenes the triangles were built as (`PIECE_TRIANGLES`; 0 when empty)."""
         self.build_seconds = time.perf_counter() - began
         """Seconds Embree's geometry and BVH took to build."""
         self.calls = embree_calls(self)
