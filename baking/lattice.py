@@ -35,6 +35,7 @@ import numpy as np
 
 from isolume.baking import octahedral
 from isolume.baking.config import BakeConfig
+from isolume.baking.environment import latlong_pixel_directions
 from isolume.baking.errors import BakeError
 
 FORMAT_VERSION = 1
@@ -177,13 +178,28 @@ def _mean(weights: np.ndarray, total: np.ndarray, values: np.ndarray) -> np.ndar
 
 
 TRAPPED_PATHS = 64
-"""Under a distant environment, a texel whose displayed light rests on at least this many
-paths and is exactly zero is *trapped*: every path stayed in a pocket of the level it was
-lit on that is sealed from the sky (with 64 paths, a texel that sees the sky through even
-5 % of its hemisphere escapes with 96 % probability). The surface a display draws through
-it is not that pocket — it is seen — so `Lattice.shown` leaves the texel out and the
-lookups take its neighbours, or the local shading where no neighbour shows light. Lights
-without an environment leave texels honestly dark in shadow: there nothing is trapped."""
+"""Under an environment that sends light from every direction, a texel whose displayed
+light rests on at least this many paths and is exactly zero is *trapped*: every path
+stayed in a pocket of the level it was lit on that is sealed from the sky (with 64 paths, a
+texel that sees the sky through even 5 % of its hemisphere escapes with 96 % probability).
+The surface a display draws through it is not that pocket — it is seen — so
+`Lattice.shown` leaves the texel out and the lookups take its neighbours, or the local
+shading where no neighbour shows light. Other lights leave texels honestly dark in
+shadow: there nothing is trapped."""
+
+_SKY_EVERYWHERE: dict[str, bool] = {}
+
+
+def sky_everywhere(config: BakeConfig | None) -> bool:
+    """Whether `config`'s environment sends light from every direction (every centre of a
+    64 × 128 latitude-longitude grid of directions); False without an environment."""
+    if config is None or config.lighting.environment is None:
+        return False
+    if config.env not in _SKY_EVERYWHERE:
+        dirs = latlong_pixel_directions(64, 128).reshape(-1, 3)
+        radiance = config.lighting.environment.radiance(dirs)
+        _SKY_EVERYWHERE[config.env] = bool((radiance.max(axis=1) > 0).all())
+    return _SKY_EVERYWHERE[config.env]
 
 
 @dataclass
@@ -258,7 +274,7 @@ class Lattice:
             previews = self.preview_paths[region]
             mask |= previews > 0
             paths = np.maximum(samples, previews)  # what `displayed` shows rests on these
-        if self.config is None or not self.config.env:
+        if not sky_everywhere(self.config):
             return mask
         return mask & ~((paths >= TRAPPED_PATHS) & ~self.displayed(region).any(axis=-1))
 

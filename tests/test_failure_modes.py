@@ -11,6 +11,7 @@ import pytest
 from isolume import volumes
 from isolume.baking import BakeConfig, BakeError, bake, sh
 from isolume.baking.environment import parse_env
+from isolume.baking.lattice import sky_everywhere
 from isolume.volumes import Volume
 from isolume.volumes.synthetic import make
 
@@ -224,7 +225,8 @@ def test_texels_lit_in_a_sealed_pocket_are_trapped_and_not_shown():
     the cavity's wall have every one of their 64 paths trapped (exactly zero light), so
     a display leaves them out (`Lattice.shown`) and takes neighbours or local shading
     instead of black; texels on the block's outside are shown and lit. Under a light
-    without an environment a zero is honest shadow, and nothing is left out."""
+    without an environment lighting every direction a zero is honest shadow, and nothing
+    is left out."""
     x, y, z, h, axis = _grid(32)
     block = _step(np.maximum(np.maximum(np.abs(x), np.abs(y)), np.abs(z)) - 0.35, 1.2 * h)
     cavity = _step(np.sqrt(x * x + y * y + z * z) - 0.14, 1.2 * h)
@@ -245,6 +247,8 @@ def test_texels_lit_in_a_sealed_pocket_are_trapped_and_not_shown():
             assert lattice.shown()[outside].all() and lattice.values[outside].min() > 0
         else:
             assert lattice.shown()[computed].all()
+    assert sky_everywhere(BakeConfig(env="sky")) and not sky_everywhere(
+        BakeConfig(env="constant:0,0,0", lights=("dir:0,0,1:1,1,1",)))  # a black sky
 
 
 def test_isovalues_at_the_data_extremes():
