@@ -269,14 +269,23 @@ class Lattice:
         (Z, Y, X)): those computed or holding a preview, except those `trapped`."""
         samples = self.samples[region]
         mask = samples > 0
-        paths = samples
-        if self.preview_paths is not None:
-            previews = self.preview_paths[region]
+        previews = None if self.preview_paths is None else self.preview_paths[region]
+        if previews is not None:
             mask |= previews > 0
-            paths = np.maximum(samples, previews)  # what `displayed` shows rests on these
         if not sky_everywhere(self.config):
             return mask
-        return mask & ~((paths >= TRAPPED_PATHS) & ~self.displayed(region).any(axis=-1))
+        many = samples >= TRAPPED_PATHS  # only these can be trapped: read only them
+        if previews is not None:
+            many |= previews >= TRAPPED_PATHS
+        if not many.any():
+            return mask
+        at = np.nonzero(many)
+        light = self.values[region][at]
+        if previews is not None:  # where `displayed` shows the preview
+            light = np.where((previews[at] > samples[at])[:, None], self.preview[region][at],
+                             light)
+        mask[at] = light.any(axis=-1)
+        return mask
 
     def previewed(self, region: tuple = (...,)) -> np.ndarray:
         """Bool mask of the texels in `region` whose preview is shown: it rests on more

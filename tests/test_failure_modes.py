@@ -251,6 +251,24 @@ def test_texels_lit_in_a_sealed_pocket_are_trapped_and_not_shown():
         BakeConfig(env="constant:0,0,0", lights=("dir:0,0,1:1,1,1",)))  # a black sky
 
 
+def test_a_texel_is_trapped_by_what_a_display_shows_of_it():
+    """The rule reads the light a display shows (the preview where it rests on more paths
+    than the texel's own samples) and the paths behind it: five texels of one row."""
+    from isolume.baking.lattice import Lattice, LatticeGeometry
+
+    lattice = Lattice.empty(LatticeGeometry((1, 1, 5), (0, 0, 0), (5, 1, 1)), 3, {},
+                            BakeConfig(env="sky"))
+    lattice.preview = np.zeros((1, 1, 5, 3), np.float32)
+    lattice.preview_paths = np.zeros((1, 1, 5), np.uint16)
+    lattice.samples[0, 0] = [100, 8, 100, 100, 0]
+    lattice.values[0, 0, 1:3] = 1.0  # texel 0: 100 samples of nothing; 1: too few to tell
+    lattice.preview_paths[0, 0] = [0, 0, 200, 200, 100]
+    lattice.preview[0, 0, 3] = 1.0  # texels 2 and 4 show a dark preview, 3 a lit one
+    np.testing.assert_array_equal(lattice.shown()[0, 0], [False, True, False, True, False])
+    np.testing.assert_array_equal(lattice.shown((0, 0, np.array([0, 3]))),
+                                  [False, True])
+
+
 def test_isovalues_at_the_data_extremes():
     """At the maximum the isosurface is empty (a message, not an exception); an iso range
     entirely at or beyond the extremes is refused with a clear error."""
