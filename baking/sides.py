@@ -41,13 +41,12 @@ probability 1 − 0.9¹⁶ = 0.81; the 3D checkerboard makes a texel missed ther
 neighbours' weight, not a black patch."""
 CLEARLY_MORE = 8.0
 """Both sides open: the side with this many times the other's open rays is lit alone,
-else both in a checkerboard. A texel on a plate across the box, probed beside its rough
-facets, finds one side a few times more open than the other, and lit alone there the
-side-aware lookup finds enough texels facing each face (at 16 times, the lit face of a
-plate 2 voxels thick keeps 0.88 of its light, at 8 times 0.96); the inner face of a wall
-seen through a cut is less open than its outside by more than 4 times, and lit only
-outside it shows the outside's light (the bonsai's pot at iso 101: 16.8 % at 4 times,
-13.9 % at 8)."""
+else both in a checkerboard. Texels of a plate across the box find one side a few times
+more open than the other; lit alone there, the side-aware lookup finds enough texels
+facing each face (the lit face of a plate 2 voxels thick keeps 0.96 of its light at 8
+times, 0.88 at 16, 0.74 with no such side). The inner face of a wall seen through a cut
+is less open than its outside by more than 4 times, and lit only outside it shows the
+outside's light (the bonsai's pot at iso 101: 16.8 % at 4 times, 13.9 % at 8)."""
 PROBE_OFFSET_VOXELS = 0.25
 """Least distance of a probe's origin from the surface (the bake's offset when larger)."""
 SALT = 0x51DE_5EED
