@@ -266,7 +266,7 @@ class Lattice:
 
     def shown(self, region: tuple = (...,)) -> np.ndarray:
         """Bool mask of the texels a display uses in `region` (a tuple of slices of
-        (Z, Y, X)): those computed or holding a preview, except those `trapped`."""
+        (Z, Y, X)): those computed or holding a preview, except the trapped (`TRAPPED_PATHS`)."""
         samples = self.samples[region]
         mask = samples > 0
         previews = None if self.preview_paths is None else self.preview_paths[region]
