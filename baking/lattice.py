@@ -202,6 +202,17 @@ def sky_everywhere(config: BakeConfig | None) -> bool:
     return _SKY_EVERYWHERE[config.env]
 
 
+def drop_trapped(mask: np.ndarray, many: np.ndarray, light_of) -> np.ndarray:
+    """`mask` (bool, any shape) with its trapped texels cleared, for a light that is
+    `sky_everywhere` (the caller checks): of the texels where `many` (their displayed light
+    rests on `TRAPPED_PATHS` or more paths), those whose light is all zero. Only their
+    light is read: `light_of(at)`, (N, C) at the index tuple `at`."""
+    if many.any():
+        at = np.nonzero(many)
+        mask[at] &= light_of(at).any(axis=-1)
+    return mask
+
+
 @dataclass
 class Lattice:
     """An illumination lattice.
@@ -274,18 +285,18 @@ class Lattice:
             mask |= previews > 0
         if not sky_everywhere(self.config):
             return mask
-        many = samples >= TRAPPED_PATHS  # only these can be trapped: read only them
+        many = samples >= TRAPPED_PATHS
         if previews is not None:
             many |= previews >= TRAPPED_PATHS
-        if not many.any():
-            return mask
-        at = np.nonzero(many)
-        light = self.values[region][at]
-        if previews is not None:  # where `displayed` shows the preview
-            light = np.where((previews[at] > samples[at])[:, None], self.preview[region][at],
-                             light)
-        mask[at] = light.any(axis=-1)
-        return mask
+
+        def light_of(at: tuple) -> np.ndarray:  # what `displayed` shows there
+            light = self.values[region][at]
+            if previews is None:
+                return light
+            return np.where((previews[at] > samples[at])[:, None], self.preview[region][at],
+                            light)
+
+        return drop_trapped(mask, many, light_of)
 
     def previewed(self, region: tuple = (...,)) -> np.ndarray:
         """Bool mask of the texels in `region` whose preview is shown: it rests on more

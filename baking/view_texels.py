@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from isolume.baking.config import BakeConfig
-from isolume.baking.lattice import LatticeGeometry
+from isolume.baking.lattice import TRAPPED_PATHS, LatticeGeometry, drop_trapped, sky_everywhere
 
 
 class PreviewLattice:
@@ -96,13 +96,21 @@ class PreviewLattice:
         return rows, held
 
     def _shown(self, region) -> tuple[np.ndarray, np.ndarray]:
-        """(rows, shown) of the texels of `region` (`_find`): shown where a preview is."""
+        """(rows, shown) of the texels of `region` (`_find`): shown where a preview is,
+        except the trapped (`baking.lattice.TRAPPED_PATHS`)."""
         rows, held = self._find(region)
-        return rows, (held & (self.paths[rows] > 0) if len(self.texels) else held)
+        if not len(self.texels):
+            return rows, held
+        paths = self.paths[rows]
+        shown = held & (paths > 0)
+        if not sky_everywhere(self.config):
+            return rows, shown
+        return rows, drop_trapped(shown, shown & (paths >= TRAPPED_PATHS),
+                                  lambda at: self.values[rows[at]])
 
     def shown(self, region: slice | tuple = slice(None)) -> np.ndarray:
         """Bool mask of the texels in `region` (a z-slice, or z, y, x index arrays) that
-        hold a preview."""
+        hold a preview, except the trapped."""
         return self._shown(region)[1]
 
     def displayed(self, region: slice | tuple = slice(None)) -> np.ndarray:
