@@ -28,12 +28,14 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.passes import (
+    LevelPaths,
+    LevelSums,
     PathStarts,
     Tracing,
     chunk_bounds,
     lay_out_level,
     level_scene,
-    trace_chunk,
+    trace_texels,
 )
 from isolume.baking.plan import Plan, resolved_iso_range
 
@@ -72,7 +74,7 @@ class BakeJob:
     when the lights change: `Baker.relight`).
 
     Attributes:
-        tracing: the chunks' constants and the pass sums (``tracing.acc``) they add to.
+        tracing: the chunks' constants (`trace_texels` gives each chunk sums of its own).
         stats: the bake's counters (a backend adds its rays, paths and scene seconds).
     """
 
@@ -90,12 +92,14 @@ class PassWork:
 
     Attributes:
         busy: (B,) plan positions that need paths.
-        done, remaining: (T,) int64 paths done and still to trace per plan position (0
+        done, remaining: (T,) int32 paths done and still to trace per plan position (0
             outside the pass).
         first, last: the first and last level the pass traces (`last` = the highest lower
             level + 1).
         by_lower: for each level from `first` to `last`, the busy positions whose lower
-            level it is.
+            level it is (sorted).
+        sums: the pass sums of the texels in flight, by lower level, that the backend
+            adds its paths to.
     """
 
     busy: np.ndarray
@@ -104,6 +108,7 @@ class PassWork:
     first: int
     last: int
     by_lower: list[np.ndarray]
+    sums: LevelSums
 
     def lower_on(self, level: int) -> np.ndarray:
         """(N,) busy positions whose lower level is `level`."""
@@ -146,13 +151,19 @@ class TracingBackend(Protocol):
     """What a `Baker` hands the tracing of its passes to."""
 
     def begin(self, volume: volumes.Volume, config: BakeConfig,
-              kept: np.ndarray | None) -> None:
+              kept: np.ndarray | None, stats: BakeStats) -> None:
         """The bake of `config` on `volume` is about to be planned (`kept`: (K,) the levels
-        of the lattice it resumes, or None): start what may run beside the plan."""
+        of the lattice it resumes, or None; `stats`: the bake's counters): start what may
+        run beside the plan."""
 
     def levels_known(self, levels: np.ndarray) -> None:
         """The plan's (K,) levels, known before the rest of the plan (`make_plan`'s
         `on_levels`)."""
+
+    def plan_scene(self, level: int) -> Scene | None:
+        """The scene of the plan's level `level` (once `levels_known`) for the plan's side
+        probes (`make_plan`'s `scenes`), shared with the tracing; None when the backend
+        keeps no scenes in this process (the plan then builds its own)."""
 
     def start(self, job: BakeJob) -> None:
         """Trace with `job` from the next pass on (once the plan is made; again with
@@ -164,8 +175,8 @@ class TracingBackend(Protocol):
 
     def trace_pass(self, work: PassWork, report: PassReport) -> None:
         """Trace the pending paths of `work` level by level, from ``work.first`` to
-        ``work.last``: add each level's per-texel sums to ``job.tracing.acc`` (in the
-        order of a local bake), then call ``report.level_done(level)``, in level order.
+        ``work.last``: add each level's per-texel sums to ``work.sums`` (in the order of
+        a local bake), then call ``report.level_done(level)``, in level order.
         On an exception, stop what still adds to the pass sums before it propagates (the
         Baker drops the cut pass)."""
 
@@ -192,12 +203,11 @@ def _first_level(volume: volumes.Volume, config: BakeConfig,
 
 @dataclass(frozen=True)
 class _LevelWork:
-    """The pending paths of one level: texel positions (P,) sorted, sample indices (P,),
-    the start points of their texels, and the level's scene (None when P = 0)."""
+    """The pending paths of one level by texel, the start points of their texels, and the
+    level's scene (None when it has no paths)."""
 
     level: int
-    pos: np.ndarray
-    samples: np.ndarray
+    paths: LevelPaths
     start: PathStarts
     scene: Scene | None
 
@@ -231,12 +241,14 @@ class ThreadBackend:
         self._warm: Future | None = None
         self._volume: volumes.Volume | None = None
         self._config: BakeConfig | None = None
+        self._levels: np.ndarray | None = None
+        self._stats: BakeStats | None = None
 
     def begin(self, volume: volumes.Volume, config: BakeConfig,
-              kept: np.ndarray | None) -> None:
+              kept: np.ndarray | None, stats: BakeStats) -> None:
         """Load the compiled code and build the scene of the plan's likely first level
         (`_first_level`) on the helper thread while the plan is made."""
-        self._volume, self._config = volume, config
+        self._volume, self._config, self._stats = volume, config, stats
         self._warm = self._helper.submit(kernels.warm_up)
         self._first_guess = _first_level(volume, config, kept) if self._ahead > 0 else None
         if self._first_guess is not None:
@@ -247,10 +259,16 @@ class ThreadBackend:
         """Build the scenes of the lowest `ahead` levels (where a whole bake starts) on the
         helper thread while the plan goes on; level 0's is the one started by `begin`
         when the guess was right."""
+        self._levels = np.asarray(levels, np.float64)
         for level in range(min(self._ahead, len(levels))):
             if level > 0 or self._first_guess != float(levels[0]):
                 self._pending[level] = self._helper.submit(
                     level_scene, self._volume, float(levels[level]), self._config)
+
+    def plan_scene(self, level: int) -> Scene:
+        """The scene of level `level`, from the cache (`_scene`): the plan's side probes
+        take the scenes built ahead, and hold no scene beside the cache's."""
+        return self._scene(level)
 
     def start(self, job: BakeJob) -> None:
         """Trace with `job` (once the compiled code is loaded)."""
@@ -273,7 +291,7 @@ class ThreadBackend:
                 upcoming = None
                 if level < work.last:
                     upcoming = self._helper.submit(self._prepare_level, work, level + 1)
-                chunks = self._submit_level(lay)
+                chunks = self._submit_level(lay, work.sums)
                 self._collect(chunks, level, report)
                 chunks = []
                 if upcoming is not None:
@@ -297,19 +315,21 @@ class ThreadBackend:
     def _scene(self, level: int) -> Scene:
         """The Embree scene of `level`, from the cache, from the scenes built ahead, or
         built now (least recently used scenes out: the cache holds at least the level
-        being traced and the next)."""
-        job = self.job
+        being traced and the next). Room is made before a scene is built, so a scene in
+        the making counts against the cache: a bake holds at most two level scenes."""
         with self._scene_lock:
             if level in self._scenes:
                 self._scenes.move_to_end(level)
                 return self._scenes[level]
             ahead = self._pending.pop(level, None)
+            while len(self._scenes) >= self._scene_cache:
+                self._scenes.popitem(last=False)
         scene = ahead.result() if ahead is not None else level_scene(
-            job.volume, float(job.plan.levels[level]), job.config)
+            self._volume, float(self._levels[level]), self._config)
         with self._scene_lock:
-            job.stats.mesh_seconds += scene.mesh_seconds
-            job.stats.embree_seconds += scene.build_seconds
-            job.stats.scenes += 1
+            self._stats.mesh_seconds += scene.mesh_seconds
+            self._stats.embree_seconds += scene.build_seconds
+            self._stats.scenes += 1
             while len(self._scenes) >= self._scene_cache:
                 self._scenes.popitem(last=False)
             self._scenes[level] = scene
@@ -330,25 +350,24 @@ class ThreadBackend:
         one below — and get the level's scene if it has paths."""
         job = self.job
         plan = job.plan
-        pos, samples, start = lay_out_level(
+        paths, start = lay_out_level(
             job.volume, job.geometry, job.config, float(plan.levels[level]), plan.ids,
             plan.phase, plan.weight, plan.high, work.lower_on(level), work.upper_on(level),
             work.done, work.remaining, plan.landing)
-        scene = self._scene(level) if len(pos) else None
-        return _LevelWork(level, pos, samples, start, scene)
+        scene = self._scene(level) if len(paths.texels) else None
+        return _LevelWork(level, paths, start, scene)
 
-    def _submit_level(self, lay: _LevelWork) -> list[Future]:
+    def _submit_level(self, lay: _LevelWork, sums: LevelSums) -> list[Future]:
         """Queue the level's chunks of paths on its scene.
 
-        Workers add their per-texel sums straight into the pass sums: the chunks of one
-        level hold disjoint texels, and a texel is committed only after its last level
-        has been collected.
+        Workers add their chunks' per-texel sums into the pass sums `sums`: the chunks of
+        one level hold disjoint texels, and a texel is committed only after its last
+        level has been collected.
         """
-        if len(lay.pos) == 0:
+        if len(lay.paths.texels) == 0:
             return []
-        return [self._pool.submit(trace_chunk, lay.scene, self.job.tracing, lay.pos[lo:hi],
-                                  lay.samples[lo:hi], lay.start)
-                for lo, hi in chunk_bounds(lay.pos, self.workers)]
+        return [self._pool.submit(_trace_into, sums, lay, self.job.tracing, lo, hi)
+                for lo, hi in chunk_bounds(lay.paths.counts, self.workers)]
 
     def _collect(self, chunks: list[Future], level: int, report: PassReport) -> None:
         """Wait for the chunks of `level`; count their paths and rays.
@@ -366,6 +385,16 @@ class ThreadBackend:
                 stats.paths += paths
                 report.traced(paths)
             report.show(level)
+
+
+def _trace_into(sums: LevelSums, lay: _LevelWork, tracing: Tracing, lo: int, hi: int
+                ) -> tuple[int, int, float]:
+    """Trace the paths of the level's texels lo … hi − 1 (`trace_texels`) and add their
+    sums to the pass's; returns the paths, the rays and the seconds tracing."""
+    part, paths, rays, seconds = trace_texels(lay.scene, tracing, lay.paths, lo, hi,
+                                              lay.start)
+    sums.add(lay.level, lay.paths.texels[lo:hi], lay.paths.upper[lo:hi], part)
+    return paths, rays, seconds
 
 
 def _cancel(chunks: list[Future]) -> None:

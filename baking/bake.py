@@ -37,7 +37,7 @@ from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
 from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
-from isolume.baking.passes import PassSums, Tracing, commit_facing, commit_sums
+from isolume.baking.passes import LevelSums, PassSums, Tracing, commit_facing
 from isolume.baking.plan import Plan, make_plan
 
 
@@ -163,13 +163,13 @@ class Baker:
             self.lighting = tracing_lights(config)
             self.stats = BakeStats()
             kept = _kept_levels(lattice)
-            self.backend.begin(volume, config, kept)  # beside the plan
+            self.backend.begin(volume, config, kept, self.stats)  # beside the plan
             self.plan = make_plan(volume, self.geometry, config, kept, progress,
-                                  on_levels=self.backend.levels_known)
+                                  on_levels=self.backend.levels_known,
+                                  scenes=self.backend.plan_scene)
             self.lattice.active = self.plan.active
             self.texels_done = int(np.count_nonzero(self.samples_done()))
             self.previous = dict(self.lattice.meta.get("stats", {}))
-            self._acc = PassSums(len(self.plan.ids), self.settings.channels)
             self.job = BakeJob(volume, config, self.geometry, self.plan, self._tracing(),
                                self.stats)
             self.backend.start(self.job)
@@ -185,7 +185,8 @@ class Baker:
         weights = _luminance_weights(settings.channels, settings.sh_order is None,
                                      settings.block if settings.sh_split else 0)
         seed_key = np.uint32(rng.seed_key(self.config.seed))
-        return Tracing(self.plan.ids, self.lighting, settings, seed_key, weights, self._acc,
+        return Tracing(self.plan.ids, self.lighting, settings, seed_key, weights,
+                       PassSums(0, settings.channels),
                        whole_paths(self.lighting, settings))
 
     def samples_done(self, positions: np.ndarray | None = None) -> np.ndarray:
@@ -224,20 +225,20 @@ class Baker:
             return
 
         def level_done(level: int) -> int:
-            complete = work.upper_on(level)  # a texel's pass is complete with its upper level
-            complete = complete[self._acc.n[complete] > 0]
+            if level == work.first:
+                return 0
+            # a texel's pass is complete with its upper level
+            complete = work.sums.traced(level - 1)
             if len(complete):
                 commit_facing(self.lattice, self.volume, self.config, self.plan, complete)
-                self.texels_done += commit_sums(self.lattice, self.plan, self._acc, complete)
-                if after_level is not None:
-                    after_level(complete)
+            complete, fresh = work.sums.commit(self.lattice, self.plan.ids, level - 1)
+            self.texels_done += fresh
+            if len(complete) and after_level is not None:
+                after_level(complete)
             return len(complete)
 
         try:
             self.backend.trace_pass(work, PassReport(level_done, bar, self._status))
-        except BaseException:
-            self._acc.clear(work.busy)
-            raise
         finally:
             _finish_meta(self.lattice, self.plan, self.stats, self.previous)
             self.backend.record(self.lattice.meta)
@@ -246,18 +247,21 @@ class Baker:
                 target: int | np.ndarray | None) -> PassWork | None:
         """What `run(positions, target)` has to do, or None when nothing."""
         plan = self.plan
-        positions = np.arange(len(plan.ids)) if positions is None else np.unique(positions)
+        index = np.int32 if len(plan.ids) < 2**31 else np.int64  # 4 bytes a texel, not 8
+        positions = (np.arange(len(plan.ids), dtype=index) if positions is None
+                     else np.unique(positions).astype(index))
         target = self.config.samples if target is None else target
-        done = np.zeros(len(plan.ids), np.int64)
-        remaining = np.zeros(len(plan.ids), np.int64)
+        done = np.zeros(len(plan.ids), np.int32)
+        remaining = np.zeros(len(plan.ids), np.int32)
         done[positions] = self.samples_done(positions)
         remaining[positions] = np.maximum(np.asarray(target) - done[positions], 0)
         busy = positions[remaining[positions] > 0]
         if len(busy) == 0:
             return None
         first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
-        return PassWork(busy, done, remaining, first, last,
-                        _group_by(plan.lower[busy], busy, first, last))
+        by_lower = _group_by(plan.lower[busy], busy, first, last)
+        return PassWork(busy, done, remaining, first, last, by_lower,
+                        LevelSums(self.settings.channels, first, by_lower))
 
     def close(self) -> None:
         """Close the backend (its threads, its cluster connection, its scenes)."""

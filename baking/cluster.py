@@ -43,7 +43,7 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels
-from isolume.baking.backend import REPORT_S, BakeJob, PassReport, PassWork
+from isolume.baking.backend import REPORT_S, BakeJob, BakeStats, PassReport, PassWork
 from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, TracingLights, WholePaths
@@ -54,7 +54,7 @@ from isolume.baking.passes import (
     chunk_bounds,
     lay_out_level,
     level_scene,
-    trace_chunk,
+    trace_texels,
 )
 
 PATHS_PER_TASK = 65536
@@ -251,16 +251,17 @@ def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
     state = _worker_bake(job)
     job = state.job
     scene, scene_seconds = state.scene(level)
-    pos, samples, start = lay_out_level(
+    layout, start = lay_out_level(
         job.volume, job.geometry, job.config, float(job.levels[level]), ids, phase, weight,
         high, np.flatnonzero(~upper), np.flatnonzero(upper), done, remaining)
     acc = PassSums(len(ids), job.settings.channels)
     paths, rays, seconds = 0, 0, 0.0
-    if len(pos):
+    if len(layout.texels):
         tracing = Tracing(ids, job.lighting, job.settings, job.seed_key, job.weights, acc,
                           job.whole)
-        for lo, hi in chunk_bounds(pos, 1):  # the local bake's chunk sizes (cache-sized)
-            n, r, t = trace_chunk(scene, tracing, pos[lo:hi], samples[lo:hi], start)
+        for lo, hi in chunk_bounds(layout.counts, 1):  # the local bake's chunk sizes
+            sums, n, r, t = trace_texels(scene, tracing, layout, lo, hi, start)
+            acc.add(layout.texels[lo:hi], sums)
             paths, rays, seconds = paths + n, rays + r, seconds + t
     return _Partial(acc.sum, acc.second, acc.n, paths, rays, seconds, scene_seconds)
 
@@ -358,9 +359,11 @@ class ClusterTraffic:
 
 @dataclass
 class _Level:
-    """A level of the current pass on the cluster: its tasks' texel slices and results."""
+    """A level of the current pass on the cluster: its tasks' texel slices (sorted plan
+    positions), whether the level is their upper one, and the tasks' results."""
 
     texels: list[np.ndarray]
+    upper: list[np.ndarray]
     results: dict[int, _Partial]
 
     @property
@@ -411,13 +414,16 @@ class ClusterBackend:
         self._passes = 0
 
     def begin(self, volume: volumes.Volume, config: BakeConfig,
-              kept: np.ndarray | None) -> None:
+              kept: np.ndarray | None, stats: BakeStats) -> None:
         """Load the compiled code (for the commits) while the plan is made; the workers
         build the level scenes."""
         self._warm = self._helper.submit(kernels.warm_up)
 
     def levels_known(self, levels: np.ndarray) -> None:
         """Nothing: the workers build the level scenes."""
+
+    def plan_scene(self, level: int) -> None:
+        """None: the workers' scenes are theirs; the plan builds its own."""
 
     def start(self, job: BakeJob) -> None:
         """Scatter what every task of `job` needs to every worker (once a worker has
@@ -464,7 +470,7 @@ class ClusterBackend:
                                                                    stream)
                     next_submit += 1
                 if levels[next_apply].finished:
-                    self._apply(levels.pop(next_apply), next_apply, report)
+                    self._apply(levels.pop(next_apply), next_apply, work, report)
                     next_apply += 1
                     continue
                 future = next(stream)
@@ -534,14 +540,16 @@ class ClusterBackend:
         expected = work.remaining[texels] * np.where(upper, w, 1.0 - w)
         workers = self._workers()
         prefer = [workers[level % len(workers)]] if workers else None
-        slices = []
+        slices, uppers = [], []
         for index, (lo, hi) in enumerate(task_groups(texels, expected, PATHS_PER_TASK)):
             part = texels[lo:hi]
             args = (plan.ids[part].astype(np.int64), plan.phase[part], plan.weight[part],
-                    plan.high[part], work.done[part], work.remaining[part], upper[lo:hi])
+                    plan.high[part], work.done[part].astype(np.int64),
+                    work.remaining[part].astype(np.int64), upper[lo:hi])
             self._submit_task(_Task(level, index, args, 0, prefer), owner, stream)
             slices.append(part)
-        return _Level(slices, {})
+            uppers.append(upper[lo:hi])
+        return _Level(slices, uppers, {})
 
     def _submit_task(self, task: _Task, owner: dict, stream) -> None:
         """Queue one task (`trace_task`), its `try_` in its key (Dask reuses the results
@@ -596,15 +604,15 @@ class ClusterBackend:
             report.traced(part.paths)
             report.show(next_apply, f"{len(self._workers())} workers ")
 
-    def _apply(self, finished: _Level, level: int, report: PassReport) -> None:
-        """Add a finished level's pass sums (the order a local bake adds them in), then
-        report the level done (the Baker commits the texels it completes)."""
-        acc = self.job.tracing.acc
+    def _apply(self, finished: _Level, level: int, work: PassWork,
+               report: PassReport) -> None:
+        """Add a finished level's pass sums to the pass's (``work.sums``, in the order a
+        local bake adds them in), then report the level done (the Baker commits the
+        texels it completes)."""
         for index, part in sorted(finished.results.items()):
-            texels = finished.texels[index]
-            acc.sum[texels] += part.sum
-            acc.second[texels] += part.second
-            acc.n[texels] += part.n
+            sums = PassSums(0, part.sum.shape[1])
+            sums.sum, sums.second, sums.n = part.sum, part.second, part.n
+            work.sums.add(level, finished.texels[index], finished.upper[index], sums)
         report.level_done(level)
 
 

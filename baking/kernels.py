@@ -96,10 +96,10 @@ def on_upper(phase: float, weight: float, sample: int, golden: float) -> bool:
 
 
 @numba.njit(**JIT)
-def level_paths(here: np.ndarray, below: np.ndarray, done: np.ndarray,
-                remaining: np.ndarray, phase: np.ndarray, weight: np.ndarray,
-                golden: float):
-    """The pending paths of one isovalue level, sorted by texel, samples ascending.
+def level_texels(here: np.ndarray, below: np.ndarray, done: np.ndarray,
+                 remaining: np.ndarray, phase: np.ndarray, weight: np.ndarray,
+                 golden: float):
+    """The texels with pending paths on one isovalue level, sorted, and how many each has.
 
     Args:
         here: (A,) sorted plan positions of texels whose lower level is this one (their
@@ -110,36 +110,57 @@ def level_paths(here: np.ndarray, below: np.ndarray, done: np.ndarray,
         phase, weight: the plan's (T_all,) level-assignment phases and upper weights.
 
     Returns:
-        positions (P,) and sample indices (P,) of the paths, int64, and the (K,) sorted
-        positions of the texels among them.
+        (K,) int64 sorted positions of the texels with at least one path here, (K,) bool
+        whether this is their upper level, (K,) int64 their paths here.
     """
-    bound = 0
-    for p in here:
-        bound += remaining[p]
-    for p in below:
-        bound += remaining[p]
-    pos = np.empty(bound, np.int64)
-    samples = np.empty(bound, np.int64)
     texels = np.empty(len(here) + len(below), np.int64)
-    count, k, a, b = 0, 0, 0, 0
+    upper = np.empty(len(texels), np.bool_)
+    counts = np.empty(len(texels), np.int64)
+    k, a, b = 0, 0, 0
     while a < len(here) or b < len(below):  # merge the two sorted lists
-        upper = a == len(here) or (b < len(below) and below[b] < here[a])
-        if upper:
+        up = a == len(here) or (b < len(below) and below[b] < here[a])
+        if up:
             p = below[b]
             b += 1
         else:
             p = here[a]
             a += 1
-        start = count
+        count = 0
         for s in range(done[p], done[p] + remaining[p]):
-            if on_upper(phase[p], weight[p], s, golden) == upper:
-                pos[count] = p
-                samples[count] = s
+            if on_upper(phase[p], weight[p], s, golden) == up:
                 count += 1
-        if count > start:
-            texels[k] = p
+        if count > 0:
+            texels[k], upper[k], counts[k] = p, up, count
             k += 1
-    return pos[:count], samples[:count], texels[:k]
+    return texels[:k], upper[:k], counts[:k]
+
+
+@numba.njit(**JIT)
+def texel_paths(texels: np.ndarray, upper: np.ndarray, counts: np.ndarray,
+                done: np.ndarray, remaining: np.ndarray, phase: np.ndarray,
+                weight: np.ndarray, golden: float):
+    """The paths of (K,) texels on one level (as `level_texels` lists them: sorted
+    positions, whether the level is their upper one, their path counts), samples
+    ascending; `done`, `remaining`, `phase`, `weight` as there.
+
+    Returns:
+        (P,) int64 texel of each path (0 … K − 1: an index into `texels`) and (P,) int64
+        sample indices, P = counts.sum().
+    """
+    total = 0
+    for c in counts:
+        total += c
+    pos = np.empty(total, np.int64)
+    samples = np.empty(total, np.int64)
+    i = 0
+    for k in range(len(texels)):
+        p = texels[k]
+        for s in range(done[p], done[p] + remaining[p]):
+            if on_upper(phase[p], weight[p], s, golden) == upper[k]:
+                pos[i] = k
+                samples[i] = s
+                i += 1
+    return pos, samples
 
 
 @numba.njit(**JIT)
@@ -433,7 +454,10 @@ def warm_up() -> None:
     add_escaped(result, index, prim, vec, np.ones(3))
     accumulate(index, result, np.ones(3), np.zeros((1, 3)), np.zeros(1), index.copy())
     path_starts(np.uint32(0), index, index, index, index, vec.T.copy(), vec.T.copy())
-    level_paths(index, index, index, index, np.zeros(1), np.zeros(1), 0.5)
+    small = np.zeros(1, np.int32)  # a bake's positions, samples done and to do
+    texels, upper, counts = level_texels(small, small, small, small, np.zeros(1), np.zeros(1),
+                                         0.5)
+    texel_paths(texels, upper, counts, small, small, np.zeros(1), np.zeros(1), 0.5)
     sky = np.zeros(SKY_PARAMS)
     trace_chunk((0, 0, 0), np.uint32(0), index, index[:0], index[:0], index, vec.T.copy(),
                 vec.T.copy(), 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky, True, True,

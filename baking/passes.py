@@ -1,19 +1,23 @@
 """The pieces of a bake's pass that every tracing backend shares (`baking.backend`).
 
 A pass brings some texels up to a sample count. On each isovalue level, the texels that
-bracket it trace their pending paths (`lay_out_level`: positions, sample indices and start
-points) on the level's scene (`level_scene`), in chunks of whole texels (`chunk_bounds`,
-`trace_chunk`); the per-texel sums go to the pass sums (`PassSums`), and a texel complete
-on its upper level is merged into the lattice (`commit_sums`). A texel's paths and start
-point depend on that texel alone and its sums are added in sample order, so the lattice
-is the same bits whoever traces the chunks. A texel's facing (`landing_facing`, committed
-by `commit_facing`) comes from the plan alone, so it is the same bits too.
+bracket it trace their pending paths (`lay_out_level`: the texels, their path counts and
+start points; a chunk's positions and sample indices are made when it is traced, so a
+level's layout costs bytes per texel, not per path) on the level's scene (`level_scene`),
+in chunks of whole texels (`chunk_bounds`, `trace_texels`); a chunk's per-texel sums go
+to the pass sums of the texels in flight (`LevelSums`: from a texel's lower level to its
+upper one), and a texel complete on its upper level is merged into the lattice
+(`commit_sums`). A texel's paths and start point depend on that texel alone and its sums
+are added in sample order, so the lattice is the same bits whoever traces the chunks. A
+texel's facing (`landing_facing`, committed by `commit_facing`) comes from the plan
+alone, so it is the same bits too.
 """
 
 from __future__ import annotations
 
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -48,21 +52,88 @@ class PassSums:
         self.second = np.zeros(count)
         self.n = np.zeros(count, np.int64)
 
-    def clear(self, positions: np.ndarray) -> None:
-        self.sum[positions] = 0
-        self.second[positions] = 0
-        self.n[positions] = 0
+    def add(self, positions: np.ndarray, sums: PassSums) -> None:
+        """Add `sums` (N texels' sums, formed from zero) to those at (N,) distinct
+        `positions`: the same float64 additions as tracing into these sums directly."""
+        self.sum[positions] += sums.sum
+        self.second[positions] += sums.second
+        self.n[positions] += sums.n
 
 
-def commit_sums(lattice: Lattice, plan: Plan, acc: PassSums, positions: np.ndarray) -> int:
-    """Merge the pass sums of texels `positions` (plan positions) into the lattice's running
-    means (`kernels.commit_means`: compiled, and the GIL stays free for the tracing
-    threads).
+class LevelSums:
+    """The pass sums of a pass's texels in flight, by lower level: the texels whose lower
+    level is l (the sorted plan positions ``by_lower[l - first]``, `PassWork`) sum their
+    paths from their first on level l until they are committed with level l + 1, so at
+    most two levels' texels hold sums at a time, not every texel of the plan.
+
+    Args:
+        channels: values per texel; first: the pass's first level; by_lower: (N_l,)
+            sorted plan positions per level from `first` on.
+    """
+
+    def __init__(self, channels: int, first: int, by_lower: list[np.ndarray]) -> None:
+        self.channels, self.first, self.by_lower = channels, first, by_lower
+        self._groups: dict[int, PassSums] = {}
+        self._lock = threading.Lock()  # workers of one level make its groups
+
+    def group(self, level: int) -> PassSums:
+        """The sums of the texels whose lower level is `level` (made on first use)."""
+        with self._lock:
+            if level not in self._groups:
+                self._groups[level] = PassSums(len(self.by_lower[level - self.first]),
+                                               self.channels)
+            return self._groups[level]
+
+    def add(self, level: int, positions: np.ndarray, upper: np.ndarray,
+            sums: PassSums) -> None:
+        """Add the sums of paths traced on `level` (formed from zero) of the texels at
+        sorted plan `positions` (N,) — (N,) `upper`: the level is their upper one — to
+        their running sums. Texels are disjoint between calls of one level."""
+        for lower, these in ((level, ~upper), (level - 1, upper)):
+            if these.any():
+                slots = np.searchsorted(self.by_lower[lower - self.first], positions[these])
+                self.group(lower).add(slots, _rows_of(sums, these))
+
+    def traced(self, lower: int) -> np.ndarray:
+        """(K,) sorted plan positions of the texels whose lower level is `lower` with
+        paths in the pass so far."""
+        group = self._groups.get(lower)
+        if group is None:
+            return np.zeros(0, np.int64)
+        return self.by_lower[lower - self.first][group.n > 0]
+
+    def commit(self, lattice: Lattice, ids: np.ndarray, lower: int) -> tuple[np.ndarray, int]:
+        """Merge the sums of the texels whose lower level is `lower` into the lattice and
+        let them go (`commit_sums`); `ids`: the plan's (T,) lattice ids.
+
+        Returns:
+            (K,) plan positions of those with paths in the pass, how many had no sample
+            before.
+        """
+        group = self._groups.pop(lower, None)
+        if group is None:
+            return np.zeros(0, np.int64), 0
+        positions = self.by_lower[lower - self.first]
+        traced = np.flatnonzero(group.n > 0)
+        return positions[traced], commit_sums(lattice, ids[positions], group, traced)
+
+
+def _rows_of(sums: PassSums, these: np.ndarray) -> PassSums:
+    """The sums of the texels selected by (N,) bool `these`."""
+    out = PassSums(0, sums.sum.shape[1])
+    out.sum, out.second, out.n = sums.sum[these], sums.second[these], sums.n[these]
+    return out
+
+
+def commit_sums(lattice: Lattice, ids: np.ndarray, acc: PassSums, slots: np.ndarray) -> int:
+    """Merge the pass sums at (K,) `slots` of `acc` — of texels of (A,) lattice `ids` —
+    into the lattice's running means and clear them (`kernels.commit_means`: compiled,
+    and the GIL stays free for the tracing threads).
 
     Returns:
         how many of them had no sample before.
     """
-    return kernels.commit_means(plan.ids, np.asarray(positions, np.int64),
+    return kernels.commit_means(np.asarray(ids, np.int64), np.asarray(slots, np.int64),
                                 lattice.values.reshape(-1, lattice.values.shape[-1]),
                                 lattice.samples.reshape(-1), lattice.second.reshape(-1),
                                 acc.sum, acc.second, acc.n)
@@ -106,23 +177,23 @@ def commit_facing(lattice: Lattice, volume: volumes.Volume, config: BakeConfig, 
         codes[flat[todo]] = landing_facing(volume, config, plan, positions[todo])
 
 
-def chunk_bounds(pos: np.ndarray, workers: int):
-    """(lo, hi) slices of the sorted path array `pos`, cut only where the texel changes (a
-    texel's paths stay in one chunk, so its sum is added in sample order whatever the
-    number of workers).
+def chunk_bounds(counts: np.ndarray, workers: int):
+    """(lo, hi) slices of a level's texels (`LevelPaths`) of (K,) path `counts`: chunks of
+    whole texels (a texel's paths stay in one chunk, so its sum is added in sample order
+    whatever the number of workers).
 
     Guided sizes: each chunk takes 1/(2·workers) of the paths left, between
-    MIN_PATHS_PER_CHUNK and PATHS_PER_CHUNK, so a level ends with small chunks and no
-    worker waits long for the last one.
+    MIN_PATHS_PER_CHUNK and PATHS_PER_CHUNK (up to the end of the texel at the cut), so
+    a level ends with small chunks and no worker waits long for the last one.
     """
-    lo, n = 0, len(pos)
-    while lo < n:
-        size = min(PATHS_PER_CHUNK, max(MIN_PATHS_PER_CHUNK, (n - lo) // (2 * workers)))
-        hi = min(lo + size, n)
-        if hi < n:  # extend to the end of the texel at the cut
-            hi = int(np.searchsorted(pos, pos[hi - 1], side="right"))
+    ends = np.cumsum(counts)
+    total = int(ends[-1]) if len(ends) else 0
+    lo, done = 0, 0
+    while lo < len(counts):
+        size = min(PATHS_PER_CHUNK, max(MIN_PATHS_PER_CHUNK, (total - done) // (2 * workers)))
+        hi = min(int(np.searchsorted(ends, done + size, side="left")) + 1, len(counts))
         yield lo, hi
-        lo = hi
+        lo, done = hi, int(ends[hi - 1])
 
 
 def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
@@ -159,11 +230,35 @@ class PathStarts:
     normals: np.ndarray
 
 
+@dataclass(frozen=True)
+class LevelPaths:
+    """The pending paths of one level, by texel: (K,) sorted plan positions `texels`,
+    whether the level is their `upper` one (K,) bool, and their path `counts` (K,); the
+    plan's (T_all,) `done`, `remaining`, `phase`, `weight` they are drawn from
+    (`kernels.level_texels`)."""
+
+    texels: np.ndarray
+    upper: np.ndarray
+    counts: np.ndarray
+    done: np.ndarray
+    remaining: np.ndarray
+    phase: np.ndarray
+    weight: np.ndarray
+
+    def of(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """(P,) texels (0 … hi − lo − 1: of texels lo … hi − 1) and (P,) sample indices of
+        the paths of texels lo … hi − 1, sorted by texel, samples ascending
+        (`kernels.texel_paths`)."""
+        return kernels.texel_paths(self.texels[lo:hi], self.upper[lo:hi],
+                                   self.counts[lo:hi], self.done, self.remaining,
+                                   self.phase, self.weight, GOLDEN_FRACTION)
+
+
 def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
                   iso: float, ids: np.ndarray, phase: np.ndarray, weight: np.ndarray,
                   high: np.ndarray, here: np.ndarray, below: np.ndarray, done: np.ndarray,
                   remaining: np.ndarray, landing: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, PathStarts]:
+                  ) -> tuple[LevelPaths, PathStarts]:
     """The pending paths of the level surface ρ = `iso` and their texels' start points
     (a local bake lays out whole levels with it, a cluster task its own texels). Each
     texel's paths and start point depend on that texel alone.
@@ -172,23 +267,22 @@ def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: Bak
         ids, phase, weight, high: (T,) the plan's lattice ids, level phases, upper
             weights and lit sides, of all its texels or of any subset (positions then
             index the subset).
-        here, below, done, remaining: as `kernels.level_paths` (positions into `ids`).
+        here, below, done, remaining: as `kernels.level_texels` (positions into `ids`).
         landing: (T, 2, 3) the plan's `Plan.landing` of the same texels, or None to
             project them here (cluster tasks, which are not sent it).
 
     Returns:
-        positions (P,) and sample indices (P,) of the paths, sorted by position, and
-        their `PathStarts`.
+        the level's paths by texel and their texels' `PathStarts`.
     """
-    pos, samples, texels = kernels.level_paths(here, below, done, remaining, phase, weight,
-                                               GOLDEN_FRACTION)
+    texels, upper, counts = kernels.level_texels(here, below, done, remaining, phase, weight,
+                                                 GOLDEN_FRACTION)
     on_level = None
     if landing is not None:  # the texels of `here` land on their lower level, `below` upper
-        on_level = landing[texels, np.isin(texels, below).astype(np.int64)]
+        on_level = landing[texels, upper.astype(np.int64)]
     origins, normals = start_points(volume, geometry.centres(ids[texels]), iso, config,
                                     high[texels], on_level)
-    return pos, samples, PathStarts(texels, origins.astype(np.float32),
-                                    normals.astype(np.float32))
+    paths = LevelPaths(texels, upper, counts, done, remaining, phase, weight)
+    return paths, PathStarts(texels, origins.astype(np.float32), normals.astype(np.float32))
 
 
 @dataclass(frozen=True)
@@ -199,7 +293,7 @@ class Tracing:
         ids: (A,) flat lattice ids of the plan's texels.
         seed_key: ``pcg_hash(seed)``, the start of every path key.
         weights: (C,) weights of the brightness whose second moment the pass sums keep.
-        acc: the pass sums the chunks add to.
+        acc: the pass sums `trace_chunk` adds to (positions index them).
         whole: parameters of `integrator.trace_whole_paths` where it covers the bake's
             lighting, else None (`integrator.whole_paths`).
     """
@@ -233,6 +327,22 @@ def trace_chunk(scene: Scene, tracing: Tracing, pos: np.ndarray, samples: np.nda
                                 tracing.settings, ray_stats, dirs.T)
         kernels.accumulate(pos, estimates, tracing.weights, acc.sum, acc.second, acc.n)
     return len(pos), ray_stats.rays, ray_stats.seconds
+
+
+def trace_texels(scene: Scene, tracing: Tracing, paths: LevelPaths, lo: int, hi: int,
+                 start: PathStarts) -> tuple[PassSums, int, int, float]:
+    """`trace_chunk` of the paths of a level's texels lo … hi − 1 (`chunk_bounds`; `start`
+    holds the start points of the level's texels, ``start.texels`` = ``paths.texels``).
+
+    Returns:
+        their sums (hi − lo texels, formed from zero), and `trace_chunk`'s counts.
+    """
+    index, samples = paths.of(lo, hi)
+    sums = PassSums(hi - lo, tracing.settings.channels)
+    chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]], acc=sums)
+    own = PathStarts(np.arange(hi - lo, dtype=np.int64), start.origins[lo:hi],
+                     start.normals[lo:hi])
+    return sums, *trace_chunk(scene, chunk, index, samples, own)
 
 
 def level_scene(volume: volumes.Volume, iso: float, config: BakeConfig) -> Scene:

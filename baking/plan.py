@@ -71,15 +71,14 @@ class Plan:
 
     Attributes:
         ids: (T,) sorted flat lattice indices of the active texels.
-        rho: (T,) field value at each texel (trilinear), value units.
-        target: (T,) isovalue each texel is lit at: `rho` clamped to `iso_range`.
+        rho: (T,) float32 field value at each texel (trilinear), value units.
         iso_range: (lo, hi) isovalues the lattice serves.
         levels: (K,) isovalues of the level surfaces, increasing, within `iso_range`.
-        lower: (T,) index a of the lower bracketing level (the upper is a + 1).
+        lower: (T,) int32 index a of the lower bracketing level (the upper is a + 1).
         weight: (T,) fraction of paths on the upper level, in [0, 1].
         phase: (T,) per-texel offset of the level-assignment sequence, in [0, 1).
         active: (Z, Y, X) bool mask of the active texels.
-        move_voxels: (T,) distance from the texel to its farther level, voxels.
+        move_voxels: (T,) float32 distance from the texel to its farther level, voxels.
         move_limit: the level spacing's move limit, voxels (`move_limit`).
         reach: largest Newton move onto a level, world units (`newton_reach`).
         landing: (T, 2, 3) float64 world point where each texel's Newton steps land on its
@@ -93,7 +92,6 @@ class Plan:
 
     ids: np.ndarray
     rho: np.ndarray
-    target: np.ndarray
     iso_range: tuple[float, float]
     levels: np.ndarray
     lower: np.ndarray
@@ -106,6 +104,11 @@ class Plan:
     landing: np.ndarray
     high: np.ndarray
     unreachable: int = 0
+
+    @property
+    def target(self) -> np.ndarray:
+        """(T,) float64 isovalue each texel is lit at: `rho` clamped to `iso_range`."""
+        return np.clip(self.rho.astype(np.float64), *self.iso_range)
 
     def on_upper(self, positions: np.ndarray, samples: np.ndarray) -> np.ndarray:
         """(N,) bool: does sample `samples[i]` of texel `ids[positions[i]]` use the upper
@@ -173,12 +176,14 @@ def texel_values(volume: volumes.Volume, geometry: LatticeGeometry) -> np.ndarra
 def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
               levels: np.ndarray | None = None,
               progress: Callable[[str], None] | None = None,
-              on_levels: Callable[[np.ndarray], None] | None = None) -> Plan:
+              on_levels: Callable[[np.ndarray], None] | None = None,
+              scenes: Callable[[int], object] | None = None) -> Plan:
     """Choose active texels, their targets and the levels for `config` (see the module
     docstring); `levels` (K,) replaces the choice (a resumed bake keeps its file's).
     `progress(stage)` is told each stage as it starts (the viewer shows it);
     `on_levels(levels)` as soon as the levels are known (the baker starts building the
-    first level's scene while the texels' reach is tested)."""
+    first level's scene while the texels' reach is tested); `scenes(k)` gives the Embree
+    scene of level k for the side probes, or None (`choose_sides`)."""
     say = progress or (lambda _stage: None)
     vmin, vmax = volume.value_range
     if vmax <= vmin:
@@ -195,12 +200,14 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
             f"{volume.source or volume.name}: no isosurface in --iso-range [{lo:g}, {hi:g}] "
             "(no lattice cell's values span any of it); nothing to bake"
         )
-    texel_rho = rho.reshape(-1)[ids].astype(np.float64)
-    target = np.clip(texel_rho, lo, hi)
+    texel_rho = rho.reshape(-1)[ids]
+    target = np.clip(texel_rho.astype(np.float64), lo, hi)
     h = float(np.mean(volume.spacing))
-    centres = geometry.centres(ids)
     say("gradients")
-    grad = np.linalg.norm(volumes.gradient_at(volume, centres), axis=1) * h
+    grad = np.empty(len(ids))
+    for block in _blocks(len(ids)):
+        grad[block] = np.linalg.norm(
+            volumes.gradient_at(volume, geometry.centres(ids[block])), axis=1) * h
     limit = move_limit(config)
     if levels is None:
         budget = level_budget(volume, geometry, config, crossed, len(ids))
@@ -220,37 +227,46 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     say(f"paths onto {len(levels)} levels")
     uses_lo, uses_hi = weight < 1, weight > 0
     landing = np.full((len(ids), 2, 3), np.nan)
-    for side, uses in ((0, uses_lo), (1, uses_hi)):
-        landing[uses, side] = project_to_level(volume, centres[uses],
-                                               levels[lower + side][uses], max_move=reach)
+    for block in _blocks(len(ids)):
+        centres = geometry.centres(ids[block])
+        for side, uses in ((0, uses_lo[block]), (1, uses_hi[block])):
+            landing[block][uses, side] = project_to_level(
+                volume, centres[uses], levels[lower[block] + side][uses], max_move=reach)
     say(f"seen sides on {len(levels)} levels")
-    high = lit_sides(volume, config, geometry, ids, landing, levels, lower, weight)
-    ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol, high,
-                              uses_lo, landing[:, 0])
-    ok_hi, move_hi = _reaches(volume, config, centres, levels[lower + 1], reach, tol, high,
-                              uses_hi | ~ok_lo, landing[:, 1])
-    ok_lo, move_lo = _reaches(volume, config, centres, levels[lower], reach, tol, high,
-                              ~uses_lo & ~ok_hi, landing[:, 0], ok_lo, move_lo)  # fallback
+    high = lit_sides(volume, config, geometry, ids, landing, levels, lower, weight, scenes)
+    reaches = _Reaches(volume, config, geometry, ids, reach, tol, high)
+    ok_lo, move_lo = reaches(levels[lower], uses_lo, landing[:, 0])
+    ok_hi, move_hi = reaches(levels[lower + 1], uses_hi | ~ok_lo, landing[:, 1])
+    ok_lo, move_lo = reaches(levels[lower], ~uses_lo & ~ok_hi, landing[:, 0], ok_lo,
+                             move_lo)  # fallback
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
     outside = np.where(high, 0.0, 1.0)  # the level whose lit side the texel lies on
     weight = np.where(needed, weight, np.where(ok_hi, 1.0, np.where(ok_lo, 0.0, outside)))
     move = np.maximum(np.where(weight < 1, move_lo, 0.0), np.where(weight > 0, move_hi, 0.0)) / h
     phase = pcg_hash(ids.astype(np.uint32) ^ np.uint32(config.seed & 0xFFFFFFFF)) / 2.0**32
-    return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase, active,
-                move, limit, reach, landing, high, int(np.count_nonzero(~needed)))
+    return Plan(ids, texel_rho, (lo, hi), levels, lower.astype(np.int32), weight, phase,
+                active, move.astype(np.float32), limit, reach, landing, high,
+                int(np.count_nonzero(~needed)))
 
 
 def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
               ids: np.ndarray, landing: np.ndarray, levels: np.ndarray, lower: np.ndarray,
-              weight: np.ndarray) -> np.ndarray:
+              weight: np.ndarray, scenes: Callable[[int], object] | None = None
+              ) -> np.ndarray:
     """(T,) bool: is each texel lit on the high-value side of its surfaces
     (`baking.sides.choose_sides`, probed where it lands on its nearer level: `landing`
-    (T, 2, 3) as `Plan.landing`, set for the levels the texel uses)?"""
+    (T, 2, 3) as `Plan.landing`, set for the levels the texel uses; `scenes` as there)?"""
     if config.sides == "normals":
         return np.full(len(ids), bool(config.flip_normals))
     upper = weight >= 0.5
-    points = np.where(upper[:, None], landing[:, 1], landing[:, 0])
-    return choose_sides(volume, config, geometry, ids, points, levels, lower + upper)
+    found = np.where(upper, np.isfinite(landing[:, 1]).all(axis=1),
+                     np.isfinite(landing[:, 0]).all(axis=1))
+
+    def points(at: np.ndarray) -> np.ndarray:  # where the texels `at` land on that level
+        return np.where(upper[at, None], landing[at, 1], landing[at, 0])
+
+    return choose_sides(volume, config, geometry, ids, points, found, levels, lower + upper,
+                        scenes)
 
 
 def resolved_iso_range(volume: volumes.Volume, config: BakeConfig) -> tuple[float, float]:
@@ -437,6 +453,44 @@ def project_to_level(volume: volumes.Volume, points: np.ndarray, level,
     anyway).
     """
     return volumes.newton_to_level(volume, points, level, max_move, iterations, smooth)
+
+
+PLAN_BLOCK = 1 << 20
+"""Texels whose centres, gradients and Newton moves the plan works on at a time: its
+temporaries hold tens of bytes per texel of a block, not of the plan."""
+
+
+def _blocks(count: int):
+    """Slices of at most `PLAN_BLOCK` of `count` texels, in order."""
+    for lo in range(0, count, PLAN_BLOCK):
+        yield slice(lo, min(lo + PLAN_BLOCK, count))
+
+
+@dataclass(frozen=True)
+class _Reaches:
+    """`_reaches` of a plan's (T,) texels `ids`, block by block (`_blocks`)."""
+
+    volume: volumes.Volume
+    config: BakeConfig
+    geometry: LatticeGeometry
+    ids: np.ndarray
+    reach: float
+    tol: np.ndarray
+    high: np.ndarray
+
+    def __call__(self, levels: np.ndarray, which: np.ndarray, landed: np.ndarray,
+                 ok: np.ndarray | None = None, moved: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """`_reaches` of every texel from its centre (arguments as there, (T,) and (T, 3))."""
+        count = len(self.ids)
+        ok = np.ones(count, bool) if ok is None else ok.copy()
+        moved = np.zeros(count) if moved is None else moved.copy()
+        for b in _blocks(count):
+            ok[b], moved[b] = _reaches(self.volume, self.config,
+                                       self.geometry.centres(self.ids[b]), levels[b],
+                                       self.reach, self.tol[b], self.high[b], which[b],
+                                       landed[b], ok[b], moved[b])
+        return ok, moved
 
 
 def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,

@@ -21,6 +21,7 @@ where neither is (a closed cavity), on the normals' side. The probe directions h
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
@@ -56,26 +57,33 @@ TEXELS_PER_BATCH = 4096
 
 
 def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
-                 ids: np.ndarray, points: np.ndarray, levels: np.ndarray,
-                 which_level: np.ndarray) -> np.ndarray:
+                 ids: np.ndarray, points: Callable[[np.ndarray], np.ndarray],
+                 found: np.ndarray, levels: np.ndarray, which_level: np.ndarray,
+                 scenes: Callable[[int], object] | None = None) -> np.ndarray:
     """(T,) bool: is texel `ids[t]` lit on its surface's high-value side?
 
     Args:
         ids: (T,) flat lattice ids of the texels (their checkerboard parity and probe keys).
-        points: (T, 3) world points on their nearer level (NaN: not found; normals' side).
+        points: ``points(at)``, the (N, 3) world points on their nearer level of the
+            texels at (N,) positions `at`, one level's texels at a time; found: (T,) bool,
+            whether a texel has one (else it is lit on the normals' side).
         levels: (K,) isovalues; which_level: (T,) index of each texel's nearer level.
+        scenes: ``scenes(k)``, the Embree scene of level k from the baker's cache (no
+            scene beside the baker's), or None to build each here (`level_surface`);
+            levels are probed lowest first.
     """
     default = bool(config.flip_normals)
     high = np.full(len(ids), default)
-    found = np.isfinite(points).all(axis=1)
     for k in np.unique(which_level[found]):
         on = np.flatnonzero(found & (which_level == k))
-        scene = level_surface(volume, float(levels[k]))
-        if scene.empty:
-            continue
-        open_low, open_high = open_rays(scene, volume, config, ids[on], points[on],
-                                        float(levels[k]), default)
-        high[on] = side_rule(open_low, open_high, parity(geometry, ids[on]), default)
+        scene = scenes(int(k)) if scenes is not None else None
+        if scene is None:
+            scene = level_surface(volume, float(levels[k]))
+        if not scene.empty:
+            open_low, open_high = open_rays(scene, volume, config, ids[on], points(on),
+                                            float(levels[k]), default)
+            high[on] = side_rule(open_low, open_high, parity(geometry, ids[on]), default)
+        del scene  # gone before the next level's is built
     return high
 
 

@@ -1,5 +1,7 @@
 """The compiled path-tracing kernels against the numpy reference functions they replace."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -61,9 +63,10 @@ def test_path_starts_gather_keys_and_first_directions():
 
 
 def test_level_paths_match_the_numpy_expansion():
-    """The pending paths of each level: as `reference.pending_samples` and
-    `Plan.on_upper` lay them out (expand every texel's pending samples, keep those on this
-    level, sort by texel)."""
+    """The pending paths of each level (`level_texels`, then `texel_paths` of all its
+    texels and of any run of them, by index into the run): as
+    `reference.pending_samples` and `Plan.on_upper` lay them out (expand every texel's
+    pending samples, keep those on this level, sort by texel)."""
     from isolume.baking.plan import GOLDEN_FRACTION
     from isolume.baking.reference import pending_samples
 
@@ -78,8 +81,11 @@ def test_level_paths_match_the_numpy_expansion():
     for level in range(6):
         here = positions[lower == level]
         below = positions[lower == level - 1]
-        pos, samples, texels = kernels.level_paths(here, below, done, remaining, phase,
-                                                   weight, GOLDEN_FRACTION)
+        texels, goes_up, counts = kernels.level_texels(here, below, done, remaining, phase,
+                                                       weight, GOLDEN_FRACTION)
+        index, samples = kernels.texel_paths(texels, goes_up, counts, done, remaining,
+                                             phase, weight, GOLDEN_FRACTION)
+        pos = texels[index]
         want_pos, want_samples = [], []
         for group, on_upper in ((here, False), (below, True)):
             p, s = pending_samples(group, done, remaining)
@@ -91,6 +97,35 @@ def test_level_paths_match_the_numpy_expansion():
         np.testing.assert_array_equal(pos, p[order])
         np.testing.assert_array_equal(samples, s[order])
         np.testing.assert_array_equal(texels, np.unique(p))
+        np.testing.assert_array_equal(counts, np.unique(p, return_counts=True)[1])
+        np.testing.assert_array_equal(goes_up, np.isin(texels, below))
+        cut = len(texels) // 3  # a run of texels: the same paths as the whole level's
+        start = counts[:cut].sum()
+        part = kernels.texel_paths(texels[cut:], goes_up[cut:], counts[cut:], done, remaining,
+                                   phase, weight, GOLDEN_FRACTION)
+        np.testing.assert_array_equal(texels[cut:][part[0]], pos[start:])
+        np.testing.assert_array_equal(part[1], samples[start:])
+
+
+def test_chunks_are_whole_texels_of_guided_size():
+    """`passes.chunk_bounds`: consecutive runs of whole texels covering the level; each
+    holds at least the guided size (1/(2·workers) of the paths left, clamped to
+    MIN_PATHS_PER_CHUNK … PATHS_PER_CHUNK) and stops at the first texel that reaches it."""
+    from isolume.baking.passes import MIN_PATHS_PER_CHUNK, PATHS_PER_CHUNK, chunk_bounds
+
+    counts = np.random.default_rng(5).integers(1, 300, 2000)
+    for workers in (1, 2, 8):
+        bounds = list(chunk_bounds(counts, workers))
+        assert bounds[0][0] == 0 and bounds[-1][1] == len(counts)
+        assert all(b[1] == c[0] and b[0] < b[1] for b, c in itertools.pairwise(bounds))
+        left = int(counts.sum())
+        for lo, hi in bounds:
+            size = min(PATHS_PER_CHUNK, max(MIN_PATHS_PER_CHUNK, left // (2 * workers)))
+            paths = int(counts[lo:hi].sum())
+            assert paths >= size or hi == len(counts)
+            assert paths - counts[hi - 1] < size  # the texel that reached it is the last
+            left -= paths
+    assert list(chunk_bounds(np.zeros(0, np.int64), 2)) == []
 
 
 def test_cosine_directions_match_numpy_reference(normals):

@@ -31,7 +31,7 @@ def test_targets_are_the_texel_values_clamped_to_the_iso_range():
     plan, _ = _plan(vol, samples=64, iso_range=(0.4, 0.6))
     lo, hi = plan.iso_range
     assert (lo, hi) == (0.4, 0.6)
-    np.testing.assert_array_equal(plan.target, np.clip(plan.rho, lo, hi))
+    np.testing.assert_array_equal(plan.target, np.clip(plan.rho.astype(np.float64), lo, hi))
     assert plan.rho.min() < lo and plan.rho.max() > hi  # corners of crossing cells reach out
     assert plan.levels[0] >= lo and plan.levels[-1] <= hi
     assert np.all(np.diff(plan.levels) > 0)
@@ -213,8 +213,8 @@ def test_levels_start_where_the_plan_landed_their_texels():
     remaining = np.full(len(plan.ids), 8, np.int64)
     args = (vol, geometry, config, float(plan.levels[level]), plan.ids, plan.phase,
             plan.weight, plan.high, here, below, done, remaining)
-    _, _, reused = lay_out_level(*args, plan.landing)
-    _, _, fresh = lay_out_level(*args)
+    _, reused = lay_out_level(*args, plan.landing)
+    _, fresh = lay_out_level(*args)
     np.testing.assert_array_equal(reused.origins, fresh.origins)
     np.testing.assert_array_equal(reused.normals, fresh.normals)
     origins, _ = start_points(vol, geometry.centres(plan.ids[fresh.texels]),
@@ -273,3 +273,22 @@ def test_paths_start_outside_the_thin_shell_of_a_fin_below_the_isovalue(monkeypa
                         lambda volume, config, landed, levels, high: np.ones(len(landed), bool))
     unchecked, _ = _plan(vol, samples=4, bounces=0, iso_range=(0.2, 0.5), max_move=0.5)
     assert _starts_inside(vol, unchecked, config).sum() >= max(50, 5 * inside)
+
+
+def test_plan_is_the_same_whatever_its_block_size(monkeypatch):
+    """The plan works on its texels block by block (`PLAN_BLOCK`, bounding its
+    temporaries); every array of the plan is the same bits with blocks of 997 texels as
+    with one block."""
+    from isolume.baking import plan as plan_module
+
+    vol = make("engine", 40)
+    whole, _ = _plan(vol, samples=8, bounces=0)
+    assert len(whole.ids) > 3 * 997
+    monkeypatch.setattr(plan_module, "PLAN_BLOCK", 997)
+    blocked, _ = _plan(vol, samples=8, bounces=0)
+    for field in dataclasses.fields(whole):
+        a, b = getattr(whole, field.name), getattr(blocked, field.name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=field.name)
+        else:
+            assert a == b, field.name
