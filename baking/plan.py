@@ -201,29 +201,28 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
             "(no lattice cell's values span any of it); nothing to bake"
         )
     texel_rho = rho.reshape(-1)[ids]
+    del rho  # the box's grid (4 bytes a texel): the rest of the plan is per active texel
     target = np.clip(texel_rho.astype(np.float64), lo, hi)
     h = float(np.mean(volume.spacing))
-    say("gradients")
-    grad = np.empty(len(ids))
-    for block in _blocks(len(ids)):
-        grad[block] = np.linalg.norm(
-            volumes.gradient_at(volume, geometry.centres(ids[block])), axis=1) * h
     limit = move_limit(config)
     if levels is None:
+        say("gradients")
         budget = level_budget(volume, geometry, config, crossed, len(ids))
-        levels = choose_levels(target, grad, (lo, hi), limit, budget)
+        levels = choose_levels(target, _gradients(volume, geometry, ids), (lo, hi), limit,
+                               budget)
     levels = np.asarray(levels, np.float64)
     if on_levels is not None:
         on_levels(levels)
-    lower = np.clip(np.searchsorted(levels, target, side="right") - 1, 0, len(levels) - 2)
+    lower = np.clip(np.searchsorted(levels, target, side="right") - 1, 0,
+                    len(levels) - 2).astype(np.int32)
     weight = np.clip((target - levels[lower]) / (levels[lower + 1] - levels[lower]), 0, 1)
+    del target
     # Each texel must reach its bracketing levels by Newton steps along the gradient. Where
     # one cannot be reached (small gradient, or the level surface lies elsewhere: plateaus,
     # thin layers), all paths go to the other; where neither can, to the level whose
     # surface the texel lies *outside* of (the side the normals point to), so the clamped
     # move leaves it floating in front of that surface rather than buried behind it.
     reach = newton_reach(volume, config)
-    tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
     say(f"paths onto {len(levels)} levels")
     uses_lo, uses_hi = weight < 1, weight > 0
     landing = np.full((len(ids), 2, 3), np.nan)
@@ -234,6 +233,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
                 volume, centres[uses], levels[lower[block] + side][uses], max_move=reach)
     say(f"seen sides on {len(levels)} levels")
     high = lit_sides(volume, config, geometry, ids, landing, levels, lower, weight, scenes)
+    tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
     reaches = _Reaches(volume, config, geometry, ids, reach, tol, high)
     ok_lo, move_lo = reaches(levels[lower], uses_lo, landing[:, 0])
     ok_hi, move_hi = reaches(levels[lower + 1], uses_hi | ~ok_lo, landing[:, 1])
@@ -244,7 +244,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     weight = np.where(needed, weight, np.where(ok_hi, 1.0, np.where(ok_lo, 0.0, outside)))
     move = np.maximum(np.where(weight < 1, move_lo, 0.0), np.where(weight > 0, move_hi, 0.0)) / h
     phase = pcg_hash(ids.astype(np.uint32) ^ np.uint32(config.seed & 0xFFFFFFFF)) / 2.0**32
-    return Plan(ids, texel_rho, (lo, hi), levels, lower.astype(np.int32), weight, phase,
+    return Plan(ids, texel_rho, (lo, hi), levels, lower, weight, phase,
                 active, move.astype(np.float32), limit, reach, landing, high,
                 int(np.count_nonzero(~needed)))
 
@@ -453,6 +453,17 @@ def project_to_level(volume: volumes.Volume, points: np.ndarray, level,
     anyway).
     """
     return volumes.newton_to_level(volume, points, level, max_move, iterations, smooth)
+
+
+def _gradients(volume: volumes.Volume, geometry: LatticeGeometry, ids: np.ndarray
+               ) -> np.ndarray:
+    """(T,) |∇ρ| at the centres of texels `ids`, value units per voxel (`choose_levels`)."""
+    h = float(np.mean(volume.spacing))
+    grad = np.empty(len(ids))
+    for block in _blocks(len(ids)):
+        grad[block] = np.linalg.norm(
+            volumes.gradient_at(volume, geometry.centres(ids[block])), axis=1) * h
+    return grad
 
 
 PLAN_BLOCK = 1 << 20
