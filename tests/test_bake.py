@@ -183,6 +183,38 @@ def test_determinism_across_worker_counts():
     assert not np.array_equal(one.values, other_seed.values)
 
 
+def test_a_bake_holds_two_levels_of_sums_and_two_scenes(monkeypatch):
+    """What bounds a bake's memory: pass sums exist only for the texels of the two levels
+    in flight (`passes.LevelSums`), and at most two level scenes are alive, the side
+    probes' included (`ThreadBackend`'s cache makes room before a build)."""
+    import weakref
+
+    from isolume.baking import passes
+    from isolume.baking.trace import Scene
+
+    most = {"groups": 0, "scenes": 0}
+    alive = weakref.WeakSet()
+    make_group, init = passes.LevelSums.group, Scene.__init__
+
+    def group(self, level):
+        out = make_group(self, level)
+        most["groups"] = max(most["groups"], len(self._groups))
+        return out
+
+    def scene(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        alive.add(self)
+        most["scenes"] = max(most["scenes"], len(alive))
+
+    monkeypatch.setattr(passes.LevelSums, "group", group)
+    monkeypatch.setattr(Scene, "__init__", scene)
+    lattice = bake(make("engine", 36), BakeConfig(samples=4, bounces=1))
+    levels = len(lattice.meta["plan"]["levels"])
+    assert levels >= 4
+    assert most["groups"] == 2
+    assert most["scenes"] == 2
+
+
 @pytest.mark.parametrize("env, albedo, direct", [
     ("constant:1,0.6,0.3", (0.8, 0.5, 0.3), None), ("sky:sun=3", (0.7, 0.7, 0.7), "pixels"),
     ("sky:sun=3", (0.7, 0.7, 0.7), "lattice")])
