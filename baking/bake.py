@@ -37,7 +37,7 @@ from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
 from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
-from isolume.baking.passes import LevelSums, PassSums, Tracing, commit_facing
+from isolume.baking.passes import LevelSums, Tracing, commit_facing
 from isolume.baking.plan import Plan, make_plan
 
 
@@ -186,7 +186,6 @@ class Baker:
                                      settings.block if settings.sh_split else 0)
         seed_key = np.uint32(rng.seed_key(self.config.seed))
         return Tracing(self.plan.ids, self.lighting, settings, seed_key, weights,
-                       PassSums(0, settings.channels),
                        whole_paths(self.lighting, settings))
 
     def samples_done(self, positions: np.ndarray | None = None) -> np.ndarray:

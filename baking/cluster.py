@@ -257,7 +257,7 @@ def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
     acc = PassSums(len(ids), job.settings.channels)
     paths, rays, seconds = 0, 0, 0.0
     if len(layout.texels):
-        tracing = Tracing(ids, job.lighting, job.settings, job.seed_key, job.weights, acc,
+        tracing = Tracing(ids, job.lighting, job.settings, job.seed_key, job.weights,
                           job.whole)
         for lo, hi in chunk_bounds(layout.counts, 1):  # the local bake's chunk sizes
             sums, n, r, t = trace_texels(scene, tracing, layout, lo, hi, start)
@@ -610,9 +610,8 @@ class ClusterBackend:
         local bake adds them in), then report the level done (the Baker commits the
         texels it completes)."""
         for index, part in sorted(finished.results.items()):
-            sums = PassSums(0, part.sum.shape[1])
-            sums.sum, sums.second, sums.n = part.sum, part.second, part.n
-            work.sums.add(level, finished.texels[index], finished.upper[index], sums)
+            work.sums.add(level, finished.texels[index], finished.upper[index],
+                          PassSums.of(part.sum, part.second, part.n))
         report.level_done(level)
 
 

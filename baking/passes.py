@@ -52,6 +52,17 @@ class PassSums:
         self.second = np.zeros(count)
         self.n = np.zeros(count, np.int64)
 
+    @classmethod
+    def of(cls, sums: np.ndarray, second: np.ndarray, n: np.ndarray) -> PassSums:
+        """Sums made elsewhere: (A, C) `sums`, (A,) `second` and (A,) `n`."""
+        out = cls(0, sums.shape[1])
+        out.sum, out.second, out.n = sums, second, n
+        return out
+
+    def rows(self, these: np.ndarray) -> PassSums:
+        """The sums of the texels selected by `these` (a bool mask or indices)."""
+        return PassSums.of(self.sum[these], self.second[these], self.n[these])
+
     def add(self, positions: np.ndarray, sums: PassSums) -> None:
         """Add `sums` (N texels' sums, formed from zero) to those at (N,) distinct
         `positions`: the same float64 additions as tracing into these sums directly."""
@@ -92,7 +103,7 @@ class LevelSums:
         for lower, these in ((level, ~upper), (level - 1, upper)):
             if these.any():
                 slots = np.searchsorted(self.by_lower[lower - self.first], positions[these])
-                self.group(lower).add(slots, _rows_of(sums, these))
+                self.group(lower).add(slots, sums.rows(these))
 
     def traced(self, lower: int) -> np.ndarray:
         """(K,) sorted plan positions of the texels whose lower level is `lower` with
@@ -110,19 +121,13 @@ class LevelSums:
             (K,) plan positions of those with paths in the pass, how many had no sample
             before.
         """
+        traced = self.traced(lower)
         group = self._groups.pop(lower, None)
         if group is None:
-            return np.zeros(0, np.int64), 0
+            return traced, 0
         positions = self.by_lower[lower - self.first]
-        traced = np.flatnonzero(group.n > 0)
-        return positions[traced], commit_sums(lattice, ids[positions], group, traced)
-
-
-def _rows_of(sums: PassSums, these: np.ndarray) -> PassSums:
-    """The sums of the texels selected by (N,) bool `these`."""
-    out = PassSums(0, sums.sum.shape[1])
-    out.sum, out.second, out.n = sums.sum[these], sums.second[these], sums.n[these]
-    return out
+        return traced, commit_sums(lattice, ids[positions], group,
+                                   np.flatnonzero(group.n > 0))
 
 
 def commit_sums(lattice: Lattice, ids: np.ndarray, acc: PassSums, slots: np.ndarray) -> int:
@@ -293,7 +298,6 @@ class Tracing:
         ids: (A,) flat lattice ids of the plan's texels.
         seed_key: ``pcg_hash(seed)``, the start of every path key.
         weights: (C,) weights of the brightness whose second moment the pass sums keep.
-        acc: the pass sums `trace_chunk` adds to (positions index them).
         whole: parameters of `integrator.trace_whole_paths` where it covers the bake's
             lighting, else None (`integrator.whole_paths`).
     """
@@ -303,14 +307,13 @@ class Tracing:
     settings: PathSettings
     seed_key: np.uint32
     weights: np.ndarray
-    acc: PassSums
     whole: WholePaths | None
 
 
 def trace_chunk(scene: Scene, tracing: Tracing, pos: np.ndarray, samples: np.ndarray,
-                start: PathStarts) -> tuple[int, int, float]:
+                start: PathStarts, acc: PassSums) -> tuple[int, int, float]:
     """Trace paths (sorted texel positions `pos` (P,), sample indices (P,)) from their start
-    points and add the per-texel sums to the pass sums.
+    points and add the per-texel sums to `acc` (positions index it).
 
     Returns:
         (paths, rays, seconds tracing: inside Embree, or in the compiled call that calls it).
@@ -318,7 +321,6 @@ def trace_chunk(scene: Scene, tracing: Tracing, pos: np.ndarray, samples: np.nda
     starts = (tracing.seed_key, tracing.ids, pos, samples, start.texels, start.origins,
               start.normals)
     ray_stats = RayStats()
-    acc = tracing.acc
     if tracing.whole is not None and scene.calls is not None:
         trace_whole_paths(scene, tracing.whole, starts, tracing.weights, acc, ray_stats)
     else:
@@ -339,10 +341,10 @@ def trace_texels(scene: Scene, tracing: Tracing, paths: LevelPaths, lo: int, hi:
     """
     index, samples = paths.of(lo, hi)
     sums = PassSums(hi - lo, tracing.settings.channels)
-    chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]], acc=sums)
+    chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]])
     own = PathStarts(np.arange(hi - lo, dtype=np.int64), start.origins[lo:hi],
                      start.normals[lo:hi])
-    return sums, *trace_chunk(scene, chunk, index, samples, own)
+    return sums, *trace_chunk(scene, chunk, index, samples, own, sums)
 
 
 def level_scene(volume: volumes.Volume, iso: float, config: BakeConfig) -> Scene:

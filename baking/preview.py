@@ -402,8 +402,7 @@ def preview_tracing(volume: volumes.Volume, config: BakeConfig) -> Tracing:
     lighting, settings = tracing_lights(config), path_settings(volume, config)
     return Tracing(np.zeros(0, np.int64), lighting, settings,
                    np.uint32(rng.seed_key(config.seed ^ SEED_SALT)),
-                   np.zeros(settings.channels), PassSums(0, settings.channels),
-                   whole_paths(lighting, settings))
+                   np.zeros(settings.channels), whole_paths(lighting, settings))
 
 
 def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths) -> np.ndarray:
@@ -411,7 +410,7 @@ def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths) -> n
     threads as the bake traces its chunks (`passes.trace_chunk`: one compiled call per chunk
     where the lighting allows)."""
     sums = PassSums(len(flat), tracing.settings.channels)
-    tracing = dataclasses.replace(tracing, ids=flat, acc=sums)
+    tracing = dataclasses.replace(tracing, ids=flat)
     start = PathStarts(np.arange(len(flat), dtype=np.int64), origins, normals)
     per_chunk = max(1, CHUNK // paths)
 
@@ -419,7 +418,7 @@ def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths) -> n
         hi = min(lo + per_chunk, len(flat))
         pos = np.repeat(start.texels[lo:hi], paths)
         samples = np.tile(np.arange(paths, dtype=np.int64), hi - lo)
-        trace_chunk(scene, tracing, pos, samples, start)
+        trace_chunk(scene, tracing, pos, samples, start, sums)
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         list(pool.map(run, range(0, len(flat), per_chunk)))
