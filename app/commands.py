@@ -52,7 +52,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise CLIError("render: --out FILE.png or FILE.exr is required (or --state FILE)")
     out = check_output_path(args.out)
     vol = load_volume(args)
-    lattice = load_lattice(args.lattice, vol)
+    lattice = load_lattice(args.lattice, vol, whole=False)
     try:
         view, size = parse_view(args.view), parse_size(args.size)
     except ValueError as exc:
@@ -101,7 +101,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
     """Bake an illumination lattice (resumes when --out holds a compatible one)."""
     from isolume.app.render.images import check_output_path
     from isolume.baking import bake
-    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import LatticeOnFile
 
     out = check_output_path(args.out, (".npz",))
     config = bake_config(args)
@@ -111,8 +111,8 @@ def cmd_bake(args: argparse.Namespace) -> int:
                        scheduler=args.scheduler, outlook=say_outlook)
     except KeyboardInterrupt:
         if out.exists():
-            done = Lattice.load(out)
-            print(f"isolume: interrupted; {int((done.samples > 0).sum()):,} finished texels "
+            done = LatticeOnFile.open(out).held()
+            print(f"isolume: interrupted; {len(done.texels):,} finished texels "
                   f"saved in {out}; run the same command again to resume", file=sys.stderr)
         return 130
     plan, stats = lattice.meta["plan"], lattice.meta["stats"]

@@ -46,8 +46,9 @@ def lattice_radiance(lattice, points: np.ndarray, normals: np.ndarray, albedo,
     """(V, 3) linear radiance albedo·E/π of the lattice's light at the vertices.
 
     Args:
-        lattice: `baking.lattice.Lattice`, irradiance or SH transfer, or the
-            `baking.view_texels.PreviewLattice` of `traced_lattice`.
+        lattice: `baking.lattice.Lattice` or `baking.view_texels.HeldLattice` (a
+            lattice file's computed texels, or `traced_lattice`'s), irradiance or SH
+            transfer.
         points: (V, 3) world positions; normals: (V, 3) unit normals (the lit side).
         albedo: (3,) diffuse reflectance.
         env_coeffs: (m, 3) environment coefficients of an SH lattice
@@ -109,7 +110,7 @@ def traced_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarra
         progress: a tqdm bar on stderr.
 
     Returns:
-        A `baking.view_texels.PreviewLattice` holding the estimates of the texels the
+        A `baking.view_texels.HeldLattice` holding the estimates of the texels the
         vertices' lookups read, and nothing else.
     """
     from tqdm import tqdm
@@ -121,10 +122,10 @@ def traced_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarra
         nearest_points,
         preview_tracing,
     )
-    from isolume.baking.view_texels import PreviewLattice
+    from isolume.baking.view_texels import HeldLattice
 
     texels, nearest = nearest_points(LatticeGeometry.for_volume(volume, config.scale), points)
-    lattice = PreviewLattice.for_texels(volume, config, texels)
+    lattice = HeldLattice.for_texels(volume, config, texels)
     h = float(np.mean(volume.spacing))
     seen = SeenSurface(points, points + config.offset * h * normals, normals, texels, nearest)
     tracing = preview_tracing(volume, config)

@@ -50,6 +50,7 @@ if TYPE_CHECKING:
     from isolume.app.render.settings import RenderSettings
     from isolume.baking.config import BakeConfig
     from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import HeldLattice
 
 HELP = "render a turntable, light-orbit or isovalue-sweep movie off-screen to MP4 or PNG frames"
 DESCRIPTION = """\
@@ -193,7 +194,8 @@ def check_request(args: argparse.Namespace) -> Request:
                    is_folder(args.out), args.crf)
 
 
-def sweep_range(args: argparse.Namespace, vol: volumes.Volume, lattice: Lattice | None,
+def sweep_range(args: argparse.Namespace, vol: volumes.Volume,
+                lattice: Lattice | HeldLattice | None,
                 iso: float) -> tuple[float, float]:
     """(lo, hi) isovalues of a sweep: ``--iso-range``, else the lattice's served range
     (`baking.plan.served_range`), else `SWEEP_FRACTION` of the data range around `iso`;

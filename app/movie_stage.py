@@ -38,7 +38,7 @@ from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
     from isolume.baking.lattice import Lattice
-    from isolume.baking.view_texels import PreviewLattice
+    from isolume.baking.view_texels import HeldLattice
 
 KINDS = ("turntable", "light", "iso")
 """What a movie changes: the camera's azimuth, the light's azimuth, or the isovalue."""
@@ -115,7 +115,7 @@ class LightTurn:
     direction: tuple[float, float, float] | None = None
 
 
-def light_turn(shading: str, lattice: Lattice | None, traced: BakeConfig | None,
+def light_turn(shading: str, lattice: Lattice | HeldLattice | None, traced: BakeConfig | None,
                camera: Camera, settings: RenderSettings, source: str | None,
                asked: str = "--kind light") -> LightTurn:
     """How the light turns for `shading` with `lattice` (from file `source`) or `traced`
@@ -173,7 +173,7 @@ class Scene:
     base: Camera
     normals: str = "smooth"
     flip_normals: bool = False
-    lattice: Lattice | None = None
+    lattice: Lattice | HeldLattice | None = None
     env_coeffs: np.ndarray | None = None
     traced: BakeConfig | None = None
     light: LightTurn | None = None
@@ -233,7 +233,7 @@ class Stage:
         self._texel_iso: np.ndarray | None = None
         self._iso: float | None = None
         self._triangles = 0
-        self._kept: dict[int, PreviewLattice] = {}  # traced light kept for a shot
+        self._kept: dict[int, HeldLattice] = {}  # traced light kept for a shot
         self._traced_scene: tuple[float, object] | None = None  # (iso, Embree scene)
         self._tracing: tuple[BakeConfig, object] | None = None  # (light, preview_tracing)
         if scene.lattice is not None:
@@ -250,7 +250,7 @@ class Stage:
         self.renderer.release()
         self._gl.release()
 
-    def _texel_isovalues(self, lattice: Lattice | PreviewLattice) -> np.ndarray | None:
+    def _texel_isovalues(self, lattice: Lattice | HeldLattice) -> np.ndarray | None:
         """(Z, Y, X) field values at the lattice's texel centres when the shading reads
         them ("irradiance_closest"), computed once."""
         if SHADING_MODES[self.scene.settings.shading].lookup != "closest":

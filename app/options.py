@@ -75,13 +75,17 @@ def isovalue(volume: volumes.Volume, iso: float | None) -> float:
     return volumes.check_isovalue(volume, iso)
 
 
-def load_lattice(path: str | None, volume: volumes.Volume):
-    """The lattice at `path` checked against `volume`, or None."""
+def load_lattice(path: str | None, volume: volumes.Volume, whole: bool = True):
+    """The lattice at `path` checked against `volume`, or None: with `whole`, its computed
+    texels (a `baking.view_texels.HeldLattice`: memory follows them, not the box); else
+    the file opened, no texel read (a `baking.view_texels.LatticeOnFile`: a picture reads
+    the texels its pixels need, `app.render.offscreen.render_volume`)."""
     if path is None:
         return None
-    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import LatticeOnFile
 
-    return Lattice.load(path, volume)
+    opened = LatticeOnFile.open(path, volume)
+    return opened.held() if whole else opened
 
 
 def check_served(lattice, iso: float, source: str | None) -> None:

@@ -6,12 +6,10 @@ carry the values: texel t along an axis sits at ``lo + (t + 1/2) * (hi - lo) / m
 s = 1 texel centres coincide with voxel samples, and a GL texture coordinate is simply
 ``(p - lo) / (hi - lo)`` (the half-texel term is built into GL's texel centres).
 
-File: one ``.npz`` holding ``values [z,y,x,C]`` float32, ``samples [z,y,x]`` uint32,
-``second [z,y,x]`` float32 (per-sample second moment of the luminance, for error
-estimates), ``active [z,y,x]`` bool, ``facing [z,y,x,2]`` uint8 (`Lattice.facing`; a file
-without it loads with every facing unknown, and is looked up as before facings were kept)
-and ``meta`` (JSON). Written atomically (temporary file in the same folder, then rename),
-so an interrupted write never leaves a broken file.
+File: one ``.npz`` holding the arrays of the texels that are active or computed, and
+``meta`` (JSON); `baking.lattice_file` reads and writes it a slab at a time. `Lattice.load`
+reads it dense over the box; a display reads only the texels it shows
+(`baking.view_texels.LatticeOnFile`).
 
 Side-aware lookup (`Lattice.sample` with normals; ``shaders/lattice.glsl`` the same): each
 texel keeps the mean direction its paths started along, its *facing* m (octahedral bytes,
@@ -24,10 +22,7 @@ trilinear mix is kept.
 
 from __future__ import annotations
 
-import json
 import os
-import tempfile
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,8 +32,8 @@ from isolume.baking import octahedral
 from isolume.baking.config import BakeConfig
 from isolume.baking.environment import latlong_pixel_directions
 from isolume.baking.errors import BakeError
+from isolume.baking.lattice_file import LatticeFile, write_lattice
 
-FORMAT_VERSION = 1
 CONFIG_VERSION = 1
 """Version of the bake config a file's metadata holds (``meta["config"]``, written with
 ``meta["config_version"]``); a file without one holds version 1's fields."""
@@ -158,7 +153,7 @@ def shown_lookup(lattice, points_xyz: np.ndarray, normals: np.ndarray | None = N
                  ) -> np.ndarray:
     """(N, C) the shader's lookup at (N, 3) world points of what a display shows of
     `lattice` (a `Lattice`, or anything with its ``geometry``, ``shown``, ``displayed``
-    and ``displayed_facing``: `baking.view_texels.PreviewLattice`): trilinear over the
+    and ``displayed_facing``: `baking.view_texels.HeldLattice`): trilinear over the
     shown texels, renormalised (0 where none is), side-aware (`sided_mix`) with the
     points' (N, 3) unit `normals` turned to the eye."""
     coords = lattice.geometry.to_texel_coords(points_xyz)
@@ -391,79 +386,72 @@ class Lattice:
 
     # -- files -------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
-        """Write atomically to `path` (.npz)."""
-        path = Path(path)
-        meta = dict(self.meta, format_version=FORMAT_VERSION,
-                    shape=list(self.geometry.shape), box_lo=list(self.geometry.lo),
+        """Write atomically to `path` (.npz, `baking.lattice_file`)."""
+        meta = dict(self.meta, shape=list(self.geometry.shape), box_lo=list(self.geometry.lo),
                     box_hi=list(self.geometry.hi))
         if self.config is not None:
             meta.update(config=self.config.to_dict(), config_version=CONFIG_VERSION)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, values=self.values, samples=self.samples,
-                                    second=self.second, active=self.active,
-                                    facing=self.facing, meta=np.array(json.dumps(meta)))
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_lattice(path, {"values": self.values, "samples": self.samples,
+                             "second": self.second, "active": self.active,
+                             "facing": self.facing}, meta)
 
     @classmethod
     def load(cls, path: str | os.PathLike, volume=None) -> Lattice:
-        """Read a lattice file; with `volume`, check that it was baked for that volume.
+        """Read a lattice file, dense over its box; with `volume`, check that it was baked
+        for that volume (before its arrays are read).
 
         Raises:
             BakeError: missing/corrupt file, unknown format version, other volume.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise BakeError(f"{path}: lattice file not found")
-        if not zipfile.is_zipfile(path):
-            raise BakeError(f"{path}: not a lattice file: expected the .npz archive that "
-                            "isolume bake writes")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in ("values", "samples", "second", "active", "meta")}
-                facing = z["facing"] if "facing" in z.files else None
-            meta = json.loads(str(arrays["meta"]))
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
-            raise BakeError(f"{path}: not a readable isolume lattice ({exc})") from None
-        version = meta.get("format_version")
-        if version != FORMAT_VERSION:
-            raise BakeError(f"{path}: lattice format version {version}, this isolume reads "
-                            f"{FORMAT_VERSION}")
-        config = _config_from(meta.pop("config", None),
-                              meta.pop("config_version", CONFIG_VERSION), path)
-        geometry = LatticeGeometry(tuple(meta["shape"]), tuple(meta["box_lo"]),
-                                   tuple(meta["box_hi"]))
+        file, geometry, config = open_lattice(path, volume)
+        arrays = file.read_dense()
         if arrays["values"].shape[:3] != geometry.shape:
             raise BakeError(f"{path}: values of shape {arrays['values'].shape} do not match "
                             f"the lattice shape {geometry.shape}")
-        if facing is not None and (facing.shape != (*geometry.shape, 2)
-                                   or facing.dtype != np.uint8):
-            raise BakeError(f"{path}: facing of shape {facing.shape} and type {facing.dtype} "
-                            f"does not match the lattice shape {geometry.shape} (uint8 codes)")
-        lattice = cls(geometry, arrays["values"], arrays["samples"], arrays["second"],
-                      arrays["active"], meta, config=config, facing=facing)
-        if volume is not None:
-            lattice.check_volume(volume, path)
-        return lattice
+        return cls(geometry, arrays["values"], arrays["samples"], arrays["second"],
+                   arrays["active"], file.meta, config=config, facing=arrays["facing"])
 
     def check_volume(self, volume, path: str | os.PathLike = "lattice") -> None:
         """Raise BakeError unless this lattice was baked for `volume`."""
-        want = self.meta.get("volume", {})
-        if want.get("hash") != volume.data_hash():
-            shape = list(volume.data.shape)
-            same_file = want.get("source") and want.get("source") == volume.source
-            hint = ("the same file, placed otherwise: load it with the --up (and --dims, "
-                    "--dtype, --crop, --downsample, --level) the bake was given"
-                    if same_file else "bake it for this volume")
-            raise BakeError(
-                f"{path}: baked for volume {want.get('name')!r} of shape {want.get('shape')} "
-                f"(hash {str(want.get('hash'))[:12]}), not for {volume.name!r} of shape "
-                f"{shape} (hash {volume.data_hash()[:12]}); {hint}"
-            )
+        check_identity(self.meta, volume, path)
+
+
+def open_lattice(path: str | os.PathLike, volume=None
+                 ) -> tuple[LatticeFile, LatticeGeometry, BakeConfig | None]:
+    """A lattice file opened (`baking.lattice_file.LatticeFile`; its meta without the
+    bake config's dict), its geometry and bake config; with `volume`, checked to be baked
+    for it. No texel is read.
+
+    Raises:
+        BakeError: missing/corrupt file, unknown format version, other volume.
+    """
+    file = LatticeFile.open(path)
+    meta = file.meta
+    config = _config_from(meta.pop("config", None), meta.pop("config_version", CONFIG_VERSION),
+                          file.path)
+    try:
+        geometry = LatticeGeometry(file.shape, tuple(meta["box_lo"]), tuple(meta["box_hi"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BakeError(f"{path}: not a readable isolume lattice ({exc})") from None
+    if volume is not None:
+        check_identity(meta, volume, path)
+    return file, geometry, config
+
+
+def check_identity(meta: dict, volume, path: str | os.PathLike = "lattice") -> None:
+    """Raise BakeError unless the lattice of metadata `meta` was baked for `volume`."""
+    want = meta.get("volume", {})
+    if want.get("hash") != volume.data_hash():
+        shape = list(volume.data.shape)
+        same_file = want.get("source") and want.get("source") == volume.source
+        hint = ("the same file, placed otherwise: load it with the --up (and --dims, "
+                "--dtype, --crop, --downsample, --level) the bake was given"
+                if same_file else "bake it for this volume")
+        raise BakeError(
+            f"{path}: baked for volume {want.get('name')!r} of shape {want.get('shape')} "
+            f"(hash {str(want.get('hash'))[:12]}), not for {volume.name!r} of shape "
+            f"{shape} (hash {volume.data_hash()[:12]}); {hint}"
+        )
 
 
 def _config_from(d: dict | None, version: int, path: Path) -> BakeConfig | None:

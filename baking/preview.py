@@ -101,7 +101,7 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
              workers: int = 1, seen: SeenSurface | None = None) -> None:
     """Trace `paths` paths from each texel `flat` (K,) and store the means as the texels'
     previews (`store_preview` of a `Lattice` whose ``preview`` and ``preview_paths`` are
-    set, or of a `baking.view_texels.PreviewLattice` holding the texels) for the surface
+    set, or of a `baking.view_texels.HeldLattice` holding the texels) for the surface
     ρ = `iso` (whose `scene` has the given marching-cubes `step`); `tracing` is
     `preview_tracing` (volume, config).
 

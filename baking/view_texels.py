@@ -1,32 +1,46 @@
-"""A lattice that holds previews at a fixed set of texels only: a view's traced light.
+"""A lattice that holds light at a fixed set of texels only: a view's traced light, or the
+texels of a lattice file that a picture reads.
 
-One picture's light (``isolume render`` without a lattice file, a movie's frames) needs the
-texels its pixels read — a few hundred thousand of a box that may hold a hundred million.
-`PreviewLattice` keeps their estimates in arrays over those texels (sorted flat ids), so
-its memory follows the picture, and answers what a display reads of a `baking.Lattice`:
+One picture's light (``isolume render``, a movie's frames) needs the texels its pixels
+read — a few hundred thousand of a box that may hold a hundred million. `HeldLattice`
+keeps their estimates in arrays over those texels (sorted flat ids), so its memory follows
+the picture, and answers what a display reads of a `baking.Lattice`:
 `shown`, `displayed` and `displayed_facing` over a z-slab or at index arrays
 (`app.render.lattice_gl` uploads from them, `baking.lattice.shown_lookup` looks it up on
 the CPU), and `store_preview` (what `baking.preview.estimate` writes). ``export`` holds
-the light of a whole surface the same way.
+the light of a whole surface the same way. `LatticeOnFile.held` takes the texels it is asked
+for from a lattice file (their baked means, `paths` their samples), reading the file a slab
+at a time: a picture of a 512³ bake reads a few hundred thousand of its 41 million active
+texels.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from isolume.baking.config import BakeConfig
-from isolume.baking.lattice import TRAPPED_PATHS, LatticeGeometry, drop_trapped, sky_everywhere
+from isolume.baking.lattice import (
+    TRAPPED_PATHS,
+    LatticeGeometry,
+    drop_trapped,
+    open_lattice,
+    sky_everywhere,
+)
+from isolume.baking.lattice_file import LatticeFile
 
 
-class PreviewLattice:
-    """Previews at (K,) texels of a lattice's geometry, nothing elsewhere.
+class HeldLattice:
+    """Estimates at (K,) texels of a lattice's geometry, nothing elsewhere.
 
     Attributes:
         geometry: texel placement (the whole lattice's).
         texels: (K,) sorted unique flat [z, y, x] ids of the texels held.
-        values: (K, C) float32 preview estimates (irradiance or SH transfer).
-        facing: (K, 2) uint8 octahedral codes of the previews' start normals.
-        paths: (K,) uint16 paths behind each preview (0: none; not shown).
+        values: (K, C) float32 estimates (irradiance or SH transfer).
+        facing: (K, 2) uint8 octahedral codes of their paths' start normals.
+        paths: (K,) uint16 (previews) or uint32 (a file's samples) paths behind each
+            estimate (0: none; not shown).
         meta, config: as `baking.Lattice`'s (kind, volume identity; the lighting).
     """
 
@@ -43,7 +57,7 @@ class PreviewLattice:
         self.config = config
 
     @classmethod
-    def for_texels(cls, volume, config: BakeConfig, texels: np.ndarray) -> PreviewLattice:
+    def for_texels(cls, volume, config: BakeConfig, texels: np.ndarray) -> HeldLattice:
         """Nothing yet at (K,) sorted flat `texels` of the lattice of `volume` baked with
         `config` (its geometry and metadata, as `baking.bake` makes them)."""
         from isolume.baking.bake import lattice_meta, path_settings
@@ -128,3 +142,51 @@ class PreviewLattice:
         if not len(self.texels):
             return np.zeros((*rows.shape, held.shape[1]), held.dtype)
         return np.where(shown[..., None], held[rows], 0).astype(held.dtype)
+
+
+@dataclass(frozen=True)
+class LatticeOnFile:
+    """A lattice file opened and checked against its volume, no texel read: what a
+    display knows of a lattice before its view says which texels it reads.
+
+    Attributes:
+        file: the opened file (`baking.lattice_file.LatticeFile`; its ``meta`` without
+            the bake config's dict).
+        geometry: its texel placement.
+        config: its bake config, or None.
+    """
+
+    file: LatticeFile
+    geometry: LatticeGeometry
+    config: BakeConfig | None
+
+    @classmethod
+    def open(cls, path, volume=None) -> LatticeOnFile:
+        """`path` opened; with `volume`, checked to be baked for it.
+
+        Raises:
+            BakeError: as `baking.Lattice.load`.
+        """
+        return cls(*open_lattice(path, volume))
+
+    @property
+    def meta(self) -> dict:
+        """The file's metadata (as `baking.Lattice.meta`)."""
+        return self.file.meta
+
+    @property
+    def kind(self) -> str:
+        return self.meta.get("kind", "irradiance")
+
+    def held(self, texels: np.ndarray | None = None) -> HeldLattice:
+        """The computed texels among (K,) sorted flat ids `texels` (None: all), read from
+        the file a slab at a time: their means, facings and samples (as `paths`)."""
+        ids, arrays = self.file.read_texels(None if texels is None
+                                            else np.asarray(texels, np.int64))
+        computed = arrays["samples"] > 0
+        lattice = HeldLattice(self.geometry, ids[computed], arrays["values"].shape[1],
+                              self.meta, self.config)
+        lattice.values = arrays["values"][computed]
+        lattice.facing = arrays["facing"][computed]
+        lattice.paths = arrays["samples"][computed]
+        return lattice

@@ -353,7 +353,7 @@ def test_lattice_metadata(tmp_path):
     bake(vol, config, out=path)
     lattice = Lattice.load(path, vol)
     meta = lattice.meta
-    assert meta["format_version"] == 1 and meta["kind"] == "irradiance"
+    assert meta["format_version"] == 2 and meta["kind"] == "irradiance"
     assert meta["volume"]["shape"] == [24, 24, 24] and meta["volume"]["hash"] == vol.data_hash()
     assert lattice.config == config and "config" not in meta
     assert meta["rays_traced"] > 0 and meta["trace_seconds"] > 0

@@ -7,7 +7,7 @@ half-maximum isosurface with their normals (pointing out of the solid: towards a
 outside it), at 1 texel per voxel.
 """
 
-import zipfile
+import json
 
 import numpy as np
 import pytest
@@ -137,11 +137,12 @@ def test_facings_survive_a_file_and_old_files_load_without_them(tmp_path):
     path = tmp_path / "plate.npz"
     lattice.save(path)
     np.testing.assert_array_equal(Lattice.load(path).facing, lattice.facing)
-    old = tmp_path / "old.npz"  # as written before facings were kept
-    with zipfile.ZipFile(path) as src, zipfile.ZipFile(old, "w") as dst:
-        for item in src.infolist():
-            if item.filename != "facing.npy":
-                dst.writestr(item, src.read(item.filename))
+    old = tmp_path / "old.npz"  # format version 1, as written before facings were kept
+    meta = dict(lattice.meta, format_version=1, shape=list(lattice.geometry.shape),
+                box_lo=list(lattice.geometry.lo), box_hi=list(lattice.geometry.hi))
+    np.savez_compressed(old, values=lattice.values, samples=lattice.samples,
+                        second=lattice.second, active=lattice.active,
+                        meta=np.array(json.dumps(meta)))
     loaded = Lattice.load(old)
     assert loaded.facing.shape == (*lattice.geometry.shape, 2) and not loaded.facing.any()
     assert not loaded.facing_known()

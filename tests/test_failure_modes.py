@@ -254,7 +254,7 @@ def test_texels_lit_in_a_sealed_pocket_are_trapped_and_not_shown():
 def test_a_texel_is_trapped_by_what_a_display_shows_of_it():
     """The rule reads the light a display shows (the preview where it rests on more paths
     than the texel's own samples) and the paths behind it: five texels of one row, in a
-    lattice and in a view's `PreviewLattice`."""
+    lattice and in a view's `HeldLattice`."""
     from isolume.baking.lattice import Lattice, LatticeGeometry
 
     lattice = Lattice.empty(LatticeGeometry((1, 1, 5), (0, 0, 0), (5, 1, 1)), 3, {},
@@ -268,9 +268,9 @@ def test_a_texel_is_trapped_by_what_a_display_shows_of_it():
     np.testing.assert_array_equal(lattice.shown()[0, 0], [False, True, False, True, False])
     np.testing.assert_array_equal(lattice.shown((0, 0, np.array([0, 3]))),
                                   [False, True])
-    from isolume.baking.view_texels import PreviewLattice
+    from isolume.baking.view_texels import HeldLattice
 
-    view = PreviewLattice(lattice.geometry, np.array([0, 1, 3]), 3, {}, BakeConfig(env="sky"))
+    view = HeldLattice(lattice.geometry, np.array([0, 1, 3]), 3, {}, BakeConfig(env="sky"))
     view.store_preview(np.array([0, 1, 3]), np.array([64, 8, 64]),
                        np.array([[0, 0, 0], [0, 0, 0], [1, 1, 1]], np.float32),
                        np.zeros((3, 2), np.uint8))  # 64 dark paths, 8 dark ones, 64 lit

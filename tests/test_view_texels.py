@@ -1,4 +1,4 @@
-"""`baking.view_texels.PreviewLattice`: previews at a set of texels answer as a dense
+"""`baking.view_texels.HeldLattice`: previews at a set of texels answer as a dense
 lattice holding the same previews does."""
 
 from __future__ import annotations
@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 
 from isolume.baking.lattice import Lattice, LatticeGeometry
-from isolume.baking.view_texels import PreviewLattice
+from isolume.baking.view_texels import HeldLattice
 
 
 def _pair(seed: int = 4):
-    """A PreviewLattice and a dense Lattice with the same previews at random texels (a
+    """A HeldLattice and a dense Lattice with the same previews at random texels (a
     tenth of them traced with no path)."""
     geometry = LatticeGeometry((11, 13, 17), (0.0,) * 3, (1.0,) * 3)
     rng = np.random.default_rng(seed)
     texels = np.sort(rng.choice(11 * 13 * 17, 400, replace=False))
-    sparse = PreviewLattice(geometry, texels, 3, {"kind": "irradiance"})
+    sparse = HeldLattice(geometry, texels, 3, {"kind": "irradiance"})
     dense = Lattice.empty(geometry, 3, {"kind": "irradiance"})
     dense.preview = np.zeros((*geometry.shape, 3), np.float32)
     dense.preview_paths = np.zeros(geometry.shape, np.uint16)
@@ -50,4 +50,4 @@ def test_it_holds_only_its_texels():
     with pytest.raises(ValueError, match="does not hold"):
         sparse.store_preview(missing, np.full(3, 8), np.ones((3, 3)), np.ones((3, 2)))
     with pytest.raises(ValueError, match="sorted"):
-        PreviewLattice(sparse.geometry, np.array([5, 3]), 3, {})
+        HeldLattice(sparse.geometry, np.array([5, 3]), 3, {})

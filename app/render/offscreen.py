@@ -9,6 +9,7 @@ from isolume.app.render.camera import Camera
 from isolume.app.render.glcontext import create_headless
 from isolume.app.render.renderer import SurfaceRenderer, framed_camera
 from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
+from isolume.baking.view_texels import LatticeOnFile
 
 
 def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarray | None:
@@ -19,6 +20,24 @@ def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarra
     from isolume.baking.plan import texel_values
 
     return texel_values(volume, lattice.geometry)
+
+
+def _read_texels(renderer: SurfaceRenderer, camera: Camera, settings: RenderSettings,
+                 geometry) -> np.ndarray | None:
+    """(K,) sorted flat ids of the texels of `geometry` that the picture of `camera` reads:
+    the corners of the lattice cells under its visible pixels (a position pass); None (all)
+    for a lookup that reads further than a cell's corners (the B-spline's 4³)."""
+    from dataclasses import replace
+
+    from isolume.baking.lazy import visible_cells
+    from isolume.baking.preview import cell_corners
+
+    mode = SHADING_MODES.get(settings.shading)
+    if mode is not None and mode.lookup == "bspline":
+        return None
+    position = renderer.render(camera, replace(settings, shading="position",
+                                               auto_exposure=False))
+    return cell_corners(geometry.shape, visible_cells(geometry, position.linear[position.mask]))
 
 
 def render_volume(
@@ -41,7 +60,9 @@ def render_volume(
     from `camera`, or (None) from the orbit `view` (azimuth, elevation degrees, distance
     in diagonals or None) around the surface's box (`framed_camera`).
 
-    `lattice` (a `baking.Lattice`) is needed by the lattice shading modes, `env_coeffs`
+    `lattice` (a `baking.Lattice`, a `baking.view_texels.HeldLattice`, or a
+    `baking.view_texels.LatticeOnFile` whose texels under the visible pixels are read after
+    a position pass) is needed by the lattice shading modes, `env_coeffs`
     ((n², 3) SH coefficients of the environment) by "sh". Without a lattice, `view_light`
     (a `baking.config.BakeConfig`) lights this view instead: a position pass finds the
     visible surface and `app.render.view_gi.view_lattice` traces the texels it reads (`workers`
@@ -60,7 +81,9 @@ def render_volume(
         renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_bounds(*volume.box)
         camera = camera or framed_camera(volume, iso, view, settings.size)
-        if lattice is None and view_light is not None and len(mesh.faces):
+        if isinstance(lattice, LatticeOnFile):  # read the texels the pixels read
+            lattice = lattice.held(_read_texels(renderer, camera, settings, lattice.geometry))
+        elif lattice is None and view_light is not None and len(mesh.faces):
             from dataclasses import replace
 
             from isolume.app.render.view_gi import view_lattice

@@ -50,7 +50,7 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
             displayed mesh, a movie's several views); None: made here.
 
     Returns:
-        A `baking.view_texels.PreviewLattice` holding the estimates of the texels the
+        A `baking.view_texels.HeldLattice` holding the estimates of the texels the
         picture reads, and nothing else (its memory follows them, not the volume's box).
     """
     import os
@@ -64,11 +64,11 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
         seen_surface,
         surface_scene,
     )
-    from isolume.baking.view_texels import PreviewLattice
+    from isolume.baking.view_texels import HeldLattice
 
     geometry = LatticeGeometry.for_volume(volume, config.scale)
     texels = cell_corners(geometry.shape, visible_cells(geometry, points))
-    lattice = PreviewLattice.for_texels(volume, config, texels)
+    lattice = HeldLattice.for_texels(volume, config, texels)
     report = _Progress(progress, int(config.samples), len(texels))
     if scene is None and len(texels):
         scene = surface_scene(volume, iso, 1)

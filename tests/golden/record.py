@@ -71,8 +71,12 @@ def _digest(*arrays: np.ndarray) -> str:
 
 
 def _lattice_digest(path: Path) -> str:
-    with np.load(path, allow_pickle=False) as f:
-        return _digest(*(f[k] for k in sorted(f.files) if k != "meta"))
+    """The lattice's arrays dense over its box, in name order (whatever the file's layout)."""
+    from isolume.baking.lattice import Lattice
+
+    lattice = Lattice.load(path)
+    return _digest(*(getattr(lattice, k) for k in ("active", "facing", "samples", "second",
+                                                    "values")))
 
 
 def _picture_digest(path: Path) -> str:

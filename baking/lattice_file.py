@@ -1,0 +1,288 @@
+"""A lattice's file: the texels it holds, packed, read and written a slab at a time.
+
+An ``.npz`` archive (zip, deflated) of format version `FORMAT_VERSION`:
+
+- ``held``: (ceil(Z·Y·X / 8),) uint8, `numpy.packbits` of the (Z, Y, X) bool mask, in C
+  order, of the texels the file holds: those active or computed (a lattice's other texels
+  are zero, inactive and of unknown facing).
+- ``values`` (N, C) float32, ``samples`` (N,) uint32, ``second`` (N,) float32, ``active``
+  (N,) bool, ``facing`` (N, 2) uint8: the `baking.lattice.Lattice` arrays of the N held
+  texels, in flat [z, y, x] order.
+- ``meta``: JSON (format version, box shape and corners, kind, volume identity, statistics,
+  bake config).
+
+So a file's size follows the active texels, not the lattice's box. Members are written and
+read in slabs of z-layers (`SLAB_TEXELS`): neither writing a lattice nor reading part of
+one makes a copy of its held texels, and a display can read only the texels it shows
+(`read_texels`). Files of `DENSE_VERSION` (every array dense over the box, ``facing``
+optional) are still read. A member whose header disagrees with ``held`` or ``meta`` is
+refused before it is read.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from isolume.baking.errors import BakeError
+
+FORMAT_VERSION = 2
+DENSE_VERSION = 1
+"""The format version whose arrays are dense over the lattice's box."""
+SLAB_TEXELS = 1 << 22
+"""Texels of the box per slab of z-layers a member is written or read in."""
+MEMBERS = {"values": np.float32, "samples": np.uint32, "second": np.float32,
+           "active": np.bool_, "facing": np.uint8}
+"""The per-texel arrays a file holds, with their types."""
+_READ_ERRORS = (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError)
+
+
+def _tail(name: str) -> tuple[int | None, ...]:
+    """Per-texel shape of member `name` (None: any size ≥ 1, the values' channels)."""
+    return {"values": (None,), "facing": (2,)}.get(name, ())
+
+
+def _slabs(shape: tuple[int, int, int]) -> Iterator[slice]:
+    """Slices of z covering a (Z, Y, X) box, `SLAB_TEXELS` texels or one layer each."""
+    step = max(1, SLAB_TEXELS // max(1, shape[1] * shape[2]))
+    for z0 in range(0, shape[0], step):
+        yield slice(z0, min(z0 + step, shape[0]))
+
+
+def write_lattice(path: str | os.PathLike, arrays: dict[str, np.ndarray], meta: dict) -> None:
+    """Write `arrays` (the `MEMBERS`, dense over a (Z, Y, X) box: values (Z, Y, X, C),
+    facing (Z, Y, X, 2), the others (Z, Y, X)) and `meta` (JSON-ready) to `path`,
+    atomically (a temporary file in the same folder, then renamed): an interrupted write
+    never leaves a broken file."""
+    path = Path(path)
+    held = arrays["active"] | (arrays["samples"] > 0)
+    count = int(np.count_nonzero(held))
+    meta = dict(meta, format_version=FORMAT_VERSION)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED,
+                                                      allowZip64=True) as zf:
+            _write_whole(zf, "held", np.packbits(held.reshape(-1)))
+            for name, dtype in MEMBERS.items():
+                array = arrays[name]
+                with zf.open(name + ".npy", "w", force_zip64=True) as member:
+                    _write_header(member, np.dtype(dtype), (count, *array.shape[3:]))
+                    for z in _slabs(held.shape):
+                        member.write(np.ascontiguousarray(array[z][held[z]], dtype).tobytes())
+            _write_whole(zf, "meta", np.array(json.dumps(meta)))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _write_whole(zf: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
+    """One whole array as member `name`.npy."""
+    with zf.open(name + ".npy", "w", force_zip64=True) as member:
+        np.lib.format.write_array(member, array, allow_pickle=False)
+
+
+def _write_header(member, dtype: np.dtype, shape: tuple[int, ...]) -> None:
+    """The .npy header of a C-ordered array of `dtype` and `shape` whose data follows."""
+    np.lib.format.write_array_header_1_0(member, {
+        "descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+        "shape": shape})
+
+
+@dataclass(frozen=True)
+class LatticeFile:
+    """A lattice file opened and checked, its arrays not read.
+
+    Attributes:
+        path: the file.
+        meta: its metadata (as `baking.lattice.Lattice.meta`, the bake config's dict and
+            version still in it under ``config`` and ``config_version``).
+        shape: (Z, Y, X) texels of the lattice's box.
+        version: its format version (`FORMAT_VERSION` or `DENSE_VERSION`).
+    """
+
+    path: Path
+    meta: dict
+    shape: tuple[int, int, int]
+    version: int
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> LatticeFile:
+        """Read and check `path`'s metadata.
+
+        Raises:
+            BakeError: missing file, not a lattice file, unknown format version.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise BakeError(f"{path}: lattice file not found")
+        if not zipfile.is_zipfile(path):
+            raise BakeError(f"{path}: not a lattice file: expected the .npz archive that "
+                            "isolume bake writes")
+        try:
+            with zipfile.ZipFile(path) as zf, zf.open("meta.npy") as member:
+                meta = json.loads(str(np.lib.format.read_array(member, allow_pickle=False)))
+            shape = tuple(int(n) for n in meta["shape"])
+        except (*_READ_ERRORS, TypeError) as exc:
+            raise BakeError(f"{path}: not a readable isolume lattice ({exc})") from None
+        version = meta.get("format_version")
+        if version not in (FORMAT_VERSION, DENSE_VERSION):
+            raise BakeError(f"{path}: lattice format version {version}, this isolume reads "
+                            f"{DENSE_VERSION} and {FORMAT_VERSION}")
+        if len(shape) != 3 or min(shape) < 1:
+            raise BakeError(f"{path}: lattice shape {meta['shape']}: expected three sizes ≥ 1")
+        return cls(path, meta, shape, int(version))
+
+    def read_dense(self) -> dict[str, np.ndarray | None]:
+        """The `MEMBERS` dense over the box (values (Z, Y, X, C), facing (Z, Y, X, 2), the
+        others (Z, Y, X); texels not held zero, facing unknown). A file of `DENSE_VERSION`
+        without ``facing`` gives None for it.
+
+        Raises:
+            BakeError: a member missing, of another type or shape, or cut short.
+        """
+        try:
+            with zipfile.ZipFile(self.path) as zf:
+                held = None if self.version == DENSE_VERSION else self._held(zf)
+                out = {}
+                for name in MEMBERS:
+                    if held is None and name == "facing" and "facing.npy" not in zf.namelist():
+                        out[name] = None
+                        continue
+                    with self._member(zf, name, held) as rows:
+                        out[name] = np.zeros((*self.shape, *rows.tail), rows.dtype)
+                        for z in _slabs(self.shape):
+                            if held is None:
+                                out[name][z] = rows.read(z.stop - z.start)
+                            else:
+                                out[name][z][held[z]] = rows.read(int(np.count_nonzero(held[z])))
+                return out
+        except _READ_ERRORS as exc:
+            raise BakeError(f"{self.path}: not a readable isolume lattice ({exc})") from None
+
+    def read_texels(self, texels: np.ndarray | None,
+                    names: tuple[str, ...] = ("values", "samples", "facing")
+                    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The members `names` at the held texels among (K,) sorted flat ids `texels`
+        (None: every held texel), read a slab at a time.
+
+        Returns:
+            ((M,) int64 sorted flat ids of the texels read, {name: (M, …) array}).
+
+        Raises:
+            BakeError: as `read_dense`.
+        """
+        if self.version == DENSE_VERSION:
+            return self._dense_texels(texels, names)
+        try:
+            with zipfile.ZipFile(self.path) as zf:
+                held = self._held(zf)
+                picks = list(self._picks(held, texels))
+                out = {}
+                for name in names:
+                    with self._member(zf, name, held) as rows:
+                        out[name] = np.concatenate(
+                            [rows.read(count)[chosen] for _, chosen, count in picks])
+                return np.concatenate([p[0] for p in picks]), out
+        except _READ_ERRORS as exc:
+            raise BakeError(f"{self.path}: not a readable isolume lattice ({exc})") from None
+
+    def _dense_texels(self, texels: np.ndarray | None, names: tuple[str, ...]
+                      ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """`read_texels` of a `DENSE_VERSION` file (read whole)."""
+        dense = self.read_dense()
+        if dense["facing"] is None:
+            dense["facing"] = np.zeros((*self.shape, 2), np.uint8)
+        held = (dense["active"] | (dense["samples"] > 0)).reshape(-1)
+        ids = np.flatnonzero(held) if texels is None else \
+            np.asarray(texels, np.int64)[held[np.asarray(texels, np.int64)]]
+        return ids, {n: dense[n].reshape(len(held), *dense[n].shape[3:])[ids] for n in names}
+
+    def _picks(self, held: np.ndarray, texels: np.ndarray | None
+               ) -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
+        """Per slab of `held` (Z, Y, X) bool, first to last: (flat ids of the texels read,
+        their rows among the slab's held texels, the slab's held count)."""
+        layer = self.shape[1] * self.shape[2]
+        for z in _slabs(self.shape):
+            local = np.flatnonzero(held[z])
+            if texels is None:
+                yield local + z.start * layer, np.arange(len(local)), len(local)
+                continue
+            lo, hi = np.searchsorted(texels, [z.start * layer, z.stop * layer])
+            want = np.asarray(texels[lo:hi], np.int64) - z.start * layer
+            rows = np.minimum(np.searchsorted(local, want), max(len(local) - 1, 0))
+            hit = local[rows] == want if len(local) else np.zeros(len(want), bool)
+            yield want[hit] + z.start * layer, rows[hit], len(local)
+
+    def _held(self, zf: zipfile.ZipFile) -> np.ndarray:
+        """(Z, Y, X) bool mask of the held texels."""
+        total = self.shape[0] * self.shape[1] * self.shape[2]
+        with zf.open("held.npy") as member:
+            rows = _Rows(member, "held", np.uint8).check((-(-total // 8),), (), self.path)
+            packed = rows.read(-(-total // 8))
+        return np.unpackbits(packed, count=total).astype(bool).reshape(self.shape)
+
+    def _member(self, zf: zipfile.ZipFile, name: str, held: np.ndarray | None) -> _Rows:
+        """Member `name`'s rows, its header checked: rows of the held texels (`held`'s
+        count), or of z-layers of the box (`held` None: a `DENSE_VERSION` file)."""
+        lead = self.shape if held is None else (int(np.count_nonzero(held)),)
+        member = zf.open(name + ".npy")
+        try:
+            return _Rows(member, name, MEMBERS[name]).check(lead, _tail(name), self.path)
+        except BaseException:
+            member.close()
+            raise
+
+
+class _Rows:
+    """The rows of one .npy member (along its first axis), read in order without loading
+    it whole."""
+
+    def __init__(self, member, name: str, dtype) -> None:
+        self.member, self.name, self.want = member, name, np.dtype(dtype)
+        version = np.lib.format.read_magic(member)
+        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0)
+        self.shape, self.fortran, self.dtype = read_header(member)
+        self.tail: tuple[int, ...] = ()
+        self.row = 0
+
+    def check(self, lead: tuple[int, ...], tail: tuple[int | None, ...], path: Path
+              ) -> _Rows:
+        """Self, if the member is a C-ordered array of the expected type whose shape is
+        `lead` then `tail` (None in `tail`: any size ≥ 1).
+
+        Raises:
+            BakeError: naming the member, its shape and type, and what was expected.
+        """
+        shape = tuple(self.shape)
+        fits = (len(shape) == len(lead) + len(tail) and shape[:len(lead)] == tuple(lead)
+                and all((t is None and n >= 1) or n == t
+                        for n, t in zip(shape[len(lead):], tail, strict=True)))
+        if self.fortran or self.dtype != self.want or not fits:
+            expected = ", ".join([*map(str, lead), *("C" if t is None else str(t) for t in tail)])
+            raise BakeError(f"{path}: {self.name} of shape {shape} and type {self.dtype} does "
+                            f"not match the lattice (expected ({expected}) of {self.want})")
+        self.tail = shape[len(lead):]
+        self.row = int(np.prod(shape[1:], dtype=np.int64)) * self.dtype.itemsize
+        return self
+
+    def read(self, count: int) -> np.ndarray:
+        """The next `count` rows."""
+        data = self.member.read(count * self.row)
+        if len(data) != count * self.row:
+            raise EOFError(f"{self.name} ends early")
+        return np.frombuffer(data, self.dtype).reshape(count, *self.shape[1:]).copy()
+
+    def __enter__(self) -> _Rows:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.member.close()

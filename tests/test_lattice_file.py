@@ -1,0 +1,160 @@
+"""`baking.lattice_file`: a lattice file holds its active or computed texels only, written
+and read a slab at a time; a display reads the texels it is asked for."""
+
+import json
+
+import numpy as np
+import pytest
+
+from isolume.baking import BakeConfig, BakeError, Lattice, bake, lattice_file
+from isolume.baking.lattice import LatticeGeometry
+from isolume.baking.view_texels import LatticeOnFile
+from isolume.volumes.synthetic import make
+
+
+@pytest.fixture
+def small_slabs(monkeypatch):
+    """Slabs of 3 z-layers of the 11 × 13 boxes below: several slabs, a short last one."""
+    monkeypatch.setattr(lattice_file, "SLAB_TEXELS", 3 * 11 * 13)
+
+
+def _random_lattice(channels: int = 3, seed: int = 0, config=None) -> Lattice:
+    """A (10, 11, 13) lattice: 30 % of texels active, 70 % of those computed, one computed
+    texel outside the active set (a lazy bake's previews can leave those), random arrays."""
+    rng = np.random.default_rng(seed)
+    geometry = LatticeGeometry((10, 11, 13), (0.0, 0.0, 0.0), (1.0, 1.1, 1.3))
+    lattice = Lattice.empty(geometry, channels, {"kind": "irradiance"}, config=config)
+    lattice.active[...] = rng.random(geometry.shape) < 0.3
+    computed = lattice.active & (rng.random(geometry.shape) < 0.7)
+    computed[9, 10, 12] = True
+    n = int(computed.sum())
+    lattice.samples[computed] = rng.integers(1, 200, n)
+    lattice.values[computed] = rng.random((n, channels))
+    lattice.second[computed] = rng.random(n)
+    lattice.facing[computed] = rng.integers(1, 255, (n, 2))
+    return lattice
+
+
+def _same(a: Lattice, b: Lattice) -> None:
+    for name in ("values", "samples", "second", "active", "facing"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert getattr(a, name).dtype == getattr(b, name).dtype, name
+
+
+@pytest.mark.parametrize("channels", [3, 27])
+def test_a_lattice_comes_back_the_same_and_its_file_holds_only_its_texels(
+        tmp_path, small_slabs, channels):
+    lattice = _random_lattice(channels)
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    _same(Lattice.load(path), lattice)
+    held = lattice.active | (lattice.samples > 0)
+    with np.load(path) as z:
+        assert z["values"].shape == (held.sum(), channels)
+        assert z["facing"].shape == (held.sum(), 2)
+        np.testing.assert_array_equal(np.unpackbits(z["held"], count=held.size), held.ravel())
+        assert json.loads(str(z["meta"]))["format_version"] == lattice_file.FORMAT_VERSION
+
+
+def test_a_display_reads_the_computed_texels_it_asks_for(tmp_path, small_slabs):
+    lattice = _random_lattice()
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    rng = np.random.default_rng(1)
+    asked = np.sort(rng.choice(lattice.samples.size, 600, replace=False))
+    asked = np.union1d(asked, [0, lattice.samples.size - 1])  # both ends of the box
+    opened = LatticeOnFile.open(path)
+    computed = (lattice.samples > 0).ravel()
+    for texels, want in ((asked, asked[computed[asked]]), (None, np.flatnonzero(computed))):
+        held = opened.held(texels)
+        np.testing.assert_array_equal(held.texels, want)
+        np.testing.assert_array_equal(held.values, lattice.values.reshape(-1, 3)[want])
+        np.testing.assert_array_equal(held.facing, lattice.facing.reshape(-1, 2)[want])
+        np.testing.assert_array_equal(held.paths, lattice.samples.ravel()[want])
+
+
+def test_the_texels_read_show_what_the_whole_lattice_shows(tmp_path, small_slabs):
+    """Under a sky from every direction (the trapped-texel rule applies), a `HeldLattice`
+    read from the file answers `shown`, `displayed` and `displayed_facing` like the dense
+    lattice over z-slabs and at index arrays — exactly zero light on 64+ paths included."""
+    lattice = _random_lattice(config=BakeConfig(env="constant:1,1,1"))
+    trapped = np.argwhere(lattice.samples > 0)[:5]
+    lattice.samples[tuple(trapped.T)] = 64
+    lattice.values[tuple(trapped.T)] = 0
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    dense, held = Lattice.load(path), LatticeOnFile.open(path).held()
+    assert held.config == lattice.config
+    assert not dense.shown()[tuple(trapped.T)].any()
+    rng = np.random.default_rng(2)
+    at = tuple(rng.integers(0, n, 500) for n in lattice.geometry.shape)
+    for region in (np.s_[2:7], at):
+        np.testing.assert_array_equal(held.shown(region), dense.shown(region))
+        shown = dense.shown(region)
+        np.testing.assert_array_equal(held.displayed(region)[shown],
+                                      dense.displayed(region)[shown])
+        np.testing.assert_array_equal(held.displayed_facing(region)[shown],
+                                      dense.displayed_facing(region)[shown])
+
+
+def test_a_file_of_dense_arrays_still_loads(tmp_path):
+    """A file of format version 1 (every array dense over the box; ``facing`` optional)."""
+    lattice = _random_lattice()
+    meta = {"kind": "irradiance", "format_version": lattice_file.DENSE_VERSION,
+            "shape": [10, 11, 13], "box_lo": [0, 0, 0], "box_hi": [1.0, 1.1, 1.3]}
+    arrays = {n: getattr(lattice, n) for n in ("values", "samples", "second", "active")}
+    np.savez_compressed(tmp_path / "old.npz", **arrays, facing=lattice.facing,
+                        meta=np.array(json.dumps(meta)))
+    _same(Lattice.load(tmp_path / "old.npz"), lattice)
+    held = LatticeOnFile.open(tmp_path / "old.npz").held()
+    np.testing.assert_array_equal(held.texels, np.flatnonzero(lattice.samples > 0))
+    np.savez_compressed(tmp_path / "older.npz", **arrays, meta=np.array(json.dumps(meta)))
+    assert not Lattice.load(tmp_path / "older.npz").facing.any()  # every facing unknown
+
+
+def _rewritten(path, tmp_path, name: str, array: np.ndarray):
+    """A copy of the lattice file `path` with member `name` replaced by `array`."""
+    with np.load(path) as z:
+        members = {k: z[k] for k in z.files}
+    members[name] = array
+    out = tmp_path / f"bad_{name}.npz"
+    np.savez_compressed(out, **members)
+    return out
+
+
+def test_a_file_that_disagrees_with_itself_is_refused_in_one_line(tmp_path):
+    lattice = _random_lattice()
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    with np.load(path) as z:
+        values, samples, meta = z["values"], z["samples"], json.loads(str(z["meta"]))
+    bad = {
+        "one row too many": ("values", np.concatenate([values, values[:1]]),
+                             r"values of shape \(\d+, 3\) and type float32 does not match"),
+        "another type": ("samples", samples.astype(np.int64),
+                         r"samples of shape \(\d+,\) and type int64 does not match the "
+                         r"lattice \(expected \(\d+\) of uint32\)"),
+        "a later version": ("meta", np.array(json.dumps(dict(meta, format_version=9))),
+                            r"lattice format version 9, this isolume reads 1 and 2"),
+        "no shape": ("meta", np.array(json.dumps({"format_version": 2})),
+                     r"not a readable isolume lattice"),
+    }
+    for case, (name, array, message) in bad.items():
+        with pytest.raises(BakeError, match=message) as caught:
+            Lattice.load(_rewritten(path, tmp_path, name, array))
+        assert "\n" not in str(caught.value), case
+
+
+def test_a_bake_is_checked_against_its_volume_before_its_texels_are_read(tmp_path):
+    """A lattice of another volume is refused from its metadata alone: its texels are not
+    read (here they could not be)."""
+    path = tmp_path / "s.npz"
+    bake(make("sphere", 16), BakeConfig(samples=2, bounces=0), out=path)
+    with np.load(path) as z:
+        broken = _rewritten(path, tmp_path, "values", z["values"][:1])
+    for read in (lambda: Lattice.load(broken, make("torus", 16)),
+                 lambda: LatticeOnFile.open(broken, make("torus", 16))):
+        with pytest.raises(BakeError, match="not for 'torus'"):
+            read()
+    with pytest.raises(BakeError, match="values of shape"):
+        Lattice.load(broken, make("sphere", 16))
