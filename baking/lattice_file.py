@@ -14,9 +14,11 @@ An ``.npz`` archive (zip, deflated) of format version `FORMAT_VERSION`:
 So a file's size follows the active texels, not the lattice's box. Members are written and
 read in slabs of z-layers (`SLAB_TEXELS`): neither writing a lattice nor reading part of
 one makes a copy of its held texels, and a display can read only the texels it shows
-(`read_texels`). Files of `DENSE_VERSION` (every array dense over the box, ``facing``
+(`LatticeFile.read_texels`). Files of `DENSE_VERSION` (every array dense over the box, ``facing``
 optional) are still read. A member whose header disagrees with ``held`` or ``meta`` is
-refused before it is read.
+refused before it is read, and a box whose dense arrays exceed the memory available before
+they are made (`LatticeFile.read_dense`); a display's read holds a slab of ``held`` at a
+time, whatever the box.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from isolume.baking.errors import BakeError
+from isolume.volumes.io.common import available_memory
 
 FORMAT_VERSION = 2
 DENSE_VERSION = 1
@@ -146,23 +149,26 @@ class LatticeFile:
         without ``facing`` gives None for it.
 
         Raises:
-            BakeError: a member missing, of another type or shape, or cut short.
+            BakeError: a box larger than the memory available (before anything is
+                allocated), a member missing, of another type or shape, or cut short.
         """
         try:
             with zipfile.ZipFile(self.path) as zf:
-                held = None if self.version == DENSE_VERSION else self._held(zf)
+                counts = None if self.version == DENSE_VERSION else self._counts(zf)
+                self._check_fits(zf, counts)
                 out = {}
                 for name in MEMBERS:
-                    if held is None and name == "facing" and "facing.npy" not in zf.namelist():
+                    if counts is None and name == "facing" and "facing.npy" not in zf.namelist():
                         out[name] = None
                         continue
-                    with self._member(zf, name, held) as rows:
+                    with self._member(zf, name, counts) as rows:
                         out[name] = np.zeros((*self.shape, *rows.tail), rows.dtype)
-                        for z in _slabs(self.shape):
-                            if held is None:
+                        if counts is None:
+                            for z in _slabs(self.shape):
                                 out[name][z] = rows.read(z.stop - z.start)
-                            else:
-                                out[name][z][held[z]] = rows.read(int(np.count_nonzero(held[z])))
+                            continue
+                        for (z, mask), count in zip(self._held_slabs(zf), counts, strict=True):
+                            out[name][z][mask] = rows.read(count)
                 return out
         except _READ_ERRORS as exc:
             raise BakeError(f"{self.path}: not a readable isolume lattice ({exc})") from None
@@ -171,7 +177,8 @@ class LatticeFile:
                     names: tuple[str, ...] = ("values", "samples", "facing")
                     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The members `names` at the held texels among (K,) sorted flat ids `texels`
-        (None: every held texel), read a slab at a time.
+        (None: every held texel), read a slab at a time: memory follows the texels read
+        and a slab, not the box.
 
         Returns:
             ((M,) int64 sorted flat ids of the texels read, {name: (M, …) array}).
@@ -183,11 +190,11 @@ class LatticeFile:
             return self._dense_texels(texels, names)
         try:
             with zipfile.ZipFile(self.path) as zf:
-                held = self._held(zf)
-                picks = list(self._picks(held, texels))
+                picks = list(self._picks(zf, texels))
+                counts = [count for _, _, count in picks]
                 out = {}
                 for name in names:
-                    with self._member(zf, name, held) as rows:
+                    with self._member(zf, name, counts) as rows:
                         out[name] = np.concatenate(
                             [rows.read(count)[chosen] for _, chosen, count in picks])
                 return np.concatenate([p[0] for p in picks]), out
@@ -205,13 +212,26 @@ class LatticeFile:
             np.asarray(texels, np.int64)[held[np.asarray(texels, np.int64)]]
         return ids, {n: dense[n].reshape(len(held), *dense[n].shape[3:])[ids] for n in names}
 
-    def _picks(self, held: np.ndarray, texels: np.ndarray | None
+    def _check_fits(self, zf: zipfile.ZipFile, counts: list[int] | None) -> None:
+        """Refuse a box whose dense arrays exceed the memory this machine has available."""
+        with self._member(zf, "values", counts) as rows:
+            per_texel = sum(np.dtype(t).itemsize for t in MEMBERS.values()) \
+                + (int(np.prod(rows.tail)) - 1) * 4 + 1  # C float32 values, 2 facing bytes
+        need = int(np.prod(self.shape, dtype=np.int64)) * per_texel
+        free = available_memory()
+        if free is not None and need > free:
+            raise BakeError(f"{self.path}: a lattice of {self.shape[::-1]} texels needs "
+                            f"{need / 1e9:.3g} GB dense, more than the {free / 1e9:.3g} GB "
+                            "of memory available (render --lattice reads only the texels "
+                            "a picture shows)")
+
+    def _picks(self, zf: zipfile.ZipFile, texels: np.ndarray | None
                ) -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
-        """Per slab of `held` (Z, Y, X) bool, first to last: (flat ids of the texels read,
+        """Per slab of the held texels, first to last: (flat ids of the texels read,
         their rows among the slab's held texels, the slab's held count)."""
         layer = self.shape[1] * self.shape[2]
-        for z in _slabs(self.shape):
-            local = np.flatnonzero(held[z])
+        for z, mask in self._held_slabs(zf):
+            local = np.flatnonzero(mask)
             if texels is None:
                 yield local + z.start * layer, np.arange(len(local)), len(local)
                 continue
@@ -221,18 +241,31 @@ class LatticeFile:
             hit = local[rows] == want if len(local) else np.zeros(len(want), bool)
             yield want[hit] + z.start * layer, rows[hit], len(local)
 
-    def _held(self, zf: zipfile.ZipFile) -> np.ndarray:
-        """(Z, Y, X) bool mask of the held texels."""
-        total = self.shape[0] * self.shape[1] * self.shape[2]
-        with zf.open("held.npy") as member:
-            rows = _Rows(member, "held", np.uint8).check((-(-total // 8),), (), self.path)
-            packed = rows.read(-(-total // 8))
-        return np.unpackbits(packed, count=total).astype(bool).reshape(self.shape)
+    def _counts(self, zf: zipfile.ZipFile) -> list[int]:
+        """Held texels per slab (`_slabs`)."""
+        return [int(np.count_nonzero(mask)) for _, mask in self._held_slabs(zf)]
 
-    def _member(self, zf: zipfile.ZipFile, name: str, held: np.ndarray | None) -> _Rows:
-        """Member `name`'s rows, its header checked: rows of the held texels (`held`'s
-        count), or of z-layers of the box (`held` None: a `DENSE_VERSION` file)."""
-        lead = self.shape if held is None else (int(np.count_nonzero(held)),)
+    def _held_slabs(self, zf: zipfile.ZipFile) -> Iterator[tuple[slice, np.ndarray]]:
+        """(z slice, (dz, Y, X) bool mask of the held texels) per slab, the packed bits
+        read as they are needed."""
+        layer = self.shape[1] * self.shape[2]
+        nbytes = -(-int(np.prod(self.shape, dtype=np.int64)) // 8)
+        with zf.open("held.npy") as member:
+            rows = _Rows(member, "held", np.uint8).check((nbytes,), (), self.path)
+            bits = np.zeros(0, np.uint8)
+            for z in _slabs(self.shape):
+                need = (z.stop - z.start) * layer
+                fresh = rows.read(min(-(-(need - len(bits)) // 8), nbytes))
+                nbytes -= len(fresh)
+                bits = np.concatenate([bits, np.unpackbits(fresh)])
+                yield z, bits[:need].astype(bool).reshape(-1, *self.shape[1:])
+                bits = bits[need:]
+
+    def _member(self, zf: zipfile.ZipFile, name: str, counts: list[int] | None) -> _Rows:
+        """Member `name`'s rows, its header checked: rows of the held texels (the sum of
+        the slabs' `counts`), or of z-layers of the box (`counts` None: a `DENSE_VERSION`
+        file)."""
+        lead = self.shape if counts is None else (sum(counts),)
         member = zf.open(name + ".npy")
         try:
             return _Rows(member, name, MEMBERS[name]).check(lead, _tail(name), self.path)

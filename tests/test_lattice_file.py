@@ -158,3 +158,18 @@ def test_a_bake_is_checked_against_its_volume_before_its_texels_are_read(tmp_pat
             read()
     with pytest.raises(BakeError, match="values of shape"):
         Lattice.load(broken, make("sphere", 16))
+
+
+def test_a_box_larger_than_memory_is_refused_before_it_is_made(tmp_path, monkeypatch):
+    """Read dense, the (10, 11, 13) box of 3 channels needs 1430 × 23 bytes; with less
+    memory available the load names both figures, and a display still reads its texels."""
+    lattice = _random_lattice()
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    monkeypatch.setattr(lattice_file, "available_memory", lambda: 1430 * 23 - 1)
+    with pytest.raises(BakeError, match=r"l\.npz: a lattice of \(13, 11, 10\) texels needs "
+                                        r"3\.29e-05 GB dense, more than the 3\.29e-05 GB"):
+        Lattice.load(path)
+    assert len(LatticeOnFile.open(path).held().texels) == (lattice.samples > 0).sum()
+    monkeypatch.setattr(lattice_file, "available_memory", lambda: 1430 * 23)
+    _same(Lattice.load(path), lattice)
