@@ -36,9 +36,17 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
-from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, volume_identity
-from isolume.baking.passes import LevelSums, Tracing, commit_facing
+from isolume.baking.lattice import (
+    LUMINANCE,
+    Lattice,
+    LatticeGeometry,
+    open_lattice,
+    volume_identity,
+)
+from isolume.baking.lattice_file import LatticeFile
+from isolume.baking.passes import LevelSums, Tracing, commit_facing, rows_at
 from isolume.baking.plan import Plan, make_plan
+from isolume.baking.plan_lattice import PlanLattice
 
 
 def tracing_lights(config: BakeConfig) -> TracingLights:
@@ -101,22 +109,21 @@ def _kept_levels(lattice: Lattice | None) -> np.ndarray | None:
     return np.asarray(lattice.meta["plan"]["levels"], np.float64)
 
 
-def _load_existing(volume: volumes.Volume, config: BakeConfig, out: Path | None
-                   ) -> Lattice | None:
-    """The lattice in `out` when it can be resumed with `config`, None when there is none.
+def _resumable(volume: volumes.Volume, config: BakeConfig, out: Path | None
+               ) -> LatticeFile | None:
+    """The lattice file `out` opened when it can be resumed with `config`, None when there
+    is none (its texels are read once the plan says which, `PlanLattice.fill_from`).
 
     Raises:
         BakeError: `out` holds a lattice of another volume or other settings.
     """
     if out is None or not out.exists():
         return None
-    lattice = Lattice.load(out, volume)
-    previous = lattice.config
-    if not previous.same_result_as(config):
+    file, _, previous = open_lattice(out, volume)
+    if previous is None or not previous.same_result_as(config):
         raise BakeError(f"{out}: holds a bake with other settings ({previous}); to resume, "
                         "repeat them, or write to a new --out file")
-    lattice.config = config
-    return lattice
+    return file
 
 
 def _plan_progress(stage: str) -> None:
@@ -141,7 +148,12 @@ class Baker:
     time).
 
     Args:
-        lattice: an existing lattice to extend (resume); None starts empty.
+        lattice: a lattice dense over the box to extend (the viewer's shared one, a
+            resumed bake); None starts empty.
+        packed: hold the lattice over the plan's texels only (a `PlanLattice`, whose
+            memory follows the active texels); `lattice` is then not used, and `resume`
+            (a lattice file opened, `open_lattice`: its texels not read) gives the samples
+            to extend.
         workers, scene_cache: the `ThreadBackend`'s threads and level scenes kept alive,
             when no `backend` is given. The result does not depend on them.
         progress: `make_plan`'s stage callback.
@@ -152,22 +164,26 @@ class Baker:
     def __init__(self, volume: volumes.Volume, config: BakeConfig, *,
                  lattice: Lattice | None = None, workers: int | None = None,
                  scene_cache: int = 1, progress=None,
-                 backend: TracingBackend | None = None) -> None:
+                 backend: TracingBackend | None = None, packed: bool = False,
+                 resume: LatticeFile | None = None) -> None:
         self.backend = backend if backend is not None else ThreadBackend(workers, scene_cache)
         try:
             self.volume, self.config = volume, config
             self.settings = path_settings(volume, config)
             self.geometry = LatticeGeometry.for_volume(volume, config.scale)
-            self.lattice = lattice or _new_lattice(volume, config, self.geometry,
-                                                   self.settings.channels)
             self.lighting = tracing_lights(config)
             self.stats = BakeStats()
-            kept = _kept_levels(lattice)
+            kept = _kept_levels(resume if packed else lattice)
             self.backend.begin(volume, config, kept, self.stats)  # beside the plan
             self.plan = make_plan(volume, self.geometry, config, kept, progress,
                                   on_levels=self.backend.levels_known,
                                   scenes=self.backend.plan_scene)
-            self.lattice.active = self.plan.active
+            if packed:
+                self.lattice, self.rows = self._plan_lattice(resume), None
+            else:
+                self.lattice = lattice or _new_lattice(volume, config, self.geometry,
+                                                       self.settings.channels)
+                self.lattice.active, self.rows = self.plan.active, self.plan.ids
             self.texels_done = int(np.count_nonzero(self.samples_done()))
             self.previous = dict(self.lattice.meta.get("stats", {}))
             self.job = BakeJob(volume, config, self.geometry, self.plan, self._tracing(),
@@ -177,6 +193,16 @@ class Baker:
             self.backend.close()
             raise
         _finish_meta(self.lattice, self.plan, self.stats, self.previous)
+
+    def _plan_lattice(self, resume: LatticeFile | None) -> PlanLattice:
+        """The lattice over the plan's texels, with `resume`'s samples of them."""
+        meta = (resume.meta if resume is not None
+                else lattice_meta(self.volume, self.config, self.settings.channels))
+        lattice = PlanLattice(self.geometry, self.plan.ids, self.settings.channels, meta,
+                              self.config)
+        if resume is not None:
+            lattice.fill_from(resume)
+        return lattice
 
     def _tracing(self) -> Tracing:
         """What every chunk traces with: the plan's texels, the lighting, the path keys of
@@ -190,8 +216,15 @@ class Baker:
 
     def samples_done(self, positions: np.ndarray | None = None) -> np.ndarray:
         """(N,) paths already averaged into the texels at plan `positions` (all if None)."""
-        ids = self.plan.ids if positions is None else self.plan.ids[positions]
-        return self.lattice.samples.reshape(-1)[ids].astype(np.int64)
+        samples = self.lattice.samples.reshape(-1)
+        if positions is None:
+            return (samples if self.rows is None else samples[self.rows]).astype(np.int64)
+        return samples[rows_at(self.rows, positions)].astype(np.int64)
+
+    def relative_errors(self) -> np.ndarray:
+        """(T,) relative standard error of the plan's texels (`Lattice.relative_error`)."""
+        error = self.lattice.relative_error().reshape(-1)
+        return error if self.rows is None else error[self.rows]
 
     def relight(self, config: BakeConfig, lattice: Lattice) -> None:
         """Trace under `config`'s lights into `lattice` from the next `run` on (a light
@@ -199,10 +232,13 @@ class Baker:
         scenes stay: they do not depend on the light.
 
         Raises:
-            ValueError: `config` differs from the bake's in more than its env and lights.
+            ValueError: `config` differs from the bake's in more than its env and lights,
+                or the Baker holds its lattice over the plan (``packed``).
         """
         if replace(config, env=self.config.env, lights=self.config.lights) != self.config:
             raise ValueError("Baker.relight: only the env and the lights may change")
+        if self.rows is None:
+            raise ValueError("Baker.relight: a packed Baker has no lattice dense over the box")
         self.config, self.lattice = config, lattice
         self.lighting = tracing_lights(config)
         self.job = replace(self.job, config=config, tracing=self._tracing())
@@ -229,8 +265,9 @@ class Baker:
             # a texel's pass is complete with its upper level
             complete = work.sums.traced(level - 1)
             if len(complete):
-                commit_facing(self.lattice, self.volume, self.config, self.plan, complete)
-            complete, fresh = work.sums.commit(self.lattice, self.plan.ids, level - 1)
+                commit_facing(self.lattice, self.volume, self.config, self.plan, complete,
+                              self.rows)
+            complete, fresh = work.sums.commit(self.lattice, self.rows, level - 1)
             self.texels_done += fresh
             if len(complete) and after_level is not None:
                 after_level(complete)
@@ -332,25 +369,25 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
         before KeyboardInterrupt propagates).
     """
     out = Path(out) if out is not None else None
-    existing = _load_existing(volume, config, out)
+    resume = _resumable(volume, config, out)
     backend = None
     if scheduler is not None:
         from isolume.baking.cluster import ClusterBackend
 
         backend = ClusterBackend(scheduler)
-    baker = Baker(volume, config, lattice=existing, workers=workers, backend=backend,
-                  progress=_plan_progress if progress else None)
+    baker = Baker(volume, config, workers=workers, backend=backend,
+                  progress=_plan_progress if progress else None, packed=True, resume=resume)
     pending = np.maximum(config.samples - baker.samples_done(), 0)
     if outlook is not None:
         threads = 0 if scheduler is not None else (workers or os.cpu_count() or 1)
         outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), int(pending.sum()),
                             threads))
     bar = _progress(int(pending.sum()), progress)
-    last_save = [time.perf_counter()]
+    held, last_save = baker.lattice, [time.perf_counter()]
 
     def checkpoint(_committed: np.ndarray) -> None:
         if out is not None and time.perf_counter() - last_save[0] > checkpoint_seconds:
-            baker.lattice.save(out)
+            held.save(out)
             last_save[0] = time.perf_counter()
 
     try:
@@ -359,14 +396,15 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
             _refine_to_target(baker, bar, checkpoint)
     except KeyboardInterrupt:
         if out is not None:
-            baker.lattice.save(out)
+            held.save(out)
         raise
     finally:
         baker.close()
         bar.close()
     if out is not None:
-        baker.lattice.save(out)
-    return baker.lattice
+        held.save(out)
+    del baker  # its plan goes before the lattice is made dense
+    return held.dense()
 
 
 def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
@@ -378,7 +416,7 @@ def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
     """
     config = baker.config
     for _ in range(passes):
-        error = baker.lattice.relative_error().reshape(-1)[baker.plan.ids]
+        error = baker.relative_errors()
         done = baker.samples_done()
         todo = np.flatnonzero((error > config.target_error) & (done < config.max_samples))
         if len(todo) == 0:

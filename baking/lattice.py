@@ -9,7 +9,8 @@ s = 1 texel centres coincide with voxel samples, and a GL texture coordinate is 
 File: one ``.npz`` holding the arrays of the texels that are active or computed, and
 ``meta`` (JSON); `baking.lattice_file` reads and writes it a slab at a time. `Lattice.load`
 reads it dense over the box; a display reads only the texels it shows
-(`baking.view_texels.LatticeOnFile`).
+(`baking.view_texels.LatticeOnFile`); a bake holds it over its plan's texels only
+(`baking.plan_lattice.PlanLattice`).
 
 Side-aware lookup (`Lattice.sample` with normals; ``shaders/lattice.glsl`` the same): each
 texel keeps the mean direction its paths started along, its *facing* m (octahedral bytes,
@@ -208,6 +209,37 @@ def drop_trapped(mask: np.ndarray, many: np.ndarray, light_of) -> np.ndarray:
     return mask
 
 
+def _luminance(values: np.ndarray, kind: str) -> np.ndarray:
+    """(…) luminance of (…, C) texel values (SH: the DC term)."""
+    return values[..., :3] @ LUMINANCE if kind == "irradiance" else values[..., 0]
+
+
+def standard_error(values: np.ndarray, samples: np.ndarray, second: np.ndarray,
+                   kind: str) -> np.ndarray:
+    """(…) float32 standard error of the luminance mean of texels with (…, C) `values`,
+    (…) `samples` and `second` moments (`Lattice`'s, of `kind`); inf where < 2 samples."""
+    n = samples.astype(np.float64)
+    var = np.maximum(second - _luminance(values, kind).astype(np.float64) ** 2, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        se = np.where(n > 1, np.sqrt(var * n / np.maximum(n - 1, 1) / np.maximum(n, 1)),
+                      np.inf)
+    return se.astype(np.float32)
+
+
+def relative_error(values: np.ndarray, samples: np.ndarray, second: np.ndarray, kind: str,
+                   floor_fraction: float = 0.01) -> np.ndarray:
+    """(…) `standard_error` / mean of the luminance (SH: of the DC term).
+
+    The mean is floored at `floor_fraction` of the median computed texel, so texels in
+    deep shadow are judged against the scene's light level, not against ~0.
+    """
+    lum = _luminance(values, kind)
+    computed = samples > 0
+    typical = float(np.median(np.abs(lum[computed]))) if computed.any() else 1.0
+    return standard_error(values, samples, second, kind) / np.maximum(
+        np.abs(lum), floor_fraction * typical)
+
+
 @dataclass
 class Lattice:
     """An illumination lattice.
@@ -221,8 +253,8 @@ class Lattice:
         active: (Z, Y, X) bool, texels the bake must fill.
         meta: format version, kind, volume identity, statistics (JSON-ready).
         config: the `BakeConfig` the lattice is baked with, or None. The file holds it as
-            a dict in its metadata (`save`, `load`: the only readers and writers of that
-            dict, with its version `CONFIG_VERSION`).
+            a dict in its metadata (`file_meta` writes it, `open_lattice` reads it, with
+            its version `CONFIG_VERSION`).
         preview: None, or (Z, Y, X, C) float32 estimates traced on the *displayed*
             isosurface (the lazy viewer's preview passes, `baking.preview`); never saved.
         preview_paths: None, or (Z, Y, X) uint16 paths behind each preview (0 = none).
@@ -342,25 +374,13 @@ class Lattice:
         return bool(octahedral.known(self.displayed_facing()).any())
 
     def standard_error(self) -> np.ndarray:
-        """(Z, Y, X) float32 standard error of the luminance mean (inf where < 2 samples)."""
-        lum = self.values[..., :3] @ LUMINANCE if self.kind == "irradiance" else self.values[..., 0]
-        n = self.samples.astype(np.float64)
-        var = np.maximum(self.second - lum.astype(np.float64) ** 2, 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            se = np.where(n > 1, np.sqrt(var * n / np.maximum(n - 1, 1) / np.maximum(n, 1)),
-                          np.inf)
-        return se.astype(np.float32)
+        """(Z, Y, X) float32 standard error of the luminance mean (`standard_error`)."""
+        return standard_error(self.values, self.samples, self.second, self.kind)
 
     def relative_error(self, floor_fraction: float = 0.01) -> np.ndarray:
-        """(Z, Y, X) standard error / mean of the luminance (SH: of the DC term).
-
-        The mean is floored at `floor_fraction` of the median computed texel, so texels in
-        deep shadow are judged against the scene's light level, not against ~0.
-        """
-        lum = self.values[..., :3] @ LUMINANCE if self.kind == "irradiance" else self.values[..., 0]
-        computed = self.samples > 0
-        typical = float(np.median(np.abs(lum[computed]))) if computed.any() else 1.0
-        return self.standard_error() / np.maximum(np.abs(lum), floor_fraction * typical)
+        """(Z, Y, X) standard error / mean of the luminance (`relative_error`)."""
+        return relative_error(self.values, self.samples, self.second, self.kind,
+                              floor_fraction)
 
     def sample(self, points_xyz: np.ndarray, normalized: bool = False,
                normals: np.ndarray | None = None) -> np.ndarray:
@@ -387,13 +407,10 @@ class Lattice:
     # -- files -------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
         """Write atomically to `path` (.npz, `baking.lattice_file`)."""
-        meta = dict(self.meta, shape=list(self.geometry.shape), box_lo=list(self.geometry.lo),
-                    box_hi=list(self.geometry.hi))
-        if self.config is not None:
-            meta.update(config=self.config.to_dict(), config_version=CONFIG_VERSION)
         write_lattice(path, {"values": self.values, "samples": self.samples,
                              "second": self.second, "active": self.active,
-                             "facing": self.facing}, meta)
+                             "facing": self.facing},
+                      file_meta(self.meta, self.geometry, self.config))
 
     @classmethod
     def load(cls, path: str | os.PathLike, volume=None) -> Lattice:
@@ -414,6 +431,16 @@ class Lattice:
     def check_volume(self, volume, path: str | os.PathLike = "lattice") -> None:
         """Raise BakeError unless this lattice was baked for `volume`."""
         check_identity(self.meta, volume, path)
+
+
+def file_meta(meta: dict, geometry: LatticeGeometry, config: BakeConfig | None) -> dict:
+    """`meta` as a lattice file holds it: with the box's shape and corners, and the bake
+    config as a dict (the only writer of that dict, with its version `CONFIG_VERSION`)."""
+    meta = dict(meta, shape=list(geometry.shape), box_lo=list(geometry.lo),
+                box_hi=list(geometry.hi))
+    if config is not None:
+        meta.update(config=config.to_dict(), config_version=CONFIG_VERSION)
+    return meta
 
 
 def open_lattice(path: str | os.PathLike, volume=None

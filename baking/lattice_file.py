@@ -27,7 +27,7 @@ import json
 import os
 import tempfile
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,8 +64,35 @@ def write_lattice(path: str | os.PathLike, arrays: dict[str, np.ndarray], meta: 
     facing (Z, Y, X, 2), the others (Z, Y, X)) and `meta` (JSON-ready) to `path`,
     atomically (a temporary file in the same folder, then renamed): an interrupted write
     never leaves a broken file."""
-    path = Path(path)
     held = arrays["active"] | (arrays["samples"] > 0)
+
+    def rows(name: str) -> Iterator[np.ndarray]:
+        for z in _slabs(held.shape):
+            yield arrays[name][z][held[z]]
+
+    _write_archive(path, held, {n: arrays[n].shape[3:] for n in MEMBERS}, rows, meta)
+
+
+def write_rows(path: str | os.PathLike, shape: tuple[int, int, int], ids: np.ndarray,
+               arrays: dict[str, np.ndarray], meta: dict) -> None:
+    """Write the `MEMBERS` of the texels at (N,) sorted unique flat ids `ids` of a
+    (Z, Y, X) box, as (N, …) `arrays` (values (N, C), facing (N, 2), the others (N,)),
+    and `meta`, as `write_lattice` does."""
+    held = np.zeros(shape, bool)
+    held.reshape(-1)[ids] = True
+    def rows(name: str) -> Iterator[np.ndarray]:
+        for lo in range(0, len(ids), SLAB_TEXELS):
+            yield arrays[name][lo:lo + SLAB_TEXELS]
+
+    _write_archive(path, held, {n: arrays[n].shape[1:] for n in MEMBERS}, rows, meta)
+
+
+def _write_archive(path: str | os.PathLike, held: np.ndarray, tails: dict[str, tuple],
+                   rows: Callable[[str], Iterator[np.ndarray]], meta: dict) -> None:
+    """The archive of the (Z, Y, X) bool `held` mask, each member `name` of per-texel
+    shape `tails[name]` from the chunks `rows(name)` yields in flat order, and `meta`,
+    written to a temporary file that then replaces `path`."""
+    path = Path(path)
     count = int(np.count_nonzero(held))
     meta = dict(meta, format_version=FORMAT_VERSION)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
@@ -74,11 +101,10 @@ def write_lattice(path: str | os.PathLike, arrays: dict[str, np.ndarray], meta: 
                                                       allowZip64=True) as zf:
             _write_whole(zf, "held", np.packbits(held.reshape(-1)))
             for name, dtype in MEMBERS.items():
-                array = arrays[name]
                 with zf.open(name + ".npy", "w", force_zip64=True) as member:
-                    _write_header(member, np.dtype(dtype), (count, *array.shape[3:]))
-                    for z in _slabs(held.shape):
-                        member.write(np.ascontiguousarray(array[z][held[z]], dtype).tobytes())
+                    _write_header(member, np.dtype(dtype), (count, *tails[name]))
+                    for chunk in rows(name):
+                        member.write(np.ascontiguousarray(chunk, dtype).tobytes())
             _write_whole(zf, "meta", np.array(json.dumps(meta)))
         os.replace(tmp, path)
     except BaseException:

@@ -37,6 +37,7 @@ from isolume.baking.plan import GOLDEN_FRACTION, Plan, newton_reach, project_to_
 from isolume.baking.rays import RayStats
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
+    from isolume.baking.plan_lattice import PlanLattice
     from isolume.baking.trace import Scene
 
 PATHS_PER_CHUNK = 16384
@@ -113,9 +114,12 @@ class LevelSums:
             return np.zeros(0, np.int64)
         return self.by_lower[lower - self.first][group.n > 0]
 
-    def commit(self, lattice: Lattice, ids: np.ndarray, lower: int) -> tuple[np.ndarray, int]:
+    def commit(self, lattice: Lattice | PlanLattice, rows: np.ndarray | None, lower: int
+               ) -> tuple[np.ndarray, int]:
         """Merge the sums of the texels whose lower level is `lower` into the lattice and
-        let them go (`commit_sums`); `ids`: the plan's (T,) lattice ids.
+        let them go (`commit_sums`); `rows`: the (T,) rows of the plan's texels in the
+        lattice's flattened arrays (a `Lattice`: the plan's ids), None where they are the
+        plan positions (a `PlanLattice`).
 
         Returns:
             (K,) plan positions of those with paths in the pass, how many had no sample
@@ -126,14 +130,20 @@ class LevelSums:
         if group is None:
             return traced, 0
         positions = self.by_lower[lower - self.first]
-        return traced, commit_sums(lattice, ids[positions], group,
+        return traced, commit_sums(lattice, rows_at(rows, positions), group,
                                    np.flatnonzero(group.n > 0))
 
 
-def commit_sums(lattice: Lattice, ids: np.ndarray, acc: PassSums, slots: np.ndarray) -> int:
-    """Merge the pass sums at (K,) `slots` of `acc` — of texels of (A,) lattice `ids` —
-    into the lattice's running means and clear them (`kernels.commit_means`: compiled,
-    and the GIL stays free for the tracing threads).
+def rows_at(rows: np.ndarray | None, positions: np.ndarray) -> np.ndarray:
+    """The lattice rows of the texels at plan `positions` (`rows` None: the positions)."""
+    return positions if rows is None else rows[positions]
+
+
+def commit_sums(lattice: Lattice | PlanLattice, ids: np.ndarray, acc: PassSums,
+                slots: np.ndarray) -> int:
+    """Merge the pass sums at (K,) `slots` of `acc` — of texels at (A,) rows `ids` of the
+    lattice's flattened arrays — into the lattice's running means and clear them
+    (`kernels.commit_means`: compiled, and the GIL stays free for the tracing threads).
 
     Returns:
         how many of them had no sample before.
@@ -171,11 +181,13 @@ def lit_normals(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
     return np.where(np.asarray(high, bool)[:, None], -normals, normals)
 
 
-def commit_facing(lattice: Lattice, volume: volumes.Volume, config: BakeConfig, plan: Plan,
-                  positions: np.ndarray) -> None:
+def commit_facing(lattice: Lattice | PlanLattice, volume: volumes.Volume,
+                  config: BakeConfig, plan: Plan, positions: np.ndarray,
+                  rows: np.ndarray | None) -> None:
     """Set the facings (`landing_facing`) of the texels at plan `positions` about to be
-    committed that have none yet, or no samples yet (a texel reset by another plan)."""
-    flat = plan.ids[positions]
+    committed that have none yet, or no samples yet (a texel reset by another plan);
+    `rows` as `LevelSums.commit`'s."""
+    flat = rows_at(rows, positions)
     codes = lattice.facing.reshape(-1, 2)
     todo = ~octahedral.known(codes[flat]) | (lattice.samples.reshape(-1)[flat] == 0)
     if todo.any():
