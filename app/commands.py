@@ -101,7 +101,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
     """Bake an illumination lattice (resumes when --out holds a compatible one)."""
     from isolume.app.render.images import check_output_path
     from isolume.baking import bake
-    from isolume.baking.view_texels import LatticeOnFile
+    from isolume.baking.lattice import open_lattice
 
     out = check_output_path(args.out, (".npz",))
     config = bake_config(args)
@@ -111,8 +111,9 @@ def cmd_bake(args: argparse.Namespace) -> int:
                        scheduler=args.scheduler, outlook=say_outlook)
     except KeyboardInterrupt:
         if out.exists():
-            done = LatticeOnFile.open(out).held()
-            print(f"isolume: interrupted; {len(done.texels):,} finished texels "
+            _, held = open_lattice(out)[0].read_texels(None, ("samples",))
+            finished = int((held["samples"] > 0).sum())
+            print(f"isolume: interrupted; {finished:,} finished texels "
                   f"saved in {out}; run the same command again to resume", file=sys.stderr)
         return 130
     plan, stats = lattice.meta["plan"], lattice.meta["stats"]

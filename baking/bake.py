@@ -101,9 +101,9 @@ def _new_lattice(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
     return lattice
 
 
-def _kept_levels(lattice: Lattice | None) -> np.ndarray | None:
-    """(K,) the levels a lattice was started with (a resumed bake keeps them: its samples
-    were traced on them), or None."""
+def _kept_levels(lattice: Lattice | LatticeFile | None) -> np.ndarray | None:
+    """(K,) the levels a lattice (or a lattice file, opened) was started with (a resumed
+    bake keeps them: its samples were traced on them), or None."""
     if lattice is None or "plan" not in lattice.meta:
         return None
     return np.asarray(lattice.meta["plan"]["levels"], np.float64)

@@ -180,8 +180,8 @@ class LatticeFile:
         """
         try:
             with zipfile.ZipFile(self.path) as zf:
+                self._check_fits(zf)
                 counts = None if self.version == DENSE_VERSION else self._counts(zf)
-                self._check_fits(zf, counts)
                 out = {}
                 for name in MEMBERS:
                     if counts is None and name == "facing" and "facing.npy" not in zf.namelist():
@@ -196,6 +196,8 @@ class LatticeFile:
                         for (z, mask), count in zip(self._held_slabs(zf), counts, strict=True):
                             out[name][z][mask] = rows.read(count)
                 return out
+        except BakeError:
+            raise
         except _READ_ERRORS as exc:
             raise BakeError(f"{self.path}: not a readable isolume lattice ({exc})") from None
 
@@ -224,6 +226,8 @@ class LatticeFile:
                         out[name] = np.concatenate(
                             [rows.read(count)[chosen] for _, chosen, count in picks])
                 return np.concatenate([p[0] for p in picks]), out
+        except BakeError:
+            raise
         except _READ_ERRORS as exc:
             raise BakeError(f"{self.path}: not a readable isolume lattice ({exc})") from None
 
@@ -238,11 +242,13 @@ class LatticeFile:
             np.asarray(texels, np.int64)[held[np.asarray(texels, np.int64)]]
         return ids, {n: dense[n].reshape(len(held), *dense[n].shape[3:])[ids] for n in names}
 
-    def _check_fits(self, zf: zipfile.ZipFile, counts: list[int] | None) -> None:
-        """Refuse a box whose dense arrays exceed the memory this machine has available."""
-        with self._member(zf, "values", counts) as rows:
-            per_texel = sum(np.dtype(t).itemsize for t in MEMBERS.values()) \
-                + (int(np.prod(rows.tail)) - 1) * 4 + 1  # C float32 values, 2 facing bytes
+    def _check_fits(self, zf: zipfile.ZipFile) -> None:
+        """Refuse a box whose dense arrays (C values per texel, as the values' header
+        says) exceed the memory this machine has available."""
+        with zf.open("values.npy") as member:
+            shape = _Rows(member, "values", np.float32).shape
+        channels = int(shape[-1]) if len(shape) in (2, 4) else 1
+        per_texel = 4 * channels + 4 + 4 + 1 + 2  # values, samples, second, active, facing
         need = int(np.prod(self.shape, dtype=np.int64)) * per_texel
         free = available_memory()
         if free is not None and need > free:

@@ -21,7 +21,6 @@ from isolume.baking.lattice import (
     LatticeGeometry,
     file_meta,
     relative_error,
-    standard_error,
 )
 from isolume.baking.lattice_file import MEMBERS, LatticeFile, write_rows
 
@@ -51,24 +50,19 @@ class PlanLattice:
     def kind(self) -> str:
         return self.meta.get("kind", "irradiance")
 
-    def fill_from(self, file: LatticeFile) -> int:
-        """Take the texels of `file` (a lattice of the same box) that are among `ids`;
-        returns how many had samples. Its other texels are left out: a bake resumes only
-        with the plan it was made with (`baking.bake`)."""
+    def fill_from(self, file: LatticeFile) -> None:
+        """Take the texels of `file` (a lattice of the same box) that are among `ids`. Its
+        other texels are left out: a bake resumes only with the plan it was made with
+        (`baking.bake`)."""
         read, arrays = file.read_texels(self.ids.astype(np.int64), tuple(MEMBERS))
         rows = np.searchsorted(self.ids, read)
         for name in ("values", "samples", "second", "facing"):
             getattr(self, name)[rows] = arrays[name]
-        return int(np.count_nonzero(arrays["samples"]))
 
     def relative_error(self, floor_fraction: float = 0.01) -> np.ndarray:
         """(T,) `baking.lattice.relative_error` of the texels."""
         return relative_error(self.values, self.samples, self.second, self.kind,
                               floor_fraction)
-
-    def standard_error(self) -> np.ndarray:
-        """(T,) `baking.lattice.standard_error` of the texels."""
-        return standard_error(self.values, self.samples, self.second, self.kind)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write atomically to `path`, as `baking.Lattice.save` would write `dense()`."""

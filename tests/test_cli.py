@@ -328,3 +328,26 @@ def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypat
     status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
                           "--bounces", "0", "--out", str(tmp_path / "t.npz"))
     assert status == 0 and "--iso-range" in err and "--scale 0.5" in err, err
+
+
+def test_an_interrupted_bake_says_how_many_texels_its_file_keeps(tmp_path, capsys,
+                                                                 monkeypatch):
+    """Ctrl-C during `isolume bake`: exit 130, and the count of the texels with samples in
+    the file it leaves (read from the file)."""
+    import isolume.baking
+    from isolume.baking import Lattice
+
+    path = tmp_path / "s.npz"
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
+                          "--bounces", "0", "--out", str(path))
+    assert status == 0, err
+    kept = int((Lattice.load(path).samples > 0).sum())
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(isolume.baking, "bake", interrupted)
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "4",
+                          "--bounces", "0", "--out", str(path))
+    assert status == 130
+    assert f"interrupted; {kept:,} finished texels saved in {path}" in err

@@ -138,11 +138,20 @@ def test_a_file_that_disagrees_with_itself_is_refused_in_one_line(tmp_path):
                             r"lattice format version 9, this isolume reads 1 and 2"),
         "no shape": ("meta", np.array(json.dumps({"format_version": 2})),
                      r"not a readable isolume lattice"),
+        "a box that lies": ("meta", np.array(json.dumps(dict(meta, shape=[10**5] * 3))),
+                            r"a lattice of \(100000, 100000, 100000\) texels needs 2\.3e\+07 "
+                            r"GB dense, more than the"),
     }
     for case, (name, array, message) in bad.items():
         with pytest.raises(BakeError, match=message) as caught:
             Lattice.load(_rewritten(path, tmp_path, name, array))
         assert "\n" not in str(caught.value), case
+    lying = _rewritten(path, tmp_path, "meta",
+                       np.array(json.dumps(dict(meta, shape=[10**5] * 3))))
+    with pytest.raises(BakeError, match=r"bad_meta\.npz: held of shape \(\d+,\) and type uint8 "
+                                        r"does not match the lattice \(expected "
+                                        r"\(125000000000000\) of uint8\)$"):
+        LatticeOnFile.open(lying).held()  # a display reads a slab at a time: refused, not made
 
 
 def test_a_bake_is_checked_against_its_volume_before_its_texels_are_read(tmp_path):
