@@ -169,10 +169,13 @@ class LatticeFile:
             raise BakeError(f"{path}: lattice shape {meta['shape']}: expected three sizes ≥ 1")
         return cls(path, meta, shape, int(version))
 
-    def read_dense(self) -> dict[str, np.ndarray | None]:
+    def read_dense(self, out: dict[str, np.ndarray] | None = None
+                   ) -> dict[str, np.ndarray | None]:
         """The `MEMBERS` dense over the box (values (Z, Y, X, C), facing (Z, Y, X, 2), the
-        others (Z, Y, X); texels not held zero, facing unknown). A file of `DENSE_VERSION`
-        without ``facing`` gives None for it.
+        others (Z, Y, X); texels not held zero, facing unknown), in new arrays or written
+        into the zero arrays `out` of those shapes (another process's shared memory: no
+        copy of the box is made). A file of `DENSE_VERSION` without ``facing`` gives None
+        for it (`out`'s is left as it is).
 
         Raises:
             BakeError: a box larger than the memory available (before anything is
@@ -180,15 +183,21 @@ class LatticeFile:
         """
         try:
             with zipfile.ZipFile(self.path) as zf:
-                self._check_fits(zf)
+                if out is None:
+                    self._check_fits(zf)
                 counts = None if self.version == DENSE_VERSION else self._counts(zf)
-                out = {}
+                out = dict(out or {})
                 for name in MEMBERS:
                     if counts is None and name == "facing" and "facing.npy" not in zf.namelist():
-                        out[name] = None
+                        out.setdefault(name, None)
                         continue
                     with self._member(zf, name, counts) as rows:
-                        out[name] = np.zeros((*self.shape, *rows.tail), rows.dtype)
+                        if name not in out:
+                            out[name] = np.zeros((*self.shape, *rows.tail), rows.dtype)
+                        elif out[name].shape != (*self.shape, *rows.tail):
+                            raise BakeError(f"{self.path}: {name} of the box "
+                                            f"{(*self.shape, *rows.tail)}, the arrays to "
+                                            f"fill are {out[name].shape}")
                         if counts is None:
                             for z in _slabs(self.shape):
                                 out[name][z] = rows.read(z.stop - z.start)

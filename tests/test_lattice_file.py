@@ -182,3 +182,23 @@ def test_a_box_larger_than_memory_is_refused_before_it_is_made(tmp_path, monkeyp
     assert len(LatticeOnFile.open(path).held().texels) == (lattice.samples > 0).sum()
     monkeypatch.setattr(lattice_file, "available_memory", lambda: 1430 * 23)
     _same(Lattice.load(path), lattice)
+
+
+def test_the_viewers_shared_lattice_is_read_from_the_file_in_place(tmp_path, small_slabs):
+    """`view --lattice FILE`: the shared arrays a lazy bake extends are filled from the
+    file a slab at a time (no private copy of the box first): the lattice `Lattice.load`
+    reads, with its config."""
+    from isolume.app.viewer.bake_client import SharedLattice
+
+    lattice = _random_lattice(config=BakeConfig(env="constant:1,1,1"))
+    lattice.meta["channels"] = 3
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    opened = LatticeOnFile.open(path)
+    shared = SharedLattice.create(opened.geometry, 3, opened.meta, opened)
+    try:
+        _same(shared.lattice, lattice)
+        assert shared.lattice.config == lattice.config
+        assert not shared.lattice.preview_paths.any()
+    finally:
+        shared.close()

@@ -28,6 +28,7 @@ import numpy as np
 from isolume import volumes
 from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
+from isolume.baking.lattice_file import MEMBERS
 
 PLAN_PREVIEW_PATHS = 64
 """Preview passes of at most this many paths go on while a plan is made (`_plan`)."""
@@ -55,8 +56,9 @@ class SharedLattice:
 
     @classmethod
     def create(cls, geometry, channels: int, meta: dict, source=None) -> SharedLattice:
-        """New shared arrays, zero or copied from the `source` lattice; `meta`: as
-        `lattice_meta` describes a lattice (its "config" a dict), or a lattice's own."""
+        """New shared arrays, zero or read from the lattice file `source` (a
+        `baking.view_texels.LatticeOnFile`, read into them a slab at a time); `meta`: as
+        `lattice_meta` describes a lattice (its "config" a dict), or the file's own."""
         from multiprocessing import shared_memory
 
         arrays, blocks = {}, []
@@ -64,12 +66,15 @@ class SharedLattice:
             size = max(1, int(np.prod(shape)) * np.dtype(dtype).itemsize)
             block = shared_memory.SharedMemory(create=True, size=size)
             blocks.append(block)
-            arr = np.ndarray(shape, dtype, buffer=block.buf)
-            copied = None if source is None else getattr(source, name, None)
-            # a new block is zeros already: filling it would take all its pages at once
-            if copied is not None:
-                arr[...] = copied
-            arrays[name] = arr
+            arrays[name] = np.ndarray(shape, dtype, buffer=block.buf)  # zeros already
+        try:
+            if source is not None:  # only the file's texels are written: pages as needed
+                source.file.read_dense({n: arrays[n] for n in MEMBERS})
+        except BaseException:
+            for block in blocks:
+                block.close()
+                block.unlink()
+            raise
         meta = dict(meta)
         config = _config(meta.pop("config", None)) or getattr(source, "config", None)
         return cls(_shared_lattice(geometry, arrays, meta, config), blocks, owner=True,

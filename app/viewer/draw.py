@@ -115,12 +115,15 @@ def check_textures(textures) -> dict:
         differs}; SH lattices: the validity and the facings only.
     """
     lat = textures.lattice
-    shown = lat.shown()
+    shown = lat.shown(np.s_[:])
     needed = needed_bricks(lat.shown, textures.shape)
     bricks, got = textures.read_blocks()
     want = textures.blocks(bricks)
     valid = want[0][..., 0] > 127
-    result = {"texels": int(shown.sum()), "computed": int((lat.samples > 0).sum()),
+    # a lattice dense over the box counts its samples; one held at texels (a file's
+    # computed texels) its paths
+    samples = lat.samples if hasattr(lat, "samples") else lat.paths
+    result = {"texels": int(shown.sum()), "computed": int(np.count_nonzero(samples)),
               "missing_bricks": int((needed & (textures.slot == 0)).sum()),
               "valid_mismatch": int(((got[0][..., 0] > 127) != valid).sum()),
               "facing_mismatch": int((got[0][..., 1:] != want[0][..., 1:]).any(axis=-1).sum()),

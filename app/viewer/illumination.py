@@ -23,6 +23,13 @@ SETTLE_S = 0.2
 """The view must be still this long before the visible texels are measured again."""
 
 
+def _complete(lattice, samples: int) -> bool:
+    """Whether every active texel of the lattice file `lattice` (a `LatticeOnFile`) has
+    `samples` paths (read from the file: its samples and active flags only)."""
+    _, held = lattice.file.read_texels(None, ("samples", "active"))
+    return bool((held["samples"][held["active"]] >= samples).all())
+
+
 def lattice_modes() -> tuple[str, ...]:
     """The shading modes that read a lattice."""
     from isolume.app.render.settings import LATTICE_MODES
@@ -37,7 +44,10 @@ class Illumination:
         shared: the lattice in shared memory that a lazy bake fills (None: no lazy bake
             started).
         bake: the link to the lazy-bake process (None: none runs).
-        static_lattice: a complete lattice from a file, shown as is (None: none).
+        static_lattice: a complete lattice from a file, shown as is: its computed texels
+            (a `baking.view_texels.HeldLattice`; None: none).
+        static_file: that file, opened (`baking.view_texels.LatticeOnFile`), for a bake
+            of its turned light.
         relit_file: `static_lattice` is re-baked lazily for a light the user turned; its
             result is saved only on request, beside the file.
         checks: results of `check` (``check-lattice``), for ``--stats``.
@@ -48,7 +58,7 @@ class Illumination:
         self.volume, self.drawing, self.state, self.options = volume, drawing, state, options
         self.shared: SharedLattice | None = None
         self.bake: BakeLink | None = None
-        self.static_lattice = None
+        self.static_lattice = self.static_file = None
         self.relit_file = False
         self.checks: list[dict] = []
         self._view_sent: tuple | None = None
@@ -57,18 +67,18 @@ class Illumination:
 
     # -- starting ------------------------------------------------------------------------
     def start(self, lattice, iso: float) -> None:
-        """Show `lattice` (a `baking.lattice.Lattice` from a file, or None) and start the
-        lazy bake when it is missing or incomplete (unless ``--no-bake``)."""
+        """Show `lattice` (a lattice file opened, `baking.view_texels.LatticeOnFile`, or
+        None) and start the lazy bake when it is missing or incomplete (unless
+        ``--no-bake``)."""
         from isolume.baking.config import BakeConfig
 
-        self.static_lattice = lattice
         config = None
         if lattice is not None:
             config = lattice.config
             self.drawing.albedo = tuple(config.albedo)
-            done = lattice.samples[lattice.active] >= config.samples
-            if done.all() or not self.options.bake:
-                self._show(lattice)
+            if not self.options.bake or _complete(lattice, config.samples):
+                self.static_file, self.static_lattice = lattice, lattice.held()
+                self._show(self.static_lattice)
                 return
         if not self.options.bake:
             return
@@ -79,8 +89,8 @@ class Illumination:
         self._start_bake(lattice, config, iso)
 
     def _start_bake(self, lattice, config, iso: float) -> None:
-        """Show `lattice` (None: a new one for `config`) from shared memory and start its
-        lazy bake with `config`."""
+        """Show the lattice of the file `lattice` (a `LatticeOnFile`; None: a new one for
+        `config`) from shared memory and start its lazy bake with `config`."""
         from isolume.baking.lattice import LatticeGeometry
 
         geometry = LatticeGeometry.for_volume(self.volume, config.scale)
@@ -155,7 +165,7 @@ class Illumination:
         if same_direction(turned[1], turned_light(config)):
             return
         self.relit_file = True
-        self._start_bake(self.static_lattice, config, self.state.view.iso)
+        self._start_bake(self.static_file, config, self.state.view.iso)
 
     # -- pausing -------------------------------------------------------------------------
     def pause(self, paused: bool) -> None:

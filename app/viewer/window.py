@@ -79,9 +79,9 @@ def _run(args) -> int:
     iso = isovalue(volume, args.iso)
     lattice = None
     if options.lattice_path is not None and options.lattice_path.exists():
-        from isolume.baking.lattice import Lattice
+        from isolume.baking.view_texels import LatticeOnFile
 
-        lattice = Lattice.load(options.lattice_path, volume)
+        lattice = LatticeOnFile.open(options.lattice_path, volume)
     from isolume.app.render.settings import LATTICE_MODES
 
     if options.shading in LATTICE_MODES and lattice is None and not options.bake:
