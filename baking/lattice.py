@@ -209,6 +209,12 @@ def drop_trapped(mask: np.ndarray, many: np.ndarray, light_of) -> np.ndarray:
     return mask
 
 
+def lattice_kind(meta: dict) -> str:
+    """The kind of lattice a metadata dict describes: "irradiance" (also where it does not
+    say) or "sh"."""
+    return meta.get("kind", "irradiance")
+
+
 def _luminance(values: np.ndarray, kind: str) -> np.ndarray:
     """(…) luminance of (…, C) texel values (SH: the DC term)."""
     return values[..., :3] @ LUMINANCE if kind == "irradiance" else values[..., 0]
@@ -295,7 +301,7 @@ class Lattice:
 
     @property
     def kind(self) -> str:
-        return self.meta.get("kind", "irradiance")
+        return lattice_kind(self.meta)
 
     @property
     def computed(self) -> np.ndarray:
@@ -421,10 +427,7 @@ class Lattice:
             BakeError: missing/corrupt file, unknown format version, other volume.
         """
         file, geometry, config = open_lattice(path, volume)
-        arrays = file.read_dense()
-        if arrays["values"].shape[:3] != geometry.shape:
-            raise BakeError(f"{path}: values of shape {arrays['values'].shape} do not match "
-                            f"the lattice shape {geometry.shape}")
+        arrays = file.read_dense()  # each array's shape checked against the box's
         return cls(geometry, arrays["values"], arrays["samples"], arrays["second"],
                    arrays["active"], file.meta, config=config, facing=arrays["facing"])
 

@@ -24,6 +24,7 @@ time, whatever the box.
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 import zipfile
@@ -59,12 +60,18 @@ def _slabs(shape: tuple[int, int, int]) -> Iterator[slice]:
         yield slice(z0, min(z0 + step, shape[0]))
 
 
+def held_mask(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """(…) bool: the texels a file holds — active or computed — of `arrays` (the
+    `MEMBERS`, any leading shape)."""
+    return arrays["active"] | (arrays["samples"] > 0)
+
+
 def write_lattice(path: str | os.PathLike, arrays: dict[str, np.ndarray], meta: dict) -> None:
     """Write `arrays` (the `MEMBERS`, dense over a (Z, Y, X) box: values (Z, Y, X, C),
     facing (Z, Y, X, 2), the others (Z, Y, X)) and `meta` (JSON-ready) to `path`,
     atomically (a temporary file in the same folder, then renamed): an interrupted write
     never leaves a broken file."""
-    held = arrays["active"] | (arrays["samples"] > 0)
+    held = held_mask(arrays)
 
     def rows(name: str) -> Iterator[np.ndarray]:
         for z in _slabs(held.shape):
@@ -80,6 +87,7 @@ def write_rows(path: str | os.PathLike, shape: tuple[int, int, int], ids: np.nda
     and `meta`, as `write_lattice` does."""
     held = np.zeros(shape, bool)
     held.reshape(-1)[ids] = True
+
     def rows(name: str) -> Iterator[np.ndarray]:
         for lo in range(0, len(ids), SLAB_TEXELS):
             yield arrays[name][lo:lo + SLAB_TEXELS]
@@ -185,7 +193,8 @@ class LatticeFile:
             with zipfile.ZipFile(self.path) as zf:
                 if out is None:
                     self._check_fits(zf)
-                counts = None if self.version == DENSE_VERSION else self._counts(zf)
+                slabs = None if self.version == DENSE_VERSION else list(self._held_slabs(zf))
+                counts = None if slabs is None else [int(m.sum()) for _, m in slabs]
                 out = dict(out or {})
                 for name in MEMBERS:
                     if counts is None and name == "facing" and "facing.npy" not in zf.namelist():
@@ -202,7 +211,7 @@ class LatticeFile:
                             for z in _slabs(self.shape):
                                 out[name][z] = rows.read(z.stop - z.start)
                             continue
-                        for (z, mask), count in zip(self._held_slabs(zf), counts, strict=True):
+                        for (z, mask), count in zip(slabs, counts, strict=True):
                             out[name][z][mask] = rows.read(count)
                 return out
         except BakeError:
@@ -246,7 +255,7 @@ class LatticeFile:
         dense = self.read_dense()
         if dense["facing"] is None:
             dense["facing"] = np.zeros((*self.shape, 2), np.uint8)
-        held = (dense["active"] | (dense["samples"] > 0)).reshape(-1)
+        held = held_mask(dense).reshape(-1)
         ids = np.flatnonzero(held) if texels is None else \
             np.asarray(texels, np.int64)[held[np.asarray(texels, np.int64)]]
         return ids, {n: dense[n].reshape(len(held), *dense[n].shape[3:])[ids] for n in names}
@@ -257,7 +266,8 @@ class LatticeFile:
         with zf.open("values.npy") as member:
             shape = _Rows(member, "values", np.float32).shape
         channels = int(shape[-1]) if len(shape) in (2, 4) else 1
-        per_texel = 4 * channels + 4 + 4 + 1 + 2  # values, samples, second, active, facing
+        per_texel = sum(np.dtype(dtype).itemsize * math.prod(t or channels for t in _tail(n))
+                        for n, dtype in MEMBERS.items())
         need = int(np.prod(self.shape, dtype=np.int64)) * per_texel
         free = available_memory()
         if free is not None and need > free:
@@ -281,10 +291,6 @@ class LatticeFile:
             rows = np.minimum(np.searchsorted(local, want), max(len(local) - 1, 0))
             hit = local[rows] == want if len(local) else np.zeros(len(want), bool)
             yield want[hit] + z.start * layer, rows[hit], len(local)
-
-    def _counts(self, zf: zipfile.ZipFile) -> list[int]:
-        """Held texels per slab (`_slabs`)."""
-        return [int(np.count_nonzero(mask)) for _, mask in self._held_slabs(zf)]
 
     def _held_slabs(self, zf: zipfile.ZipFile) -> Iterator[tuple[slice, np.ndarray]]:
         """(z slice, (dz, Y, X) bool mask of the held texels) per slab, the packed bits

@@ -20,9 +20,10 @@ from isolume.baking.lattice import (
     Lattice,
     LatticeGeometry,
     file_meta,
+    lattice_kind,
     relative_error,
 )
-from isolume.baking.lattice_file import MEMBERS, LatticeFile, write_rows
+from isolume.baking.lattice_file import LatticeFile, write_rows
 
 
 class PlanLattice:
@@ -48,15 +49,16 @@ class PlanLattice:
 
     @property
     def kind(self) -> str:
-        return self.meta.get("kind", "irradiance")
+        return lattice_kind(self.meta)
 
     def fill_from(self, file: LatticeFile) -> None:
         """Take the texels of `file` (a lattice of the same box) that are among `ids`. Its
         other texels are left out: a bake resumes only with the plan it was made with
         (`baking.bake`)."""
-        read, arrays = file.read_texels(self.ids.astype(np.int64), tuple(MEMBERS))
+        kept = ("values", "samples", "second", "facing")
+        read, arrays = file.read_texels(self.ids.astype(np.int64), kept)
         rows = np.searchsorted(self.ids, read)
-        for name in ("values", "samples", "second", "facing"):
+        for name in kept:
             getattr(self, name)[rows] = arrays[name]
 
     def relative_error(self, floor_fraction: float = 0.01) -> np.ndarray:

@@ -39,7 +39,7 @@ from isolume.baking.bake import path_settings, tracing_lights
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import whole_paths
 from isolume.baking.lattice import Lattice, LatticeGeometry, trilinear_corners
-from isolume.baking.lazy import corner_offsets
+from isolume.baking.lazy import corner_offsets, visible_cells
 from isolume.baking.passes import PassSums, PathStarts, Tracing, trace_chunk
 from isolume.baking.plan import project_to_level
 from isolume.baking.reference import primary_hits
@@ -79,6 +79,12 @@ def cell_corners(shape: tuple[int, int, int], cells: np.ndarray) -> np.ndarray:
     id of their (0, 0, 0) corner."""
     flat = (np.asarray(cells, np.int64)[:, None] + corner_offsets(shape)[None, :]).reshape(-1)
     return np.unique(flat[flat < int(np.prod(shape))])
+
+
+def picture_texels(geometry: LatticeGeometry, points: np.ndarray) -> np.ndarray:
+    """(K,) sorted flat ids of the texels a picture reads: the corners of the lattice
+    cells under its (N, 3) visible surface points (`baking.lazy.visible_cells`)."""
+    return cell_corners(geometry.shape, visible_cells(geometry, points))
 
 
 def mesh_step(volume: volumes.Volume, coarse: bool) -> int:

@@ -25,6 +25,7 @@ from isolume.baking.lattice import (
     TRAPPED_PATHS,
     LatticeGeometry,
     drop_trapped,
+    lattice_kind,
     open_lattice,
     sky_everywhere,
 )
@@ -68,7 +69,7 @@ class HeldLattice:
 
     @property
     def kind(self) -> str:
-        return self.meta.get("kind", "irradiance")
+        return lattice_kind(self.meta)
 
     def _rows(self, flat: np.ndarray) -> np.ndarray:
         """(N,) rows of (N,) flat texel ids in the arrays; every id must be held."""
@@ -176,7 +177,7 @@ class LatticeOnFile:
 
     @property
     def kind(self) -> str:
-        return self.meta.get("kind", "irradiance")
+        return lattice_kind(self.meta)
 
     def held(self, texels: np.ndarray | None = None) -> HeldLattice:
         """The computed texels among (K,) sorted flat ids `texels` (None: all), read from

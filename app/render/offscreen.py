@@ -22,22 +22,27 @@ def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarra
     return texel_values(volume, lattice.geometry)
 
 
-def _read_texels(renderer: SurfaceRenderer, camera: Camera, settings: RenderSettings,
-                 geometry) -> np.ndarray | None:
-    """(K,) sorted flat ids of the texels of `geometry` that the picture of `camera` reads:
-    the corners of the lattice cells under its visible pixels (a position pass); None (all)
-    for a lookup that reads further than a cell's corners (the B-spline's 4³)."""
+def _visible_points(renderer: SurfaceRenderer, camera: Camera,
+                    settings: RenderSettings) -> np.ndarray:
+    """(N, 3) world points of the surface under the visible pixels (a position pass)."""
     from dataclasses import replace
 
-    from isolume.baking.lazy import visible_cells
-    from isolume.baking.preview import cell_corners
+    position = renderer.render(camera, replace(settings, shading="position",
+                                               auto_exposure=False))
+    return position.linear[position.mask]
+
+
+def _read_texels(renderer: SurfaceRenderer, camera: Camera, settings: RenderSettings,
+                 geometry) -> np.ndarray | None:
+    """(K,) sorted flat ids of the texels of `geometry` that the picture of `camera` reads
+    (`baking.preview.picture_texels`); None (all) for a lookup that reads further than a
+    cell's corners (the B-spline's 4³)."""
+    from isolume.baking.preview import picture_texels
 
     mode = SHADING_MODES.get(settings.shading)
     if mode is not None and mode.lookup == "bspline":
         return None
-    position = renderer.render(camera, replace(settings, shading="position",
-                                               auto_exposure=False))
-    return cell_corners(geometry.shape, visible_cells(geometry, position.linear[position.mask]))
+    return picture_texels(geometry, _visible_points(renderer, camera, settings))
 
 
 def render_volume(
@@ -84,16 +89,13 @@ def render_volume(
         if isinstance(lattice, LatticeOnFile):  # read the texels the pixels read
             lattice = lattice.held(_read_texels(renderer, camera, settings, lattice.geometry))
         elif lattice is None and view_light is not None and len(mesh.faces):
-            from dataclasses import replace
-
             from isolume.app.render.view_gi import view_lattice
             from isolume.baking.trace import Scene
 
-            position = renderer.render(camera, replace(settings, shading="position",
-                                                       auto_exposure=False))
+            points = _visible_points(renderer, camera, settings)
             renderer.release_mesh()  # GL's copy and Embree's scene are not held at once
-            lattice = view_lattice(volume, view_light, iso, position.linear[position.mask],
-                                   camera.eye, workers=workers, progress=progress,
+            lattice = view_lattice(volume, view_light, iso, points, camera.eye,
+                                   workers=workers, progress=progress,
                                    scene=Scene(mesh.vertices, mesh.faces))
             renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_lattice(lattice, _texel_isovalues(volume, lattice, settings.shading))

@@ -56,10 +56,9 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     import os
 
     from isolume.baking.lattice import LatticeGeometry
-    from isolume.baking.lazy import visible_cells
     from isolume.baking.preview import (
-        cell_corners,
         estimate,
+        picture_texels,
         preview_tracing,
         seen_surface,
         surface_scene,
@@ -67,7 +66,7 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     from isolume.baking.view_texels import HeldLattice
 
     geometry = LatticeGeometry.for_volume(volume, config.scale)
-    texels = cell_corners(geometry.shape, visible_cells(geometry, points))
+    texels = picture_texels(geometry, points)
     lattice = HeldLattice.for_texels(volume, config, texels)
     report = _Progress(progress, int(config.samples), len(texels))
     if scene is None and len(texels):
