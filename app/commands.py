@@ -64,7 +64,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     frame, mesh = render_volume(
         vol, iso, settings, view=view, camera=args.camera, backend=args.gl,
         normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,
-        env_coeffs=look.env_coeffs, view_light=traced, workers=args.workers, progress=True,
+        env_coeffs=look.env_coeffs, view_light=traced, shadows=args.shadows,
+        workers=args.workers, progress=True,
     )
     if mesh.empty:
         print(f"isolume: warning: {mesh.message}", file=sys.stderr)

@@ -311,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
     camera = args.camera or movie_camera(vol, request, iso, iso_range)
     scene = Scene(vol, look.settings, camera, normals=args.normals,
                   flip_normals=args.flip_normals, lattice=lattice, env_coeffs=look.env_coeffs,
-                  traced=traced, workers=args.workers)
+                  traced=traced, shadows=args.shadows, workers=args.workers)
     first = scene.camera(Shot(0, az, iso))
     follows = False
     if request.kind == "light":

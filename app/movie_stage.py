@@ -34,6 +34,7 @@ from isolume.app.render.lights import (
 )
 from isolume.app.render.renderer import SurfaceRenderer
 from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
+from isolume.app.render.traced_light import position_pass, trace_direct_light
 
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
@@ -165,7 +166,10 @@ class Scene:
         traced: the `BakeConfig` of the light traced for each frame's view when there is
             no lattice ("irradiance"), or None.
         light: how the light turns (`LightTurn`; None: it does not).
-        workers: tracing threads for `traced` (None: all cores).
+        shadows: the per-pixel lights' direct light: "traced" per frame, as ``isolume
+            render`` (`app.render.traced_light`), or "map" (the shadow atlas).
+        workers: tracing threads for `traced` and the traced direct light (None: all
+            cores).
     """
 
     volume: volumes.Volume
@@ -177,6 +181,7 @@ class Scene:
     env_coeffs: np.ndarray | None = None
     traced: BakeConfig | None = None
     light: LightTurn | None = None
+    shadows: str = "traced"
     workers: int | None = None
 
     def camera(self, shot: Shot) -> Camera:
@@ -282,11 +287,10 @@ class Stage:
         if lattice is None and self._triangles:
             from isolume.app.render.view_gi import view_lattice
 
-            position = self.renderer.render(camera, replace(settings, shading="position"))
+            points, _ = position_pass(self.renderer, camera, settings)
             config = self.scene.traced_config(shot)
             scene, tracing = self._traced(shot.iso, config)
-            lattice = view_lattice(self.scene.volume, config, shot.iso,
-                                   position.linear[position.mask], camera.eye,
+            lattice = view_lattice(self.scene.volume, config, shot.iso, points, camera.eye,
                                    workers=self.scene.workers, progress=False, scene=scene,
                                    tracing=tracing)
         if keep and lattice is not None:
@@ -298,13 +302,33 @@ class Stage:
         """The Embree scene of the surface ρ = `iso` and the preview tracing of `config`
         the frames' traced light uses, each made once (a turntable or a light orbit keeps
         one isovalue; a light that turns is a new `config` every frame)."""
-        from isolume.baking.preview import preview_tracing, surface_scene
+        from isolume.baking.preview import preview_tracing
 
-        if self._traced_scene is None or self._traced_scene[0] != iso:
-            self._traced_scene = (iso, surface_scene(self.scene.volume, iso, 1))
         if self._tracing is None or self._tracing[0] != config:
             self._tracing = (config, preview_tracing(self.scene.volume, config))
-        return self._traced_scene[1], self._tracing[1]
+        return self._surface_scene(iso), self._tracing[1]
+
+    def _surface_scene(self, iso: float):
+        """The Embree scene of the surface ρ = `iso` (None: empty), made once per
+        isovalue."""
+        from isolume.baking.preview import surface_scene
+
+        if self._traced_scene is None or self._traced_scene[0] != iso:
+            self._traced_scene = None  # one scene at a time
+            self._traced_scene = (iso, surface_scene(self.scene.volume, iso, 1))
+        return self._traced_scene[1]
+
+    def _trace_direct(self, shot: Shot, camera: Camera, settings: RenderSettings) -> None:
+        """Trace the per-pixel lights' direct light of `shot`'s frame
+        (`app.render.traced_light`) when the scene asks for it and the frame has such
+        lights."""
+        if self.scene.shadows != "traced" or not self.renderer.direct_lights(settings):
+            self.renderer.set_traced_light((), None)
+            return
+        seen = position_pass(self.renderer, camera, settings)
+        trace_direct_light(self.renderer, camera, settings, self.scene.volume, seen,
+                           self._surface_scene(shot.iso),
+                           smooth=self.scene.normals == "smooth", workers=self.scene.workers)
 
     def draw(self, shot: Shot, exposure: float, keep: bool = False) -> Frame:
         """Draw `shot` with the linear `exposure`; `keep`: keep its traced light for one
@@ -314,6 +338,8 @@ class Stage:
         settings = self.scene.frame_settings(shot, exposure)
         if self.scene.traced is not None:
             self._trace_view(shot, camera, settings, keep)
+        if self._triangles:
+            self._trace_direct(shot, camera, settings)
         return self.renderer.render(camera, settings)
 
 

@@ -213,6 +213,10 @@ def add_render_options(p: argparse.ArgumentParser) -> None:
                    "the box)")
     p.add_argument("--gl", default="auto", choices=["auto", "egl", "osmesa"],
                    help="headless GL: EGL, OSMesa, or whichever works (auto)")
+    p.add_argument("--shadows", default="traced", choices=["traced", "map"],
+                   help="the sun's and the lights' direct light per pixel: traced rays, as "
+                   "the reference (a second or two at 512x512), or the viewer's shadow maps "
+                   "(default traced)")
 
 
 def parse_albedo(text: str) -> tuple[float, float, float]:

@@ -21,6 +21,14 @@
 // both sides of every branch, so a pixel costs all the texture reads in the code: a hard
 // light reads one, a sun 8 + 16. It runs in a full-screen pass (deferred.frag), once
 // per pixel.
+//
+// With TRACED, each light's share at each pixel comes from rays instead (baking.shadow_rays:
+// the reference's own estimate, for off-screen pictures): u_traced holds, per pixel and
+// light, the cosine-weighted fraction of the light seen from the pixel's start point, with
+// the exact smoothed-gradient normal there, and no atlas is read.
+#ifndef TRACED
+#define TRACED 0
+#endif
 #define MAX_DIRECT 8
 #define MAX_TILES 16
 #ifndef SEARCH_TAPS
@@ -143,6 +151,29 @@ bool distant_receiver_in(int i, int tile, vec3 world, vec3 n, vec3 facet, out fl
     return !off_tile(r);
 }
 
+#if TRACED
+uniform sampler2DArray u_traced;  // layer i: light i's traced factor, per pixel
+
+float traced_factor(int i) {
+    return texelFetch(u_traced, ivec3(ivec2(gl_FragCoord.xy), i), 0).r;
+}
+
+// Irradiance of distant light i: its irradiance at normal incidence times the traced
+// factor (the cosine where seen; a sun's cosine-weighted share of its disc).
+vec3 distant_hard(int i, int tile, vec3 world, vec3 n, vec3 facet) {
+    return u_direct_rgb[i] * traced_factor(i);
+}
+
+vec3 distant_soft(int i, int tile, vec3 world, vec3 n, vec3 facet) {
+    return distant_hard(i, tile, world, n, facet);
+}
+
+// Irradiance of point light i at `world`: its intensity / r² times the traced factor.
+vec3 point_light(int i, int first, vec3 world, vec3 n, vec3 facet) {
+    vec3 to_light = u_direct_where[i].xyz - world;
+    return u_direct_rgb[i] * (traced_factor(i) / max(dot(to_light, to_light), 1e-20));
+}
+#else
 // Irradiance of distant light i (tile `tile`) at `world` (normal n, facet normal `facet`).
 vec3 distant_hard(int i, int tile, vec3 world, vec3 n, vec3 facet) {
     float cosine;
@@ -211,6 +242,8 @@ vec3 point_light(int i, int first, vec3 world, vec3 n, vec3 facet) {
     }
     return u_direct_rgb[i] * (cosine / r2 * lit / 9.0);
 }
+
+#endif
 
 // Irradiance at `world` (shading normal n, facet normal `facet`, both turned to the eye)
 // from the per-pixel lights, shadowed.

@@ -257,21 +257,22 @@ def test_view_iso_range_is_a_band_around_the_isovalue_within_the_data():
 
 
 def test_carry_over_keeps_texels_lit_at_the_same_target():
-    """Two plans of neighbouring ranges: a texel keeps its samples when both light it at
-    the same (clamped) isovalue; the others — clamped differently, or inactive now —
-    are reset and returned."""
+    """Two plans of overlapping ranges: a texel keeps its samples when both light it at
+    the same target isovalue (`plan.lit_isovalues`: its own value where every isovalue
+    that can read it lies in both ranges); the others — lit on another isovalue, or
+    inactive now — are reset and returned."""
     from isolume.baking.bake import Baker
     from isolume.baking.lazy import carry_over
 
     vol = volumes.load("synthetic:shells:24")
-    old = Baker(vol, BakeConfig(samples=2, bounces=0, iso_range=(0.3, 0.5)), workers=2)
+    old = Baker(vol, BakeConfig(samples=2, bounces=0, iso_range=(0.0, 0.6)), workers=2)
     try:
         old.run()
     finally:
         old.close()
     lattice = old.lattice
     geometry = LatticeGeometry.for_volume(vol, 1.0)
-    new = make_plan(vol, geometry, BakeConfig(samples=2, bounces=0, iso_range=(0.4, 0.6)))
+    new = make_plan(vol, geometry, BakeConfig(samples=2, bounces=0, iso_range=(0.2, 1.0)))
     before = lattice.samples.reshape(-1).copy()
     reset = carry_over(lattice, old.plan, new)
     pos = np.searchsorted(new.ids, old.plan.ids)

@@ -26,13 +26,23 @@ def _plan(vol, **kwargs):
     return make_plan(vol, LatticeGeometry.for_volume(vol, config.scale), config), config
 
 
-def test_targets_are_the_texel_values_clamped_to_the_iso_range():
+def test_targets_are_the_middle_of_the_isovalues_that_read_a_texel():
+    """`lit_isovalues`: a texel whose neighbourhood holds only isovalues of the range is lit
+    at its own value; one near an end, at the middle of the isovalues in reach inside the
+    range; one beyond the range that a surface of the range reaches, at the middle of
+    those; one that none reaches, at the nearer end."""
+    from isolume.baking.plan import lit_isovalues
+
+    rho = np.array([0.5, 0.42, 0.3, 0.9, 0.45])
+    span = np.array([0.05, 0.05, 0.2, 0.1, 1.0])
+    np.testing.assert_allclose(lit_isovalues(rho, span, 0.4, 0.6),
+                               [0.5, 0.435, 0.45, 0.6, 0.5])
     vol = make("shells", 32)
     plan, _ = _plan(vol, samples=64, iso_range=(0.4, 0.6))
     lo, hi = plan.iso_range
     assert (lo, hi) == (0.4, 0.6)
-    np.testing.assert_array_equal(plan.target, np.clip(plan.rho.astype(np.float64), lo, hi))
     assert plan.rho.min() < lo and plan.rho.max() > hi  # corners of crossing cells reach out
+    assert plan.target.min() >= np.float32(lo) and plan.target.max() <= np.float32(hi)
     assert plan.levels[0] >= lo and plan.levels[-1] <= hi
     assert np.all(np.diff(plan.levels) > 0)
 

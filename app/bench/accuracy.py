@@ -361,8 +361,8 @@ def render_default(volume, iso: float, sweep: Sweep):
     began = time.perf_counter()
     frame, mesh = render_volume(volume, iso, settings, view=sweep.view, backend=sweep.gl,
                                 normals=ns.normals, flip_normals=ns.flip_normals,
-                                view_light=config, workers=sweep.workers,
-                                progress=sweep.progress)
+                                view_light=config, shadows=ns.shadows,
+                                workers=sweep.workers, progress=sweep.progress)
     seconds = time.perf_counter() - began
     extra = {"paths": config.samples, "triangles": len(mesh.faces)}
     return Shot("render", *_flat(frame), seconds, None, extra), config
@@ -384,7 +384,7 @@ def render_baked(volume, iso: float, sweep: Sweep) -> Shot:
     began = time.perf_counter()
     frame, _ = render_volume(volume, iso, settings, view=sweep.view, backend=sweep.gl,
                              normals=ns.normals, flip_normals=ns.flip_normals,
-                             lattice=lattice, workers=sweep.workers)
+                             lattice=lattice, shadows=ns.shadows, workers=sweep.workers)
     plan = lattice.meta["plan"]
     extra = {"paths": config.samples, "iso_range": list(config.iso_range),
              "active_texels": plan["active_texels"], "levels": len(plan["levels"])}

@@ -9,6 +9,7 @@ from isolume.app.render.camera import Camera
 from isolume.app.render.glcontext import create_headless
 from isolume.app.render.renderer import SurfaceRenderer, framed_camera
 from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
+from isolume.app.render.traced_light import position_pass, trace_direct_light
 from isolume.baking.view_texels import LatticeOnFile
 
 
@@ -22,27 +23,16 @@ def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarra
     return texel_values(volume, lattice.geometry)
 
 
-def _visible_points(renderer: SurfaceRenderer, camera: Camera,
-                    settings: RenderSettings) -> np.ndarray:
-    """(N, 3) world points of the surface under the visible pixels (a position pass)."""
-    from dataclasses import replace
-
-    position = renderer.render(camera, replace(settings, shading="position",
-                                               auto_exposure=False))
-    return position.linear[position.mask]
-
-
-def _read_texels(renderer: SurfaceRenderer, camera: Camera, settings: RenderSettings,
-                 geometry) -> np.ndarray | None:
-    """(K,) sorted flat ids of the texels of `geometry` that the picture of `camera` reads
-    (`baking.preview.picture_texels`); None (all) for a lookup that reads further than a
-    cell's corners (the B-spline's 4³)."""
+def _read_texels(settings: RenderSettings, geometry, points: np.ndarray) -> np.ndarray | None:
+    """(K,) sorted flat ids of the texels of `geometry` that a picture whose visible
+    surface points are `points` (N, 3) reads (`baking.preview.picture_texels`); None (all)
+    for a lookup that reads further than a cell's corners (the B-spline's 4³)."""
     from isolume.baking.preview import picture_texels
 
     mode = SHADING_MODES.get(settings.shading)
     if mode is not None and mode.lookup == "bspline":
         return None
-    return picture_texels(geometry, _visible_points(renderer, camera, settings))
+    return picture_texels(geometry, points)
 
 
 def render_volume(
@@ -58,6 +48,7 @@ def render_volume(
     lattice=None,
     env_coeffs=None,
     view_light=None,
+    shadows: str = "traced",
     workers: int | None = None,
     progress: bool = False,
 ) -> tuple[Frame, volumes.Mesh]:
@@ -74,11 +65,16 @@ def render_volume(
     threads, `progress` on stderr) on an Embree scene of the mesh, while GL holds no copy of
     the mesh (it is uploaded again for the picture). The shadow map and the fog are fitted
     to the volume's world box; "irradiance_closest" gets the texel isovalues computed from
-    `volume` here.
+    `volume` here. The lights a lattice leaves to the pixels get, with `shadows` "traced",
+    the reference's own estimate of their direct light at each pixel, traced on an Embree
+    scene of the mesh (`app.render.traced_light`), or with "map" the shadow atlas's, as in
+    the viewer.
 
     Returns:
         (frame, mesh): the picture and the mesh that was drawn.
     """
+    from isolume.baking.trace import Scene
+
     mesh = volumes.isosurface(volume, iso, normals=normals, flip_normals=flip_normals)
     gl = create_headless(backend)
     try:
@@ -86,19 +82,30 @@ def render_volume(
         renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_bounds(*volume.box)
         camera = camera or framed_camera(volume, iso, view, settings.size)
+        seen, scene = None, None
         if isinstance(lattice, LatticeOnFile):  # read the texels the pixels read
-            lattice = lattice.held(_read_texels(renderer, camera, settings, lattice.geometry))
+            seen = position_pass(renderer, camera, settings)
+            lattice = lattice.held(_read_texels(settings, lattice.geometry, seen[0]))
         elif lattice is None and view_light is not None and len(mesh.faces):
             from isolume.app.render.view_gi import view_lattice
-            from isolume.baking.trace import Scene
 
-            points = _visible_points(renderer, camera, settings)
+            seen = position_pass(renderer, camera, settings)
             renderer.release_mesh()  # GL's copy and Embree's scene are not held at once
-            lattice = view_lattice(volume, view_light, iso, points, camera.eye,
-                                   workers=workers, progress=progress,
-                                   scene=Scene(mesh.vertices, mesh.faces))
-            renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
+            scene = Scene(mesh.vertices, mesh.faces)
+            lattice = view_lattice(volume, view_light, iso, seen[0], camera.eye,
+                                   workers=workers, progress=progress, scene=scene)
         renderer.set_lattice(lattice, _texel_isovalues(volume, lattice, settings.shading))
+        if shadows == "traced" and renderer.direct_lights(settings) and len(mesh.faces):
+            if seen is None:
+                seen = position_pass(renderer, camera, settings)
+            if scene is None:
+                renderer.release_mesh()
+                scene = Scene(mesh.vertices, mesh.faces)
+            trace_direct_light(renderer, camera, settings, volume, seen, scene,
+                               smooth=normals == "smooth", workers=workers)
+        if scene is not None:
+            del scene
+            renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_environment(env_coeffs)
         frame = renderer.render(camera, settings)
         renderer.release()

@@ -24,7 +24,7 @@ sky without its sun (direct block) and the whole turned sky (indirect block).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import moderngl
 import numpy as np
@@ -43,6 +43,7 @@ from isolume.app.render.lights import (
 )
 from isolume.app.render.passes import GBUFFER_UNIT, Targets, pixel_rays
 from isolume.app.render.settings import (
+    MAX_DIRECT_LIGHTS,
     TONEMAPS,
     Frame,
     RenderError,
@@ -55,12 +56,24 @@ from isolume.app.render.shadows import (
     SHADOW_BIAS_TEXELS,
     ShadowMaps,
     active_parts,
+    direct_uniforms,
 )
 
 VERTEX_BYTES = 24
 """Bytes per vertex in the mesh's vertex buffer: position and normal, float32 xyz each."""
 VERTEX_CHUNK = 1 << 20
 """Vertices interleaved and written to the vertex buffer at a time (24 MiB)."""
+
+
+@dataclass(frozen=True)
+class TracedLight:
+    """The per-pixel lights' direct light traced for a frame size
+    (`SurfaceRenderer.set_traced_light`): the lights, the size (W, H) and the GL texture
+    array of their factors (one float layer per light)."""
+
+    lights: tuple
+    size: tuple[int, int]
+    texture: moderngl.TextureArray
 
 
 class SurfaceRenderer:
@@ -78,6 +91,7 @@ class SurfaceRenderer:
         self._targets: Targets | None = None
         self._lattice_lights: tuple = ()
         self._direct_offset = 0.0
+        self._traced: TracedLight | None = None
         self.lattice: LatticeTextures | None = None
         self._env_coeffs: np.ndarray | None = None
         # Framebuffer 0 is always valid to bind; parking on it before freeing our targets
@@ -159,6 +173,33 @@ class SurfaceRenderer:
         if lattice is not None:
             self.lattice = LatticeTextures(self.ctx, lattice, texel_isovalues)
 
+    def set_traced_light(self, lights: tuple, seen: np.ndarray | None) -> None:
+        """Light the per-pixel `lights` by traced rays instead of the shadow atlas:
+        `seen` (H, W, L) float32 factor of each light at each pixel (the cosine-weighted
+        fraction seen, `baking.shadow_rays.light_factors`), rows top to bottom, for
+        frames of W×H pixels whose per-pixel lights are `lights` (others keep the atlas);
+        None: the atlas for every frame."""
+        if self._traced is not None:
+            self._traced.texture.release()
+            self._traced = None
+        if seen is None:
+            return
+        h, w, layers = seen.shape
+        if layers != len(lights) or not 0 < layers <= MAX_DIRECT_LIGHTS:
+            raise ValueError(f"traced light of {layers} lights for {len(lights)} lights")
+        data = np.ascontiguousarray(np.asarray(seen, np.float32)[::-1].transpose(2, 0, 1))
+        texture = self.ctx.texture_array((w, h, layers), 1, data.tobytes(), dtype="f4")
+        texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self._traced = TracedLight(tuple(lights), (w, h), texture)
+
+    def _traced_for(self, settings: RenderSettings) -> TracedLight | None:
+        """The traced light that a frame of `settings` reads, if its lights and size are
+        the ones traced."""
+        t = self._traced
+        if t is None or t.size != tuple(settings.size):
+            return None
+        return t if t.lights == tuple(self.direct_lights(settings)) else None
+
     def set_environment(self, coeffs: np.ndarray | None) -> None:
         """(n², 3) SH coefficients ℓ of the environment radiance for "sh" mode (as projected
         by `baking.sh.project_environment`; rotated every frame by `env_rotation`)."""
@@ -210,6 +251,7 @@ class SurfaceRenderer:
         for obj in self._mesh_objects:
             obj.release()
         self.set_lattice(None)
+        self.set_traced_light((), None)
         self._default_fbo.use()
         if self._targets is not None:
             self._targets.release()
@@ -283,6 +325,8 @@ class SurfaceRenderer:
         defines += (("DEFERRED", int(self._lattice_deferred(settings))),)
         if self.direct_lights(settings):
             defines += (("DIRECT", 1),)
+            if self._traced_for(settings) is not None:
+                defines += (("TRACED", 1),)
         return defines
 
     def _surface_program(self, settings: RenderSettings) -> moderngl.Program:
@@ -297,7 +341,8 @@ class SurfaceRenderer:
         mode = shading_mode(settings.shading)
         if mode.lattice is None:
             return False
-        atlas = len(DIRECT_UNITS) if self.direct_lights(settings) else 0
+        atlas = (0 if not self.direct_lights(settings) else
+                 1 if self._traced_for(settings) is not None else len(DIRECT_UNITS))
         return self.lattice.units + 1 + atlas <= MAX_TEXTURE_UNITS  # + the G-buffer
 
     def _deferred(self, settings: RenderSettings) -> bool:
@@ -343,7 +388,16 @@ class SurfaceRenderer:
 
     def _bind_direct(self, prog: moderngl.Program, lights: tuple,
                      settings: RenderSettings) -> None:
-        """Draw (if needed) and bind the per-pixel lights' shadow atlas and uniforms."""
+        """Draw (if needed) and bind the per-pixel lights' shadow atlas, or their traced
+        light (`set_traced_light`), and uniforms."""
+        traced = self._traced_for(settings)
+        if traced is not None:
+            traced.texture.use(location=DIRECT_UNITS[0])
+            no_tiles = direct_uniforms(lights, [], [], [], [], [])
+            self._set_uniforms(prog, {**active_parts(prog, no_tiles),
+                                      "u_traced": DIRECT_UNITS[0],
+                                      "u_direct_offset": self._direct_offset})
+            return
         atlas = self._shadows.atlas(lights, settings.shadow_resolution, self.scene_sphere(),
                                     self._mesh_generation)
         shadow_unit, raw_unit = DIRECT_UNITS

@@ -97,12 +97,13 @@ def light_tiles(light, centre: np.ndarray, radius: float):
 
 def direct_uniforms(lights, matrices, planes, rects, ranges, tile_texels) -> dict:
     """The ``direct.glsl`` uniform arrays (padded to their declared sizes); `tile_texels`:
-    each tile's side in texels."""
+    each tile's side in texels (no tiles: the lights' arrays alone, for traced light)."""
     from isolume.baking.lights import SunLight
 
     def padded(rows, width, count, dtype="f4"):
         out = np.zeros((count, width), dtype)
-        out[:len(rows)] = rows
+        if len(rows):
+            out[:len(rows)] = rows
         return out.tobytes()
 
     where = [(*light.position, 1.0) if is_point(light) else (*light.direction, 0.0)

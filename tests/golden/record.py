@@ -38,6 +38,8 @@ BAKES = {
 RENDERS = {  # name: (lattice or None, extra render arguments)
     "gi_traced": (None, ["--samples", "8", "--workers", "2", "--seed", "7"]),
     "irradiance": ("irradiance", []),
+    "irradiance_shadow_map": ("irradiance", ["--shadows", "map"]),
+    "point_shadow_map": ("point", ["--shadows", "map"]),
     "irradiance_lattice_sun": ("irradiance_lattice_sun", []),
     "irradiance_closest": ("irradiance", ["--shading", "irradiance_closest"]),
     "irradiance_nearest": ("irradiance", ["--shading", "irradiance_nearest"]),
