@@ -1,6 +1,8 @@
 """The GL side of ``isolume chart``: one headless context, renderer, mesh and camera for
 every image of a run (`app.render.renderer.SurfaceRenderer`; EGL by default, llvmpipe where
-there is no GPU), same mesh, camera and albedo for every image."""
+there is no GPU), same mesh, camera and albedo for every image. The images whose error is
+measured get the per-pixel lights' direct light traced as ``isolume render`` traces it
+(`app.render.traced_light`); the frames that are timed, the viewer's shadow maps."""
 
 from __future__ import annotations
 
@@ -31,6 +33,8 @@ class GLScene:
                                iso=self.mesh.iso)
         self.renderer.set_bounds(*volume.box)
         self._lattice = None
+        self._scene = None  # the mesh's Embree scene, for the traced direct light
+        self._traced_key: tuple | None = None
         self._texel_iso: dict = {}
         self._env: dict = {}
 
@@ -88,13 +92,41 @@ class GLScene:
     def render(self, shading: str, lattice=None) -> Image:
         """Draw `shading` (with `lattice` where it reads one) and read it back."""
         self.use(shading, lattice)
+        self._trace_direct(shading)
         frame = self.renderer.render(self.camera, self.settings(shading))
         return Image(frame.linear.reshape(-1, 3).astype(np.float64), frame.mask.reshape(-1))
 
+    def _trace_direct(self, shading: str) -> None:
+        """Trace the direct light of the per-pixel lights of `shading`'s frame, once per
+        lights and lattice start (offset and normals)."""
+        from isolume.app.render.traced_light import position_pass, trace_direct_light
+        from isolume.baking.trace import Scene
+
+        settings = self.settings(shading)
+        lights = self.renderer.direct_lights(settings)
+        lattice = self.renderer.lattice
+        config = None if lattice is None else lattice.lattice.config
+        key = (None if not lights or config is None else
+               (lights, config.offset, config.normals, config.flip_normals))
+        if key == self._traced_key:
+            return
+        self._traced_key = key
+        if key is None:
+            self.renderer.set_traced_light((), None)
+            return
+        if self._scene is None:
+            self._scene = Scene(self.mesh.vertices, self.mesh.faces)
+        trace_direct_light(self.renderer, self.camera, settings, self.volume,
+                           position_pass(self.renderer, self.camera, settings), self._scene,
+                           smooth=config.normals == "smooth")
+
     def frame_seconds(self, shading: str, lattice, draws: int, warmup: int = 3) -> np.ndarray:
         """(draws,) wall seconds of single frames (linear pass + tone-mapping pass, ended by
-        ``ctx.finish()``, no read-back) after `warmup` untimed ones."""
+        ``ctx.finish()``, no read-back) after `warmup` untimed ones, the per-pixel lights
+        shadowed by the viewer's shadow maps."""
         self.use(shading, lattice)
+        self.renderer.set_traced_light((), None)
+        self._traced_key = None
         settings = self.settings(shading)
         times = []
         for i in range(warmup + draws):
