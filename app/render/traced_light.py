@@ -1,4 +1,4 @@
-"""The per-pixel lights of an off-screen picture lit by traced rays (``render``, movies).
+"""The per-pixel lights of off-screen pictures lit by traced rays (render, movie, chart).
 
 The renderer shadows the lights a lattice leaves to the pixels with its shadow atlas, as
 the viewer must at interactive rates; an off-screen picture instead gives each pixel the
@@ -16,9 +16,6 @@ from isolume import volumes
 from isolume.app.render.camera import Camera
 from isolume.app.render.renderer import SurfaceRenderer
 from isolume.app.render.settings import RenderSettings
-
-SHADOWS = ("traced", "map")
-"""How an off-screen picture shadows its per-pixel lights: traced rays or the atlas."""
 
 
 def position_pass(renderer: SurfaceRenderer, camera: Camera,
