@@ -15,7 +15,9 @@ Every frame is drawn with the same exposure (`meter`), so nothing flickers.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -278,19 +280,18 @@ class Stage:
         if mesh.empty:
             self.empty_isos.add(iso)
 
-    def _trace_view(self, shot: Shot, camera: Camera, settings: RenderSettings,
+    def _trace_view(self, shot: Shot, camera: Camera, seen: Callable[[], tuple],
                     keep: bool) -> None:
         """Trace and upload the light of `shot`'s view (`app.render.view_gi.view_lattice`,
-        as ``isolume render`` does without a lattice); one traced for the same shot with
-        `keep` is used once more instead."""
+        as ``isolume render`` does without a lattice) from the frame's position pass
+        `seen()`; one traced for the same shot with `keep` is used once more instead."""
         lattice = self._kept.pop(shot.index, None)
         if lattice is None and self._triangles:
             from isolume.app.render.view_gi import view_lattice
 
-            points, _ = position_pass(self.renderer, camera, settings)
             config = self.scene.traced_config(shot)
             scene, tracing = self._traced(shot.iso, config)
-            lattice = view_lattice(self.scene.volume, config, shot.iso, points, camera.eye,
+            lattice = view_lattice(self.scene.volume, config, shot.iso, seen()[0], camera.eye,
                                    workers=self.scene.workers, progress=False, scene=scene,
                                    tracing=tracing)
         if keep and lattice is not None:
@@ -318,15 +319,15 @@ class Stage:
             self._traced_scene = (iso, surface_scene(self.scene.volume, iso, 1))
         return self._traced_scene[1]
 
-    def _trace_direct(self, shot: Shot, camera: Camera, settings: RenderSettings) -> None:
+    def _trace_direct(self, shot: Shot, camera: Camera, settings: RenderSettings,
+                      seen: Callable[[], tuple]) -> None:
         """Trace the per-pixel lights' direct light of `shot`'s frame
-        (`app.render.traced_light`) when the scene asks for it and the frame has such
-        lights."""
+        (`app.render.traced_light`, from its position pass `seen()`) when the scene asks
+        for it and the frame has such lights."""
         if self.scene.shadows != "traced" or not self.renderer.direct_lights(settings):
             self.renderer.set_traced_light((), None)
             return
-        seen = position_pass(self.renderer, camera, settings)
-        trace_direct_light(self.renderer, camera, settings, self.scene.volume, seen,
+        trace_direct_light(self.renderer, camera, settings, self.scene.volume, seen(),
                            self._surface_scene(shot.iso),
                            smooth=self.scene.normals == "smooth", workers=self.scene.workers)
 
@@ -336,10 +337,11 @@ class Stage:
         self._show_iso(shot.iso)
         camera = self.scene.camera(shot)
         settings = self.scene.frame_settings(shot, exposure)
+        seen = functools.cache(lambda: position_pass(self.renderer, camera, settings))
         if self.scene.traced is not None:
-            self._trace_view(shot, camera, settings, keep)
+            self._trace_view(shot, camera, seen, keep)
         if self._triangles:
-            self._trace_direct(shot, camera, settings)
+            self._trace_direct(shot, camera, settings, seen)
         return self.renderer.render(camera, settings)
 
 
