@@ -109,7 +109,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
     vol = load_volume(args)
     try:
         lattice = bake(vol, config, out=out, workers=args.workers, progress=True,
-                       scheduler=args.scheduler, outlook=say_outlook)
+                       scheduler=args.scheduler, outlook=say_outlook, dense=False)
     except KeyboardInterrupt:
         if out.exists():
             _, held = open_lattice(out)[0].read_texels(None, ("samples",))

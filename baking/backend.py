@@ -29,8 +29,8 @@ from isolume.baking.errors import BakeError
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.passes import (
     LevelPaths,
+    LevelStarts,
     LevelSums,
-    PathStarts,
     Tracing,
     chunk_bounds,
     lay_out_level,
@@ -203,12 +203,12 @@ def _first_level(volume: volumes.Volume, config: BakeConfig,
 
 @dataclass(frozen=True)
 class _LevelWork:
-    """The pending paths of one level by texel, the start points of their texels, and the
-    level's scene (None when it has no paths)."""
+    """The pending paths of one level by texel, how the start points of their texels are
+    made, and the level's scene (None when it has no paths)."""
 
     level: int
     paths: LevelPaths
-    start: PathStarts
+    start: LevelStarts
     scene: Scene | None
 
 
@@ -279,8 +279,8 @@ class ThreadBackend:
     def trace_pass(self, work: PassWork, report: PassReport) -> None:
         """Trace `work` level by level (`TracingBackend.trace_pass`).
 
-        Pipelined: the helper thread lays out the paths and start points of the next level
-        and builds its scene while the workers trace this one (the chunks, the level
+        Pipelined: the helper thread lays out the paths of the next level and builds its
+        scene while the workers trace this one (the chunks, the level
         surfaces and the BVH build run without the GIL). The calling thread only waits
         for what the pipeline did not hide.
         """
@@ -344,10 +344,10 @@ class ThreadBackend:
             self.job.stats.scene_seconds += time.perf_counter() - began
 
     def _prepare_level(self, work: PassWork, level: int) -> _LevelWork:
-        """Lay out every pending path of isovalue level `level`, sorted by texel, with
-        the start points of its texels — the lower-level samples of the texels whose
-        lower level it is, and the upper-level samples of those whose lower level is the
-        one below — and get the level's scene if it has paths."""
+        """Lay out every pending path of isovalue level `level`, sorted by texel — the
+        lower-level samples of the texels whose lower level it is, and the upper-level
+        samples of those whose lower level is the one below — and get the level's scene
+        if it has paths."""
         job = self.job
         plan = job.plan
         paths, start = lay_out_level(

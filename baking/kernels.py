@@ -89,10 +89,14 @@ def path_starts(seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray, samples: 
     return keys, out_o, out_n, dirs
 
 
+PHASE_UNIT = 2.0 ** -32
+"""A plan's level-assignment phase per unit of its uint32 (`baking.plan.Plan.phase`)."""
+
+
 @numba.njit(**JIT)
-def on_upper(phase: float, weight: float, sample: int, golden: float) -> bool:
+def on_upper(phase: np.uint32, weight: float, sample: int, golden: float) -> bool:
     """`baking.plan.Plan.on_upper` of one sample (the same float64 operations)."""
-    return (phase + sample * golden) % 1.0 < weight
+    return (phase * PHASE_UNIT + sample * golden) % 1.0 < weight
 
 
 @numba.njit(**JIT)
@@ -107,7 +111,8 @@ def level_texels(here: np.ndarray, below: np.ndarray, done: np.ndarray,
             whose lower level is the one below (their samples on the upper level).
         done, remaining: (T_all,) samples a texel has, and how many more it needs: its
             pending samples are ``done … done + remaining - 1``.
-        phase, weight: the plan's (T_all,) level-assignment phases and upper weights.
+        phase, weight: the plan's (T_all,) level-assignment phases (uint32 in units of
+            2⁻³², `Plan.phase`) and upper weights.
 
     Returns:
         (K,) int64 sorted positions of the texels with at least one path here, (K,) bool

@@ -1,8 +1,8 @@
 """The pieces of a bake's pass that every tracing backend shares (`baking.backend`).
 
 A pass brings some texels up to a sample count. On each isovalue level, the texels that
-bracket it trace their pending paths (`lay_out_level`: the texels, their path counts and
-start points; a chunk's positions and sample indices are made when it is traced, so a
+bracket it trace their pending paths (`lay_out_level`: the texels and their path counts;
+a chunk's positions, sample indices and start points are made when it is traced, so a
 level's layout costs bytes per texel, not per path) on the level's scene (`level_scene`),
 in chunks of whole texels (`chunk_bounds`, `trace_texels`); a chunk's per-texel sums go
 to the pass sums of the texels in flight (`LevelSums`: from a texel's lower level to its
@@ -33,7 +33,14 @@ from isolume.baking.integrator import (
     trace_whole_paths,
 )
 from isolume.baking.lattice import Lattice, LatticeGeometry
-from isolume.baking.plan import GOLDEN_FRACTION, Plan, newton_reach, project_to_level
+from isolume.baking.plan import (
+    GOLDEN_FRACTION,
+    Plan,
+    landed_points,
+    newton_reach,
+    project_to_level,
+    rounded_landing,
+)
 from isolume.baking.rays import RayStats
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
@@ -154,8 +161,8 @@ def commit_sums(lattice: Lattice | PlanLattice, ids: np.ndarray, acc: PassSums,
                                 acc.sum, acc.second, acc.n)
 
 
-def landing_facing(volume: volumes.Volume, config: BakeConfig, plan: Plan,
-                   positions: np.ndarray) -> np.ndarray:
+def landing_facing(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
+                   plan: Plan, positions: np.ndarray) -> np.ndarray:
     """(P, 2) uint8 facings (`baking.octahedral`) of the texels at the (P,) plan
     `positions`: the mean of their start normals on their two levels (`start_points`'
     normals at `Plan.landing`), weighted like their samples (1 − weight, weight); unknown
@@ -166,8 +173,9 @@ def landing_facing(volume: volumes.Volume, config: BakeConfig, plan: Plan,
     for side in (0, 1):
         used = share[:, side] > 0
         if used.any():
-            normals = lit_normals(volume, config, plan.landing[positions[used], side],
-                                  plan.high[positions[used]])
+            at = positions[used]
+            points = landed_points(plan.landing[at, side], geometry.centres(plan.ids[at]))
+            normals = lit_normals(volume, config, points, plan.high[at])
             mean[used] += share[used, side, None] * normals
     return octahedral.encode(mean)
 
@@ -186,12 +194,20 @@ def commit_facing(lattice: Lattice | PlanLattice, volume: volumes.Volume,
                   rows: np.ndarray | None) -> None:
     """Set the facings (`landing_facing`) of the texels at plan `positions` about to be
     committed that have none yet, or no samples yet (a texel reset by another plan);
-    `rows` as `LevelSums.commit`'s."""
+    `rows` as `LevelSums.commit`'s. `FACING_BLOCK` texels at a time."""
     flat = rows_at(rows, positions)
     codes = lattice.facing.reshape(-1, 2)
-    todo = ~octahedral.known(codes[flat]) | (lattice.samples.reshape(-1)[flat] == 0)
-    if todo.any():
-        codes[flat[todo]] = landing_facing(volume, config, plan, positions[todo])
+    todo = np.flatnonzero(~octahedral.known(codes[flat])
+                          | (lattice.samples.reshape(-1)[flat] == 0))
+    for lo in range(0, len(todo), FACING_BLOCK):
+        block = todo[lo:lo + FACING_BLOCK]
+        codes[flat[block]] = landing_facing(volume, lattice.geometry, config, plan,
+                                            positions[block])
+
+
+FACING_BLOCK = 1 << 20
+"""Texels whose facings `commit_facing` makes at a time (its temporaries: ~200 bytes a
+texel of a block, where one level can complete tens of millions of texels)."""
 
 
 def chunk_bounds(counts: np.ndarray, workers: int):
@@ -219,7 +235,7 @@ def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
     """Texel centres (N, 3) moved onto a level surface (at most the plan's `newton_reach`)
     and offset along the normal of their lit side (`high` (N,): `Plan.high`). `on_level`
     (N, 3): where that move lands, when the plan already projected them (`Plan.landing`:
-    the same computation).
+    the same computation, and the same rounding).
 
     Returns:
         origins (N, 3) world, normals (N, 3) unit (high → low values, low → high where
@@ -227,18 +243,20 @@ def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
     """
     h = float(np.mean(volume.spacing))
     if on_level is None:
-        on_level = project_to_level(volume, centres, level,
-                                    max_move=newton_reach(volume, config))
+        on_level = rounded_landing(project_to_level(
+            volume, centres, level, max_move=newton_reach(volume, config)), centres)
     normals = lit_normals(volume, config, on_level, high)
     return on_level + config.offset * h * normals, normals
 
 
 @dataclass(frozen=True)
 class PathStarts:
-    """Where the paths of one level start: per texel, sorted by texel position.
+    """Where the paths of some texels of one level start: per texel, sorted by texel
+    position.
 
     Attributes:
-        texels: (T,) sorted texel positions (indices into the plan).
+        texels: (T,) sorted texel positions (indices into the `Tracing.ids` they are
+            traced with).
         origins: (T, 3) float32 start points (world), normals: (T, 3) float32 unit.
     """
 
@@ -271,35 +289,64 @@ class LevelPaths:
                                    self.phase, self.weight, GOLDEN_FRACTION)
 
 
+@dataclass(frozen=True)
+class LevelStarts:
+    """The start points of a level's texels (`LevelPaths.texels`, `LevelPaths.upper`),
+    made a chunk of texels at a time as it is traced (`start_points`: each texel's from
+    its own data alone), so that 24 bytes a texel exist for the texels being traced only,
+    not for a whole level and the next one laid out ahead (20 M texels a level on the
+    512³ foot CT). Arguments as `lay_out_level`'s."""
+
+    volume: volumes.Volume
+    geometry: LatticeGeometry
+    config: BakeConfig
+    iso: float
+    ids: np.ndarray
+    high: np.ndarray
+    landing: np.ndarray | None
+    texels: np.ndarray
+    upper: np.ndarray
+
+    def of(self, lo: int, hi: int) -> PathStarts:
+        """The `PathStarts` of the level's texels lo … hi − 1, numbered 0 … hi − lo − 1."""
+        texels = self.texels[lo:hi]
+        centres = self.geometry.centres(self.ids[texels])
+        on_level = None
+        if self.landing is not None:  # `here` lands on its lower level, `below` upper
+            on_level = landed_points(self.landing[texels, self.upper[lo:hi].astype(np.int64)],
+                                     centres)
+        origins, normals = start_points(self.volume, centres, self.iso, self.config,
+                                        self.high[texels], on_level)
+        return PathStarts(np.arange(hi - lo, dtype=np.int64), origins.astype(np.float32),
+                          normals.astype(np.float32))
+
+
 def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
                   iso: float, ids: np.ndarray, phase: np.ndarray, weight: np.ndarray,
                   high: np.ndarray, here: np.ndarray, below: np.ndarray, done: np.ndarray,
                   remaining: np.ndarray, landing: np.ndarray | None = None
-                  ) -> tuple[LevelPaths, PathStarts]:
-    """The pending paths of the level surface ρ = `iso` and their texels' start points
-    (a local bake lays out whole levels with it, a cluster task its own texels). Each
-    texel's paths and start point depend on that texel alone.
+                  ) -> tuple[LevelPaths, LevelStarts]:
+    """The pending paths of the level surface ρ = `iso` and how their texels' start points
+    are made (a local bake lays out whole levels with it, a cluster task its own texels).
+    Each texel's paths and start point depend on that texel alone.
 
     Args:
         ids, phase, weight, high: (T,) the plan's lattice ids, level phases, upper
             weights and lit sides, of all its texels or of any subset (positions then
             index the subset).
         here, below, done, remaining: as `kernels.level_texels` (positions into `ids`).
-        landing: (T, 2, 3) the plan's `Plan.landing` of the same texels, or None to
-            project them here (cluster tasks, which are not sent it).
+        landing: (T, 2, 3) the plan's `Plan.landing` (offsets from the texel centres) of
+            the same texels, or None to project them here (cluster tasks, which are not
+            sent it).
 
     Returns:
-        the level's paths by texel and their texels' `PathStarts`.
+        the level's paths by texel and their texels' `LevelStarts`.
     """
     texels, upper, counts = kernels.level_texels(here, below, done, remaining, phase, weight,
                                                  GOLDEN_FRACTION)
-    on_level = None
-    if landing is not None:  # the texels of `here` land on their lower level, `below` upper
-        on_level = landing[texels, upper.astype(np.int64)]
-    origins, normals = start_points(volume, geometry.centres(ids[texels]), iso, config,
-                                    high[texels], on_level)
     paths = LevelPaths(texels, upper, counts, done, remaining, phase, weight)
-    return paths, PathStarts(texels, origins.astype(np.float32), normals.astype(np.float32))
+    return paths, LevelStarts(volume, geometry, config, iso, ids, high, landing, texels,
+                              upper)
 
 
 @dataclass(frozen=True)
@@ -344,9 +391,9 @@ def trace_chunk(scene: Scene, tracing: Tracing, pos: np.ndarray, samples: np.nda
 
 
 def trace_texels(scene: Scene, tracing: Tracing, paths: LevelPaths, lo: int, hi: int,
-                 start: PathStarts) -> tuple[PassSums, int, int, float]:
+                 start: LevelStarts) -> tuple[PassSums, int, int, float]:
     """`trace_chunk` of the paths of a level's texels lo … hi − 1 (`chunk_bounds`; `start`
-    holds the start points of the level's texels, ``start.texels`` = ``paths.texels``).
+    makes the start points of the level's texels, ``paths.texels``).
 
     Returns:
         their sums (hi − lo texels, formed from zero), and `trace_chunk`'s counts.
@@ -354,9 +401,7 @@ def trace_texels(scene: Scene, tracing: Tracing, paths: LevelPaths, lo: int, hi:
     index, samples = paths.of(lo, hi)
     sums = PassSums(hi - lo, tracing.settings.channels)
     chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]])
-    own = PathStarts(np.arange(hi - lo, dtype=np.int64), start.origins[lo:hi],
-                     start.normals[lo:hi])
-    return sums, *trace_chunk(scene, chunk, index, samples, own, sums)
+    return sums, *trace_chunk(scene, chunk, index, samples, start.of(lo, hi), sums)
 
 
 def level_scene(volume: volumes.Volume, iso: float, config: BakeConfig) -> Scene:
@@ -364,7 +409,7 @@ def level_scene(volume: volumes.Volume, iso: float, config: BakeConfig) -> Scene
     seconds its marching cubes took as ``mesh_seconds`` (Embree's as ``build_seconds``).
     The surface is `volumes.tracing_surface`'s: compiled, without the GIL (scikit-image
     held it for 0.17 s a level on the engine CT, stalling the plan and the tracing
-    workers beside the build), a watertight triangle soup with zero-area triangles kept
+    workers beside the build), a watertight indexed mesh with zero-area triangles kept
     (no ray hits them)."""
     from isolume.baking.trace import Scene
 

@@ -42,6 +42,7 @@ import numba
 import numpy as np
 
 from isolume import volumes
+from isolume.baking import kernels
 from isolume.baking.config import BakeConfig
 from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
@@ -85,14 +86,17 @@ class Plan:
         levels: (K,) isovalues of the level surfaces, increasing, within `iso_range`.
         lower: (T,) int32 index a of the lower bracketing level (the upper is a + 1).
         weight: (T,) fraction of paths on the upper level, in [0, 1].
-        phase: (T,) per-texel offset of the level-assignment sequence, in [0, 1).
+        phase: (T,) uint32 per-texel offset of the level-assignment sequence, in units of
+            2⁻³² (`kernels.PHASE_UNIT`): in [0, 1) exactly, at 4 bytes a texel.
         active: (Z, Y, X) bool mask of the active texels.
         move_voxels: (T,) float32 distance from the texel to its farther level, voxels.
         move_limit: the level spacing's move limit, voxels (`move_limit`).
         reach: largest Newton move onto a level, world units (`newton_reach`).
-        landing: (T, 2, 3) float64 world point where each texel's Newton steps land on its
-            lower (0) and upper (1) level — the start points' projection, done once (NaN
-            where a texel does not use the level).
+        landing: (T, 2, 3) float32 offset from each texel's centre, world units, of where
+            its Newton steps land on its lower (0) and upper (1) level — the start points'
+            projection, done once (NaN where a texel does not use the level); world points
+            by `landed_points` (12 bytes a point: float32 offsets are exact to ~10⁻⁷ of
+            the move, far below the float32 start points' own rounding).
         high: (T,) bool: the texel is lit on the high-value side of its levels (its
             normals point from low to high values; `baking.sides`).
         unreachable: texels that cannot reach one or both bracketing levels within
@@ -119,7 +123,7 @@ class Plan:
         """(N,) bool: does sample `samples[i]` of texel `ids[positions[i]]` use the upper
         level? A golden-ratio sequence per texel, so any prefix of N samples puts
         w·N ± O(log N) of them on the upper level (stratified, not random)."""
-        x = np.mod(self.phase[positions] + samples * GOLDEN_FRACTION, 1.0)
+        x = np.mod(self.phase[positions] * kernels.PHASE_UNIT + samples * GOLDEN_FRACTION, 1.0)
         return x < self.weight[positions]
 
     def level_of(self, positions: np.ndarray, samples: np.ndarray) -> np.ndarray:
@@ -231,12 +235,13 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     reach = newton_reach(volume, config)
     say(f"paths onto {len(levels)} levels")
     uses_lo, uses_hi = weight < 1, weight > 0
-    landing = np.full((len(ids), 2, 3), np.nan)
+    landing = np.full((len(ids), 2, 3), np.nan, np.float32)
     for block in _blocks(len(ids)):
         centres = geometry.centres(ids[block])
         for side, uses in ((0, uses_lo[block]), (1, uses_hi[block])):
-            landing[block][uses, side] = project_to_level(
-                volume, centres[uses], levels[lower[block] + side][uses], max_move=reach)
+            landing[block][uses, side] = landing_offsets(project_to_level(
+                volume, centres[uses], levels[lower[block] + side][uses], max_move=reach),
+                centres[uses])
     say(f"seen sides on {len(levels)} levels")
     high = lit_sides(volume, config, geometry, ids, landing, levels, lower, weight, scenes)
     tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
@@ -249,7 +254,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     outside = np.where(high, 0.0, 1.0)  # the level whose lit side the texel lies on
     weight = np.where(needed, weight, np.where(ok_hi, 1.0, np.where(ok_lo, 0.0, outside)))
     move = np.maximum(np.where(weight < 1, move_lo, 0.0), np.where(weight > 0, move_hi, 0.0)) / h
-    phase = pcg_hash(ids.astype(np.uint32) ^ np.uint32(config.seed & 0xFFFFFFFF)) / 2.0**32
+    phase = pcg_hash(ids.astype(np.uint32) ^ np.uint32(config.seed & 0xFFFFFFFF))
     return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase,
                 active, move.astype(np.float32), limit, reach, landing, high,
                 int(np.count_nonzero(~needed)))
@@ -279,10 +284,28 @@ def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeome
                      np.isfinite(landing[:, 0]).all(axis=1))
 
     def points(at: np.ndarray) -> np.ndarray:  # where the texels `at` land on that level
-        return np.where(upper[at, None], landing[at, 1], landing[at, 0])
+        return landed_points(np.where(upper[at, None], landing[at, 1], landing[at, 0]),
+                             geometry.centres(ids[at]))
 
     return choose_sides(volume, config, geometry, ids, points, found, levels, lower + upper,
                         scenes)
+
+
+def landing_offsets(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 offsets of world points (N, 3) from their texels' centres (N, 3):
+    how `Plan.landing` keeps them (NaN stays NaN)."""
+    return (np.asarray(points, np.float64) - centres).astype(np.float32)
+
+
+def landed_points(offsets: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 world points from `landing_offsets` (N, 3) and the centres (N, 3)."""
+    return centres + offsets
+
+
+def rounded_landing(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 world points (N, 3) as `Plan.landing` keeps them: where the paths of
+    a plan start from, whoever projected them (`baking.passes.start_points`)."""
+    return landed_points(landing_offsets(points, centres), centres)
 
 
 def resolved_iso_range(volume: volumes.Volume, config: BakeConfig) -> tuple[float, float]:
@@ -505,18 +528,21 @@ class _Reaches:
     tol: np.ndarray
     high: np.ndarray
 
-    def __call__(self, levels: np.ndarray, which: np.ndarray, landed: np.ndarray,
+    def __call__(self, levels: np.ndarray, which: np.ndarray, landing: np.ndarray,
                  ok: np.ndarray | None = None, moved: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-        """`_reaches` of every texel from its centre (arguments as there, (T,) and (T, 3))."""
+        """`_reaches` of every texel from its centre (arguments as there, (T,) and (T, 3);
+        `landing` (T, 3) float32 offsets as `Plan.landing`'s, updated in place)."""
         count = len(self.ids)
         ok = np.ones(count, bool) if ok is None else ok.copy()
-        moved = np.zeros(count) if moved is None else moved.copy()
+        moved = np.zeros(count, np.float32) if moved is None else moved.copy()
         for b in _blocks(count):
-            ok[b], moved[b] = _reaches(self.volume, self.config,
-                                       self.geometry.centres(self.ids[b]), levels[b],
+            centres = self.geometry.centres(self.ids[b])
+            landed = landed_points(landing[b], centres)
+            ok[b], moved[b] = _reaches(self.volume, self.config, centres, levels[b],
                                        self.reach, self.tol[b], self.high[b], which[b],
-                                       landed[b], ok[b], moved[b])
+                                       landed, ok[b], moved[b])
+            landing[b] = landing_offsets(landed, centres)
         return ok, moved
 
 
@@ -538,8 +564,8 @@ def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
     if which.any():
         todo = which & np.isnan(landed[:, 0])
         if todo.any():
-            landed[todo] = project_to_level(volume, points[todo], levels[todo],
-                                            max_move=reach)
+            landed[todo] = rounded_landing(project_to_level(
+                volume, points[todo], levels[todo], max_move=reach), points[todo])
         ok[which] = (np.abs(volumes.value_at(volume, landed[which]) - levels[which])
                      <= tol[which]) & starts_outside(volume, config, landed[which],
                                                      levels[which], high[which])

@@ -54,6 +54,9 @@ SALT = 0x51DE_5EED
 """Mixed into the bake seed: the probes use random numbers of their own."""
 TEXELS_PER_BATCH = 4096
 """Texels whose probe rays one thread traces at a time (65 536 rays, 2.4 MB of rays)."""
+TEXELS_PER_CALL = 1 << 20
+"""Texels whose points, normals and counts `choose_sides` holds at a time (~200 bytes
+each: a level of the 512³ foot CT has 20 M texels)."""
 
 
 def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
@@ -80,9 +83,11 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
         if scene is None:
             scene = level_surface(volume, float(levels[k]))
         if not scene.empty:
-            open_low, open_high = open_rays(scene, volume, config, ids[on], points(on),
-                                            float(levels[k]), default)
-            high[on] = side_rule(open_low, open_high, parity(geometry, ids[on]), default)
+            for lo in range(0, len(on), TEXELS_PER_CALL):
+                at = on[lo:lo + TEXELS_PER_CALL]
+                open_low, open_high = open_rays(scene, volume, config, ids[at], points(at),
+                                                float(levels[k]), default)
+                high[at] = side_rule(open_low, open_high, parity(geometry, ids[at]), default)
         del scene  # gone before the next level's is built
     return high
 

@@ -73,7 +73,8 @@ def test_level_paths_match_the_numpy_expansion():
     gen = np.random.default_rng(4)
     count = 300
     lower = gen.integers(0, 5, count)
-    phase, weight = gen.random(count), gen.random(count)
+    phase = gen.integers(0, 2**32, count, dtype=np.uint32)
+    weight = gen.random(count)
     weight[:20] = 0.0  # texels with one level only
     done = gen.integers(0, 40, count)
     remaining = gen.integers(0, 9, count)
@@ -89,7 +90,7 @@ def test_level_paths_match_the_numpy_expansion():
         want_pos, want_samples = [], []
         for group, on_upper in ((here, False), (below, True)):
             p, s = pending_samples(group, done, remaining)
-            upper = np.mod(phase[p] + s * GOLDEN_FRACTION, 1.0) < weight[p]
+            upper = np.mod(phase[p] / 2.0**32 + s * GOLDEN_FRACTION, 1.0) < weight[p]
             want_pos.append(p[upper == on_upper])
             want_samples.append(s[upper == on_upper])
         p, s = np.concatenate(want_pos), np.concatenate(want_samples)

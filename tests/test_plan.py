@@ -207,7 +207,8 @@ def test_stalled_newton_falls_back_to_the_nearest_crossing_along_neighbour_lines
 def test_levels_start_where_the_plan_landed_their_texels():
     """The plan's reach test projects every texel onto the levels it uses; laying out a
     level reuses those points (`Plan.landing`) and gets the start points a fresh
-    projection gives, to the bit."""
+    projection gives (rounded as the plan keeps them), to the bit, a chunk at a time as
+    for the whole level."""
     from isolume.baking.passes import lay_out_level, start_points
 
     vol = make("shells", 32)
@@ -223,12 +224,18 @@ def test_levels_start_where_the_plan_landed_their_texels():
     remaining = np.full(len(plan.ids), 8, np.int64)
     args = (vol, geometry, config, float(plan.levels[level]), plan.ids, plan.phase,
             plan.weight, plan.high, here, below, done, remaining)
-    _, reused = lay_out_level(*args, plan.landing)
+    paths, starts = lay_out_level(*args, plan.landing)
+    reused = starts.of(0, len(paths.texels))
     _, fresh = lay_out_level(*args)
+    fresh = fresh.of(0, len(paths.texels))
     np.testing.assert_array_equal(reused.origins, fresh.origins)
     np.testing.assert_array_equal(reused.normals, fresh.normals)
-    origins, _ = start_points(vol, geometry.centres(plan.ids[fresh.texels]),
-                              float(plan.levels[level]), config, plan.high[fresh.texels])
+    cut = len(paths.texels) // 3  # a chunk's start points: those of the whole level's
+    part = starts.of(cut, len(paths.texels))
+    np.testing.assert_array_equal(part.origins, reused.origins[cut:])
+    np.testing.assert_array_equal(part.normals, reused.normals[cut:])
+    origins, _ = start_points(vol, geometry.centres(plan.ids[paths.texels]),
+                              float(plan.levels[level]), config, plan.high[paths.texels])
     np.testing.assert_array_equal(fresh.origins, origins.astype(np.float32))
 
 
@@ -256,10 +263,11 @@ def test_selected_cells_equal_numpy_reductions_and_dilation():
 def _starts_inside(vol: Volume, plan, config) -> np.ndarray:
     """(T,) bool: does some level a texel uses start its paths on the high side of it?"""
     h = float(np.mean(vol.spacing))
+    centres = LatticeGeometry.for_volume(vol, config.scale).centres(plan.ids)
     inside = np.zeros(len(plan.ids), bool)
     for side, used in ((0, plan.weight < 1), (1, plan.weight > 0)):
         level = plan.levels[plan.lower + side][used]
-        landed = plan.landing[used, side]
+        landed = centres[used] + plan.landing[used, side]
         start = landed + config.offset * h * volumes.normals_at(vol, landed)
         inside[used] |= volumes.value_at(vol, start) >= level
     return inside

@@ -84,6 +84,20 @@ def test_a_plane_across_the_box_is_lit_on_both_sides_in_a_checkerboard():
     assert PROBES >= 16
 
 
+def test_sides_chosen_a_few_texels_at_a_time_are_the_same(monkeypatch):
+    """`choose_sides` holds `TEXELS_PER_CALL` texels' points and counts at a time: any
+    split gives the same sides (each texel's probes are its own)."""
+    from isolume.baking import sides
+
+    vol = _plane(24)  # both sides open: lit on alternate texels, by their ids
+    config = BakeConfig(iso_range=(0.45, 0.55), **SKY)
+    geometry = bake(vol, config, workers=2).geometry
+    whole = make_plan(vol, geometry, config).high
+    monkeypatch.setattr(sides, "TEXELS_PER_CALL", 37)
+    np.testing.assert_array_equal(make_plan(vol, geometry, config).high, whole)
+    assert 0 < whole.sum() < len(whole) and len(whole) > 10 * 37
+
+
 @pytest.mark.parametrize("view", [(30.0, 60.0, 1.6), (30.0, -40.0, 1.6)])
 def test_a_baked_cut_open_slab_matches_the_reference_from_above_and_below(view):
     """From above the eye sees the slab's bottom face from inside (its high side, open to

@@ -3,8 +3,10 @@
 scikit-image's marching cubes (`volumes.isosurface`, what the renderer draws) holds the
 GIL for a whole call — 0.17 s on the engine CT — and the baker builds its level scenes on a
 helper thread beside the plan and the tracing, whose Python and numpy steps then wait. This
-is the classic algorithm as two compiled passes over z-slabs on threads (count, then fill),
-giving a triangle soup: Embree needs no shared vertices, and a ray tracer no normals.
+is the classic algorithm as compiled passes over z-slabs on threads (count, then fill),
+giving an indexed mesh with one vertex per crossed grid edge (a soup with three vertices
+per triangle would hold 36 bytes a triangle where this holds about 6) and no normals (a
+ray tracer needs none).
 
 The case table is derived here, not copied: for each of the 256 sign patterns of a cell's
 corners, the edges whose ends lie on opposite sides of the isovalue are joined face by face
@@ -111,59 +113,119 @@ def _count(data: np.ndarray, iso: float, count: np.ndarray, k0: int, k1: int,
 
 
 @numba.njit(nogil=True, cache=True)
-def _fill(data: np.ndarray, iso: float, count: np.ndarray, table: np.ndarray,
-          corner_pairs: np.ndarray, origin: np.ndarray, spacing: np.ndarray, k0: int,
-          k1: int, out: np.ndarray, first: int) -> None:
-    """Write the triangles of z-layers [k0, k1) as world xyz vertices into out[3·first:]
-    ((3T, 3) float32). An edge's vertex is interpolated from its lower corner."""
-    v = 3 * first
+def _count_vertices(data: np.ndarray, iso: float, k0: int, k1: int,
+                    totals: np.ndarray) -> None:
+    """totals[k] = crossed edges owned by grid layer k (`_edge_map`), for k in [k0, k1)."""
+    nz, ny, nx = data.shape
     for k in range(k0, k1):
-        for j in range(data.shape[1] - 1):
-            for i in range(data.shape[2] - 1):
+        total = 0
+        for j in range(ny):
+            for i in range(nx):
+                inside = data[k, j, i] > iso
+                if i + 1 < nx and (data[k, j, i + 1] > iso) != inside:
+                    total += 1
+                if j + 1 < ny and (data[k, j + 1, i] > iso) != inside:
+                    total += 1
+                if k + 1 < nz and (data[k + 1, j, i] > iso) != inside:
+                    total += 1
+        totals[k] = total
+
+
+@numba.njit(nogil=True, cache=True)
+def _edge_map(data: np.ndarray, iso: float, k: int, first: int, index: np.ndarray,
+              write: bool, origin: np.ndarray, spacing: np.ndarray,
+              vertices: np.ndarray) -> None:
+    """Number the crossed edges owned by grid layer k — those whose lower corner lies in
+    it: along x and y within it, along z from it to k + 1 — from `first` on, in (j, i,
+    axis) order, into index[j, i, axis] ((Y, X, 3) int64); where `write`, also their
+    vertices into `vertices` ((V, 3) float32 world xyz), interpolated from the lower
+    corner (the same arithmetic in every cell that shares the edge)."""
+    nz, ny, nx = data.shape
+    v = first
+    for j in range(ny):
+        for i in range(nx):
+            for axis in range(3):
+                xb, yb, zb = i + (axis == 0), j + (axis == 1), k + (axis == 2)
+                if xb >= nx or yb >= ny or zb >= nz:
+                    continue
+                if (data[k, j, i] > iso) == (data[zb, yb, xb] > iso):  # as `_case` tests
+                    continue
+                index[j, i, axis] = v
+                if write:
+                    va = np.float32(data[k, j, i])  # integers would wrap
+                    vb = np.float32(data[zb, yb, xb])
+                    f = (iso - va) / (vb - va)
+                    vertices[v, 0] = origin[0] + (i + f * (xb - i)) * spacing[0]
+                    vertices[v, 1] = origin[1] + (j + f * (yb - j)) * spacing[1]
+                    vertices[v, 2] = origin[2] + (k + f * (zb - k)) * spacing[2]
+                v += 1
+
+
+@numba.njit(nogil=True, cache=True)
+def _fill(data: np.ndarray, iso: float, count: np.ndarray, table: np.ndarray,
+          corner_pairs: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
+          vertex_first: np.ndarray, k0: int, k1: int, vertices: np.ndarray,
+          faces: np.ndarray, first: int) -> None:
+    """Write the triangles of cell layers [k0, k1) into faces[first:] ((T, 3) int32
+    indices into `vertices`), and the vertices of grid layers [k0, k1) — and of the last
+    grid layer when k1 is the last cell layer — into `vertices` (`_edge_map`; grid layer
+    k's are numbered from vertex_first[k] on)."""
+    nz, ny, nx = data.shape
+    lower = np.empty((ny, nx, 3), np.int64)
+    upper = np.empty((ny, nx, 3), np.int64)
+    _edge_map(data, iso, k0, vertex_first[k0], lower, True, origin, spacing, vertices)
+    t = first
+    for k in range(k0, k1):
+        _edge_map(data, iso, k + 1, vertex_first[k + 1], upper, k + 1 < k1 or k + 1 == nz - 1,
+                  origin, spacing, vertices)
+        for j in range(ny - 1):
+            for i in range(nx - 1):
                 case = _case(data, iso, k, j, i)
-                for t in range(count[case]):
+                for n in range(count[case]):
                     for corner in range(3):
-                        edge = table[case, t, corner]
+                        edge = table[case, n, corner]
                         a, b = corner_pairs[edge, 0], corner_pairs[edge, 1]
-                        za, ya, xa = k + (a >> 2), j + (a >> 1 & 1), i + (a & 1)
-                        zb, yb, xb = k + (b >> 2), j + (b >> 1 & 1), i + (b & 1)
-                        va = np.float32(data[za, ya, xa])  # integers would wrap
-                        vb = np.float32(data[zb, yb, xb])
-                        f = (iso - va) / (vb - va)
-                        out[v, 0] = origin[0] + (xa + f * (xb - xa)) * spacing[0]
-                        out[v, 1] = origin[1] + (ya + f * (yb - ya)) * spacing[1]
-                        out[v, 2] = origin[2] + (za + f * (zb - za)) * spacing[2]
-                        v += 1
+                        axis = (b - a) >> 1  # b − a is 1, 2 or 4: along x, y or z
+                        layer = lower if (a >> 2) == 0 else upper
+                        faces[t, corner] = layer[j + (a >> 1 & 1), i + (a & 1), axis]
+                    t += 1
+        lower, upper = upper, lower
 
 
 def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]:
-    """The isosurface ρ = `iso` as a watertight triangle soup for ray tracing, extracted
-    without the GIL (see the module docs).
+    """The isosurface ρ = `iso` as a watertight indexed triangle mesh for ray tracing,
+    extracted without the GIL (see the module docs): a vertex per crossed grid edge,
+    shared by the triangles of every cell around it.
 
     Returns:
-        vertices: (3T, 3) float32 world xyz, three per triangle; faces: (T, 3) int32
-        (row t is 3t, 3t + 1, 3t + 2). Both empty where nothing crosses `iso`.
+        vertices: (V, 3) float32 world xyz; faces: (T, 3) int32 indices into them. Both
+        empty where nothing crosses `iso`.
     """
     count, table = case_table()
     data = np.ascontiguousarray(volume.data)  # the kernels compile for its type
-    layers = max(data.shape[0] - 1, 0)
+    grid_layers = data.shape[0]
+    layers = max(grid_layers - 1, 0)
     cells_per_layer = max(data.shape[1] - 1, 0) * max(data.shape[2] - 1, 0)
     totals = np.zeros(layers, np.int64)
-
     on_threads(lambda lo, hi: _count(data, float(iso), count, lo, hi, totals), layers,
-                cells_per_layer)
+               cells_per_layer)
+    if layers == 0 or totals.sum() == 0:
+        return padded_empty((0, 3), np.float32), padded_empty((0, 3), np.int32)
+    crossed = np.zeros(grid_layers, np.int64)
+    on_threads(lambda lo, hi: _count_vertices(data, float(iso), lo, hi, crossed),
+               grid_layers, 3 * data.shape[1] * data.shape[2])
     firsts = np.concatenate([[0], np.cumsum(totals)])
-    vertices = padded_empty((3 * int(firsts[-1]), 3), np.float32)
+    vertex_first = np.concatenate([[0], np.cumsum(crossed)])
+    vertices = padded_empty((int(vertex_first[-1]), 3), np.float32)
+    faces = padded_empty((int(firsts[-1]), 3), np.int32)
     origin = np.asarray(volume.origin, np.float64)
     spacing = np.asarray(volume.spacing, np.float64)
 
     def fill_layers(lo: int, hi: int) -> None:
-        _fill(data, float(iso), count, table, _EDGES, origin, spacing, lo, hi, vertices,
-              int(firsts[lo]))
+        _fill(data, float(iso), count, table, _EDGES, origin, spacing, vertex_first, lo, hi,
+              vertices, faces, int(firsts[lo]))
 
     on_threads(fill_layers, layers, cells_per_layer)
-    faces = padded_empty((len(vertices) // 3, 3), np.int32)
-    faces.reshape(-1)[:] = np.arange(len(vertices), dtype=np.int32)
     return vertices, faces
 
 
