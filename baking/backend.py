@@ -280,9 +280,9 @@ class ThreadBackend:
         """Trace `work` level by level (`TracingBackend.trace_pass`).
 
         Pipelined: the helper thread lays out the paths of the next level and builds its
-        scene while the workers trace this one (the chunks, the level
-        surfaces and the BVH build run without the GIL). The calling thread only waits
-        for what the pipeline did not hide.
+        scene while the workers trace this one (the chunks, the level surfaces and the
+        BVH build run without the GIL). The calling thread only waits for what the
+        pipeline did not hide.
         """
         chunks: list = []
         try:

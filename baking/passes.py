@@ -294,8 +294,8 @@ class LevelStarts:
     """The start points of a level's texels (`LevelPaths.texels`, `LevelPaths.upper`),
     made a chunk of texels at a time as it is traced (`start_points`: each texel's from
     its own data alone), so that 24 bytes a texel exist for the texels being traced only,
-    not for a whole level and the next one laid out ahead (20 M texels a level on the
-    512³ foot CT). Arguments as `lay_out_level`'s."""
+    not for a whole level and the next one laid out ahead (tens of millions of texels on
+    the largest levels of a 512³ CT). Arguments as `lay_out_level`'s."""
 
     volume: volumes.Volume
     geometry: LatticeGeometry

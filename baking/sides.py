@@ -56,7 +56,7 @@ TEXELS_PER_BATCH = 4096
 """Texels whose probe rays one thread traces at a time (65 536 rays, 2.4 MB of rays)."""
 TEXELS_PER_CALL = 1 << 20
 """Texels whose points, normals and counts `choose_sides` holds at a time (~200 bytes
-each: a level of the 512³ foot CT has 20 M texels)."""
+each, where one level can hold tens of millions of texels)."""
 
 
 def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
