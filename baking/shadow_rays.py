@@ -31,6 +31,7 @@ import numpy as np
 from isolume import volumes
 from isolume.baking.config import BakeConfig
 from isolume.baking.lights import DirectionalLight, PointLight, SunLight
+from isolume.baking.sampling import orthonormal_basis
 
 SUN_RAYS = 16
 """Rays per pixel over a sun's disc."""
@@ -48,14 +49,6 @@ def disc_offsets(count: int) -> np.ndarray:
     return np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=1)
 
 
-def tangent_frame(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two (3,) unit vectors orthogonal to the unit `direction` (3,) and to each other."""
-    helper = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([1.0, 0, 0])
-    u = np.cross(helper, direction)
-    u /= np.linalg.norm(u)
-    return u, np.cross(direction, u)
-
-
 def sun_directions(sun: SunLight, pixels: np.ndarray, count: int = SUN_RAYS) -> np.ndarray:
     """(P, count, 3) unit directions towards `sun`'s disc for the (P,) pixel indices
     `pixels`: `disc_offsets` on the plane tangent to the disc's centre, scaled by
@@ -64,7 +57,7 @@ def sun_directions(sun: SunLight, pixels: np.ndarray, count: int = SUN_RAYS) -> 
     the sky's 0.5°)."""
     centre = np.asarray(sun.direction, np.float64)
     centre = centre / np.linalg.norm(centre)
-    u, v = tangent_frame(centre)
+    u, v = (axis[0] for axis in orthonormal_basis(centre[None]))
     offsets = disc_offsets(count) * math.tan(math.radians(sun.radius))
     turn = (np.asarray(pixels, np.float64) * GOLDEN_ANGLE)[:, None]
     c, s = np.cos(turn), np.sin(turn)
@@ -120,7 +113,7 @@ def light_factors(scene, starts: np.ndarray, normals: np.ndarray, lights: tuple,
     out = np.zeros((len(starts), len(lights)), np.float32)
     if not len(starts) or not len(lights):
         return out
-    per_pixel = max(SUN_RAYS if any(isinstance(x, SunLight) for x in lights) else 1, 1)
+    per_pixel = SUN_RAYS if any(isinstance(x, SunLight) for x in lights) else 1
     step = max(1, CHUNK_RAYS // per_pixel)
     jobs = [(j, lo) for j in range(len(lights)) for lo in range(0, len(starts), step)]
 
