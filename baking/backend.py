@@ -1,12 +1,12 @@
 """Who traces a bake's paths: one small protocol, local threads by default.
 
-A `bake.Baker` plans the bake, holds the lattice and the pass sums, and commits texels; it
-hands the tracing of its passes to a `TracingBackend` — `ThreadBackend` (worker threads
-of this process) or `cluster.ClusterBackend` (tasks on a Dask cluster). A backend traces
-a pass level by level, adds each level's per-texel sums to the pass sums in level order
-and reports the level done (`PassReport.level_done`), upon which the Baker commits the
-texels the level completes. The pieces of a pass are `baking.passes`'s, so the lattice is
-the same bits whatever the backend and its number of workers.
+A `bake.Baker` plans the bake, holds the lattice and commits texels; it hands the tracing
+of its passes to a `TracingBackend` — `ThreadBackend` (worker threads of this process) or
+`cluster.ClusterBackend` (tasks on a Dask cluster). A backend forms the pass sums of some
+texels — each texel's paths on its lower level, then on its upper one — and hands them
+to the Baker to commit (`PassReport.commit`). The pieces of a pass are `baking.passes`'s,
+so the lattice is the same bits whatever the backend, its number of workers and the
+texels it commits together.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.passes import (
     LevelPaths,
     LevelStarts,
-    LevelSums,
+    PassSums,
     Tracing,
     chunk_bounds,
     lay_out_level,
@@ -48,6 +48,11 @@ is done with level 0's before the plan is, and a second scene built then is one 
 built beside the tracing (engine CT quick bake: 0.2 s of 2.1)."""
 REPORT_S = 0.5
 """Seconds between progress-bar updates while a level is traced."""
+TEXELS_PER_BATCH = 1 << 20
+"""Texels a `ThreadBackend` traces on both their levels and commits together: what bounds
+a pass's sums (40 bytes a texel in irradiance) and layouts (17 bytes a texel, two at a
+time): under 80 MB, where the largest levels of a 512³ CT hold tens of millions of
+texels."""
 
 
 @dataclass
@@ -91,24 +96,19 @@ class PassWork:
     """What one pass traces (`Baker.pending`).
 
     Attributes:
-        busy: (B,) plan positions that need paths.
         done, remaining: (T,) int32 paths done and still to trace per plan position (0
             outside the pass).
         first, last: the first and last level the pass traces (`last` = the highest lower
             level + 1).
-        by_lower: for each level from `first` to `last`, the busy positions whose lower
-            level it is (sorted).
-        sums: the pass sums of the texels in flight, by lower level, that the backend
-            adds its paths to.
+        by_lower: for each level from `first` to `last`, the positions that need paths
+            (busy) whose lower level it is (sorted).
     """
 
-    busy: np.ndarray
     done: np.ndarray
     remaining: np.ndarray
     first: int
     last: int
     by_lower: list[np.ndarray]
-    sums: LevelSums
 
     def lower_on(self, level: int) -> np.ndarray:
         """(N,) busy positions whose lower level is `level`."""
@@ -116,7 +116,7 @@ class PassWork:
 
     def upper_on(self, level: int) -> np.ndarray:
         """(N,) busy positions whose upper level is `level`: their pass ends with it."""
-        return self.by_lower[level - self.first - 1] if level > self.first else self.busy[:0]
+        return self.by_lower[level - self.first - 1] if level > self.first else self.by_lower[0][:0]
 
 
 @dataclass(frozen=True)
@@ -124,15 +124,17 @@ class PassReport:
     """How a backend reports on a pass to the `Baker` that runs it.
 
     Attributes:
-        level_done: ``level_done(level)`` commits the texels whose pass ends on `level`
-            and returns how many it committed; called once per level, first to last, when
-            the level's sums are all in the pass sums.
+        commit: ``commit(positions, sums)`` commits the texels at (N,) sorted plan
+            `positions` whose pass is done, with their pass sums (`PassSums` of N texels:
+            for each texel, 0 + its paths on its lower level + those on its upper one,
+            sums formed from zero per chunk) and returns how many had paths; every busy
+            texel of the pass is committed once.
         bar: the progress bar (tqdm's ``update`` and ``set_postfix_str``), or None.
         status: ``status(level, note)``, the bar's text while `level` is traced (texels
             done, level, ray rate), with a backend's `note` (e.g. its workers).
     """
 
-    level_done: Callable[[int], int]
+    commit: Callable[[np.ndarray, PassSums], int]
     bar: object | None
     status: Callable[[int, str], str]
 
@@ -174,11 +176,10 @@ class TracingBackend(Protocol):
         """
 
     def trace_pass(self, work: PassWork, report: PassReport) -> None:
-        """Trace the pending paths of `work` level by level, from ``work.first`` to
-        ``work.last``: add each level's per-texel sums to ``work.sums`` (in the order of
-        a local bake), then call ``report.level_done(level)``, in level order.
-        On an exception, stop what still adds to the pass sums before it propagates (the
-        Baker drops the cut pass)."""
+        """Trace the pending paths of `work` and commit every busy texel once
+        (``report.commit``), with its paths on its lower level added before those on its
+        upper one. On an exception, stop what still adds to pass sums before it
+        propagates (the Baker keeps the texels committed, drops the others' cut pass)."""
 
     def record(self, meta: dict) -> None:
         """Add the backend's own counters to the lattice metadata `meta`."""
@@ -203,20 +204,37 @@ def _first_level(volume: volumes.Volume, config: BakeConfig,
 
 @dataclass(frozen=True)
 class _LevelWork:
-    """The pending paths of one level by texel, how the start points of their texels are
-    made, and the level's scene (None when it has no paths)."""
+    """The pending paths of a batch of texels (`TEXELS_PER_BATCH`) on one level — their
+    upper one if `upper` — by texel, how the start points of their texels are made, and
+    the level's scene (None when it has no paths)."""
 
     level: int
+    batch: np.ndarray
+    upper: bool
     paths: LevelPaths
     start: LevelStarts
     scene: Scene | None
 
 
+def pass_steps(work: PassWork, batch: int):
+    """The order a `ThreadBackend` traces a pass in: for each lower level l, its texels
+    (``work.lower_on(l)``) a `batch` at a time, each batch on level l, then on level
+    l + 1, where it is complete. Yields (level, (N,) sorted plan positions, whether the
+    level is their upper one)."""
+    for lower in range(work.first, work.last):
+        group = work.lower_on(lower)
+        for lo in range(0, len(group), batch):
+            texels = group[lo:lo + batch]
+            yield lower, texels, False
+            yield lower + 1, texels, True
+
+
 class ThreadBackend:
-    """Traces on worker threads of this process: a level's paths in chunks of whole
-    texels on a thread pool, while a helper thread lays out the next level and builds its
-    scene. Level scenes are cached (least recently used first out), which pays off when
-    successive passes touch the same few levels (the lazy viewer's).
+    """Traces on worker threads of this process, a batch of texels at a time on one of
+    its two levels (`pass_steps`): its paths in chunks of whole texels on a thread pool,
+    while a helper thread lays out the next step and builds its scene. Level scenes are
+    cached (least recently used first out): the two levels of the batches in flight, and
+    more where successive passes touch the same few levels (the lazy viewer's).
 
     Args:
         workers: threads tracing concurrently (default: CPU count); the result does not
@@ -277,27 +295,34 @@ class ThreadBackend:
         self.job = job
 
     def trace_pass(self, work: PassWork, report: PassReport) -> None:
-        """Trace `work` level by level (`TracingBackend.trace_pass`).
+        """Trace `work` a batch of texels at a time, on its lower level then its upper one
+        (`pass_steps`), and commit each batch (`TracingBackend.trace_pass`): a pass holds
+        the sums and layouts of one batch, not of every texel of two levels.
 
-        Pipelined: the helper thread lays out the paths of the next level and builds its
-        scene while the workers trace this one (the chunks, the level surfaces and the
-        BVH build run without the GIL). The calling thread only waits for what the
-        pipeline did not hide.
+        Pipelined: the helper thread lays out the next step and builds its scene while
+        the workers trace this one (the chunks, the level surfaces and the BVH build run
+        without the GIL). The calling thread only waits for what the pipeline did not
+        hide.
         """
+        steps = list(pass_steps(work, TEXELS_PER_BATCH))
+        if not steps:
+            return
         chunks: list = []
+        sums = None
         try:
-            lay = self._waited(self._prepare_level, work, work.first)
-            for level in range(work.first, work.last + 1):
-                upcoming = None
-                if level < work.last:
-                    upcoming = self._helper.submit(self._prepare_level, work, level + 1)
-                chunks = self._submit_level(lay, work.sums)
-                self._collect(chunks, level, report)
+            lay = self._waited(self._prepare_step, work, *steps[0])
+            for following in [*steps[1:], None]:
+                upcoming = (self._helper.submit(self._prepare_step, work, *following)
+                            if following is not None else None)
+                if not lay.upper:
+                    sums = PassSums(len(lay.batch), self.job.tracing.settings.channels)
+                chunks = self._submit_level(lay, sums)
+                self._collect(chunks, lay.level, report)
                 chunks = []
+                if lay.upper and report.commit(lay.batch, sums):
+                    report.show(lay.level, refresh=True)
                 if upcoming is not None:
                     lay = self._waited(upcoming.result)
-                if report.level_done(level):  # the texels just done (the last level's too)
-                    report.show(level, refresh=True)
         except BaseException:
             _cancel(chunks)
             raise
@@ -343,26 +368,28 @@ class ThreadBackend:
         finally:
             self.job.stats.scene_seconds += time.perf_counter() - began
 
-    def _prepare_level(self, work: PassWork, level: int) -> _LevelWork:
-        """Lay out every pending path of isovalue level `level`, sorted by texel — the
-        lower-level samples of the texels whose lower level it is, and the upper-level
-        samples of those whose lower level is the one below — and get the level's scene
-        if it has paths."""
+    def _prepare_step(self, work: PassWork, level: int, batch: np.ndarray,
+                      upper: bool) -> _LevelWork:
+        """Lay out the pending paths on isovalue level `level` of the texels at (N,) sorted
+        plan positions `batch` — their upper-level samples if `upper`, else their
+        lower-level ones — sorted by texel, and get the level's scene if they have
+        paths."""
         job = self.job
         plan = job.plan
+        none = batch[:0]
         paths, start = lay_out_level(
             job.volume, job.geometry, job.config, float(plan.levels[level]), plan.ids,
-            plan.phase, plan.weight, plan.high, work.lower_on(level), work.upper_on(level),
-            work.done, work.remaining, plan.landing)
+            plan.phase, plan.weight, plan.high, none if upper else batch,
+            batch if upper else none, work.done, work.remaining, plan.landing)
         scene = self._scene(level) if len(paths.texels) else None
-        return _LevelWork(level, paths, start, scene)
+        return _LevelWork(level, batch, upper, paths, start, scene)
 
-    def _submit_level(self, lay: _LevelWork, sums: LevelSums) -> list[Future]:
-        """Queue the level's chunks of paths on its scene.
+    def _submit_level(self, lay: _LevelWork, sums: PassSums) -> list[Future]:
+        """Queue the step's chunks of paths on its scene.
 
-        Workers add their chunks' per-texel sums into the pass sums `sums`: the chunks of
-        one level hold disjoint texels, and a texel is committed only after its last
-        level has been collected.
+        Workers add their chunks' per-texel sums into the batch's pass sums `sums`: the
+        chunks of one step hold disjoint texels, and the batch is committed only after
+        its upper level has been collected.
         """
         if len(lay.paths.texels) == 0:
             return []
@@ -387,18 +414,18 @@ class ThreadBackend:
             report.show(level)
 
 
-def _trace_into(sums: LevelSums, lay: _LevelWork, tracing: Tracing, lo: int, hi: int
+def _trace_into(sums: PassSums, lay: _LevelWork, tracing: Tracing, lo: int, hi: int
                 ) -> tuple[int, int, float]:
-    """Trace the paths of the level's texels lo … hi − 1 (`trace_texels`) and add their
-    sums to the pass's; returns the paths, the rays and the seconds tracing."""
+    """Trace the paths of the step's texels lo … hi − 1 (`trace_texels`) and add their
+    sums to the batch's; returns the paths, the rays and the seconds tracing."""
     part, paths, rays, seconds = trace_texels(lay.scene, tracing, lay.paths, lo, hi,
                                               lay.start)
-    sums.add(lay.level, lay.paths.texels[lo:hi], lay.paths.upper[lo:hi], part)
+    sums.add(np.searchsorted(lay.batch, lay.paths.texels[lo:hi]), part)
     return paths, rays, seconds
 
 
 def _cancel(chunks: list[Future]) -> None:
-    """Cancel queued chunks and wait for running ones (they add to the pass sums)."""
+    """Cancel queued chunks and wait for running ones (they add to a batch's sums)."""
     for chunk in chunks:
         chunk.cancel()
     for chunk in chunks:

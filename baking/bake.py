@@ -44,7 +44,13 @@ from isolume.baking.lattice import (
     volume_identity,
 )
 from isolume.baking.lattice_file import LatticeFile
-from isolume.baking.passes import LevelSums, Tracing, commit_facing, rows_at
+from isolume.baking.passes import (
+    PassSums,
+    Tracing,
+    commit_facing,
+    commit_sums,
+    rows_at,
+)
 from isolume.baking.plan import Plan, make_plan
 from isolume.baking.plan_lattice import PlanLattice
 
@@ -142,10 +148,10 @@ class Baker:
     """A lattice being baked: the plan, the lighting, the pass sums and the lattice; the
     paths are traced by a `TracingBackend` (local threads unless `backend` says otherwise).
 
-    `run` brings any subset of the active texels up to a sample count, level by level, so
-    the same machinery serves a full bake (all texels to `config.samples`) and a lazy,
-    progressive one (the texels around the displayed isosurface first, a few samples at a
-    time).
+    `run` brings any subset of the active texels up to a sample count, a batch of texels at
+    a time on their two levels, so the same machinery serves a full bake (all texels to
+    `config.samples`) and a lazy, progressive one (the texels around the displayed
+    isosurface first, a few samples at a time).
 
     Args:
         lattice: a lattice dense over the box to extend (the viewer's shared one, a
@@ -153,7 +159,8 @@ class Baker:
         packed: hold the lattice over the plan's texels only (a `PlanLattice`, whose
             memory follows the active texels); `lattice` is then not used, and `resume`
             (a lattice file opened, `open_lattice`: its texels not read) gives the samples
-            to extend.
+            to extend. Such a Baker is never replanned, and its plan keeps no `rho` and
+            `target` (`Plan.traced_only`).
         workers, scene_cache: the `ThreadBackend`'s threads and level scenes kept alive,
             when no `backend` is given. The result does not depend on them.
         progress: `make_plan`'s stage callback.
@@ -178,7 +185,8 @@ class Baker:
             self.plan = make_plan(volume, self.geometry, config, kept, progress,
                                   on_levels=self.backend.levels_known,
                                   scenes=self.backend.plan_scene)
-            if packed:
+            if packed:  # never replanned: see `relight`
+                self.plan = self.plan.traced_only()
                 self.lattice, self.rows = self._plan_lattice(resume), None
             else:
                 self.lattice = lattice or _new_lattice(volume, config, self.geometry,
@@ -246,12 +254,13 @@ class Baker:
         self.texels_done = int(np.count_nonzero(self.samples_done()))
 
     def run(self, positions: np.ndarray | None = None, target: int | np.ndarray | None = None,
-            *, bar=None, after_level=None) -> None:
+            *, bar=None, after_commit=None) -> None:
         """Bring the texels at plan `positions` (all if None) up to `target` paths each
         (default `config.samples`).
 
-        Texels are committed to the lattice as soon as their upper level is done, and
-        `after_level(committed_positions)` is called then (to upload them, or to save a
+        Texels are committed to the lattice as soon as their upper level is done (a batch
+        of them at a time, `backend.TEXELS_PER_BATCH` on local threads), and
+        `after_commit(committed_positions)` is called then (to upload them, or to save a
         checkpoint). On KeyboardInterrupt committed texels stay and the cut pass of the
         others is dropped whole.
         """
@@ -259,22 +268,20 @@ class Baker:
         if work is None:
             return
 
-        def level_done(level: int) -> int:
-            if level == work.first:
-                return 0
-            # a texel's pass is complete with its upper level
-            complete = work.sums.traced(level - 1)
+        def commit(positions: np.ndarray, sums: PassSums) -> int:
+            traced = np.flatnonzero(sums.n > 0)
+            complete = positions[traced]
             if len(complete):
                 commit_facing(self.lattice, self.volume, self.config, self.plan, complete,
                               self.rows)
-            complete, fresh = work.sums.commit(self.lattice, self.rows, level - 1)
-            self.texels_done += fresh
-            if len(complete) and after_level is not None:
-                after_level(complete)
+            self.texels_done += commit_sums(self.lattice, rows_at(self.rows, positions),
+                                            sums, traced)
+            if len(complete) and after_commit is not None:
+                after_commit(complete)
             return len(complete)
 
         try:
-            self.backend.trace_pass(work, PassReport(level_done, bar, self._status))
+            self.backend.trace_pass(work, PassReport(commit, bar, self._status))
         finally:
             _finish_meta(self.lattice, self.plan, self.stats, self.previous)
             self.backend.record(self.lattice.meta)
@@ -296,8 +303,7 @@ class Baker:
             return None
         first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
         by_lower = _group_by(plan.lower[busy], busy, first, last)
-        return PassWork(busy, done, remaining, first, last, by_lower,
-                        LevelSums(self.settings.channels, first, by_lower))
+        return PassWork(done, remaining, first, last, by_lower)
 
     def close(self) -> None:
         """Close the backend (its threads, its cluster connection, its scenes)."""
@@ -381,12 +387,11 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
         backend = ClusterBackend(scheduler)
     baker = Baker(volume, config, workers=workers, backend=backend,
                   progress=_plan_progress if progress else None, packed=True, resume=resume)
-    pending = np.maximum(config.samples - baker.samples_done(), 0)
+    pending = int(np.maximum(config.samples - baker.samples_done(), 0).sum())
     if outlook is not None:
         threads = 0 if scheduler is not None else (workers or os.cpu_count() or 1)
-        outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), int(pending.sum()),
-                            threads))
-    bar = _progress(int(pending.sum()), progress)
+        outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), pending, threads))
+    bar = _progress(pending, progress)
     held, last_save = baker.lattice, [time.perf_counter()]
 
     def checkpoint(_committed: np.ndarray) -> None:
@@ -395,7 +400,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
             last_save[0] = time.perf_counter()
 
     try:
-        baker.run(bar=bar, after_level=checkpoint)
+        baker.run(bar=bar, after_commit=checkpoint)
         if config.target_error is not None:
             _refine_to_target(baker, bar, checkpoint)
     except KeyboardInterrupt:
@@ -430,7 +435,7 @@ def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
                             config.max_samples).astype(np.int64)
         if bar is not None:
             bar.total += int((target - done[todo]).sum())
-        baker.run(todo, target, bar=bar, after_level=checkpoint)
+        baker.run(todo, target, bar=bar, after_commit=checkpoint)
 
 
 def _finish_meta(lattice: Lattice, plan: Plan, stats: BakeStats, previous: dict) -> None:
@@ -453,7 +458,7 @@ def _finish_meta(lattice: Lattice, plan: Plan, stats: BakeStats, previous: dict)
         "levels": [float(v) for v in plan.levels],
         "iso_range": [float(v) for v in plan.iso_range],
         "move_limit_voxels": plan.move_limit,
-        "move_voxels_p50": float(np.percentile(plan.move_voxels, 50)),
-        "move_voxels_p90": float(np.percentile(plan.move_voxels, 90)),
-        "move_voxels_max": float(plan.move_voxels.max()),
+        "move_voxels_p50": plan.moves[0],
+        "move_voxels_p90": plan.moves[1],
+        "move_voxels_max": plan.moves[2],
     }

@@ -17,8 +17,9 @@ tracing runs on the cluster's workers as tasks of (level, group of whole texels)
   build the scene too), lower levels first (task priority).
 * Bit-identical lattices: a task forms its texels' sums from zero (`kernels.accumulate`
   does so locally too: a texel's paths on one level are summed in order, then added to
-  its pass sum) and the master adds them to the pass sums level by level, in the order
-  a local bake adds them — whatever the workers, the chunking or the completion order.
+  its pass sum) and the master adds them to the pass sums level by level (`_LevelSums`:
+  a texel's lower-level paths, then its upper-level ones, as a local bake adds them) —
+  whatever the workers, the chunking or the completion order.
 * A worker that dies costs its unfinished tasks: Dask runs them again elsewhere, and the
   master counts each task's result once (keyed by task). Results from a worker running
   other isolume code or other numerical libraries are refused (`fingerprint`).
@@ -173,6 +174,41 @@ class _Partial:
     rays: int
     trace_seconds: float
     scene_seconds: float
+
+
+class _LevelSums:
+    """The master's pass sums of the texels in flight, by lower level: the texels whose
+    lower level is l (the sorted plan positions ``by_lower[l - first]``, `PassWork`) sum
+    their paths from their first on level l until they are committed with level l + 1, so
+    at most the texels of the levels in flight hold sums, not every texel of the plan.
+
+    Args:
+        channels: values per texel; first: the pass's first level; by_lower: (N_l,)
+            sorted plan positions per level from `first` on.
+    """
+
+    def __init__(self, channels: int, first: int, by_lower: list[np.ndarray]) -> None:
+        self.channels, self.first, self.by_lower = channels, first, by_lower
+        self._groups: dict[int, PassSums] = {}
+
+    def add(self, level: int, positions: np.ndarray, upper: np.ndarray,
+            sums: PassSums) -> None:
+        """Add the sums of paths traced on `level` (formed from zero) of the texels at
+        sorted plan `positions` (N,) — (N,) `upper`: the level is their upper one — to
+        their running sums."""
+        for lower, these in ((level, ~upper), (level - 1, upper)):
+            if these.any():
+                if lower not in self._groups:
+                    self._groups[lower] = PassSums(len(self.by_lower[lower - self.first]),
+                                                   self.channels)
+                slots = np.searchsorted(self.by_lower[lower - self.first], positions[these])
+                self._groups[lower].add(slots, sums.rows(these))
+
+    def pop(self, lower: int) -> tuple[np.ndarray, PassSums] | None:
+        """The (N,) plan positions of the texels whose lower level is `lower` and their
+        sums (None when none of them has paths in the pass), let go of here."""
+        group = self._groups.pop(lower, None)
+        return None if group is None else (self.by_lower[lower - self.first], group)
 
 
 # -- worker side ---------------------------------------------------------------------------
@@ -460,6 +496,7 @@ class ClusterBackend:
 
         self._passes += 1  # task keys must not repeat an earlier pass's (Dask reuses results)
         levels: dict[int, _Level] = {}
+        sums = _LevelSums(self.job.tracing.settings.channels, work.first, work.by_lower)
         owner: dict = {}  # future -> its _Task
         stream = as_completed()
         next_submit, next_apply = work.first, work.first
@@ -470,7 +507,7 @@ class ClusterBackend:
                                                                    stream)
                     next_submit += 1
                 if levels[next_apply].finished:
-                    self._apply(levels.pop(next_apply), next_apply, work, report)
+                    self._apply(levels.pop(next_apply), next_apply, sums, report)
                     next_apply += 1
                     continue
                 future = next(stream)
@@ -604,15 +641,16 @@ class ClusterBackend:
             report.traced(part.paths)
             report.show(next_apply, f"{len(self._workers())} workers ")
 
-    def _apply(self, finished: _Level, level: int, work: PassWork,
+    def _apply(self, finished: _Level, level: int, sums: _LevelSums,
                report: PassReport) -> None:
-        """Add a finished level's pass sums to the pass's (``work.sums``, in the order a
-        local bake adds them in), then report the level done (the Baker commits the
-        texels it completes)."""
+        """Add a finished level's task sums to the pass sums `sums` (in the order a local
+        bake adds them in), then commit the texels whose upper level it is."""
         for index, part in sorted(finished.results.items()):
-            work.sums.add(level, finished.texels[index], finished.upper[index],
-                          PassSums.of(part.sum, part.second, part.n))
-        report.level_done(level)
+            sums.add(level, finished.texels[index], finished.upper[index],
+                     PassSums.of(part.sum, part.second, part.n))
+        complete = sums.pop(level - 1)
+        if complete is not None:
+            report.commit(*complete)
 
 
 def _nbytes(obj) -> int:

@@ -676,7 +676,7 @@ def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
         t0 = time.perf_counter()
         before = int(baker.samples_done(batch.positions).sum())
         try:
-            baker.run(batch.positions, batch.target, after_level=committed)
+            baker.run(batch.positions, batch.target, after_commit=committed)
         except _Retarget:
             stats.interrupted += 1
         stats.paths += int(baker.samples_done(batch.positions).sum()) - before

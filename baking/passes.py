@@ -1,21 +1,21 @@
 """The pieces of a bake's pass that every tracing backend shares (`baking.backend`).
 
-A pass brings some texels up to a sample count. On each isovalue level, the texels that
-bracket it trace their pending paths (`lay_out_level`: the texels and their path counts;
-a chunk's positions, sample indices and start points are made when it is traced, so a
-level's layout costs bytes per texel, not per path) on the level's scene (`level_scene`),
-in chunks of whole texels (`chunk_bounds`, `trace_texels`); a chunk's per-texel sums go
-to the pass sums of the texels in flight (`LevelSums`: from a texel's lower level to its
-upper one), and a texel complete on its upper level is merged into the lattice
-(`commit_sums`). A texel's paths and start point depend on that texel alone and its sums
-are added in sample order, so the lattice is the same bits whoever traces the chunks. A
-texel's facing (`landing_facing`, committed by `commit_facing`) comes from the plan
-alone, so it is the same bits too.
+A pass brings some texels up to a sample count. Texels trace their pending paths on each
+of the two isovalue levels that bracket them (`lay_out_level`: the texels and their path
+counts on one level; a chunk's positions, sample indices and start points are made when
+it is traced, so a layout costs bytes per texel, not per path) on the level's scene
+(`level_scene`), in chunks of whole texels (`chunk_bounds`, `trace_texels`); a chunk's
+per-texel sums, formed from zero, go to the texels' pass sums (`PassSums`: their
+lower-level paths, then their upper-level ones), and a texel complete on its upper level
+is merged into the lattice (`commit_sums`). A texel's paths and start point depend on
+that texel alone and its sums are added in sample order, so the lattice is the same bits
+whoever traces the chunks and whichever texels are committed together. A texel's facing
+(`landing_facing`, committed by `commit_facing`) comes from the plan alone, so it is the
+same bits too.
 """
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
@@ -79,68 +79,6 @@ class PassSums:
         self.n[positions] += sums.n
 
 
-class LevelSums:
-    """The pass sums of a pass's texels in flight, by lower level: the texels whose lower
-    level is l (the sorted plan positions ``by_lower[l - first]``, `PassWork`) sum their
-    paths from their first on level l until they are committed with level l + 1, so at
-    most two levels' texels hold sums at a time, not every texel of the plan.
-
-    Args:
-        channels: values per texel; first: the pass's first level; by_lower: (N_l,)
-            sorted plan positions per level from `first` on.
-    """
-
-    def __init__(self, channels: int, first: int, by_lower: list[np.ndarray]) -> None:
-        self.channels, self.first, self.by_lower = channels, first, by_lower
-        self._groups: dict[int, PassSums] = {}
-        self._lock = threading.Lock()  # workers of one level make its groups
-
-    def group(self, level: int) -> PassSums:
-        """The sums of the texels whose lower level is `level` (made on first use)."""
-        with self._lock:
-            if level not in self._groups:
-                self._groups[level] = PassSums(len(self.by_lower[level - self.first]),
-                                               self.channels)
-            return self._groups[level]
-
-    def add(self, level: int, positions: np.ndarray, upper: np.ndarray,
-            sums: PassSums) -> None:
-        """Add the sums of paths traced on `level` (formed from zero) of the texels at
-        sorted plan `positions` (N,) — (N,) `upper`: the level is their upper one — to
-        their running sums. Texels are disjoint between calls of one level."""
-        for lower, these in ((level, ~upper), (level - 1, upper)):
-            if these.any():
-                slots = np.searchsorted(self.by_lower[lower - self.first], positions[these])
-                self.group(lower).add(slots, sums.rows(these))
-
-    def traced(self, lower: int) -> np.ndarray:
-        """(K,) sorted plan positions of the texels whose lower level is `lower` with
-        paths in the pass so far."""
-        group = self._groups.get(lower)
-        if group is None:
-            return np.zeros(0, np.int64)
-        return self.by_lower[lower - self.first][group.n > 0]
-
-    def commit(self, lattice: Lattice | PlanLattice, rows: np.ndarray | None, lower: int
-               ) -> tuple[np.ndarray, int]:
-        """Merge the sums of the texels whose lower level is `lower` into the lattice and
-        let them go (`commit_sums`); `rows`: the (T,) rows of the plan's texels in the
-        lattice's flattened arrays (a `Lattice`: the plan's ids), None where they are the
-        plan positions (a `PlanLattice`).
-
-        Returns:
-            (K,) plan positions of those with paths in the pass, how many had no sample
-            before.
-        """
-        traced = self.traced(lower)
-        group = self._groups.pop(lower, None)
-        if group is None:
-            return traced, 0
-        positions = self.by_lower[lower - self.first]
-        return traced, commit_sums(lattice, rows_at(rows, positions), group,
-                                   np.flatnonzero(group.n > 0))
-
-
 def rows_at(rows: np.ndarray | None, positions: np.ndarray) -> np.ndarray:
     """The lattice rows of the texels at plan `positions` (`rows` None: the positions)."""
     return positions if rows is None else rows[positions]
@@ -194,7 +132,9 @@ def commit_facing(lattice: Lattice | PlanLattice, volume: volumes.Volume,
                   rows: np.ndarray | None) -> None:
     """Set the facings (`landing_facing`) of the texels at plan `positions` about to be
     committed that have none yet, or no samples yet (a texel reset by another plan);
-    `rows` as `LevelSums.commit`'s. `FACING_BLOCK` texels at a time."""
+    `rows`: the (T,) rows of the plan's texels in the lattice's flattened arrays (a
+    `Lattice`: the plan's ids), None where they are the plan positions (a `PlanLattice`).
+    `FACING_BLOCK` texels at a time."""
     flat = rows_at(rows, positions)
     codes = lattice.facing.reshape(-1, 2)
     todo = np.flatnonzero(~octahedral.known(codes[flat])

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -80,8 +80,10 @@ class Plan:
 
     Attributes:
         ids: (T,) sorted flat lattice indices of the active texels.
-        rho: (T,) float32 field value at each texel (trilinear), value units.
-        target: (T,) float32 isovalue each texel is lit at (`lit_isovalues`).
+        rho: (T,) float32 field value at each texel (trilinear), value units; None in a
+            plan that is only traced (`traced_only`).
+        target: (T,) float32 isovalue each texel is lit at (`lit_isovalues`); None as
+            `rho`.
         iso_range: (lo, hi) isovalues the lattice serves.
         levels: (K,) isovalues of the level surfaces, increasing, within `iso_range`.
         lower: (T,) int32 index a of the lower bracketing level (the upper is a + 1).
@@ -89,7 +91,8 @@ class Plan:
         phase: (T,) uint32 per-texel offset of the level-assignment sequence, in units of
             2⁻³² (`kernels.PHASE_UNIT`): in [0, 1) exactly, at 4 bytes a texel.
         active: (Z, Y, X) bool mask of the active texels.
-        move_voxels: (T,) float32 distance from the texel to its farther level, voxels.
+        moves: the 50th and 90th percentiles and the largest of the distances from the
+            texels to their farther levels, voxels (the lattice metadata's).
         move_limit: the level spacing's move limit, voxels (`move_limit`).
         reach: largest Newton move onto a level, world units (`newton_reach`).
         landing: (T, 2, 3) float32 offset from each texel's centre, world units, of where
@@ -104,20 +107,26 @@ class Plan:
     """
 
     ids: np.ndarray
-    rho: np.ndarray
-    target: np.ndarray
+    rho: np.ndarray | None
+    target: np.ndarray | None
     iso_range: tuple[float, float]
     levels: np.ndarray
     lower: np.ndarray
     weight: np.ndarray
     phase: np.ndarray
     active: np.ndarray
-    move_voxels: np.ndarray
+    moves: tuple[float, float, float]
     move_limit: float
     reach: float
     landing: np.ndarray
     high: np.ndarray
     unreachable: int = 0
+
+    def traced_only(self) -> Plan:
+        """The plan without what only replanning reads (`rho` and `target`, which the lazy
+        viewer compares between plans): 8 bytes a texel less for a bake that traces the
+        plan it made."""
+        return replace(self, rho=None, target=None)
 
     def on_upper(self, positions: np.ndarray, samples: np.ndarray) -> np.ndarray:
         """(N,) bool: does sample `samples[i]` of texel `ids[positions[i]]` use the upper
@@ -253,11 +262,13 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
     outside = np.where(high, 0.0, 1.0)  # the level whose lit side the texel lies on
     weight = np.where(needed, weight, np.where(ok_hi, 1.0, np.where(ok_lo, 0.0, outside)))
-    move = np.maximum(np.where(weight < 1, move_lo, 0.0), np.where(weight > 0, move_hi, 0.0)) / h
+    move = (np.maximum(np.where(weight < 1, move_lo, 0.0), np.where(weight > 0, move_hi, 0.0))
+            / h).astype(np.float32)
+    moves = (*(float(v) for v in np.percentile(move, [50, 90])), float(move.max()))
+    del move
     phase = pcg_hash(ids.astype(np.uint32) ^ np.uint32(config.seed & 0xFFFFFFFF))
     return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase,
-                active, move.astype(np.float32), limit, reach, landing, high,
-                int(np.count_nonzero(~needed)))
+                active, moves, limit, reach, landing, high, int(np.count_nonzero(~needed)))
 
 
 def lit_isovalues(rho: np.ndarray, span: np.ndarray, lo: float, hi: float) -> np.ndarray:

@@ -183,36 +183,47 @@ def test_determinism_across_worker_counts():
     assert not np.array_equal(one.values, other_seed.values)
 
 
-def test_a_bake_holds_two_levels_of_sums_and_two_scenes(monkeypatch):
-    """What bounds a bake's memory: pass sums exist only for the texels of the two levels
-    in flight (`passes.LevelSums`), and at most two level scenes are alive, the side
-    probes' included (`ThreadBackend`'s cache makes room before a build)."""
+def test_a_bake_holds_one_batch_of_sums_and_two_scenes(monkeypatch):
+    """What bounds a bake's memory: pass sums exist only for one batch of texels
+    (`backend.TEXELS_PER_BATCH`, traced on both its levels and committed), at most two
+    level scenes are alive, the side probes' included (`ThreadBackend`'s cache makes room
+    before a build) — and batches of any size give the same lattice to the bit."""
     import weakref
 
-    from isolume.baking import passes
+    from isolume.baking import backend, passes
     from isolume.baking.trace import Scene
 
-    most = {"groups": 0, "scenes": 0}
+    vol, config = make("engine", 36), BakeConfig(samples=4, bounces=1)
+    whole = bake(vol, config, workers=2)
+    most = {"sums": 0, "scenes": 0}
     alive = weakref.WeakSet()
-    make_group, init = passes.LevelSums.group, Scene.__init__
+    make_sums, init = passes.PassSums.__init__, Scene.__init__
 
-    def group(self, level):
-        out = make_group(self, level)
-        most["groups"] = max(most["groups"], len(self._groups))
-        return out
+    def sums(self, count, channels):
+        make_sums(self, count, channels)
+        most["sums"] = max(most["sums"], count)
 
     def scene(self, *args, **kwargs):
         init(self, *args, **kwargs)
         alive.add(self)
         most["scenes"] = max(most["scenes"], len(alive))
 
-    monkeypatch.setattr(passes.LevelSums, "group", group)
+    monkeypatch.setattr(passes.PassSums, "__init__", sums)
     monkeypatch.setattr(Scene, "__init__", scene)
-    lattice = bake(make("engine", 36), BakeConfig(samples=4, bounces=1))
-    levels = len(lattice.meta["plan"]["levels"])
-    assert levels >= 4
-    assert most["groups"] == 2
+    monkeypatch.setattr(backend, "TEXELS_PER_BATCH", 37)
+    baking_bake = importlib.import_module("isolume.baking.bake")  # `baking.bake` is the function
+    commit_sums, commits = baking_bake.commit_sums, []
+    monkeypatch.setattr(baking_bake, "commit_sums",
+                        lambda lattice, ids, acc, slots: commits.append(len(ids))
+                        or commit_sums(lattice, ids, acc, slots))
+    batched = bake(vol, config, workers=2)
+    assert len(batched.meta["plan"]["levels"]) >= 4
+    assert most["sums"] == 37
     assert most["scenes"] == 2
+    assert max(commits) == 37 and sum(commits) == np.count_nonzero(whole.samples)
+    np.testing.assert_array_equal(batched.values, whole.values)
+    np.testing.assert_array_equal(batched.second, whole.second)
+    np.testing.assert_array_equal(batched.samples, whole.samples)
 
 
 @pytest.mark.parametrize("env, albedo, direct", [
