@@ -21,8 +21,9 @@ texels' own values replace the previews once they rest on as many paths.
 Batches and level scenes. Texels trace paths on their own isovalues' level surfaces
 (`baking.plan`), and those around one isosurface use almost every level. A batch is one
 `Baker.run` sweeping its texels' levels, each scene built once and kept while affordable
-(`scene_cache_size`); texels are committed (and shown) level by level, and a new view
-interrupts a batch between two levels.
+(`scene_cache_size`); texels are committed (and shown) as soon as their upper level is
+traced, those of one lower level together, and a new view interrupts a batch between two
+such commits.
 
 Re-targeting. A new view (isovalue, eye, visible cells) rebuilds the stages; texels already
 at a stage's target are skipped, so finished work is kept — a texel's value holds for its
@@ -54,7 +55,7 @@ REPORT_S = 1.0
 """Seconds between progress reports within a batch."""
 BATCH_PATHS = 1 << 18
 """Paths per batch (one `Baker.run`): large, because every batch visits every level it
-touches; a new view still interrupts a batch between two levels."""
+touches; a new view still interrupts a batch between two commits."""
 SCENE_BYTES_PER_TRIANGLE = 100
 """Rough memory of one triangle of a level scene (mesh arrays — about 18 bytes:
 `volumes.tracing_surface` — and Embree's BVH)."""

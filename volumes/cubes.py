@@ -112,22 +112,28 @@ def _count(data: np.ndarray, iso: float, count: np.ndarray, k0: int, k1: int,
         totals[k] = total
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _crossed(data: np.ndarray, iso: float, k: int, j: int, i: int, axis: int) -> bool:
+    """Does the grid edge from (k, j, i) one step along `axis` (0: x, 1: y, 2: z) exist
+    and cross `iso` (its ends on opposite sides, as `_case` tests them)?"""
+    nz, ny, nx = data.shape
+    xb, yb, zb = i + (axis == 0), j + (axis == 1), k + (axis == 2)
+    if xb >= nx or yb >= ny or zb >= nz:
+        return False
+    return (data[k, j, i] > iso) != (data[zb, yb, xb] > iso)
+
+
 @numba.njit(nogil=True, cache=True)
 def _count_vertices(data: np.ndarray, iso: float, k0: int, k1: int,
                     totals: np.ndarray) -> None:
     """totals[k] = crossed edges owned by grid layer k (`_edge_map`), for k in [k0, k1)."""
-    nz, ny, nx = data.shape
+    ny, nx = data.shape[1:]
     for k in range(k0, k1):
         total = 0
         for j in range(ny):
             for i in range(nx):
-                inside = data[k, j, i] > iso
-                if i + 1 < nx and (data[k, j, i + 1] > iso) != inside:
-                    total += 1
-                if j + 1 < ny and (data[k, j + 1, i] > iso) != inside:
-                    total += 1
-                if k + 1 < nz and (data[k + 1, j, i] > iso) != inside:
-                    total += 1
+                for axis in range(3):
+                    total += _crossed(data, iso, k, j, i, axis)
         totals[k] = total
 
 
@@ -140,16 +146,14 @@ def _edge_map(data: np.ndarray, iso: float, k: int, first: int, index: np.ndarra
     axis) order, into index[j, i, axis] ((Y, X, 3) int64); where `write`, also their
     vertices into `vertices` ((V, 3) float32 world xyz), interpolated from the lower
     corner (the same arithmetic in every cell that shares the edge)."""
-    nz, ny, nx = data.shape
+    ny, nx = data.shape[1:]
     v = first
     for j in range(ny):
         for i in range(nx):
             for axis in range(3):
+                if not _crossed(data, iso, k, j, i, axis):
+                    continue
                 xb, yb, zb = i + (axis == 0), j + (axis == 1), k + (axis == 2)
-                if xb >= nx or yb >= ny or zb >= nz:
-                    continue
-                if (data[k, j, i] > iso) == (data[zb, yb, xb] > iso):  # as `_case` tests
-                    continue
                 index[j, i, axis] = v
                 if write:
                     va = np.float32(data[k, j, i])  # integers would wrap
