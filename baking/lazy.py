@@ -21,9 +21,8 @@ texels' own values replace the previews once they rest on as many paths.
 Batches and level scenes. Texels trace paths on their own isovalues' level surfaces
 (`baking.plan`), and those around one isosurface use almost every level. A batch is one
 `Baker.run` sweeping its texels' levels, each scene built once and kept while affordable
-(`scene_cache_size`); texels are committed (and shown) as soon as their upper level is
-traced, those of one lower level together, and a new view interrupts a batch between two
-such commits.
+(`scene_cache_size`); texels are committed (and shown) once their upper level is traced,
+and a new view interrupts a batch between two commits.
 
 Re-targeting. A new view (isovalue, eye, visible cells) rebuilds the stages; texels already
 at a stage's target are skipped, so finished work is kept — a texel's value holds for its
