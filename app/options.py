@@ -295,7 +295,8 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
                    help="cap on paths per texel with --target-error")
     p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (0 = direct)")
     p.add_argument("--albedo", default="0.8", help="A or R,G,B")
-    p.add_argument("--scale", type=float, default=1.0, help="texels per voxel per axis")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="texels per voxel along the finest axis (cubes where voxels are not)")
     p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"),
                    help="bake only the texels of isovalues LO..HI (default: the isovalues "
                    "`isolume info` suggests, with a margin of a quarter of their spread on "

@@ -41,6 +41,7 @@ from isolume.baking.lattice import (
     Lattice,
     LatticeGeometry,
     open_lattice,
+    other_texels,
     volume_identity,
 )
 from isolume.baking.lattice_file import LatticeFile
@@ -125,10 +126,13 @@ def _resumable(volume: volumes.Volume, config: BakeConfig, out: Path | None
     """
     if out is None or not out.exists():
         return None
-    file, _, previous = open_lattice(out, volume)
+    file, geometry, previous = open_lattice(out, volume)
     if previous is None or not previous.same_result_as(config):
         raise BakeError(f"{out}: holds a bake with other settings ({previous}); to resume, "
                         "repeat them, or write to a new --out file")
+    problem = other_texels(geometry, volume, config.scale, out)
+    if problem:
+        raise BakeError(problem)
     return file
 
 

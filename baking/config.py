@@ -34,7 +34,8 @@ class BakeConfig:
         samples: target Monte Carlo paths per texel.
         bounces: diffuse interreflection bounces (0 = direct light only).
         albedo: diffuse reflectance, linear RGB in [0, 1].
-        scale: lattice texels per voxel along each axis.
+        scale: lattice texels per voxel along the volume's finest axis (cubic texels
+            where the voxels are not: `baking.lattice.refinement`).
         iso_range: (lo, hi) isovalues of interest; None = the data range.
         env: environment spec (see `baking.environment.parse_env`); "" = none.
         lights: point/directional light specs (see `baking.lights`).

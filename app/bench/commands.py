@@ -38,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--bounces", type=int, default=2, help="bounces per path (default 2)")
     p.add_argument("--env", default="constant:1,1,1",
                    help="environment light (default constant:1,1,1)")
-    p.add_argument("--scale", type=float, default=1.0, help="lattice texels per voxel")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="lattice texels per voxel along the finest axis")
     p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"),
                    help="isovalues to bake (default: around the suggested ones)")
     p.add_argument("--workers", type=int, default=None,

@@ -68,9 +68,10 @@ class LatticeStore:
         return self.folder / f"{self._stem(config)}_s{config.samples}.npz"
 
     def _load(self, config) -> Baked | None:
-        """The cached lattice of exactly `config`, or None."""
+        """The cached lattice of exactly `config` and of the texels a bake places now
+        (`baking.lattice.other_texels`), or None."""
         from isolume.baking.errors import BakeError
-        from isolume.baking.lattice import Lattice
+        from isolume.baking.lattice import Lattice, other_texels
 
         if config in self._memory:
             return self._memory[config]
@@ -81,7 +82,8 @@ class LatticeStore:
             lattice = Lattice.load(path, self.volume)
         except BakeError:
             return None
-        if lattice.config != config:
+        if lattice.config != config or other_texels(lattice.geometry, self.volume,
+                                                     config.scale):
             return None
         baked = Baked(lattice, float(lattice.meta["chart_seconds"]), True)
         self._memory[config] = baked

@@ -69,14 +69,18 @@ class Illumination:
     def start(self, lattice, iso: float) -> None:
         """Show `lattice` (a lattice file opened, `baking.view_texels.LatticeOnFile`, or
         None) and start the lazy bake when it is missing or incomplete (unless
-        ``--no-bake``)."""
+        ``--no-bake``, or the file's texels are not those a bake places: it is shown as it
+        is, and the status line says why, `baking.lattice.other_texels`)."""
         from isolume.baking.config import BakeConfig
+        from isolume.baking.lattice import other_texels
 
         config = None
         if lattice is not None:
             config = lattice.config
             self.drawing.albedo = tuple(config.albedo)
-            if not self.options.bake or _complete(lattice, config.samples):
+            other = other_texels(lattice.geometry, self.volume, config.scale, lattice.file.path)
+            if not self.options.bake or _complete(lattice, config.samples) or other:
+                self.state.message = other or self.state.message
                 self.static_file, self.static_lattice = lattice, lattice.held()
                 self._show(self.static_lattice)
                 return
@@ -156,12 +160,15 @@ class Illumination:
         lazy bake with the file's config, which re-bakes the bounced light for the turned
         light around the view. Its result is saved only on request, beside the file
         (`app.viewer.saving.Saver.save_lattice`): the file keeps its whole bake."""
+        from isolume.baking.lattice import other_texels
         from isolume.baking.lazy import same_direction, turned_light
 
         turned = self.drawing.turned_light(self.state.view)
         if not self.options.bake or self.state.drag is not None or turned is None:
             return
         config = self.static_lattice.config
+        if other_texels(self.static_file.geometry, self.volume, config.scale):
+            return  # shown as it is (`start` said why)
         if same_direction(turned[1], turned_light(config)):
             return
         self.relit_file = True
