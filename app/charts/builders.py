@@ -24,7 +24,7 @@ from isolume.app.charts.model import Chart, Run
 from isolume.app.charts.tracing import equal_time_path_tracing
 
 SCALES = (0.5, 1.0, 2.0)
-"""Lattice texels per voxel per axis of chart 2."""
+"""Lattice texels per voxel along the finest axis (`--scale`) of chart 2."""
 NORMAL_SCHEMES = {
     "gradient": {"normals": "gradient", "offset": 0.0},
     "smoothed": {"normals": "smooth", "offset": 0.0},

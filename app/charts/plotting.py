@@ -104,7 +104,8 @@ def plot_resolution(record: dict, path: Path) -> None:
     for a in (ax, mem):
         a.set_xscale("log", base=2)
         a.set_xticks(scales, [f"{s:g}x" for s in scales])
-        a.set_xlabel(f"lattice texels per voxel per axis ({record['samples']} paths/texel)")
+        a.set_xlabel(f"lattice texels per voxel along the finest axis "
+                     f"({record['samples']} paths/texel)")
         a.grid(True, which="both", alpha=0.3)
         a.margins(x=0.2)
     ax.legend(fontsize=8)
