@@ -145,9 +145,9 @@ def commit_facing(lattice: Lattice | PlanLattice, volume: volumes.Volume,
                                             positions[block])
 
 
-FACING_BLOCK = 1 << 20
+FACING_BLOCK = 1 << 17
 """Texels whose facings `commit_facing` makes at a time (its temporaries: ~200 bytes a
-texel of a block, where one level can complete tens of millions of texels)."""
+texel of a block, 26 MB, where a batch commits a million texels at once)."""
 
 
 def chunk_bounds(counts: np.ndarray, workers: int):

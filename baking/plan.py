@@ -86,11 +86,14 @@ class Plan:
             `rho`.
         iso_range: (lo, hi) isovalues the lattice serves.
         levels: (K,) isovalues of the level surfaces, increasing, within `iso_range`.
-        lower: (T,) int32 index a of the lower bracketing level (the upper is a + 1).
+        lower: (T,) index a of the lower bracketing level (the upper is a + 1), of the
+            smallest unsigned type that holds every level's index (uint8 up to 256
+            levels: 1 byte a texel).
         weight: (T,) fraction of paths on the upper level, in [0, 1].
         phase: (T,) uint32 per-texel offset of the level-assignment sequence, in units of
             2⁻³² (`kernels.PHASE_UNIT`): in [0, 1) exactly, at 4 bytes a texel.
-        active: (Z, Y, X) bool mask of the active texels.
+        active: (Z, Y, X) bool mask of the active texels; None in a plan that is only
+            traced (`traced_only`: its texels are `ids`).
         moves: the 50th and 90th percentiles and the largest of the distances from the
             texels to their farther levels, voxels (the lattice metadata's).
         move_limit: the level spacing's move limit, voxels (`move_limit`).
@@ -114,7 +117,7 @@ class Plan:
     lower: np.ndarray
     weight: np.ndarray
     phase: np.ndarray
-    active: np.ndarray
+    active: np.ndarray | None
     moves: tuple[float, float, float]
     move_limit: float
     reach: float
@@ -124,9 +127,10 @@ class Plan:
 
     def traced_only(self) -> Plan:
         """The plan without what only replanning reads (`rho` and `target`, which the lazy
-        viewer compares between plans): 8 bytes a texel less for a bake that traces the
-        plan it made."""
-        return replace(self, rho=None, target=None)
+        viewer compares between plans) and the box's mask of active texels (a lattice
+        over the plan's texels has `ids`): 8 bytes an active texel and 1 a texel of the
+        box less for a bake that traces the plan it made."""
+        return replace(self, rho=None, target=None, active=None)
 
     def on_upper(self, positions: np.ndarray, samples: np.ndarray) -> np.ndarray:
         """(N,) bool: does sample `samples[i]` of texel `ids[positions[i]]` use the upper
@@ -134,10 +138,6 @@ class Plan:
         w·N ± O(log N) of them on the upper level (stratified, not random)."""
         x = np.mod(self.phase[positions] * kernels.PHASE_UNIT + samples * GOLDEN_FRACTION, 1.0)
         return x < self.weight[positions]
-
-    def level_of(self, positions: np.ndarray, samples: np.ndarray) -> np.ndarray:
-        """(N,) level index used by each (texel position, sample) pair."""
-        return self.lower[positions] + self.on_upper(positions, samples)
 
 
 def select_cells(rho: np.ndarray, lo: float, hi: float, min_span: float,
@@ -222,7 +222,9 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     del rho  # the box's grid (4 bytes a texel): the rest of the plan is per active texel
     say("gradients")
     grad = _gradients(volume, geometry, ids)
-    target = lit_isovalues(texel_rho, grad / config.scale, lo, hi)
+    target = np.empty(len(ids))
+    for block in _blocks(len(ids)):
+        target[block] = lit_isovalues(texel_rho[block], grad[block] / config.scale, lo, hi)
     h = float(np.mean(volume.spacing))
     limit = move_limit(config)
     if levels is None:
@@ -232,9 +234,9 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     levels = np.asarray(levels, np.float64)
     if on_levels is not None:
         on_levels(levels)
-    lower = np.clip(np.searchsorted(levels, target, side="right") - 1, 0,
-                    len(levels) - 2).astype(np.int32)
-    weight = np.clip((target - levels[lower]) / (levels[lower + 1] - levels[lower]), 0, 1)
+    lower, weight = np.empty(len(ids), np.min_scalar_type(len(levels) - 1)), np.empty(len(ids))
+    for block in _blocks(len(ids)):
+        lower[block], weight[block] = _bracketing(levels, target[block])
     target = target.astype(np.float32)
     # Each texel must reach its bracketing levels by Newton steps along the gradient. Where
     # one cannot be reached (small gradient, or the level surface lies elsewhere: plateaus,
@@ -253,22 +255,44 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
                 centres[uses])
     say(f"seen sides on {len(levels)} levels")
     high = lit_sides(volume, config, geometry, ids, landing, levels, lower, weight, scenes)
-    tol = CONVERGED_FRACTION * (levels[lower + 1] - levels[lower])
-    reaches = _Reaches(volume, config, geometry, ids, reach, tol, high)
-    ok_lo, move_lo = reaches(levels[lower], uses_lo, landing[:, 0])
-    ok_hi, move_hi = reaches(levels[lower + 1], uses_hi | ~ok_lo, landing[:, 1])
-    ok_lo, move_lo = reaches(levels[lower], ~uses_lo & ~ok_hi, landing[:, 0], ok_lo,
-                             move_lo)  # fallback
+    reaches = _Reaches(volume, config, geometry, ids, reach, levels, lower, high)
+    ok_lo, move_lo = reaches(0, uses_lo, landing[:, 0])
+    ok_hi, move_hi = reaches(1, uses_hi | ~ok_lo, landing[:, 1])
+    ok_lo, move_lo = reaches(0, ~uses_lo & ~ok_hi, landing[:, 0], ok_lo, move_lo)  # fallback
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
-    outside = np.where(high, 0.0, 1.0)  # the level whose lit side the texel lies on
+    move = np.empty(len(ids), np.float32)
+    phase = np.empty(len(ids), np.uint32)
+    seed = np.uint32(config.seed & 0xFFFFFFFF)
+    for b in _blocks(len(ids)):
+        weight[b], move[b] = _settled(weight[b], needed[b], ok_lo[b], ok_hi[b], high[b],
+                                      move_lo[b], move_hi[b], h)
+        phase[b] = pcg_hash(ids[b].astype(np.uint32) ^ seed)
+    moves = (*(float(v) for v in np.percentile(move, [50, 90])), float(move.max()))
+    del move
+    return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase,
+                active, moves, limit, reach, landing, high, int(np.count_nonzero(~needed)))
+
+
+def _bracketing(levels: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) int64 index a of the lower of the two of the (K,) `levels` around each of the
+    (N,) isovalues `target` (the upper is a + 1), and (N,) float64 the fraction of the way
+    from level a to a + 1, in [0, 1]."""
+    lower = np.clip(np.searchsorted(levels, target, side="right") - 1, 0, len(levels) - 2)
+    return lower, np.clip((target - levels[lower]) / (levels[lower + 1] - levels[lower]), 0, 1)
+
+
+def _settled(weight: np.ndarray, needed: np.ndarray, ok_lo: np.ndarray, ok_hi: np.ndarray,
+             high: np.ndarray, move_lo: np.ndarray, move_hi: np.ndarray, h: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The (N,) weights of texels once the levels they reach are known, and (N,) float32
+    their moves onto their farther level, voxels. A texel that cannot reach a level it
+    needs (`needed` False) puts all its paths on the one it reaches (`ok_lo`, `ok_hi`),
+    or where it reaches neither on the level whose lit side it lies on (`high`)."""
+    outside = np.where(high, 0.0, 1.0)
     weight = np.where(needed, weight, np.where(ok_hi, 1.0, np.where(ok_lo, 0.0, outside)))
     move = (np.maximum(np.where(weight < 1, move_lo, 0.0), np.where(weight > 0, move_hi, 0.0))
             / h).astype(np.float32)
-    moves = (*(float(v) for v in np.percentile(move, [50, 90])), float(move.max()))
-    del move
-    phase = pcg_hash(ids.astype(np.uint32) ^ np.uint32(config.seed & 0xFFFFFFFF))
-    return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase,
-                active, moves, limit, reach, landing, high, int(np.count_nonzero(~needed)))
+    return weight, move
 
 
 def lit_isovalues(rho: np.ndarray, span: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -431,7 +455,10 @@ def choose_levels(target: np.ndarray, grad_per_voxel: np.ndarray,
     if hi <= lo:
         return np.array([lo, lo + max(abs(lo) * 1e-6, 1e-6)])
     edges = np.linspace(lo, hi, bins + 1)
-    which = np.clip(np.searchsorted(edges, target, side="right") - 1, 0, bins - 1)
+    which = np.empty(len(target), np.min_scalar_type(bins))
+    for block in _blocks(len(target)):
+        which[block] = np.clip(np.searchsorted(edges, target[block], side="right") - 1, 0,
+                               bins - 1)
     fallback = float(np.percentile(grad_per_voxel, 10))
     spacing = move * np.maximum(_binned_percentile(which, grad_per_voxel, bins, 10, fallback),
                                 1e-12 * (hi - lo))
@@ -445,14 +472,17 @@ def choose_levels(target: np.ndarray, grad_per_voxel: np.ndarray,
 def _binned_percentile(which: np.ndarray, values: np.ndarray, bins: int, q: float,
                        empty: float) -> np.ndarray:
     """(bins,) the q-th percentile of the (N,) `values` in each bin (`which`, (N,) bin
-    indices), as `np.percentile`'s linear method gives it; `empty` for empty bins. One
-    sort for all bins: by value, then stably by bin (a radix sort of integers), which
-    ranks the values within each bin as `np.lexsort((values, which))` does, faster."""
-    by_value = np.argsort(values)
-    order = by_value[np.argsort(which[by_value], kind="stable")]
-    ranked, bin_of = values[order], which[order]
-    starts = np.searchsorted(bin_of, np.arange(bins))
-    counts = np.searchsorted(bin_of, np.arange(bins), side="right") - starts
+    indices), as `np.percentile`'s linear method gives it; `empty` for empty bins. The
+    values grouped by bin (a radix sort of the bin indices), then each bin's sorted in
+    place: they rank as `np.lexsort((values, which))` ranks them, holding two arrays of N
+    at a time."""
+    order = np.argsort(which, kind="stable")
+    ranked = values[order]
+    del order
+    counts = np.bincount(which, minlength=bins)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    for b in np.flatnonzero(counts > 1):
+        ranked[starts[b]:starts[b] + counts[b]].sort()
     position = starts + q / 100 * np.maximum(counts - 1, 0)
     below = np.floor(position).astype(np.int64)
     above = np.minimum(below + 1, starts + np.maximum(counts - 1, 0))
@@ -536,23 +566,28 @@ class _Reaches:
     geometry: LatticeGeometry
     ids: np.ndarray
     reach: float
-    tol: np.ndarray
+    levels: np.ndarray
+    lower: np.ndarray
     high: np.ndarray
 
-    def __call__(self, levels: np.ndarray, which: np.ndarray, landing: np.ndarray,
+    def __call__(self, side: int, which: np.ndarray, landing: np.ndarray,
                  ok: np.ndarray | None = None, moved: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-        """`_reaches` of every texel from its centre (arguments as there, (T,) and (T, 3);
-        `landing` (T, 3) float32 offsets as `Plan.landing`'s, updated in place)."""
+        """`_reaches` of every texel from its centre onto its lower (`side` 0) or upper (1)
+        level, within `CONVERGED_FRACTION` of the spacing of its two levels (other
+        arguments as there, (T,) and (T, 3); `landing` (T, 3) float32 offsets as
+        `Plan.landing`'s, updated in place)."""
         count = len(self.ids)
         ok = np.ones(count, bool) if ok is None else ok.copy()
         moved = np.zeros(count, np.float32) if moved is None else moved.copy()
         for b in _blocks(count):
             centres = self.geometry.centres(self.ids[b])
             landed = landed_points(landing[b], centres)
-            ok[b], moved[b] = _reaches(self.volume, self.config, centres, levels[b],
-                                       self.reach, self.tol[b], self.high[b], which[b],
-                                       landed, ok[b], moved[b])
+            lower = self.lower[b]
+            tol = CONVERGED_FRACTION * (self.levels[lower + 1] - self.levels[lower])
+            ok[b], moved[b] = _reaches(self.volume, self.config, centres,
+                                       self.levels[lower + side], self.reach, tol,
+                                       self.high[b], which[b], landed, ok[b], moved[b])
             landing[b] = landing_offsets(landed, centres)
         return ok, moved
 

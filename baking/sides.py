@@ -54,9 +54,9 @@ SALT = 0x51DE_5EED
 """Mixed into the bake seed: the probes use random numbers of their own."""
 TEXELS_PER_BATCH = 4096
 """Texels whose probe rays one thread traces at a time (65 536 rays, 2.4 MB of rays)."""
-TEXELS_PER_CALL = 1 << 20
+TEXELS_PER_CALL = 1 << 18
 """Texels whose points, normals and counts `choose_sides` holds at a time (~200 bytes
-each, where one level can hold tens of millions of texels)."""
+each, 52 MB, where one level can hold tens of millions of texels)."""
 
 
 def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,

@@ -310,3 +310,74 @@ def test_plan_is_the_same_whatever_its_block_size(monkeypatch):
             np.testing.assert_array_equal(a, b, err_msg=field.name)
         else:
             assert a == b, field.name
+
+
+def test_newton_steps_reuse_a_cells_gradients_to_the_bit():
+    """Newton steps that stay in one lattice cell of the volume reuse its corner gradients
+    (`volumes.field._newton`): the landing points equal, to the bit, steps that read the
+    eight corner gradients afresh every time (the compiled lookups, step for step),
+    on points of the Marschner–Lobb function that converge or are clamped."""
+    from isolume.volumes import field
+
+    vol = make("marschner_lobb", 24)
+    level, reach, iterations = 0.5, 2.5 * vol.spacing[0], 4
+    surface = volumes.isosurface(vol, level).vertices[::23].astype(np.float64)
+    rng = np.random.default_rng(5)  # up to two voxels off the surface: steps, some clamped
+    points = surface + rng.uniform(-2, 2, surface.shape) * vol.spacing[0]
+    moved = project_to_level(vol, points, level, max_move=reach, iterations=iterations)
+    data, samples = vol.data[..., None], vol.data
+    w, inverse = field._BSPLINE, 0.5 / np.asarray(vol.spacing, np.float64)
+    origin, spacing = np.asarray(vol.origin, np.float64), np.asarray(vol.spacing, np.float64)
+    value, g, corners = np.empty(1), np.empty(3), np.empty((8, 3), np.float32)
+    voxel = float(spacing.min())
+    compared = 0
+    for i, (sx, sy, sz) in enumerate(points):
+        px, py, pz = sx, sy, sz
+        for _ in range(iterations + int(reach / voxel)):
+            zi, yi, xi = ((pz - origin[2]) / spacing[2], (py - origin[1]) / spacing[1],
+                          (px - origin[0]) / spacing[0])
+            field._lerp3(data, zi, yi, xi, value)  # compiled, corners read afresh
+            field._gradient_lerp(samples, w, inverse, zi, yi, xi, corners, g)
+            g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
+            step = (level - value[0]) / g2
+            length = abs(step) * np.sqrt(g2)
+            if length > voxel:
+                step *= voxel / length
+            qx, qy, qz = px + step * g[0], py + step * g[1], pz + step * g[2]
+            dx, dy, dz = qx - sx, qy - sy, qz - sz
+            dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if dist > reach:
+                qx, qy, qz = sx + dx * (reach / dist), sy + dy * (reach / dist), sz + dz * (
+                    reach / dist)
+            done = abs(qx - px) + abs(qy - py) + abs(qz - pz) < 1e-4 * voxel
+            px, py, pz = qx, qy, qz
+            if done:
+                break
+        start = field._value_at(data, origin, spacing, sx, sy, sz, value) - level
+        end = field._value_at(data, origin, spacing, px, py, pz, value) - level
+        if abs(end) > field.STALLED_FRACTION * abs(start):
+            continue  # the line search, not the steps: `test_stalled_newton_...`
+        np.testing.assert_array_equal(moved[i], [px, py, pz], err_msg=f"point {i}")
+        compared += 1
+    assert compared >= 0.6 * len(points)
+
+
+def test_a_bakes_plan_keeps_a_byte_for_the_level_and_no_box_mask():
+    """What a bake holds per texel: the lower level's index in the smallest type that holds
+    every level (uint8 up to 256 levels), and a traced plan (`Plan.traced_only`) without
+    the replanning arrays or the box's mask — the Baker of `bake()` holds that one."""
+    from isolume.baking.bake import Baker
+
+    vol = make("engine", 32)
+    plan, config = _plan(vol, samples=4, bounces=0)
+    assert plan.lower.dtype == np.uint8 and plan.lower.max() == len(plan.levels) - 2
+    traced = plan.traced_only()
+    assert traced.rho is None and traced.target is None and traced.active is None
+    np.testing.assert_array_equal(traced.ids, np.flatnonzero(plan.active))
+    many, _ = _plan(vol, samples=4, bounces=0, max_move=0.001, max_levels=300)
+    assert len(many.levels) > 256 and many.lower.dtype == np.uint16
+    baker = Baker(vol, config, workers=1, packed=True)
+    try:
+        assert baker.plan.active is None and baker.plan.rho is None
+    finally:
+        baker.close()

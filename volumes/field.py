@@ -75,12 +75,27 @@ def _gradient_lerp(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: floa
     z0, z1, fz = _axis_weights(z, nz)
     y0, y1, fy = _axis_weights(y, ny)
     x0, x1, fx = _axis_weights(x, nx)
+    _corner_gradients(data, w, inverse, z0, z1, y0, y1, x0, x1, corners)
+    _lerp_corners(corners, fz, fy, fx, out)
+
+
+@numba.njit(nogil=True, cache=True)
+def _corner_gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z0: int, z1: int,
+                      y0: int, y1: int, x0: int, x1: int, corners: np.ndarray) -> None:
+    """corners (8, 3) float32 = `_voxel_gradient` at the cell's corners, x fastest."""
     k = 0
     for zz in (z0, z1):
         for yy in (y0, y1):
             for xx in (x0, x1):
                 _voxel_gradient(data, w, inverse, zz, yy, xx, corners, k)
                 k += 1
+
+
+@numba.njit(nogil=True, cache=True)
+def _lerp_corners(corners: np.ndarray, fz: float, fy: float, fx: float, out: np.ndarray
+                  ) -> None:
+    """out[:] = the trilinear mix of the (8, 3) `corners` (`_corner_gradients`) at the
+    weights (fz, fy, fx) of the upper corners."""
     for c in range(3):
         a = (1 - fx) * corners[0, c] + fx * corners[1, c]
         b = (1 - fx) * corners[2, c] + fx * corners[3, c]
@@ -161,6 +176,8 @@ def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.nd
     voxel = min(spacing[0], spacing[1], spacing[2])
     tiny = 1e-4 * voxel
     steps = iterations + int(max_move / voxel)
+    nz, ny, nx = samples.shape
+    cell = (-1, -1, -1)  # whose corner gradients `corners` holds: steps in one cell reuse them
     for i in range(points.shape[0]):
         sx, sy, sz = points[i, 0], points[i, 1], points[i, 2]
         px, py, pz = sx, sy, sz
@@ -168,7 +185,13 @@ def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.nd
             zi, yi, xi = ((pz - origin[2]) / spacing[2], (py - origin[1]) / spacing[1],
                           (px - origin[0]) / spacing[0])
             _lerp3(data, zi, yi, xi, value)
-            _gradient_lerp(samples, w, inverse, zi, yi, xi, corners, g)
+            z0, z1, fz = _axis_weights(zi, nz)
+            y0, y1, fy = _axis_weights(yi, ny)
+            x0, x1, fx = _axis_weights(xi, nx)
+            if (z0, y0, x0) != cell:
+                _corner_gradients(samples, w, inverse, z0, z1, y0, y1, x0, x1, corners)
+                cell = (z0, y0, x0)
+            _lerp_corners(corners, fz, fy, fx, g)
             g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
             step = (levels[i] - value[0]) / g2
             length = abs(step) * np.sqrt(g2)
