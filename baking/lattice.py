@@ -54,8 +54,8 @@ of its finest axis (`refinement`). Walls thinner than a texel leak light between
 faces (`tests/test_failure_modes.py`), and a texel as tall as a thick slice is thicker
 than the bone a CT shows in it: on CThead's 2× block means (voxels 2 × 2 × 4) the 64-path
 irradiance lattice is 11.7 % off with texels as tall as the voxels, 9.3 % with cubic ones
-(twice the texels; 7.9 % with eight times). The cap keeps a thick-sliced scan (slices five
-times as thick as its pixels) at twice the texels of one texel per voxel."""
+(twice the texels). The cap keeps a thick-sliced scan (slices five times as thick as its
+pixels) at twice the texels of one texel per voxel."""
 SIDE_BLEND = 0.1
 """The side-aware lookup is used whole where the side-weighted weight is at least this
 fraction of the plain (valid-weighted) trilinear weight, and blends into the plain mix
@@ -500,8 +500,8 @@ def other_texels(geometry: LatticeGeometry, volume, scale: float,
         return ""
     return (f"{path}: a lattice of {'×'.join(map(str, geometry.shape))} texels (z×y×x), where "
             f"a bake of {volume.name!r} at --scale {scale:g} places "
-            f"{'×'.join(map(str, want.shape))} (texels as wide as its finest voxels along "
-            "every axis): it can be shown, not baked further; bake to a new file")
+            f"{'×'.join(map(str, want.shape))} (cubic texels where the voxels are not): it "
+            "can be shown, not baked further; bake to a new file")
 
 
 def check_identity(meta: dict, volume, path: str | os.PathLike = "lattice") -> None:
