@@ -163,7 +163,8 @@ def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.nd
             out: np.ndarray) -> None:
     """Newton steps p += (level − ρ(p)) ∇ρ / |∇ρ|² from each (N, 3) world point, the
     total move clamped to `max_move`; stops once a step moved less than 1e-4 voxel (Newton
-    converges quadratically where the gradient is regular).
+    converges quadratically where the gradient is regular). Steps that stay in one cell of
+    the volume, as the last few mostly do, reuse its eight corner gradients.
 
     Damped where the field is flat: a step is at most one voxel long, and a point gets
     one more step per voxel of `max_move`, so a point in a plateau next to the surface
