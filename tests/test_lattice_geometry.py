@@ -85,3 +85,28 @@ def test_the_charts_cache_rebakes_a_lattice_of_other_texels(tmp_path, monkeypatc
     assert tall.lattice.geometry.shape == (10, 20, 20) and not tall.cached
     assert again.lattice.geometry.shape == (20, 20, 20) and not again.cached
     assert LatticeStore(vol, tmp_path, workers=2).get(config).cached
+
+
+def test_the_viewer_shows_a_file_of_other_texels_as_it_is(tmp_path, monkeypatch):
+    """An unfinished lattice file of texels as tall as the slices: the viewer shows it with
+    `other_texels`' line on its status bar and starts no lazy bake into it."""
+    from types import SimpleNamespace
+
+    from isolume.app.viewer import illumination
+    from isolume.baking.view_texels import LatticeOnFile
+
+    vol = _box((10, 20, 20), (1.0, 1.0, 2.0), name="slices")
+    path = tmp_path / "tall.npz"
+    monkeypatch.setattr(lattice_module, "MAX_REFINEMENT", 1.0)
+    bake(vol, BakeConfig(samples=2, bounces=0, env="constant:1,1,1"), out=path, workers=2)
+    monkeypatch.undo()
+    monkeypatch.setattr(illumination, "_complete", lambda lattice, samples: False)
+    started, shown = [], []
+    monkeypatch.setattr(illumination.Illumination, "_start_bake",
+                        lambda self, *args: started.append(args))
+    drawing = SimpleNamespace(albedo=None, show_lattice=lambda lattice: shown.append(lattice))
+    state = SimpleNamespace(message="")
+    light = illumination.Illumination(vol, drawing, state, SimpleNamespace(bake=True))
+    light.start(LatticeOnFile.open(path, vol), 0.5)
+    assert not started and len(shown) == 1 and light.static_lattice is shown[0]
+    assert state.message.startswith(f"{path}: a lattice of 10×20×20 texels")
