@@ -132,11 +132,19 @@ def _axis_weights(c: float, n: int) -> tuple[int, int, float]:
 @numba.njit(nogil=True, cache=True)
 def _lerp3(grid: np.ndarray, z: float, y: float, x: float, out: np.ndarray) -> None:
     """out[:] = trilinear interpolation of the (Z, Y, X, C) grid at index (z, y, x)."""
-    nz, ny, nx, nc = grid.shape
+    nz, ny, nx, _ = grid.shape
     z0, z1, fz = _axis_weights(z, nz)
     y0, y1, fy = _axis_weights(y, ny)
     x0, x1, fx = _axis_weights(x, nx)
-    for c in range(nc):
+    _lerp_cell(grid, z0, z1, y0, y1, x0, x1, fz, fy, fx, out)
+
+
+@numba.njit(nogil=True, cache=True)
+def _lerp_cell(grid: np.ndarray, z0: int, z1: int, y0: int, y1: int, x0: int, x1: int,
+               fz: float, fy: float, fx: float, out: np.ndarray) -> None:
+    """out[:] = the trilinear mix of the (Z, Y, X, C) grid's cell of corners (z0 … x1) at
+    the weights (fz, fy, fx) of the upper corners (`_axis_weights`)."""
+    for c in range(grid.shape[3]):
         a = (1 - fx) * grid[z0, y0, x0, c] + fx * grid[z0, y0, x1, c]
         b = (1 - fx) * grid[z0, y1, x0, c] + fx * grid[z0, y1, x1, c]
         d = (1 - fx) * grid[z1, y0, x0, c] + fx * grid[z1, y0, x1, c]
@@ -185,10 +193,10 @@ def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.nd
         for _ in range(steps):
             zi, yi, xi = ((pz - origin[2]) / spacing[2], (py - origin[1]) / spacing[1],
                           (px - origin[0]) / spacing[0])
-            _lerp3(data, zi, yi, xi, value)
-            z0, z1, fz = _axis_weights(zi, nz)
+            z0, z1, fz = _axis_weights(zi, nz)  # once for the value and the gradient
             y0, y1, fy = _axis_weights(yi, ny)
             x0, x1, fx = _axis_weights(xi, nx)
+            _lerp_cell(data, z0, z1, y0, y1, x0, x1, fz, fy, fx, value)
             if (z0, y0, x0) != cell:
                 _corner_gradients(samples, w, inverse, z0, z1, y0, y1, x0, x1, corners)
                 cell = (z0, y0, x0)
