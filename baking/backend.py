@@ -96,8 +96,8 @@ class PassWork:
     """What one pass traces (`Baker.pending`).
 
     Attributes:
-        done, remaining: (T,) int32 paths done and still to trace per plan position (0
-            outside the pass).
+        done, remaining: (T,) paths done and still to trace per plan position (0 outside
+            the pass), uint16 where they fit (`bake._count_type`), else int32.
         first, last: the first and last level the pass traces (`last` = the highest lower
             level + 1).
         by_lower: for each level from `first` to `last`, the positions that need paths

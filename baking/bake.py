@@ -298,11 +298,14 @@ class Baker:
         positions = (np.arange(len(plan.ids), dtype=index) if positions is None
                      else np.unique(positions).astype(index))
         target = self.config.samples if target is None else target
-        done = np.zeros(len(plan.ids), np.int32)
-        remaining = np.zeros(len(plan.ids), np.int32)
-        done[positions] = self.samples_done(positions)
-        remaining[positions] = np.maximum(np.asarray(target) - done[positions], 0)
-        busy = positions[remaining[positions] > 0]
+        had = self.samples_done(positions)
+        wanted = np.maximum(np.asarray(target) - had, 0)
+        count = _count_type(int((had + wanted).max(initial=0)))
+        done = np.zeros(len(plan.ids), count)
+        remaining = np.zeros(len(plan.ids), count)
+        done[positions], remaining[positions] = had, wanted
+        busy = positions[wanted > 0]
+        del had, wanted
         if len(busy) == 0:
             return None
         first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
@@ -319,6 +322,13 @@ class Baker:
         return (f"texels {self.texels_done:,}/{len(self.plan.ids):,} "
                 f"level {level + 1}/{len(self.plan.levels)} {note}"
                 f"{self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} Mrays/s")
+
+
+def _count_type(most: int) -> type:
+    """The type of a pass's per-texel sample counts (`PassWork.done`, `remaining`) when
+    none exceeds `most`: uint16 (2 bytes a texel; samples stop at `BakeConfig.max_samples`,
+    4096 by default), else int32."""
+    return np.uint16 if most <= np.iinfo(np.uint16).max else np.int32
 
 
 def _group_by(keys: np.ndarray, values: np.ndarray, first: int, last: int) -> list:

@@ -459,10 +459,11 @@ def warm_up() -> None:
     add_escaped(result, index, prim, vec, np.ones(3))
     accumulate(index, result, np.ones(3), np.zeros((1, 3)), np.zeros(1), index.copy())
     path_starts(np.uint32(0), index, index, index, index, vec.T.copy(), vec.T.copy())
-    small = np.zeros(1, np.int32)  # a bake's positions, samples done and to do
-    texels, upper, counts = level_texels(small, small, small, small, np.zeros(1), np.zeros(1),
-                                         0.5)
-    texel_paths(texels, upper, counts, small, small, np.zeros(1), np.zeros(1), 0.5)
+    small = np.zeros(1, np.int32)  # a bake's positions, and its samples done and to do
+    for count in (np.zeros(1, np.uint16), small):  # in 2 bytes where they fit
+        texels, upper, counts = level_texels(small, small, count, count, np.zeros(1),
+                                             np.zeros(1), 0.5)
+        texel_paths(texels, upper, counts, count, count, np.zeros(1), np.zeros(1), 0.5)
     sky = np.zeros(SKY_PARAMS)
     trace_chunk((0, 0, 0), np.uint32(0), index, index[:0], index[:0], index, vec.T.copy(),
                 vec.T.copy(), 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky, True, True,
