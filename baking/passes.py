@@ -112,7 +112,8 @@ def landing_facing(volume: volumes.Volume, geometry: LatticeGeometry, config: Ba
         used = share[:, side] > 0
         if used.any():
             at = positions[used]
-            points = landed_points(plan.landing[at, side], geometry.centres(plan.ids[at]))
+            points = landed_points(plan.landing[at, side], geometry.centres(plan.ids[at]),
+                                   plan.reach)
             normals = lit_normals(volume, config, points, plan.high[at])
             mean[used] += share[used, side, None] * normals
     return octahedral.encode(mean)
@@ -183,8 +184,9 @@ def start_points(volume: volumes.Volume, centres: np.ndarray, level: float,
     """
     h = float(np.mean(volume.spacing))
     if on_level is None:
-        on_level = rounded_landing(project_to_level(
-            volume, centres, level, max_move=newton_reach(volume, config)), centres)
+        reach = newton_reach(volume, config)
+        on_level = rounded_landing(project_to_level(volume, centres, level, max_move=reach),
+                                   centres, reach)
     normals = lit_normals(volume, config, on_level, high)
     return on_level + config.offset * h * normals, normals
 
@@ -254,7 +256,7 @@ class LevelStarts:
         on_level = None
         if self.landing is not None:  # `here` lands on its lower level, `below` upper
             on_level = landed_points(self.landing[texels, self.upper[lo:hi].astype(np.int64)],
-                                     centres)
+                                     centres, newton_reach(self.volume, self.config))
         origins, normals = start_points(self.volume, centres, self.iso, self.config,
                                         self.high[texels], on_level)
         return PathStarts(np.arange(hi - lo, dtype=np.int64), origins.astype(np.float32),

@@ -98,11 +98,12 @@ class Plan:
             texels to their farther levels, voxels (the lattice metadata's).
         move_limit: the level spacing's move limit, voxels (`move_limit`).
         reach: largest Newton move onto a level, world units (`newton_reach`).
-        landing: (T, 2, 3) float32 offset from each texel's centre, world units, of where
-            its Newton steps land on its lower (0) and upper (1) level — the start points'
-            projection, done once (NaN where a texel does not use the level); world points
-            by `landed_points` (12 bytes a point: float32 offsets are exact to ~10⁻⁷ of
-            the move, far below the float32 start points' own rounding).
+        landing: (T, 2, 3) int16 offset from each texel's centre of where its Newton steps
+            land on its lower (0) and upper (1) level, in steps of `reach` /
+            `LANDING_STEPS` (`landing_offsets`; `UNLANDED` where a texel does not use the
+            level) — the start points' projection, done once; world points by
+            `landed_points` (6 bytes a point, exact to half a step: 1.3·10⁻⁴ voxel at a
+            reach of 8 voxels).
         high: (T,) bool: the texel is lit on the high-value side of its levels (its
             normals point from low to high values; `baking.sides`).
         unreachable: texels that cannot reach one or both bracketing levels within
@@ -246,15 +247,16 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     reach = newton_reach(volume, config)
     say(f"paths onto {len(levels)} levels")
     uses_lo, uses_hi = weight < 1, weight > 0
-    landing = np.full((len(ids), 2, 3), np.nan, np.float32)
+    landing = np.full((len(ids), 2, 3), UNLANDED, np.int16)
     for block in _blocks(len(ids)):
         centres = geometry.centres(ids[block])
         for side, uses in ((0, uses_lo[block]), (1, uses_hi[block])):
             landing[block][uses, side] = landing_offsets(project_to_level(
                 volume, centres[uses], levels[lower[block] + side][uses], max_move=reach),
-                centres[uses])
+                centres[uses], reach)
     say(f"seen sides on {len(levels)} levels")
-    high = lit_sides(volume, config, geometry, ids, landing, levels, lower, weight, scenes)
+    high = lit_sides(volume, config, geometry, ids, landing, reach, levels, lower, weight,
+                     scenes)
     reaches = _Reaches(volume, config, geometry, ids, reach, levels, lower, high)
     ok_lo, move_lo = reaches(0, uses_lo, landing[:, 0])
     ok_hi, move_hi = reaches(1, uses_hi | ~ok_lo, landing[:, 1])
@@ -306,41 +308,56 @@ def lit_isovalues(rho: np.ndarray, span: np.ndarray, lo: float, hi: float) -> np
 
 
 def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
-              ids: np.ndarray, landing: np.ndarray, levels: np.ndarray, lower: np.ndarray,
-              weight: np.ndarray, scenes: Callable[[int], object] | None = None
-              ) -> np.ndarray:
+              ids: np.ndarray, landing: np.ndarray, reach: float, levels: np.ndarray,
+              lower: np.ndarray, weight: np.ndarray,
+              scenes: Callable[[int], object] | None = None) -> np.ndarray:
     """(T,) bool: is each texel lit on the high-value side of its surfaces
     (`baking.sides.choose_sides`, probed where it lands on its nearer level: `landing`
-    (T, 2, 3) as `Plan.landing`, set for the levels the texel uses; `scenes` as there)?"""
+    (T, 2, 3) as `Plan.landing` with its `reach`, set for the levels the texel uses;
+    `scenes` as there)?"""
     if config.sides == "normals":
         return np.full(len(ids), bool(config.flip_normals))
     upper = weight >= 0.5
-    found = np.where(upper, np.isfinite(landing[:, 1]).all(axis=1),
-                     np.isfinite(landing[:, 0]).all(axis=1))
+    found = np.where(upper, landing[:, 1, 0] != UNLANDED, landing[:, 0, 0] != UNLANDED)
 
     def points(at: np.ndarray) -> np.ndarray:  # where the texels `at` land on that level
         return landed_points(np.where(upper[at, None], landing[at, 1], landing[at, 0]),
-                             geometry.centres(ids[at]))
+                             geometry.centres(ids[at]), reach)
 
     return choose_sides(volume, config, geometry, ids, points, found, levels, lower + upper,
                         scenes)
 
 
-def landing_offsets(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """(N, 3) float32 offsets of world points (N, 3) from their texels' centres (N, 3):
-    how `Plan.landing` keeps them (NaN stays NaN)."""
-    return (np.asarray(points, np.float64) - centres).astype(np.float32)
+LANDING_STEPS = 32_000
+"""Steps of a landing offset per reach (`landing_offsets`): int16 holds ±32 767, so an
+offset of a whole reach keeps 2 % to spare for the float rounding of a clamped move."""
+UNLANDED = np.iinfo(np.int16).min
+"""The landing offset of a level a texel does not use (`Plan.landing`)."""
 
 
-def landed_points(offsets: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """(N, 3) float64 world points from `landing_offsets` (N, 3) and the centres (N, 3)."""
-    return centres + offsets
+def landing_offsets(points: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
+    """(N, 3) int16 offsets of world points (N, 3) — Newton moves of at most `reach` world
+    units — from their texels' centres (N, 3), in steps of `reach` / `LANDING_STEPS`: how
+    `Plan.landing` keeps them (NaN becomes `UNLANDED`)."""
+    steps = (np.asarray(points, np.float64) - centres) * (LANDING_STEPS / reach)
+    missing = np.isnan(steps).any(axis=1)
+    codes = np.rint(np.clip(np.nan_to_num(steps), -LANDING_STEPS, LANDING_STEPS))
+    codes[missing] = UNLANDED
+    return codes.astype(np.int16)
 
 
-def rounded_landing(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+def landed_points(offsets: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
+    """(N, 3) float64 world points from `landing_offsets` (N, 3) of the same `reach` and
+    the centres (N, 3); NaN where `UNLANDED`."""
+    points = centres + offsets * (reach / LANDING_STEPS)
+    points[offsets[:, 0] == UNLANDED] = np.nan
+    return points
+
+
+def rounded_landing(points: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
     """(N, 3) float64 world points (N, 3) as `Plan.landing` keeps them: where the paths of
     a plan start from, whoever projected them (`baking.passes.start_points`)."""
-    return landed_points(landing_offsets(points, centres), centres)
+    return landed_points(landing_offsets(points, centres, reach), centres, reach)
 
 
 def resolved_iso_range(volume: volumes.Volume, config: BakeConfig) -> tuple[float, float]:
@@ -575,20 +592,20 @@ class _Reaches:
                  ) -> tuple[np.ndarray, np.ndarray]:
         """`_reaches` of every texel from its centre onto its lower (`side` 0) or upper (1)
         level, within `CONVERGED_FRACTION` of the spacing of its two levels (other
-        arguments as there, (T,) and (T, 3); `landing` (T, 3) float32 offsets as
+        arguments as there, (T,) and (T, 3); `landing` (T, 3) int16 offsets as
         `Plan.landing`'s, updated in place)."""
         count = len(self.ids)
         ok = np.ones(count, bool) if ok is None else ok.copy()
         moved = np.zeros(count, np.float32) if moved is None else moved.copy()
         for b in _blocks(count):
             centres = self.geometry.centres(self.ids[b])
-            landed = landed_points(landing[b], centres)
+            landed = landed_points(landing[b], centres, self.reach)
             lower = self.lower[b]
             tol = CONVERGED_FRACTION * (self.levels[lower + 1] - self.levels[lower])
             ok[b], moved[b] = _reaches(self.volume, self.config, centres,
                                        self.levels[lower + side], self.reach, tol,
                                        self.high[b], which[b], landed, ok[b], moved[b])
-            landing[b] = landing_offsets(landed, centres)
+            landing[b] = landing_offsets(landed, centres, self.reach)
         return ok, moved
 
 
@@ -611,7 +628,7 @@ def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
         todo = which & np.isnan(landed[:, 0])
         if todo.any():
             landed[todo] = rounded_landing(project_to_level(
-                volume, points[todo], levels[todo], max_move=reach), points[todo])
+                volume, points[todo], levels[todo], max_move=reach), points[todo], reach)
         ok[which] = (np.abs(volumes.value_at(volume, landed[which]) - levels[which])
                      <= tol[which]) & starts_outside(volume, config, landed[which],
                                                      levels[which], high[which])

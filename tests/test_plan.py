@@ -12,6 +12,8 @@ from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.plan import (
     MOVE_LIMITS,
     SCENE_SHARE,
+    UNLANDED,
+    landed_points,
     level_budget,
     make_plan,
     move_limit,
@@ -215,7 +217,7 @@ def test_levels_start_where_the_plan_landed_their_texels():
     plan, config = _plan(vol, samples=8, bounces=0, iso_range=(0.2, 0.7), max_move=0.5)
     geometry = LatticeGeometry.for_volume(vol, 1.0)
     uses = np.stack([plan.weight < 1, plan.weight > 0], axis=1)
-    assert np.isfinite(plan.landing[uses]).all()
+    assert (plan.landing[uses] != UNLANDED).all()
     level = 1
     here = np.flatnonzero(plan.lower == level)
     below = np.flatnonzero(plan.lower == level - 1)
@@ -267,7 +269,7 @@ def _starts_inside(vol: Volume, plan, config) -> np.ndarray:
     inside = np.zeros(len(plan.ids), bool)
     for side, used in ((0, plan.weight < 1), (1, plan.weight > 0)):
         level = plan.levels[plan.lower + side][used]
-        landed = centres[used] + plan.landing[used, side]
+        landed = landed_points(plan.landing[used, side], centres[used], plan.reach)
         start = landed + config.offset * h * volumes.normals_at(vol, landed)
         inside[used] |= volumes.value_at(vol, start) >= level
     return inside
@@ -381,3 +383,27 @@ def test_a_bakes_plan_keeps_a_byte_for_the_level_and_no_box_mask():
         assert baker.plan.active is None and baker.plan.rho is None
     finally:
         baker.close()
+
+
+def test_landing_offsets_keep_points_to_a_step_of_the_reach():
+    """`Plan.landing` keeps a landing point in 6 bytes: every point within the reach comes
+    back within half a step (reach / `LANDING_STEPS` / 2) per axis, a point decoded and
+    encoded again is the same code (so whoever projects a texel gets the same start
+    point), and a level not used (NaN) comes back NaN."""
+    from isolume.baking.plan import LANDING_STEPS, landing_offsets, rounded_landing
+
+    rng = np.random.default_rng(5)
+    reach = 3.2
+    centres = rng.uniform(0, 64, (20_000, 3))
+    moves = rng.normal(size=(20_000, 3))
+    moves *= reach * rng.uniform(0, 1, (20_000, 1)) / np.linalg.norm(moves, axis=1)[:, None]
+    moves[:4] = [[reach, 0, 0], [0, -reach, 0], [0, 0, 0], [np.nan] * 3]
+    codes = landing_offsets(centres + moves, centres, reach)
+    assert codes.dtype == np.int16 and (codes[3] == UNLANDED).all()
+    back = landed_points(codes, centres, reach)
+    assert np.isnan(back[3]).all() and not np.isnan(np.delete(back, 3, axis=0)).any()
+    error = np.abs(np.delete(back - centres - moves, 3, axis=0))
+    assert error.max() <= 0.5 * reach / LANDING_STEPS * (1 + 1e-6)
+    np.testing.assert_array_equal(landing_offsets(back, centres, reach), codes)
+    np.testing.assert_array_equal(rounded_landing(back, centres, reach), back)
+
