@@ -342,7 +342,7 @@ def trace_texels(scene: Scene, tracing: Tracing, paths: LevelPaths, lo: int, hi:
     """
     index, samples = paths.of(lo, hi)
     sums = PassSums(hi - lo, tracing.settings.channels)
-    chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]])
+    chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]].astype(np.int64))
     return sums, *trace_chunk(scene, chunk, index, samples, start.of(lo, hi), sums)
 
 

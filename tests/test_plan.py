@@ -407,3 +407,23 @@ def test_landing_offsets_keep_points_to_a_step_of_the_reach():
     np.testing.assert_array_equal(landing_offsets(back, centres, reach), codes)
     np.testing.assert_array_equal(rounded_landing(back, centres, reach), back)
 
+
+def test_flat_ids_in_four_bytes_bake_the_same_lattice_as_in_eight(monkeypatch):
+    """A plan keeps its texels' flat ids in int32 while the box has fewer than 2³¹ texels
+    (int64 past that); a bake with them is the same lattice to the bit as one with int64
+    ids (the compiled kernels read int64 ids chunk by chunk)."""
+    from isolume.baking import plan as plan_module
+
+    assert plan_module.flat_id_type(2**31 - 1) is np.int32
+    assert plan_module.flat_id_type(2**31) is np.int64
+    vol = make("engine", 24)
+    config = BakeConfig(samples=4, bounces=1, seed=3)
+    narrow = bake(vol, config, workers=2, progress=False)
+    monkeypatch.setattr(plan_module, "flat_id_type", lambda texels: np.int64)
+    wide = bake(vol, config, workers=2, progress=False)
+    assert _plan(vol, samples=4)[0].ids.dtype == np.int64
+    monkeypatch.undo()
+    assert _plan(vol, samples=4)[0].ids.dtype == np.int32
+    for name in ("values", "samples", "second", "facing"):
+        np.testing.assert_array_equal(getattr(narrow, name), getattr(wide, name))
+    assert narrow.samples.sum() > 0
