@@ -18,7 +18,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 
@@ -42,16 +42,15 @@ from isolume.baking.plan import Plan, resolved_iso_range
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.trace import Scene
 
-AHEAD_LEVELS = 2
+AHEAD_LEVELS = 1
 """Scenes of the lowest levels a `ThreadBackend` builds beside the plan: the helper thread
-is done with level 0's before the plan is, and a second scene built then is one fewer
-built beside the tracing (engine CT quick bake: 0.2 s of 2.1)."""
+is done with level 0's before the plan is (its side probes then start on it)."""
 REPORT_S = 0.5
 """Seconds between progress-bar updates while a level is traced."""
 TEXELS_PER_BATCH = 1 << 20
-"""Texels a `ThreadBackend` traces on both their levels and commits together: what bounds
-a pass's sums (40 bytes a texel in irradiance) and layouts (17 bytes a texel, two at a
-time): under 80 MB, where the largest levels of a 512³ CT hold tens of millions of
+"""Texels a `ThreadBackend` traces on one level together (`pass_steps`): what bounds a
+step's layouts (17 bytes a texel, two steps at a time), and the texels committed together
+on their upper level; where the largest levels of a 512³ CT hold tens of millions of
 texels."""
 
 
@@ -205,8 +204,9 @@ def _first_level(volume: volumes.Volume, config: BakeConfig,
 @dataclass(frozen=True)
 class _LevelWork:
     """The pending paths of a batch of texels (`TEXELS_PER_BATCH`) on one level — their
-    upper one if `upper` — by texel, how the start points of their texels are made, and
-    the level's scene (None when it has no paths)."""
+    upper one if `upper` — by texel, how the start points of their texels are made, the
+    level's scene (None when it has no paths), and where the batch starts among the
+    texels of its group (`pass_steps`)."""
 
     level: int
     batch: np.ndarray
@@ -214,33 +214,44 @@ class _LevelWork:
     paths: LevelPaths
     start: LevelStarts
     scene: Scene | None
+    first: int
+
+
+class PassStep(NamedTuple):
+    """One step of a pass (`pass_steps`): `texels` (N,) sorted plan positions traced on
+    `level`, their upper level if `upper`, from position `first` of their group on."""
+
+    level: int
+    texels: np.ndarray
+    upper: bool
+    first: int
 
 
 def pass_steps(work: PassWork, batch: int):
-    """The order a `ThreadBackend` traces a pass in: for each lower level l, its texels
-    (``work.lower_on(l)``) a `batch` at a time, each batch on level l, then on level
-    l + 1, where it is complete. Yields (level, (N,) sorted plan positions, whether the
-    level is their upper one)."""
-    for lower in range(work.first, work.last):
-        group = work.lower_on(lower)
-        for lo in range(0, len(group), batch):
-            texels = group[lo:lo + batch]
-            yield lower, texels, False
-            yield lower + 1, texels, True
+    """The order a `ThreadBackend` traces a pass in: one level at a time, lowest first, so
+    that a pass traces one level scene at a time. On level l, the texels whose upper level
+    it is (``work.upper_on(l)``: traced on l − 1 before, complete here), then those whose
+    lower level it is (``work.lower_on(l)``: complete on l + 1), each group a `batch` at a
+    time. Yields `PassStep`s."""
+    for level in range(work.first, work.last + 1):
+        for upper, group in ((True, work.upper_on(level)), (False, work.lower_on(level))):
+            for lo in range(0, len(group), batch):
+                yield PassStep(level, group[lo:lo + batch], upper, lo)
 
 
 class ThreadBackend:
-    """Traces on worker threads of this process, a batch of texels at a time on one of
-    its two levels (`pass_steps`): its paths in chunks of whole texels on a thread pool,
-    while a helper thread lays out the next step and builds its scene. Level scenes are
-    cached (least recently used first out): the two levels of the batches in flight, and
-    more where successive passes touch the same few levels (the lazy viewer's).
+    """Traces on worker threads of this process, one level at a time and a batch of
+    texels at a time on it (`pass_steps`): its paths in chunks of whole texels on a
+    thread pool, while a helper thread lays out the next step of the same level. Level
+    scenes are cached (least recently used first out): the one level traced, and more
+    where successive passes touch the same few levels (the lazy viewer's); the next
+    level's is built once the last step on this one is done, so a bake with a cache of
+    one holds one scene.
 
     Args:
         workers: threads tracing concurrently (default: CPU count); the result does not
             depend on it.
-        scene_cache: how many level scenes to keep alive (at least 2: the one traced and
-            the next, built meanwhile).
+        scene_cache: how many level scenes to keep alive (at least 1).
         ahead: scenes of the lowest levels to build beside the plan.
     """
 
@@ -249,9 +260,9 @@ class ThreadBackend:
         self.workers = max(1, workers or os.cpu_count() or 1)
         self.job: BakeJob | None = None
         self._pool = ThreadPoolExecutor(max_workers=self.workers)
-        self._helper = ThreadPoolExecutor(max_workers=1)  # next level's layout and scene
+        self._helper = ThreadPoolExecutor(max_workers=1)  # the next step; scenes ahead
         self._scenes: OrderedDict[int, Scene] = OrderedDict()
-        self._scene_cache = max(2, scene_cache)
+        self._scene_cache = max(1, scene_cache)
         self._scene_lock = threading.Lock()
         self._pending: dict[int, Future] = {}  # scenes being built ahead
         self._ahead = ahead
@@ -295,27 +306,33 @@ class ThreadBackend:
         self.job = job
 
     def trace_pass(self, work: PassWork, report: PassReport) -> None:
-        """Trace `work` a batch of texels at a time, on its lower level then its upper one
-        (`pass_steps`), and commit each batch (`TracingBackend.trace_pass`): a pass holds
-        the sums and layouts of one batch, not of every texel of two levels.
+        """Trace `work` one level at a time and a batch of texels at a time on it
+        (`pass_steps`), and commit each batch on its upper level
+        (`TracingBackend.trace_pass`). A pass holds one level scene (with a cache of one),
+        the sums of one group of texels between their two levels (those whose lower level
+        was the last traced: 40 bytes a texel in irradiance) and the layouts of two steps.
 
-        Pipelined: the helper thread lays out the next step and builds its scene while
-        the workers trace this one (the chunks, the level surfaces and the BVH build run
-        without the GIL). The calling thread only waits for what the pipeline did not
-        hide.
+        Pipelined within a level: the helper thread lays out the next step while the
+        workers trace this one (the chunks run without the GIL). The next level's scene
+        is built once this level's steps are traced, after this one is let go (its
+        surface and BVH are built on every core).
         """
         steps = list(pass_steps(work, TEXELS_PER_BATCH))
         if not steps:
             return
+        channels = self.job.tracing.settings.channels
         chunks: list = []
-        sums = None
+        between = None  # the sums of the texels whose lower level was the last traced
         try:
             lay = self._waited(self._prepare_step, work, *steps[0])
             for following in [*steps[1:], None]:
+                same_level = following is not None and following.level == lay.level
                 upcoming = (self._helper.submit(self._prepare_step, work, *following)
-                            if following is not None else None)
-                if not lay.upper:
-                    sums = PassSums(len(lay.batch), self.job.tracing.settings.channels)
+                            if same_level else None)
+                if not lay.upper and lay.first == 0:  # this level's upper steps are done:
+                    between = None  # their group's sums go before the next group's are made
+                    between = PassSums(len(work.lower_on(lay.level)), channels)
+                sums = between.rows(slice(lay.first, lay.first + len(lay.batch)))
                 chunks = self._submit_level(lay, sums)
                 self._collect(chunks, lay.level, report)
                 chunks = []
@@ -323,6 +340,9 @@ class ThreadBackend:
                     report.show(lay.level, refresh=True)
                 if upcoming is not None:
                     lay = self._waited(upcoming.result)
+                elif following is not None:
+                    lay = sums = None  # this level's scene goes before the next one's is built
+                    lay = self._waited(self._prepare_step, work, *following)
         except BaseException:
             _cancel(chunks)
             raise
@@ -340,8 +360,9 @@ class ThreadBackend:
     def _scene(self, level: int) -> Scene:
         """The Embree scene of `level`, from the cache, from the scenes built ahead, or
         built now (least recently used scenes out: the cache holds at least the level
-        being traced and the next). Room is made before a scene is built, so a scene in
-        the making counts against the cache: a bake holds at most two level scenes."""
+        being traced). Room is made before a scene is built, so a scene in the making
+        counts against the cache: a bake with a cache of one holds one level scene
+        (`trace_pass` lets the traced one go before the next is built)."""
         with self._scene_lock:
             if level in self._scenes:
                 self._scenes.move_to_end(level)
@@ -369,11 +390,11 @@ class ThreadBackend:
             self.job.stats.scene_seconds += time.perf_counter() - began
 
     def _prepare_step(self, work: PassWork, level: int, batch: np.ndarray,
-                      upper: bool) -> _LevelWork:
+                      upper: bool, first: int) -> _LevelWork:
         """Lay out the pending paths on isovalue level `level` of the texels at (N,) sorted
-        plan positions `batch` — their upper-level samples if `upper`, else their
-        lower-level ones — sorted by texel, and get the level's scene if they have
-        paths."""
+        plan positions `batch` (from position `first` of their group on) — their
+        upper-level samples if `upper`, else their lower-level ones — sorted by texel, and
+        get the level's scene if they have paths."""
         job = self.job
         plan = job.plan
         none = batch[:0]
@@ -382,7 +403,7 @@ class ThreadBackend:
             plan.phase, plan.weight, plan.high, none if upper else batch,
             batch if upper else none, work.done, work.remaining, plan.landing)
         scene = self._scene(level) if len(paths.texels) else None
-        return _LevelWork(level, batch, upper, paths, start, scene)
+        return _LevelWork(level, batch, upper, paths, start, scene, first)
 
     def _submit_level(self, lay: _LevelWork, sums: PassSums) -> list[Future]:
         """Queue the step's chunks of paths on its scene.

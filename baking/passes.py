@@ -68,7 +68,8 @@ class PassSums:
         return out
 
     def rows(self, these: np.ndarray) -> PassSums:
-        """The sums of the texels selected by `these` (a bool mask or indices)."""
+        """The sums of the texels selected by `these`: a copy for a bool mask or indices,
+        views that add into these sums for a slice."""
         return PassSums.of(self.sum[these], self.second[these], self.n[these])
 
     def add(self, positions: np.ndarray, sums: PassSums) -> None:
