@@ -201,22 +201,6 @@ def _first_level(volume: volumes.Volume, config: BakeConfig,
         return None
 
 
-@dataclass(frozen=True)
-class _LevelWork:
-    """The pending paths of a batch of texels (`TEXELS_PER_BATCH`) on one level — their
-    upper one if `upper` — by texel, how the start points of their texels are made, the
-    level's scene (None when it has no paths), and where the batch starts among the
-    texels of its group (`pass_steps`)."""
-
-    level: int
-    batch: np.ndarray
-    upper: bool
-    paths: LevelPaths
-    start: LevelStarts
-    scene: Scene | None
-    first: int
-
-
 class PassStep(NamedTuple):
     """One step of a pass (`pass_steps`): `texels` (N,) sorted plan positions traced on
     `level`, their upper level if `upper`, from position `first` of their group on."""
@@ -225,6 +209,18 @@ class PassStep(NamedTuple):
     texels: np.ndarray
     upper: bool
     first: int
+
+
+@dataclass(frozen=True)
+class _LevelWork:
+    """A `PassStep` laid out: the pending paths of its batch of texels (at most
+    `TEXELS_PER_BATCH`) on its level, by texel, how the start points of their texels are
+    made, and the level's scene (None when it has no paths)."""
+
+    step: PassStep
+    paths: LevelPaths
+    start: LevelStarts
+    scene: Scene | None
 
 
 def pass_steps(work: PassWork, batch: int):
@@ -324,25 +320,26 @@ class ThreadBackend:
         chunks: list = []
         between = None  # the sums of the texels whose lower level was the last traced
         try:
-            lay = self._waited(self._prepare_step, work, *steps[0])
+            lay = self._waited(self._prepare_step, work, steps[0])
             for following in [*steps[1:], None]:
-                same_level = following is not None and following.level == lay.level
-                upcoming = (self._helper.submit(self._prepare_step, work, *following)
+                step = lay.step
+                same_level = following is not None and following.level == step.level
+                upcoming = (self._helper.submit(self._prepare_step, work, following)
                             if same_level else None)
-                if not lay.upper and lay.first == 0:  # this level's upper steps are done:
+                if not step.upper and step.first == 0:  # this level's upper steps are done:
                     between = None  # their group's sums go before the next group's are made
-                    between = PassSums(len(work.lower_on(lay.level)), channels)
-                sums = between.rows(slice(lay.first, lay.first + len(lay.batch)))
+                    between = PassSums(len(work.lower_on(step.level)), channels)
+                sums = between.rows(slice(step.first, step.first + len(step.texels)))
                 chunks = self._submit_level(lay, sums)
-                self._collect(chunks, lay.level, report)
+                self._collect(chunks, step.level, report)
                 chunks = []
-                if lay.upper and report.commit(lay.batch, sums):
-                    report.show(lay.level, refresh=True)
+                if step.upper and report.commit(step.texels, sums):
+                    report.show(step.level, refresh=True)
                 if upcoming is not None:
                     lay = self._waited(upcoming.result)
                 elif following is not None:
                     lay = sums = None  # this level's scene goes before the next one's is built
-                    lay = self._waited(self._prepare_step, work, *following)
+                    lay = self._waited(self._prepare_step, work, following)
         except BaseException:
             _cancel(chunks)
             raise
@@ -389,21 +386,20 @@ class ThreadBackend:
         finally:
             self.job.stats.scene_seconds += time.perf_counter() - began
 
-    def _prepare_step(self, work: PassWork, level: int, batch: np.ndarray,
-                      upper: bool, first: int) -> _LevelWork:
-        """Lay out the pending paths on isovalue level `level` of the texels at (N,) sorted
-        plan positions `batch` (from position `first` of their group on) — their
-        upper-level samples if `upper`, else their lower-level ones — sorted by texel, and
-        get the level's scene if they have paths."""
+    def _prepare_step(self, work: PassWork, step: PassStep) -> _LevelWork:
+        """Lay out the pending paths of `step` on its isovalue level — its texels'
+        upper-level samples if ``step.upper``, else their lower-level ones — sorted by
+        texel, and get the level's scene if they have paths."""
         job = self.job
         plan = job.plan
+        batch = step.texels
         none = batch[:0]
         paths, start = lay_out_level(
-            job.volume, job.geometry, job.config, float(plan.levels[level]), plan.ids,
-            plan.phase, plan.weight, plan.high, none if upper else batch,
-            batch if upper else none, work.done, work.remaining, plan.landing)
-        scene = self._scene(level) if len(paths.texels) else None
-        return _LevelWork(level, batch, upper, paths, start, scene, first)
+            job.volume, job.geometry, job.config, float(plan.levels[step.level]), plan.ids,
+            plan.phase, plan.weight, plan.high, none if step.upper else batch,
+            batch if step.upper else none, work.done, work.remaining, plan.landing)
+        scene = self._scene(step.level) if len(paths.texels) else None
+        return _LevelWork(step, paths, start, scene)
 
     def _submit_level(self, lay: _LevelWork, sums: PassSums) -> list[Future]:
         """Queue the step's chunks of paths on its scene.
@@ -441,7 +437,7 @@ def _trace_into(sums: PassSums, lay: _LevelWork, tracing: Tracing, lo: int, hi: 
     sums to the batch's; returns the paths, the rays and the seconds tracing."""
     part, paths, rays, seconds = trace_texels(lay.scene, tracing, lay.paths, lo, hi,
                                               lay.start)
-    sums.add(np.searchsorted(lay.batch, lay.paths.texels[lo:hi]), part)
+    sums.add(np.searchsorted(lay.step.texels, lay.paths.texels[lo:hi]), part)
     return paths, rays, seconds
 
 

@@ -52,7 +52,7 @@ from isolume.baking.passes import (
     commit_sums,
     rows_at,
 )
-from isolume.baking.plan import Plan, make_plan
+from isolume.baking.plan import Plan, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
 
 
@@ -294,7 +294,7 @@ class Baker:
                 target: int | np.ndarray | None) -> PassWork | None:
         """What `run(positions, target)` has to do, or None when nothing."""
         plan = self.plan
-        index = np.int32 if len(plan.ids) < 2**31 else np.int64  # 4 bytes a texel, not 8
+        index = index_type(len(plan.ids))
         positions = (np.arange(len(plan.ids), dtype=index) if positions is None
                      else np.unique(positions).astype(index))
         target = self.config.samples if target is None else target

@@ -238,7 +238,8 @@ class LevelStarts:
     made a chunk of texels at a time as it is traced (`start_points`: each texel's from
     its own data alone), so that 24 bytes a texel exist for the texels being traced only,
     not for a whole level and the next one laid out ahead (tens of millions of texels on
-    the largest levels of a 512³ CT). Arguments as `lay_out_level`'s."""
+    the largest levels of a 512³ CT). Arguments as `lay_out_level`'s; `reach`, the
+    `newton_reach` that `landing` is kept in steps of."""
 
     volume: volumes.Volume
     geometry: LatticeGeometry
@@ -249,6 +250,7 @@ class LevelStarts:
     landing: np.ndarray | None
     texels: np.ndarray
     upper: np.ndarray
+    reach: float
 
     def of(self, lo: int, hi: int) -> PathStarts:
         """The `PathStarts` of the level's texels lo … hi − 1, numbered 0 … hi − lo − 1."""
@@ -257,7 +259,7 @@ class LevelStarts:
         on_level = None
         if self.landing is not None:  # `here` lands on its lower level, `below` upper
             on_level = landed_points(self.landing[texels, self.upper[lo:hi].astype(np.int64)],
-                                     centres, newton_reach(self.volume, self.config))
+                                     centres, self.reach)
         origins, normals = start_points(self.volume, centres, self.iso, self.config,
                                         self.high[texels], on_level)
         return PathStarts(np.arange(hi - lo, dtype=np.int64), origins.astype(np.float32),
@@ -289,7 +291,7 @@ def lay_out_level(volume: volumes.Volume, geometry: LatticeGeometry, config: Bak
                                                  GOLDEN_FRACTION)
     paths = LevelPaths(texels, upper, counts, done, remaining, phase, weight)
     return paths, LevelStarts(volume, geometry, config, iso, ids, high, landing, texels,
-                              upper)
+                              upper, newton_reach(volume, config))
 
 
 @dataclass(frozen=True)
@@ -343,7 +345,7 @@ def trace_texels(scene: Scene, tracing: Tracing, paths: LevelPaths, lo: int, hi:
     """
     index, samples = paths.of(lo, hi)
     sums = PassSums(hi - lo, tracing.settings.channels)
-    chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]].astype(np.int64))
+    chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]].astype(np.int64, copy=False))
     return sums, *trace_chunk(scene, chunk, index, samples, start.of(lo, hi), sums)
 
 

@@ -79,7 +79,7 @@ class Plan:
     """The texels to bake and their levels.
 
     Attributes:
-        ids: (T,) sorted flat lattice indices of the active texels (`flat_id_type`:
+        ids: (T,) sorted flat lattice indices of the active texels (`index_type`:
             int32 in a box of fewer than 2³¹ texels).
         rho: (T,) float32 field value at each texel (trilinear), value units; None in a
             plan that is only traced (`traced_only`).
@@ -214,7 +214,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     rho = texel_values(volume, geometry)
     min_span = MIN_SPAN_FRACTION * (vmax - vmin)
     active, crossed = select_cells(rho, lo, hi, min_span, 0.5 * (lo + hi))
-    ids = np.flatnonzero(active).astype(flat_id_type(active.size))
+    ids = np.flatnonzero(active).astype(index_type(active.size))
     if len(ids) == 0:
         raise BakeError(
             f"{volume.source or volume.name}: no isosurface in --iso-range [{lo:g}, {hi:g}] "
@@ -276,11 +276,12 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
                 active, moves, limit, reach, landing, high, int(np.count_nonzero(~needed)))
 
 
-def flat_id_type(texels: int) -> type:
-    """The type of the flat lattice ids of a box of `texels` texels: int32 (4 bytes an
-    active texel) while they fit, else int64. Compiled kernels read them as int64 chunk
-    by chunk (`baking.passes.trace_texels`, `baking.sides.unblocked_rays`)."""
-    return np.int32 if texels <= np.iinfo(np.int32).max else np.int64
+def index_type(count: int) -> type:
+    """The type of indices into `count` items — a plan's flat lattice ids in a box of
+    `count` texels, or its positions: int32 (4 bytes each) while they fit, else int64.
+    Compiled kernels read ids as int64 chunk by chunk (`baking.passes.trace_texels`,
+    `baking.sides.unblocked_rays`)."""
+    return np.int32 if count <= np.iinfo(np.int32).max else np.int64
 
 
 def _bracketing(levels: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

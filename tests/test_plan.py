@@ -414,12 +414,12 @@ def test_flat_ids_in_four_bytes_bake_the_same_lattice_as_in_eight(monkeypatch):
     ids (the compiled kernels read int64 ids chunk by chunk)."""
     from isolume.baking import plan as plan_module
 
-    assert plan_module.flat_id_type(2**31 - 1) is np.int32
-    assert plan_module.flat_id_type(2**31) is np.int64
+    assert plan_module.index_type(2**31 - 1) is np.int32
+    assert plan_module.index_type(2**31) is np.int64
     vol = make("engine", 24)
     config = BakeConfig(samples=4, bounces=1, seed=3)
     narrow = bake(vol, config, workers=2, progress=False)
-    monkeypatch.setattr(plan_module, "flat_id_type", lambda texels: np.int64)
+    monkeypatch.setattr(plan_module, "index_type", lambda texels: np.int64)
     wide = bake(vol, config, workers=2, progress=False)
     assert _plan(vol, samples=4)[0].ids.dtype == np.int64
     monkeypatch.undo()
