@@ -77,37 +77,54 @@ def write_lattice(path: str | os.PathLike, arrays: dict[str, np.ndarray], meta: 
         for z in _slabs(held.shape):
             yield arrays[name][z][held[z]]
 
-    _write_archive(path, held, {n: arrays[n].shape[3:] for n in MEMBERS}, rows, meta)
+    _write_archive(path, np.packbits(held.reshape(-1)), int(np.count_nonzero(held)),
+                   {n: arrays[n].shape[3:] for n in MEMBERS}, rows, meta)
 
 
 def write_rows(path: str | os.PathLike, shape: tuple[int, int, int], ids: np.ndarray,
                arrays: dict[str, np.ndarray], meta: dict) -> None:
     """Write the `MEMBERS` of the texels at (N,) sorted unique flat ids `ids` of a
     (Z, Y, X) box, as (N, …) `arrays` (values (N, C), facing (N, 2), the others (N,)),
-    and `meta`, as `write_lattice` does."""
-    held = np.zeros(shape, bool)
-    held.reshape(-1)[ids] = True
+    and `meta`, as `write_lattice` does (an array may be a broadcast view: it is made a
+    slab at a time). Holds no array over the box: the mask is packed from the ids a slab
+    at a time (`packed_ids`)."""
 
     def rows(name: str) -> Iterator[np.ndarray]:
         for lo in range(0, len(ids), SLAB_TEXELS):
             yield arrays[name][lo:lo + SLAB_TEXELS]
 
-    _write_archive(path, held, {n: arrays[n].shape[1:] for n in MEMBERS}, rows, meta)
+    _write_archive(path, packed_ids(ids, math.prod(shape)), len(ids),
+                   {n: arrays[n].shape[1:] for n in MEMBERS}, rows, meta)
 
 
-def _write_archive(path: str | os.PathLike, held: np.ndarray, tails: dict[str, tuple],
-                   rows: Callable[[str], Iterator[np.ndarray]], meta: dict) -> None:
-    """The archive of the (Z, Y, X) bool `held` mask, each member `name` of per-texel
-    shape `tails[name]` from the chunks `rows(name)` yields in flat order, and `meta`,
-    written to a temporary file that then replaces `path`."""
+def packed_ids(ids: np.ndarray, size: int) -> np.ndarray:
+    """(ceil(size / 8),) uint8: `numpy.packbits` of the (size,) bool mask true at the
+    (N,) sorted unique flat `ids`, made `SLAB_TEXELS` ids at a time without the mask (a
+    texel's bit in its byte is unique, so a byte's bits are the sum of its texels')."""
+    bits = np.zeros(-(-size // 8), np.uint8)
+    for lo in range(0, len(ids), SLAB_TEXELS):
+        part = np.asarray(ids[lo:lo + SLAB_TEXELS], np.int64)
+        byte = part >> 3
+        starts = np.flatnonzero(np.concatenate([[True], byte[1:] != byte[:-1]]))
+        bit = np.right_shift(np.uint8(0x80), (part & 7).astype(np.uint8))
+        bits[byte[starts]] |= np.add.reduceat(bit, starts, dtype=np.uint8)
+    return bits
+
+
+def _write_archive(path: str | os.PathLike, bits: np.ndarray, count: int,
+                   tails: dict[str, tuple], rows: Callable[[str], Iterator[np.ndarray]],
+                   meta: dict) -> None:
+    """The archive of the held texels' mask (`bits`: the packed bits of the (Z, Y, X) bool
+    mask of the `count` held texels), each member `name` of per-texel shape
+    `tails[name]` from the chunks `rows(name)` yields in flat order, and `meta`, written
+    to a temporary file that then replaces `path`."""
     path = Path(path)
-    count = int(np.count_nonzero(held))
     meta = dict(meta, format_version=FORMAT_VERSION)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED,
                                                       allowZip64=True) as zf:
-            _write_whole(zf, "held", np.packbits(held.reshape(-1)))
+            _write_whole(zf, "held", bits)
             for name, dtype in MEMBERS.items():
                 with zf.open(name + ".npy", "w", force_zip64=True) as member:
                     _write_header(member, np.dtype(dtype), (count, *tails[name]))

@@ -70,7 +70,7 @@ class PlanLattice:
         """Write atomically to `path`, as `baking.Lattice.save` would write `dense()`."""
         write_rows(path, self.geometry.shape, self.ids,
                    {"values": self.values, "samples": self.samples, "second": self.second,
-                    "active": np.ones(len(self.ids), bool), "facing": self.facing},
+                    "active": np.broadcast_to(True, len(self.ids)), "facing": self.facing},
                    file_meta(self.meta, self.geometry, self.config))
 
     def dense(self) -> Lattice:

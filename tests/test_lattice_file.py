@@ -56,6 +56,19 @@ def test_a_lattice_comes_back_the_same_and_its_file_holds_only_its_texels(
         assert json.loads(str(z["meta"]))["format_version"] == lattice_file.FORMAT_VERSION
 
 
+def test_the_held_mask_is_packed_from_the_ids_without_the_box(monkeypatch):
+    """`packed_ids` gives `numpy.packbits` of the mask at the ids, for boxes of any size
+    (bytes shared between slabs of ids: slabs of 5 ids), empty and full."""
+    monkeypatch.setattr(lattice_file, "SLAB_TEXELS", 5)
+    rng = np.random.default_rng(4)
+    for size in (1, 7, 8, 9, 1000, 4099):
+        for fraction in (0.0, 0.02, 0.6, 1.0):
+            mask = rng.random(size) < fraction
+            np.testing.assert_array_equal(
+                lattice_file.packed_ids(np.flatnonzero(mask).astype(np.int32), size),
+                np.packbits(mask), err_msg=f"{size} {fraction}")
+
+
 def test_a_display_reads_the_computed_texels_it_asks_for(tmp_path, small_slabs):
     lattice = _random_lattice()
     path = tmp_path / "l.npz"
