@@ -15,6 +15,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from isolume.app.allocator import release_freed_blocks
 from isolume.app.commands import cmd_bake, cmd_info, cmd_render
 from isolume.app.options import (
     EXIT_USER_ERROR,
@@ -101,6 +102,7 @@ def _join_negative_axes(argv: Sequence[str]) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``isolume`` console script; returns the exit status."""
+    release_freed_blocks()
     parser = build_parser()
     words = _join_negative_axes(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(words)

@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from isolume import volumes
+from isolume.app.allocator import release_freed_blocks
 from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lattice_file import MEMBERS
@@ -173,6 +174,7 @@ def _bake_main(job: dict, inbox, outbox) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the viewer's to handle
+    release_freed_blocks()
     try:
         os.nice(19)  # idle priority: the viewer (and llvmpipe's threads) come first
     except (AttributeError, OSError):
