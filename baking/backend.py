@@ -11,13 +11,14 @@ texels it commits together.
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
@@ -37,7 +38,8 @@ from isolume.baking.passes import (
     level_scene,
     trace_texels,
 )
-from isolume.baking.plan import Plan, resolved_iso_range
+from isolume.baking.plan import Plan, index_type, resolved_iso_range
+from isolume.baking.plan_records import GROUPS_KEPT, PlanRecords
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.trace import Scene
@@ -78,7 +80,10 @@ class BakeJob:
     when the lights change: `Baker.relight`).
 
     Attributes:
-        tracing: the chunks' constants (`trace_texels` gives each chunk sums of its own).
+        plan: the plan (its records' arrays may be None: `records` holds them).
+        records: the plan's texel records (`baking.plan_records`), read a batch at a time.
+        tracing: the chunks' constants (`trace_texels` gives each chunk sums of its own;
+            its ids are those of the texels a step traces).
         stats: the bake's counters (a backend adds its rays, paths and scene seconds).
     """
 
@@ -86,6 +91,7 @@ class BakeJob:
     config: BakeConfig
     geometry: LatticeGeometry
     plan: Plan
+    records: PlanRecords
     tracing: Tracing
     stats: BakeStats
 
@@ -95,27 +101,51 @@ class PassWork:
     """What one pass traces (`Baker.pending`).
 
     Attributes:
-        done, remaining: (T,) paths done and still to trace per plan position (0 outside
-            the pass), uint16 where they fit (`bake._count_type`), else int32.
+        done, remaining: paths done and still to trace per plan position: (T,) arrays
+            (0 outside the pass), or 0-d arrays where they are the same for every texel
+            of the plan (a whole bake from scratch holds no per-texel counts); uint16
+            where they fit (`bake._count_type`), else int32.
         first, last: the first and last level the pass traces (`last` = the highest lower
             level + 1).
-        by_lower: for each level from `first` to `last`, the positions that need paths
-            (busy) whose lower level it is (sorted).
+        lower: (T,) the plan's lower levels (`Plan.lower`).
+        busy: (N,) sorted plan positions that need paths, or None: every plan position.
     """
 
     done: np.ndarray
     remaining: np.ndarray
     first: int
     last: int
-    by_lower: list[np.ndarray]
+    lower: np.ndarray
+    busy: np.ndarray | None
+    _groups: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def counts(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) paths done and (N,) paths to trace of the texels at plan `positions`."""
+        if self.done.ndim == 0:
+            return (np.full(len(positions), self.done, self.done.dtype),
+                    np.full(len(positions), self.remaining, self.remaining.dtype))
+        return self.done[positions], self.remaining[positions]
 
     def lower_on(self, level: int) -> np.ndarray:
-        """(N,) busy positions whose lower level is `level`."""
-        return self.by_lower[level - self.first]
+        """(N,) sorted busy positions whose lower level is `level`, found when first
+        asked (those of the last `GROUPS_KEPT` levels asked are kept: no pass holds its
+        texels grouped by level all along)."""
+        if level not in self._groups:
+            if self.busy is None:
+                group = np.flatnonzero(self.lower == level).astype(
+                    index_type(len(self.lower)), copy=False)
+            else:
+                group = self.busy[self.lower[self.busy] == level]
+            while len(self._groups) >= GROUPS_KEPT:
+                self._groups.pop(next(iter(self._groups)))
+            self._groups[level] = group
+        return self._groups[level]
 
     def upper_on(self, level: int) -> np.ndarray:
         """(N,) busy positions whose upper level is `level`: their pass ends with it."""
-        return self.by_lower[level - self.first - 1] if level > self.first else self.by_lower[0][:0]
+        if level > self.first:
+            return self.lower_on(level - 1)
+        return np.zeros(0, index_type(len(self.lower)))
 
 
 @dataclass(frozen=True)
@@ -214,12 +244,14 @@ class PassStep(NamedTuple):
 @dataclass(frozen=True)
 class _LevelWork:
     """A `PassStep` laid out: the pending paths of its batch of texels (at most
-    `TEXELS_PER_BATCH`) on its level, by texel, how the start points of their texels are
-    made, and the level's scene (None when it has no paths)."""
+    `TEXELS_PER_BATCH`) on its level, by texel (numbered as in ``step.texels``), how the
+    start points of their texels are made, what its chunks trace with (the batch's ids)
+    and the level's scene (None when it has no paths)."""
 
     step: PassStep
     paths: LevelPaths
     start: LevelStarts
+    tracing: Tracing
     scene: Scene | None
 
 
@@ -309,39 +341,47 @@ class ThreadBackend:
         was the last traced: 40 bytes a texel in irradiance) and the layouts of two steps.
 
         Pipelined within a level: the helper thread lays out the next step while the
-        workers trace this one (the chunks run without the GIL). The next level's scene
-        is built once this level's steps are traced, after this one is let go (its
-        surface and BVH are built on every core).
+        workers trace this one (the chunks run without the GIL), and a batch complete on
+        its upper level is committed (its facings, its means, a checkpoint) while the
+        workers trace the next step. The next level's scene is built once this level's
+        steps are traced, after this one is let go (its surface and BVH are built on
+        every core).
         """
-        steps = list(pass_steps(work, TEXELS_PER_BATCH))
-        if not steps:
+        steps = pass_steps(work, TEXELS_PER_BATCH)  # made as they come: no group held
+        step = next(steps, None)
+        if step is None:
             return
         channels = self.job.tracing.settings.channels
         chunks: list = []
         between = None  # the sums of the texels whose lower level was the last traced
+        traced: list = []  # a batch complete on its upper level, not yet committed
         try:
-            lay = self._waited(self._prepare_step, work, steps[0])
-            for following in [*steps[1:], None]:
+            lay = self._waited(self._prepare_step, work, step)
+            for following in itertools.chain(steps, [None]):
                 step = lay.step
                 same_level = following is not None and following.level == step.level
                 upcoming = (self._helper.submit(self._prepare_step, work, following)
                             if same_level else None)
                 if not step.upper and step.first == 0:  # this level's upper steps are done:
-                    between = None  # their group's sums go before the next group's are made
+                    _commit(traced, report)  # their group's sums go
+                    sums = between = None  # before the next group's are made
                     between = PassSums(len(work.lower_on(step.level)), channels)
                 sums = between.rows(slice(step.first, step.first + len(step.texels)))
                 chunks = self._submit_level(lay, sums)
+                _commit(traced, report)  # the batch before, while this one is traced
                 self._collect(chunks, step.level, report)
                 chunks = []
-                if step.upper and report.commit(step.texels, sums):
-                    report.show(step.level, refresh=True)
+                if step.upper:
+                    traced.append((step, sums))
                 if upcoming is not None:
                     lay = self._waited(upcoming.result)
                 elif following is not None:
                     lay = sums = None  # this level's scene goes before the next one's is built
                     lay = self._waited(self._prepare_step, work, following)
+            _commit(traced, report)
         except BaseException:
             _cancel(chunks)
+            _commit(traced, report)  # its paths are all traced: it is kept
             raise
 
     def record(self, meta: dict) -> None:
@@ -391,15 +431,17 @@ class ThreadBackend:
         upper-level samples if ``step.upper``, else their lower-level ones — sorted by
         texel, and get the level's scene if they have paths."""
         job = self.job
-        plan = job.plan
-        batch = step.texels
+        records = job.records.of(step.texels)
+        done, remaining = work.counts(step.texels)
+        batch = np.arange(len(step.texels), dtype=step.texels.dtype)  # into the records
         none = batch[:0]
         paths, start = lay_out_level(
-            job.volume, job.geometry, job.config, float(plan.levels[step.level]), plan.ids,
-            plan.phase, plan.weight, plan.high, none if step.upper else batch,
-            batch if step.upper else none, work.done, work.remaining, plan.landing)
+            job.volume, job.geometry, job.config, float(job.plan.levels[step.level]),
+            records.ids, records.phase, records.weight, records.high,
+            none if step.upper else batch, batch if step.upper else none, done, remaining,
+            records.landing)
         scene = self._scene(step.level) if len(paths.texels) else None
-        return _LevelWork(step, paths, start, scene)
+        return _LevelWork(step, paths, start, replace(job.tracing, ids=records.ids), scene)
 
     def _submit_level(self, lay: _LevelWork, sums: PassSums) -> list[Future]:
         """Queue the step's chunks of paths on its scene.
@@ -410,7 +452,7 @@ class ThreadBackend:
         """
         if len(lay.paths.texels) == 0:
             return []
-        return [self._pool.submit(_trace_into, sums, lay, self.job.tracing, lo, hi)
+        return [self._pool.submit(_trace_into, sums, lay, lo, hi)
                 for lo, hi in chunk_bounds(lay.paths.counts, self.workers)]
 
     def _collect(self, chunks: list[Future], level: int, report: PassReport) -> None:
@@ -431,14 +473,23 @@ class ThreadBackend:
             report.show(level)
 
 
-def _trace_into(sums: PassSums, lay: _LevelWork, tracing: Tracing, lo: int, hi: int
+def _trace_into(sums: PassSums, lay: _LevelWork, lo: int, hi: int
                 ) -> tuple[int, int, float]:
     """Trace the paths of the step's texels lo … hi − 1 (`trace_texels`) and add their
     sums to the batch's; returns the paths, the rays and the seconds tracing."""
-    part, paths, rays, seconds = trace_texels(lay.scene, tracing, lay.paths, lo, hi,
+    part, paths, rays, seconds = trace_texels(lay.scene, lay.tracing, lay.paths, lo, hi,
                                               lay.start)
-    sums.add(np.searchsorted(lay.step.texels, lay.paths.texels[lo:hi]), part)
+    sums.add(lay.paths.texels[lo:hi], part)
     return paths, rays, seconds
+
+
+def _commit(traced: list[tuple[PassStep, PassSums]], report: PassReport) -> None:
+    """Commit the batch in `traced` (`report.commit`), taken out first: a commit cut short
+    is not made again."""
+    while traced:
+        step, sums = traced.pop()
+        if report.commit(step.texels, sums):
+            report.show(step.level, refresh=True)
 
 
 def _cancel(chunks: list[Future]) -> None:

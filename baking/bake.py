@@ -11,7 +11,6 @@ where it stopped.
 
 from __future__ import annotations
 
-import itertools
 import math
 import os
 import sys
@@ -54,6 +53,7 @@ from isolume.baking.passes import (
 )
 from isolume.baking.plan import Plan, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
+from isolume.baking.plan_records import HeldRecords, PlanRecords, spill
 
 
 def tracing_lights(config: BakeConfig) -> TracingLights:
@@ -163,8 +163,10 @@ class Baker:
         packed: hold the lattice over the plan's texels only (a `PlanLattice`, whose
             memory follows the active texels); `lattice` is then not used, and `resume`
             (a lattice file opened, `open_lattice`: its texels not read) gives the samples
-            to extend. Such a Baker is never replanned, and its plan keeps no `rho` and
-            `target` (`Plan.traced_only`).
+            to extend. Such a Baker is never replanned, its plan keeps no `rho` and
+            `target` (`Plan.traced_only`), and its texel records are kept in a temporary
+            file in `records_dir` (`plan_records.spill`; the system's temporary
+            directory if None), read back a batch of texels at a time.
         workers, scene_cache: the `ThreadBackend`'s threads and level scenes kept alive,
             when no `backend` is given. The result does not depend on them.
         progress: `make_plan`'s stage callback.
@@ -176,8 +178,10 @@ class Baker:
                  lattice: Lattice | None = None, workers: int | None = None,
                  scene_cache: int = 1, progress=None,
                  backend: TracingBackend | None = None, packed: bool = False,
-                 resume: LatticeFile | None = None) -> None:
+                 resume: LatticeFile | None = None,
+                 records_dir: str | os.PathLike | None = None) -> None:
         self.backend = backend if backend is not None else ThreadBackend(workers, scene_cache)
+        self.records: PlanRecords | None = None
         try:
             self.volume, self.config = volume, config
             self.settings = path_settings(volume, config)
@@ -188,23 +192,24 @@ class Baker:
             self.backend.begin(volume, config, kept, self.stats)  # beside the plan
             self.plan = make_plan(volume, self.geometry, config, kept, progress,
                                   on_levels=self.backend.levels_known,
-                                  scenes=self.backend.plan_scene)
+                                  scenes=self.backend.plan_scene, traced_only=packed)
             if packed:  # never replanned: see `relight`
-                self.plan = self.plan.traced_only()
+                self.plan, self.records = spill(self.plan, records_dir)
                 self.lattice, self.rows = self._plan_lattice(resume), None
             else:
+                self.records = HeldRecords(self.plan)
                 self.lattice = lattice or _new_lattice(volume, config, self.geometry,
                                                        self.settings.channels)
                 self.lattice.active, self.rows = self.plan.active, self.plan.ids
             self.texels_done = int(np.count_nonzero(self.samples_done()))
             self.previous = dict(self.lattice.meta.get("stats", {}))
-            self.job = BakeJob(volume, config, self.geometry, self.plan, self._tracing(),
-                               self.stats)
+            self.job = BakeJob(volume, config, self.geometry, self.plan, self.records,
+                               self._tracing(), self.stats)
             self.backend.start(self.job)
         except BaseException:
-            self.backend.close()
+            self.close()
             raise
-        _finish_meta(self.lattice, self.plan, self.stats, self.previous)
+        self._finish_meta()
 
     def _plan_lattice(self, resume: LatticeFile | None) -> PlanLattice:
         """The lattice over the plan's texels, with `resume`'s samples of them."""
@@ -276,8 +281,8 @@ class Baker:
             traced = np.flatnonzero(sums.n > 0)
             complete = positions[traced]
             if len(complete):
-                commit_facing(self.lattice, self.volume, self.config, self.plan, complete,
-                              self.rows)
+                commit_facing(self.lattice, self.volume, self.config, self.plan,
+                              self.records, complete, self.rows)
             self.texels_done += commit_sums(self.lattice, rows_at(self.rows, positions),
                                             sums, traced)
             if len(complete) and after_commit is not None:
@@ -287,17 +292,25 @@ class Baker:
         try:
             self.backend.trace_pass(work, PassReport(commit, bar, self._status))
         finally:
-            _finish_meta(self.lattice, self.plan, self.stats, self.previous)
+            self._finish_meta()
             self.backend.record(self.lattice.meta)
 
     def pending(self, positions: np.ndarray | None,
                 target: int | np.ndarray | None) -> PassWork | None:
         """What `run(positions, target)` has to do, or None when nothing."""
         plan = self.plan
+        if len(plan.ids) == 0:
+            return None
+        target = self.config.samples if target is None else target
+        if positions is None and np.ndim(target) == 0:
+            held = self.lattice.samples.reshape(-1)
+            held = held if self.rows is None else held[self.rows]
+            if held.min() == held.max():  # every texel alike: no per-texel counts
+                return self._alike(int(held[0]), int(target))
+            del held
         index = index_type(len(plan.ids))
         positions = (np.arange(len(plan.ids), dtype=index) if positions is None
                      else np.unique(positions).astype(index))
-        target = self.config.samples if target is None else target
         had = self.samples_done(positions)
         wanted = np.maximum(np.asarray(target) - had, 0)
         count = _count_type(int((had + wanted).max(initial=0)))
@@ -308,13 +321,31 @@ class Baker:
         del had, wanted
         if len(busy) == 0:
             return None
-        first, last = int(plan.lower[busy].min()), int(plan.lower[busy].max()) + 1
-        by_lower = _group_by(plan.lower[busy], busy, first, last)
-        return PassWork(done, remaining, first, last, by_lower)
+        lower = plan.lower[busy]
+        return PassWork(done, remaining, int(lower.min()), int(lower.max()) + 1, plan.lower,
+                        busy)
+
+    def _alike(self, done: int, target: int) -> PassWork | None:
+        """The pass that brings every texel of the plan from `done` paths to `target`."""
+        wanted = max(target - done, 0)
+        if wanted == 0:
+            return None
+        count = _count_type(done + wanted)
+        lower = self.plan.lower
+        return PassWork(np.array(done, count), np.array(wanted, count), int(lower.min()),
+                        int(lower.max()) + 1, lower, None)
 
     def close(self) -> None:
-        """Close the backend (its threads, its cluster connection, its scenes)."""
+        """Close the backend (its threads, its cluster connection, its scenes) and let go
+        of the plan's records."""
         self.backend.close()
+        if self.records is not None:
+            self.records.close()
+
+    def _finish_meta(self) -> None:
+        """The lattice metadata of what the bake did (`_finish_meta`)."""
+        _finish_meta(self.lattice, self.plan, self.records.high_texels, self.stats,
+                     self.previous)
 
     def _status(self, level: int, note: str = "") -> str:
         """The progress bar's texels done, level, a backend's `note` and the ray rate."""
@@ -329,13 +360,6 @@ def _count_type(most: int) -> type:
     none exceeds `most`: uint16 (2 bytes a texel; samples stop at `BakeConfig.max_samples`,
     4096 by default), else int32."""
     return np.uint16 if most <= np.iinfo(np.uint16).max else np.int32
-
-
-def _group_by(keys: np.ndarray, values: np.ndarray, first: int, last: int) -> list:
-    """[values with key k for k in first..last]: one stable sort instead of a scan per k."""
-    order = np.argsort(keys, kind="stable")
-    bounds = np.searchsorted(keys[order], np.arange(first, last + 2))
-    return [values[order[lo:hi]] for lo, hi in itertools.pairwise(bounds)]
 
 
 @dataclass(frozen=True)
@@ -400,7 +424,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
 
         backend = ClusterBackend(scheduler)
     baker = Baker(volume, config, workers=workers, backend=backend,
-                  progress=_plan_progress if progress else None, packed=True, resume=resume)
+                  progress=_plan_progress if progress else None, packed=True, resume=resume,
+                  records_dir=out.parent if out is not None else None)
     pending = int(np.maximum(config.samples - baker.samples_done(), 0).sum())
     if outlook is not None:
         threads = 0 if scheduler is not None else (workers or os.cpu_count() or 1)
@@ -452,8 +477,10 @@ def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
         baker.run(todo, target, bar=bar, after_commit=checkpoint)
 
 
-def _finish_meta(lattice: Lattice, plan: Plan, stats: BakeStats, previous: dict) -> None:
-    """Record what the bake did (adding to the counts of earlier runs on the same file)."""
+def _finish_meta(lattice: Lattice, plan: Plan, high_texels: int, stats: BakeStats,
+                 previous: dict) -> None:
+    """Record what the bake did (adding to the counts of earlier runs on the same file);
+    `high_texels`: the plan's texels lit on the high-value side."""
     lattice.meta["rays_traced"] = int(previous.get("rays_traced", 0)) + stats.rays
     lattice.meta["trace_seconds"] = float(previous.get("trace_seconds", 0.0)) + stats.trace_seconds
     wall = time.perf_counter() - stats.started
@@ -467,7 +494,7 @@ def _finish_meta(lattice: Lattice, plan: Plan, stats: BakeStats, previous: dict)
     lattice.meta["plan"] = {
         "active_texels": len(plan.ids),
         "unreachable_texels": plan.unreachable,
-        "high_side_texels": int(np.count_nonzero(plan.high)),
+        "high_side_texels": high_texels,
         "total_texels": int(math.prod(lattice.geometry.shape)),
         "levels": [float(v) for v in plan.levels],
         "iso_range": [float(v) for v in plan.iso_range],

@@ -60,6 +60,9 @@ from isolume.baking.passes import (
 
 PATHS_PER_TASK = 65536
 """Expected paths per task: ~0.1–0.3 s of tracing, against ~2 ms of Dask overhead."""
+RECORDS_AT_ONCE = 1 << 20
+"""Texels whose plan records the master reads together to size a level's tasks (25 MB
+where a bake keeps them in a file: `baking.plan_records`)."""
 LOCAL_PREFIX = "local:"
 CONNECT_TIMEOUT_S = 20.0
 TASK_TRIES = 3
@@ -178,17 +181,17 @@ class _Partial:
 
 class _LevelSums:
     """The master's pass sums of the texels in flight, by lower level: the texels whose
-    lower level is l (the sorted plan positions ``by_lower[l - first]``, `PassWork`) sum
+    lower level is l (the sorted plan positions ``work.lower_on(l)``, `PassWork`) sum
     their paths from their first on level l until they are committed with level l + 1, so
     at most the texels of the levels in flight hold sums, not every texel of the plan.
 
     Args:
-        channels: values per texel; first: the pass's first level; by_lower: (N_l,)
-            sorted plan positions per level from `first` on.
+        channels: values per texel; work: the pass (its busy texels by lower level,
+            `PassWork.lower_on`).
     """
 
-    def __init__(self, channels: int, first: int, by_lower: list[np.ndarray]) -> None:
-        self.channels, self.first, self.by_lower = channels, first, by_lower
+    def __init__(self, channels: int, work: PassWork) -> None:
+        self.channels, self.work = channels, work
         self._groups: dict[int, PassSums] = {}
 
     def add(self, level: int, positions: np.ndarray, upper: np.ndarray,
@@ -198,17 +201,17 @@ class _LevelSums:
         their running sums."""
         for lower, these in ((level, ~upper), (level - 1, upper)):
             if these.any():
+                group = self.work.lower_on(lower)
                 if lower not in self._groups:
-                    self._groups[lower] = PassSums(len(self.by_lower[lower - self.first]),
-                                                   self.channels)
-                slots = np.searchsorted(self.by_lower[lower - self.first], positions[these])
+                    self._groups[lower] = PassSums(len(group), self.channels)
+                slots = np.searchsorted(group, positions[these])
                 self._groups[lower].add(slots, sums.rows(these))
 
     def pop(self, lower: int) -> tuple[np.ndarray, PassSums] | None:
         """The (N,) plan positions of the texels whose lower level is `lower` and their
         sums (None when none of them has paths in the pass), let go of here."""
         group = self._groups.pop(lower, None)
-        return None if group is None else (self.by_lower[lower - self.first], group)
+        return None if group is None else (self.work.lower_on(lower), group)
 
 
 # -- worker side ---------------------------------------------------------------------------
@@ -496,7 +499,7 @@ class ClusterBackend:
 
         self._passes += 1  # task keys must not repeat an earlier pass's (Dask reuses results)
         levels: dict[int, _Level] = {}
-        sums = _LevelSums(self.job.tracing.settings.channels, work.first, work.by_lower)
+        sums = _LevelSums(self.job.tracing.settings.channels, work)
         owner: dict = {}  # future -> its _Task
         stream = as_completed()
         next_submit, next_apply = work.first, work.first
@@ -567,22 +570,26 @@ class ClusterBackend:
                             stream) -> _Level:
         """Queue the tasks of `level`: the lower-level samples of the texels whose lower
         level it is, the upper-level samples of those whose lower level is below it."""
-        plan = self.job.plan
         here = work.lower_on(level)
         texels = np.concatenate([here, work.upper_on(level)])
         order = np.argsort(texels, kind="stable")
         texels = texels[order]
         upper = (np.arange(len(order)) >= len(here))[order]
-        w = plan.weight[texels]
-        expected = work.remaining[texels] * np.where(upper, w, 1.0 - w)
+        expected = np.empty(len(texels))
+        for lo in range(0, len(texels), RECORDS_AT_ONCE):  # the records, a batch at a time
+            part = slice(lo, lo + RECORDS_AT_ONCE)
+            w = self.job.records.of(texels[part]).weight
+            expected[part] = work.counts(texels[part])[1] * np.where(upper[part], w, 1.0 - w)
         workers = self._workers()
         prefer = [workers[level % len(workers)]] if workers else None
         slices, uppers = [], []
         for index, (lo, hi) in enumerate(task_groups(texels, expected, PATHS_PER_TASK)):
             part = texels[lo:hi]
-            args = (plan.ids[part].astype(np.int64), plan.phase[part], plan.weight[part],
-                    plan.high[part], work.done[part].astype(np.int64),
-                    work.remaining[part].astype(np.int64), upper[lo:hi])
+            records = self.job.records.of(part)
+            done, remaining = work.counts(part)
+            args = (records.ids.astype(np.int64), records.phase, records.weight,
+                    records.high, done.astype(np.int64), remaining.astype(np.int64),
+                    upper[lo:hi])
             self._submit_task(_Task(level, index, args, 0, prefer), owner, stream)
             slices.append(part)
             uppers.append(upper[lo:hi])

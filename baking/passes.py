@@ -45,6 +45,7 @@ from isolume.baking.rays import RayStats
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.plan_lattice import PlanLattice
+    from isolume.baking.plan_records import PlanRecords, TexelRecords
     from isolume.baking.trace import Scene
 
 PATHS_PER_CHUNK = 16384
@@ -101,21 +102,19 @@ def commit_sums(lattice: Lattice | PlanLattice, ids: np.ndarray, acc: PassSums,
 
 
 def landing_facing(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
-                   plan: Plan, positions: np.ndarray) -> np.ndarray:
-    """(P, 2) uint8 facings (`baking.octahedral`) of the texels at the (P,) plan
-    `positions`: the mean of their start normals on their two levels (`start_points`'
-    normals at `Plan.landing`), weighted like their samples (1 − weight, weight); unknown
-    where that mean vanishes."""
-    positions = np.asarray(positions, np.int64)
-    share = np.stack([1 - plan.weight[positions], plan.weight[positions]], axis=1)
-    mean = np.zeros((len(positions), 3))
+                   reach: float, records: TexelRecords) -> np.ndarray:
+    """(P, 2) uint8 facings (`baking.octahedral`) of P texels (their plan `records`): the
+    mean of their start normals on their two levels (`start_points`' normals at
+    `Plan.landing`, kept in steps of `reach`), weighted like their samples (1 − weight,
+    weight); unknown where that mean vanishes."""
+    share = np.stack([1 - records.weight, records.weight], axis=1)
+    mean = np.zeros((len(records.ids), 3))
     for side in (0, 1):
         used = share[:, side] > 0
         if used.any():
-            at = positions[used]
-            points = landed_points(plan.landing[at, side], geometry.centres(plan.ids[at]),
-                                   plan.reach)
-            normals = lit_normals(volume, config, points, plan.high[at])
+            points = landed_points(records.landing[used, side],
+                                   geometry.centres(records.ids[used]), reach)
+            normals = lit_normals(volume, config, points, records.high[used])
             mean[used] += share[used, side, None] * normals
     return octahedral.encode(mean)
 
@@ -130,21 +129,21 @@ def lit_normals(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
 
 
 def commit_facing(lattice: Lattice | PlanLattice, volume: volumes.Volume,
-                  config: BakeConfig, plan: Plan, positions: np.ndarray,
-                  rows: np.ndarray | None) -> None:
+                  config: BakeConfig, plan: Plan, records: PlanRecords,
+                  positions: np.ndarray, rows: np.ndarray | None) -> None:
     """Set the facings (`landing_facing`) of the texels at plan `positions` about to be
-    committed that have none yet, or no samples yet (a texel reset by another plan);
-    `rows`: the (T,) rows of the plan's texels in the lattice's flattened arrays (a
-    `Lattice`: the plan's ids), None where they are the plan positions (a `PlanLattice`).
-    `FACING_BLOCK` texels at a time."""
+    committed that have none yet, or no samples yet (a texel reset by another plan),
+    from the plan's `records`; `rows`: the (T,) rows of the plan's texels in the
+    lattice's flattened arrays (a `Lattice`: the plan's ids), None where they are the
+    plan positions (a `PlanLattice`). `FACING_BLOCK` texels at a time."""
     flat = rows_at(rows, positions)
     codes = lattice.facing.reshape(-1, 2)
     todo = np.flatnonzero(~octahedral.known(codes[flat])
                           | (lattice.samples.reshape(-1)[flat] == 0))
     for lo in range(0, len(todo), FACING_BLOCK):
         block = todo[lo:lo + FACING_BLOCK]
-        codes[flat[block]] = landing_facing(volume, lattice.geometry, config, plan,
-                                            positions[block])
+        codes[flat[block]] = landing_facing(volume, lattice.geometry, config, plan.reach,
+                                            records.of(positions[block]))
 
 
 FACING_BLOCK = 1 << 17

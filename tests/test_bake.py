@@ -434,23 +434,38 @@ def test_target_error_spends_samples_where_they_are_needed():
 
 
 def test_a_pass_counts_its_samples_in_two_bytes_where_they_fit():
-    """`Baker.pending` keeps the samples done and to do of every plan position in uint16
-    while done + to do fits (the counts of a 512³ CT's 41 M texels: 165 MB, not 330) and
-    in int32 past that, with the same counts and busy texels either way."""
+    """`Baker.pending` keeps no per-texel counts where every texel of the plan has the
+    same samples done and to do (a whole bake from scratch), else the samples done and to
+    do of every plan position in uint16 while done + to do fits (the counts of a 512³
+    CT's 41 M texels: 165 MB, not 330) and in int32 past that, with the same counts and
+    busy texels either way; the busy texels are grouped by lower level when asked."""
     from isolume.baking.bake import Baker
 
     baker = Baker(make("sphere", 12), BakeConfig(samples=3, bounces=0), workers=1)
     try:
-        small = baker.pending(None, None)
         count = len(baker.plan.ids)
+        alike = baker.pending(None, None)
+        assert alike.done.shape == () and alike.busy is None
+        done, remaining = alike.counts(np.arange(count))
+        assert done.dtype == np.uint16 and remaining.dtype == np.uint16
+        assert (done == 0).all() and (remaining == 3).all()
+        small = baker.pending(np.arange(count), 3)
         assert small.done.dtype == np.uint16 and small.remaining.dtype == np.uint16
         assert (small.done == 0).all() and (small.remaining == 3).all()
+        levels = range(alike.first, alike.last + 1)
+        for work in (alike, small):
+            grouped = np.concatenate([work.lower_on(level) for level in levels])
+            np.testing.assert_array_equal(np.sort(grouped), np.arange(count))
+            for level in levels:
+                assert (baker.plan.lower[work.lower_on(level)] == level).all()
         positions = np.arange(0, count, 2)
         wide = baker.pending(positions, np.full(len(positions), 70_000))
         assert wide.done.dtype == np.int32 and wide.remaining.dtype == np.int32
         np.testing.assert_array_equal(np.flatnonzero(wide.remaining), positions)
         assert (wide.remaining[positions] == 70_000).all()
-        busy = np.concatenate(wide.by_lower)
+        np.testing.assert_array_equal(wide.busy, positions)
+        busy = np.concatenate([wide.lower_on(level)
+                               for level in range(wide.first, wide.last + 1)])
         np.testing.assert_array_equal(np.sort(busy), positions)
     finally:
         baker.close()

@@ -367,7 +367,8 @@ def test_newton_steps_reuse_a_cells_gradients_to_the_bit():
 def test_a_bakes_plan_keeps_a_byte_for_the_level_and_no_box_mask():
     """What a bake holds per texel: the lower level's index in the smallest type that holds
     every level (uint8 up to 256 levels), and a traced plan (`Plan.traced_only`) without
-    the replanning arrays or the box's mask — the Baker of `bake()` holds that one."""
+    the replanning arrays or the box's mask — the Baker of `bake()` holds that one, and
+    makes it without them."""
     from isolume.baking.bake import Baker
 
     vol = make("engine", 32)
@@ -378,6 +379,11 @@ def test_a_bakes_plan_keeps_a_byte_for_the_level_and_no_box_mask():
     np.testing.assert_array_equal(traced.ids, np.flatnonzero(plan.active))
     many, _ = _plan(vol, samples=4, bounces=0, max_move=0.001, max_levels=300)
     assert len(many.levels) > 256 and many.lower.dtype == np.uint16
+    made = make_plan(vol, LatticeGeometry.for_volume(vol, config.scale), config,
+                     traced_only=True)  # let go of them while it is made: the same plan
+    for field in dataclasses.fields(made):
+        np.testing.assert_equal(getattr(made, field.name), getattr(traced, field.name),
+                                err_msg=field.name)
     baker = Baker(vol, config, workers=1, packed=True)
     try:
         assert baker.plan.active is None and baker.plan.rho is None

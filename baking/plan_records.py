@@ -1,0 +1,198 @@
+"""What tracing reads of a plan's texels, held in memory or kept in a file.
+
+To trace a texel on a level, a bake reads its flat id, its level phase and upper weight,
+its lit side and where it lands on its levels (`baking.plan.Plan`): 29 bytes a texel,
+1.1 GiB for the 41 M active texels of a 512³ CT, of which a pass uses a million at a time
+(`baking.backend.pass_steps`: one level at a time, a batch of texels at a time).
+`HeldRecords` reads them from the plan's arrays. `SpilledRecords` keeps all but the ids
+(25 bytes a texel) in an unnamed temporary file, grouped by lower level, and reads a
+batch's back when it is laid out or committed — through the page cache, which the system
+can let go of, not the process's own memory. Both give the same records, so a bake's
+lattice is the same bits whichever holds them.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from isolume.baking.errors import BakeError
+from isolume.baking.plan import Plan, index_type
+
+RECORD = np.dtype([("phase", "<u4"), ("weight", "<f8"), ("high", "?"),
+                   ("landing", "<i2", (2, 3))])
+"""One texel's record in a `SpilledRecords` file, packed: 25 bytes."""
+READ_ROWS = 1 << 20
+"""Records read from the file at a time (25 MB): what bounds a read of texels spread
+over a group."""
+GROUPS_KEPT = 2
+"""Lower levels whose texel positions `SpilledRecords` keeps found (those of the level a
+pass traces and the one below it)."""
+
+
+@dataclass(frozen=True)
+class TexelRecords:
+    """The plan's records of (N,) texels.
+
+    Attributes:
+        ids: (N,) flat lattice ids; phase: (N,) uint32; weight: (N,) float64; high: (N,)
+            bool; landing: (N, 2, 3) int16 — as `baking.plan.Plan`'s at those texels.
+    """
+
+    ids: np.ndarray
+    phase: np.ndarray
+    weight: np.ndarray
+    high: np.ndarray
+    landing: np.ndarray
+
+
+class PlanRecords(Protocol):
+    """Where a bake reads its plan's records from.
+
+    Attributes:
+        high_texels: how many texels are lit on the high-value side (`Plan.high`).
+    """
+
+    high_texels: int
+
+    def of(self, positions: np.ndarray) -> TexelRecords:
+        """The records of the texels at (N,) plan `positions`, in that order."""
+
+    def close(self) -> None:
+        """Let go of what holds the records."""
+
+
+class HeldRecords:
+    """The records of a plan that holds its arrays (`Plan.phase`, …): read from them."""
+
+    def __init__(self, plan: Plan) -> None:
+        self.plan = plan
+        self.high_texels = int(np.count_nonzero(plan.high))
+
+    def of(self, positions: np.ndarray) -> TexelRecords:
+        plan = self.plan
+        return TexelRecords(plan.ids[positions], plan.phase[positions],
+                            plan.weight[positions], plan.high[positions],
+                            plan.landing[positions])
+
+    def close(self) -> None:
+        """Nothing: the plan holds them."""
+
+
+class SpilledRecords:
+    """A plan's records in an unnamed temporary file (gone when closed, or when the
+    process ends), grouped by lower level, each group in plan order: the texels of a
+    batch of one group (`baking.backend.pass_steps`) are one run of the file.
+
+    Args:
+        plan: the plan whose records to keep; its arrays stay as they are (the caller
+            lets go of them: `spill`).
+        directory: where to make the file (the system's temporary directory if None).
+
+    Raises:
+        BakeError: the file cannot be made or written (e.g. the disk is full).
+    """
+
+    def __init__(self, plan: Plan, directory: str | os.PathLike | None = None) -> None:
+        self.ids, self.lower = plan.ids, plan.lower
+        self.high_texels = int(np.count_nonzero(plan.high))
+        counts = np.bincount(plan.lower, minlength=len(plan.levels))
+        self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._groups: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+        where = directory if directory is not None else tempfile.gettempdir()
+        try:
+            self._file = tempfile.TemporaryFile(dir=where)
+            try:
+                self._write(plan, len(counts))
+            except BaseException:
+                self._file.close()
+                raise
+        except OSError as error:
+            raise BakeError(f"{where}: cannot keep the plan's texel records "
+                            f"({len(plan.ids) * RECORD.itemsize / 2**20:.0f} MiB) in a "
+                            f"temporary file there: {error}") from error
+
+    def _write(self, plan: Plan, levels: int) -> None:
+        """The records of every group in turn, `READ_ROWS` at a time."""
+        for level in range(levels):
+            members = self._group(level)
+            for lo in range(0, len(members), READ_ROWS):
+                at = members[lo:lo + READ_ROWS]
+                block = np.empty(len(at), RECORD)
+                for name in RECORD.names:
+                    block[name] = getattr(plan, name)[at]
+                self._file.write(block.tobytes())
+        self._file.flush()
+
+    def of(self, positions: np.ndarray) -> TexelRecords:
+        positions = np.asarray(positions)
+        records = np.empty(len(positions), RECORD)
+        lower = self.lower[positions]
+        for level in np.unique(lower):
+            these = lower == level
+            ranks = np.searchsorted(self._group(int(level)), positions[these])
+            records[these] = self._read(self._starts[level] + ranks)
+        return TexelRecords(self.ids[positions],
+                            *(np.ascontiguousarray(records[name]) for name in RECORD.names))
+
+    def close(self) -> None:
+        self._file.close()
+
+    def _group(self, level: int) -> np.ndarray:
+        """(N,) sorted plan positions of the texels whose lower level is `level` (kept
+        for the last `GROUPS_KEPT` levels asked)."""
+        with self._lock:
+            if level in self._groups:
+                self._groups.move_to_end(level)
+                return self._groups[level]
+        members = np.flatnonzero(self.lower == level).astype(index_type(len(self.lower)),
+                                                             copy=False)
+        with self._lock:
+            self._groups[level] = members
+            while len(self._groups) > GROUPS_KEPT:
+                self._groups.popitem(last=False)
+        return members
+
+    def _read(self, rows: np.ndarray) -> np.ndarray:
+        """(N,) records at file `rows` (in any order), read `READ_ROWS` at a time."""
+        order = np.argsort(rows, kind="stable")
+        wanted = rows[order]
+        out = np.empty(len(rows), RECORD)
+        lo = 0
+        while lo < len(wanted):
+            first = int(wanted[lo])
+            hi = int(np.searchsorted(wanted, first + READ_ROWS))
+            span = int(wanted[hi - 1]) - first + 1
+            block = np.frombuffer(self._pread(span * RECORD.itemsize,
+                                              first * RECORD.itemsize), RECORD)
+            out[order[lo:hi]] = block[wanted[lo:hi] - first]
+            lo = hi
+        return out
+
+    def _pread(self, size: int, offset: int) -> bytes:
+        """`size` bytes of the file from `offset` (safe beside another thread's reads)."""
+        parts = []
+        while size > 0:
+            part = os.pread(self._file.fileno(), size, offset)
+            if not part:
+                raise BakeError(f"the plan's temporary file ended {size} bytes early")
+            parts.append(part)
+            size -= len(part)
+            offset += len(part)
+        return b"".join(parts) if len(parts) > 1 else parts[0]
+
+
+def spill(plan: Plan, directory: str | os.PathLike | Path | None = None
+          ) -> tuple[Plan, SpilledRecords]:
+    """`plan` without its records' arrays (phase, weight, high, landing: 25 bytes a texel)
+    and the `SpilledRecords` that keep them."""
+    records = SpilledRecords(plan, directory)
+    return replace(plan, phase=None, weight=None, high=None, landing=None), records
