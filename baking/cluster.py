@@ -181,9 +181,10 @@ class _Partial:
 
 class _LevelSums:
     """The master's pass sums of the texels in flight, by lower level: the texels whose
-    lower level is l (the sorted plan positions ``work.lower_on(l)``, `PassWork`) sum
-    their paths from their first on level l until they are committed with level l + 1, so
-    at most the texels of the levels in flight hold sums, not every texel of the plan.
+    lower level is l (the sorted plan positions ``work.lower_on(l)``, `PassWork`, kept
+    with their sums) sum their paths from their first on level l until they are committed
+    with level l + 1, so at most the texels of the levels in flight hold sums, not every
+    texel of the plan.
 
     Args:
         channels: values per texel; work: the pass (its busy texels by lower level,
@@ -192,7 +193,7 @@ class _LevelSums:
 
     def __init__(self, channels: int, work: PassWork) -> None:
         self.channels, self.work = channels, work
-        self._groups: dict[int, PassSums] = {}
+        self._groups: dict[int, tuple[np.ndarray, PassSums]] = {}
 
     def add(self, level: int, positions: np.ndarray, upper: np.ndarray,
             sums: PassSums) -> None:
@@ -201,17 +202,16 @@ class _LevelSums:
         their running sums."""
         for lower, these in ((level, ~upper), (level - 1, upper)):
             if these.any():
-                group = self.work.lower_on(lower)
                 if lower not in self._groups:
-                    self._groups[lower] = PassSums(len(group), self.channels)
-                slots = np.searchsorted(group, positions[these])
-                self._groups[lower].add(slots, sums.rows(these))
+                    group = self.work.lower_on(lower)
+                    self._groups[lower] = group, PassSums(len(group), self.channels)
+                group, held = self._groups[lower]
+                held.add(np.searchsorted(group, positions[these]), sums.rows(these))
 
     def pop(self, lower: int) -> tuple[np.ndarray, PassSums] | None:
         """The (N,) plan positions of the texels whose lower level is `lower` and their
         sums (None when none of them has paths in the pass), let go of here."""
-        group = self._groups.pop(lower, None)
-        return None if group is None else (self.work.lower_on(lower), group)
+        return self._groups.pop(lower, None)
 
 
 # -- worker side ---------------------------------------------------------------------------
