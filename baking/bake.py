@@ -403,7 +403,9 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
         workers: threads tracing concurrently (default: CPU count). The result does not
             depend on it.
         progress: show a progress bar (texels, rays per second) on stderr.
-        checkpoint_seconds: save finished texels to `out` at least this often.
+        checkpoint_seconds: save finished texels to `out` once this long has passed
+            since the last save, or later where saving would take more than
+            `SAVE_SHARE` of the time (`Checkpoints`).
         scheduler: trace on a Dask cluster instead of local threads (``tcp://HOST:PORT``
             or ``local:N``; `baking.cluster`): the same lattice to the bit.
         outlook: told what the bake is about to trace (`BakeOutlook`) once the plan is
@@ -431,13 +433,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
         threads = 0 if scheduler is not None else (workers or os.cpu_count() or 1)
         outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), pending, threads))
     bar = _progress(pending, progress)
-    held, last_save = baker.lattice, [time.perf_counter()]
-
-    def checkpoint(_committed: np.ndarray) -> None:
-        if out is not None and time.perf_counter() - last_save[0] > checkpoint_seconds:
-            held.save(out)
-            last_save[0] = time.perf_counter()
-
+    held = baker.lattice
+    checkpoint = Checkpoints(held, out, checkpoint_seconds)
     try:
         baker.run(bar=bar, after_commit=checkpoint)
         if config.target_error is not None:
@@ -453,6 +450,33 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
         held.save(out)
     del baker  # its plan goes before the lattice is made dense
     return held.dense() if dense else held
+
+
+SAVE_SHARE = 0.05
+"""The most of a bake's time its checkpoints take (`Checkpoints`)."""
+
+
+class Checkpoints:
+    """A bake's saves of its lattice to `out` as texels are committed (an ``after_commit``
+    of `Baker.run`): at least `seconds` apart, and apart by at least 1 / `SAVE_SHARE`
+    times the last save's duration, so that saving a large lattice takes at most 5 % of
+    the bake (the 512³ foot's file takes ~20 s to write: a save every ~7 min, not every
+    minute); none when `out` is None."""
+
+    def __init__(self, lattice: Lattice | PlanLattice, out: Path | None,
+                 seconds: float) -> None:
+        self.lattice, self.out, self.seconds = lattice, out, seconds
+        self.due = time.perf_counter() + seconds
+        self.saves = 0
+
+    def __call__(self, _committed: np.ndarray) -> None:
+        began = time.perf_counter()
+        if self.out is None or began < self.due:
+            return
+        self.lattice.save(self.out)
+        self.saves += 1
+        ended = time.perf_counter()
+        self.due = ended + max(self.seconds, (ended - began) / SAVE_SHARE)
 
 
 def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:

@@ -274,6 +274,30 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert again.meta["rays_traced"] == whole.meta["rays_traced"]
 
 
+def test_checkpoints_take_at_most_a_share_of_the_bake(monkeypatch, tmp_path):
+    """`Checkpoints` saves once `seconds` have passed, then waits 1 / `SAVE_SHARE` times
+    as long as a save took when that is longer (a clock the saves move by 10 s)."""
+    import types
+
+    bake_module = importlib.import_module("isolume.baking.bake")  # `baking.bake`: the function
+    clock = [0.0]
+    monkeypatch.setattr(bake_module, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
+
+    class Slow:
+        def save(self, path):
+            clock[0] += 10.0
+
+    saves = bake_module.Checkpoints(Slow(), tmp_path / "l.npz", 60.0)
+    wait = 10 / bake_module.SAVE_SHARE  # after the first save, which ends at 71 s
+    for now, count in ((59.0, 0), (61.0, 1), (200.0, 1), (70 + wait, 1), (72 + wait, 2)):
+        clock[0] = now
+        saves(np.zeros(0))
+        assert saves.saves == count, now
+    fast = bake_module.Checkpoints(Slow(), None, 0.0)
+    fast(np.zeros(0))
+    assert fast.saves == 0  # no file: no saves
+
+
 def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypatch):
     from isolume.baking.backend import ThreadBackend
 
