@@ -39,7 +39,7 @@ from isolume.baking.passes import (
     trace_texels,
 )
 from isolume.baking.plan import Plan, index_type, resolved_iso_range
-from isolume.baking.plan_records import GROUPS_KEPT, PlanRecords
+from isolume.baking.plan_records import LevelGroups, PlanRecords
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.trace import Scene
@@ -107,17 +107,20 @@ class PassWork:
             where they fit (`bake._count_type`), else int32.
         first, last: the first and last level the pass traces (`last` = the highest lower
             level + 1).
-        lower: (T,) the plan's lower levels (`Plan.lower`).
-        busy: (N,) sorted plan positions that need paths, or None: every plan position.
+        groups: the busy texels, those that need paths, by lower level (`LevelGroups`:
+            of every plan position in a pass over all, the bake's shared one).
     """
 
     done: np.ndarray
     remaining: np.ndarray
     first: int
     last: int
-    lower: np.ndarray
-    busy: np.ndarray | None
-    _groups: dict = field(default_factory=dict, compare=False, repr=False)
+    groups: LevelGroups
+
+    @property
+    def busy(self) -> np.ndarray | None:
+        """(N,) sorted plan positions that need paths, or None: every plan position."""
+        return self.groups.members
 
     def counts(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N,) paths done and (N,) paths to trace of the texels at plan `positions`."""
@@ -127,25 +130,14 @@ class PassWork:
         return self.done[positions], self.remaining[positions]
 
     def lower_on(self, level: int) -> np.ndarray:
-        """(N,) sorted busy positions whose lower level is `level`, found when first
-        asked (those of the last `GROUPS_KEPT` levels asked are kept: no pass holds its
-        texels grouped by level all along)."""
-        if level not in self._groups:
-            if self.busy is None:
-                group = np.flatnonzero(self.lower == level).astype(
-                    index_type(len(self.lower)), copy=False)
-            else:
-                group = self.busy[self.lower[self.busy] == level]
-            while len(self._groups) >= GROUPS_KEPT:
-                self._groups.pop(next(iter(self._groups)))
-            self._groups[level] = group
-        return self._groups[level]
+        """(N,) sorted busy positions whose lower level is `level` (`LevelGroups.of`)."""
+        return self.groups.of(level)
 
     def upper_on(self, level: int) -> np.ndarray:
         """(N,) busy positions whose upper level is `level`: their pass ends with it."""
         if level > self.first:
             return self.lower_on(level - 1)
-        return np.zeros(0, index_type(len(self.lower)))
+        return np.zeros(0, index_type(len(self.groups.lower)))
 
 
 @dataclass(frozen=True)

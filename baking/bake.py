@@ -53,7 +53,7 @@ from isolume.baking.passes import (
 )
 from isolume.baking.plan import Plan, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
-from isolume.baking.plan_records import HeldRecords, PlanRecords, spill
+from isolume.baking.plan_records import HeldRecords, LevelGroups, PlanRecords, spill
 
 
 def tracing_lights(config: BakeConfig) -> TracingLights:
@@ -193,8 +193,9 @@ class Baker:
             self.plan = make_plan(volume, self.geometry, config, kept, progress,
                                   on_levels=self.backend.levels_known,
                                   scenes=self.backend.plan_scene, traced_only=packed)
+            self.groups = LevelGroups(self.plan.lower)  # every texel's, by lower level
             if packed:  # never replanned: see `relight`
-                self.plan, self.records = spill(self.plan, records_dir)
+                self.plan, self.records = spill(self.plan, records_dir, self.groups)
                 self.lattice, self.rows = self._plan_lattice(resume), None
             else:
                 self.records = HeldRecords(self.plan)
@@ -322,8 +323,8 @@ class Baker:
         if len(busy) == 0:
             return None
         lower = plan.lower[busy]
-        return PassWork(done, remaining, int(lower.min()), int(lower.max()) + 1, plan.lower,
-                        busy)
+        return PassWork(done, remaining, int(lower.min()), int(lower.max()) + 1,
+                        LevelGroups(plan.lower, busy))
 
     def _alike(self, done: int, target: int) -> PassWork | None:
         """The pass that brings every texel of the plan from `done` paths to `target`."""
@@ -333,7 +334,7 @@ class Baker:
         count = _count_type(done + wanted)
         lower = self.plan.lower
         return PassWork(np.array(done, count), np.array(wanted, count), int(lower.min()),
-                        int(lower.max()) + 1, lower, None)
+                        int(lower.max()) + 1, self.groups)
 
     def close(self) -> None:
         """Close the backend (its threads, its cluster connection, its scenes) and let go
@@ -343,7 +344,7 @@ class Baker:
             self.records.close()
 
     def _finish_meta(self) -> None:
-        """The lattice metadata of what the bake did (`_finish_meta`)."""
+        """Record what the bake did in the lattice metadata (the module's `_finish_meta`)."""
         _finish_meta(self.lattice, self.plan, self.records.high_texels, self.stats,
                      self.previous)
 

@@ -33,7 +33,7 @@ READ_ROWS = 1 << 20
 """Records read from the file at a time (25 MB): what bounds a read of texels spread
 over a group."""
 GROUPS_KEPT = 2
-"""Lower levels whose texel positions `SpilledRecords` keeps found (those of the level a
+"""Lower levels whose texel positions `LevelGroups` keeps found (those of the level a
 pass traces and the one below it)."""
 
 
@@ -86,6 +86,42 @@ class HeldRecords:
         """Nothing: the plan holds them."""
 
 
+class LevelGroups:
+    """The sorted plan positions of some texels (`members`; None: every texel of the
+    plan) by lower level, found when a level is first asked for, the last `GROUPS_KEPT`
+    levels kept (no group of every level held all along). One is shared by a bake's
+    records file (`SpilledRecords`) and its passes over every texel
+    (`baking.backend.PassWork.lower_on`), so a level's are found once; safe to ask from
+    several threads.
+
+    Args:
+        lower: (T,) the plan's lower levels (`Plan.lower`).
+        members: (N,) sorted plan positions, or None.
+    """
+
+    def __init__(self, lower: np.ndarray, members: np.ndarray | None = None) -> None:
+        self.lower, self.members = lower, members
+        self._kept: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def of(self, level: int) -> np.ndarray:
+        """(N,) sorted positions of the members whose lower level is `level`."""
+        with self._lock:
+            if level in self._kept:
+                self._kept.move_to_end(level)
+                return self._kept[level]
+        if self.members is None:
+            found = np.flatnonzero(self.lower == level).astype(index_type(len(self.lower)),
+                                                               copy=False)
+        else:
+            found = self.members[self.lower[self.members] == level]
+        with self._lock:
+            self._kept[level] = found
+            while len(self._kept) > GROUPS_KEPT:
+                self._kept.popitem(last=False)
+        return found
+
+
 class SpilledRecords:
     """A plan's records in an unnamed temporary file (gone when closed, or when the
     process ends), grouped by lower level, each group in plan order: the texels of a
@@ -95,18 +131,20 @@ class SpilledRecords:
         plan: the plan whose records to keep; its arrays stay as they are (the caller
             lets go of them: `spill`).
         directory: where to make the file (the system's temporary directory if None).
+        groups: the plan's texels by lower level (`LevelGroups` of every texel), shared
+            with the bake's passes; made here if None.
 
     Raises:
         BakeError: the file cannot be made or written (e.g. the disk is full).
     """
 
-    def __init__(self, plan: Plan, directory: str | os.PathLike | None = None) -> None:
+    def __init__(self, plan: Plan, directory: str | os.PathLike | None = None,
+                 groups: LevelGroups | None = None) -> None:
         self.ids, self.lower = plan.ids, plan.lower
+        self.groups = groups if groups is not None else LevelGroups(plan.lower)
         self.high_texels = int(np.count_nonzero(plan.high))
         counts = np.bincount(plan.lower, minlength=len(plan.levels))
         self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._groups: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._lock = threading.Lock()
         where = directory if directory is not None else tempfile.gettempdir()
         try:
             self._file = tempfile.TemporaryFile(dir=where)
@@ -123,7 +161,7 @@ class SpilledRecords:
     def _write(self, plan: Plan, levels: int) -> None:
         """The records of every group in turn, `READ_ROWS` at a time."""
         for level in range(levels):
-            members = self._group(level)
+            members = self.groups.of(level)
             for lo in range(0, len(members), READ_ROWS):
                 at = members[lo:lo + READ_ROWS]
                 block = np.empty(len(at), RECORD)
@@ -138,28 +176,13 @@ class SpilledRecords:
         lower = self.lower[positions]
         for level in np.unique(lower):
             these = lower == level
-            ranks = np.searchsorted(self._group(int(level)), positions[these])
+            ranks = np.searchsorted(self.groups.of(int(level)), positions[these])
             records[these] = self._read(self._starts[level] + ranks)
         return TexelRecords(self.ids[positions],
                             *(np.ascontiguousarray(records[name]) for name in RECORD.names))
 
     def close(self) -> None:
         self._file.close()
-
-    def _group(self, level: int) -> np.ndarray:
-        """(N,) sorted plan positions of the texels whose lower level is `level` (kept
-        for the last `GROUPS_KEPT` levels asked)."""
-        with self._lock:
-            if level in self._groups:
-                self._groups.move_to_end(level)
-                return self._groups[level]
-        members = np.flatnonzero(self.lower == level).astype(index_type(len(self.lower)),
-                                                             copy=False)
-        with self._lock:
-            self._groups[level] = members
-            while len(self._groups) > GROUPS_KEPT:
-                self._groups.popitem(last=False)
-        return members
 
     def _read(self, rows: np.ndarray) -> np.ndarray:
         """(N,) records at file `rows` (in any order), read `READ_ROWS` at a time."""
@@ -190,9 +213,9 @@ class SpilledRecords:
         return b"".join(parts) if len(parts) > 1 else parts[0]
 
 
-def spill(plan: Plan, directory: str | os.PathLike | Path | None = None
-          ) -> tuple[Plan, SpilledRecords]:
+def spill(plan: Plan, directory: str | os.PathLike | Path | None = None,
+          groups: LevelGroups | None = None) -> tuple[Plan, SpilledRecords]:
     """`plan` without its records' arrays (phase, weight, high, landing: 25 bytes a texel)
-    and the `SpilledRecords` that keep them."""
-    records = SpilledRecords(plan, directory)
+    and the `SpilledRecords` that keep them (`groups` as there)."""
+    records = SpilledRecords(plan, directory, groups)
     return replace(plan, phase=None, weight=None, high=None, landing=None), records
