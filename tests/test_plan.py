@@ -331,6 +331,7 @@ def test_newton_steps_reuse_a_cells_gradients_to_the_bit():
     w, inverse = field._BSPLINE, 0.5 / np.asarray(vol.spacing, np.float64)
     origin, spacing = np.asarray(vol.origin, np.float64), np.asarray(vol.spacing, np.float64)
     value, g, corners = np.empty(1), np.empty(3), np.empty((8, 3), np.float32)
+    window = np.empty((4, 4, 4), np.float32)
     voxel = float(spacing.min())
     compared = 0
     for i, (sx, sy, sz) in enumerate(points):
@@ -339,7 +340,7 @@ def test_newton_steps_reuse_a_cells_gradients_to_the_bit():
             zi, yi, xi = ((pz - origin[2]) / spacing[2], (py - origin[1]) / spacing[1],
                           (px - origin[0]) / spacing[0])
             field._lerp3(data, zi, yi, xi, value)  # compiled, corners read afresh
-            field._gradient_lerp(samples, w, inverse, zi, yi, xi, corners, g)
+            field._gradient_lerp(samples, w, inverse, zi, yi, xi, corners, window, g)
             g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
             step = (level - value[0]) / g2
             length = abs(step) * np.sqrt(g2)

@@ -37,57 +37,53 @@ def _stencil(volume: Volume, smooth: bool) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 @numba.njit(nogil=True, cache=True)
-def _voxel_gradient(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: int, y: int,
-                    x: int, out: np.ndarray, k: int) -> None:
-    """out[k] = (gx, gy, gz), float32, at voxel (z, y, x) of the (Z, Y, X) `data`: along
-    each axis the central difference, along the other two the weights `w` (3,), edge
-    samples repeated past the border ("nearest"), times `inverse` (x, y, z)."""
-    nz, ny, nx = data.shape
-    z0, z2 = max(z - 1, 0), min(z + 1, nz - 1)
-    y0, y2 = max(y - 1, 0), min(y + 1, ny - 1)
-    x0, x2 = max(x - 1, 0), min(x + 1, nx - 1)
-    zs, ys, xs = (z0, z, z2), (y0, y, y2), (x0, x, x2)
-    gx = 0.0
-    gy = 0.0
-    gz = 0.0
-    for a in range(3):
-        for b in range(3):
-            wab = w[a] * w[b]
-            # float32 samples (exact for every stored type): integers would wrap
-            gx += wab * (np.float32(data[zs[a], ys[b], xs[2]])
-                         - np.float32(data[zs[a], ys[b], xs[0]]))
-            gy += wab * (np.float32(data[zs[a], ys[2], xs[b]])
-                         - np.float32(data[zs[a], ys[0], xs[b]]))
-            gz += wab * (np.float32(data[zs[2], ys[a], xs[b]])
-                         - np.float32(data[zs[0], ys[a], xs[b]]))
-    out[k, 0] = gx * inverse[0]
-    out[k, 1] = gy * inverse[1]
-    out[k, 2] = gz * inverse[2]
-
-
-@numba.njit(nogil=True, cache=True)
 def _gradient_lerp(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: float, y: float,
-                   x: float, corners: np.ndarray, out: np.ndarray) -> None:
+                   x: float, corners: np.ndarray, window: np.ndarray, out: np.ndarray) -> None:
     """out[:] = the gradient at the fractional index (z, y, x): the trilinear interpolation
     (as `_lerp3`, clamped at the border) of the eight surrounding voxels' gradients
-    (`_voxel_gradient`, into the (8, 3) float32 scratch `corners`)."""
+    (`_corner_gradients`, into the scratch arrays `corners` and `window`)."""
     nz, ny, nx = data.shape
-    z0, z1, fz = _axis_weights(z, nz)
-    y0, y1, fy = _axis_weights(y, ny)
-    x0, x1, fx = _axis_weights(x, nx)
-    _corner_gradients(data, w, inverse, z0, z1, y0, y1, x0, x1, corners)
+    z0, _, fz = _axis_weights(z, nz)
+    y0, _, fy = _axis_weights(y, ny)
+    x0, _, fx = _axis_weights(x, nx)
+    _corner_gradients(data, w, inverse, z0, y0, x0, corners, window)
     _lerp_corners(corners, fz, fy, fx, out)
 
 
 @numba.njit(nogil=True, cache=True)
-def _corner_gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z0: int, z1: int,
-                      y0: int, y1: int, x0: int, x1: int, corners: np.ndarray) -> None:
-    """corners (8, 3) float32 = `_voxel_gradient` at the cell's corners, x fastest."""
+def _corner_gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z0: int, y0: int,
+                      x0: int, corners: np.ndarray, window: np.ndarray) -> None:
+    """corners (8, 3) float32 = the gradients (gx, gy, gz) at the corners of the cell
+    whose lowest corner is voxel (z0, y0, x0) of the (Z, Y, X) `data`, x fastest: along
+    each axis the central difference, along the other two the weights `w` (3,), edge
+    samples repeated past the border ("nearest"), times `inverse` (x, y, z).
+
+    The 4 × 4 × 4 samples around the cell are read once into the float32 scratch `window`
+    (exact for every stored type: integers would wrap), where each corner read its own
+    27 of them, twice over."""
+    nz, ny, nx = data.shape
+    for a in range(4):
+        zz = min(max(z0 - 1 + a, 0), nz - 1)
+        for b in range(4):
+            yy = min(max(y0 - 1 + b, 0), ny - 1)
+            for c in range(4):
+                window[a, b, c] = np.float32(data[zz, yy, min(max(x0 - 1 + c, 0), nx - 1)])
     k = 0
-    for zz in (z0, z1):
-        for yy in (y0, y1):
-            for xx in (x0, x1):
-                _voxel_gradient(data, w, inverse, zz, yy, xx, corners, k)
+    for cz in range(2):
+        for cy in range(2):
+            for cx in range(2):
+                gx = 0.0
+                gy = 0.0
+                gz = 0.0
+                for a in range(3):
+                    for b in range(3):
+                        wab = w[a] * w[b]
+                        gx += wab * (window[cz + a, cy + b, cx + 2] - window[cz + a, cy + b, cx])
+                        gy += wab * (window[cz + a, cy + 2, cx + b] - window[cz + a, cy, cx + b])
+                        gz += wab * (window[cz + 2, cy + a, cx + b] - window[cz, cy + a, cx + b])
+                corners[k, 0] = gx * inverse[0]
+                corners[k, 1] = gy * inverse[1]
+                corners[k, 2] = gz * inverse[2]
                 k += 1
 
 
@@ -110,13 +106,14 @@ def _gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, index_zyx: 
     """out[i] = the gradient at index_zyx[i] (N, 3) (`_gradient_lerp`); NaN where an
     index is NaN."""
     corners = np.empty((8, 3), np.float32)
+    window = np.empty((4, 4, 4), np.float32)
     g = np.empty(3)
     for i in range(index_zyx.shape[0]):
         z, y, x = index_zyx[i, 0], index_zyx[i, 1], index_zyx[i, 2]
         if z != z or y != y or x != x:
             out[i, :] = np.nan
         else:
-            _gradient_lerp(data, w, inverse, z, y, x, corners, g)
+            _gradient_lerp(data, w, inverse, z, y, x, corners, window, g)
             out[i, 0], out[i, 1], out[i, 2] = g[0], g[1], g[2]
 
 
@@ -182,6 +179,7 @@ def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.nd
     value = np.empty(1)
     g = np.empty(3)
     corners = np.empty((8, 3), np.float32)
+    window = np.empty((4, 4, 4), np.float32)
     voxel = min(spacing[0], spacing[1], spacing[2])
     tiny = 1e-4 * voxel
     steps = iterations + int(max_move / voxel)
@@ -198,7 +196,7 @@ def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.nd
             x0, x1, fx = _axis_weights(xi, nx)
             _lerp_cell(data, z0, z1, y0, y1, x0, x1, fz, fy, fx, value)
             if (z0, y0, x0) != cell:
-                _corner_gradients(samples, w, inverse, z0, z1, y0, y1, x0, x1, corners)
+                _corner_gradients(samples, w, inverse, z0, y0, x0, corners, window)
                 cell = (z0, y0, x0)
             _lerp_corners(corners, fz, fy, fx, g)
             g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
@@ -248,21 +246,18 @@ def _nearest_crossing(data: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
     crosses `level` along one of the 26 lines to the neighbouring voxels' directions
     (steps of half a voxel, then bisection); (fx, fy, fz) when none crosses. A texel is a
     corner of a cell its target surface crosses, so along some such line the level lies
-    within a cell's diagonal, whatever the gradient says."""
-    voxel = min(spacing[0], spacing[1], spacing[2])
-    step = 0.5 * voxel
+    within a cell's diagonal, whatever the gradient says.
+
+    The lines are stepped together, a half voxel at a time: the first step at which some
+    line changes sign is bisected on the first such line (in the order of
+    `_neighbour_directions`), and no line is stepped further."""
+    step = 0.5 * min(spacing[0], spacing[1], spacing[2])
     start = _value_at(data, origin, spacing, sx, sy, sz, scratch) - level
-    best = np.inf
-    bx, by, bz = fx, fy, fz
-    for a in range(27):
-        if a == 13:  # (0, 0, 0)
-            continue
-        dx, dy, dz = (a % 3 - 1) * spacing[0], (a // 3 % 3 - 1) * spacing[1], \
-            (a // 9 - 1) * spacing[2]
-        norm = np.sqrt(dx * dx + dy * dy + dz * dz)
-        dx, dy, dz = dx / norm, dy / norm, dz / norm
-        near, t = 0.0, step
-        while t <= max_move and t < best:
+    lines = _neighbour_directions(spacing)
+    near, t = 0.0, step
+    while t <= max_move:
+        for a in range(lines.shape[0]):
+            dx, dy, dz = lines[a, 0], lines[a, 1], lines[a, 2]
             v = _value_at(data, origin, spacing, sx + t * dx, sy + t * dy, sz + t * dz,
                           scratch) - level
             if v * start <= 0:
@@ -275,11 +270,26 @@ def _nearest_crossing(data: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
                         far = mid
                     else:
                         near = mid
-                best = far
-                bx, by, bz = sx + far * dx, sy + far * dy, sz + far * dz
-                break
-            near, t = t, t + step
-    return bx, by, bz
+                return sx + far * dx, sy + far * dy, sz + far * dz
+        near, t = t, t + step
+    return fx, fy, fz
+
+
+@numba.njit(nogil=True, cache=True)
+def _neighbour_directions(spacing: np.ndarray) -> np.ndarray:
+    """(26, 3) unit world directions (x, y, z) from a voxel to its 26 neighbours of the
+    grid of `spacing` (x, y, z), x fastest, then y, then z."""
+    lines = np.empty((26, 3))
+    k = 0
+    for a in range(27):
+        if a == 13:  # (0, 0, 0)
+            continue
+        dx, dy, dz = (a % 3 - 1) * spacing[0], (a // 3 % 3 - 1) * spacing[1], \
+            (a // 9 - 1) * spacing[2]
+        norm = np.sqrt(dx * dx + dy * dy + dz * dz)
+        lines[k, 0], lines[k, 1], lines[k, 2] = dx / norm, dy / norm, dz / norm
+        k += 1
+    return lines
 
 
 def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
@@ -360,11 +370,12 @@ def _along_normals(data: np.ndarray, samples: np.ndarray, w: np.ndarray,
     g = np.empty(3)
     value = np.empty(1)
     corners = np.empty((8, 3), np.float32)
+    window = np.empty((4, 4, 4), np.float32)
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         _gradient_lerp(samples, w, inverse, (z - origin[2]) / spacing[2],
                        (y - origin[1]) / spacing[1], (x - origin[0]) / spacing[0], corners,
-                       g)
+                       window, g)
         norm = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
         if norm > 0:
             x += distance * sign * g[0] / norm
