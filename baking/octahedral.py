@@ -17,6 +17,7 @@ zero-length or non-finite vector encodes to `UNKNOWN`; `decode` gives (0, 0, 0) 
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 UNKNOWN = (0, 0)
@@ -27,26 +28,59 @@ STEPS = 255.0
 def encode(vectors: np.ndarray) -> np.ndarray:
     """(..., 2) uint8 codes of (..., 3) vectors (any length; zero or non-finite ones get
     `UNKNOWN`): of the four codes around the vector's octahedral point, the one whose
-    direction lies nearest it (rounding each coordinate alone errs up to 0.9°)."""
+    direction lies nearest it (rounding each coordinate alone errs up to 0.9°). One
+    compiled pass (`_encode_rows`), the arithmetic of `_decode` and `_fold`."""
     v = np.asarray(vectors, np.float64)
-    l1 = np.abs(v).sum(axis=-1, keepdims=True)
-    known_ = np.isfinite(l1) & (l1 > 1e-12)
-    unit = np.where(known_, v, 0.0) / np.where(known_, l1, 1.0)
-    p = np.where(unit[..., 2:3] < 0, _fold(unit[..., :2]), unit[..., :2])
-    base = np.floor((np.clip(p, -1, 1) + 1) * (STEPS / 2))
-    best, best_cos = None, None
-    for step in ((0, 0), (0, 1), (1, 0), (1, 1)):
-        codes = np.clip(base + step, 0, STEPS).astype(np.uint8)
-        cos = (_decode(codes) * unit).sum(axis=-1)
-        if best is None:
-            best, best_cos = codes, cos
-        else:
-            nearer = cos > best_cos
-            best = np.where(nearer[..., None], codes, best)
-            best_cos = np.where(nearer, cos, best_cos)
-    corner = (best == 0).all(axis=-1, keepdims=True)
-    best = np.where(corner, np.uint8(255), best)  # -z: a corner that is not UNKNOWN
-    return np.where(known_, best, np.uint8(0)).astype(np.uint8)
+    rows = np.ascontiguousarray(v.reshape(-1, 3))
+    out = np.empty((len(rows), 2), np.uint8)
+    _encode_rows(rows, out)
+    return out.reshape(*v.shape[:-1], 2)
+
+
+@numba.njit(nogil=True, cache=True)
+def _encode_rows(vectors: np.ndarray, out: np.ndarray) -> None:
+    """out[i] = `encode`'s code (2,) uint8 of vectors[i] (N, 3) float64."""
+    for i in range(vectors.shape[0]):
+        x, y, z = vectors[i, 0], vectors[i, 1], vectors[i, 2]
+        l1 = abs(x) + abs(y) + abs(z)
+        if not (np.isfinite(l1) and l1 > 1e-12):
+            out[i, 0], out[i, 1] = 0, 0
+            continue
+        ux, uy, uz = x / l1, y / l1, z / l1
+        px, py = ux, uy
+        if uz < 0:
+            px, py = _fold_pair(ux, uy)
+        bx = np.floor((min(max(px, -1.0), 1.0) + 1) * (STEPS / 2))
+        by = np.floor((min(max(py, -1.0), 1.0) + 1) * (STEPS / 2))
+        best_x, best_y, best_cos = 0, 0, -np.inf
+        for step in range(4):
+            cx = int(min(max(bx + step // 2, 0.0), STEPS))
+            cy = int(min(max(by + step % 2, 0.0), STEPS))
+            dx, dy, dz = _decode_pair(cx, cy)
+            cos = dx * ux + dy * uy + dz * uz
+            if step == 0 or cos > best_cos:
+                best_x, best_y, best_cos = cx, cy, cos
+        if best_x == 0 and best_y == 0:  # -z: a corner that is not UNKNOWN
+            best_x, best_y = 255, 255
+        out[i, 0], out[i, 1] = best_x, best_y
+
+
+@numba.njit(nogil=True, cache=True)
+def _decode_pair(cx: int, cy: int) -> tuple[float, float, float]:
+    """`_decode` of the code (cx, cy)."""
+    px, py = cx / STEPS * 2 - 1, cy / STEPS * 2 - 1
+    z = 1 - (abs(px) + abs(py))
+    if z < 0:
+        px, py = _fold_pair(px, py)
+    norm = np.sqrt(px * px + py * py + z * z)
+    return px / norm, py / norm, z / norm
+
+
+@numba.njit(nogil=True, cache=True)
+def _fold_pair(px: float, py: float) -> tuple[float, float]:
+    """`_fold` of the point (px, py)."""
+    return ((1 - abs(py)) * (1.0 if px >= 0 else -1.0),
+            (1 - abs(px)) * (1.0 if py >= 0 else -1.0))
 
 
 def decode(codes: np.ndarray) -> np.ndarray:
