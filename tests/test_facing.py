@@ -120,6 +120,26 @@ def test_octahedral_round_trip_within_two_thirds_of_a_degree():
     np.testing.assert_array_equal(octahedral.decode(unknown), 0.0)
 
 
+def test_octahedral_codes_are_the_nearest_of_the_four_around_each_point():
+    """Each code decodes (`decode`, numpy) at least as near its vector as the other three
+    codes of the cell of the octahedral square its point falls in, folded lower half,
+    borders and the axes included."""
+    rng = np.random.default_rng(2)
+    v = np.concatenate([rng.normal(size=(50_000, 3)), np.round(rng.normal(size=(5000, 3)), 1),
+                        np.eye(3), -np.eye(3)])
+    v = v[np.linalg.norm(v, axis=1) > 0]
+    unit = v / np.abs(v).sum(axis=1, keepdims=True)
+    fold = (1 - np.abs(unit[:, 1::-1])) * np.where(unit[:, :2] >= 0, 1.0, -1.0)
+    p = np.where(unit[:, 2:] < 0, fold, unit[:, :2])
+    base = np.floor((p + 1) * 127.5)
+    nearest = np.full(len(v), -np.inf)
+    for step in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        codes = np.clip(base + step, 0, 255).astype(np.uint8)
+        codes[(codes == 0).all(axis=1)] = 255  # the corner −z (0, 0) is stored as (255, 255)
+        nearest = np.maximum(nearest, (octahedral.decode(codes) * v).sum(axis=1))
+    chosen = (octahedral.decode(octahedral.encode(v)) * v).sum(axis=1)
+    np.testing.assert_array_less(nearest - chosen, 1e-12 * np.linalg.norm(v, axis=1))
+
 # -- the baker's facings ----------------------------------------------------------------------
 def test_facings_are_the_start_normals_and_do_not_depend_on_the_workers():
     vol = _plate(1.0, 0.25)
