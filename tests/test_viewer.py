@@ -259,6 +259,43 @@ def test_mesh_worker_drops_stale_isovalues():
     assert [r.stage for r in results][-1] == "full"
 
 
+@pytest.mark.parametrize(("size", "step"), [(96, 2), (192, 4)])
+def test_the_first_preview_step_is_the_one_the_full_surface_wants(size, step):
+    """Before any full surface is known, the coarse surface is made at the step that the
+    full one wants (`preview_step`), its size estimated from the coarsest surface (within
+    5 % on smooth shells): no finer preview than needed, no second one once the full
+    surface is known."""
+    from isolume.app.viewer.surfaces import (
+        LARGEST_STEP,
+        MeshWorker,
+        estimated_triangles,
+        extract_surface,
+        preview_step,
+    )
+
+    vol = volumes.load(f"synthetic:shells:{size}")
+    full = len(extract_surface(vol, 0.3).faces)
+    coarsest = extract_surface(vol, 0.3, step=LARGEST_STEP)
+    assert abs(estimated_triangles(coarsest) / full - 1) < 0.05
+    assert preview_step(full) == step
+    worker = MeshWorker(vol)
+    try:
+        worker.request(0.3)
+        results = []
+        deadline = time.time() + 60
+        while time.time() < deadline and not any(r.stage == "full" for r in results):
+            results += worker.poll()
+            time.sleep(0.01)
+        time.sleep(0.2)
+        results += worker.poll()
+    finally:
+        worker.close()
+    assert [r.stage for r in results] == ["coarse", "full"]  # no "lod" after the full
+    expected = coarsest if step == LARGEST_STEP else extract_surface(vol, 0.3, step=step)
+    np.testing.assert_array_equal(results[0].mesh.faces, expected.faces)
+    assert len(results[1].mesh.faces) == full
+
+
 # -- uploads of lazily baked texels -------------------------------------------------------
 def test_uploaded_regions_equal_the_lattice(gl):
     """Texels changed after the upload reach the GL textures block by block, within the
