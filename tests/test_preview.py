@@ -15,6 +15,7 @@ from isolume.baking.preview import (
     Previewer,
     cell_corners,
     first_pass_paths,
+    mesh_step,
     pass_plan,
 )
 
@@ -92,16 +93,17 @@ def test_a_view_of_many_texels_gets_one_path_each_first_then_the_full_passes(sph
     assert (lat.preview_paths.reshape(-1)[first] == 16).all()
 
 
-@pytest.mark.parametrize("coarse", [False, True])
-def test_previews_on_a_convex_surface_under_a_uniform_sky_are_exact(sphere, coarse,
+@pytest.mark.parametrize("first_step", [1, 2, 4])
+def test_previews_on_a_convex_surface_under_a_uniform_sky_are_exact(sphere, first_step,
                                                                     monkeypatch):
     """Unoccluded convex surface, constant sky L: every path returns πL (cosine sampling
     is the zero-variance estimator), so every pass's previews equal πL exactly: the
-    offset causes no self-shadowing, on the full surface and on the step-2 one of large
-    volumes (the first pass's)."""
-    if coarse:
-        monkeypatch.setattr("isolume.baking.preview.COARSE_VOXELS", 0)
+    offset causes no self-shadowing, on the full surface and on the step-2 and step-4
+    ones of large volumes (the first pass's)."""
     vol, mesh = sphere
+    coarse_voxels = {1: vol.data.size, 2: vol.data.size - 1, 4: 0}[first_step]
+    monkeypatch.setattr("isolume.baking.preview.COARSE_VOXELS", coarse_voxels)
+    assert mesh_step(vol, True) == first_step
     config = BakeConfig(env="constant:0.5,1,2", bounces=1, samples=16)
     lat = _empty(vol, config)
     cells = visible_cells(lat.geometry, mesh.vertices)
