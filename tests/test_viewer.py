@@ -248,15 +248,21 @@ def test_mesh_worker_drops_stale_isovalues():
     try:
         worker.request(0.3)
         worker.request(0.6)
-        results = []
-        deadline = time.time() + 30
-        while time.time() < deadline and not any(r.stage == "full" for r in results):
-            results += worker.poll()
-            time.sleep(0.01)
+        results = _until_full(worker, 30)
     finally:
         worker.close()
     assert results and all(r.iso == 0.6 for r in results)
     assert [r.stage for r in results][-1] == "full"
+
+
+def _until_full(worker, seconds: float) -> list:
+    """The surfaces a `MeshWorker` gives until a full one arrives (or `seconds` pass)."""
+    results = []
+    deadline = time.time() + seconds
+    while time.time() < deadline and not any(r.stage == "full" for r in results):
+        results += worker.poll()
+        time.sleep(0.01)
+    return results
 
 
 @pytest.mark.parametrize(("size", "step"), [(96, 2), (192, 4)])
@@ -281,11 +287,7 @@ def test_the_first_preview_step_is_the_one_the_full_surface_wants(size, step):
     worker = MeshWorker(vol)
     try:
         worker.request(0.3)
-        results = []
-        deadline = time.time() + 60
-        while time.time() < deadline and not any(r.stage == "full" for r in results):
-            results += worker.poll()
-            time.sleep(0.01)
+        results = _until_full(worker, 60)
         time.sleep(0.2)
         results += worker.poll()
     finally:
