@@ -7,8 +7,8 @@ is the separable product of the central difference ``[-1, 0, 1]/2`` along one ax
 B-spline weights ``[1, 4, 1]/6`` along the other two, rounded to float32; between voxel
 centres it is interpolated trilinearly, which is what the GPU would do with it as a
 texture. The voxel gradients are computed where a lookup needs them (the eight around the
-point, 27 samples each) rather than stored for the whole volume: no 12 bytes per voxel, the
-same bits.
+point, from the 4×4×4 samples around its cell) rather than stored for the whole volume: no
+12 bytes per voxel, the same bits.
 
 Normals point from high values to low values: ``n = -∇ρ / |∇ρ|`` (out of the material when
 the material is denser than its surroundings); ``flip=True`` reverses them.
@@ -58,9 +58,9 @@ def _corner_gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z0: 
     each axis the central difference, along the other two the weights `w` (3,), edge
     samples repeated past the border ("nearest"), times `inverse` (x, y, z).
 
-    The 4 × 4 × 4 samples around the cell are read once into the float32 scratch `window`
-    (exact for every stored type: integers would wrap), where each corner read its own
-    27 of them, twice over."""
+    The 4 × 4 × 4 samples around the cell, which the eight corners' stencils share, are
+    read once into the float32 scratch `window` (exact for every stored type: integers
+    would wrap in the differences)."""
     nz, ny, nx = data.shape
     for a in range(4):
         zz = min(max(z0 - 1 + a, 0), nz - 1)
