@@ -161,9 +161,9 @@ class MeshWorker:
         """The surfaces of one request, coarse (when the volume has one) then full. The
         first time, when the full surface's size is not known yet, the coarsest preview is
         made first: where its `estimated_triangles` want that step (a 512³ CT: 0.4 s for
-        0.55 M triangles, where every second voxel takes 1.7–3 s for 3 M, and as long
-        again to draw in software GL) it is the coarse surface, else the step they want
-        is made."""
+        0.55 M triangles, drawn in ~1 s in software GL, where every second voxel takes
+        1.7–3 s for 3 M, drawn in 1.6 s) it is the coarse surface, else the step they
+        want is made."""
         extract = functools.partial(extract_surface, self.volume, iso, normals=self.normals,
                                     flip=self.flip, cancelled=lambda r=request: self._stale(r))
         made: dict[int, volumes.Mesh] = {}
