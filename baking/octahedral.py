@@ -29,7 +29,7 @@ def encode(vectors: np.ndarray) -> np.ndarray:
     """(..., 2) uint8 codes of (..., 3) vectors (any length; zero or non-finite ones get
     `UNKNOWN`): of the four codes around the vector's octahedral point, the one whose
     direction lies nearest it (rounding each coordinate alone errs up to 0.9°). One
-    compiled pass (`_encode_rows`), the arithmetic of `_decode` and `_fold`."""
+    compiled pass (`_encode_rows`), each candidate's direction as `decode` makes it."""
     v = np.asarray(vectors, np.float64)
     rows = np.ascontiguousarray(v.reshape(-1, 3))
     out = np.empty((len(rows), 2), np.uint8)
@@ -67,7 +67,7 @@ def _encode_rows(vectors: np.ndarray, out: np.ndarray) -> None:
 
 @numba.njit(nogil=True, cache=True)
 def _decode_pair(cx: int, cy: int) -> tuple[float, float, float]:
-    """`_decode` of the code (cx, cy)."""
+    """The unit vector of the code (cx, cy), `UNKNOWN` read as the corner −z."""
     px, py = cx / STEPS * 2 - 1, cy / STEPS * 2 - 1
     z = 1 - (abs(px) + abs(py))
     if z < 0:
@@ -78,29 +78,31 @@ def _decode_pair(cx: int, cy: int) -> tuple[float, float, float]:
 
 @numba.njit(nogil=True, cache=True)
 def _fold_pair(px: float, py: float) -> tuple[float, float]:
-    """`_fold` of the point (px, py)."""
+    """The octahedral square's fold of the point (px, py) (its own inverse): the lower
+    half's points to the corners and back."""
     return ((1 - abs(py)) * (1.0 if px >= 0 else -1.0),
             (1 - abs(px)) * (1.0 if py >= 0 else -1.0))
 
 
 def decode(codes: np.ndarray) -> np.ndarray:
-    """(..., 3) float64 unit vectors of (..., 2) uint8 codes ((0, 0, 0) for `UNKNOWN`)."""
+    """(..., 3) float64 unit vectors of (..., 2) uint8 codes ((0, 0, 0) for `UNKNOWN`),
+    in one compiled pass (`_decode_rows`)."""
     c = np.asarray(codes)
-    return np.where(known(c)[..., None], _decode(c), 0.0)
+    rows = np.ascontiguousarray(c.reshape(-1, 2))
+    out = np.empty((len(rows), 3))
+    _decode_rows(rows, out)
+    return out.reshape(*c.shape[:-1], 3)
 
 
-def _decode(codes: np.ndarray) -> np.ndarray:
-    """(..., 3) unit vectors of (..., 2) codes, `UNKNOWN` read as the corner −z."""
-    p = np.asarray(codes).astype(np.float64) / STEPS * 2 - 1
-    z = 1 - np.abs(p).sum(axis=-1, keepdims=True)
-    v = np.concatenate([np.where(z < 0, _fold(p), p), z], axis=-1)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _fold(p: np.ndarray) -> np.ndarray:
-    """(..., 2) the octahedral square's fold of (..., 2) points (its own inverse): the
-    lower half's points to the corners and back."""
-    return (1 - np.abs(p[..., ::-1])) * np.where(p >= 0, 1.0, -1.0)
+@numba.njit(nogil=True, cache=True)
+def _decode_rows(codes: np.ndarray, out: np.ndarray) -> None:
+    """out[i] = `decode`'s (3,) vector of codes[i] (N, 2)."""
+    for i in range(codes.shape[0]):
+        cx, cy = int(codes[i, 0]), int(codes[i, 1])
+        if cx == 0 and cy == 0:
+            out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, 0.0
+        else:
+            out[i, 0], out[i, 1], out[i, 2] = _decode_pair(cx, cy)
 
 
 def known(codes: np.ndarray) -> np.ndarray:

@@ -121,7 +121,7 @@ def test_octahedral_round_trip_within_two_thirds_of_a_degree():
 
 
 def test_octahedral_codes_are_the_nearest_of_the_four_around_each_point():
-    """Each code decodes (`decode`, numpy) at least as near its vector as the other three
+    """Each code decodes (`decode`) at least as near its vector as the other three
     codes of the cell of the octahedral square its point falls in, folded lower half,
     borders and the axes included."""
     rng = np.random.default_rng(2)

@@ -180,6 +180,7 @@ def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.nd
     g = np.empty(3)
     corners = np.empty((8, 3), np.float32)
     window = np.empty((4, 4, 4), np.float32)
+    lines = _neighbour_directions(spacing)  # the stalled points' search lines
     voxel = min(spacing[0], spacing[1], spacing[2])
     tiny = 1e-4 * voxel
     steps = iterations + int(max_move / voxel)
@@ -217,8 +218,8 @@ def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.nd
         start = _value_at(data, origin, spacing, sx, sy, sz, value) - levels[i]
         end = _value_at(data, origin, spacing, px, py, pz, value) - levels[i]
         if abs(end) > STALLED_FRACTION * abs(start):  # Newton stalled: search the lines
-            px, py, pz = _nearest_crossing(data, origin, spacing, sx, sy, sz, levels[i],
-                                           max_move, px, py, pz, value)
+            px, py, pz = _nearest_crossing(data, origin, spacing, lines, sx, sy, sz, start,
+                                           levels[i], max_move, px, py, pz, value)
         out[i, 0], out[i, 1], out[i, 2] = px, py, pz
 
 
@@ -240,20 +241,20 @@ def _value_at(data: np.ndarray, origin: np.ndarray, spacing: np.ndarray, x: floa
 
 @numba.njit(nogil=True, cache=True)
 def _nearest_crossing(data: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
-                      sx: float, sy: float, sz: float, level: float, max_move: float,
-                      fx: float, fy: float, fz: float, scratch: np.ndarray):
-    """The nearest point within `max_move` of (sx, sy, sz) where the trilinear field
-    crosses `level` along one of the 26 lines to the neighbouring voxels' directions
-    (steps of half a voxel, then bisection); (fx, fy, fz) when none crosses. A texel is a
-    corner of a cell its target surface crosses, so along some such line the level lies
-    within a cell's diagonal, whatever the gradient says.
+                      lines: np.ndarray, sx: float, sy: float, sz: float, start: float,
+                      level: float, max_move: float, fx: float, fy: float, fz: float,
+                      scratch: np.ndarray):
+    """The nearest point within `max_move` of (sx, sy, sz) — where ρ − `level` is
+    `start` — at which the trilinear field crosses `level` along one of the (26, 3) unit
+    `lines` to the neighbouring voxels' directions (`_neighbour_directions`; steps of half
+    a voxel, then bisection); (fx, fy, fz) when none crosses. A texel is a corner of a
+    cell its target surface crosses, so along some such line the level lies within a
+    cell's diagonal, whatever the gradient says.
 
     The lines are stepped together, a half voxel at a time: the first step at which some
-    line changes sign is bisected on the first such line (in the order of
-    `_neighbour_directions`), and no line is stepped further."""
+    line changes sign is bisected on the first such line (in the order of `lines`), and
+    no line is stepped further."""
     step = 0.5 * min(spacing[0], spacing[1], spacing[2])
-    start = _value_at(data, origin, spacing, sx, sy, sz, scratch) - level
-    lines = _neighbour_directions(spacing)
     near, t = 0.0, step
     while t <= max_move:
         for a in range(lines.shape[0]):

@@ -166,18 +166,18 @@ class MeshWorker:
         want is made."""
         extract = functools.partial(extract_surface, self.volume, iso, normals=self.normals,
                                     flip=self.flip, cancelled=lambda r=request: self._stale(r))
-        made: dict[int, volumes.Mesh] = {}
+        coarsest = None  # made at LARGEST_STEP to estimate the full surface's size
         if self.coarse and self._full_triangles is None:
             coarsest = extract(step=LARGEST_STEP)
             if coarsest is None:
                 return
-            made[LARGEST_STEP] = coarsest
             coarse = preview_step(estimated_triangles(coarsest))
         else:
             coarse = preview_step(self._full_triangles)
         stages = [("coarse", coarse), ("full", 1)] if self.coarse else [("full", 1)]
         for stage, step in self._stages(stages):
-            mesh = made.pop(step) if stage == "coarse" and step in made else extract(step=step)
+            reuse = stage == "coarse" and step == LARGEST_STEP and coarsest is not None
+            mesh = coarsest if reuse else extract(step=step)
             if mesh is None:
                 return
             if stage == "full":
