@@ -81,21 +81,31 @@ CHEAPER_AFTER_MINUTES = 1.0
 """A bake expected to take longer than this says how to make it cheaper."""
 
 
-def say_outlook(outlook) -> None:
-    """Tell, before any path, what a bake will trace and roughly how long it will take
-    (`baking.bake.BakeOutlook`), and how to make it cheaper when that exceeds
+def say_outlook(outlook, config) -> None:
+    """Tell, before any path, what a bake of `config` will trace and roughly how long it
+    will take (`baking.bake.BakeOutlook`), and how to make it cheaper when that exceeds
     `CHEAPER_AFTER_MINUTES`."""
     line = (f"bake: {outlook.texels:,} texels on {outlook.levels} levels, "
             f"{outlook.paths:,} paths to trace")
     minutes = outlook.minutes()
     if minutes is not None:
-        line += f", roughly {minutes:.1f} min on {outlook.threads} threads"
+        threads = "1 thread" if outlook.threads == 1 else f"{outlook.threads} threads"
+        line += f", roughly {minutes:.1f} min on {threads}"
     print(line, file=sys.stderr, flush=True)
     if minutes is not None and minutes > CHEAPER_AFTER_MINUTES:
-        print("bake: cheaper: --iso-range LO HI around the isovalues you will show, "
-              "--samples 32, --scale 0.5, or isolume view (bakes what is visible first); "
-              "Ctrl-C keeps the finished texels and the same command resumes",
-              file=sys.stderr, flush=True)
+        print(f"bake: cheaper: {cheaper_options(config)}, or isolume view (bakes what is "
+              "visible first); Ctrl-C keeps the finished texels and the same command "
+              "resumes", file=sys.stderr, flush=True)
+
+
+def cheaper_options(config) -> str:
+    """The options that make a bake of `config` cheaper: an iso range, half its paths
+    per texel (while it has more than one) and half its lattice scale."""
+    options = ["--iso-range LO HI around the isovalues you will show"]
+    if config.samples > 1:
+        options.append(f"--samples {config.samples // 2}")
+    options.append(f"--scale {config.scale / 2:g}")
+    return ", ".join(options)
 
 
 def cmd_bake(args: argparse.Namespace) -> int:
@@ -109,7 +119,8 @@ def cmd_bake(args: argparse.Namespace) -> int:
     vol = load_volume(args)
     try:
         lattice = bake(vol, config, out=out, workers=args.workers, progress=True,
-                       scheduler=args.scheduler, outlook=say_outlook, dense=False)
+                       scheduler=args.scheduler,
+                       outlook=lambda o: say_outlook(o, config), dense=False)
     except KeyboardInterrupt:
         if out.exists():
             _, held = open_lattice(out)[0].read_texels(None, ("samples",))

@@ -313,7 +313,8 @@ def test_every_command_has_a_description_and_every_option_a_help_text():
 
 def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypatch):
     """The outlook line counts the paths of the plan (texels × samples) and the rough
-    minutes; a bake expected to run past a minute names the cheaper options."""
+    minutes; a bake expected to run past a minute names the cheaper options: half the
+    bake's own paths per texel and half its scale."""
     import importlib
 
     bake_module = importlib.import_module("isolume.baking.bake")
@@ -326,8 +327,12 @@ def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypat
     assert "cheaper" not in err
     monkeypatch.setattr(bake_module, "PATHS_PER_THREAD_SECOND", 1e-3)
     status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
-                          "--bounces", "0", "--out", str(tmp_path / "t.npz"))
-    assert status == 0 and "--iso-range" in err and "--scale 0.5" in err, err
+                          "--bounces", "0", "--scale", "0.5", "--workers", "1",
+                          "--out", str(tmp_path / "t.npz"))
+    cheaper = next(x for x in err.splitlines() if x.startswith("bake: cheaper"))
+    assert status == 0 and "--iso-range" in cheaper, err
+    assert "--samples 1," in cheaper and "--scale 0.25," in cheaper, cheaper
+    assert "min on 1 thread\n" in err, err
 
 
 def test_an_interrupted_bake_says_how_many_texels_its_file_keeps(tmp_path, capsys,
