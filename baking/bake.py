@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -136,9 +135,43 @@ def _resumable(volume: volumes.Volume, config: BakeConfig, out: Path | None
     return file
 
 
-def _plan_progress(stage: str) -> None:
-    """The plan's stages on stderr (a large volume's plan takes seconds)."""
-    print(f"planning: {stage}", file=sys.stderr, flush=True)
+class PlanBars:
+    """The plan's stages on stderr as progress bars, one a stage, while `enabled`
+    (`make_plan`'s ``progress(stage[, fraction])``: a large volume's plan takes minutes).
+    A context: a stage's bar is full once the next stage starts or the plan returns, and
+    stays where it got to when the plan fails."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.stage: str | None = None
+        self.bar = None
+
+    def __enter__(self) -> PlanBars:
+        return self
+
+    def __exit__(self, kind, value, traceback) -> None:
+        self._end(finished=kind is None)
+
+    def __call__(self, stage: str, fraction: float | None = None) -> None:
+        from tqdm import tqdm
+
+        if stage != self.stage:
+            self._end(finished=True)
+            self.stage = stage
+            self.bar = tqdm(total=100, desc=f"planning: {stage}", dynamic_ncols=True,
+                            disable=not self.enabled,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
+        if fraction is not None:
+            self.bar.n = min(100.0, 100.0 * fraction)
+            self.bar.refresh()
+
+    def _end(self, finished: bool) -> None:
+        """End the current stage's bar, full when the stage `finished`."""
+        if self.bar is not None:
+            if finished:
+                self.bar.n = 100
+            self.bar.close()
+            self.bar = None
 
 
 def _progress(total: int, enabled: bool):
@@ -426,9 +459,10 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
         from isolume.baking.cluster import ClusterBackend
 
         backend = ClusterBackend(scheduler)
-    baker = Baker(volume, config, workers=workers, backend=backend,
-                  progress=_plan_progress if progress else None, packed=True, resume=resume,
-                  records_dir=out.parent if out is not None else None)
+    with PlanBars(progress) as bars:
+        baker = Baker(volume, config, workers=workers, backend=backend, progress=bars,
+                      packed=True, resume=resume,
+                      records_dir=out.parent if out is not None else None)
     pending = int(np.maximum(config.samples - baker.samples_done(), 0).sum())
     if outlook is not None:
         threads = 0 if scheduler is not None else (workers or os.cpu_count() or 1)

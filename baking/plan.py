@@ -198,20 +198,22 @@ def texel_values(volume: volumes.Volume, geometry: LatticeGeometry) -> np.ndarra
 
 def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
               levels: np.ndarray | None = None,
-              progress: Callable[[str], None] | None = None,
+              progress: Callable[..., None] | None = None,
               on_levels: Callable[[np.ndarray], None] | None = None,
               scenes: Callable[[int], object] | None = None,
               traced_only: bool = False) -> Plan:
     """Choose active texels, their targets and the levels for `config` (see the module
     docstring); `levels` (K,) replaces the choice (a resumed bake keeps its file's).
-    `progress(stage)` is told each stage as it starts (the viewer shows it);
+    `progress(stage)` is told each stage as it starts (the viewer shows it), and
+    ``progress(stage, fraction)`` how far the long ones (the Newton steps, the side probes,
+    the reach tests: minutes on a 512³ CT) have come, a fraction in [0, 1];
     `on_levels(levels)` as soon as the levels are known (the baker starts building the
     first level's scene while the texels' reach is tested); `scenes(k)` gives the Embree
     scene of level k for the side probes, or None (`choose_sides`); `traced_only`: make
     `Plan.traced_only`'s plan, letting go of what only replanning reads (the box's mask,
     the texels' values and targets: 128 + 315 MB on a 512³ CT) as soon as the levels
     are bracketed, not after the side probes."""
-    say = progress or (lambda _stage: None)
+    say = progress or (lambda _stage, _fraction=None: None)
     vmin, vmax = volume.value_range
     if vmax <= vmin:
         raise BakeError(f"{volume.source or volume.name}: the volume is constant ({vmin:g}); "
@@ -255,7 +257,8 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     # surface the texel lies *outside* of (the side the normals point to), so the clamped
     # move leaves it floating in front of that surface rather than buried behind it.
     reach = newton_reach(volume, config)
-    say(f"paths onto {len(levels)} levels")
+    stage = f"paths onto {len(levels)} levels"
+    say(stage)
     uses_lo, uses_hi = weight < 1, weight > 0
     landing = np.full((len(ids), 2, 3), UNLANDED, np.int16)
     for block in _blocks(len(ids)):
@@ -264,13 +267,19 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
             landing[block][uses, side] = landing_offsets(project_to_level(
                 volume, centres[uses], levels[lower[block] + side][uses], max_move=reach),
                 centres[uses], reach)
-    say(f"seen sides on {len(levels)} levels")
+        say(stage, block.stop / len(ids))
+    stage = f"seen sides on {len(levels)} levels"
+    say(stage)
     high = lit_sides(volume, config, geometry, ids, landing, reach, levels, lower, weight,
-                     scenes)
+                     scenes, lambda fraction: say(stage, fraction))
+    say("reach tests")
     reaches = _Reaches(volume, config, geometry, ids, reach, levels, lower, high)
     ok_lo, move_lo = reaches(0, uses_lo, landing[:, 0])
+    say("reach tests", 1 / 3)
     ok_hi, move_hi = reaches(1, uses_hi | ~ok_lo, landing[:, 1])
+    say("reach tests", 2 / 3)
     ok_lo, move_lo = reaches(0, ~uses_lo & ~ok_hi, landing[:, 0], ok_lo, move_lo)  # fallback
+    say("reach tests", 1.0)
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
     move = np.empty(len(ids), np.float32)
     phase = np.empty(len(ids), np.uint32)
@@ -328,11 +337,12 @@ def lit_isovalues(rho: np.ndarray, span: np.ndarray, lo: float, hi: float) -> np
 def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
               ids: np.ndarray, landing: np.ndarray, reach: float, levels: np.ndarray,
               lower: np.ndarray, weight: np.ndarray,
-              scenes: Callable[[int], object] | None = None) -> np.ndarray:
+              scenes: Callable[[int], object] | None = None,
+              progress: Callable[[float], None] | None = None) -> np.ndarray:
     """(T,) bool: is each texel lit on the high-value side of its surfaces
     (`baking.sides.choose_sides`, probed where it lands on its nearer level: `landing`
     (T, 2, 3) as `Plan.landing` with its `reach`, set for the levels the texel uses;
-    `scenes` as there)?"""
+    `scenes` and `progress` as there)?"""
     if config.sides == "normals":
         return np.full(len(ids), bool(config.flip_normals))
     upper = weight >= 0.5
@@ -343,7 +353,7 @@ def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeome
                              geometry.centres(ids[at]), reach)
 
     return choose_sides(volume, config, geometry, ids, points, found, levels, lower + upper,
-                        scenes)
+                        scenes, progress)
 
 
 LANDING_STEPS = 32_000

@@ -62,7 +62,8 @@ each, 52 MB, where one level can hold tens of millions of texels)."""
 def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
                  ids: np.ndarray, points: Callable[[np.ndarray], np.ndarray],
                  found: np.ndarray, levels: np.ndarray, which_level: np.ndarray,
-                 scenes: Callable[[int], object] | None = None) -> np.ndarray:
+                 scenes: Callable[[int], object] | None = None,
+                 progress: Callable[[float], None] | None = None) -> np.ndarray:
     """(T,) bool: is texel `ids[t]` lit on its surface's high-value side?
 
     Args:
@@ -74,9 +75,12 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
         scenes: ``scenes(k)``, the Embree scene of level k from the baker's cache (no
             scene beside the baker's), or None to build each here (`level_surface`);
             levels are probed lowest first.
+        progress: told the fraction of the found texels probed so far, after each call
+            of `TEXELS_PER_CALL` texels.
     """
     default = bool(config.flip_normals)
     high = np.full(len(ids), default)
+    total, probed = max(int(np.count_nonzero(found)), 1), 0
     for k in np.unique(which_level[found]):
         on = np.flatnonzero(found & (which_level == k))
         scene = scenes(int(k)) if scenes is not None else None
@@ -88,6 +92,9 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
                 open_low, open_high = open_rays(scene, volume, config, ids[at], points(at),
                                                 float(levels[k]), default)
                 high[at] = side_rule(open_low, open_high, parity(geometry, ids[at]), default)
+                if progress is not None:
+                    progress((probed + lo + len(at)) / total)
+        probed += len(on)
         del scene  # gone before the next level's is built
     return high
 

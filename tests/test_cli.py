@@ -1,5 +1,6 @@
 """The command line: outputs, and one-line errors with exit status 2 for bad input."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -325,6 +326,8 @@ def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypat
     texels = int(line.split()[1].replace(",", ""))
     assert f"{2 * texels:,} paths to trace" in line and "min on" in line
     assert "cheaper" not in err
+    for stage in ("texel values", "seen sides on", "reach tests"):  # a bar each, full
+        assert re.search(f"planning: {stage}[^\r\n]*: 100%", err), (stage, err)
     monkeypatch.setattr(bake_module, "PATHS_PER_THREAD_SECOND", 1e-3)
     status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
                           "--bounces", "0", "--scale", "0.5", "--workers", "1",
@@ -333,6 +336,24 @@ def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypat
     assert status == 0 and "--iso-range" in cheaper, err
     assert "--samples 1," in cheaper and "--scale 0.25," in cheaper, cheaper
     assert "min on 1 thread\n" in err, err
+
+
+def test_a_plan_that_fails_leaves_its_stage_unfinished_and_says_why(tmp_path, capsys,
+                                                                    monkeypatch):
+    """A bake whose plan fails (here its side probes) says why in one line, exit 2, with
+    the bars of the stages before it full and the failed stage's bar not."""
+    from isolume.baking import plan as plan_module
+    from isolume.baking.errors import BakeError
+
+    def fail(*args, **kwargs):
+        raise BakeError("the side probes failed")
+
+    monkeypatch.setattr(plan_module, "lit_sides", fail)
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
+                          "--out", str(tmp_path / "s.npz"))
+    assert status == 2 and "the side probes failed" in err, err
+    assert re.search(r"planning: paths onto \d+ levels: 100%", err), err
+    assert "planning: seen sides on" in err and not re.search(r"seen sides[^\r\n]*100%", err)
 
 
 def test_an_interrupted_bake_says_how_many_texels_its_file_keeps(tmp_path, capsys,

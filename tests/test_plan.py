@@ -434,3 +434,29 @@ def test_flat_ids_in_four_bytes_bake_the_same_lattice_as_in_eight(monkeypatch):
     for name in ("values", "samples", "second", "facing"):
         np.testing.assert_array_equal(getattr(narrow, name), getattr(wide, name))
     assert narrow.samples.sum() > 0
+
+
+def test_the_plan_tells_how_far_its_long_stages_have_come(monkeypatch):
+    """`make_plan` tells each stage as it starts and, for the Newton steps, the side
+    probes and the reach tests, the fraction done after each block: rising, ending at 1."""
+    from isolume.baking import plan as plan_module
+    from isolume.baking import sides
+
+    monkeypatch.setattr(plan_module, "PLAN_BLOCK", 997)
+    monkeypatch.setattr(sides, "TEXELS_PER_CALL", 997)
+    vol = make("engine", 40)
+    config = BakeConfig(samples=8, bounces=0)
+    told = []
+    plan = make_plan(vol, LatticeGeometry.for_volume(vol, config.scale), config,
+                     progress=lambda *said: told.append(said))
+    started = [said[0] for said in told if len(said) == 1]
+    levels = len(plan.levels)
+    assert started == ["texel values", "gradients", f"paths onto {levels} levels",
+                       f"seen sides on {levels} levels", "reach tests"]
+    for stage in started[2:]:
+        fractions = [said[1] for said in told if len(said) == 2 and said[0] == stage]
+        assert len(fractions) >= 3, stage
+        assert np.all(np.diff(fractions) > 0) and fractions[-1] == 1.0, (stage, fractions)
+        first = next(i for i, said in enumerate(told) if said == (stage,))
+        assert all(i > first for i, said in enumerate(told) if said[0] == stage
+                   and len(said) == 2), stage

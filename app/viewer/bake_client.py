@@ -354,12 +354,15 @@ class _BakeProcess:
 
         made: dict = {}
 
+        def planning(stage: str, fraction: float | None = None) -> None:
+            self.outbox.put(("planning", stage if fraction is None
+                             else f"{stage} {fraction:.0%}"))
+
         def make() -> None:
             try:
                 made["baker"] = Baker(self.volume, config, lattice=self.shared.lattice,
                                       workers=self.job["workers"], scene_cache=made["cache"],
-                                      progress=lambda stage: self.outbox.put(("planning",
-                                                                              stage)))
+                                      progress=planning)
             except BaseException as exc:  # re-raised below, in this thread
                 made["error"] = exc
 
