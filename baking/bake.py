@@ -135,7 +135,7 @@ def _resumable(volume: volumes.Volume, config: BakeConfig, out: Path | None
     return file
 
 
-class PlanBars:
+class _PlanBars:
     """The plan's stages on stderr as progress bars, one a stage, while `enabled`
     (`make_plan`'s ``progress(stage[, fraction])``: a large volume's plan takes minutes).
     A context: a stage's bar is full once the next stage starts or the plan returns, and
@@ -146,7 +146,7 @@ class PlanBars:
         self.stage: str | None = None
         self.bar = None
 
-    def __enter__(self) -> PlanBars:
+    def __enter__(self) -> _PlanBars:
         return self
 
     def __exit__(self, kind, value, traceback) -> None:
@@ -459,7 +459,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
         from isolume.baking.cluster import ClusterBackend
 
         backend = ClusterBackend(scheduler)
-    with PlanBars(progress) as bars:
+    with _PlanBars(progress) as bars:
         baker = Baker(volume, config, workers=workers, backend=backend, progress=bars,
                       packed=True, resume=resume,
                       records_dir=out.parent if out is not None else None)
