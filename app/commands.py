@@ -100,11 +100,15 @@ def say_outlook(outlook, config) -> None:
 
 def cheaper_options(config) -> str:
     """The options that make a bake of `config` cheaper: an iso range, half its paths
-    per texel (while it has more than one) and half its lattice scale."""
+    per texel (while it has more than one) and half its lattice scale (while that is
+    allowed: `baking.config.SCALES`)."""
+    from isolume.baking.config import SCALES
+
     options = ["--iso-range LO HI around the isovalues you will show"]
     if config.samples > 1:
         options.append(f"--samples {config.samples // 2}")
-    options.append(f"--scale {config.scale / 2:g}")
+    if config.scale / 2 >= SCALES[0]:
+        options.append(f"--scale {config.scale / 2:g}")
     return ", ".join(options)
 
 

@@ -24,6 +24,10 @@ SIDES = ("seen", "normals")
 """Which side of its surface a texel is lit on (`BakeConfig.sides`)."""
 
 
+SCALES = (0.05, 8.0)
+"""Smallest and largest lattice scale, texels per voxel."""
+
+
 @dataclass(frozen=True)
 class BakeConfig:
     """Bake settings. Two bakes with equal configs (except `samples`) can share a file.
@@ -102,8 +106,9 @@ class BakeConfig:
         if min(albedo) < 0 or max(albedo) > 1:
             raise BakeError(f"--albedo {self.albedo}: reflectance must lie in [0, 1]")
         object.__setattr__(self, "albedo", albedo)
-        if not 0.05 <= self.scale <= 8:
-            raise BakeError(f"--scale {self.scale:g}: expected 0.05 to 8 texels per voxel")
+        if not SCALES[0] <= self.scale <= SCALES[1]:
+            raise BakeError(f"--scale {self.scale:g}: expected {SCALES[0]:g} to {SCALES[1]:g} "
+                            "texels per voxel")
         if self.iso_range is not None:
             lo, hi = (float(v) for v in self.iso_range)
             if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):

@@ -336,6 +336,10 @@ def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypat
     assert status == 0 and "--iso-range" in cheaper, err
     assert "--samples 1," in cheaper and "--scale 0.25," in cheaper, cheaper
     assert "min on 1 thread\n" in err, err
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:64", "--samples", "1",
+                          "--bounces", "0", "--scale", "0.08", "--out", str(tmp_path / "u.npz"))
+    cheaper = next(x for x in err.splitlines() if x.startswith("bake: cheaper"))
+    assert status == 0 and "--samples" not in cheaper and "--scale" not in cheaper, cheaper
 
 
 def test_a_plan_that_fails_leaves_its_stage_unfinished_and_says_why(tmp_path, capsys,
