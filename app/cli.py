@@ -21,10 +21,12 @@ from isolume.app.options import (
     EXIT_USER_ERROR,
     add_bake_options,
     add_render_options,
+    add_timeline_option,
     add_volume_options,
     description_of,
 )
 from isolume.app.state import add_state_argument, apply_state
+from isolume.volumes import cores
 from isolume.volumes.errors import IsolumeError
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
@@ -73,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="FILE.png (sRGB) or FILE.exr (linear) (required; with "
                    "--state, by default beside the state file: NAME-WxH.png)")
     add_render_options(p)
+    add_timeline_option(p)
     add_state_argument(p)
     p = sub.add_parser("bake", help="bake an illumination lattice with Embree path tracing",
                        description="Bake an illumination lattice for every isovalue (or "
@@ -80,6 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "texels.")
     add_volume_options(p, optional=False)
     add_bake_options(p)
+    add_timeline_option(p)
     for name in COMMAND_MODULES:
         module = _command_module(name)
         if module is not None:
@@ -100,6 +104,13 @@ def _join_negative_axes(argv: Sequence[str]) -> list[str]:
     return out
 
 
+def workers_of(args: argparse.Namespace) -> int | None:
+    """The threads a command may keep busy: its ``--workers``, None (also for the viewer,
+    whose ``--bake-workers`` rule its bake process) for the cores this process may use
+    (`cores.available`)."""
+    return getattr(args, "workers", None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``isolume`` console script; returns the exit status."""
     release_freed_blocks()
@@ -108,7 +119,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(words)
     command = COMMANDS.get(args.command) or _command_module(args.command).run
     try:
-        return command(apply_state(args, words[1:]))  # --state FILE: the file's defaults
+        args = apply_state(args, words[1:])  # --state FILE: the file's defaults
+        cores.use(workers_of(args))
+        with cores.recording(getattr(args, "timeline", None), command=words):
+            return command(args)
     except IsolumeError as exc:
         message = " ".join(str(exc).split())
         print(f"isolume: error: {message}", file=sys.stderr)

@@ -23,12 +23,11 @@ outgoing radiance is albedo·E/π of a diffuse surface, E the irradiance there, 
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from isolume import volumes
 from isolume.baking.lattice import shown_lookup
+from isolume.volumes import cores
 
 SUN_RAYS = 32
 """Shadow rays per vertex over the sun's disc: the penumbra in steps of 1/32 of the sun."""
@@ -129,7 +128,7 @@ def traced_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarra
     h = float(np.mean(volume.spacing))
     seen = SeenSurface(points, points + config.offset * h * normals, normals, texels, nearest)
     tracing = preview_tracing(volume, config)
-    threads = workers or os.cpu_count() or 1
+    threads = workers or cores.threads()
     with tqdm(total=len(texels), unit="texel", desc="global illumination",
               disable=not progress, dynamic_ncols=True) as bar:
         for lo in range(0, len(texels), TEXELS_PER_REPORT):

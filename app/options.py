@@ -171,7 +171,7 @@ def add_light_options(p: argparse.ArgumentParser, traced_for: str) -> None:
                    help="diffuse bounces of that illumination (default 2)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--workers", type=int, default=None,
-                   help="tracing threads (default: all cores)")
+                   help=WORKERS_HELP)
     p.add_argument("--albedo", default=None,
                    help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
     p.add_argument("--env-rotation", default="0,0",
@@ -194,6 +194,18 @@ def add_light_options(p: argparse.ArgumentParser, traced_for: str) -> None:
     p.add_argument("--flip-normals", action="store_true",
                    help="material less dense than air: normals (and the lit side) towards "
                    "higher values (default off)")
+
+
+WORKERS_HELP = ("threads for all the command runs in parallel: tracing, the plan's kernels, "
+                "Embree's builds, Mesa, BLAS (default: the cores this process may use)")
+
+
+def add_timeline_option(p: argparse.ArgumentParser) -> None:
+    """``--timeline FILE.json``: where the command's cores went, stage by stage
+    (`volumes.cores.Timeline`; `isolume bench cores` reads it)."""
+    p.add_argument("--timeline", metavar="FILE.json", default=None,
+                   help="record each stage's wall and CPU time, every thread's, and the "
+                   "work items, as JSON (isolume bench cores reads it)")
 
 
 def add_render_options(p: argparse.ArgumentParser) -> None:
@@ -322,7 +334,7 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
                    "bounces; the default when there is one; --mode sh: the sun, which turns "
                    "with the sky, and two transfer vectors, asked for explicitly) or lattice "
                    "(all in the lattice)")
-    p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
+    p.add_argument("--workers", type=int, default=None, help=WORKERS_HELP)
     p.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="trace on a Dask cluster: its scheduler (tcp://host:8786), or local:N "
                    "for N worker processes here; the same lattice (pip install "

@@ -12,7 +12,6 @@ texels it commits together.
 from __future__ import annotations
 
 import itertools
-import os
 import threading
 import time
 from collections import OrderedDict
@@ -40,6 +39,7 @@ from isolume.baking.passes import (
 )
 from isolume.baking.plan import Plan, index_type, resolved_iso_range
 from isolume.baking.plan_records import LevelGroups, PlanRecords
+from isolume.volumes import cores
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.trace import Scene
@@ -277,10 +277,12 @@ class ThreadBackend:
 
     def __init__(self, workers: int | None = None, scene_cache: int = 1,
                  ahead: int = AHEAD_LEVELS) -> None:
-        self.workers = max(1, workers or os.cpu_count() or 1)
+        self.workers = max(1, workers or cores.threads())
         self.job: BakeJob | None = None
-        self._pool = ThreadPoolExecutor(max_workers=self.workers)
-        self._helper = ThreadPoolExecutor(max_workers=1)  # the next step; scenes ahead
+        self._pool = cores.executor(self.workers, "isolume-trace")
+        # the next step and scenes ahead: on one thread of their own beside the pool, or in
+        # turn with the tracing when the bake has one thread
+        self._helper = ThreadPoolExecutor(max_workers=1) if self.workers > 1 else cores.Inline()
         self._scenes: OrderedDict[int, Scene] = OrderedDict()
         self._scene_cache = max(1, scene_cache)
         self._scene_lock = threading.Lock()
@@ -301,7 +303,7 @@ class ThreadBackend:
         self._warm = self._helper.submit(kernels.warm_up)
         self._first_guess = _first_level(volume, config, kept) if self._ahead > 0 else None
         if self._first_guess is not None:
-            self._pending[0] = self._helper.submit(level_scene, volume, self._first_guess,
+            self._pending[0] = self._helper.submit(_scene_item, volume, self._first_guess,
                                                    config)
 
     def levels_known(self, levels: np.ndarray) -> None:
@@ -312,7 +314,7 @@ class ThreadBackend:
         for level in range(min(self._ahead, len(levels))):
             if level > 0 or self._first_guess != float(levels[0]):
                 self._pending[level] = self._helper.submit(
-                    level_scene, self._volume, float(levels[level]), self._config)
+                    _scene_item, self._volume, float(levels[level]), self._config)
 
     def plan_scene(self, level: int) -> Scene:
         """The scene of level `level`, from the cache (`_scene`): the plan's side probes
@@ -399,8 +401,11 @@ class ThreadBackend:
             ahead = self._pending.pop(level, None)
             while len(self._scenes) >= self._scene_cache:
                 self._scenes.popitem(last=False)
-        scene = ahead.result() if ahead is not None else level_scene(
-            self._volume, float(self._levels[level]), self._config)
+        if ahead is not None:
+            scene = ahead.result()
+        else:
+            with cores.timed_item("level scene"):
+                scene = level_scene(self._volume, float(self._levels[level]), self._config)
         with self._scene_lock:
             self._stats.mesh_seconds += scene.mesh_seconds
             self._stats.embree_seconds += scene.build_seconds
@@ -465,13 +470,20 @@ class ThreadBackend:
             report.show(level)
 
 
+def _scene_item(volume: volumes.Volume, level: float, config: BakeConfig) -> Scene:
+    """`level_scene`, recorded as an item of the timeline."""
+    with cores.timed_item("level scene"):
+        return level_scene(volume, level, config)
+
+
 def _trace_into(sums: PassSums, lay: _LevelWork, lo: int, hi: int
                 ) -> tuple[int, int, float]:
     """Trace the paths of the step's texels lo … hi − 1 (`trace_texels`) and add their
     sums to the batch's; returns the paths, the rays and the seconds tracing."""
-    part, paths, rays, seconds = trace_texels(lay.scene, lay.tracing, lay.paths, lo, hi,
-                                              lay.start)
-    sums.add(lay.paths.texels[lo:hi], part)
+    with cores.timed_item("trace"):
+        part, paths, rays, seconds = trace_texels(lay.scene, lay.tracing, lay.paths, lo, hi,
+                                                  lay.start)
+        sums.add(lay.paths.texels[lo:hi], part)
     return paths, rays, seconds
 
 
@@ -480,7 +492,9 @@ def _commit(traced: list[tuple[PassStep, PassSums]], report: PassReport) -> None
     is not made again."""
     while traced:
         step, sums = traced.pop()
-        if report.commit(step.texels, sums):
+        with cores.timed_item("commit"):
+            committed = report.commit(step.texels, sums)
+        if committed:
             report.show(step.level, refresh=True)
 
 

@@ -53,6 +53,7 @@ from isolume.baking.passes import (
 from isolume.baking.plan import Plan, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
 from isolume.baking.plan_records import HeldRecords, LevelGroups, PlanRecords, spill
+from isolume.volumes import cores
 
 
 def tracing_lights(config: BakeConfig) -> TracingLights:
@@ -465,11 +466,12 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
                       records_dir=out.parent if out is not None else None)
     pending = int(np.maximum(config.samples - baker.samples_done(), 0).sum())
     if outlook is not None:
-        threads = 0 if scheduler is not None else (workers or os.cpu_count() or 1)
+        threads = 0 if scheduler is not None else (workers or cores.threads())
         outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), pending, threads))
     bar = _progress(pending, progress)
     held = baker.lattice
     checkpoint = Checkpoints(held, out, checkpoint_seconds)
+    cores.stage("tracing")
     try:
         baker.run(bar=bar, after_commit=checkpoint)
         if config.target_error is not None:
@@ -481,6 +483,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
     finally:
         baker.close()
         bar.close()
+    cores.stage("save")
     if out is not None:
         held.save(out)
     del baker  # its plan goes before the lattice is made dense
@@ -508,7 +511,8 @@ class Checkpoints:
         began = time.perf_counter()
         if self.out is None or began < self.due:
             return
-        self.lattice.save(self.out)
+        with cores.timed_item("checkpoint"):
+            self.lattice.save(self.out)
         self.saves += 1
         ended = time.perf_counter()
         self.due = ended + max(self.seconds, (ended - began) / SAVE_SHARE)

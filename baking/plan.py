@@ -30,6 +30,13 @@
   that building the level scenes costs at most `SCENE_SHARE` of the tracing (both
   estimated in rays, from the volume, the surface area and the paths: deterministic, so
   the same config gives the same levels on any machine).
+
+Each stage works on blocks of texels on every core (`for_blocks`), the glue between its
+compiled kernels included, and each block writes its own rows: the plan is the same bits
+on any number of threads.
+
+Length: the stages of one plan share a dozen per-texel arrays (ids, targets, levels,
+weights, landing points, sides); split, each part would hand them all back and forth.
 """
 
 from __future__ import annotations
@@ -49,6 +56,7 @@ from isolume.baking.errors import BakeError
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.rng import pcg_hash
 from isolume.baking.sides import choose_sides
+from isolume.volumes import cores
 
 GOLDEN_FRACTION = 0.6180339887498949
 MAX_REACH = 4.0
@@ -220,6 +228,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
                         "there is no isosurface to bake")
     lo, hi = resolved_iso_range(volume, config)
     say("texel values")
+    cores.stage("texel values")
     rho = texel_values(volume, geometry)
     min_span = MIN_SPAN_FRACTION * (vmax - vmin)
     active, crossed = select_cells(rho, lo, hi, min_span, 0.5 * (lo + hi))
@@ -234,22 +243,30 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     texel_rho = rho.reshape(-1)[ids]
     del rho  # the box's grid (4 bytes a texel): the rest of the plan is per active texel
     say("gradients")
+    cores.stage("gradients")
     grad = _gradients(volume, geometry, ids)
     target = np.empty(len(ids))
-    for block in _blocks(len(ids)):
+
+    def targets(block: slice) -> None:
         target[block] = lit_isovalues(texel_rho[block], grad[block] / config.scale, lo, hi)
+
+    for_blocks(targets, len(ids), "lit isovalues")
     h = float(np.mean(volume.spacing))
     limit = move_limit(config)
+    cores.stage("levels")
     if levels is None:
         budget = level_budget(volume, geometry, config, crossed, len(ids))
         levels = choose_levels(target, grad, (lo, hi), limit, budget)
-    del grad
+    grad = None  # the levels are chosen: its 8 bytes a texel go
     levels = np.asarray(levels, np.float64)
     if on_levels is not None:
         on_levels(levels)
     lower, weight = np.empty(len(ids), np.min_scalar_type(len(levels) - 1)), np.empty(len(ids))
-    for block in _blocks(len(ids)):
+
+    def bracket(block: slice) -> None:
         lower[block], weight[block] = _bracketing(levels, target[block])
+
+    for_blocks(bracket, len(ids), "bracketing")
     texel_rho, target = (None, None) if traced_only else (texel_rho, target.astype(np.float32))
     # Each texel must reach its bracketing levels by Newton steps along the gradient. Where
     # one cannot be reached (small gradient, or the level surface lies elsewhere: plateaus,
@@ -259,20 +276,25 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     reach = newton_reach(volume, config)
     stage = f"paths onto {len(levels)} levels"
     say(stage)
+    cores.stage("paths onto levels")
     uses_lo, uses_hi = weight < 1, weight > 0
     landing = np.full((len(ids), 2, 3), UNLANDED, np.int16)
-    for block in _blocks(len(ids)):
+
+    def land(block: slice) -> None:
         centres = geometry.centres(ids[block])
         for side, uses in ((0, uses_lo[block]), (1, uses_hi[block])):
             landing[block][uses, side] = landing_offsets(project_to_level(
                 volume, centres[uses], levels[lower[block] + side][uses], max_move=reach),
                 centres[uses], reach)
-        say(stage, block.stop / len(ids))
+
+    for_blocks(land, len(ids), "newton", lambda fraction: say(stage, fraction))
     stage = f"seen sides on {len(levels)} levels"
     say(stage)
+    cores.stage("seen sides")
     high = lit_sides(volume, config, geometry, ids, landing, reach, levels, lower, weight,
                      scenes, lambda fraction: say(stage, fraction))
     say("reach tests")
+    cores.stage("reach tests")
     reaches = _Reaches(volume, config, geometry, ids, reach, levels, lower, high)
     ok_lo, move_lo = reaches(0, uses_lo, landing[:, 0])
     say("reach tests", 1 / 3)
@@ -280,16 +302,20 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     say("reach tests", 2 / 3)
     ok_lo, move_lo = reaches(0, ~uses_lo & ~ok_hi, landing[:, 0], ok_lo, move_lo)  # fallback
     say("reach tests", 1.0)
+    cores.stage("settle")
     needed = (ok_lo | (weight == 1)) & (ok_hi | (weight == 0))  # the levels it uses
     move = np.empty(len(ids), np.float32)
     phase = np.empty(len(ids), np.uint32)
     seed = np.uint32(config.seed & 0xFFFFFFFF)
-    for b in _blocks(len(ids)):
+
+    def settle(b: slice) -> None:
         weight[b], move[b] = _settled(weight[b], needed[b], ok_lo[b], ok_hi[b], high[b],
                                       move_lo[b], move_hi[b], h)
         phase[b] = pcg_hash(ids[b].astype(np.uint32) ^ seed)
+
+    for_blocks(settle, len(ids), "settle")
     moves = (*(float(v) for v in np.percentile(move, [50, 90])), float(move.max()))
-    del move
+    move = None
     return Plan(ids, texel_rho, target, (lo, hi), levels, lower, weight, phase,
                 active, moves, limit, reach, landing, high, int(np.count_nonzero(~needed)))
 
@@ -501,9 +527,12 @@ def choose_levels(target: np.ndarray, grad_per_voxel: np.ndarray,
         return np.array([lo, lo + max(abs(lo) * 1e-6, 1e-6)])
     edges = np.linspace(lo, hi, bins + 1)
     which = np.empty(len(target), np.min_scalar_type(bins))
-    for block in _blocks(len(target)):
+
+    def bin_of(block: slice) -> None:
         which[block] = np.clip(np.searchsorted(edges, target[block], side="right") - 1, 0,
                                bins - 1)
+
+    for_blocks(bin_of, len(target), "levels")
     fallback = float(np.percentile(grad_per_voxel, 10))
     spacing = move * np.maximum(_binned_percentile(which, grad_per_voxel, bins, 10, fallback),
                                 1e-12 * (hi - lo))
@@ -585,26 +614,34 @@ def _gradients(volume: volumes.Volume, geometry: LatticeGeometry, ids: np.ndarra
     """(T,) |∇ρ| at the centres of texels `ids`, value units per voxel (`choose_levels`)."""
     h = float(np.mean(volume.spacing))
     grad = np.empty(len(ids))
-    for block in _blocks(len(ids)):
+
+    def norms(block: slice) -> None:
         grad[block] = np.linalg.norm(
             volumes.gradient_at(volume, geometry.centres(ids[block])), axis=1) * h
+
+    for_blocks(norms, len(ids), "gradients")
     return grad
 
 
-PLAN_BLOCK = 1 << 20
-"""Texels whose centres, gradients and Newton moves the plan works on at a time: its
-temporaries hold tens of bytes per texel of a block, not of the plan."""
+PLAN_BLOCK = 1 << 15
+"""Texels whose centres, gradients and Newton moves one work item of the plan takes
+(`for_blocks`): its temporaries hold tens of bytes per texel of a block a thread, not of
+the plan, and a 256³ CT's plan is hundreds of items, handed out to whichever core is
+free (a block of stalled Newton points holds up one thread)."""
 
 
-def _blocks(count: int):
-    """Slices of at most `PLAN_BLOCK` of `count` texels, in order."""
-    for lo in range(0, count, PLAN_BLOCK):
-        yield slice(lo, min(lo + PLAN_BLOCK, count))
+def for_blocks(work: Callable[[slice], None], count: int, kind: str,
+               progress: Callable[[float], None] | None = None) -> None:
+    """`work(block)` for blocks of at most `PLAN_BLOCK` of `count` texels on every core
+    (`cores.for_blocks`: the numpy between the compiled kernels runs in the items too, and
+    each block writes its own rows, so the plan is the same bits on any number of
+    threads)."""
+    cores.for_blocks(work, count, PLAN_BLOCK, kind, progress)
 
 
 @dataclass(frozen=True)
 class _Reaches:
-    """`_reaches` of a plan's (T,) texels `ids`, block by block (`_blocks`)."""
+    """`_reaches` of a plan's (T,) texels `ids`, block by block (`for_blocks`)."""
 
     volume: volumes.Volume
     config: BakeConfig
@@ -625,7 +662,8 @@ class _Reaches:
         count = len(self.ids)
         ok = np.ones(count, bool) if ok is None else ok.copy()
         moved = np.zeros(count, np.float32) if moved is None else moved.copy()
-        for b in _blocks(count):
+
+        def block(b: slice) -> None:
             centres = self.geometry.centres(self.ids[b])
             landed = landed_points(landing[b], centres, self.reach)
             lower = self.lower[b]
@@ -634,6 +672,8 @@ class _Reaches:
                                        self.levels[lower + side], self.reach, tol,
                                        self.high[b], which[b], landed, ok[b], moved[b])
             landing[b] = landing_offsets(landed, centres, self.reach)
+
+        for_blocks(block, count, "reach tests")
         return ok, moved
 
 

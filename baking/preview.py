@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +42,7 @@ from isolume.baking.lazy import corner_offsets, visible_cells
 from isolume.baking.passes import PassSums, PathStarts, Tracing, trace_chunk
 from isolume.baking.plan import project_to_level
 from isolume.baking.reference import primary_hits
+from isolume.volumes import cores
 
 PASSES = ((4, True), (64, False), (256, False))
 """(paths per texel, coarse mesh allowed) of the preview passes of a view, in order; the
@@ -438,8 +438,8 @@ def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths) -> n
         samples = np.tile(np.arange(paths, dtype=np.int64), hi - lo)
         trace_chunk(scene, tracing, pos, samples, start, sums)
 
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        list(pool.map(run, range(0, len(flat), per_chunk)))
+    cores.for_items(lambda c: run(c * per_chunk), -(-len(flat) // per_chunk), "trace",
+                    workers=workers)
     return sums.sum
 
 

@@ -46,6 +46,7 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, RayStats, TracingLights, trace_paths
 from isolume.baking.lattice import volume_identity
+from isolume.volumes import cores
 
 STATE_VERSION = 1
 PIXELS_PER_BLOCK = 1024
@@ -391,7 +392,7 @@ class ReferenceTracer:
             "env_rotation": None if env_rotation is None else np.asarray(env_rotation).tolist(),
             "config": _identity_config(config),
         }
-        threads = max(1, workers or os.cpu_count() or 1)
+        threads = max(1, workers or cores.threads())
         self._pool = ThreadPoolExecutor(max_workers=threads)
         self._max_in_flight = 2 * threads + 2  # keeps every thread busy, memory bounded
         self.counters.setup_seconds = time.perf_counter() - started

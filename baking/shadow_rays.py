@@ -23,8 +23,6 @@ A directional light takes one ray, a point light one ray that stops at the light
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -32,6 +30,7 @@ from isolume import volumes
 from isolume.baking.config import BakeConfig
 from isolume.baking.lights import DirectionalLight, PointLight, SunLight
 from isolume.baking.sampling import orthonormal_basis
+from isolume.volumes import cores
 
 SUN_RAYS = 16
 """Rays per pixel over a sun's disc."""
@@ -123,9 +122,7 @@ def light_factors(scene, starts: np.ndarray, normals: np.ndarray, lights: tuple,
         out[pixels, j] = _seen_cosine(scene, lights[j], starts[pixels], normals[pixels],
                                       pixels)
 
-    threads = max(1, workers or os.cpu_count() or 1)
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        list(pool.map(run, jobs))
+    cores.for_items(lambda i: run(jobs[i]), len(jobs), "shadow rays", workers=workers)
     return out
 
 

@@ -22,7 +22,6 @@ where neither is (a closed cavity), on the normals' side. The probe directions h
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,6 +30,7 @@ from isolume import volumes
 from isolume.baking import kernels
 from isolume.baking.embree_kernels import occluded_rays
 from isolume.baking.rng import seed_key
+from isolume.volumes import cores
 
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
@@ -54,9 +54,6 @@ SALT = 0x51DE_5EED
 """Mixed into the bake seed: the probes use random numbers of their own."""
 TEXELS_PER_BATCH = 4096
 """Texels whose probe rays one thread traces at a time (65 536 rays, 2.4 MB of rays)."""
-TEXELS_PER_CALL = 1 << 18
-"""Texels whose points, normals and counts `choose_sides` holds at a time (~200 bytes
-each, 52 MB, where one level can hold tens of millions of texels)."""
 
 
 def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
@@ -75,8 +72,8 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
         scenes: ``scenes(k)``, the Embree scene of level k from the baker's cache (no
             scene beside the baker's), or None to build each here (`level_surface`);
             levels are probed lowest first.
-        progress: told the fraction of the found texels probed so far, after each call
-            of `TEXELS_PER_CALL` texels.
+        progress: told the fraction of the found texels probed so far, after each batch
+            of `TEXELS_PER_BATCH` texels the calling thread probes.
     """
     default = bool(config.flip_normals)
     high = np.full(len(ids), default)
@@ -87,16 +84,39 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
         if scene is None:
             scene = level_surface(volume, float(levels[k]))
         if not scene.empty:
-            for lo in range(0, len(on), TEXELS_PER_CALL):
-                at = on[lo:lo + TEXELS_PER_CALL]
-                open_low, open_high = open_rays(scene, volume, config, ids[at], points(at),
-                                                float(levels[k]), default)
-                high[at] = side_rule(open_low, open_high, parity(geometry, ids[at]), default)
-                if progress is not None:
-                    progress((probed + lo + len(at)) / total)
+            _probe_level(scene, volume, config, geometry, ids, points, on, float(levels[k]),
+                         default, high, _fraction(progress, probed, total))
         probed += len(on)
         del scene  # gone before the next level's is built
     return high
+
+
+def _fraction(progress: Callable[[float], None] | None, probed: int, total: int):
+    """``told(texels)``: `progress` told the fraction of `total` texels probed, `probed`
+    before this level and `texels` on it (nothing without `progress`)."""
+    if progress is None:
+        return lambda _texels: None
+    return lambda texels: progress((probed + texels) / total)
+
+
+def _probe_level(scene, volume: volumes.Volume, config: BakeConfig,
+                 geometry: LatticeGeometry, ids: np.ndarray,
+                 points: Callable[[np.ndarray], np.ndarray], on: np.ndarray, level: float,
+                 default: bool, high: np.ndarray, told: Callable[[int], None]) -> None:
+    """Choose the sides of the texels at positions `on` (M,) of one level into `high`, a
+    `TEXELS_PER_BATCH` at a time on every core (`cores.for_items`): each item finds its
+    texels' points, normals and probe origins, traces their probes and applies the rule,
+    so that no glue runs between the rays on one thread."""
+    blocks = -(-len(on) // TEXELS_PER_BATCH)
+
+    def block(b: int) -> None:
+        at = on[b * TEXELS_PER_BATCH:(b + 1) * TEXELS_PER_BATCH]
+        open_low, open_high = open_rays(scene, volume, config, ids[at], points(at), level,
+                                        default)
+        high[at] = side_rule(open_low, open_high, parity(geometry, ids[at]), default)
+
+    cores.for_items(block, blocks, "side probes",
+                    on_done=lambda done: told(min(done * TEXELS_PER_BATCH, len(on))))
 
 
 def side_rule(open_low: np.ndarray, open_high: np.ndarray, odd: np.ndarray,
@@ -180,7 +200,8 @@ def unblocked_rays(scene, key: np.uint32, ids: np.ndarray, origins: np.ndarray,
     normals = np.ascontiguousarray(normals, np.float32)
     samples = np.tile(np.arange(PROBES, dtype=np.int64), TEXELS_PER_BATCH)
 
-    def batch(lo: int) -> None:
+    def batch(b: int) -> None:
+        lo = b * TEXELS_PER_BATCH
         hi = min(lo + TEXELS_PER_BATCH, n)
         texels = np.arange(hi - lo, dtype=np.int64)
         pos = np.repeat(texels, PROBES)
@@ -193,6 +214,5 @@ def unblocked_rays(scene, key: np.uint32, ids: np.ndarray, origins: np.ndarray,
             blocked = scene.occluded(starts.T, dirs.T)
         out[lo:hi] = PROBES - blocked.reshape(-1, PROBES).sum(axis=1)
 
-    with ThreadPoolExecutor() as pool:
-        list(pool.map(batch, range(0, n, TEXELS_PER_BATCH)))
+    cores.for_items(batch, -(-n // TEXELS_PER_BATCH), "probe rays")
     return out

@@ -23,10 +23,11 @@ import time
 from typing import NamedTuple
 
 import numpy as np
-from embreex import rtcore_scene
+from embreex import rtcore, rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from isolume.baking.rays import RayStats
+from isolume.volumes import cores
 from isolume.volumes.cubes import PAD_BYTES, padded_copy
 
 _MISS = -1
@@ -180,6 +181,58 @@ def _scene_handle(embree) -> int | None:
     return ctypes.c_void_p.from_address(id(embree) + header).value
 
 
+_DEVICES: dict[int, object] = {}
+_DEVICES_LOCK = threading.Lock()
+
+
+def sized_device(threads: int):
+    """An embreex ``EmbreeDevice`` whose Embree device builds with at most `threads`
+    threads (``rtcNewDevice("threads=N")``; embreex makes its devices unconfigured, with
+    every core), one per count, kept; None where its layout or the library cannot be
+    verified (scenes then use embreex's own device).
+
+    The device is the one field of embreex's ``EmbreeDevice`` (``embreex/rtcore.pxd``); it
+    is replaced only after a scene made on the object has been asked for its device by
+    Embree itself (``rtcGetSceneDevice``) and answered with that field's value."""
+    with _DEVICES_LOCK:
+        if threads not in _DEVICES:
+            _DEVICES[threads] = _configured_device(f"threads={int(threads)}")
+        return _DEVICES[threads]
+
+
+def _configured_device(config: str):
+    """`sized_device`'s device for the Embree configuration string `config`, or None."""
+    lib = _embree_library()
+    header, pointer = object.__basicsize__, ctypes.sizeof(ctypes.c_void_p)
+    if lib is None or rtcore.EmbreeDevice.__basicsize__ != header + pointer:
+        return None
+    p = ctypes.c_void_p
+    scene_device = _typed(lib, "rtcGetSceneDevice", p, p)
+    release_device = _typed(lib, "rtcReleaseDevice", None, p)
+    new_device = _typed(lib, "rtcNewDevice", p, ctypes.c_char_p)
+    device = rtcore.EmbreeDevice()
+    field = ctypes.c_void_p.from_address(id(device) + header)
+    probe = rtcore_scene.EmbreeScene(device)
+    handle = _scene_handle(probe)
+    found = scene_device(handle) if handle else None
+    if found:
+        release_device(found)  # rtcGetSceneDevice retained it
+    del probe
+    if not found or found != field.value:
+        return None
+    release_device(field.value)  # first: Embree sizes a device by the largest alive
+    made = new_device(config.encode())
+    field.value = made or new_device(None)
+    return device if made else None
+
+
+def _new_scene():
+    """An embreex scene on the device of `cores.embree_threads()` threads
+    (`sized_device`), or on embreex's own where that cannot be made."""
+    device = sized_device(cores.embree_threads())
+    return rtcore_scene.EmbreeScene(device) if device is not None else rtcore_scene.EmbreeScene()
+
+
 def embree_calls(scene: Scene) -> EmbreeCalls | None:
     """`EmbreeCalls` of a committed, non-empty `Scene`, or None (empty scene, or an
     embreex whose scene layout or library could not be verified)."""
@@ -212,7 +265,7 @@ class Scene:
         """Seconds the mesh took to make (set by whoever made it)."""
         began = time.perf_counter()
         if not self.empty:
-            self._scene = rtcore_scene.EmbreeScene()
+            self._scene = _new_scene()
             self.built_by = _attach_mesh(self._scene, self.vertices, self.faces)
         self.pieces = {"native": len(_pieces(len(faces))), "embreex": 1}.get(self.built_by, 0)
         """Embree scenes the triangles were built as (`PIECE_TRIANGLES`; 0 when empty)."""
@@ -458,9 +511,9 @@ def _native_matches_embreex(build: _NativeBuild) -> bool:
     faces = rng.integers(0, 30, (20, 3)).astype(np.int32)
     origins = np.zeros((256, 3), np.float32)
     dirs = rng.normal(size=(256, 3)).astype(np.float32)
-    reference = rtcore_scene.EmbreeScene()
+    reference = _new_scene()
     _attach_embreex(reference, vertices, faces)
-    native = rtcore_scene.EmbreeScene()
+    native = _new_scene()
     try:
         if not _attach_native(build, native, vertices, faces):
             return False

@@ -443,7 +443,7 @@ def test_the_plan_tells_how_far_its_long_stages_have_come(monkeypatch):
     from isolume.baking import sides
 
     monkeypatch.setattr(plan_module, "PLAN_BLOCK", 997)
-    monkeypatch.setattr(sides, "TEXELS_PER_CALL", 997)
+    monkeypatch.setattr(sides, "TEXELS_PER_BATCH", 997)
     vol = make("engine", 40)
     config = BakeConfig(samples=8, bounces=0)
     told = []

@@ -85,16 +85,22 @@ def test_a_plane_across_the_box_is_lit_on_both_sides_in_a_checkerboard():
 
 
 def test_sides_chosen_a_few_texels_at_a_time_are_the_same(monkeypatch):
-    """`choose_sides` holds `TEXELS_PER_CALL` texels' points and counts at a time: any
-    split gives the same sides (each texel's probes are its own)."""
+    """`choose_sides` probes `TEXELS_PER_BATCH` texels an item, on every core: any split
+    and any number of threads give the same sides (each texel's probes are its own)."""
     from isolume.baking import sides
+    from isolume.volumes import cores
 
     vol = _plane(24)  # both sides open: lit on alternate texels, by their ids
     config = BakeConfig(iso_range=(0.45, 0.55), **SKY)
     geometry = bake(vol, config, workers=2).geometry
     whole = make_plan(vol, geometry, config).high
-    monkeypatch.setattr(sides, "TEXELS_PER_CALL", 37)
-    np.testing.assert_array_equal(make_plan(vol, geometry, config).high, whole)
+    monkeypatch.setattr(sides, "TEXELS_PER_BATCH", 37)
+    for threads in (1, 3):
+        cores.use(threads)
+        try:
+            np.testing.assert_array_equal(make_plan(vol, geometry, config).high, whole)
+        finally:
+            cores.use(None)
     assert 0 < whole.sum() < len(whole) and len(whole) > 10 * 37
 
 

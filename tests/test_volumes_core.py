@@ -194,19 +194,23 @@ def test_newton_projection_matches_the_plain_iteration():
 
 
 def test_newton_projection_is_the_same_whatever_the_threads(monkeypatch):
-    """Cut into shares on threads (`MIN_SHARE`), every point lands bit for bit where one
-    call puts it."""
-    from isolume.volumes import field
+    """Cut into items on threads (`cores.MIN_COST`), every point lands bit for bit where
+    one call puts it."""
+    from isolume.volumes import cores
 
     vol = make("torus", 40)
     r = np.random.default_rng(5)
     start = vol.index_to_world(r.uniform(2, 37, size=(3001, 3)))
     levels = r.uniform(0.2, 0.8, 3001)
     whole = volumes.newton_to_level(vol, start, levels, 2.0 * min(vol.spacing))
-    monkeypatch.setattr(field, "MIN_SHARE", 100)
-    monkeypatch.setattr(field.os, "cpu_count", lambda: 7)
-    np.testing.assert_array_equal(
-        volumes.newton_to_level(vol, start, levels, 2.0 * min(vol.spacing)), whole)
+    monkeypatch.setattr(cores, "MIN_COST", 100)
+    cores.use(7)
+    try:
+        moved = volumes.newton_to_level(vol, start, levels, 2.0 * min(vol.spacing))
+    finally:
+        cores.use(None)
+    assert len(cores.item_bounds(len(start), 1)) > 7
+    np.testing.assert_array_equal(moved, whole)
 
 
 @pytest.mark.parametrize("flip", [False, True])

@@ -26,8 +26,8 @@ import functools
 import numba
 import numpy as np
 
+from isolume.volumes import cores
 from isolume.volumes.core import Volume
-from isolume.volumes.field import on_threads
 
 _EDGES = np.array([(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit])
 """(12, 2) corner pairs of the cell's edges, lower corner first (corner c = x + 2y + 4z)."""
@@ -211,13 +211,13 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
     layers = max(grid_layers - 1, 0)
     cells_per_layer = max(data.shape[1] - 1, 0) * max(data.shape[2] - 1, 0)
     totals = np.zeros(layers, np.int64)
-    on_threads(lambda lo, hi: _count(data, float(iso), count, lo, hi, totals), layers,
-               cells_per_layer)
+    cores.for_ranges(lambda lo, hi: _count(data, float(iso), count, lo, hi, totals), layers,
+                     cells_per_layer, "surface")
     if layers == 0 or totals.sum() == 0:
         return padded_empty((0, 3), np.float32), padded_empty((0, 3), np.int32)
     crossed = np.zeros(grid_layers, np.int64)
-    on_threads(lambda lo, hi: _count_vertices(data, float(iso), lo, hi, crossed),
-               grid_layers, 3 * data.shape[1] * data.shape[2])
+    cores.for_ranges(lambda lo, hi: _count_vertices(data, float(iso), lo, hi, crossed),
+                     grid_layers, 3 * data.shape[1] * data.shape[2], "surface")
     firsts = np.concatenate([[0], np.cumsum(totals)])
     vertex_first = np.concatenate([[0], np.cumsum(crossed)])
     vertices = padded_empty((int(vertex_first[-1]), 3), np.float32)
@@ -229,7 +229,7 @@ def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]
         _fill(data, float(iso), count, table, _EDGES, origin, spacing, vertex_first, lo, hi,
               vertices, faces, int(firsts[lo]))
 
-    on_threads(fill_layers, layers, cells_per_layer)
+    cores.for_ranges(fill_layers, layers, cells_per_layer, "surface")
     return vertices, faces
 
 

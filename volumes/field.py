@@ -16,12 +16,10 @@ the material is denser than its surroundings); ``flip=True`` reverses them.
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numba
 import numpy as np
 
+from isolume.volumes import cores
 from isolume.volumes.core import Volume
 
 _BSPLINE = np.array([1.0, 4.0, 1.0]) / 6.0
@@ -300,7 +298,7 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
 
     One compiled pass per point (value and gradient read together, no temporaries, no
     GIL): the bake does this for every texel on each of its levels, large batches on
-    threads (`on_threads`)."""
+    threads (`cores.for_ranges`)."""
     points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
     levels = np.ascontiguousarray(np.broadcast_to(levels, (len(points),)), np.float64)
     out = np.empty_like(points)
@@ -311,7 +309,7 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
         _newton(*fixed, points[lo:hi], levels[lo:hi], float(max_move), int(iterations),
                 out[lo:hi])
 
-    on_threads(steps, len(points), 1)
+    cores.for_ranges(steps, len(points), 1, "newton")
     return out
 
 
@@ -332,7 +330,7 @@ def values_on_grid(volume: Volume, x: np.ndarray, y: np.ndarray, z: np.ndarray
                    ) -> np.ndarray:
     """(len(z), len(y), len(x)) float32 trilinear field values at the points of the world
     grid spanned by the coordinates `x`, `y`, `z` (each 1-D, world units): bit for bit
-    `value_at` at those points, one compiled pass (z-slabs on threads: `on_threads`)."""
+    `value_at` at those points, one compiled pass (z-slabs on threads: `cores.for_ranges`)."""
     axes = [(np.asarray(c, np.float64) - o) / h
             for c, o, h in zip((x, y, z), volume.origin, volume.spacing, strict=True)]
     out = np.empty((len(axes[2]), len(axes[1]), len(axes[0])), np.float32)
@@ -340,26 +338,8 @@ def values_on_grid(volume: Volume, x: np.ndarray, y: np.ndarray, z: np.ndarray
     def slab(lo: int, hi: int) -> None:
         _grid_trilinear(volume.data[..., None], axes[2][lo:hi], axes[1], axes[0], out[lo:hi])
 
-    on_threads(slab, len(axes[2]), out[0].size if len(out) else 1)
+    cores.for_ranges(slab, len(axes[2]), out[0].size if len(out) else 1, "grid values")
     return out
-
-
-def on_threads(work, count: int, cost_per_item: int) -> None:
-    """`work(lo, hi)` over [0, count) in one contiguous share per core (at least
-    `MIN_SHARE` points of `cost_per_item` each), on threads when there is more than one:
-    the compiled kernels release the GIL, and each item's result is its own, so every
-    split gives the same bits."""
-    shares = min(os.cpu_count() or 1, count * cost_per_item // MIN_SHARE, count)
-    if shares <= 1:
-        work(0, count)
-        return
-    cuts = np.linspace(0, count, shares + 1).astype(np.int64)
-    with ThreadPoolExecutor(max_workers=shares) as pool:
-        list(pool.map(work, cuts[:-1], cuts[1:]))
-
-
-MIN_SHARE = 1 << 14
-"""Fewest points a thread of `on_threads` takes (smaller batches run in the caller)."""
 
 
 @numba.njit(nogil=True, cache=True)
@@ -401,7 +381,7 @@ def values_along_normals(volume: Volume, points_xyz: np.ndarray, distance: float
         _along_normals(*fixed, points[lo:hi], float(distance), 1.0 if flip else -1.0,
                        out[lo:hi])
 
-    on_threads(part, len(points), 1)
+    cores.for_ranges(part, len(points), 1, "along normals")
     return out
 
 
@@ -434,7 +414,7 @@ def gradient_at(volume: Volume, points_xyz: np.ndarray, smooth: bool = True) -> 
     def part(lo: int, hi: int) -> None:
         _gradients(*fixed, index[lo:hi], out[lo:hi])
 
-    on_threads(part, len(index), 8)
+    cores.for_ranges(part, len(index), 8, "gradients")
     return out
 
 

@@ -12,7 +12,8 @@
 * ``bench frames`` and ``bench lazy``: `app.bench.view`; ``bench accuracy``: the default
   render's and a default bake's lighting against path tracing on every scan
   (`app.bench.accuracy`); ``bench scale``: peak memory and time against the volume's size
-  (`app.bench.scale`).
+  (`app.bench.scale`); ``bench cores``: parallel efficiency per stage against threads, and
+  the speed-up predicted at 16 and 64 threads (`app.bench.cores`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import json
 import time
 
 from isolume.app.options import description_of
+from isolume.volumes import cores
 
 HELP = ("benchmarks: baker throughput against bare embreex, frame times, lazy GI, lighting "
         "accuracy, memory and time against size")
@@ -57,6 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     scale.add_arguments(sub.add_parser("scale", help=scale.HELP,
                                        description=description_of(scale.HELP)))
+    from isolume.app.bench import cores as cores_bench
+
+    cores_bench.add_arguments(sub.add_parser("cores", help=cores_bench.HELP,
+                                             description=description_of(cores_bench.HELP)))
 
 
 _VIEW_BENCHES = {"frames": "frame time per shading mode (llvmpipe, EGL)",
@@ -84,6 +90,10 @@ def run(args: argparse.Namespace) -> int:
         from isolume.app.bench import scale
 
         return scale.run(args)
+    if args.bench == "cores":
+        from isolume.app.bench import cores as cores_bench
+
+        return cores_bench.run(args)
     return getattr(_view_module(), args.bench)(args)
 
 
@@ -91,7 +101,6 @@ def bench_bake(args: argparse.Namespace) -> int:
     """Bake twice with the same settings (a bake traces the same rays every time): once
     plain, timed end to end; once with every ray recorded and replayed on bare embreex
     after each level. Print the plain bake's rates against the bare one."""
-    import os
 
     import numpy as np
 
@@ -104,7 +113,7 @@ def bench_bake(args: argparse.Namespace) -> int:
     config = BakeConfig.lit_by(lighting_of(args.env), samples=args.samples,
                                bounces=args.bounces, scale=args.scale,
                                iso_range=tuple(args.iso_range) if args.iso_range else None)
-    workers = args.workers or os.cpu_count() or 1
+    workers = args.workers or cores.threads()
     began = time.perf_counter()
     baker = Baker(vol, config, workers=workers)
     plan_seconds = time.perf_counter() - began

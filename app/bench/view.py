@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from isolume.volumes import cores
+
 DATA_ENV = "ISOLUME_DATA"
 """Environment variable naming the data folder (real volumes) when ``--data`` does not."""
 DEFAULT_DATA = Path("..") / "shared" / "data"
@@ -446,7 +448,7 @@ def lazy(args) -> int:
     size = parse_size(args.size)
     points, pixels, camera = visible_pixels_headless(volume, iso, size, args.gl)
     cells = visible_cells(geometry, points)
-    workers = args.workers or os.cpu_count() or 1
+    workers = args.workers or cores.threads()
     print(f"lazy GI: {volume.name} at iso {iso:.6g}, {args.size} view, {workers} workers, "
           f"target {args.target:.0%}")
     t = time.perf_counter()

@@ -38,6 +38,7 @@ from isolume.app.charts.progress import say
 from isolume.app.charts.scene import GLScene
 from isolume.app.charts.tracing import NOISE_RATIO, Reference, settle_reference
 from isolume.app.options import CLIError, isovalue, load_volume, parse_size
+from isolume.volumes import cores
 
 HELP = "charts of error against bake time, lattice resolution, lookups and shading modes"
 
@@ -153,8 +154,8 @@ def _settings(args, volume, iso: float, plan: Plan, notes: list[str], run: Run) 
         "bounces": args.bounces, "albedo": args.albedo, "seed": args.seed,
         "quick": args.quick, "samples": list(plan.samples),
         "chart_samples": plan.chart_samples, "triangles": len(run.gl.mesh.faces),
-        "gl_renderer": run.gl.gl_renderer, "workers": args.workers or os.cpu_count(),
-        "cpu_count": os.cpu_count(), "load_average_1min_at_end": os.getloadavg()[0],
+        "gl_renderer": run.gl.gl_renderer, "workers": args.workers or cores.threads(),
+        "cpu_count": cores.available(), "load_average_1min_at_end": os.getloadavg()[0],
         "error_metric": "sqrt(mean((img - ref)^2)) / mean(ref) over the RGB values of the "
                         "pixels both images mark as surface (linear radiance)",
         "bake_time": "wall time of the bake; a lattice of N paths/texel resumes the one of "

@@ -11,6 +11,7 @@ from isolume.app.render.renderer import SurfaceRenderer, framed_camera
 from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
 from isolume.app.render.traced_light import position_pass, trace_direct_light
 from isolume.baking.view_texels import LatticeOnFile
+from isolume.volumes import cores
 
 
 def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarray | None:
@@ -75,7 +76,9 @@ def render_volume(
     """
     from isolume.baking.trace import Scene
 
+    cores.stage("surface")
     mesh = volumes.isosurface(volume, iso, normals=normals, flip_normals=flip_normals)
+    cores.stage("framing")
     gl = create_headless(backend)
     try:
         renderer = SurfaceRenderer(gl.ctx)
@@ -89,8 +92,10 @@ def render_volume(
         elif lattice is None and view_light is not None and len(mesh.faces):
             from isolume.app.render.view_gi import view_lattice
 
+            cores.stage("seen surface")
             seen = position_pass(renderer, camera, settings)
             renderer.release_mesh()  # GL's copy and Embree's scene are not held at once
+            cores.stage("level scenes")
             scene = Scene(mesh.vertices, mesh.faces)
             lattice = view_lattice(volume, view_light, iso, seen[0], camera.eye,
                                    workers=workers, progress=progress, scene=scene)
@@ -100,13 +105,16 @@ def render_volume(
                 seen = position_pass(renderer, camera, settings)
             if scene is None:
                 renderer.release_mesh()
+                cores.stage("level scenes")
                 scene = Scene(mesh.vertices, mesh.faces)
+            cores.stage("tracing")
             trace_direct_light(renderer, camera, settings, volume, seen, scene,
                                smooth=normals == "smooth", workers=workers)
         if scene is not None:
             del scene
             renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_environment(env_coeffs)
+        cores.stage("draw")
         frame = renderer.render(camera, settings)
         renderer.release()
     finally:

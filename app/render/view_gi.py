@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from isolume import volumes
+from isolume.volumes import cores
 
 DEFAULT_PATHS = 64
 """Paths per texel of a render's view lattice (``isolume render --samples``)."""
@@ -53,7 +54,6 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
         A `baking.view_texels.HeldLattice` holding the estimates of the texels the
         picture reads, and nothing else (its memory follows them, not the volume's box).
     """
-    import os
 
     from isolume.baking.lattice import LatticeGeometry
     from isolume.baking.preview import (
@@ -74,12 +74,14 @@ def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
     if scene is None or not len(texels):
         return lattice
     tracing = tracing or preview_tracing(volume, config)
+    cores.stage("nearest points")
     seen = seen_surface(scene, volume, config, geometry, eye, points)
+    cores.stage("tracing")
     chunk = max(256, CHUNK_PATHS // int(config.samples))
     for lo in range(0, len(texels), chunk):
         estimate(volume, config, lattice, iso, texels[lo:lo + chunk], scene, 1,
                  paths=int(config.samples), tracing=tracing,
-                 workers=workers or os.cpu_count() or 1, seen=seen)
+                 workers=workers or cores.threads(), seen=seen)
         report.update(min(lo + chunk, len(texels)))
     report.done(int((lattice.paths > 0).sum()))
     return lattice

@@ -30,6 +30,7 @@ from isolume.app.allocator import release_freed_blocks
 from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lattice_file import MEMBERS
+from isolume.volumes import cores
 
 PLAN_PREVIEW_PATHS = 64
 """Preview passes of at most this many paths go on while a plan is made (`_plan`)."""
@@ -181,6 +182,7 @@ def _bake_main(job: dict, inbox, outbox) -> None:
         pass
     process = None
     try:
+        cores.use(job["workers"])  # --bake-workers: the plan's kernels, Embree, BLAS too
         process = _BakeProcess(job, inbox, outbox)
         process.run()
     except Exception as exc:
@@ -211,7 +213,7 @@ class _BakeProcess:
         self.volume = volumes.Volume(**job["volume"])
         self.config = _config(job["config"])  # the light and range baked now
         self.parent = multiprocessing.parent_process()
-        self.workers = job["workers"] or os.cpu_count() or 1
+        self.workers = job["workers"] or cores.threads()
         self.previewer = Previewer(self.volume, self.config, self.shared.lattice,
                                    self.workers)
         self.lit = None  # the last view given its first preview pass (held: not an id)

@@ -62,7 +62,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--bake-samples", type=int, default=DEFAULT_BAKE_SAMPLES,
                         help="paths per texel the lazy bake refines up to (new lattices)")
     parser.add_argument("--bake-workers", type=int, default=None,
-                        help="tracing threads of the lazy bake (default: all cores)")
+                        help="threads of the lazy bake process: its tracing, plan kernels, "
+                        "Embree builds and BLAS (default: the cores this process may use)")
     parser.add_argument("--bake-max-levels", type=int, default=64, metavar="K",
                         help="isovalue levels of a new lazy lattice (fewer: the first sweep "
                         "builds fewer scenes and converges sooner, texels move farther "

@@ -1,0 +1,212 @@
+"""``isolume bench cores``: the replay scheduler, Amdahl's law and the aggregation on
+hand-made timelines, the child runs, and one small run end to end (no timed assertions)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+from PIL import Image
+
+from isolume.app.bench.cores import (
+    aggregate,
+    amdahl,
+    default_threads,
+    makespan,
+    median_run,
+    predictions,
+    replay,
+    replay_stage,
+    run_child,
+    split_hints,
+    stage_labels,
+    thread_counts,
+    whole,
+    work_units,
+)
+from isolume.app.cli import main
+from isolume.app.options import CLIError
+
+
+def _stage(name, start, wall, items, cpu=None, serial=0.0):
+    """A timeline stage; `items`: (batch, tid, kind, start, end)."""
+    return {"name": name, "start_s": start, "end_s": start + wall, "wall_s": wall,
+            "cpu_s": wall if cpu is None else cpu, "serial_s": serial,
+            "items": [list(item) for item in items]}
+
+
+def _timeline(stages, threads=1, wall=None):
+    return {"threads": threads, "stages": stages,
+            "wall_s": wall if wall is not None else sum(s["wall_s"] for s in stages)}
+
+
+def _batch(batch, kind, start, seconds, tid=1):
+    """Items of one batch run back to back on thread `tid` from `start`."""
+    items, t = [], start
+    for s in seconds:
+        items.append((batch, tid, kind, t, t + s))
+        t += s
+    return items
+
+
+def test_greedy_list_scheduling_in_recorded_order():
+    # A: 4, then 1 (free at 4 before B at 5); B: 3, then 2 -> both end at 5
+    assert makespan([4, 3, 2, 1], 2) == pytest.approx(5)
+    assert makespan([4, 3, 2, 1], 1) == pytest.approx(10)
+    assert makespan([4, 3, 2, 1], 64) == pytest.approx(4)  # the largest item
+    # in order, not sorted: the 5 comes last and lands on a thread already busy for 2
+    assert makespan([1, 1, 1, 1, 5], 2) == pytest.approx(7)
+    assert makespan([], 8) == 0
+
+
+def test_a_stage_replays_as_glue_plus_batches_one_after_another():
+    items = _batch(1, "newton", 0.0, [4, 3, 2, 1]) + _batch(2, "settle", 10.0, [2, 2])
+    stage = _stage("paths onto levels", 0.0, 16.0, items)  # 14 s of items, 2 s of glue
+    assert replay_stage(stage, 1) == pytest.approx(16)
+    assert replay_stage(stage, 2) == pytest.approx(2 + 5 + 2)
+    assert replay_stage(stage, 64) == pytest.approx(2 + 4 + 2)
+
+
+def test_consecutive_single_items_of_one_kind_run_together():
+    # three trace chunks (a batch each), a commit, one more chunk
+    items = [(7, 1, "trace", 0, 3), (8, 1, "trace", 3, 6), (9, 1, "trace", 6, 9),
+             (10, 1, "commit", 9, 10), (11, 1, "trace", 10, 12)]
+    assert work_units(items) == [[3, 3, 3], [1], [2]]
+    assert replay_stage(_stage("tracing", 0, 12, items), 4) == pytest.approx(3 + 1 + 2)
+    # a batch between two singles of one kind keeps them apart
+    items = [(1, 1, "trace", 0, 1), *_batch(2, "surface", 1, [1, 1]), (3, 1, "trace", 3, 4)]
+    assert work_units(items) == [[1], [1, 1], [1]]
+
+
+def test_a_whole_single_item_is_cut_as_the_run_with_more_threads_cut_it():
+    one = _timeline([_stage("texel values", 0, 10, [(1, 1, "grid values", 0, 10)])])
+    assert replay(one, 64)["texel values"] == pytest.approx(10)  # no hint: one item
+    # two threads cut the same call into 5 items, the last half of the work
+    two = _timeline([_stage("texel values", 0, 4, _batch(5, "grid values", 0, [1, 1, 1, 1, 4])
+                            + _batch(6, "grid values", 0, [1, 1], tid=2))], threads=2)
+    hints = split_hints(two)
+    assert hints[("texel values", "grid values")][0] == pytest.approx([.125] * 4 + [.5])
+    assert replay(one, 64, hints)["texel values"] == pytest.approx(5)
+    assert replay(one, 2, hints)["texel values"] == pytest.approx(2.5 + 5)  # A: 1.25 × 2 + 5
+    assert replay(one, 1, hints)["texel values"] == pytest.approx(10)
+
+
+def test_the_whole_command_replays_its_stages_and_the_time_outside_them():
+    stages = [_stage("load", 0, 1, []),
+              _stage("paths onto levels", 1, 12, _batch(1, "newton", 1, [4, 3, 2, 1])),
+              _stage("tracing", 13, 6, [(2, 1, "trace", 13, 16), (3, 1, "trace", 16, 19)])]
+    one = _timeline(stages, wall=20)  # 1 s outside the stages
+    at2 = replay(one, 2)
+    assert at2["paths onto levels"] == pytest.approx(2 + 5)
+    assert at2["tracing"] == pytest.approx(3)
+    assert at2["whole"] == pytest.approx(1 + 7 + 3 + 1)
+    assert replay(one, 1)["whole"] == pytest.approx(20)
+
+
+def test_amdahl():
+    assert amdahl(10, 2, 4) == pytest.approx(10 / (2 + 8 / 4))
+    assert amdahl(10, 0, 64) == pytest.approx(64)
+    assert amdahl(10, 10, 64) == pytest.approx(1)
+    assert amdahl(10, 12, 16) == pytest.approx(1)  # serial clamped to the whole
+    assert amdahl(0, 0, 16) == 1.0
+
+
+def test_repeated_visits_add_up_by_name():
+    timeline = _timeline([
+        _stage("seen sides", 0, 2, _batch(1, "side probes", 0, [0.5, 0.5]), cpu=3, serial=1),
+        _stage("tracing", 2, 4, _batch(2, "trace", 2, [1, 3]), cpu=6, serial=0.5),
+        _stage("seen sides", 6, 1, _batch(3, "side probes", 6, [0.2, 0.6]), cpu=1.5,
+               serial=0.25),
+    ], threads=2)
+    figures = aggregate(timeline)
+    assert list(figures) == ["seen sides", "tracing"]
+    sides = figures["seen sides"]
+    assert sides["visits"] == 2 and sides["items"] == 4
+    assert sides["wall_s"] == pytest.approx(3) and sides["cpu_s"] == pytest.approx(4.5)
+    assert sides["serial_s"] == pytest.approx(1.25)
+    assert sides["item_s"] == pytest.approx(1.8)
+    assert sides["largest_share"] == pytest.approx(0.6 / 1.8)
+    assert sides["efficiency"] == pytest.approx(4.5 / (3 * 2))
+    assert figures["tracing"]["largest_share"] == pytest.approx(0.75)
+    everything = whole(timeline, process_wall_s=8.5)
+    assert everything["startup_s"] == pytest.approx(1.5)
+    assert everything["cpu_s"] == pytest.approx(10.5)
+    assert everything["serial_s"] == pytest.approx(1.75)
+    assert everything["efficiency"] == pytest.approx(10.5 / (7 * 2))
+
+
+def test_predictions_take_the_serial_seconds_of_the_most_threads():
+    one = _timeline([_stage("tracing", 0, 10, _batch(1, "trace", 0, [2.5] * 4), serial=10)])
+    two = _timeline([_stage("tracing", 0, 6, _batch(1, "trace", 0, [2.5, 2.5])
+                            + _batch(1, "trace", 0, [2.5, 2.5], tid=2), serial=1)], threads=2)
+    p = predictions(one, two)
+    assert p["tracing"]["serial_s"] == pytest.approx(1)
+    assert p["tracing"]["amdahl"]["16"] == pytest.approx(10 / (1 + 9 / 16))
+    assert p["tracing"]["replay"]["64"] == pytest.approx(4)  # four items of 2.5 s
+    assert p["whole"]["replay"]["2"] == pytest.approx(2)
+
+
+def test_thread_counts_and_labels():
+    assert default_threads(1) == [1]
+    assert default_threads(2) == [1, 2]
+    assert default_threads(6) == [1, 2, 4, 6]
+    assert default_threads(8) == [1, 2, 4, 8]
+    assert thread_counts("4,2", 8) == [1, 2, 4]
+    assert thread_counts(None, 3) == [1, 2, 3]
+    for bad in ("0", "two", ""):
+        with pytest.raises(CLIError):
+            thread_counts(bad, 4)
+    stages = [_stage("levels", 0, 0.01, []), _stage("paths onto levels", 0.011, 5, []),
+              _stage("tracing", 5.011, 4, []), _stage("tracing", 9.011, 1, [])]
+    assert stage_labels(stages, 0.1) == [(0.011, "paths onto levels"), (5.011, "tracing")]
+
+
+def test_a_run_deletes_the_outputs_first_and_reads_the_timeline(tmp_path):
+    (tmp_path / "bake.npz").write_text("an earlier bake")
+    code = ("import json, pathlib, sys; w = pathlib.Path(sys.argv[1]); "
+            "assert not (w / 'bake.npz').exists(); "
+            "(w / 'timeline.json').write_text(json.dumps({'wall_s': 1.5}))")
+    wall, timeline = run_child([sys.executable, "-c", code, str(tmp_path)], tmp_path)
+    assert timeline == {"wall_s": 1.5} and wall > 0
+    with pytest.raises(CLIError, match="failed"):
+        run_child([sys.executable, "-c", "raise SystemExit(3)"], tmp_path)
+    assert median_run([(3.0, "c"), (1.0, "a"), (2.0, "b")]) == (2.0, "b")
+    assert median_run([(2.0, "b"), (1.0, "a")]) == (1.0, "a")
+
+
+def test_bench_cores_end_to_end(tmp_path, capsys):
+    out = tmp_path / "cores"
+    assert main(["bench", "cores", "synthetic:engine:64", "--samples", "2", "--threads",
+                 "1,2", "--repeats", "1", "--commands", "bake", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    record = json.loads((out / "cores.json").read_text())
+    assert {"settings", "available_cores", "load_average_before", "load_average_after",
+            "results"} <= set(record)
+    assert list(record["results"]) == ["bake"]
+    bake = record["results"]["bake"]
+    runs = {r["label"]: r for r in bake["runs"]}
+    assert set(runs) == {"1", "2"}
+    for label, r in runs.items():
+        words = r["timeline"]["command"]
+        assert words[words.index("--workers") + 1] == label
+        assert r["timeline"]["threads"] == int(label)
+        assert len(r["process_walls_s"]) == 1
+        assert r["whole"]["process_wall_s"] > r["whole"]["wall_s"] > 0
+        assert {"paths onto levels", "tracing"} <= set(r["stages"])
+        assert r["stages"]["tracing"]["items"] > 0
+    predicted = bake["predicted"]
+    assert {"paths onto levels", "tracing", "whole"} <= set(predicted)
+    # on one simulated thread the replay is the one-thread run itself
+    assert 0.9 <= predicted["whole"]["replay"]["1"] <= 1.0 + 1e-9
+    assert predicted["whole"]["replay"]["64"] >= predicted["whole"]["replay"]["16"] >= 1.0
+    assert 1.0 <= predicted["whole"]["amdahl"]["64"] <= 64
+    for name in ("gantt.png", "speedup.png"):
+        path = out / name
+        assert path.stat().st_size > 20_000
+        with Image.open(path) as image:
+            assert image.width >= 600 and image.height >= 400
+            assert len(image.convert("L").getcolors(1 << 16)) > 20  # not blank
+    table = printed[printed.index("stage "):]
+    assert "tracing" in table and "paths onto levels" in table
+    assert "bake whole, 2 threads" in printed and str(out / "cores.json") in printed

@@ -1,0 +1,202 @@
+"""The cores a command uses (`volumes.cores`): the count, the pool's items, the timeline,
+and `--workers 1` keeping one core busy in every stage (the OS's own CPU counters)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from isolume.volumes import cores
+
+CLI = "import sys; from isolume.app.cli import main; sys.exit(main())"
+
+
+@pytest.fixture
+def three_threads():
+    cores.use(3)
+    try:
+        yield
+    finally:
+        cores.use(None)
+
+
+def test_available_cores_follow_the_affinity():
+    """A process pinned to one core (``taskset``) may use one, whatever the machine has."""
+    code = ("import os; os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}); "
+            "from isolume.volumes import cores; print(cores.available(), cores.threads())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["1", "1"]
+    assert cores.available() == len(os.sched_getaffinity(0))
+
+
+def test_a_thread_count_below_one_is_refused():
+    with pytest.raises(cores.CoresError, match="--workers 0: expected at least 1"):
+        cores.use(0)
+
+
+def test_every_item_runs_once_on_several_threads(three_threads):
+    """Items are handed out one at a time: each runs once, on more than one thread where
+    they take a while, and progress is told on the calling thread only."""
+    ran = np.zeros(200, np.int64)
+    names, told = set(), []
+    caller = threading.get_ident()
+
+    def work(i: int) -> None:
+        ran[i] += 1
+        names.add(threading.get_ident())
+        time.sleep(0.002)
+
+    cores.for_items(work, len(ran), on_done=lambda done: told.append(
+        (done, threading.get_ident() == caller)))
+    assert (ran == 1).all()
+    assert len(names) > 1
+    assert all(on_caller for _, on_caller in told)
+    assert [d for d, _ in told] == sorted(d for d, _ in told) and told[-1][0] <= len(ran)
+
+
+def test_a_nested_call_runs_on_its_item_thread(three_threads):
+    """An item that itself asks for items (a Newton step inside a plan block) gets them on
+    its own thread: no oversubscription, no deadlock when every pool thread does it."""
+    outer = np.zeros((12, 50), np.int64)
+
+    def item(i: int) -> None:
+        me = threading.get_ident()
+        seen = set()
+
+        def inner(j: int) -> None:
+            seen.add(threading.get_ident())
+            outer[i, j] += 1
+
+        cores.for_items(inner, outer.shape[1])
+        assert seen == {me}
+
+    cores.for_items(item, len(outer))
+    assert (outer == 1).all()
+
+
+def test_an_error_in_an_item_stops_the_call_and_reaches_the_caller(three_threads):
+    started = []
+
+    def work(i: int) -> None:
+        started.append(i)
+        if i == 5:
+            raise ValueError("item 5")
+        time.sleep(0.001)
+
+    with pytest.raises(ValueError, match="item 5"):
+        cores.for_items(work, 10_000)
+    assert len(started) < 10_000
+
+
+@pytest.mark.parametrize("count,cost", [(10, 1), (5000, 1), (1_000_000, 1), (300, 10_000)])
+def test_ranges_cover_the_work_in_small_items(count, cost):
+    """`item_bounds` cuts [0, count) exactly, into pieces of at least `MIN_COST` work, and
+    into at least `ITEMS_PER_CALL` where the work allows: none above 1/64 of the call."""
+    bounds = cores.item_bounds(count, cost)
+    assert bounds[0][0] == 0 and bounds[-1][1] == count
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(bounds))
+    sizes = np.array([hi - lo for lo, hi in bounds])
+    assert sizes.max() - sizes.min() <= 1
+    if count * cost >= cores.ITEMS_PER_CALL * cores.MIN_COST:
+        assert len(bounds) >= cores.ITEMS_PER_CALL and sizes.max() <= -(-count // 64)
+    else:
+        assert sizes.min() * cost >= cores.MIN_COST or len(bounds) == 1
+
+
+def test_for_ranges_gives_the_same_result_on_any_thread_count():
+    data = np.random.default_rng(3).random(300_000)
+    outs = []
+    for threads in (1, 2, 5):
+        cores.use(threads)
+        out = np.empty_like(data)
+
+        def part(lo: int, hi: int, out=out) -> None:
+            out[lo:hi] = np.sqrt(data[lo:hi]) * 3.0
+
+        try:
+            cores.for_ranges(part, len(data), 1)
+        finally:
+            cores.use(None)
+        outs.append(out)
+    for out in outs[1:]:
+        np.testing.assert_array_equal(out, outs[0])
+
+
+def test_a_timeline_records_stages_cpu_and_items(tmp_path, three_threads):
+    """Stages in order with their wall and CPU seconds (the OS's per-thread counters: a
+    busy thread's CPU shows, a sleeping one's does not), and the items run."""
+    path = tmp_path / "t.json"
+
+    def spin(_i: int) -> None:
+        end = time.thread_time() + 0.02
+        while time.thread_time() < end:
+            pass
+
+    with cores.recording(path, command=["test"]):
+        cores.for_items(spin, 30, "spin")
+        cores.stage("save")
+        time.sleep(0.3)
+    record = json.loads(path.read_text())
+    names = [s["name"] for s in record["stages"]]
+    assert names == ["load", "save"] and record["command"] == ["test"]
+    load, save = record["stages"]
+    assert len(load["items"]) == 30 and {i[2] for i in load["items"]} == {"spin"}
+    assert load["cpu_s"] >= 30 * 0.02 * 0.9
+    assert save["wall_s"] >= 0.29 and save["cpu_s"] < 0.1
+    assert save["serial_s"] >= 0.2  # nothing busy: at most one core
+    with pytest.raises(ValueError, match="timeline stage 'nowhere'"):
+        cores.Timeline().stage("nowhere")
+
+
+def _stages(path) -> list[dict]:
+    return json.loads(path.read_text())["stages"]
+
+
+@pytest.mark.parametrize("command", ["bake", "render"])
+def test_one_worker_keeps_one_core_busy_in_every_stage(tmp_path, command):
+    """``--workers 1``: in every stage, the CPU time of all the process's threads (tracing,
+    Embree's builds, Mesa's rasterizer, BLAS) is at most 1.05 × its wall time."""
+    timeline = tmp_path / "t.json"
+    out = tmp_path / ("l.npz" if command == "bake" else "p.png")
+    args = [command, "synthetic:engine:72", "--workers", "1", "--samples", "8",
+            "--out", str(out), "--timeline", str(timeline)]
+    if command == "render":
+        args += ["--size", "256x256"]
+    subprocess.run([sys.executable, "-c", CLI, *args], check=True, capture_output=True)
+    stages = _stages(timeline)
+    assert {"paths onto levels", "seen sides", "tracing", "save"} <= {s["name"] for s in stages} \
+        if command == "bake" else {"surface", "tracing", "draw"} <= {s["name"] for s in stages}
+    for stage in stages:
+        if stage["wall_s"] > 0.05:
+            assert stage["cpu_s"] / stage["wall_s"] <= 1.05, stage["name"]
+            assert len(stage["threads_cpu_s"]) >= 1
+
+
+def test_ctrl_c_stops_a_bake_within_two_seconds_in_the_plan(tmp_path):
+    """SIGINT in the middle of the plan's stages (the side probes on every core) ends the
+    command within 2 s with exit status 130."""
+    timeline = tmp_path / "t.json"
+    proc = subprocess.Popen([sys.executable, "-c", CLI, "bake", "synthetic:engine:160",
+                             "--samples", "64", "--out", str(tmp_path / "l.npz"),
+                             "--timeline", str(timeline)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(4.5)  # the side probes, on a quiet 2-core machine
+    sent = time.perf_counter()
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=10)
+    finally:
+        proc.kill()
+    assert time.perf_counter() - sent < 2.0
+    assert proc.returncode == 130
+    assert timeline.exists()  # the timeline is written when the command is interrupted
