@@ -303,7 +303,7 @@ class ThreadBackend:
         self._warm = self._helper.submit(kernels.warm_up)
         self._first_guess = _first_level(volume, config, kept) if self._ahead > 0 else None
         if self._first_guess is not None:
-            self._pending[0] = self._helper.submit(_scene_item, volume, self._first_guess,
+            self._pending[0] = self._helper.submit(level_scene, volume, self._first_guess,
                                                    config)
 
     def levels_known(self, levels: np.ndarray) -> None:
@@ -314,7 +314,7 @@ class ThreadBackend:
         for level in range(min(self._ahead, len(levels))):
             if level > 0 or self._first_guess != float(levels[0]):
                 self._pending[level] = self._helper.submit(
-                    _scene_item, self._volume, float(levels[level]), self._config)
+                    level_scene, self._volume, float(levels[level]), self._config)
 
     def plan_scene(self, level: int) -> Scene:
         """The scene of level `level`, from the cache (`_scene`): the plan's side probes
@@ -401,11 +401,8 @@ class ThreadBackend:
             ahead = self._pending.pop(level, None)
             while len(self._scenes) >= self._scene_cache:
                 self._scenes.popitem(last=False)
-        if ahead is not None:
-            scene = ahead.result()
-        else:
-            with cores.timed_item("level scene"):
-                scene = level_scene(self._volume, float(self._levels[level]), self._config)
+        scene = ahead.result() if ahead is not None else level_scene(
+            self._volume, float(self._levels[level]), self._config)
         with self._scene_lock:
             self._stats.mesh_seconds += scene.mesh_seconds
             self._stats.embree_seconds += scene.build_seconds
@@ -468,12 +465,6 @@ class ThreadBackend:
                 stats.paths += paths
                 report.traced(paths)
             report.show(level)
-
-
-def _scene_item(volume: volumes.Volume, level: float, config: BakeConfig) -> Scene:
-    """`level_scene`, recorded as an item of the timeline."""
-    with cores.timed_item("level scene"):
-        return level_scene(volume, level, config)
 
 
 def _trace_into(sums: PassSums, lay: _LevelWork, lo: int, hi: int

@@ -50,6 +50,8 @@ if TYPE_CHECKING:  # embreex is imported only when a bake runs
 
 PATHS_PER_CHUNK = 16384
 MIN_PATHS_PER_CHUNK = 2048
+GUIDED_WORKERS = 16
+"""Workers `chunk_bounds` cuts a level's last chunks for, at least."""
 
 
 class PassSums:
@@ -156,15 +158,18 @@ def chunk_bounds(counts: np.ndarray, workers: int):
     whole texels (a texel's paths stay in one chunk, so its sum is added in sample order
     whatever the number of workers).
 
-    Guided sizes: each chunk takes 1/(2·workers) of the paths left, between
-    MIN_PATHS_PER_CHUNK and PATHS_PER_CHUNK (up to the end of the texel at the cut), so
-    a level ends with small chunks and no worker waits long for the last one.
+    Guided sizes: each chunk takes 1/(2·w) of the paths left, w the workers but at least
+    `GUIDED_WORKERS`, between MIN_PATHS_PER_CHUNK and PATHS_PER_CHUNK (up to the end of
+    the texel at the cut), so a level ends with small chunks and no worker waits long for
+    the last one — and a timeline recorded on few threads holds items small enough to
+    replay on many (`volumes.cores`).
     """
     ends = np.cumsum(counts)
     total = int(ends[-1]) if len(ends) else 0
+    share = 2 * max(workers, GUIDED_WORKERS)
     lo, done = 0, 0
     while lo < len(counts):
-        size = min(PATHS_PER_CHUNK, max(MIN_PATHS_PER_CHUNK, (total - done) // (2 * workers)))
+        size = min(PATHS_PER_CHUNK, max(MIN_PATHS_PER_CHUNK, (total - done) // share))
         hi = min(int(np.searchsorted(ends, done + size, side="left")) + 1, len(counts))
         yield lo, hi
         lo, done = hi, int(ends[hi - 1])

@@ -52,8 +52,9 @@ PROBE_OFFSET_VOXELS = 0.25
 """Least distance of a probe's origin from the surface (the bake's offset when larger)."""
 SALT = 0x51DE_5EED
 """Mixed into the bake seed: the probes use random numbers of their own."""
-TEXELS_PER_BATCH = 4096
-"""Texels whose probe rays one thread traces at a time (65 536 rays, 2.4 MB of rays)."""
+TEXELS_PER_BATCH = 1024
+"""Texels one work item probes (`_probe_level`; 16 384 rays, 0.6 MB of rays): a level of
+a few ten thousand texels is still dozens of items for the cores to share."""
 
 
 def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,

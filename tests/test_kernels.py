@@ -110,18 +110,25 @@ def test_level_paths_match_the_numpy_expansion():
 
 def test_chunks_are_whole_texels_of_guided_size():
     """`passes.chunk_bounds`: consecutive runs of whole texels covering the level; each
-    holds at least the guided size (1/(2·workers) of the paths left, clamped to
-    MIN_PATHS_PER_CHUNK … PATHS_PER_CHUNK) and stops at the first texel that reaches it."""
-    from isolume.baking.passes import MIN_PATHS_PER_CHUNK, PATHS_PER_CHUNK, chunk_bounds
+    holds at least the guided size (1/(2·w) of the paths left, w the workers but at least
+    GUIDED_WORKERS, clamped to MIN_PATHS_PER_CHUNK … PATHS_PER_CHUNK) and stops at the
+    first texel that reaches it."""
+    from isolume.baking.passes import (
+        GUIDED_WORKERS,
+        MIN_PATHS_PER_CHUNK,
+        PATHS_PER_CHUNK,
+        chunk_bounds,
+    )
 
     counts = np.random.default_rng(5).integers(1, 300, 2000)
-    for workers in (1, 2, 8):
+    for workers in (1, 2, 8, 40):
         bounds = list(chunk_bounds(counts, workers))
         assert bounds[0][0] == 0 and bounds[-1][1] == len(counts)
         assert all(b[1] == c[0] and b[0] < b[1] for b, c in itertools.pairwise(bounds))
         left = int(counts.sum())
         for lo, hi in bounds:
-            size = min(PATHS_PER_CHUNK, max(MIN_PATHS_PER_CHUNK, left // (2 * workers)))
+            share = 2 * max(workers, GUIDED_WORKERS)
+            size = min(PATHS_PER_CHUNK, max(MIN_PATHS_PER_CHUNK, left // share))
             paths = int(counts[lo:hi].sum())
             assert paths >= size or hi == len(counts)
             assert paths - counts[hi - 1] < size  # the texel that reached it is the last
