@@ -11,8 +11,10 @@ An ``.npz`` archive (zip, deflated) of format version `FORMAT_VERSION`:
 - ``meta``: JSON (format version, box shape and corners, kind, volume identity, statistics,
   bake config).
 
-So a file's size follows the active texels, not the lattice's box. Members are written and
-read in slabs of z-layers (`SLAB_TEXELS`): neither writing a lattice nor reading part of
+So a file's size follows the active texels, not the lattice's box. A member is deflated in
+pieces on every core (`_Deflating`: one standard deflate stream, the same bytes on any
+number of threads; the 256³ foot's 73 MB file in 2.5 s on two threads, 4.1 s on one).
+Members are written and read in slabs of z-layers (`SLAB_TEXELS`): neither writing a lattice nor reading part of
 one makes a copy of its held texels, and a display can read only the texels it shows
 (`LatticeFile.read_texels`). Files of `DENSE_VERSION` (every array dense over the box, ``facing``
 optional) are still read. A member whose header disagrees with ``held`` or ``meta`` is
@@ -28,6 +30,8 @@ import math
 import os
 import tempfile
 import zipfile
+import zlib
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from isolume.baking.errors import BakeError
+from isolume.volumes import cores
 from isolume.volumes.io.common import available_memory
 
 FORMAT_VERSION = 2
@@ -126,15 +131,93 @@ def _write_archive(path: str | os.PathLike, bits: np.ndarray, count: int,
                                                       allowZip64=True) as zf:
             _write_whole(zf, "held", bits)
             for name, dtype in MEMBERS.items():
-                with zf.open(name + ".npy", "w", force_zip64=True) as member:
+                with zf.open(name + ".npy", "w", force_zip64=True) as opened:
+                    member = _Deflating(opened)
                     _write_header(member, np.dtype(dtype), (count, *tails[name]))
                     for chunk in rows(name):
-                        member.write(np.ascontiguousarray(chunk, dtype).tobytes())
+                        member.write(memoryview(np.ascontiguousarray(chunk, dtype)).cast("B"))
+                    member.finish()
             _write_whole(zf, "meta", np.array(json.dumps(meta)))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+DEFLATE_PIECE = 1 << 20
+"""Bytes of a member deflated as one piece, on one of the pool's threads (`_Deflating`)."""
+_FINAL_BLOCK = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15).flush()
+"""An empty final deflate block: what ends a stream of pieces that each end in a sync
+flush."""
+
+
+class _Deflating:
+    """A deflated zip member written on every core: its bytes are cut into pieces of
+    `DEFLATE_PIECE`, each deflated on its own (`_deflated`: blocks ended by a sync flush,
+    so that the pieces, in order, and `_FINAL_BLOCK` make one valid deflate stream, the
+    same bytes on any number of threads) while this thread keeps the CRC and writes the
+    pieces done, in order.
+
+    `zipfile` writes the member's header and sizes: the member it opened gets the pieces
+    through a compressor that passes them on, and the CRC and size of the bytes before
+    deflation once they are all written (``_ZipWriteFile``'s ``_compressor``, ``_crc`` and
+    ``_file_size``, unchanged since Python 3.6; a member without them is deflated by
+    zipfile itself, on this thread)."""
+
+    def __init__(self, member) -> None:
+        self.member = member
+        self.parallel = all(hasattr(member, a) for a in ("_compressor", "_crc", "_file_size"))
+        if self.parallel:
+            member._compressor = _Passing()
+        self.crc, self.size = 0, 0
+        self.pending: deque = deque()
+        self.pool = cores.pool() if cores.threads() > 1 else cores.Inline()
+
+    def write(self, data) -> None:
+        """Add `data` (bytes or a byte memoryview) to the member."""
+        if not self.parallel:
+            self.member.write(data)
+            return
+        for lo in range(0, len(data), DEFLATE_PIECE):
+            piece = data[lo:lo + DEFLATE_PIECE]
+            self.crc = zlib.crc32(piece, self.crc)
+            self.size += len(piece)
+            self.pending.append(self.pool.submit(_deflated, piece))
+            while len(self.pending) > 2 * cores.threads():
+                self.member.write(self.pending.popleft().result())
+
+    def finish(self) -> None:
+        """Write the pieces still pending and the final block; give zipfile the CRC and
+        size of the bytes before deflation."""
+        if not self.parallel:
+            return
+        try:
+            while self.pending:
+                self.member.write(self.pending.popleft().result())
+        finally:
+            for piece in self.pending:  # after an error: no piece left running
+                piece.cancel()
+        self.member.write(_FINAL_BLOCK)
+        self.member._crc, self.member._file_size = self.crc, self.size
+
+
+class _Passing:
+    """A zipfile compressor that passes bytes already deflated through."""
+
+    @staticmethod
+    def compress(data) -> bytes:
+        return data
+
+    @staticmethod
+    def flush() -> bytes:
+        return b""
+
+
+def _deflated(piece) -> bytes:
+    """`piece` deflated on its own (raw deflate, zipfile's level), ended by a sync flush:
+    byte-aligned and not final, so that pieces concatenate into one stream."""
+    deflate = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
+    return deflate.compress(piece) + deflate.flush(zlib.Z_SYNC_FLUSH)
 
 
 def _write_whole(zf: zipfile.ZipFile, name: str, array: np.ndarray) -> None:

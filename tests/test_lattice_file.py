@@ -215,3 +215,33 @@ def test_the_viewers_shared_lattice_is_read_from_the_file_in_place(tmp_path, sma
         assert not shared.lattice.preview_paths.any()
     finally:
         shared.close()
+
+
+def test_members_deflated_in_pieces_on_threads_make_the_same_valid_file(tmp_path,
+                                                                      monkeypatch):
+    """A member's bytes are deflated in pieces on every core (`DEFLATE_PIECE`): the file's
+    CRCs check (`zipfile.testzip`), `numpy.load` reads it, and it is the same bytes on
+    one thread and on three, with pieces much smaller than a member."""
+    import zipfile
+
+    from isolume.volumes import cores
+
+    monkeypatch.setattr(lattice_file, "DEFLATE_PIECE", 777)
+    lattice = _random_lattice(seed=4)
+    files = []
+    for threads in (1, 3):
+        cores.use(threads)
+        try:
+            path = tmp_path / f"l{threads}.npz"
+            lattice.save(path)
+        finally:
+            cores.use(None)
+        files.append(path.read_bytes())
+        with zipfile.ZipFile(path) as zf:
+            assert zf.testzip() is None
+            assert zf.getinfo("values.npy").compress_type == zipfile.ZIP_DEFLATED
+    assert files[0] == files[1]
+    with np.load(tmp_path / "l3.npz") as archive:
+        held = lattice_file.held_mask({"active": lattice.active, "samples": lattice.samples})
+        np.testing.assert_array_equal(archive["values"], lattice.values[held])
+    _same(Lattice.load(tmp_path / "l3.npz"), lattice)
