@@ -339,7 +339,7 @@ class ThreadBackend:
         its upper level is committed (its facings, its means, a checkpoint) while the
         workers trace the next step. The next level's scene is built once this level's
         steps are traced, after this one is let go (its surface and BVH are built on
-        every core).
+        every core); its first step is laid out beforehand, beside this level's last one.
         """
         steps = pass_steps(work, TEXELS_PER_BATCH)  # made as they come: no group held
         step = next(steps, None)
@@ -350,12 +350,12 @@ class ThreadBackend:
         between = None  # the sums of the texels whose lower level was the last traced
         traced: list = []  # a batch complete on its upper level, not yet committed
         try:
-            lay = self._waited(self._prepare_step, work, step)
+            lay = self._waited(self._with_scene, self._lay_out(work, step))
             for following in itertools.chain(steps, [None]):
                 step = lay.step
                 same_level = following is not None and following.level == step.level
-                upcoming = (self._helper.submit(self._prepare_step, work, following)
-                            if same_level else None)
+                upcoming = (self._helper.submit(self._lay_out, work, following)
+                            if following is not None else None)
                 if not step.upper and step.first == 0:  # this level's upper steps are done:
                     _commit(traced, report)  # their group's sums go
                     sums = between = None  # before the next group's are made
@@ -367,11 +367,11 @@ class ThreadBackend:
                 chunks = []
                 if step.upper:
                     traced.append((step, sums))
-                if upcoming is not None:
-                    lay = self._waited(upcoming.result)
+                if same_level:
+                    lay = self._waited(self._with_scene, upcoming.result())
                 elif following is not None:
                     lay = sums = None  # this level's scene goes before the next one's is built
-                    lay = self._waited(self._prepare_step, work, following)
+                    lay = self._waited(self._with_scene, upcoming.result())
             _commit(traced, report)
         except BaseException:
             _cancel(chunks)
@@ -420,10 +420,17 @@ class ThreadBackend:
         finally:
             self.job.stats.scene_seconds += time.perf_counter() - began
 
-    def _prepare_step(self, work: PassWork, step: PassStep) -> _LevelWork:
+    def _with_scene(self, lay: _LevelWork) -> _LevelWork:
+        """`lay` with its level's scene, where it has paths (built now unless cached)."""
+        if not len(lay.paths.texels):
+            return lay
+        return replace(lay, scene=self._scene(lay.step.level))
+
+    def _lay_out(self, work: PassWork, step: PassStep) -> _LevelWork:
         """Lay out the pending paths of `step` on its isovalue level — its texels'
         upper-level samples if ``step.upper``, else their lower-level ones — sorted by
-        texel, and get the level's scene if they have paths."""
+        texel; its scene is not yet in (`_with_scene`), so that the next level's first
+        step is laid out while this level's last one is traced."""
         job = self.job
         records = job.records.of(step.texels)
         done, remaining = work.counts(step.texels)
@@ -434,8 +441,7 @@ class ThreadBackend:
             records.ids, records.phase, records.weight, records.high,
             none if step.upper else batch, batch if step.upper else none, done, remaining,
             records.landing)
-        scene = self._scene(step.level) if len(paths.texels) else None
-        return _LevelWork(step, paths, start, replace(job.tracing, ids=records.ids), scene)
+        return _LevelWork(step, paths, start, replace(job.tracing, ids=records.ids), None)
 
     def _submit_level(self, lay: _LevelWork, sums: PassSums) -> list[Future]:
         """Queue the step's chunks of paths on its scene.

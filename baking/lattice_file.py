@@ -14,13 +14,13 @@ An ``.npz`` archive (zip, deflated) of format version `FORMAT_VERSION`:
 So a file's size follows the active texels, not the lattice's box. A member is deflated in
 pieces on every core (`_Deflating`: one standard deflate stream, the same bytes on any
 number of threads; the 256³ foot's 73 MB file in 2.5 s on two threads, 4.1 s on one).
-Members are written and read in slabs of z-layers (`SLAB_TEXELS`): neither writing a lattice nor reading part of
-one makes a copy of its held texels, and a display can read only the texels it shows
-(`LatticeFile.read_texels`). Files of `DENSE_VERSION` (every array dense over the box, ``facing``
-optional) are still read. A member whose header disagrees with ``held`` or ``meta`` is
-refused before it is read, and a box whose dense arrays exceed the memory available before
-they are made (`LatticeFile.read_dense`); a display's read holds a slab of ``held`` at a
-time, whatever the box.
+Members are written and read in slabs of z-layers (`SLAB_TEXELS`): neither writing a
+lattice nor reading part of one makes a copy of its held texels, and a display can read
+only the texels it shows (`LatticeFile.read_texels`). Files of `DENSE_VERSION` (every
+array dense over the box, ``facing`` optional) are still read. A member whose header
+disagrees with ``held`` or ``meta`` is refused before it is read, and a box whose dense
+arrays exceed the memory available before they are made (`LatticeFile.read_dense`); a
+display's read holds a slab of ``held`` at a time, whatever the box.
 """
 
 from __future__ import annotations

@@ -25,6 +25,7 @@ import numpy as np
 
 from isolume.baking.errors import BakeError
 from isolume.baking.plan import Plan, index_type
+from isolume.volumes import cores
 
 RECORD = np.dtype([("phase", "<u4"), ("weight", "<f8"), ("high", "?"),
                    ("landing", "<i2", (2, 3))])
@@ -32,6 +33,8 @@ RECORD = np.dtype([("phase", "<u4"), ("weight", "<f8"), ("high", "?"),
 READ_ROWS = 1 << 20
 """Records read from the file at a time (25 MB): what bounds a read of texels spread
 over a group."""
+WRITE_ROWS = 1 << 16
+"""Records one work item gathers and writes (1.6 MB)."""
 GROUPS_KEPT = 2
 """Lower levels whose texel positions `LevelGroups` keeps found (those of the level a
 pass traces and the one below it)."""
@@ -159,16 +162,29 @@ class SpilledRecords:
                             f"temporary file there: {error}") from error
 
     def _write(self, plan: Plan, levels: int) -> None:
-        """The records of every group in turn, `READ_ROWS` at a time."""
-        for level in range(levels):
-            members = self.groups.of(level)
-            for lo in range(0, len(members), READ_ROWS):
-                at = members[lo:lo + READ_ROWS]
-                block = np.empty(len(at), RECORD)
-                for name in RECORD.names:
-                    block[name] = getattr(plan, name)[at]
-                self._file.write(block.tobytes())
-        self._file.flush()
+        """The records of every group, `WRITE_ROWS` at a time, each run gathered and
+        written at its place in the file on one of the pool's threads (`os.pwrite`)."""
+        runs = [(level, lo) for level in range(levels)
+                for lo in range(0, int(self._starts[level + 1] - self._starts[level]),
+                                WRITE_ROWS)]
+
+        def run(i: int) -> None:
+            level, lo = runs[i]
+            at = self.groups.of(level)[lo:lo + WRITE_ROWS]
+            block = np.empty(len(at), RECORD)
+            for name in RECORD.names:
+                block[name] = getattr(plan, name)[at]
+            self._pwrite(block.tobytes(), int(self._starts[level] + lo) * RECORD.itemsize)
+
+        cores.for_items(run, len(runs), "records")
+
+    def _pwrite(self, data: bytes, offset: int) -> None:
+        """`data` into the file at `offset` (safe beside another thread's writes)."""
+        view = memoryview(data)
+        while len(view):
+            written = os.pwrite(self._file.fileno(), view, offset)
+            view, offset = view[written:], offset + written
+
 
     def of(self, positions: np.ndarray) -> TexelRecords:
         positions = np.asarray(positions)
