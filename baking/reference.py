@@ -123,15 +123,39 @@ class PrimaryHits:
     normals: np.ndarray
 
 
+PRIMARY_BLOCK = 1 << 14
+"""Primary rays one work item of `primary_hits` traces and prepares."""
+
+
 def primary_hits(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
                  config: BakeConfig, smooth: bool = True) -> PrimaryHits:
     """Trace the (N, 3) primary rays `origins`, `dirs` (unit) against `scene` and prepare
-    the first path vertex of each hit pixel like the baker prepares a texel's.
+    the first path vertex of each hit pixel like the baker prepares a texel's, a block of
+    `PRIMARY_BLOCK` rays an item on every core (each ray's answer is its own: the same
+    bits on any number of threads).
 
     Args:
         scene: `baking.trace.Scene` of the displayed isosurface.
         smooth: smoothed-gradient normals (the paper's) or plain central differences.
     """
+    parts = cores.blocks(len(dirs), PRIMARY_BLOCK)
+    if len(parts) <= 1:
+        return _primary_hits(scene, volume, origins, dirs, config, smooth)
+    found: list[PrimaryHits | None] = [None] * len(parts)
+
+    def block(b: int) -> None:
+        part = parts[b]
+        hits = _primary_hits(scene, volume, origins[part], dirs[part], config, smooth)
+        found[b] = dataclasses.replace(hits, pixels=hits.pixels + part.start)
+
+    cores.for_items(block, len(parts), "primary rays")
+    return PrimaryHits(*(np.concatenate([getattr(hits, field.name) for hits in found])
+                         for field in dataclasses.fields(PrimaryHits)))
+
+
+def _primary_hits(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
+                  config: BakeConfig, smooth: bool) -> PrimaryHits:
+    """`primary_hits` of one block of rays, on the calling thread."""
     hits = scene.intersect(origins, dirs)
     pixels = np.flatnonzero(hits["prim"] >= 0)
     d = np.asarray(dirs, np.float64)[pixels]
