@@ -78,6 +78,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="bench-cores", metavar="DIR",
                    help="folder for cores.json, gantt.png and speedup.png "
                    "(default bench-cores)")
+    p.add_argument("--warmup", action=argparse.BooleanOptionalAction, default=True,
+                   help="one untimed run of each command first, so that the compiled "
+                   "kernels are cached (default on; --no-warmup where an earlier run of "
+                   "the same volume cached them)")
     p.add_argument("--dask", action="store_true",
                    help="also bake with --scheduler local:N at the most threads "
                    "(needs isolume[cluster])")
@@ -578,12 +582,14 @@ def speedup_chart(results: dict, path: Path) -> None:
 # -- the benchmark ------------------------------------------------------------------------
 def measure_command(args: argparse.Namespace, command: str, counts: list[int], work: Path,
                     dask: str | None) -> list[dict]:
-    """One command: a warm-up, then `args.repeats` rounds over the thread counts (and the
-    Dask scheduler `dask`, a bake only), a line printed per run; each count's median run."""
+    """One command: a warm-up (unless not `args.warmup`), then `args.repeats` rounds over
+    the thread counts (and the Dask scheduler `dask`, a bake only), a line printed per
+    run; each count's median run."""
     plans = [(str(n), n, None) for n in counts]
     if dask and command == "bake":
         plans.append((dask, max(counts), dask))
-    run_child(command_argv(args, command, max(counts), work), work)  # kernels cached
+    if args.warmup:
+        run_child(command_argv(args, command, max(counts), work), work)  # kernels cached
     walls: dict[str, list[tuple[float, dict]]] = {label: [] for label, _, _ in plans}
     for repeat in range(args.repeats):
         for label, n, scheduler in plans:
