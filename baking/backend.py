@@ -489,9 +489,7 @@ def _commit(traced: list[tuple[PassStep, PassSums]], report: PassReport) -> None
     is not made again."""
     while traced:
         step, sums = traced.pop()
-        with cores.timed_item("commit"):
-            committed = report.commit(step.texels, sums)
-        if committed:
+        if report.commit(step.texels, sums):  # its facings and means on every core
             report.show(step.level, refresh=True)
 
 

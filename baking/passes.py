@@ -42,6 +42,7 @@ from isolume.baking.plan import (
     rounded_landing,
 )
 from isolume.baking.rays import RayStats
+from isolume.volumes import cores
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.plan_lattice import PlanLattice
@@ -92,15 +93,23 @@ def commit_sums(lattice: Lattice | PlanLattice, ids: np.ndarray, acc: PassSums,
                 slots: np.ndarray) -> int:
     """Merge the pass sums at (K,) `slots` of `acc` — of texels at (A,) rows `ids` of the
     lattice's flattened arrays — into the lattice's running means and clear them
-    (`kernels.commit_means`: compiled, and the GIL stays free for the tracing threads).
+    (`kernels.commit_means`: compiled, and the GIL stays free for the tracing threads; a
+    block of `COMMIT_BLOCK` slots an item on every core, each slot its own texel).
 
     Returns:
         how many of them had no sample before.
     """
-    return kernels.commit_means(np.asarray(ids, np.int64), np.asarray(slots, np.int64),
-                                lattice.values.reshape(-1, lattice.values.shape[-1]),
-                                lattice.samples.reshape(-1), lattice.second.reshape(-1),
-                                acc.sum, acc.second, acc.n)
+    ids, slots = np.asarray(ids, np.int64), np.asarray(slots, np.int64)
+    fresh: dict[int, int] = {}  # by block
+
+    def merge(block: slice) -> None:
+        fresh[block.start] = kernels.commit_means(
+            ids, slots[block], lattice.values.reshape(-1, lattice.values.shape[-1]),
+            lattice.samples.reshape(-1), lattice.second.reshape(-1), acc.sum, acc.second,
+            acc.n)
+
+    cores.for_blocks(merge, len(slots), COMMIT_BLOCK, "commit")
+    return sum(fresh.values())
 
 
 def landing_facing(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
@@ -142,15 +151,21 @@ def commit_facing(lattice: Lattice | PlanLattice, volume: volumes.Volume,
     codes = lattice.facing.reshape(-1, 2)
     todo = np.flatnonzero(~octahedral.known(codes[flat])
                           | (lattice.samples.reshape(-1)[flat] == 0))
-    for lo in range(0, len(todo), FACING_BLOCK):
-        block = todo[lo:lo + FACING_BLOCK]
+
+    def facings(part: slice) -> None:
+        block = todo[part]
         codes[flat[block]] = landing_facing(volume, lattice.geometry, config, plan.reach,
                                             records.of(positions[block]))
 
+    cores.for_blocks(facings, len(todo), FACING_BLOCK, "commit")
+
 
 FACING_BLOCK = 1 << 17
-"""Texels whose facings `commit_facing` makes at a time (its temporaries: ~200 bytes a
-texel of a block, 26 MB, where a batch commits a million texels at once)."""
+"""Texels whose facings one item of `commit_facing` makes, at most (its temporaries: ~200
+bytes a texel of a block, 26 MB, where a batch commits a million texels at once; blocks
+go to every core, each writing its own texels' codes)."""
+COMMIT_BLOCK = 1 << 16
+"""Pass-sum slots one item of `commit_sums` merges, at most."""
 
 
 def chunk_bounds(counts: np.ndarray, workers: int):
