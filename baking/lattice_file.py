@@ -135,7 +135,8 @@ def _write_archive(path: str | os.PathLike, bits: np.ndarray, count: int,
                     member = _Deflating(opened)
                     _write_header(member, np.dtype(dtype), (count, *tails[name]))
                     for chunk in rows(name):
-                        member.write(memoryview(np.ascontiguousarray(chunk, dtype)).cast("B"))
+                        member.write(memoryview(
+                            np.ascontiguousarray(chunk, dtype).reshape(-1).view(np.uint8)))
                     member.finish()
             _write_whole(zf, "meta", np.array(json.dumps(meta)))
         os.replace(tmp, path)
