@@ -280,12 +280,13 @@ _BATCHES = itertools.count()
 def for_items(work: Callable[[int], None], count: int, kind: str = "",
               on_done: Callable[[int], None] | None = None,
               workers: int | None = None) -> None:
-    """`work(i)` for i in 0 … count − 1 on the pool's threads and the caller's, an item at
-    a time to whichever is free (see the module docstring), on at most `workers` threads
-    (None: `threads()`); `on_done(done)` is called on the calling thread after each of its
-    items (progress). Returns when every item is done; an error in any item (or Ctrl-C in
-    the caller) stops the handing out, waits for the items running and is raised. `kind`
-    names the items in a timeline."""
+    """`work(i)` for i in 0 … count − 1 on the pool's threads and the caller's, an item at a
+    time to whichever is free (see the module docstring), on at most `workers` threads
+    (None: `threads()`); `on_done(done)` is called on the calling thread after each of
+    its items and once all are done (progress: rising, ending at `count`). Returns when
+    every item is done; an error in any item (or Ctrl-C in the caller) stops the handing
+    out, waits for the items running and is raised. `kind` names the items in a
+    timeline."""
     if count <= 0:
         return
     items = _Items(work, count, kind)
@@ -295,13 +296,21 @@ def for_items(work: Callable[[int], None], count: int, kind: str = "",
         executor = pool()
         for _ in range(helpers):
             executor.submit(items.helper)
+    told = [0]
+
+    def tell(done: int) -> None:
+        told[0] = done
+        on_done(done)
+
     try:
-        items.run(on_done)
+        items.run(tell if on_done is not None else None)
     except BaseException:
         items.stopped = True
         _finish_quietly(items)
         raise
     items.finish()
+    if on_done is not None and told[0] < count:  # the last items ran on other threads
+        on_done(count)
 
 
 def _finish_quietly(items: _Items) -> None:
