@@ -157,12 +157,16 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
 def test_wait_gi_ends_when_the_first_preview_is_on_screen(display, tmp_path):
     """``wait-gi`` waits for the lazy bake's first preview pass (the plan's texels come
     later), and the screenshot after it shows its light: it differs from the one taken as
-    the surface arrived."""
+    the surface arrived. ``--timeline`` records the session's stages, the bake process's
+    CPU time among them."""
     (tmp_path / "s.txt").write_text("wait-mesh\nscreenshot local.png\nwait-gi 120\nframes 1\n"
                                     "screenshot gi.png\nquit\n")
     run = _view(["synthetic:engine:48", "--size", "160x120", "--script", "s.txt",
-                 "--stats", "stats.json"], display, tmp_path)
+                 "--stats", "stats.json", "--timeline", "t.json"], display, tmp_path)
     assert run.returncode == 0, run.stderr
+    stages = json.loads((tmp_path / "t.json").read_text())["stages"]
+    assert [s["name"] for s in stages] == ["load", "surface", "draw"]
+    assert sum(s["children_cpu_s"] for s in stages) > 0.1  # the lazy bake's process
     previews = json.loads((tmp_path / "stats.json").read_text())["bake"]["previews"]
     assert previews and previews[0]["paths"] > 0
     from isolume.app.bench.scale import first_gi

@@ -19,7 +19,7 @@ DEFAULT_BAKE_SAMPLES = 256
 
 def add_arguments(parser) -> None:
     """Options of ``isolume view``."""
-    from isolume.app.options import add_volume_options
+    from isolume.app.options import add_timeline_option, add_volume_options
     from isolume.baking.config import DEFAULT_ENV
 
     add_volume_options(parser, optional=True)
@@ -51,6 +51,7 @@ def add_arguments(parser) -> None:
                         "check-lattice | quit")
     parser.add_argument("--stats", metavar="FILE.json",
                         help="write frame times, extraction and bake figures on exit")
+    add_timeline_option(parser)
     parser.add_argument("--no-bake", action="store_true",
                         help="no lazy global illumination (local shading, or --lattice as is)")
     parser.add_argument("--bake-mode", default="irradiance", choices=["irradiance", "sh"],

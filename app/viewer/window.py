@@ -47,6 +47,7 @@ from isolume.app.viewer.input import Input
 from isolume.app.viewer.saving import Saver, write_json
 from isolume.app.viewer.state import ViewerError, ViewerState
 from isolume.app.viewer.surfaces import SurfaceFeed
+from isolume.volumes import cores
 
 BAKE_REFRESH_S = 0.5
 BAKE_FRAME_SPACING = 4.0
@@ -76,6 +77,7 @@ def _run(args) -> int:
 
     options = read_options(args)
     volume = load_volume(args)
+    cores.stage("surface")  # --timeline: until the first surface is drawn
     iso = isovalue(volume, args.iso)
     lattice = None
     if options.lattice_path is not None and options.lattice_path.exists():
@@ -170,6 +172,7 @@ class Viewer:
                                self.illumination, self.saver)
         self.reduced = False
         self.clock = FrameClock()
+        self.surface_shown = False  # --timeline: "draw" begins with the first surface
         self.script = ScriptRunner(script_commands(options))
         self.input = Input(self.window, self.ui, self.state, self.actions, self.drawing.modes)
         self.actions.request_iso(iso)
@@ -297,6 +300,9 @@ class Viewer:
                 if result.iso == self.surfaces.iso:
                     drawing.meshes["coarse"] = result.mesh
                 continue
+            if not self.surface_shown:
+                self.surface_shown = True
+                cores.stage("draw")
             drawing.set_surface(result.stage, result.mesh,
                                 new_iso=result.iso != self.surfaces.iso)
             drawing.sync_mesh(preview=drawing.quality.coarse
