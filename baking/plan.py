@@ -555,8 +555,13 @@ def _binned_percentile(which: np.ndarray, values: np.ndarray, bins: int, q: floa
     del order
     counts = np.bincount(which, minlength=bins)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    for b in np.flatnonzero(counts > 1):
+    several = np.flatnonzero(counts > 1)
+
+    def sort_bin(i: int) -> None:  # numpy's sort releases the GIL: bins on every core
+        b = several[i]
         ranked[starts[b]:starts[b] + counts[b]].sort()
+
+    cores.for_items(sort_bin, len(several), "levels")
     position = starts + q / 100 * np.maximum(counts - 1, 0)
     below = np.floor(position).astype(np.int64)
     above = np.minimum(below + 1, starts + np.maximum(counts - 1, 0))
