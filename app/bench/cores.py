@@ -1,7 +1,8 @@
 """``isolume bench cores``: where a bake's and a render's cores go, stage by stage, and how
 far more threads would take them.
 
-Each command (``bake``, ``render``) runs once untimed (the compiled kernels cached), then
+Each command (``bake``, ``render``) runs once untimed (the compiled kernels cached; not
+with ``--no-warmup``), then
 ``--repeats`` times per thread count, each run in a fresh child process with
 ``--workers N --timeline FILE.json`` (`isolume.volumes.cores.Timeline`); the run of median
 wall time (the whole process, interpreter start included) is kept. Per stage (its visits
