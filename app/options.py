@@ -266,8 +266,6 @@ def view_light(args: argparse.Namespace, volume: volumes.Volume):
     samples = DEFAULT_PATHS if args.samples is None else args.samples
     if not 1 <= samples <= 4096:
         raise CLIError(f"--samples {samples}: expected 1 to 4096 paths per texel")
-    if args.workers is not None and args.workers < 1:
-        raise CLIError(f"--workers {args.workers}: expected at least 1")
     return BakeConfig.lit_by(
         parse_lighting(args.env, args.light, DEFAULT_ENV),
         mode="irradiance", samples=samples, bounces=args.bounces,

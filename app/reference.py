@@ -88,8 +88,6 @@ def _check_numbers(args: argparse.Namespace) -> None:
     """Reject bad counts before any work is done."""
     if args.spp < 1:
         raise CLIError(f"--spp {args.spp}: expected at least 1 sample per pixel")
-    if args.workers is not None and args.workers < 1:
-        raise CLIError(f"--workers {args.workers}: expected at least 1")
 
 
 def _camera(args: argparse.Namespace, volume, iso: float):

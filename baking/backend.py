@@ -367,10 +367,9 @@ class ThreadBackend:
                 chunks = []
                 if step.upper:
                     traced.append((step, sums))
-                if same_level:
-                    lay = self._waited(self._with_scene, upcoming.result())
-                elif following is not None:
-                    lay = sums = None  # this level's scene goes before the next one's is built
+                if following is not None:
+                    if not same_level:  # this level's scene goes before the next one's is built
+                        lay = sums = None
                     lay = self._waited(self._with_scene, upcoming.result())
             _commit(traced, report)
         except BaseException:

@@ -132,8 +132,6 @@ def sweep_of(args: argparse.Namespace) -> Sweep:
         raise CLIError(f"--ref-spp {args.ref_spp}: expected at least 2 samples per pixel")
     if args.paths is not None and not 1 <= args.paths <= 4096:
         raise CLIError(f"--paths {args.paths}: expected 1 to 4096 paths per texel")
-    if args.workers is not None and args.workers < 1:
-        raise CLIError(f"--workers {args.workers}: expected at least 1")
     try:
         view = parse_view(args.view)
     except ValueError as exc:
