@@ -57,39 +57,61 @@ def _command_module(name: str):
     return importlib.import_module(module)
 
 
+BUILT_IN = {
+    "info": ("describe a volume and suggest isovalues",
+             "Describe a volume (shape, type, spacing, placement, value histogram) and "
+             "suggest isovalues that show its structure."),
+    "render": ("render an isosurface off-screen to PNG or EXR",
+               "Render an isosurface off-screen to PNG (sRGB) or EXR (linear). Without "
+               "--lattice the view's global illumination is traced for the texels the "
+               "picture reads (64 paths each)."),
+    "bake": ("bake an illumination lattice with Embree path tracing",
+             "Bake an illumination lattice for every isovalue (or --iso-range) with Embree "
+             "path tracing; Ctrl-C keeps the finished texels."),
+}
+"""(help, description) of the commands `app.commands` runs."""
+
+
+def add_command_arguments(name: str, p: argparse.ArgumentParser) -> None:
+    """The arguments of command `name` (one of `COMMANDS` or `COMMAND_MODULES`)."""
+    if name == "info":
+        add_volume_options(p, optional=False)
+    elif name == "render":
+        add_volume_options(p, optional=True)
+        p.add_argument("--out", help="FILE.png (sRGB) or FILE.exr (linear) (required; with "
+                       "--state, by default beside the state file: NAME-WxH.png)")
+        add_render_options(p)
+        add_timeline_option(p)
+        add_state_argument(p)
+    elif name == "bake":
+        add_volume_options(p, optional=False)
+        add_bake_options(p)
+        add_timeline_option(p)
+    else:
+        _command_module(name).add_arguments(p)
+
+
+def command_parser(name: str) -> argparse.ArgumentParser:
+    """The parser of command `name` alone (the Python API reads its defaults)."""
+    p = argparse.ArgumentParser(prog=f"isolume {name}")
+    add_command_arguments(name, p)
+    return p
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
     parser = argparse.ArgumentParser(
         prog="isolume", description="Isosurfaces with precomputed global illumination."
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("info", help="describe a volume and suggest isovalues",
-                       description="Describe a volume (shape, type, spacing, placement, "
-                       "value histogram) and suggest isovalues that show its structure.")
-    add_volume_options(p, optional=False)
-    p = sub.add_parser("render", help="render an isosurface off-screen to PNG or EXR",
-                       description="Render an isosurface off-screen to PNG (sRGB) or EXR "
-                       "(linear). Without --lattice the view's global illumination is "
-                       "traced for the texels the picture reads (64 paths each).")
-    add_volume_options(p, optional=True)
-    p.add_argument("--out", help="FILE.png (sRGB) or FILE.exr (linear) (required; with "
-                   "--state, by default beside the state file: NAME-WxH.png)")
-    add_render_options(p)
-    add_timeline_option(p)
-    add_state_argument(p)
-    p = sub.add_parser("bake", help="bake an illumination lattice with Embree path tracing",
-                       description="Bake an illumination lattice for every isovalue (or "
-                       "--iso-range) with Embree path tracing; Ctrl-C keeps the finished "
-                       "texels.")
-    add_volume_options(p, optional=False)
-    add_bake_options(p)
-    add_timeline_option(p)
+    for name, (help_text, description) in BUILT_IN.items():
+        add_command_arguments(name, sub.add_parser(name, help=help_text,
+                                                   description=description))
     for name in COMMAND_MODULES:
         module = _command_module(name)
         if module is not None:
-            p = sub.add_parser(name, help=module.HELP,
-                               description=description_of(module.HELP))
-            module.add_arguments(p)
+            add_command_arguments(name, sub.add_parser(
+                name, help=module.HELP, description=description_of(module.HELP)))
     return parser
 
 

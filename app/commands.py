@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
+from pathlib import Path
 
 from isolume import volumes
 from isolume.app.look import shading_look
@@ -21,36 +23,45 @@ from isolume.app.options import (
 
 def cmd_info(args: argparse.Namespace) -> int:
     """Print dimensions, spacing, value range, histogram and suggested isovalues."""
-    vol = load_volume(args)
-    z, y, x = vol.data.shape
-    lo, hi = vol.value_range
-    print(f"volume     {vol.source or vol.name}")
-    print(f"dims       {x} x {y} x {z} (X x Y x Z), {vol.data.size:,} voxels")
-    print(f"spacing    {', '.join(f'{s:g}' for s in vol.spacing)}")
-    print(f"origin     {', '.join(f'{s:g}' for s in vol.origin)}")
-    if vol.placement:
-        print(f"placement  {vol.placement}")
-    print(f"range      {lo:g} .. {hi:g}")
-    print("histogram (log counts)")
-    for line in volumes.histogram_lines(vol):
-        print("  " + line)
-    suggested = volumes.suggest_isovalues(vol)
-    if suggested:
-        print(f"suggested isovalues: {', '.join(f'{s:.6g}' for s in suggested)}")
-    else:
-        print("suggested isovalues: none (constant volume)")
+    print(load_volume(args).info())
     return 0
 
 
-def cmd_render(args: argparse.Namespace) -> int:
-    """Render the isosurface off-screen to PNG (sRGB) or EXR (linear radiance)."""
+@dataclass(frozen=True)
+class Rendered:
+    """A picture `render_picture` drew.
+
+    Attributes:
+        frame: the `app.render.settings.Frame` (sRGB uint8 and linear float32 pixels).
+        mesh: the isosurface drawn (`volumes.Mesh`).
+        volume: the volume; iso: the isovalue, field units.
+        settings: the `RenderSettings`; traced: the `BakeConfig` of the light traced for
+            the view (no lattice), or None.
+    """
+
+    frame: object
+    mesh: volumes.Mesh
+    volume: volumes.Volume
+    iso: float
+    settings: object
+    traced: object | None
+
+    def summary(self) -> str:
+        """One line: size, volume, isovalue, triangles, shading, lighting, exposure."""
+        settings, traced = self.settings, self.traced
+        lighting = f", lighting {traced.env or 'no environment'}" if traced is not None else ""
+        return (f"{settings.size[0]}x{settings.size[1]}, {self.volume.name} at iso "
+                f"{self.iso:.6g}, {len(self.mesh.faces):,} triangles, shading "
+                f"{settings.shading}{lighting}, exposure {self.frame.exposure:.3g}")
+
+
+def render_picture(args: argparse.Namespace, reuse=None) -> Rendered:
+    """The picture of the ``render`` options `args` (the command's and the Python API's
+    one way to a picture); `reuse`: an `app.render.offscreen.Reuse` that keeps the GL
+    context and the surface for the next call, or None."""
     from isolume.app.render.camera import parse_view
-    from isolume.app.render.images import check_output_path, write_image
     from isolume.app.render.offscreen import render_volume
 
-    if args.out is None:
-        raise CLIError("render: --out FILE.png or FILE.exr is required (or --state FILE)")
-    out = check_output_path(args.out)
     vol = load_volume(args)
     lattice = load_lattice(args.lattice, vol, whole=False)
     try:
@@ -58,22 +69,29 @@ def cmd_render(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     look = shading_look(args, vol, lattice, size)
-    settings, traced = look.settings, look.traced
     iso = isovalue(vol, args.iso)
     check_served(lattice, iso, args.lattice)
     frame, mesh = render_volume(
-        vol, iso, settings, view=view, camera=args.camera, backend=args.gl,
-        normals=args.normals, flip_normals=args.flip_normals, lattice=lattice,
-        env_coeffs=look.env_coeffs, view_light=traced, shadows=args.shadows,
-        workers=args.workers, progress=True,
+        vol, iso, look.settings, view=view, camera=args.camera,
+        backend=args.gl, normals=args.normals, flip_normals=args.flip_normals,
+        lattice=lattice, env_coeffs=look.env_coeffs, view_light=look.traced,
+        shadows=args.shadows, workers=args.workers, progress=True, reuse=reuse,
     )
     if mesh.empty:
         print(f"isolume: warning: {mesh.message}", file=sys.stderr)
-    write_image(out, frame.linear, frame.srgb)
-    lighting = f", lighting {traced.env or 'no environment'}" if traced is not None else ""
-    print(f"wrote {out} ({settings.size[0]}x{settings.size[1]}, {vol.name} at iso {iso:.6g}, "
-          f"{len(mesh.faces):,} triangles, shading {settings.shading}{lighting}, exposure "
-          f"{frame.exposure:.3g})")
+    return Rendered(frame, mesh, vol, iso, look.settings, look.traced)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """Render the isosurface off-screen to PNG (sRGB) or EXR (linear radiance)."""
+    from isolume.app.render.images import check_output_path, write_image
+
+    if args.out is None:
+        raise CLIError("render: --out FILE.png or FILE.exr is required (or --state FILE)")
+    out = check_output_path(args.out)
+    rendered = render_picture(args)
+    write_image(out, rendered.frame.linear, rendered.frame.srgb)
+    print(f"wrote {out} ({rendered.summary()})")
     return 0
 
 
@@ -112,26 +130,38 @@ def cheaper_options(config) -> str:
     return ", ".join(options)
 
 
-def cmd_bake(args: argparse.Namespace) -> int:
-    """Bake an illumination lattice (resumes when --out holds a compatible one)."""
+def bake_lattice(args: argparse.Namespace, *, dense: bool = False,
+                 keep_interrupted: bool = False):
+    """The lattice of the ``bake`` options `args` (the command's and the Python API's one
+    way to a bake): written to ``args.out`` when it is given (resumed when it holds a
+    compatible one), said beforehand (`say_outlook`); `dense` and `keep_interrupted` as
+    `baking.bake`."""
     from isolume.app.render.images import check_output_path
     from isolume.baking import bake
-    from isolume.baking.lattice import open_lattice
 
-    out = check_output_path(args.out, (".npz",))
+    out = check_output_path(args.out, (".npz",)) if args.out is not None else None
     config = bake_config(args)
     vol = load_volume(args)
+    return bake(vol, config, out=out, workers=args.workers, progress=True,
+                scheduler=args.scheduler, outlook=lambda o: say_outlook(o, config),
+                dense=dense, keep_interrupted=keep_interrupted)
+
+
+def cmd_bake(args: argparse.Namespace) -> int:
+    """Bake an illumination lattice (resumes when --out holds a compatible one)."""
+    from isolume.baking.lattice import open_lattice
+
     try:
-        lattice = bake(vol, config, out=out, workers=args.workers, progress=True,
-                       scheduler=args.scheduler,
-                       outlook=lambda o: say_outlook(o, config), dense=False)
+        lattice = bake_lattice(args)
     except KeyboardInterrupt:
-        if out.exists():
+        out = args.out
+        if Path(out).exists():
             _, held = open_lattice(out)[0].read_texels(None, ("samples",))
             finished = int((held["samples"] > 0).sum())
             print(f"isolume: interrupted; {finished:,} finished texels "
                   f"saved in {out}; run the same command again to resume", file=sys.stderr)
         return 130
+    out = args.out
     plan, stats = lattice.meta["plan"], lattice.meta["stats"]
     total = plan["total_texels"]
     print(f"wrote {out}: {plan['active_texels']:,} of {total:,} texels active "

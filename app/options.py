@@ -45,7 +45,10 @@ def parse_size(text: str) -> tuple[int, int]:
 def load_volume(args: argparse.Namespace) -> volumes.Volume:
     """The volume of the options `add_volume_options` adds: the file or synthetic spec,
     raw dims and type, spacing, the part (``--crop``, ``--downsample``, ``--level``),
-    then turned by ``--up``."""
+    then turned by ``--up``; a `volumes.Volume` in ``args.volume`` (the Python API's,
+    loaded with those options already) as it is."""
+    if isinstance(args.volume, volumes.Volume):
+        return args.volume
     options = {}
     if getattr(args, "dims", None):
         options["dims"] = tuple(int(v) for v in floats(args.dims, 3, "--dims"))
@@ -75,14 +78,21 @@ def isovalue(volume: volumes.Volume, iso: float | None) -> float:
     return volumes.check_isovalue(volume, iso)
 
 
-def load_lattice(path: str | None, volume: volumes.Volume, whole: bool = True):
+def load_lattice(path, volume: volumes.Volume, whole: bool = True):
     """The lattice at `path` checked against `volume`, or None: with `whole`, its computed
     texels (a `baking.view_texels.HeldLattice`: memory follows them, not the box); else
     the file opened, no texel read (a `baking.view_texels.LatticeOnFile`: a picture reads
-    the texels its pixels need, `app.render.offscreen.render_volume`)."""
+    the texels its pixels need, `app.render.offscreen.render_volume`). A lattice in
+    memory (a `baking.Lattice`, the Python API's) is checked against `volume` and
+    returned as it is."""
     if path is None:
         return None
+    from isolume.baking.lattice import Lattice, check_identity
     from isolume.baking.view_texels import LatticeOnFile
+
+    if isinstance(path, Lattice):
+        check_identity(path.meta, volume, "the lattice given")
+        return path
 
     opened = LatticeOnFile.open(path, volume)
     return opened.held() if whole else opened

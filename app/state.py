@@ -144,7 +144,7 @@ class SavedView(VolumeSource):
     normals: str | None = None
     flip_normals: bool | None = None
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, object]:
         """The file's JSON object: ``format`` and ``version`` first, then every field."""
         data = {"format": FORMAT, "version": VERSION} | asdict(self)
         camera = self.camera
@@ -160,7 +160,12 @@ class SavedView(VolumeSource):
         data["light_angles"] = None if angles is None else [float(v) for v in angles]
         return data
 
-    def save(self, path: str | os.PathLike) -> Path:
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> SavedView:
+        """The state file at `path` (`load_state`)."""
+        return load_state(path)
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the state to `path` (`layout`); returns the path."""
         path = Path(path)
         path.write_text(layout(self.to_json()) + "\n")
@@ -351,7 +356,7 @@ def _from_folder(path: str, folder: Path) -> str:
     return str(path if path.is_absolute() else folder / path)
 
 
-def load_state(path: str | os.PathLike) -> SavedView:
+def load_state(path: str | os.PathLike[str]) -> SavedView:
     """Read the state file at `path`.
 
     Raises:
@@ -409,9 +414,16 @@ def apply_state(args: argparse.Namespace, words: Sequence[str]) -> argparse.Name
     path = getattr(args, "state", None)
     if path is None:
         return args
-    saved = load_state(path)
     given = given_options(args, words)
     del args.state_parser
+    return apply_saved(args, load_state(path), path, given)
+
+
+def apply_saved(args: argparse.Namespace, saved: SavedView, path: str | os.PathLike[str],
+                given: set[str]) -> argparse.Namespace:
+    """`args` with the defaults of the state `saved` (read from `path`, named in errors
+    and beside which a picture goes) for every option not in `given` (namespace names);
+    what `apply_state` does once it knows which options the command line gave."""
     for name, value in saved.option_values().items():
         if value is not None and hasattr(args, name) and name not in given:
             setattr(args, name, value)

@@ -154,7 +154,7 @@ class _PlanBars:
         self._end(finished=kind is None)
 
     def __call__(self, stage: str, fraction: float | None = None) -> None:
-        from tqdm import tqdm
+        from tqdm.auto import tqdm
 
         if stage != self.stage:
             self._end(finished=True)
@@ -176,7 +176,7 @@ class _PlanBars:
 
 
 def _progress(total: int, enabled: bool):
-    from tqdm import tqdm
+    from tqdm.auto import tqdm
 
     return tqdm(total=total, unit="path", unit_scale=True, disable=not enabled,
                 dynamic_ncols=True, smoothing=0.1, desc="baking")
@@ -213,7 +213,7 @@ class Baker:
                  scene_cache: int = 1, progress=None,
                  backend: TracingBackend | None = None, packed: bool = False,
                  resume: LatticeFile | None = None,
-                 records_dir: str | os.PathLike | None = None) -> None:
+                 records_dir: str | os.PathLike[str] | None = None) -> None:
         self.backend = backend if backend is not None else ThreadBackend(workers, scene_cache)
         self.records: PlanRecords | None = None
         try:
@@ -425,11 +425,11 @@ round figures: the bonsai at 128³ and iso 22 traced 51.5 M paths in 42.5 s on t
 threads of the machine the docs' figures come from (0.6 M per thread)."""
 
 
-def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike | None = None,
+def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[str] | None = None,
          workers: int | None = None, progress: bool = False,
          checkpoint_seconds: float = 60.0, scheduler: str | None = None,
          outlook: Callable[[BakeOutlook], None] | None = None,
-         dense: bool = True) -> Lattice | PlanLattice:
+         dense: bool = True, keep_interrupted: bool = False) -> Lattice | PlanLattice:
     """Bake (or resume) the illumination lattice of `volume` for `config`.
 
     Args:
@@ -448,10 +448,12 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
         dense: return the lattice dense over the box; False: as the bake held it, over
             the plan's texels (`PlanLattice`: what a caller that only writes `out` needs;
             dense arrays take 23 bytes a texel of the box in irradiance, 3.1 GB at 512³).
+        keep_interrupted: on Ctrl-C (a notebook's interrupt), return the lattice of the
+            finished texels (``meta["interrupted"]`` True) instead of raising.
 
     Returns:
         The lattice (also written to `out`; on Ctrl-C the finished texels are saved
-        before KeyboardInterrupt propagates).
+        before KeyboardInterrupt propagates, or before they are returned).
     """
     out = Path(out) if out is not None else None
     resume = _resumable(volume, config, out)
@@ -479,12 +481,14 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike |
     except KeyboardInterrupt:
         if out is not None:
             held.save(out)
-        raise
+        if not keep_interrupted:
+            raise
+        held.meta["interrupted"] = True
     finally:
         baker.close()
         bar.close()
     cores.stage("save")
-    if out is not None:
+    if out is not None and not held.meta.get("interrupted"):
         held.save(out)
     del baker  # its plan goes before the lattice is made dense
     return held.dense() if dense else held

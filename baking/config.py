@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -162,18 +163,18 @@ class BakeConfig:
         when the config is made (once per process for the same specs: `lighting_of`)."""
         return self._lighting
 
-    def __getstate__(self) -> dict:
+    def __getstate__(self) -> dict[str, Any]:
         """The fields alone: a config crosses to another process as its specs, and its
         lighting is parsed there (`__setstate__`)."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
-    def __setstate__(self, state: dict) -> None:
+    def __setstate__(self, state: dict[str, Any]) -> None:
         for name, value in state.items():
             object.__setattr__(self, name, value)
         object.__setattr__(self, "_lighting", lighting_of(self.env, self.lights))
 
     @classmethod
-    def lit_by(cls, lighting: Lighting, **settings) -> BakeConfig:
+    def lit_by(cls, lighting: Lighting, **settings: Any) -> BakeConfig:
         """A config lit by `lighting` (whose `lighting` property is that very value);
         `settings`: the other fields."""
         env, lights = remember(lighting).to_spec()
@@ -189,7 +190,7 @@ class BakeConfig:
         """True when the albedo is the same in every channel."""
         return self.albedo[0] == self.albedo[1] == self.albedo[2]
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field."""
         d = dataclasses.asdict(self)
         d["lights"] = list(self.lights)
@@ -198,7 +199,7 @@ class BakeConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> BakeConfig:
+    def from_dict(cls, d: dict[str, Any]) -> BakeConfig:
         """Inverse of `to_dict` (unknown keys are an error)."""
         d = dict(d)
         d.setdefault("direct_light", "lattice")  # files from before the field: all in it

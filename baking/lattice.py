@@ -30,6 +30,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,6 +39,9 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.environment import latlong_pixel_directions
 from isolume.baking.errors import BakeError
 from isolume.baking.lattice_file import LatticeFile, write_lattice
+
+if TYPE_CHECKING:
+    from isolume.volumes.core import Volume
 
 CONFIG_VERSION = 1
 """Version of the bake config a file's metadata holds (``meta["config"]``, written with
@@ -86,7 +90,7 @@ class LatticeGeometry:
     hi: tuple[float, float, float]
 
     @classmethod
-    def for_volume(cls, volume, scale: float) -> LatticeGeometry:
+    def for_volume(cls, volume: Volume, scale: float) -> LatticeGeometry:
         """Lattice of `scale` texels per voxel along `volume`'s finest axis over its world
         box, about as many per world unit along the others (`refinement`)."""
         per_voxel = [scale * float(r) for r in refinement(volume.spacing)[::-1]]  # z, y, x
@@ -231,7 +235,7 @@ def drop_trapped(mask: np.ndarray, many: np.ndarray, light_of) -> np.ndarray:
     return mask
 
 
-def lattice_kind(meta: dict) -> str:
+def lattice_kind(meta: dict[str, Any]) -> str:
     """The kind of lattice a metadata dict describes: "irradiance" (also where it does not
     say) or "sh"."""
     return meta.get("kind", "irradiance")
@@ -301,7 +305,7 @@ class Lattice:
     samples: np.ndarray
     second: np.ndarray
     active: np.ndarray
-    meta: dict = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
     preview: np.ndarray | None = None
     preview_paths: np.ndarray | None = None
     config: BakeConfig | None = None
@@ -313,7 +317,7 @@ class Lattice:
             self.facing = np.zeros((*self.geometry.shape, 2), np.uint8)
 
     @classmethod
-    def empty(cls, geometry: LatticeGeometry, channels: int, meta: dict,
+    def empty(cls, geometry: LatticeGeometry, channels: int, meta: dict[str, Any],
               config: BakeConfig | None = None) -> Lattice:
         """A lattice with nothing computed, baked with `config`."""
         shape = geometry.shape
@@ -330,7 +334,7 @@ class Lattice:
         """(Z, Y, X) bool: texels with at least one sample."""
         return self.samples > 0
 
-    def shown(self, region: tuple = (...,)) -> np.ndarray:
+    def shown(self, region: tuple[Any, ...] = (...,)) -> np.ndarray:
         """Bool mask of the texels a display uses in `region` (a tuple of slices of
         (Z, Y, X)): those computed or holding a preview, except the trapped (`TRAPPED_PATHS`)."""
         samples = self.samples[region]
@@ -353,14 +357,14 @@ class Lattice:
 
         return drop_trapped(mask, many, light_of)
 
-    def previewed(self, region: tuple = (...,)) -> np.ndarray:
+    def previewed(self, region: tuple[Any, ...] = (...,)) -> np.ndarray:
         """Bool mask of the texels in `region` whose preview is shown: it rests on more
         paths than the texel's own samples."""
         if self.preview_paths is None:
             return np.zeros(self.samples[region].shape, bool)
         return self.preview_paths[region] > self.samples[region]
 
-    def displayed(self, region: tuple = (...,)) -> np.ndarray:
+    def displayed(self, region: tuple[Any, ...] = (...,)) -> np.ndarray:
         """(…, C) float32 values a display shows in `region`: the preview where
         `previewed`, else the texel's own mean (0 where neither exists)."""
         own = np.where(self.samples[region][..., None] > 0, self.values[region], 0)
@@ -386,7 +390,7 @@ class Lattice:
         self.ensure_preview_facing().reshape(-1, 2)[traced] = codes
         self.preview_paths.reshape(-1)[flat] = paths
 
-    def displayed_facing(self, region: tuple = (...,)) -> np.ndarray:
+    def displayed_facing(self, region: tuple[Any, ...] = (...,)) -> np.ndarray:
         """(…, 2) uint8 facing codes a display uses in `region`, as `displayed` picks the
         values: the preview's where `previewed`, else the texel's own where computed,
         else unknown."""
@@ -433,7 +437,7 @@ class Lattice:
                          self.values[region].astype(np.float64))
 
     # -- files -------------------------------------------------------------------------
-    def save(self, path: str | os.PathLike) -> None:
+    def save(self, path: str | os.PathLike[str]) -> None:
         """Write atomically to `path` (.npz, `baking.lattice_file`)."""
         write_lattice(path, {"values": self.values, "samples": self.samples,
                              "second": self.second, "active": self.active,
@@ -441,7 +445,7 @@ class Lattice:
                       file_meta(self.meta, self.geometry, self.config))
 
     @classmethod
-    def load(cls, path: str | os.PathLike, volume=None) -> Lattice:
+    def load(cls, path: str | os.PathLike[str], volume: Volume | None = None) -> Lattice:
         """Read a lattice file, dense over its box; with `volume`, check that it was baked
         for that volume (before its arrays are read).
 
@@ -453,12 +457,12 @@ class Lattice:
         return cls(geometry, arrays["values"], arrays["samples"], arrays["second"],
                    arrays["active"], file.meta, config=config, facing=arrays["facing"])
 
-    def check_volume(self, volume, path: str | os.PathLike = "lattice") -> None:
+    def check_volume(self, volume: Volume, path: str | os.PathLike[str] = "lattice") -> None:
         """Raise BakeError unless this lattice was baked for `volume`."""
         check_identity(self.meta, volume, path)
 
 
-def file_meta(meta: dict, geometry: LatticeGeometry, config: BakeConfig | None) -> dict:
+def file_meta(meta: dict[str, Any], geometry: LatticeGeometry, config: BakeConfig | None) -> dict:
     """`meta` as a lattice file holds it: with the box's shape and corners, and the bake
     config as a dict (the only writer of that dict, with its version `CONFIG_VERSION`)."""
     meta = dict(meta, shape=list(geometry.shape), box_lo=list(geometry.lo),
@@ -468,7 +472,7 @@ def file_meta(meta: dict, geometry: LatticeGeometry, config: BakeConfig | None) 
     return meta
 
 
-def open_lattice(path: str | os.PathLike, volume=None
+def open_lattice(path: str | os.PathLike[str], volume=None
                  ) -> tuple[LatticeFile, LatticeGeometry, BakeConfig | None]:
     """A lattice file opened (`baking.lattice_file.LatticeFile`; its meta without the
     bake config's dict), its geometry and bake config; with `volume`, checked to be baked
@@ -491,7 +495,7 @@ def open_lattice(path: str | os.PathLike, volume=None
 
 
 def other_texels(geometry: LatticeGeometry, volume, scale: float,
-                 path: str | os.PathLike = "lattice") -> str:
+                 path: str | os.PathLike[str] = "lattice") -> str:
     """"" when a lattice of `geometry` (the file `path`'s) has the texels that a bake of
     `volume` at `scale` makes (`LatticeGeometry.for_volume`), so a bake can add paths to
     them; else a one-line message saying how they differ."""
@@ -504,7 +508,8 @@ def other_texels(geometry: LatticeGeometry, volume, scale: float,
             "can be shown, not baked further; bake to a new file")
 
 
-def check_identity(meta: dict, volume, path: str | os.PathLike = "lattice") -> None:
+def check_identity(meta: dict[str, Any], volume: Volume,
+                   path: str | os.PathLike[str] = "lattice") -> None:
     """Raise BakeError unless the lattice of metadata `meta` was baked for `volume`."""
     want = meta.get("volume", {})
     if want.get("hash") != volume.data_hash():

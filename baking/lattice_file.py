@@ -71,7 +71,7 @@ def held_mask(arrays: dict[str, np.ndarray]) -> np.ndarray:
     return arrays["active"] | (arrays["samples"] > 0)
 
 
-def write_lattice(path: str | os.PathLike, arrays: dict[str, np.ndarray], meta: dict) -> None:
+def write_lattice(path: str | os.PathLike[str], arrays: dict[str, np.ndarray], meta: dict) -> None:
     """Write `arrays` (the `MEMBERS`, dense over a (Z, Y, X) box: values (Z, Y, X, C),
     facing (Z, Y, X, 2), the others (Z, Y, X)) and `meta` (JSON-ready) to `path`,
     atomically (a temporary file in the same folder, then renamed): an interrupted write
@@ -86,7 +86,7 @@ def write_lattice(path: str | os.PathLike, arrays: dict[str, np.ndarray], meta: 
                    {n: arrays[n].shape[3:] for n in MEMBERS}, rows, meta)
 
 
-def write_rows(path: str | os.PathLike, shape: tuple[int, int, int], ids: np.ndarray,
+def write_rows(path: str | os.PathLike[str], shape: tuple[int, int, int], ids: np.ndarray,
                arrays: dict[str, np.ndarray], meta: dict) -> None:
     """Write the `MEMBERS` of the texels at (N,) sorted unique flat ids `ids` of a
     (Z, Y, X) box, as (N, …) `arrays` (values (N, C), facing (N, 2), the others (N,)),
@@ -116,7 +116,7 @@ def packed_ids(ids: np.ndarray, size: int) -> np.ndarray:
     return bits
 
 
-def _write_archive(path: str | os.PathLike, bits: np.ndarray, count: int,
+def _write_archive(path: str | os.PathLike[str], bits: np.ndarray, count: int,
                    tails: dict[str, tuple], rows: Callable[[str], Iterator[np.ndarray]],
                    meta: dict) -> None:
     """The archive of the held texels' mask (`bits`: the packed bits of the (Z, Y, X) bool
@@ -252,7 +252,7 @@ class LatticeFile:
     version: int
 
     @classmethod
-    def open(cls, path: str | os.PathLike) -> LatticeFile:
+    def open(cls, path: str | os.PathLike[str]) -> LatticeFile:
         """Read and check `path`'s metadata.
 
         Raises:

@@ -106,7 +106,7 @@ class Lighting:
                 return light
         return None
 
-    def turned(self, direction) -> Lighting:
+    def turned(self, direction: np.ndarray) -> Lighting:
         """This lighting with `turnable` pointing towards `direction` (3,): a directional
         light with the new unit vector, or the sky with the new ``sun_az``/``sun_el``
         (`SkyEnvironment`: (cos el cos az, cos el sin az, sin el)); the rest unchanged.

@@ -66,7 +66,7 @@ class PlanLattice:
         return relative_error(self.values, self.samples, self.second, self.kind,
                               floor_fraction)
 
-    def save(self, path: str | os.PathLike) -> None:
+    def save(self, path: str | os.PathLike[str]) -> None:
         """Write atomically to `path`, as `baking.Lattice.save` would write `dense()`."""
         write_rows(path, self.geometry.shape, self.ids,
                    {"values": self.values, "samples": self.samples, "second": self.second,

@@ -141,7 +141,7 @@ class SpilledRecords:
         BakeError: the file cannot be made or written (e.g. the disk is full).
     """
 
-    def __init__(self, plan: Plan, directory: str | os.PathLike | None = None,
+    def __init__(self, plan: Plan, directory: str | os.PathLike[str] | None = None,
                  groups: LevelGroups | None = None) -> None:
         self.ids, self.lower = plan.ids, plan.lower
         self.groups = groups if groups is not None else LevelGroups(plan.lower)
@@ -229,7 +229,7 @@ class SpilledRecords:
         return b"".join(parts) if len(parts) > 1 else parts[0]
 
 
-def spill(plan: Plan, directory: str | os.PathLike | Path | None = None,
+def spill(plan: Plan, directory: str | os.PathLike[str] | Path | None = None,
           groups: LevelGroups | None = None) -> tuple[Plan, SpilledRecords]:
     """`plan` without its records' arrays (phase, weight, high, landing: 25 bytes a texel)
     and the `SpilledRecords` that keep them (`groups` as there)."""

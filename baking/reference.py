@@ -519,7 +519,7 @@ def render_reference(volume: volumes.Volume, iso: float, origins: np.ndarray,
 
 
 # -- the state file ---------------------------------------------------------------------
-def atomic_write(path: str | os.PathLike, write) -> None:
+def atomic_write(path: str | os.PathLike[str], write) -> None:
     """Call ``write(tmp)`` on a temporary file next to `path`, then rename it to `path`:
     an interrupted write never leaves a broken file."""
     path = Path(path)
@@ -533,14 +533,14 @@ def atomic_write(path: str | os.PathLike, write) -> None:
         raise
 
 
-def save_state(path: str | os.PathLike, stats: PixelStats, meta: dict) -> None:
+def save_state(path: str | os.PathLike[str], stats: PixelStats, meta: dict) -> None:
     """Write `stats` and JSON-ready `meta` atomically to `path` (.npz)."""
     atomic_write(path, lambda tmp: np.savez_compressed(
         tmp, count=stats.count, shift=stats.shift, s1=stats.s1, s2=stats.s2,
         meta=np.array(json.dumps(meta))))
 
 
-def load_state(path: str | os.PathLike) -> tuple[PixelStats, dict]:
+def load_state(path: str | os.PathLike[str]) -> tuple[PixelStats, dict]:
     """Read a state file written by `save_state`.
 
     Raises:

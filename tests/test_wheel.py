@@ -1,6 +1,7 @@
 """A built wheel runs outside the source tree, shaders included, and installs everything
-under the ``isolume`` namespace (no top-level ``app``, ``baking``, ``volumes`` or
-``shaders`` module that would shadow a user's own)."""
+under the one package ``isolume`` (the Python API, and no top-level ``app``, ``baking``,
+``volumes`` or ``shaders`` module that would shadow a user's own), each module under one
+name (no ``isolume.app.api``), typed (``py.typed``)."""
 
 import subprocess
 import sys
@@ -29,7 +30,9 @@ def test_wheel_installs_and_renders_outside_the_source_tree(tmp_path):
     assert sorted(p.name for p in target.iterdir() if not p.name.endswith("-info")) == [
         "bin", "isolume"] or sorted(
         p.name for p in target.iterdir() if not p.name.endswith("-info")) == ["isolume"]
-    code = ("import sys, importlib.util as u; import isolume.app as app; "
+    code = ("import sys, importlib.util as u; import isolume, isolume.app as app; "
+            "assert isolume.__file__.startswith(sys.argv[1]) and callable(isolume.render); "
+
             "from isolume import shaders; from isolume.app.cli import main; "
             "assert not any(u.find_spec(m) for m in ('app', 'baking', 'volumes', 'shaders')); "
             "assert app.__file__.startswith(sys.argv[1]), app.__file__; "
@@ -41,3 +44,5 @@ def test_wheel_installs_and_renders_outside_the_source_tree(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert out.stat().st_size > 0
+    assert (target / "isolume" / "py.typed").exists()
+    assert not (target / "isolume" / "app" / "api").exists()  # the API under one name

@@ -14,22 +14,51 @@ Public API::
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 from isolume.volumes.core import STORED_TYPES, Volume, VolumeError
-from isolume.volumes.cubes import tracing_surface
-from isolume.volumes.field import (
-    gradient_at,
-    newton_to_level,
-    normals_at,
-    value_at,
-    values_along_normals,
-    values_on_grid,
-)
-from isolume.volumes.mesh import Mesh, check_isovalue, isosurface, level_points, marching_cubes
 from isolume.volumes.orientation import UP_AXES, turn_up
 from isolume.volumes.region import CROP_SYNTAX, crop_downsample
 from isolume.volumes.stats import histogram_lines, suggest_isovalues
 from isolume.volumes.synthetic import DEFAULT
+
+if TYPE_CHECKING:
+    from isolume.volumes.cubes import tracing_surface
+    from isolume.volumes.field import (
+        gradient_at,
+        newton_to_level,
+        normals_at,
+        value_at,
+        values_along_normals,
+        values_on_grid,
+    )
+    from isolume.volumes.mesh import (
+        Mesh,
+        check_isovalue,
+        isosurface,
+        level_points,
+        marching_cubes,
+    )
+
+_COMPILED = {
+    "tracing_surface": "cubes", "gradient_at": "field", "newton_to_level": "field",
+    "normals_at": "field", "value_at": "field", "values_along_normals": "field",
+    "values_on_grid": "field", "Mesh": "mesh", "check_isovalue": "mesh",
+    "isosurface": "mesh", "level_points": "mesh", "marching_cubes": "mesh",
+}
+"""Names whose modules compile kernels (numba): imported when first used (PEP 562), so
+that ``import isolume.volumes`` (and the Python API's ``import isolume``) stays light."""
+
+
+def __getattr__(name: str):
+    if name not in _COMPILED:
+        raise AttributeError(f"module 'isolume.volumes' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(f"isolume.volumes.{_COMPILED[name]}"), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "CROP_SYNTAX",
@@ -58,7 +87,7 @@ __all__ = [
 ]
 
 
-def load(spec: str | os.PathLike | None = None, *, crop: str | None = None,
+def load(spec: str | os.PathLike[str] | None = None, *, crop: str | None = None,
          downsample: int = 1, **options) -> Volume:
     """Load a volume from a file path or build ``synthetic:NAME[:SIZE]``, or a part of it.
 

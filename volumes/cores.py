@@ -553,7 +553,7 @@ def timed_item(kind: str):
 
 
 @contextmanager
-def recording(path: str | os.PathLike | None, **about) -> Iterator[Timeline | None]:
+def recording(path: str | os.PathLike[str] | None, **about) -> Iterator[Timeline | None]:
     """Record a timeline of the work inside into `path` (JSON, with `about`: the command,
     its arguments) — also when the work fails or is interrupted; nothing when `path` is
     None."""

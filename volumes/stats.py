@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from skimage.filters import threshold_multiotsu
 
@@ -38,13 +40,75 @@ def suggest_isovalues(volume: Volume, count: int = 2) -> tuple[float, ...]:
     return tuple(float(t) for t in thresholds if lo < t < hi)
 
 
+def histogram(volume: Volume, bins: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """(bins,) counts and (bins + 1,) edges (field units) of the values over their range,
+    from at most `_MAX_SAMPLES` of them (evenly strided)."""
+    lo, hi = volume.value_range
+    return np.histogram(_subsample(volume), bins=bins, range=(lo, max(hi, lo + 1e-12)))
+
+
 def histogram_lines(volume: Volume, bins: int = 16, width: int = 40) -> list[str]:
     """A text histogram (log-scaled bars) of the values, one line per bin."""
-    lo, hi = volume.value_range
-    counts, edges = np.histogram(_subsample(volume), bins=bins, range=(lo, max(hi, lo + 1e-12)))
+    counts, edges = histogram(volume, bins)
     logc = np.log1p(counts)
     scale = width / logc.max() if logc.max() > 0 else 0
     return [
         f"{edges[i]:>12.5g} .. {edges[i + 1]:<12.5g} {'#' * round(logc[i] * scale)}"
         for i in range(bins)
     ]
+
+
+@dataclass(frozen=True)
+class VolumeInfo:
+    """What ``isolume info`` says of a volume (`Volume.info`).
+
+    Attributes:
+        name: the volume's name; source: its file or synthetic spec.
+        dims: (X, Y, Z) samples; voxels: their count.
+        spacing, origin: (x, y, z) world units.
+        placement: how the samples were placed ("" when nothing was said).
+        value_range: (lo, hi) field units.
+        counts: (16,) histogram counts; edges: (17,) their bin edges, field units.
+        suggested: isovalues that show the structure (`suggest_isovalues`).
+        histogram_lines: the text histogram, one line a bin.
+    """
+
+    name: str
+    source: str
+    dims: tuple[int, int, int]
+    voxels: int
+    spacing: tuple[float, float, float]
+    origin: tuple[float, float, float]
+    placement: str
+    value_range: tuple[float, float]
+    counts: np.ndarray
+    edges: np.ndarray
+    suggested: tuple[float, ...]
+    histogram_lines: tuple[str, ...]
+
+    @classmethod
+    def of(cls, volume: Volume) -> VolumeInfo:
+        """The description of `volume`."""
+        z, y, x = volume.data.shape
+        counts, edges = histogram(volume)
+        return cls(volume.name, volume.source, (x, y, z), int(volume.data.size),
+                   tuple(volume.spacing), tuple(volume.origin), volume.placement,
+                   tuple(float(v) for v in volume.value_range), counts, edges,
+                   suggest_isovalues(volume), tuple(histogram_lines(volume)))
+
+    def __str__(self) -> str:
+        x, y, z = self.dims
+        lo, hi = self.value_range
+        lines = [f"volume     {self.source or self.name}",
+                 f"dims       {x} x {y} x {z} (X x Y x Z), {self.voxels:,} voxels",
+                 f"spacing    {', '.join(f'{s:g}' for s in self.spacing)}",
+                 f"origin     {', '.join(f'{s:g}' for s in self.origin)}"]
+        if self.placement:
+            lines.append(f"placement  {self.placement}")
+        lines += [f"range      {lo:g} .. {hi:g}", "histogram (log counts)"]
+        lines += ["  " + line for line in self.histogram_lines]
+        if self.suggested:
+            lines.append(f"suggested isovalues: {', '.join(f'{s:.6g}' for s in self.suggested)}")
+        else:
+            lines.append("suggested isovalues: none (constant volume)")
+        return "\n".join(lines)

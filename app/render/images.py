@@ -17,7 +17,8 @@ class OutputError(IsolumeError):
 IMAGE_SUFFIXES = (".png", ".exr")
 
 
-def check_output_path(path: str | os.PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> Path:
+def check_output_path(path: str | os.PathLike[str],
+                      suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> Path:
     """Validate an output path before any work is done.
 
     Raises:
@@ -35,14 +36,14 @@ def check_output_path(path: str | os.PathLike, suffixes: tuple[str, ...] = IMAGE
     return path
 
 
-def write_png(path: str | os.PathLike, srgb: np.ndarray) -> None:
+def write_png(path: str | os.PathLike[str], srgb: np.ndarray) -> None:
     """Write an (H, W, 3) uint8 sRGB image."""
     from PIL import Image
 
     Image.fromarray(np.ascontiguousarray(srgb, np.uint8), "RGB").save(path)
 
 
-def write_exr(path: str | os.PathLike, linear: np.ndarray, extra: dict | None = None) -> None:
+def write_exr(path: str | os.PathLike[str], linear: np.ndarray, extra: dict | None = None) -> None:
     """Write an (H, W, 3) float32 linear-radiance image as a ZIP-compressed float EXR.
 
     Args:
@@ -59,7 +60,7 @@ def write_exr(path: str | os.PathLike, linear: np.ndarray, extra: dict | None = 
         exr.write(str(path))
 
 
-def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
+def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """Read every channel group of an EXR: name -> array ("RGB" -> (H, W, 3))."""
     import OpenEXR
 
@@ -67,7 +68,7 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
         return {name: np.array(ch.pixels) for name, ch in exr.channels().items()}
 
 
-def write_image(path: str | os.PathLike, linear: np.ndarray, srgb: np.ndarray) -> None:
+def write_image(path: str | os.PathLike[str], linear: np.ndarray, srgb: np.ndarray) -> None:
     """Write `srgb` (PNG) or `linear` (EXR) according to the suffix of `path`."""
     if Path(path).suffix.lower() == ".exr":
         write_exr(path, linear)

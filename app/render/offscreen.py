@@ -6,7 +6,7 @@ import numpy as np
 
 from isolume import volumes
 from isolume.app.render.camera import Camera
-from isolume.app.render.glcontext import create_headless
+from isolume.app.render.glcontext import HeadlessContext, create_headless
 from isolume.app.render.renderer import SurfaceRenderer, framed_camera
 from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
 from isolume.app.render.traced_light import position_pass, trace_direct_light
@@ -36,6 +36,43 @@ def _read_texels(settings: RenderSettings, geometry, points: np.ndarray) -> np.n
     return picture_texels(geometry, points)
 
 
+class Reuse:
+    """What consecutive renders in one process keep (the Python API's session): one
+    headless context per GL back end, made current again on the thread that renders, and
+    the last isosurface (the same volume object, isovalue and normals give the same
+    mesh). Call `release` when done."""
+
+    def __init__(self) -> None:
+        self._contexts: dict[str, HeadlessContext] = {}
+        self._mesh: tuple[tuple, volumes.Mesh] | None = None
+
+    def context(self, backend: str) -> HeadlessContext:
+        """The context of `backend` ("auto", "egl", "osmesa"), created on first use."""
+        gl = self._contexts.get(backend)
+        if gl is None:
+            gl = self._contexts[backend] = create_headless(backend)
+        else:
+            gl.make_current()
+        return gl
+
+    def mesh(self, volume: volumes.Volume, iso: float, normals: str,
+             flip_normals: bool) -> volumes.Mesh:
+        """The isosurface of `volume` at `iso` (`volumes.isosurface`), kept for the next
+        call with the same arguments."""
+        key = (volume, float(iso), normals, bool(flip_normals))
+        if self._mesh is None or self._mesh[0] != key:
+            mesh = volumes.isosurface(volume, iso, normals=normals, flip_normals=flip_normals)
+            self._mesh = (key, mesh)
+        return self._mesh[1]
+
+    def release(self) -> None:
+        """Free the contexts and the kept mesh."""
+        for gl in self._contexts.values():
+            gl.release()
+        self._contexts.clear()
+        self._mesh = None
+
+
 def render_volume(
     volume: volumes.Volume,
     iso: float,
@@ -52,6 +89,7 @@ def render_volume(
     shadows: str = "traced",
     workers: int | None = None,
     progress: bool = False,
+    reuse: Reuse | None = None,
 ) -> tuple[Frame, volumes.Mesh]:
     """Extract the isosurface at `iso` and render it in a fresh headless context, seen
     from `camera`, or (None) from the orbit `view` (azimuth, elevation degrees, distance
@@ -69,7 +107,7 @@ def render_volume(
     `volume` here. The lights a lattice leaves to the pixels get, with `shadows` "traced",
     the reference's own estimate of their direct light at each pixel, traced on an Embree
     scene of the mesh (`app.render.traced_light`), or with "map" the shadow atlas's, as in
-    the viewer.
+    the viewer. `reuse` keeps the context and the mesh for the next call (`Reuse`).
 
     Returns:
         (frame, mesh): the picture and the mesh that was drawn.
@@ -77,9 +115,12 @@ def render_volume(
     from isolume.baking.trace import Scene
 
     cores.stage("surface")
-    mesh = volumes.isosurface(volume, iso, normals=normals, flip_normals=flip_normals)
+    if reuse is not None:
+        mesh = reuse.mesh(volume, iso, normals, flip_normals)
+    else:
+        mesh = volumes.isosurface(volume, iso, normals=normals, flip_normals=flip_normals)
     cores.stage("framing")
-    gl = create_headless(backend)
+    gl = reuse.context(backend) if reuse is not None else create_headless(backend)
     try:
         renderer = SurfaceRenderer(gl.ctx)
         renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
@@ -118,5 +159,6 @@ def render_volume(
         frame = renderer.render(camera, settings)
         renderer.release()
     finally:
-        gl.release()
+        if reuse is None:
+            gl.release()
     return frame, mesh

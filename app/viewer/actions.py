@@ -154,7 +154,7 @@ class Actions:
         self.redraw()
 
     # -- files ---------------------------------------------------------------------------
-    def screenshot(self, path: str | os.PathLike | None = None) -> tuple[Path, Path]:
+    def screenshot(self, path: str | os.PathLike[str] | None = None) -> tuple[Path, Path]:
         """Write the view as PNG and EXR (`app.viewer.saving.Saver.screenshot`)."""
         return self.saver.screenshot(path)
 
@@ -162,11 +162,11 @@ class Actions:
         """(H, W, 3) uint8 of the window's back buffer, top row first (UI included)."""
         return self.saver.window_pixels()
 
-    def save_view(self, path: str | os.PathLike | None = None) -> Path:
+    def save_view(self, path: str | os.PathLike[str] | None = None) -> Path:
         """Write what is on screen as a state file (`app.viewer.saving.Saver.save_view`)."""
         return self.saver.save_view(path)
 
-    def save_lattice(self, path: str | os.PathLike | None = None) -> Path | None:
+    def save_lattice(self, path: str | os.PathLike[str] | None = None) -> Path | None:
         """Write the lattice (`app.viewer.saving.Saver.save_lattice`)."""
         return self.saver.save_lattice(path)
 

@@ -40,7 +40,7 @@ class Saver:
         or a saved view goes to when no name is given."""
         return Path(f"isolume-{self.volume.name}-{time.strftime('%Y%m%d-%H%M%S')}{suffix}")
 
-    def screenshot(self, path: str | os.PathLike | None = None) -> tuple[Path, Path]:
+    def screenshot(self, path: str | os.PathLike[str] | None = None) -> tuple[Path, Path]:
         """Write the current view as PNG (sRGB) and EXR (linear radiance, before exposure)
         next to each other, framed in the whole window (`ViewerState.whole_window`: without
         the panel, nor the room left for it); returns both paths.
@@ -66,7 +66,7 @@ class Saver:
         w, h = self.window.framebuffer_size
         return np.frombuffer(self.window.read_back(), np.uint8).reshape(h, w, 3)[::-1]
 
-    def save_lattice(self, path: str | os.PathLike | None = None) -> Path | None:
+    def save_lattice(self, path: str | os.PathLike[str] | None = None) -> Path | None:
         """Write the lattice being shown/baked to `path` (default: --lattice, else
         isolume-NAME.npz; a file's lattice re-baked for a turned light: beside it, with
         ``-relit``); None when no lazy bake started."""
@@ -83,7 +83,7 @@ class Saver:
         self._announce(f"saved {path} ({done:,} texels computed)")
         return path
 
-    def save_view(self, path: str | os.PathLike | None = None) -> Path:
+    def save_view(self, path: str | os.PathLike[str] | None = None) -> Path:
         """Write what is on screen as a state file (`app.state.SavedView`) to `path`
         (default: beside the screenshots, isolume-NAME-DATE-TIME.view.json); returns it.
 

@@ -134,7 +134,7 @@ _FORMAT_LABELS = {
 
 
 def load_file(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     *,
     dims: tuple[int, int, int] | None = None,
     dtype: str | None = None,
