@@ -23,7 +23,9 @@ from isolume.app.options import (
 
 def cmd_info(args: argparse.Namespace) -> int:
     """Print dimensions, spacing, value range, histogram and suggested isovalues."""
-    print(load_volume(args).info())
+    from isolume.volumes.stats import VolumeInfo
+
+    print(VolumeInfo.of(load_volume(args)))
     return 0
 
 

@@ -15,18 +15,16 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = {"app": "isolume.app", "baking": "isolume.baking", "volumes": "isolume.volumes",
-            "shaders": "isolume.shaders"}
-"""Top-level folders and the package each installs as (pyproject's ``package-dir``)."""
-
-
 def _modules() -> dict[str, Path]:
-    """{dotted module name: source file} of every module of isolume."""
+    """{dotted module name: source file} of every module of isolume, as pyproject's
+    packages and ``package-dir`` install them (`layout.package_folders`: app/api is
+    `isolume`)."""
+    from layout import package_folders
+
     modules = {}
-    for folder, package in PACKAGES.items():
-        for path in sorted((ROOT / folder).rglob("*.py")):
-            parts = path.relative_to(ROOT / folder).with_suffix("").parts
-            name = ".".join([package, *(p for p in parts if p != "__init__")])
+    for package, folder in package_folders().items():
+        for path in sorted(folder.glob("*.py")):
+            name = package if path.stem == "__init__" else f"{package}.{path.stem}"
             modules[name] = path
     return modules
 
@@ -151,11 +149,21 @@ def test_every_tracing_backend_offers_the_whole_protocol():
             assert list(got) == list(want), f"{backend.__name__}.{name}"
 
 
-@pytest.mark.parametrize("package", sorted(PACKAGES.values()))
+def _part(name: str) -> str:
+    """The part of isolume module `name` belongs to: a folder's package, or the API."""
+    parts = name.split(".")
+    return ".".join(parts[:2]) if len(parts) > 1 and parts[1] in PARTS else "isolume"
+
+
+PARTS = ("app", "baking", "volumes", "shaders")
+"""The subpackages that are the repository's top-level folders."""
+
+
+@pytest.mark.parametrize("package", ["isolume", *(f"isolume.{p}" for p in PARTS)])
 def test_every_module_imports_in_a_fresh_interpreter(package):
     """Each module of `package` imports on its own, in a fresh interpreter (an import
     cycle that Python cannot resolve fails here)."""
-    names = sorted(name for name in MODULES if name.startswith(package))
+    names = sorted(name for name in MODULES if _part(name) == package)
     code = ("import importlib, sys\n"
             "bad = []\n"
             f"for name in {names!r}:\n"

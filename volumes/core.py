@@ -18,14 +18,10 @@ Conventions (DESIGN §2), stated once here and tested in ``tests/test_volumes_co
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import IsolumeError
-
-if TYPE_CHECKING:
-    from isolume.volumes.stats import VolumeInfo
 
 
 class VolumeError(IsolumeError):
@@ -134,13 +130,6 @@ class Volume:
     def index_to_world(self, index_zyx: np.ndarray) -> np.ndarray:
         """(N, 3) fractional voxel indices (z, y, x) -> (N, 3) world xyz."""
         return np.asarray(index_zyx, np.float64)[:, ::-1] * self.spacing + self.origin
-
-    def info(self) -> VolumeInfo:
-        """What ``isolume info`` says of it: dims, spacing, placement, value range,
-        histogram and suggested isovalues (a `volumes.stats.VolumeInfo`, printable)."""
-        from isolume.volumes.stats import VolumeInfo
-
-        return VolumeInfo.of(self)
 
     def data_hash(self) -> str:
         """SHA-256 of the samples as float32, shape and spacing, hex (identifies a volume,

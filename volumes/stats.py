@@ -60,7 +60,7 @@ def histogram_lines(volume: Volume, bins: int = 16, width: int = 40) -> list[str
 
 @dataclass(frozen=True)
 class VolumeInfo:
-    """What ``isolume info`` says of a volume (`Volume.info`).
+    """What ``isolume info`` says of a volume (`VolumeInfo.of`).
 
     Attributes:
         name: the volume's name; source: its file or synthetic spec.

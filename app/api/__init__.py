@@ -26,6 +26,7 @@ if __name__ != "isolume":  # app/api is the package `isolume`, never `isolume.ap
 if TYPE_CHECKING:
     from isolume._calls import bake as bake
     from isolume._calls import export as export
+    from isolume._calls import info as info
     from isolume._calls import load as load
     from isolume._calls import movie as movie
     from isolume._calls import reference as reference
@@ -50,6 +51,7 @@ __all__ = [
     "__version__",
     "bake",
     "export",
+    "info",
     "load",
     "movie",
     "reference",
@@ -62,6 +64,7 @@ _WHERE = {
     "render": ("isolume._calls", "render"),
     "bake": ("isolume._calls", "bake"),
     "export": ("isolume._calls", "export"),
+    "info": ("isolume._calls", "info"),
     "movie": ("isolume._calls", "movie"),
     "reference": ("isolume._calls", "reference"),
     "show": ("isolume._calls", "show"),

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from isolume.app.state import SavedView
     from isolume.baking.lattice import Lattice
     from isolume.volumes.core import Volume
+    from isolume.volumes.stats import VolumeInfo
 
 PathText = str | os.PathLike[str]
 Numbers = Sequence[float]
@@ -70,6 +71,15 @@ def load(source: Volume | str | os.PathLike[str] | np.ndarray | None = None, *,
                                   "crop": crop, "downsample": downsample, "level": level})
         return load_volume(args) if up is None else volumes.turn_up(load_volume(args), up)
     return volume if up is None else volumes.turn_up(volume, up)
+
+
+def info(volume: Volume | str | os.PathLike[str]) -> VolumeInfo:
+    """What ``isolume info`` says of `volume` (a `Volume`, or what `load` takes): dims,
+    spacing, placement, value range, histogram (``counts``, ``edges``) and suggested
+    isovalues; printed, the command's text."""
+    from isolume.volumes.stats import VolumeInfo
+
+    return VolumeInfo.of(_volume(volume))
 
 
 def _triple(values: Numbers | str | None, what: str, default: float) -> tuple[float, ...]:
