@@ -273,3 +273,23 @@ def test_the_public_api_is_typed(tmp_path):
           f"the whole package {report['completenessScore']:.1%}")
     assert len(public) >= 30 and known >= PUBLIC_SHARE, [
         s["name"] for s in public if not s["isTypeKnown"]]
+
+
+@pytest.mark.slow
+def test_export_movie_and_reference_write_what_the_commands_write(tmp_path):
+    volume = isolume.load("synthetic:torus:24")
+    common = ["synthetic:torus:24", "--samples", "4"]
+    assert isolume.export(volume, tmp_path / "a.ply", samples=4) == tmp_path / "a.ply"
+    assert main(["export", *common, "--out", str(tmp_path / "b.ply")]) == 0
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    isolume.movie(volume, tmp_path / "a", frames=2, size=(32, 32), samples=4, gl="osmesa")
+    assert main(["movie", *common, "--frames", "2", "--size", "32x32", "--gl", "osmesa",
+                 "--out", str(tmp_path / "b") + "/"]) == 0
+    frames = sorted(p.name for p in (tmp_path / "a").glob("*.png"))
+    assert len(frames) == 2 and frames == sorted(p.name for p in (tmp_path / "b").glob("*.png"))
+    for name in frames:
+        assert np.array_equal(_png(tmp_path / "a" / name), _png(tmp_path / "b" / name))
+    isolume.reference(volume, tmp_path / "a.exr", spp=2, size=(24, 24), workers=1)
+    assert main(["reference", "synthetic:torus:24", "--spp", "2", "--size", "24x24",
+                 "--workers", "1", "--out", str(tmp_path / "b.exr")]) == 0
+    assert np.array_equal(read_exr(tmp_path / "a.exr")["RGB"], read_exr(tmp_path / "b.exr")["RGB"])

@@ -297,13 +297,15 @@ def movie(volume: Volume | str | os.PathLike[str], out: PathText, *,
           view: Numbers | str = (30, 30), gl: Literal["auto", "egl", "osmesa"] = "auto",
           shadows: Literal["traced", "map"] = "traced",
           state: SavedView | PathText | None = None) -> Path:
-    """Make a movie (MP4, or a folder of PNG frames), as ``isolume movie`` does (its
-    options, the same defaults): a turntable, a turning light or an isovalue sweep.
+    """Make a movie (MP4, or a folder of PNG frames: an `out` without a suffix), as
+    ``isolume movie`` does (its options, the same defaults): a turntable, a turning light
+    or an isovalue sweep.
 
     Returns:
         The file or folder written.
     """
-    given = {"out": out, "kind": kind, "sweep": sweep, "frames": frames, "fps": fps,
+    folder = not Path(out).suffix and not os.fspath(out).endswith("/")
+    given = {"out": os.fspath(out) + ("/" if folder else ""), "kind": kind, "sweep": sweep, "frames": frames, "fps": fps,
              "turntable_light": turntable_light, "degrees": degrees, "iso_range": iso_range,
              "save_lattice": save_lattice, "meter_frames": meter_frames, "crf": crf,
              "iso": iso, "lattice": lattice, "env": env, "light": light, "samples": samples,
