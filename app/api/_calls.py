@@ -305,8 +305,9 @@ def movie(volume: Volume | str | os.PathLike[str], out: PathText, *,
         The file or folder written.
     """
     folder = not Path(out).suffix and not os.fspath(out).endswith("/")
-    given = {"out": os.fspath(out) + ("/" if folder else ""), "kind": kind, "sweep": sweep, "frames": frames, "fps": fps,
-             "turntable_light": turntable_light, "degrees": degrees, "iso_range": iso_range,
+    given = {"out": os.fspath(out) + ("/" if folder else ""), "kind": kind, "sweep": sweep,
+             "frames": frames, "fps": fps, "turntable_light": turntable_light,
+             "degrees": degrees, "iso_range": iso_range,
              "save_lattice": save_lattice, "meter_frames": meter_frames, "crf": crf,
              "iso": iso, "lattice": lattice, "env": env, "light": light, "samples": samples,
              "bounces": bounces, "seed": seed, "workers": workers, "albedo": albedo,
@@ -354,18 +355,22 @@ def show(volume: Volume | str | os.PathLike[str], *, iso: float | None = None,
          no_auto_exposure: bool = False, no_bake: bool = False,
          bake_mode: Literal["irradiance", "sh"] = "irradiance", bake_env: str = DEFAULT_ENV,
          bake_samples: int = 256, bake_workers: int | None = None, bake_max_levels: int = 64,
-         normals: Literal["smooth", "gradient"] = "smooth",
-         flip_normals: bool = False) -> NotebookView:
+         normals: Literal["smooth", "gradient"] = "smooth", flip_normals: bool = False,
+         gl: Literal["auto", "egl", "osmesa"] = "auto") -> NotebookView:
     """An interactive view in a notebook, as ``isolume view`` is on the desktop (its
     options, the same defaults, but a notebook-sized picture): drag to orbit, wheel to
     zoom, sliders for the isovalue and the light, the shading mode; drawn off-screen
     (EGL) in the kernel and streamed to the browser (jupyter_rfb), the lazy bake
-    refining the global illumination (`isolume.app.notebook`)."""
+    refining the global illumination (`isolume.app.notebook`). `gl`: EGL, else OSMesa
+    ("auto"); where neither exists (macOS) an `IsolumeError` says to use ``isolume
+    view``."""
     from isolume.app.notebook import show as notebook_show
+    from isolume.app.options import parse_size
 
     return notebook_show(_volume(volume), iso=iso, lattice=lattice, shading=shading,
-                         size=size, exposure=exposure, no_auto_exposure=no_auto_exposure,
+                         size=parse_size(size) if isinstance(size, str) else size,
+                         exposure=exposure, no_auto_exposure=no_auto_exposure,
                          no_bake=no_bake, bake_mode=bake_mode, bake_env=bake_env,
                          bake_samples=bake_samples, bake_workers=bake_workers,
                          bake_max_levels=bake_max_levels, normals=normals,
-                         flip_normals=flip_normals)
+                         flip_normals=flip_normals, gl=gl)

@@ -731,12 +731,17 @@ class BakeLink:
         return f"preview: {done[-1]['paths']} paths/texel on this surface" if done else ""
 
     def stop(self, timeout: float = 15.0) -> None:
-        """Ask the process to finish its batch and exit; terminate it if it does not (at
-        once while it is still planning: it has written nothing yet)."""
+        """Ask the process to finish its batch and exit, receiving what it still sends
+        meanwhile (a process whose queue holds more than its pipe takes cannot exit until
+        that is read); terminate it if it has not ended after `timeout` seconds (at once
+        while it is still planning: it has written nothing yet)."""
         self.poll()
         if self.process.is_alive() and self.ready is not None:
             self.inbox.put("stop")
-            self.process.join(timeout)
+            deadline = time.perf_counter() + timeout
+            while self.process.is_alive() and time.perf_counter() < deadline:
+                self.process.join(0.05)
+                self.poll()
         if self.process.is_alive():
             self.process.terminate()
             self.process.join(2)

@@ -179,9 +179,6 @@ class Blitter:
         self._blit = ctypes.CFUNCTYPE(None, *([ctypes.c_int] * 8), ctypes.c_uint,
                                       ctypes.c_uint)(proc("glBlitFramebuffer"))
 
-    def to_screen(self, fbo, src: tuple[int, int], dst: tuple[int, int]) -> None:
-        self.blit(fbo, src, None, dst)
-
     def blit(self, fbo, src: tuple[int, int], dst_fbo, dst: tuple[int, int],
              nearest: bool = False) -> None:
         """Scale `fbo`'s (W, H) `src` onto `dst_fbo` (None: the window) at `dst`."""
@@ -189,9 +186,10 @@ class Blitter:
         self._bind(_GL_DRAW_FRAMEBUFFER, 0 if dst_fbo is None else dst_fbo.glo)
         self._blit(0, 0, src[0], src[1], 0, 0, dst[0], dst[1], _GL_COLOR_BUFFER_BIT,
                    _GL_NEAREST if nearest else _GL_LINEAR)
+        screen = self.ctx.screen  # None in a headless context
         if dst_fbo is None:
-            self.ctx.screen.viewport = (0, 0, dst[0], dst[1])
-        self.ctx.screen.use()  # rebinds 0 for both, as moderngl believes
+            screen.viewport = (0, 0, dst[0], dst[1])
+        (screen if screen is not None else dst_fbo).use()  # what moderngl believes bound
 
 
 class Drawing:
@@ -409,8 +407,10 @@ class Drawing:
         self.on_gpu = want
 
     # -- frames --------------------------------------------------------------------------
-    def draw(self, camera, state: ViewState, size: tuple[int, int], scale: float) -> None:
-        """Render at `scale` × the framebuffer `size` (W, H) and put it on the window.
+    def draw(self, camera, state: ViewState, size: tuple[int, int], scale: float,
+             target=None) -> None:
+        """Render at `scale` × the framebuffer `size` (W, H) and put it on the window, or
+        into the framebuffer `target` of that size (a headless context's picture).
 
         Raises:
             ValueError: the shading mode lacks what it needs (`app.render.settings.RenderError`).
@@ -421,11 +421,12 @@ class Drawing:
         targets = self.renderer.draw_hdr(camera, settings)
         change = self._adapt(targets, small)
         if small == size:
-            self.ctx.screen.viewport = (0, 0, w, h)
-            self.renderer.resolve(targets, settings, fbo=self.ctx.screen, auto=change)
+            fbo = self.ctx.screen if target is None else target
+            fbo.viewport = (0, 0, w, h)
+            self.renderer.resolve(targets, settings, fbo=fbo, auto=change)
         else:
             self.renderer.resolve(targets, settings, auto=change)
-            self.blitter.to_screen(targets.ldr, small, size)
+            self.blitter.blit(targets.ldr, small, target, size)
 
     def exposed(self, settings):
         """`settings` with the automatic exposure (as it stands) folded into `exposure`."""
@@ -437,7 +438,9 @@ class Drawing:
         """Move the automatic exposure towards the frame's own (`auto_exposure_scale` of
         `EXPOSURE_PROBE` pixels across the HDR target of `size`) with time constant
         `EXPOSURE_ADAPT_S`, or straight to it on the first frame that shows the surface
-        (frames before it have none to meter); returns the factor by which it changed."""
+        (frames before it have none to meter); returns the factor by which the frame's
+        exposure (`exposed` before this call) must change: on that first frame, the whole
+        automatic exposure."""
         if not self.auto_exposure:
             return 1.0
         from isolume.app.render.exposure import auto_exposure_scale
@@ -454,7 +457,7 @@ class Drawing:
                                                                  now - self._adapted_at)
         self._adapted_at = now
         self.adapting = abs(math.log(goal / self.auto)) > 0.01
-        return 1.0 if before is None else self.auto / before
+        return self.auto if before is None else self.auto / before
 
     def _sample_hdr(self, targets, size: tuple[int, int]) -> np.ndarray:
         """(h, w, 4) float32 nearest samples of the HDR target of `size`, about
