@@ -1,0 +1,156 @@
+"""Between napari's layers and isolume's volumes, meshes, colours and saved views.
+
+napari indexes an Image layer's data (z, y, x), as isolume does, and gives its `scale`
+and `translate` per axis in that order; isolume's spacing and origin are (x, y, z), so
+they are the reversed vectors (`layer_volume`), and the world position of data index
+(k, j, i) is the same in both: translate + (k, j, i) · scale. The plugin lights the
+isosurface in that frame, then hands napari the vertices as data indices (z, y, x)
+(`data_vertices`) with the Image layer's own scale, translate, rotate, shear and affine
+(`layer_transform`): the Surface layer overlays the Image exactly under any of them; a
+rotation, shear or affine turns the lit surface, with its light, as it turns the image.
+
+Nothing here imports Qt; napari's layer and camera objects are read through their
+attributes only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from isolume import volumes
+from isolume.volumes.errors import IsolumeError
+
+TONE_CURVE = "aces"
+"""The tone curve of `render`'s and `export`'s default, which the colours go through."""
+DEFAULT_FOV = 30.0
+"""Vertical field of view (degrees) of a saved view whose napari camera is orthographic."""
+
+
+class NapariLayerError(IsolumeError):
+    """An Image layer the plugin cannot light; the message says why."""
+
+
+def layer_volume(layer) -> volumes.Volume:
+    """The `Volume` of a napari Image `layer`: its data (the full-resolution level of a
+    multiscale image) with spacing and origin (x, y, z) from the layer's (z, y, x) scale
+    and translate.
+
+    Raises:
+        NapariLayerError: not an Image layer, an RGB(A) image, not 3-D, a scale that is
+            not positive, or data that `volumes.Volume` refuses (one line).
+    """
+    from napari.layers import Image
+
+    name = getattr(layer, "name", "layer")
+    if not isinstance(layer, Image):
+        raise NapariLayerError(f"{name}: expected an Image layer, got a "
+                               f"{type(layer).__name__} layer")
+    if layer.rgb:
+        raise NapariLayerError(f"{name}: an RGB(A) image has no scalar isosurface; "
+                               "use a single-channel 3-D image")
+    data = layer.data[0] if layer.multiscale else layer.data
+    if layer.ndim != 3:
+        raise NapariLayerError(f"{name}: expected a 3-D image (z, y, x), got "
+                               f"{layer.ndim} dimensions of shape {tuple(data.shape)}")
+    scale = np.asarray(layer.scale, np.float64)
+    if not (scale > 0).all():
+        raise NapariLayerError(f"{name}: scale {tuple(float(s) for s in scale)} must be "
+                               "positive along z, y and x")
+    try:
+        return volumes.Volume(np.asarray(data), spacing=tuple(scale[::-1]),
+                              origin=tuple(np.asarray(layer.translate, np.float64)[::-1]),
+                              name=name, source=f"napari layer {name}")
+    except volumes.VolumeError as exc:
+        raise NapariLayerError(str(exc)) from None
+
+
+def layer_transform(layer) -> dict:
+    """The keywords that give a Surface layer the Image `layer`'s placement in the world:
+    its scale, translate, rotate, shear and affine (arrays, napari's (z, y, x) order)."""
+    return {"scale": np.asarray(layer.scale), "translate": np.asarray(layer.translate),
+            "rotate": np.asarray(layer.rotate), "shear": np.asarray(layer.shear),
+            "affine": np.asarray(layer.affine.affine_matrix)}
+
+
+def data_vertices(volume: volumes.Volume, vertices: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 data indices (z, y, x) of (V, 3) world vertices (x, y, z) of
+    `volume`: what a Surface layer with the Image layer's transform (`layer_transform`)
+    draws where the Image draws that point."""
+    return volume.world_to_index(vertices).astype(np.float32)
+
+
+def display_colours(radiance: np.ndarray, areas: np.ndarray, exposure: float,
+                    auto: bool = True) -> tuple[np.ndarray, float]:
+    """((V, 3) float32 vertex colours in [0, 1], sRGB-encoded as a screen shows them; the
+    linear exposure used): (V, 3) linear `radiance` times `exposure` (times the
+    automatic exposure with `auto`: the log-average luminance of the surface, its
+    vertices weighted by their (V,) `areas`, to middle grey), through `TONE_CURVE`, as
+    ``isolume export`` colours its vertices (the bytes of its PLY, over 255)."""
+    from isolume.app.export_files import srgb_bytes, tone
+    from isolume.app.render.exposure import auto_exposure_scale
+
+    radiance = np.asarray(radiance, np.float64)
+    if auto:
+        exposure *= auto_exposure_scale(radiance, np.ones(len(radiance), bool),
+                                        weights=areas)
+    colours = srgb_bytes(tone(radiance * exposure, TONE_CURVE)) / np.float32(255)
+    return colours.astype(np.float32), float(exposure)
+
+
+def direction_from_angles(azimuth: float, elevation: float) -> np.ndarray:
+    """(3,) unit vector (x, y, z) of a direction at `azimuth` degrees from +x towards +y
+    and `elevation` degrees above the x-y plane (the sky's ``sun_az``, ``sun_el``)."""
+    az, el = np.radians(azimuth), np.radians(elevation)
+    return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def angles_of(direction) -> tuple[float, float]:
+    """(azimuth, elevation) degrees of a (3,) direction (x, y, z): the inverse of
+    `direction_from_angles`."""
+    d = np.asarray(direction, np.float64)
+    d = d / np.linalg.norm(d)
+    return (float(np.degrees(np.arctan2(d[1], d[0]))),
+            float(np.degrees(np.arcsin(np.clip(d[2], -1.0, 1.0)))))
+
+
+def world_to_volume(layer, volume: volumes.Volume, world) -> np.ndarray:
+    """(3,) volume world position (x, y, z) of the napari world point `world` (the
+    layer's dimensions, (z, y, x)), through the layer's whole transform."""
+    index = np.asarray(layer.world_to_data(tuple(float(v) for v in world)), np.float64)
+    return volume.index_to_world(index[None, -3:])[0]
+
+
+def saved_camera(layer, volume: volumes.Volume, camera, canvas_height: int):
+    """The `app.render.camera.Camera` of napari's 3-D `camera` (its centre, view
+    direction, zoom and perspective) in `volume`'s world, for a picture `canvas_height`
+    pixels high: looking along the same direction at the same centre, the height the
+    canvas shows at the centre filling the picture's height (napari's orthographic
+    camera becomes a `DEFAULT_FOV` perspective one at that distance). isolume's camera
+    keeps +z up: a view rolled about its direction in napari is saved unrolled.
+
+    Args:
+        layer: the Image layer lit (its transform maps napari's world to the volume's).
+        camera: ``viewer.camera`` (centre and directions in world (z, y, x)).
+    """
+    from isolume.app.render.camera import Camera
+
+    centre = np.asarray(camera.center, np.float64)
+    target = world_to_volume(layer, volume, centre)
+    ahead = world_to_volume(layer, volume, centre + np.asarray(camera.view_direction))
+    forward = (ahead - target) / np.linalg.norm(ahead - target)
+    half = 0.5 * canvas_height / camera.zoom  # world units from the centre to the top
+    top = world_to_volume(layer, volume, centre + half * np.asarray(camera.up_direction))
+    fov = float(camera.perspective) or DEFAULT_FOV
+    distance = float(np.linalg.norm(top - target)) / np.tan(np.radians(fov) / 2)
+    scale = volume.diagonal or 1.0
+    azimuth = float(np.degrees(np.arctan2(-forward[0], forward[1])))
+    elevation = float(np.degrees(np.arcsin(np.clip(-forward[2], -1.0, 1.0))))
+    return Camera(azimuth=azimuth, elevation=elevation, distance=distance / scale,
+                  target=tuple(float(v) for v in target), scale=scale, fov_y=fov)
+
+
+def write_volume(volume: volumes.Volume, path) -> None:
+    """`volume` as a ``.npz`` that isolume reads back as it is (``data`` (Z, Y, X),
+    ``spacing`` and ``origin`` (x, y, z))."""
+    np.savez(path, data=volume.data, spacing=np.asarray(volume.spacing),
+             origin=np.asarray(volume.origin))
