@@ -116,24 +116,13 @@ class NotebookScene:
         self.illumination.update_view(self.surfaces.stage_at(self.state.view.iso), size)
 
     def _receive_surfaces(self) -> None:
-        """Hand the surfaces the worker made to the drawing and the GPU (as the viewer's
-        loop does: the bake's view of the visible texels is read from the surface there,
-        also while no frame is drawn)."""
-        error = self.surfaces.take_error()
-        if error:
-            self.state.message = error
-        drawing = self.drawing
-        for result in self.surfaces.poll():
-            if result.stage == "lod":  # a lighter preview for moving the camera
-                if result.iso == self.surfaces.iso:
-                    drawing.meshes["coarse"] = result.mesh
-                continue
-            drawing.set_surface(result.stage, result.mesh,
-                                new_iso=result.iso != self.surfaces.iso)
-            drawing.sync_mesh(preview=drawing.quality.coarse
-                              and self.state.interacting(time.perf_counter()))
-            self.surfaces.received(result)
-            self.state.redraw()
+        """Hand the surfaces the worker made to the drawing and the GPU
+        (`app.viewer.surfaces.hand_over`, as the viewer's loop does: the bake's view of
+        the visible texels is read from the surface there, also while no frame is
+        drawn)."""
+        from isolume.app.viewer.surfaces import hand_over
+
+        hand_over(self.surfaces, self.drawing, self.state)
 
     def frame_due(self, now: float) -> bool:
         """Whether a frame should be drawn at `now` (`time.perf_counter`): something

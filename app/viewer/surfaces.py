@@ -267,3 +267,27 @@ class SurfaceFeed:
 
     def close(self) -> None:
         self.worker.close()
+
+
+def hand_over(feed: SurfaceFeed, drawing, state) -> bool:
+    """Hand the surfaces that arrived from `feed` to `drawing` (an `app.viewer.draw.
+    Drawing`: the lighter "lod" preview kept for moving the camera, the others shown and
+    put on the GPU, the preview while `state`, an `app.viewer.state.ViewerState`, is
+    interacting, and a redraw asked for); an extraction error becomes `state.message`.
+    Returns whether a surface was shown."""
+    error = feed.take_error()
+    if error:
+        state.message = error
+    shown = False
+    for result in feed.poll():
+        if result.stage == "lod":  # a lighter preview for moving the camera
+            if result.iso == feed.iso:
+                drawing.meshes["coarse"] = result.mesh
+            continue
+        drawing.set_surface(result.stage, result.mesh, new_iso=result.iso != feed.iso)
+        drawing.sync_mesh(preview=drawing.quality.coarse
+                          and state.interacting(time.perf_counter()))
+        feed.received(result)
+        state.redraw()
+        shown = True
+    return shown

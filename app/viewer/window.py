@@ -46,7 +46,7 @@ from isolume.app.viewer.illumination import Illumination
 from isolume.app.viewer.input import Input
 from isolume.app.viewer.saving import Saver, write_json
 from isolume.app.viewer.state import ViewerError, ViewerState
-from isolume.app.viewer.surfaces import SurfaceFeed
+from isolume.app.viewer.surfaces import SurfaceFeed, hand_over
 from isolume.volumes import cores
 
 BAKE_REFRESH_S = 0.5
@@ -290,25 +290,11 @@ class Viewer:
         self.script.frame_done()
 
     def _receive_surfaces(self) -> None:
-        """Hand the surfaces that arrived to the drawing."""
-        error = self.surfaces.take_error()
-        if error:
-            self.state.message = error
-        drawing = self.drawing
-        for result in self.surfaces.poll():
-            if result.stage == "lod":  # a lighter preview for moving the camera
-                if result.iso == self.surfaces.iso:
-                    drawing.meshes["coarse"] = result.mesh
-                continue
-            if not self.surface_shown:
-                self.surface_shown = True
-                cores.stage("draw")
-            drawing.set_surface(result.stage, result.mesh,
-                                new_iso=result.iso != self.surfaces.iso)
-            drawing.sync_mesh(preview=drawing.quality.coarse
-                              and self.state.interacting(time.perf_counter()))
-            self.surfaces.received(result)
-            self.state.redraw()
+        """Hand the surfaces that arrived to the drawing (`surfaces.hand_over`); the
+        timeline's "draw" begins with the first one."""
+        if hand_over(self.surfaces, self.drawing, self.state) and not self.surface_shown:
+            self.surface_shown = True
+            cores.stage("draw")
 
     def _frame_first_surface(self) -> None:
         """Aim the camera at the first surface (its vertices), in the part of the window
