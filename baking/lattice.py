@@ -329,6 +329,12 @@ class Lattice:
     def kind(self) -> str:
         return lattice_kind(self.meta)
 
+    def __str__(self) -> str:
+        """How messages name it: its kind, volume and size (its arrays are not printed)."""
+        name = self.meta.get("volume", {}).get("name", "a volume")
+        return (f"the {self.kind} lattice of {name!r} ({'×'.join(map(str, self.geometry.shape))} "
+                "texels)")
+
     @property
     def computed(self) -> np.ndarray:
         """(Z, Y, X) bool: texels with at least one sample."""

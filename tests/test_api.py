@@ -106,6 +106,9 @@ def test_render_with_a_baked_lattice_equals_the_command(tmp_path):
     command = _png(tmp_path / "c.png")
     assert np.array_equal(from_file.srgb, command)
     assert np.array_equal(in_memory.srgb, command)
+    with pytest.raises(IsolumeError, match=r"^--env/--light: the irradiance lattice of "
+                       r"'engine' \(\d+×\d+×\d+ texels\) holds irradiance baked"):
+        isolume.render(volume, lattice=lattice, env="constant:1,1,1")
 
 
 def test_a_second_render_keeps_the_context_and_the_surface():
