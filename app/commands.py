@@ -7,6 +7,7 @@ import argparse
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from isolume import volumes
 from isolume.app.look import shading_look
@@ -19,6 +20,14 @@ from isolume.app.options import (
     load_volume,
     parse_size,
 )
+
+if TYPE_CHECKING:
+    from isolume.app.render.offscreen import Reuse
+    from isolume.app.render.settings import Frame, RenderSettings
+    from isolume.baking.bake import BakeOutlook
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.plan_lattice import PlanLattice
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -41,12 +50,12 @@ class Rendered:
             the view (no lattice), or None.
     """
 
-    frame: object
+    frame: Frame
     mesh: volumes.Mesh
     volume: volumes.Volume
     iso: float
-    settings: object
-    traced: object | None
+    settings: RenderSettings
+    traced: BakeConfig | None
 
     def summary(self) -> str:
         """One line: size, volume, isovalue, triangles, shading, lighting, exposure."""
@@ -57,7 +66,7 @@ class Rendered:
                 f"{settings.shading}{lighting}, exposure {self.frame.exposure:.3g}")
 
 
-def render_picture(args: argparse.Namespace, reuse=None) -> Rendered:
+def render_picture(args: argparse.Namespace, reuse: Reuse | None = None) -> Rendered:
     """The picture of the ``render`` options `args` (the command's and the Python API's
     one way to a picture); `reuse`: an `app.render.offscreen.Reuse` that keeps the GL
     context and the surface for the next call, or None."""
@@ -101,7 +110,7 @@ CHEAPER_AFTER_MINUTES = 1.0
 """A bake expected to take longer than this says how to make it cheaper."""
 
 
-def say_outlook(outlook, config) -> None:
+def say_outlook(outlook: BakeOutlook, config: BakeConfig) -> None:
     """Tell, before any path, what a bake of `config` will trace and roughly how long it
     will take (`baking.bake.BakeOutlook`), and how to make it cheaper when that exceeds
     `CHEAPER_AFTER_MINUTES`."""
@@ -118,7 +127,7 @@ def say_outlook(outlook, config) -> None:
               "resumes", file=sys.stderr, flush=True)
 
 
-def cheaper_options(config) -> str:
+def cheaper_options(config: BakeConfig) -> str:
     """The options that make a bake of `config` cheaper: an iso range, half its paths
     per texel (while it has more than one) and half its lattice scale (while that is
     allowed: `baking.config.SCALES`)."""
@@ -133,7 +142,7 @@ def cheaper_options(config) -> str:
 
 
 def bake_lattice(args: argparse.Namespace, *, dense: bool = False,
-                 keep_interrupted: bool = False):
+                 keep_interrupted: bool = False) -> Lattice | PlanLattice:
     """The lattice of the ``bake`` options `args` (the command's and the Python API's one
     way to a bake): written to ``args.out`` when it is given (resumed when it holds a
     compatible one), said beforehand (`say_outlook`); `dense` and `keep_interrupted` as

@@ -18,6 +18,7 @@ coordinates (+Z up), binary little-endian, with normals ``nx ny nz``.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -67,7 +68,7 @@ def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def write_mesh(path: Path, mesh: volumes.Mesh, display: np.ndarray, radiance: np.ndarray,
-               extras: dict) -> None:
+               extras: dict[str, Any]) -> None:
     """Write `mesh` with its (V, 3) `display` colours (linear, in [0, 1]) and (V, 3)
     linear `radiance` to `path` (.glb or .ply); `extras` (JSON-ready) describes how they
     were made (glTF: the asset's extras; PLY: comments)."""
@@ -78,7 +79,7 @@ def write_mesh(path: Path, mesh: volumes.Mesh, display: np.ndarray, radiance: np
 
 
 def write_glb(path: Path, mesh: volumes.Mesh, display: np.ndarray, radiance: np.ndarray,
-              extras: dict) -> None:
+              extras: dict[str, Any]) -> None:
     """glTF 2.0 binary: one mesh of POSITION, NORMAL, COLOR_0 (linear display colour) and
     ``_RADIANCE`` (linear radiance), float32 VEC3 each, uint32 indices, one unlit
     material (module docs)."""
@@ -121,7 +122,7 @@ def write_glb(path: Path, mesh: volumes.Mesh, display: np.ndarray, radiance: np.
 
 
 def write_ply(path: Path, mesh: volumes.Mesh, display: np.ndarray, radiance: np.ndarray,
-              extras: dict) -> None:
+              extras: dict[str, Any]) -> None:
     """Binary PLY (trimesh): vertices, normals ``nx ny nz``, 8-bit sRGB colours ``red
     green blue alpha``, float ``radiance_r radiance_g radiance_b``; `extras` as comments."""
     import trimesh

@@ -23,11 +23,21 @@ outgoing radiance is albedo·E/π of a diffuse surface, E the irradiance there, 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from isolume import volumes
 from isolume.baking.lattice import shown_lookup
 from isolume.volumes import cores
+
+if TYPE_CHECKING:
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.lights import DirectionalLight, PointLight, SunLight
+    from isolume.baking.trace import Scene
+    from isolume.baking.view_texels import HeldLattice
 
 SUN_RAYS = 32
 """Shadow rays per vertex over the sun's disc: the penumbra in steps of 1/32 of the sun."""
@@ -39,7 +49,8 @@ COVERED = 1e-6
 """A vertex whose lookup weight over computed texels is below this has no lattice light."""
 
 
-def lattice_radiance(lattice, points: np.ndarray, normals: np.ndarray, albedo,
+def lattice_radiance(lattice: Lattice | HeldLattice, points: np.ndarray, normals: np.ndarray,
+                     albedo: Sequence[float] | np.ndarray,
                      env_coeffs: np.ndarray | None = None,
                      env_rotation: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """(V, 3) linear radiance albedo·E/π of the lattice's light at the vertices.
@@ -66,7 +77,7 @@ def lattice_radiance(lattice, points: np.ndarray, normals: np.ndarray, albedo,
     return np.asarray(albedo, np.float64) * np.maximum(irradiance, 0.0) / np.pi
 
 
-def sh_irradiance(transfer: np.ndarray, lattice, env_coeffs: np.ndarray,
+def sh_irradiance(transfer: np.ndarray, lattice: Lattice | HeldLattice, env_coeffs: np.ndarray,
                   env_rotation: tuple[float, float]) -> np.ndarray:
     """(V, 3) irradiance E_c = Σ_k τ_k,c ℓ_k,c of (V, C) SH `transfer` vectors (gray: one
     per coefficient, coloured: three) under (m, 3) `env_coeffs` turned by `env_rotation`
@@ -84,7 +95,7 @@ def sh_irradiance(transfer: np.ndarray, lattice, env_coeffs: np.ndarray,
     return np.einsum("vkc,kc->vc", tau, light)
 
 
-def coverage(lattice, points: np.ndarray) -> np.ndarray:
+def coverage(lattice: Lattice | HeldLattice, points: np.ndarray) -> np.ndarray:
     """(V,) weight of the computed texels in the trilinear lookups at (V, 3) world points
     (1 where all 8 are computed, 0 where none is)."""
     from isolume.baking.lattice import trilinear_corners
@@ -94,9 +105,9 @@ def coverage(lattice, points: np.ndarray) -> np.ndarray:
     return (weights * lattice.shown((idx[..., 0], idx[..., 1], idx[..., 2]))).sum(axis=1)
 
 
-def traced_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
-                   normals: np.ndarray, scene, *, workers: int | None = None,
-                   progress: bool = False):
+def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points: np.ndarray,
+                   normals: np.ndarray, scene: Scene, *, workers: int | None = None,
+                   progress: bool = False) -> HeldLattice:
     """A lattice lit for the whole surface ρ = `iso`: `config.samples` paths for each
     texel the vertices' lookups read, traced on `scene` (`baking.trace.Scene` of that
     surface), from the vertex nearest the texel, `config.offset` voxels off it along its
@@ -139,8 +150,10 @@ def traced_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarra
     return lattice
 
 
-def direct_radiance(scene, lights, points: np.ndarray, normals: np.ndarray, offset: float,
-                    albedo, *, progress: bool = False) -> np.ndarray:
+def direct_radiance(scene: Scene, lights: Sequence[PointLight | DirectionalLight | SunLight],
+                    points: np.ndarray, normals: np.ndarray, offset: float,
+                    albedo: Sequence[float] | np.ndarray, *, progress: bool = False
+                    ) -> np.ndarray:
     """(V, 3) linear radiance albedo·E/π of the direct light of `lights` at the vertices,
     shadowed by `scene`.
 
@@ -169,7 +182,8 @@ def direct_radiance(scene, lights, points: np.ndarray, normals: np.ndarray, offs
     return np.asarray(albedo, np.float64) * irradiance / np.pi
 
 
-def light_irradiance(scene, light, origins: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def light_irradiance(scene: Scene, light: PointLight | DirectionalLight, origins: np.ndarray,
+                     normals: np.ndarray) -> np.ndarray:
     """(N, 3) irradiance of a point or directional light at (N, 3) shadow-ray `origins`
     with (N, 3) unit `normals`: one shadow ray each (a hard shadow)."""
     dirs, dist, rgb = light.towards(origins)
@@ -183,7 +197,8 @@ def light_irradiance(scene, light, origins: np.ndarray, normals: np.ndarray) -> 
     return out
 
 
-def sun_irradiance(scene, sun, origins: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def sun_irradiance(scene: Scene, sun: SunLight, origins: np.ndarray, normals: np.ndarray
+                   ) -> np.ndarray:
     """(N, 3) irradiance of the sky's sun (`baking.lights.SunLight`) at (N, 3) shadow-ray
     `origins` with (N, 3) unit `normals`: the disc's irradiance times the mean over
     `SUN_RAYS` directions spread evenly over it of max(0, n·ω) where ω is unblocked."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,12 @@ from isolume.app.options import (
 )
 from isolume.app.state import light_settings
 
+if TYPE_CHECKING:
+    from isolume.app.render.settings import RenderSettings
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import HeldLattice, LatticeOnFile
+
 
 @dataclass(frozen=True)
 class Look:
@@ -29,12 +36,13 @@ class Look:
         env_coeffs: (n², 3) SH coefficients of the environment ("sh"), or None.
     """
 
-    settings: object
-    traced: object | None = None
+    settings: RenderSettings
+    traced: BakeConfig | None = None
     env_coeffs: np.ndarray | None = None
 
 
-def shading_look(args: argparse.Namespace, vol: volumes.Volume, lattice,
+def shading_look(args: argparse.Namespace, vol: volumes.Volume,
+                 lattice: Lattice | HeldLattice | LatticeOnFile | None,
                  size: tuple[int, int], per: str = "view") -> Look:
     """The `Look` of the render options `args` for `vol` and `lattice` (None: none) in a
     `size` (width, height) picture; `CLIError` for options that contradict each other or

@@ -46,6 +46,8 @@ from isolume.app.state import add_state_argument
 
 if TYPE_CHECKING:
 
+    from isolume.app.look import Look
+    from isolume.app.movie_stage import LightTurn
     from isolume.app.render.camera import Camera
     from isolume.app.render.settings import RenderSettings
     from isolume.baking.config import BakeConfig
@@ -280,8 +282,8 @@ def write_frames(request: Request, stage: Stage, shots: list[Shot], exposure: fl
               "files (not of this movie)", file=sys.stderr)
 
 
-def movie_camera(volume, request: Request, iso: float,
-                 iso_range: tuple[float, float] | None):
+def movie_camera(volume: volumes.Volume, request: Request, iso: float,
+                 iso_range: tuple[float, float] | None) -> Camera:
     """The camera of the first frame at ``--view`` (`request.view`) that frames the surface
     of every frame (the sweep's `iso_range`, else `iso`) from every azimuth the movie
     turns to (`app.render.renderer.framed_camera`), so that nothing zooms."""
@@ -336,7 +338,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def turntable_light(args: argparse.Namespace, look, lattice, traced, first):
+def turntable_light(args: argparse.Namespace, look: Look, lattice: Lattice | HeldLattice | None,
+                    traced: BakeConfig | None, first: Camera) -> LightTurn | None:
     """How a turntable's light turns with its camera (`app.movie_stage.LightTurn`), or None
     where it cannot and ``--turntable-light`` did not ask for it (said on stderr).
 

@@ -59,6 +59,10 @@ class PngFrames:
         frames: how many the movie has (sets the digits of the names).
     """
 
+    folder: Path
+    frames: int
+    digits: int
+
     def __init__(self, folder: Path, frames: int) -> None:
         self.folder, self.frames = Path(folder), frames
         self.digits = max(MIN_DIGITS, len(str(frames - 1)))
@@ -67,7 +71,7 @@ class PngFrames:
     def __enter__(self) -> PngFrames:
         return self
 
-    def __exit__(self, *_exc) -> None:
+    def __exit__(self, *_exc: object) -> None:
         return None
 
     def name(self, index: int) -> str:
@@ -122,7 +126,7 @@ class Mp4Frames:
     def __enter__(self) -> Mp4Frames:
         return self
 
-    def __exit__(self, *_exc) -> None:
+    def __exit__(self, *_exc: object) -> None:
         self.close()
 
     def write(self, index: int, srgb: np.ndarray, text: dict[str, str]) -> None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -93,7 +93,8 @@ def make_shots(kind: str, frames: int, azimuth: float, iso: float, degrees: floa
     return [Shot(i, azimuth, float(v)) for i, v in enumerate(values)]
 
 
-def turned(direction, degrees: float) -> tuple[float, float, float]:
+def turned(direction: Sequence[float] | np.ndarray, degrees: float
+           ) -> tuple[float, float, float]:
     """The (3,) vector `direction` turned by `degrees` about +z (counter-clockwise seen
     from above, as ``--env-rotation``'s azimuth turns an environment)."""
     a = math.radians(degrees)
@@ -226,6 +227,10 @@ class Stage:
         backend: headless GL: "egl", "osmesa" or "auto".
     """
 
+    scene: Scene
+    empty_isos: set[float]
+    renderer: SurfaceRenderer
+
     def __init__(self, scene: Scene, backend: str = "auto") -> None:
         self.scene = scene
         self.empty_isos: set[float] = set()
@@ -249,7 +254,7 @@ class Stage:
     def __enter__(self) -> Stage:
         return self
 
-    def __exit__(self, *_exc) -> None:
+    def __exit__(self, *_exc: object) -> None:
         self.close()
 
     def close(self) -> None:

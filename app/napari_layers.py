@@ -15,10 +15,19 @@ attributes only.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from isolume import volumes
 from isolume.volumes.errors import IsolumeError
+
+if TYPE_CHECKING:
+    import napari
+
+    from isolume.app.render.camera import Camera
 
 TONE_CURVE = "aces"
 """The tone curve of `render`'s and `export`'s default, which the colours go through."""
@@ -30,7 +39,7 @@ class NapariLayerError(IsolumeError):
     """An Image layer the plugin cannot light; the message says why."""
 
 
-def layer_volume(layer) -> volumes.Volume:
+def layer_volume(layer: object) -> volumes.Volume:
     """The `Volume` of a napari Image `layer`: its data (the full-resolution level of a
     multiscale image) with spacing and origin (x, y, z) from the layer's (z, y, x) scale
     and translate.
@@ -64,7 +73,7 @@ def layer_volume(layer) -> volumes.Volume:
         raise NapariLayerError(str(exc)) from None
 
 
-def layer_transform(layer) -> dict:
+def layer_transform(layer: napari.layers.Image) -> dict[str, np.ndarray]:
     """The keywords that give a Surface layer the Image `layer`'s placement in the world:
     its scale, translate, rotate, shear and affine (arrays, napari's (z, y, x) order)."""
     return {"scale": np.asarray(layer.scale), "translate": np.asarray(layer.translate),
@@ -104,7 +113,7 @@ def direction_from_angles(azimuth: float, elevation: float) -> np.ndarray:
     return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
 
 
-def angles_of(direction) -> tuple[float, float]:
+def angles_of(direction: Sequence[float] | np.ndarray) -> tuple[float, float]:
     """(azimuth, elevation) degrees of a (3,) direction (x, y, z): the inverse of
     `direction_from_angles`."""
     d = np.asarray(direction, np.float64)
@@ -113,14 +122,16 @@ def angles_of(direction) -> tuple[float, float]:
             float(np.degrees(np.arcsin(np.clip(d[2], -1.0, 1.0)))))
 
 
-def world_to_volume(layer, volume: volumes.Volume, world) -> np.ndarray:
+def world_to_volume(layer: napari.layers.Image, volume: volumes.Volume,
+                    world: Sequence[float] | np.ndarray) -> np.ndarray:
     """(3,) volume world position (x, y, z) of the napari world point `world` (the
     layer's dimensions, (z, y, x)), through the layer's whole transform."""
     index = np.asarray(layer.world_to_data(tuple(float(v) for v in world)), np.float64)
     return volume.index_to_world(index[None, -3:])[0]
 
 
-def saved_camera(layer, volume: volumes.Volume, camera, canvas_height: int):
+def saved_camera(layer: napari.layers.Image, volume: volumes.Volume,
+                 camera: napari.components.Camera, canvas_height: int) -> Camera:
     """The `app.render.camera.Camera` of napari's 3-D `camera` (its centre, view
     direction, zoom and perspective) in `volume`'s world, for a picture `canvas_height`
     pixels high: looking along the same direction at the same centre, the height the
@@ -149,7 +160,7 @@ def saved_camera(layer, volume: volumes.Volume, camera, canvas_height: int):
                   target=tuple(float(v) for v in target), scale=scale, fov_y=fov)
 
 
-def write_volume(volume: volumes.Volume, path) -> None:
+def write_volume(volume: volumes.Volume, path: str | os.PathLike[str]) -> None:
     """`volume` as a ``.npz`` that isolume reads back as it is (``data`` (Z, Y, X),
     ``spacing`` and ``origin`` (x, y, z))."""
     np.savez(path, data=volume.data, spacing=np.asarray(volume.spacing),

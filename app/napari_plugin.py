@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from qtpy.QtCore import Qt, QTimer
@@ -53,6 +55,12 @@ from isolume.app.napari_layers import (
 )
 from isolume.volumes.errors import IsolumeError
 
+if TYPE_CHECKING:
+    import napari
+
+    from isolume.app.napari_worker import LightingLink
+    from isolume.baking.config import BakeConfig
+
 ISO_STEPS = 10000
 """Positions of the isovalue slider across the data range."""
 DEBOUNCE_MS = 150
@@ -65,6 +73,18 @@ DEFAULT_SAMPLES = 64
 
 class _Controls:
     """The widget's controls in a form layout on `parent` (no behaviour of their own)."""
+
+    layer: QComboBox
+    iso: QSlider
+    iso_value: QLabel
+    azimuth: QSlider
+    elevation: QSlider
+    env: QLineEdit
+    exposure: QDoubleSpinBox
+    samples: QSpinBox
+    seed: QSpinBox
+    save: QPushButton
+    status: QLabel
 
     def __init__(self, parent: QWidget) -> None:
         from isolume.baking.config import DEFAULT_ENV
@@ -118,13 +138,27 @@ class IsolumeWidget(QWidget):
             times the automatic exposure).
     """
 
-    def __init__(self, napari_viewer, workers: int | None = None) -> None:
+    viewer: napari.viewer.Viewer
+    workers: int | None
+    controls: _Controls
+    layer: napari.layers.Image | None
+    volume: volumes.Volume | None
+    surface: napari.layers.Surface | None
+    link: LightingLink | None
+    iso: float
+    sun: tuple[float, float] | None
+    env: str
+    shown_paths: int
+    exposure_used: float
+
+    def __init__(self, napari_viewer: napari.viewer.Viewer, workers: int | None = None
+                 ) -> None:
         super().__init__()
         self.viewer, self.workers = napari_viewer, workers
         self.controls = _Controls(self)
         self.layer = self.volume = self.surface = self.link = None
         self.iso, self.sun, self.env = 0.0, None, self.controls.env.text()
-        self.request: dict | None = None
+        self.request: dict[str, Any] | None = None
         self._ids = itertools.count(1)
         self._mesh: tuple | None = None  # (request id, (V, 3) indices, faces, areas)
         self._surface_mesh = None  # the request id of the mesh the Surface layer shows
@@ -218,7 +252,7 @@ class IsolumeWidget(QWidget):
         self.controls.status.setText(text)
 
     # -- what the controls set -------------------------------------------------------------
-    def set_layer(self, layer) -> None:
+    def set_layer(self, layer: napari.layers.Image) -> None:
         """Light the Image `layer` (a new lighting process for its volume) at its first
         suggested isovalue.
 
@@ -292,7 +326,7 @@ class IsolumeWidget(QWidget):
             lighting = lighting.turned(direction_from_angles(*self.sun))
         return lighting.to_spec()[0]
 
-    def config(self):
+    def config(self) -> BakeConfig:
         """The `BakeConfig` of the light to trace (``isolume export``'s, through
         `app.options.view_light`, for the controls' environment, paths and seed)."""
         from isolume.app.options import view_light
@@ -394,7 +428,7 @@ class IsolumeWidget(QWidget):
             slider.blockSignals(False)
 
     # -- saving and stopping --------------------------------------------------------------------
-    def save_view(self, path) -> Path:
+    def save_view(self, path: str | os.PathLike[str]) -> Path:
         """Write the view as a state file at `path` for ``isolume render --state`` (and
         ``view``, ``movie``): napari's camera, the isovalue, the lighting and the exposure
         on screen; the volume goes beside it as ``NAME.npz``. Returns the path.

@@ -29,11 +29,19 @@ from __future__ import annotations
 import os
 import queue
 from dataclasses import replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from isolume import volumes
 from isolume.volumes import cores
+
+if TYPE_CHECKING:
+    from multiprocessing.process import BaseProcess
+    from multiprocessing.queues import Queue
+
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.trace import Scene
 
 PREVIEW_PATHS = (4, 16)
 """Paths per texel of the passes shown before the requested samples (those below them)."""
@@ -49,15 +57,15 @@ def pass_paths(samples: int) -> list[int]:
     return [p for p in PREVIEW_PATHS if p < samples] + [int(samples)]
 
 
-def volume_job(volume: volumes.Volume) -> dict:
+def volume_job(volume: volumes.Volume) -> dict[str, Any]:
     """The picklable fields of `volume` that the process rebuilds it from."""
     return {"data": volume.data, "spacing": volume.spacing, "origin": volume.origin,
             "name": volume.name, "source": volume.source,
             "suggested_iso": volume.suggested_iso}
 
 
-def traced_radiance(volume: volumes.Volume, config, iso: float, mesh: volumes.Mesh,
-                    scene, workers: int) -> np.ndarray:
+def traced_radiance(volume: volumes.Volume, config: BakeConfig, iso: float, mesh: volumes.Mesh,
+                    scene: Scene, workers: int) -> np.ndarray:
     """(V, 3) linear outgoing radiance (irradiance units / sr) at `mesh`'s vertices, as
     ``isolume export`` lights them without a lattice: global illumination traced with
     `config.samples` paths per texel, plus the per-pixel lights through shadow rays.
@@ -108,7 +116,7 @@ class _Surfaces:
         return mesh, Scene(mesh.vertices, mesh.faces), vertex_areas(mesh.vertices, mesh.faces)
 
 
-def serve(job: dict, inbox, outbox) -> None:
+def serve(job: dict[str, Any], inbox: Queue[Any], outbox: Queue[Any]) -> None:
     """Entry point of the lighting process: light each request in turn until "stop" (or
     until napari's process is gone), a newer request cutting the passes short."""
     import multiprocessing
@@ -176,6 +184,10 @@ class LightingLink:
     """napari's side of the lighting process of one volume: `send` requests, `poll` for
     the results; neither blocks."""
 
+    inbox: Queue[Any]
+    outbox: Queue[Any]
+    process: BaseProcess
+
     def __init__(self, volume: volumes.Volume, workers: int | None = None) -> None:
         import multiprocessing
 
@@ -186,12 +198,12 @@ class LightingLink:
                                    name="isolume-napari-light", daemon=True)
         self.process.start()
 
-    def send(self, request: dict) -> None:
+    def send(self, request: dict[str, Any]) -> None:
         """Ask for the light of `request` (id, iso, config as a dict); it replaces any
         request not yet started."""
         self.inbox.put(request)
 
-    def poll(self) -> list[tuple]:
+    def poll(self) -> list[tuple[Any, ...]]:
         """The messages that arrived (module docs), oldest first; an ``("error", None,
         message)`` when the process has died."""
         messages = []

@@ -22,7 +22,7 @@ import argparse
 import os
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from isolume import volumes
 from isolume.app.viewer.command import DEFAULT_BAKE_SAMPLES, Options
@@ -30,9 +30,12 @@ from isolume.baking.config import DEFAULT_ENV
 
 if TYPE_CHECKING:  # imported by `show` (jupyter_rfb and ipywidgets are optional)
     from isolume.app.notebook_view import NotebookView
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import LatticeOnFile
 
 
-def show(volume: volumes.Volume, *, iso: float | None = None, lattice=None,
+def show(volume: volumes.Volume, *, iso: float | None = None,
+         lattice: str | os.PathLike[str] | Lattice | None = None,
          shading: str | None = None, size: tuple[int, int] = (640, 480),
          exposure: float = 1.0, no_auto_exposure: bool = False, no_bake: bool = False,
          bake_mode: str = "irradiance", bake_env: str = DEFAULT_ENV,
@@ -94,7 +97,7 @@ def show(volume: volumes.Volume, *, iso: float | None = None, lattice=None,
         raise
 
 
-def _view_class():
+def _view_class() -> type[NotebookView]:
     """`app.notebook_view.NotebookView`, or a one-line `IsolumeError` when the notebook
     extras are missing."""
     from isolume.volumes.errors import IsolumeError
@@ -107,8 +110,8 @@ def _view_class():
     return NotebookView
 
 
-def view_options(volume: volumes.Volume, size: tuple[int, int], lattice,
-                 **chosen) -> Options:
+def view_options(volume: volumes.Volume, size: tuple[int, int],
+                 lattice: str | os.PathLike[str] | Lattice | None, **chosen: Any) -> Options:
     """The checked `app.viewer.command.Options` of ``isolume view`` with `chosen` (its
     options by their argparse names) and the picture `size` (W, H); `lattice` a path
     becomes ``--lattice``.
@@ -134,7 +137,8 @@ def view_options(volume: volumes.Volume, size: tuple[int, int], lattice,
     return options
 
 
-def open_lattice(lattice, volume: volumes.Volume, options: Options):
+def open_lattice(lattice: str | os.PathLike[str] | Lattice | None, volume: volumes.Volume,
+                 options: Options) -> tuple[LatticeOnFile | None, Path | None]:
     """(`lattice` opened for the viewer, a `baking.view_texels.LatticeOnFile` or None;
     the temporary file it was written to, or None).
 

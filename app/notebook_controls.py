@@ -11,11 +11,28 @@ from __future__ import annotations
 
 import html
 from contextlib import contextmanager
+from typing import TYPE_CHECKING, Protocol
 
 from isolume.app.viewer.actions import ISO_STEPS
 
+if TYPE_CHECKING:
+    import ipywidgets
+
+    from isolume.app.notebook_scene import NotebookScene
+
 WIDTH = "330px"
 """Width of the controls' column (CSS)."""
+
+
+class ControlledView(Protocol):
+    """What `Controls` drive and show: an `app.notebook_view.NotebookView` (named here
+    without importing it, which imports this module)."""
+
+    @property
+    def scene(self) -> NotebookScene | None: ...
+    def set_iso(self, iso: float) -> None: ...
+    def set_light(self, azimuth: float | None, elevation: float = 0.0) -> None: ...
+    def set_shading(self, mode: str) -> None: ...
 
 
 class Controls:
@@ -30,7 +47,15 @@ class Controls:
         box: all of them, one above the other (an ``ipywidgets.VBox``).
     """
 
-    def __init__(self, view) -> None:
+    view: ControlledView
+    iso: ipywidgets.FloatSlider
+    azimuth: ipywidgets.FloatSlider
+    elevation: ipywidgets.FloatSlider
+    shading: ipywidgets.Dropdown
+    status: ipywidgets.HTML
+    box: ipywidgets.VBox
+
+    def __init__(self, view: ControlledView) -> None:
         """Controls showing and driving `view` (an `app.notebook_view.NotebookView`)."""
         import ipywidgets as widgets
 
@@ -94,7 +119,7 @@ class Controls:
             self.view.set_shading(change["new"])
 
 
-def status_html(scene) -> str:
+def status_html(scene: NotebookScene) -> str:
     """The status text of `scene` (an `app.notebook_scene.NotebookScene`): the surface's
     line, the lazy bake's lines and the last message, escaped, one per line."""
     fractions, lines = scene.illumination.status()

@@ -14,12 +14,23 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from isolume import volumes
 from isolume.app.render.glcontext import GLUnavailable, HeadlessContext
 from isolume.app.viewer.command import Options
+
+if TYPE_CHECKING:
+    import moderngl
+
+    from isolume.app.viewer.actions import Actions
+    from isolume.app.viewer.draw import Drawing
+    from isolume.app.viewer.illumination import Illumination
+    from isolume.app.viewer.state import ViewerState
+    from isolume.app.viewer.surfaces import SurfaceFeed
+    from isolume.baking.view_texels import LatticeOnFile
 
 SURFACE_TIMEOUT_S = 60.0
 """The longest `NotebookScene.wait_surface` waits for a surface (seconds)."""
@@ -58,14 +69,23 @@ class NotebookScene:
             duration in seconds (None before the first).
     """
 
-    def __init__(self, volume: volumes.Volume, iso: float, lattice, options: Options,
-                 gl: str = "auto", temporary: Path | None = None) -> None:
+    volume: volumes.Volume
+    options: Options
+    temporary: Path | None
+    drawing: Drawing | None
+    surfaces: SurfaceFeed | None
+    illumination: Illumination | None
+    state: ViewerState
+    actions: Actions
+
+    def __init__(self, volume: volumes.Volume, iso: float, lattice: LatticeOnFile | None,
+                 options: Options, gl: str = "auto", temporary: Path | None = None) -> None:
         """`lattice`: a lattice file opened (`baking.view_texels.LatticeOnFile`) or None;
         `gl`: the context's backend (`open_context`); `temporary`: a file `close`
         deletes (`lattice`'s, written for the view)."""
         self.gl: HeadlessContext | None = open_context(gl)
         self.volume, self.options, self.temporary = volume, options, temporary
-        self.reduced = False
+        self.reduced: bool = False
         self.last_end: float | None = None
         self.last_frame_s: float | None = None
         self._target = None  # the picture's framebuffer (`picture_target`), of its size
@@ -76,7 +96,7 @@ class NotebookScene:
             self._free(stop=True)
             raise
 
-    def _build(self, iso: float, lattice) -> None:
+    def _build(self, iso: float, lattice: LatticeOnFile | None) -> None:
         """Make the parts, as `app.viewer.window.Viewer` does, without a window."""
         from isolume.app.render.renderer import default_camera
         from isolume.app.viewer.actions import Actions, check_mode
@@ -263,7 +283,8 @@ class NotebookScene:
             self.temporary.unlink(missing_ok=True)
 
 
-def picture_target(ctx, size: tuple[int, int], old=None):
+def picture_target(ctx: moderngl.Context, size: tuple[int, int],
+                   old: moderngl.Framebuffer | None = None) -> moderngl.Framebuffer:
     """An off-screen RGBA8 framebuffer of `size` (W, H) in the context `ctx`, which the
     viewer's `app.viewer.draw.Drawing` draws the picture into (a window's would be its
     default framebuffer); `old`, the previous one, is released (`release_target`)."""
@@ -273,7 +294,7 @@ def picture_target(ctx, size: tuple[int, int], old=None):
     return target
 
 
-def release_target(target) -> None:
+def release_target(target: moderngl.Framebuffer) -> None:
     """Free a `picture_target` framebuffer and its colour buffer."""
     for attachment in target.color_attachments:
         attachment.release()

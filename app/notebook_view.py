@@ -14,7 +14,11 @@ redraws at the new size.
 
 from __future__ import annotations
 
+import asyncio
+import threading
 import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from jupyter_rfb import RemoteFrameBuffer
@@ -29,6 +33,12 @@ from isolume.app.viewer.panel import (
     drag_target,
     pan_per_pixel,
 )
+
+if TYPE_CHECKING:
+    from ipywidgets import HBox
+
+    from isolume.app.notebook_controls import Controls
+    from isolume.baking.view_texels import LatticeOnFile
 
 TICK_S = 0.05
 """Seconds between two looks at the workers while the kernel's event loop runs."""
@@ -52,8 +62,11 @@ class NotebookView(RemoteFrameBuffer):
         panel: the picture and the controls side by side (an ``ipywidgets.HBox``).
     """
 
-    def __init__(self, volume: volumes.Volume, iso: float, lattice, options: Options,
-                 gl: str = "auto", temporary=None) -> None:
+    controls: Controls | None
+    panel: HBox | None
+
+    def __init__(self, volume: volumes.Volume, iso: float, lattice: LatticeOnFile | None,
+                 options: Options, gl: str = "auto", temporary: Path | None = None) -> None:
         """The view of `volume` at `iso` with the ``isolume view`` `options`; `lattice`, `gl`
         and `temporary` as `NotebookScene` takes them."""
         from ipywidgets import HBox
@@ -62,12 +75,13 @@ class NotebookView(RemoteFrameBuffer):
 
         w, h = options.size
         super().__init__(css_width=f"{w}px", css_height=f"{h}px", resizable=True)
-        self.size = (w, h)
+        self.size: tuple[int, int] = (w, h)
         self.scene: NotebookScene | None = None
         self.controls = self.panel = None
         self._drag: Drag | None = None
         self._status_at = 0.0
         self._timer = None
+        self._home = home_loop()
         try:
             self.scene = NotebookScene(volume, iso, lattice, options, gl=gl,
                                        temporary=temporary)
@@ -77,6 +91,29 @@ class NotebookView(RemoteFrameBuffer):
             self.close()
             raise
         self._schedule()
+
+    # -- the kernel's thread -----------------------------------------------------------------
+    def _elsewhere(self, call, *args) -> bool:
+        """Whether this runs off the thread of the event loop the view was made on (where
+        its GL context is current): then `call(*args)` is sent there and True returned.
+        A kernel may deliver widget messages on another thread (ipykernel's subshells,
+        which JupyterLab asks for by default)."""
+        home = self._home
+        if home is None or threading.get_ident() == home[1]:
+            return False
+        home[0].call_soon_threadsafe(call, *args)
+        return True
+
+    def _rfb_handle_msg(self, widget, content, buffers) -> None:
+        """jupyter_rfb's message handler, on the view's own thread."""
+        if not self._elsewhere(super()._rfb_handle_msg, widget, content, buffers):
+            super()._rfb_handle_msg(widget, content, buffers)
+
+    def _rfb_schedule_maybe_draw(self, *args) -> None:
+        """jupyter_rfb's frame scheduling, on the view's own thread (its frame feedback
+        arrives with the kernel's messages)."""
+        if not self._elsewhere(self._rfb_maybe_draw):
+            super()._rfb_schedule_maybe_draw(*args)
 
     # -- display -------------------------------------------------------------------------
     def _repr_mimebundle_(self, **kwargs):
@@ -130,8 +167,6 @@ class NotebookView(RemoteFrameBuffer):
     def _schedule(self) -> None:
         """Call `_tick` in `TICK_S` on the running event loop (none: nothing happens by
         itself, `snapshot` and `update` do it)."""
-        import asyncio
-
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:
@@ -182,7 +217,10 @@ class NotebookView(RemoteFrameBuffer):
         self._act(self.scene.actions.set_exposure, exposure)
 
     def _act(self, action, *args) -> None:
-        """Apply `action(*args)` on the scene, show it in the controls, ask for a frame."""
+        """Apply `action(*args)` on the scene, show it in the controls, ask for a frame (on
+        the view's own thread: `_elsewhere`)."""
+        if self._elsewhere(self._act, action, *args):
+            return
         self._check_open()
         action(*args)
         self.controls.show_state()
@@ -196,7 +234,7 @@ class NotebookView(RemoteFrameBuffer):
             raise IsolumeError("this isolume view is closed")
 
     # -- events --------------------------------------------------------------------------
-    def handle_event(self, event: dict) -> None:
+    def handle_event(self, event: dict[str, Any]) -> None:
         """Handle a jupyter_rfb event: ``pointer_down``, ``pointer_move`` and
         ``pointer_up`` (x, y in CSS pixels, ``button``, ``modifiers``) drag, ``wheel``
         (``dy`` in pixels, negative up) zooms, ``resize`` (``width``, ``height``) sets
@@ -284,3 +322,11 @@ class NotebookView(RemoteFrameBuffer):
         if self.panel is not None:
             for widget in (*self.controls.box.children, self.controls.box, self.panel):
                 widget.close()
+
+
+def home_loop() -> tuple[asyncio.AbstractEventLoop, int] | None:
+    """(the running event loop, its thread's id), or None when no loop runs (a script)."""
+    try:
+        return asyncio.get_running_loop(), threading.get_ident()
+    except RuntimeError:
+        return None

@@ -7,11 +7,19 @@ message names the option, the value and what was expected.
 from __future__ import annotations
 
 import argparse
+import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from isolume import volumes
 from isolume.volumes.errors import IsolumeError
+
+if TYPE_CHECKING:
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.lighting import Lighting
+    from isolume.baking.view_texels import HeldLattice, LatticeOnFile
 
 EXIT_USER_ERROR = 2
 """Exit status of a command that ends on bad input."""
@@ -78,7 +86,8 @@ def isovalue(volume: volumes.Volume, iso: float | None) -> float:
     return volumes.check_isovalue(volume, iso)
 
 
-def load_lattice(path, volume: volumes.Volume, whole: bool = True):
+def load_lattice(path: str | os.PathLike[str] | Lattice | None, volume: volumes.Volume,
+                 whole: bool = True) -> Lattice | HeldLattice | LatticeOnFile | None:
     """The lattice at `path` checked against `volume`, or None: with `whole`, its computed
     texels (a `baking.view_texels.HeldLattice`: memory follows them, not the box); else
     the file opened, no texel read (a `baking.view_texels.LatticeOnFile`: a picture reads
@@ -98,7 +107,8 @@ def load_lattice(path, volume: volumes.Volume, whole: bool = True):
     return opened.held() if whole else opened
 
 
-def check_served(lattice, iso: float, source: str | None) -> None:
+def check_served(lattice: Lattice | HeldLattice | LatticeOnFile | None, iso: float,
+                 source: str | None) -> None:
     """`CLIError` (one line) when `lattice` (from file `source`; None: nothing to check)
     was not baked for isovalue `iso` (`baking.plan.outside_served_range`)."""
     if lattice is None:
@@ -110,7 +120,8 @@ def check_served(lattice, iso: float, source: str | None) -> None:
         raise CLIError(refused)
 
 
-def environment_coefficients(spec: str | None, lattice, window: str):
+def environment_coefficients(spec: str | None, lattice: Lattice | HeldLattice | LatticeOnFile,
+                             window: str) -> np.ndarray:
     """(n², 3) SH coefficients of the display environment for an SH lattice."""
     from isolume.baking import sh
     from isolume.baking.lighting import lighting_of
@@ -254,7 +265,8 @@ def parse_albedo(text: str) -> tuple[float, float, float]:
     return values
 
 
-def parse_lighting(env: str | None, lights: list[str] | None, default: str = ""):
+def parse_lighting(env: str | None, lights: list[str] | None, default: str = ""
+                   ) -> Lighting:
     """The `baking.lighting.Lighting` of ``--env`` (None: `default`; "none": no
     environment) and the ``--light`` specs (None: none), parsed once for the command.
 
@@ -267,7 +279,7 @@ def parse_lighting(env: str | None, lights: list[str] | None, default: str = "")
     return lighting_of("" if env == "none" else env, tuple(lights or ()))
 
 
-def view_light(args: argparse.Namespace, volume: volumes.Volume):
+def view_light(args: argparse.Namespace, volume: volumes.Volume) -> BakeConfig:
     """The `BakeConfig` of the global illumination ``render`` traces for its view (the
     lighting ``reference`` path-traces with the same arguments)."""
     from isolume.app.render.view_gi import DEFAULT_PATHS
@@ -284,7 +296,8 @@ def view_light(args: argparse.Namespace, volume: volumes.Volume):
     )
 
 
-def bake_config(args: argparse.Namespace):
+def bake_config(args: argparse.Namespace) -> BakeConfig:
+    """The `BakeConfig` of ``isolume bake``'s options (`add_bake_options`)."""
     from isolume.baking.config import BakeConfig
 
     return BakeConfig.lit_by(

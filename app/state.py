@@ -18,11 +18,16 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from isolume.app.options import CLIError, parse_albedo, parse_size
 from isolume.app.render.camera import Camera, parse_view
 from isolume.app.render.settings import SHADING_MODES, TONEMAPS
 from isolume.volumes.errors import IsolumeError
+
+if TYPE_CHECKING:
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import HeldLattice, LatticeOnFile
 
 FORMAT = "isolume view"
 """The ``format`` field of every state file."""
@@ -215,7 +220,7 @@ class SavedView(VolumeSource):
         return values
 
 
-def layout(value, indent: str = "") -> str:
+def layout(value: object, indent: str = "") -> str:
     """JSON text of `value`: an object one member a line (indented by two spaces a level),
     anything else on one line."""
     if not isinstance(value, dict):
@@ -467,7 +472,8 @@ def _camera_with_view(camera: Camera | None, view: str | None) -> Camera | None:
                    distance=camera.distance if distance is None else distance)
 
 
-def light_settings(angles: tuple[float, float] | None, lattice) -> dict:
+def light_settings(angles: tuple[float, float] | None,
+                   lattice: Lattice | HeldLattice | LatticeOnFile | None) -> dict[str, Any]:
     """`app.render.settings.RenderSettings` keywords of a world-fixed light at `angles`
     ((azimuth, elevation) degrees; None: the light follows the camera, no keywords) as
     the viewer draws it: the key light, and the first sun or directional light that

@@ -22,7 +22,7 @@ _WHERE = {"bake": "bake", "BakeConfig": "config", "BakeError": "errors",
 """Public name → the module of `isolume.baking` that defines it."""
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> object:
     if name not in _WHERE:
         raise AttributeError(f"module 'isolume.baking' has no attribute {name!r}")
     import importlib

@@ -15,10 +15,10 @@ import itertools
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -202,7 +202,7 @@ class TracingBackend(Protocol):
         upper one. On an exception, stop what still adds to pass sums before it
         propagates (the Baker keeps the texels committed, drops the others' cut pass)."""
 
-    def record(self, meta: dict) -> None:
+    def record(self, meta: dict[str, Any]) -> None:
         """Add the backend's own counters to the lattice metadata `meta`."""
 
     def close(self) -> None:
@@ -247,7 +247,7 @@ class _LevelWork:
     scene: Scene | None
 
 
-def pass_steps(work: PassWork, batch: int):
+def pass_steps(work: PassWork, batch: int) -> Iterator[PassStep]:
     """The order a `ThreadBackend` traces a pass in: one level at a time, lowest first, so
     that a pass traces one level scene at a time. On level l, the texels whose upper level
     it is (``work.upper_on(l)``: traced on l − 1 before, complete here), then those whose
@@ -277,7 +277,7 @@ class ThreadBackend:
 
     def __init__(self, workers: int | None = None, scene_cache: int = 1,
                  ahead: int = AHEAD_LEVELS) -> None:
-        self.workers = max(1, workers or cores.threads())
+        self.workers: int = max(1, workers or cores.threads())
         self.job: BakeJob | None = None
         self._pool = cores.executor(self.workers, "isolume-trace")
         # the next step and scenes ahead: on one thread of their own beside the pool, or in
@@ -377,7 +377,7 @@ class ThreadBackend:
             _commit(traced, report)  # its paths are all traced: it is kept
             raise
 
-    def record(self, meta: dict) -> None:
+    def record(self, meta: dict[str, Any]) -> None:
         """Nothing beyond the Baker's own counters."""
 
     def close(self) -> None:

@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -93,7 +94,7 @@ def _luminance_weights(channels: int, irradiance: bool, second_block: int = 0) -
     return weights
 
 
-def lattice_meta(volume: volumes.Volume, config: BakeConfig, channels: int) -> dict:
+def lattice_meta(volume: volumes.Volume, config: BakeConfig, channels: int) -> dict[str, Any]:
     """The metadata that identifies the volume and the bake of a lattice of `channels`
     values per texel."""
     return {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
@@ -210,24 +211,28 @@ class Baker:
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig, *,
                  lattice: Lattice | None = None, workers: int | None = None,
-                 scene_cache: int = 1, progress=None,
+                 scene_cache: int = 1, progress: Callable[..., None] | None = None,
                  backend: TracingBackend | None = None, packed: bool = False,
                  resume: LatticeFile | None = None,
                  records_dir: str | os.PathLike[str] | None = None) -> None:
-        self.backend = backend if backend is not None else ThreadBackend(workers, scene_cache)
+        self.backend: TracingBackend = (backend if backend is not None
+                                        else ThreadBackend(workers, scene_cache))
         self.records: PlanRecords | None = None
         try:
-            self.volume, self.config = volume, config
-            self.settings = path_settings(volume, config)
-            self.geometry = LatticeGeometry.for_volume(volume, config.scale)
-            self.lighting = tracing_lights(config)
-            self.stats = BakeStats()
+            self.volume: volumes.Volume = volume
+            self.config: BakeConfig = config
+            self.settings: PathSettings = path_settings(volume, config)
+            self.geometry: LatticeGeometry = LatticeGeometry.for_volume(volume, config.scale)
+            self.lighting: TracingLights = tracing_lights(config)
+            self.stats: BakeStats = BakeStats()
             kept = _kept_levels(resume if packed else lattice)
             self.backend.begin(volume, config, kept, self.stats)  # beside the plan
-            self.plan = make_plan(volume, self.geometry, config, kept, progress,
-                                  on_levels=self.backend.levels_known,
-                                  scenes=self.backend.plan_scene, traced_only=packed)
-            self.groups = LevelGroups(self.plan.lower)  # every texel's, by lower level
+            self.plan: Plan = make_plan(volume, self.geometry, config, kept, progress,
+                                        on_levels=self.backend.levels_known,
+                                        scenes=self.backend.plan_scene, traced_only=packed)
+            self.groups: LevelGroups = LevelGroups(self.plan.lower)  # every texel's, by lower level
+            self.lattice: Lattice | PlanLattice
+            self.rows: np.ndarray | None
             if packed:  # never replanned: see `relight`
                 self.plan, self.records = spill(self.plan, records_dir, self.groups)
                 self.lattice, self.rows = self._plan_lattice(resume), None
@@ -236,10 +241,10 @@ class Baker:
                 self.lattice = lattice or _new_lattice(volume, config, self.geometry,
                                                        self.settings.channels)
                 self.lattice.active, self.rows = self.plan.active, self.plan.ids
-            self.texels_done = int(np.count_nonzero(self.samples_done()))
-            self.previous = dict(self.lattice.meta.get("stats", {}))
-            self.job = BakeJob(volume, config, self.geometry, self.plan, self.records,
-                               self._tracing(), self.stats)
+            self.texels_done: int = int(np.count_nonzero(self.samples_done()))
+            self.previous: dict[str, Any] = dict(self.lattice.meta.get("stats", {}))
+            self.job: BakeJob = BakeJob(volume, config, self.geometry, self.plan,
+                                        self.records, self._tracing(), self.stats)
             self.backend.start(self.job)
         except BaseException:
             self.close()
@@ -298,7 +303,8 @@ class Baker:
         self.texels_done = int(np.count_nonzero(self.samples_done()))
 
     def run(self, positions: np.ndarray | None = None, target: int | np.ndarray | None = None,
-            *, bar=None, after_commit=None) -> None:
+            *, bar: Any = None,
+            after_commit: Callable[[np.ndarray], object] | None = None) -> None:
         """Bring the texels at plan `positions` (all if None) up to `target` paths each
         (default `config.samples`).
 
@@ -507,9 +513,11 @@ class Checkpoints:
 
     def __init__(self, lattice: Lattice | PlanLattice, out: Path | None,
                  seconds: float) -> None:
-        self.lattice, self.out, self.seconds = lattice, out, seconds
-        self.due = time.perf_counter() + seconds
-        self.saves = 0
+        self.lattice: Lattice | PlanLattice = lattice
+        self.out: Path | None = out
+        self.seconds: float = seconds
+        self.due: float = time.perf_counter() + seconds
+        self.saves: int = 0
 
     def __call__(self, _committed: np.ndarray) -> None:
         began = time.perf_counter()
@@ -544,7 +552,7 @@ def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
         baker.run(todo, target, bar=bar, after_commit=checkpoint)
 
 
-def _finish_meta(lattice: Lattice, plan: Plan, high_texels: int, stats: BakeStats,
+def _finish_meta(lattice: Lattice | PlanLattice, plan: Plan, high_texels: int, stats: BakeStats,
                  previous: dict) -> None:
     """Record what the bake did (adding to the counts of earlier runs on the same file);
     `high_texels`: the plan's texels lit on the high-value side."""

@@ -39,6 +39,7 @@ from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -57,6 +58,9 @@ from isolume.baking.passes import (
     level_scene,
     trace_texels,
 )
+
+if TYPE_CHECKING:  # Dask is an optional dependency, imported when a cluster is used
+    from distributed import Client, LocalCluster
 
 PATHS_PER_TASK = 65536
 """Expected paths per task: ~0.1–0.3 s of tracing, against ~2 ms of Dask overhead."""
@@ -148,7 +152,7 @@ class _Job:
     """
 
     token: str
-    fingerprint: dict
+    fingerprint: dict[str, str]
     volume: volumes.Volume
     config: BakeConfig
     geometry: LatticeGeometry
@@ -306,7 +310,8 @@ def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
 
 
 # -- master side ---------------------------------------------------------------------------
-def connect(scheduler: str, timeout: float = CONNECT_TIMEOUT_S):
+def connect(scheduler: str, timeout: float = CONNECT_TIMEOUT_S
+            ) -> tuple[Client, LocalCluster | None]:
     """A Dask client for `scheduler`: ``tcp://HOST:PORT`` (any address Dask takes) or
     ``local:N`` (a cluster of N single-threaded worker processes on this machine).
 
@@ -338,7 +343,7 @@ def connect(scheduler: str, timeout: float = CONNECT_TIMEOUT_S):
                         f"{timeout:.0f} s ({type(exc).__name__}: {exc})") from None
 
 
-def local_cluster(workers: int, **options):
+def local_cluster(workers: int, **options: Any) -> LocalCluster:
     """A ``distributed.LocalCluster`` of `workers` single-threaded worker processes.
 
     Their nannies give them Dask's usual environment less MALLOC_TRIM_THRESHOLD_: setting
@@ -391,7 +396,7 @@ class ClusterTraffic:
     scene_seconds: float = 0.0
     job_bytes: int = 0
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, int | float]:
         return {k: float(v) if isinstance(v, float) else int(v)
                 for k, v in self.__dict__.items()}
 
@@ -435,15 +440,15 @@ class ClusterBackend:
         BakeError: from `connect`.
     """
 
-    def __init__(self, scheduler: str = "", *, client=None) -> None:
+    def __init__(self, scheduler: str = "", *, client: Client | None = None) -> None:
         self._cluster, self._own_client = None, client is None
         if client is None:
             client, self._cluster = connect(scheduler)
-        self.client = client
+        self.client: Client = client
         self._scheduler = scheduler
-        self.traffic = ClusterTraffic()
+        self.traffic: ClusterTraffic = ClusterTraffic()
         self.job: BakeJob | None = None
-        self.token = ""
+        self.token: str = ""
         self._scattered = None  # the future of the `_Job` scattered to the workers
         self._helper = ThreadPoolExecutor(max_workers=1)  # loads compiled code beside the plan
         self._warm = None
@@ -519,7 +524,7 @@ class ClusterBackend:
             self.client.cancel(list(owner))
             raise
 
-    def record(self, meta: dict) -> None:
+    def record(self, meta: dict[str, Any]) -> None:
         """What moved: ``meta["cluster"]`` (`ClusterTraffic`)."""
         meta["cluster"] = self.traffic.as_dict()
 

@@ -58,7 +58,8 @@ def _ray_buffer():
 
 
 @numba.njit(**JIT)
-def intersect_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray):
+def intersect_rays(calls: tuple[int, ...], pos: np.ndarray, dirs: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest hits of (3, M) float32 rays (distances 0 … ∞), Embree called per ray
     (`trace.EmbreeCalls`).
 
@@ -84,7 +85,7 @@ def intersect_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray):
 
 
 @numba.njit(**JIT)
-def occluded_rays(calls: tuple, pos: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+def occluded_rays(calls: tuple[int, ...], pos: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """(M,) bool: does anything block the (3, M) float32 rays (distances 0 … ∞)?"""
     scene, _, occluded = calls
     ray, bits, address = _ray_buffer()

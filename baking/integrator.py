@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -303,8 +303,19 @@ def _constant_radiance(lighting: TracingLights, settings: PathSettings) -> np.nd
     return np.pi * np.asarray(rgb, np.float64)
 
 
-def trace_whole_paths(scene: Scene, params: WholePaths, starts: tuple, weights: np.ndarray,
-                      acc, stats: RayStats | None = None) -> None:
+class _PassSums(Protocol):
+    """The pass sums `trace_whole_paths` adds to (`passes.PassSums`)."""
+
+    sum: np.ndarray
+    second: np.ndarray
+    n: np.ndarray
+
+
+def trace_whole_paths(scene: Scene, params: WholePaths,
+                      starts: tuple[np.uint32, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                    np.ndarray, np.ndarray],
+                      weights: np.ndarray, acc: _PassSums,
+                      stats: RayStats | None = None) -> None:
     """`kernels.path_starts`, `trace_paths` and `kernels.accumulate` in one compiled call
     that calls Embree per ray (needs ``scene.calls``).
 

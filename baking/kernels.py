@@ -376,7 +376,7 @@ def _record(record: np.ndarray, recorded: int, kind: float, pos: np.ndarray,
 
 
 @numba.njit(**JIT)
-def trace_chunk(calls: tuple, seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
+def trace_chunk(calls: tuple[int, ...], seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
                 samples: np.ndarray, texels: np.ndarray, origins: np.ndarray,
                 normals: np.ndarray, bounces: int, albedo: np.ndarray, offset: float,
                 escaped_radiance: np.ndarray, sky: np.ndarray, first_sky: np.ndarray,

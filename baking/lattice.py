@@ -28,11 +28,13 @@ trilinear mix is kept.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 from isolume.baking import octahedral
 from isolume.baking.config import BakeConfig
@@ -68,7 +70,7 @@ from the side its texels were not lit on), one texel with a sliver of side weigh
 decide the colour — it made such points black."""
 
 
-def refinement(spacing) -> np.ndarray:
+def refinement(spacing: npt.ArrayLike) -> np.ndarray:
     """(3,) xyz texels per voxel along each axis per texel per voxel along the finest: the
     voxel size over the finest voxel size (1 where the voxels are cubes), at most
     `MAX_REFINEMENT`; `spacing` (3,) the voxel size, xyz, world units."""
@@ -176,7 +178,19 @@ def sided_mix(weights: np.ndarray, sides: np.ndarray, values: np.ndarray) -> np.
     return np.where(plain_w > 1e-6, out, 0.0)
 
 
-def shown_lookup(lattice, points_xyz: np.ndarray, normals: np.ndarray | None = None
+class _ShownLattice(Protocol):
+    """What `shown_lookup` reads of a lattice (`Lattice`, `view_texels.HeldLattice`)."""
+
+    geometry: LatticeGeometry
+
+    def shown(self, region: tuple[Any, ...]) -> np.ndarray: ...
+
+    def displayed(self, region: tuple[Any, ...]) -> np.ndarray: ...
+
+    def displayed_facing(self, region: tuple[Any, ...]) -> np.ndarray: ...
+
+
+def shown_lookup(lattice: _ShownLattice, points_xyz: np.ndarray, normals: np.ndarray | None = None
                  ) -> np.ndarray:
     """(N, C) the shader's lookup at (N, 3) world points of what a display shows of
     `lattice` (a `Lattice`, or anything with its ``geometry``, ``shown``, ``displayed``
@@ -224,7 +238,8 @@ def sky_everywhere(config: BakeConfig | None) -> bool:
     return _SKY_EVERYWHERE[config.env]
 
 
-def drop_trapped(mask: np.ndarray, many: np.ndarray, light_of) -> np.ndarray:
+def drop_trapped(mask: np.ndarray, many: np.ndarray,
+                 light_of: Callable[[tuple[np.ndarray, ...]], np.ndarray]) -> np.ndarray:
     """`mask` (bool, any shape) with its trapped texels cleared, for a light that is
     `sky_everywhere` (the caller checks): of the texels where `many` (their displayed light
     rests on `TRAPPED_PATHS` or more paths), those whose light is all zero. Only their
@@ -468,7 +483,8 @@ class Lattice:
         check_identity(self.meta, volume, path)
 
 
-def file_meta(meta: dict[str, Any], geometry: LatticeGeometry, config: BakeConfig | None) -> dict:
+def file_meta(meta: dict[str, Any], geometry: LatticeGeometry, config: BakeConfig | None
+              ) -> dict[str, Any]:
     """`meta` as a lattice file holds it: with the box's shape and corners, and the bake
     config as a dict (the only writer of that dict, with its version `CONFIG_VERSION`)."""
     meta = dict(meta, shape=list(geometry.shape), box_lo=list(geometry.lo),
@@ -478,7 +494,7 @@ def file_meta(meta: dict[str, Any], geometry: LatticeGeometry, config: BakeConfi
     return meta
 
 
-def open_lattice(path: str | os.PathLike[str], volume=None
+def open_lattice(path: str | os.PathLike[str], volume: Volume | None = None
                  ) -> tuple[LatticeFile, LatticeGeometry, BakeConfig | None]:
     """A lattice file opened (`baking.lattice_file.LatticeFile`; its meta without the
     bake config's dict), its geometry and bake config; with `volume`, checked to be baked
@@ -500,7 +516,7 @@ def open_lattice(path: str | os.PathLike[str], volume=None
     return file, geometry, config
 
 
-def other_texels(geometry: LatticeGeometry, volume, scale: float,
+def other_texels(geometry: LatticeGeometry, volume: Volume, scale: float,
                  path: str | os.PathLike[str] = "lattice") -> str:
     """"" when a lattice of `geometry` (the file `path`'s) has the texels that a bake of
     `volume` at `scale` makes (`LatticeGeometry.for_volume`), so a bake can add paths to
@@ -546,7 +562,7 @@ def _config_from(d: dict | None, version: int, path: Path) -> BakeConfig | None:
     return BakeConfig.from_dict(d)
 
 
-def volume_identity(volume) -> dict:
+def volume_identity(volume: Volume) -> dict[str, Any]:
     """The metadata that ties a lattice to its volume."""
     return {"name": volume.name, "source": volume.source, "shape": list(volume.data.shape),
             "spacing": list(volume.spacing), "origin": list(volume.origin),

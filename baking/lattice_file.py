@@ -35,6 +35,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -47,8 +48,9 @@ DENSE_VERSION = 1
 """The format version whose arrays are dense over the lattice's box."""
 SLAB_TEXELS = 1 << 22
 """Texels of the box per slab of z-layers a member is written or read in."""
-MEMBERS = {"values": np.float32, "samples": np.uint32, "second": np.float32,
-           "active": np.bool_, "facing": np.uint8}
+MEMBERS: dict[str, type[np.generic]] = {
+    "values": np.float32, "samples": np.uint32, "second": np.float32, "active": np.bool_,
+    "facing": np.uint8}
 """The per-texel arrays a file holds, with their types."""
 _READ_ERRORS = (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError)
 
@@ -71,7 +73,8 @@ def held_mask(arrays: dict[str, np.ndarray]) -> np.ndarray:
     return arrays["active"] | (arrays["samples"] > 0)
 
 
-def write_lattice(path: str | os.PathLike[str], arrays: dict[str, np.ndarray], meta: dict) -> None:
+def write_lattice(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
+                  meta: dict[str, Any]) -> None:
     """Write `arrays` (the `MEMBERS`, dense over a (Z, Y, X) box: values (Z, Y, X, C),
     facing (Z, Y, X, 2), the others (Z, Y, X)) and `meta` (JSON-ready) to `path`,
     atomically (a temporary file in the same folder, then renamed): an interrupted write
@@ -87,7 +90,7 @@ def write_lattice(path: str | os.PathLike[str], arrays: dict[str, np.ndarray], m
 
 
 def write_rows(path: str | os.PathLike[str], shape: tuple[int, int, int], ids: np.ndarray,
-               arrays: dict[str, np.ndarray], meta: dict) -> None:
+               arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
     """Write the `MEMBERS` of the texels at (N,) sorted unique flat ids `ids` of a
     (Z, Y, X) box, as (N, …) `arrays` (values (N, C), facing (N, 2), the others (N,)),
     and `meta`, as `write_lattice` does (an array may be a broadcast view: it is made a
@@ -118,7 +121,7 @@ def packed_ids(ids: np.ndarray, size: int) -> np.ndarray:
 
 def _write_archive(path: str | os.PathLike[str], bits: np.ndarray, count: int,
                    tails: dict[str, tuple], rows: Callable[[str], Iterator[np.ndarray]],
-                   meta: dict) -> None:
+                   meta: dict[str, Any]) -> None:
     """The archive of the held texels' mask (`bits`: the packed bits of the (Z, Y, X) bool
     mask of the `count` held texels), each member `name` of per-texel shape
     `tails[name]` from the chunks `rows(name)` yields in flat order, and `meta`, written
@@ -247,7 +250,7 @@ class LatticeFile:
     """
 
     path: Path
-    meta: dict
+    meta: dict[str, Any]
     shape: tuple[int, int, int]
     version: int
 

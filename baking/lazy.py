@@ -32,6 +32,9 @@ A turned light. A lattice whose sun (or directional light) the display shades pe
 holds that light's bounces; when the viewer turns it, `Relight` bakes the same texels in
 the same order under the new direction (`relit_config`) into a lattice of its own, shown
 texel by texel once it rests on `RELIGHT_PATHS` paths (no mean mixes two lights' paths).
+
+Length: the stages, rounds, relighting and serving loop of one scheduler share its plan's
+per-texel arrays and views; apart, each part would take them all as arguments.
 """
 
 from __future__ import annotations
@@ -40,11 +43,18 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry
 from isolume.baking.plan import Plan
+
+if TYPE_CHECKING:
+    from isolume.baking.bake import Baker
+    from isolume.baking.config import BakeConfig
+    from isolume.volumes.core import Volume
 
 FIRST_TARGET = 4
 """Paths per texel of the first round: enough for a recognisable estimate."""
@@ -65,7 +75,7 @@ Sweep bakes at ±5/±3/±2 %: stent CT 15.7/10.6/10.5 %, hydrogen atom 5.2/4.7/8
 levels under the scene-cost cap); docs/accuracy.md."""
 
 
-def new_lattice(volume, config) -> Lattice:
+def new_lattice(volume: Volume, config: BakeConfig) -> Lattice:
     """An empty lattice for `volume` baked with `config`, with the metadata `baking.bake`
     writes: what a lazy bake, or a surface's traced light, fills."""
     from isolume.baking.bake import lattice_meta, path_settings
@@ -76,7 +86,7 @@ def new_lattice(volume, config) -> Lattice:
 
 
 # -- the iso range around the displayed surface --------------------------------------------
-def view_iso_range(volume, iso: float) -> tuple[float, float]:
+def view_iso_range(volume: Volume, iso: float) -> tuple[float, float]:
     """The iso range a lazy bake for the isovalue `iso` serves: `VIEW_RANGE_FRACTION` of
     the data range on either side, within the data range. Its texels are lit on their
     values clamped to it (`baking.plan`): for the displayed surface that is more accurate
@@ -87,7 +97,7 @@ def view_iso_range(volume, iso: float) -> tuple[float, float]:
     return max(vmin, iso - half), min(vmax, iso + half)
 
 
-def carry_over(lattice, old: Plan, new: Plan) -> np.ndarray:
+def carry_over(lattice: Lattice, old: Plan, new: Plan) -> np.ndarray:
     """Keep what a new plan (another iso range) can use of a lattice baked by `old`: a
     texel keeps its samples when both plans light it at the same target isovalue; the
     others are reset (values, second moments and sample counts to 0).
@@ -119,7 +129,7 @@ TURN_TOLERANCE_DEG = 0.5
 says "not turned" below it too)."""
 
 
-def turned_light(config) -> np.ndarray | None:
+def turned_light(config: BakeConfig) -> np.ndarray | None:
     """(3,) unit vector towards the light a viewer turns under `config`
     (`baking.lighting.Lighting.turnable`, the one `app.render.lights.aimed_lights` aims), or
     None when there is none or it is not shaded per pixel: a lattice holding its direct
@@ -130,13 +140,13 @@ def turned_light(config) -> np.ndarray | None:
     return None if light is None else np.asarray(light.direction, np.float64)
 
 
-def same_direction(a, b) -> bool:
+def same_direction(a: npt.ArrayLike, b: npt.ArrayLike) -> bool:
     """Whether unit vectors `a` and `b` (3,) lie within `TURN_TOLERANCE_DEG` of each other."""
     cos = float(np.dot(np.asarray(a, np.float64), np.asarray(b, np.float64)))
     return cos >= math.cos(math.radians(TURN_TOLERANCE_DEG))
 
 
-def relit_config(config, direction):
+def relit_config(config: BakeConfig, direction: np.ndarray) -> BakeConfig:
     """`config` with the light `turned_light` names pointing towards `direction` (3,)
     (`baking.lighting.Lighting.turned`); ValueError when it names none."""
     if turned_light(config) is None:
@@ -169,23 +179,25 @@ class Relight:
         direction: (3,) unit vector towards the turned light.
     """
 
-    def __init__(self, shown: Lattice, config, published: np.ndarray | None = None) -> None:
+    def __init__(self, shown: Lattice, config: BakeConfig,
+                 published: np.ndarray | None = None) -> None:
         shape, channels = shown.samples.shape, shown.values.shape[-1]
         previews = shown.preview is not None
         # np.zeros: untouched pages cost no memory, and only the texels near the displayed
         # surface are ever written
-        self.fresh = Lattice(
+        self.fresh: Lattice = Lattice(
             shown.geometry, np.zeros((*shape, channels), np.float32),
             np.zeros(shape, np.uint32), np.zeros(shape, np.float32), shown.active,
             dict(shown.meta),
             preview=np.zeros((*shape, channels), np.float32) if previews else None,
             preview_paths=np.zeros(shape, np.uint16) if previews else None, config=config)
-        self.shown, self.config = shown, config
+        self.shown: Lattice = shown
+        self.config: BakeConfig = config
         if published is None:
             published = np.zeros(shape, bool)
         published[...] = False
-        self.published = published.reshape(-1)
-        self.direction = turned_light(config)
+        self.published: np.ndarray = published.reshape(-1)
+        self.direction: np.ndarray | None = turned_light(config)
 
     def needed(self, flat: np.ndarray) -> np.ndarray:
         """(K,) paths a new estimate of the texels `flat` (K,) needs to replace what the
@@ -232,7 +244,7 @@ class Relight:
 
         return relay
 
-    def status(self, scheduler: LazyScheduler) -> dict:
+    def status(self, scheduler: LazyScheduler) -> dict[str, Any]:
         """How far the view of `scheduler` (which bakes `fresh`) is on screen under the new
         light: counts of its visible and surface texels, and of those published."""
         ids = scheduler.plan.ids
@@ -381,7 +393,7 @@ def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) 
     return np.where(n > 1, se, np.inf)
 
 
-def scene_cache_size(volume, iso: float, levels: int, budget_bytes: float) -> int:
+def scene_cache_size(volume: Volume, iso: float, levels: int, budget_bytes: float) -> int:
     """How many level scenes a lazy bake may keep alive: all `levels` if they fit in
     `budget_bytes`, else as many as fit (at least 4).
 
@@ -468,13 +480,15 @@ class LazyScheduler:
 
     def __init__(self, plan: Plan, geometry: LatticeGeometry, samples: np.ndarray, *,
                  max_samples: int, batch_paths: int = BATCH_PATHS) -> None:
-        self.plan, self.geometry, self.samples = plan, geometry, samples
-        self.targets = sample_targets(max_samples)
-        self.batch_paths = max(1, int(batch_paths))
-        self.cells = cell_index(plan, geometry.shape)
+        self.plan: Plan = plan
+        self.geometry: LatticeGeometry = geometry
+        self.samples: np.ndarray = samples
+        self.targets: tuple[int, ...] = sample_targets(max_samples)
+        self.batch_paths: int = max(1, int(batch_paths))
+        self.cells: CellIndex = cell_index(plan, geometry.shape)
         self.stages: list[Stage] = []
-        self.visible = np.zeros(0, np.int64)
-        self.surface = np.zeros(0, np.int64)
+        self.visible: np.ndarray = np.zeros(0, np.int64)
+        self.surface: np.ndarray = np.zeros(0, np.int64)
         self.iso: float | None = None
         self._stage = 0
 
@@ -572,7 +586,7 @@ class ServeStats:
     """The view that ended the loop because the plan does not serve it (`accepts`)."""
 
 
-def serve(baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
+def serve(baker: Baker, scheduler: LazyScheduler, receive: Callable[[bool], object],
           send: Callable[[tuple], None], *, stop_when_done: bool = False,
           on_view: Callable[[View], None] | None = None,
           before_batch: Callable[[], bool] | None = None,
@@ -691,7 +705,7 @@ class _Retarget(KeyboardInterrupt):
     dropped whole), and `serve` picks up the message."""
 
 
-def _stats_dict(baker, stats: ServeStats) -> dict:
+def _stats_dict(baker: Baker, stats: ServeStats) -> dict:
     """JSON-ready counters for the progress display."""
     return {"batches": stats.batches, "paths": stats.paths, "seconds": stats.seconds,
             "interrupted": stats.interrupted,

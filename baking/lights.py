@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from isolume.baking.errors import BakeError
 
@@ -71,7 +72,7 @@ class SunLight:
 Light = PointLight | DirectionalLight
 
 
-def light_spec(kind: str, xyz, rgb) -> str:
+def light_spec(kind: str, xyz: npt.ArrayLike, rgb: npt.ArrayLike) -> str:
     """The ``KIND:X,Y,Z:R,G,B`` spec of a light ("point" or "dir"), whose numbers read back
     as the same floats."""
     return f"{kind}:{_join(xyz)}:{_join(rgb)}"

@@ -17,6 +17,7 @@ same bits too.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -60,9 +61,9 @@ class PassSums:
     (A,) (squared brightness) and ``n`` (A,) (paths)."""
 
     def __init__(self, count: int, channels: int) -> None:
-        self.sum = np.zeros((count, channels))
-        self.second = np.zeros(count)
-        self.n = np.zeros(count, np.int64)
+        self.sum: np.ndarray = np.zeros((count, channels))
+        self.second: np.ndarray = np.zeros(count)
+        self.n: np.ndarray = np.zeros(count, np.int64)
 
     @classmethod
     def of(cls, sums: np.ndarray, second: np.ndarray, n: np.ndarray) -> PassSums:
@@ -168,7 +169,7 @@ COMMIT_BLOCK = 1 << 16
 """Pass-sum slots one item of `commit_sums` merges, at most."""
 
 
-def chunk_bounds(counts: np.ndarray, workers: int):
+def chunk_bounds(counts: np.ndarray, workers: int) -> Iterator[tuple[int, int]]:
     """(lo, hi) slices of a level's texels (`LevelPaths`) of (K,) path `counts`: chunks of
     whole texels (a texel's paths stay in one chunk, so its sum is added in sample order
     whatever the number of workers).

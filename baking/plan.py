@@ -44,6 +44,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numba
 import numpy as np
@@ -436,14 +437,14 @@ def newton_reach(volume: volumes.Volume, config: BakeConfig) -> float:
     return max(MAX_REACH * move_limit(config) * h, float(np.linalg.norm(cell)))
 
 
-def served_range(meta: dict) -> tuple[float, float] | None:
+def served_range(meta: dict[str, Any]) -> tuple[float, float] | None:
     """The iso range a lattice (its metadata `meta`) was baked for, or None for files
     written before texels were lit on values clamped to it (they serve any isovalue)."""
     served = meta.get("plan", {}).get("iso_range")
     return None if served is None else (float(served[0]), float(served[1]))
 
 
-def outside_served_range(meta: dict, iso: float, source: str) -> str:
+def outside_served_range(meta: dict[str, Any], iso: float, source: str) -> str:
     """"" when a lattice baked with metadata `meta` (from `source`) serves isovalue `iso`;
     else a one-line message saying so and what to do."""
     served = served_range(meta)
@@ -602,7 +603,7 @@ def default_iso_range(volume: volumes.Volume) -> tuple[float, float]:
     return max(vmin, min(suggested) - 0.25 * spread), min(vmax, max(suggested) + 0.25 * spread)
 
 
-def project_to_level(volume: volumes.Volume, points: np.ndarray, level,
+def project_to_level(volume: volumes.Volume, points: np.ndarray, level: float | np.ndarray,
                      max_move: float, iterations: int = 4, smooth: bool = True) -> np.ndarray:
     """(N, 3) points moved onto ρ = level (a scalar or (N,) values) by Newton steps along
     the smoothed gradient (the plain one if not `smooth`).

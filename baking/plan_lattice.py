@@ -12,6 +12,7 @@ by reading only its texels, and made dense (`dense`) only when the bake returns.
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 
@@ -38,14 +39,16 @@ class PlanLattice:
     """
 
     def __init__(self, geometry: LatticeGeometry, ids: np.ndarray, channels: int,
-                 meta: dict, config: BakeConfig | None = None) -> None:
-        self.geometry, self.meta, self.config = geometry, meta, config
-        self.ids = np.asarray(ids)
+                 meta: dict[str, Any], config: BakeConfig | None = None) -> None:
+        self.geometry: LatticeGeometry = geometry
+        self.meta: dict[str, Any] = meta
+        self.config: BakeConfig | None = config
+        self.ids: np.ndarray = np.asarray(ids)
         count = len(self.ids)
-        self.values = np.zeros((count, channels), np.float32)
-        self.samples = np.zeros(count, np.uint32)
-        self.second = np.zeros(count, np.float32)
-        self.facing = np.zeros((count, 2), np.uint8)
+        self.values: np.ndarray = np.zeros((count, channels), np.float32)
+        self.samples: np.ndarray = np.zeros(count, np.uint32)
+        self.second: np.ndarray = np.zeros(count, np.float32)
+        self.facing: np.ndarray = np.zeros((count, 2), np.uint8)
 
     @property
     def kind(self) -> str:

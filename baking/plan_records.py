@@ -76,8 +76,8 @@ class HeldRecords:
     """The records of a plan that holds its arrays (`Plan.phase`, …): read from them."""
 
     def __init__(self, plan: Plan) -> None:
-        self.plan = plan
-        self.high_texels = int(np.count_nonzero(plan.high))
+        self.plan: Plan = plan
+        self.high_texels: int = int(np.count_nonzero(plan.high))
 
     def of(self, positions: np.ndarray) -> TexelRecords:
         plan = self.plan
@@ -103,7 +103,8 @@ class LevelGroups:
     """
 
     def __init__(self, lower: np.ndarray, members: np.ndarray | None = None) -> None:
-        self.lower, self.members = lower, members
+        self.lower: np.ndarray = lower
+        self.members: np.ndarray | None = members
         self._kept: OrderedDict[int, np.ndarray] = OrderedDict()
         self._lock = threading.Lock()
 
@@ -143,9 +144,10 @@ class SpilledRecords:
 
     def __init__(self, plan: Plan, directory: str | os.PathLike[str] | None = None,
                  groups: LevelGroups | None = None) -> None:
-        self.ids, self.lower = plan.ids, plan.lower
-        self.groups = groups if groups is not None else LevelGroups(plan.lower)
-        self.high_texels = int(np.count_nonzero(plan.high))
+        self.ids: np.ndarray = plan.ids
+        self.lower: np.ndarray = plan.lower
+        self.groups: LevelGroups = groups if groups is not None else LevelGroups(plan.lower)
+        self.high_texels: int = int(np.count_nonzero(plan.high))
         counts = np.bincount(plan.lower, minlength=len(plan.levels))
         self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         where = directory if directory is not None else tempfile.gettempdir()

@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +44,9 @@ from isolume.baking.passes import PassSums, PathStarts, Tracing, trace_chunk
 from isolume.baking.plan import project_to_level
 from isolume.baking.reference import primary_hits
 from isolume.volumes import cores
+
+if TYPE_CHECKING:  # embreex is imported only when a preview traces
+    from isolume.baking.trace import Scene
 
 PASSES = ((4, True), (64, False), (256, False))
 """(paths per texel, coarse mesh allowed) of the preview passes of a view, in order; the
@@ -105,7 +109,7 @@ def coarse_offset(step: int) -> float:
     return COARSE_OFFSET_VOXELS * (step / 2) ** 2
 
 
-def surface_scene(volume: volumes.Volume, iso: float, step: int):
+def surface_scene(volume: volumes.Volume, iso: float, step: int) -> Scene | None:
     """Embree scene of the isosurface ρ = `iso` extracted with `step`, or None when it is
     empty."""
     from isolume.baking.trace import Scene
@@ -115,7 +119,7 @@ def surface_scene(volume: volumes.Volume, iso: float, step: int):
 
 
 def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: float,
-             flat: np.ndarray, scene, step: int, *, paths: int, tracing: Tracing,
+             flat: np.ndarray, scene: Scene, step: int, *, paths: int, tracing: Tracing,
              workers: int = 1, seen: SeenSurface | None = None) -> None:
     """Trace `paths` paths from each texel `flat` (K,) and store the means as the texels'
     previews (`store_preview` of a `Lattice` whose ``preview`` and ``preview_paths`` are
@@ -202,7 +206,7 @@ class SeenSurface:
     nearest: np.ndarray
 
 
-def seen_surface(scene, volume: volumes.Volume, config: BakeConfig,
+def seen_surface(scene: Scene, volume: volumes.Volume, config: BakeConfig,
                  geometry: LatticeGeometry, eye: np.ndarray, points: np.ndarray
                  ) -> SeenSurface:
     """The visible surface of a view: rays from `eye` (3,) through the (N, 3) world
@@ -288,15 +292,19 @@ class Previewer:
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig, lattice: Lattice,
                  workers: int = 1) -> None:
-        self.volume, self.config, self.lattice, self.workers = volume, config, lattice, workers
-        self.only_active = False  # set once the plan is known: the bake never replaces
-        self.passes = pass_plan(config.samples)  # previews of inactive texels
+        self.volume: volumes.Volume = volume
+        self.config: BakeConfig = config
+        self.lattice: Lattice = lattice
+        self.workers: int = workers
+        # set once the plan is known: the bake never replaces previews of inactive texels
+        self.only_active: bool = False
+        self.passes: list[tuple[int, bool]] = pass_plan(config.samples)
         self.iso: float | None = None
-        self.done: list[dict] = []  # per finished pass: iso, paths, texels, seconds
+        self.done: list[dict[str, Any]] = []  # per finished pass: iso, paths, texels, seconds
         self._iso_of = np.full(lattice.samples.size, np.nan, np.float32)  # of each preview
         self._corners = np.zeros(0, np.int64)
         self._queue: list[list] = []  # [paths, coarse, texels still to do or None]
-        self._scenes: dict[int, object] = {}  # by marching-cubes step
+        self._scenes: dict[int, Scene | None] = {}  # by marching-cubes step
         self._view: tuple[np.ndarray, np.ndarray] | None = None  # eye, visible points
         self._seen: SeenSurface | None = None  # of `_view`, once traced
         self._started, self._pass_texels = 0.0, 0  # of the pass under way
@@ -406,7 +414,7 @@ class Previewer:
                                       self.lattice.geometry, *self._view)
         return self._seen
 
-    def _scene(self, step: int):
+    def _scene(self, step: int) -> Scene | None:
         """The displayed surface's scene at marching-cubes `step`, made once per isovalue."""
         if step not in self._scenes:
             self._scenes[step] = surface_scene(self.volume, self.iso, step)

@@ -8,8 +8,8 @@ class RayStats:
     loop that calls Embree per ray (thread-safe enough: += on ints)."""
 
     def __init__(self) -> None:
-        self.rays = 0
-        self.seconds = 0.0
+        self.rays: int = 0
+        self.seconds: float = 0.0
 
     def add(self, rays: int, seconds: float) -> None:
         self.rays += rays

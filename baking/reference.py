@@ -32,10 +32,11 @@ import threading
 import time
 import zipfile
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -47,6 +48,9 @@ from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, RayStats, TracingLights, trace_paths
 from isolume.baking.lattice import volume_identity
 from isolume.volumes import cores
+
+if TYPE_CHECKING:
+    from isolume.baking.trace import Scene
 
 STATE_VERSION = 1
 PIXELS_PER_BLOCK = 1024
@@ -127,7 +131,7 @@ PRIMARY_BLOCK = 1 << 14
 """Primary rays one work item of `primary_hits` traces and prepares."""
 
 
-def primary_hits(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
+def primary_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
                  config: BakeConfig, smooth: bool = True) -> PrimaryHits:
     """Trace the (N, 3) primary rays `origins`, `dirs` (unit) against `scene` and prepare
     the first path vertex of each hit pixel like the baker prepares a texel's, a block of
@@ -153,7 +157,7 @@ def primary_hits(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.nd
                          for field in dataclasses.fields(PrimaryHits)))
 
 
-def _primary_hits(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
+def _primary_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
                   config: BakeConfig, smooth: bool) -> PrimaryHits:
     """`primary_hits` of one block of rays, on the calling thread."""
     hits = scene.intersect(origins, dirs)
@@ -170,7 +174,7 @@ def _primary_hits(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.n
     return PrimaryHits(pixels, points, origins, normals)
 
 
-def clear_starts(scene, points: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+def clear_starts(scene: Scene, points: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
                  h: float) -> np.ndarray:
     """(M, 3) path start points checked against the surface they light: a start whose
     step off the surface crosses a facet (a sub-voxel pocket, a fold thinner than the
@@ -239,7 +243,7 @@ def background(lighting: TracingLights, dirs: np.ndarray) -> np.ndarray:
     return np.asarray(lighting.env.radiance(np.asarray(dirs, np.float64)), np.float64)
 
 
-def _identity_config(config: BakeConfig) -> dict:
+def _identity_config(config: BakeConfig) -> dict[str, Any]:
     """The configuration a state file is resumed for: every field that changes the
     picture (not ``samples``, nor ``direct_light``, which a reference ignores)."""
     d = dataclasses.replace(config, samples=1).to_dict()
@@ -288,7 +292,8 @@ def _plan_jobs(done: np.ndarray, target: int) -> Iterator[tuple[_Job, bool]]:
             yield _Job(block, first[block], n[block]), start + PIXELS_PER_BLOCK >= len(rows)
 
 
-def pending_samples(positions, done, remaining) -> tuple[np.ndarray, np.ndarray]:
+def pending_samples(positions: np.ndarray, done: np.ndarray, remaining: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Repeat each texel position for its pending sample indices [done, done + remaining)."""
     reps = remaining[positions]
     pos = np.repeat(positions, reps)
@@ -398,18 +403,23 @@ class ReferenceTracer:
             raise ValueError(f"origins {origins.shape} and dirs {dirs.shape}: expected (N, 3)")
         started = time.perf_counter()
         config = dataclasses.replace(config, direct_light="lattice")  # all the light
-        self.volume, self.iso, self.config, self.smooth = volume, float(iso), config, smooth
-        self.counters = TraceCounters()
-        self.lighting = rotated_lighting(tracing_lights(config), env_rotation)  # bad specs first
-        self.settings = path_settings(volume, config)
-        self.mesh = volumes.isosurface(volume, iso, normals="smooth" if smooth else "gradient",
-                                       flip_normals=config.flip_normals)
-        self.scene = Scene(self.mesh.vertices, self.mesh.faces)
-        self.pixels = len(origins)
-        self.hits = primary_hits(self.scene, volume, origins, dirs, config, smooth)
+        self.volume: volumes.Volume = volume
+        self.iso: float = float(iso)
+        self.config: BakeConfig = config
+        self.smooth: bool = smooth
+        self.counters: TraceCounters = TraceCounters()
+        self.lighting: TracingLights = rotated_lighting(  # bad specs first
+            tracing_lights(config), env_rotation)
+        self.settings: PathSettings = path_settings(volume, config)
+        self.mesh: volumes.Mesh = volumes.isosurface(
+            volume, iso, normals="smooth" if smooth else "gradient",
+            flip_normals=config.flip_normals)
+        self.scene: Scene = Scene(self.mesh.vertices, self.mesh.faces)
+        self.pixels: int = len(origins)
+        self.hits: PrimaryHits = primary_hits(self.scene, volume, origins, dirs, config, smooth)
         self.counters.primary_rays = self.pixels
-        self.background = background(self.lighting, dirs)
-        self.identity = {
+        self.background: np.ndarray = background(self.lighting, dirs)
+        self.identity: dict[str, Any] = {
             "version": STATE_VERSION, "volume": volume_identity(volume), "iso": self.iso,
             "pixels": self.pixels, "rays": rays_hash(origins, dirs),
             "normals": "smooth" if smooth else "gradient",
@@ -425,8 +435,9 @@ class ReferenceTracer:
         """Paths still to trace to bring every hit pixel to `spp` samples."""
         return int(np.maximum(spp - stats.count[self.hits.pixels], 0).sum())
 
-    def run(self, stats: PixelStats, spp: int | None = None, *, bar=None,
-            after_pass=None, stop: threading.Event | None = None) -> bool:
+    def run(self, stats: PixelStats, spp: int | None = None, *, bar: Any = None,
+            after_pass: Callable[[], object] | None = None,
+            stop: threading.Event | None = None) -> bool:
         """Add samples to `stats` until every hit pixel has `spp` (default
         ``config.samples``).
 
@@ -497,7 +508,7 @@ class ReferenceTracer:
     def __enter__(self) -> ReferenceTracer:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -519,7 +530,8 @@ def render_reference(volume: volumes.Volume, iso: float, origins: np.ndarray,
 
 
 # -- the state file ---------------------------------------------------------------------
-def atomic_write(path: str | os.PathLike[str], write) -> None:
+def atomic_write(path: str | os.PathLike[str],
+                 write: Callable[[str], object]) -> None:
     """Call ``write(tmp)`` on a temporary file next to `path`, then rename it to `path`:
     an interrupted write never leaves a broken file."""
     path = Path(path)
@@ -533,14 +545,14 @@ def atomic_write(path: str | os.PathLike[str], write) -> None:
         raise
 
 
-def save_state(path: str | os.PathLike[str], stats: PixelStats, meta: dict) -> None:
+def save_state(path: str | os.PathLike[str], stats: PixelStats, meta: dict[str, Any]) -> None:
     """Write `stats` and JSON-ready `meta` atomically to `path` (.npz)."""
     atomic_write(path, lambda tmp: np.savez_compressed(
         tmp, count=stats.count, shift=stats.shift, s1=stats.s1, s2=stats.s2,
         meta=np.array(json.dumps(meta))))
 
 
-def load_state(path: str | os.PathLike[str]) -> tuple[PixelStats, dict]:
+def load_state(path: str | os.PathLike[str]) -> tuple[PixelStats, dict[str, Any]]:
     """Read a state file written by `save_state`.
 
     Raises:

@@ -9,11 +9,15 @@ and `uniform2` against `baking.rng` (bit for bit), `tangent_frame` against
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
 
-JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
+_Real = float | np.floating[Any]
+"""A scalar as the kernels see it: a Python float or a numpy one (float32 in the loops)."""
+
+JIT: dict[str, Any] = {"nogil": True, "cache": True, "error_model": "numpy"}
 """numba's options for every kernel: no GIL held, compiled once per machine (cached),
 numpy's floating-point error model. A cached kernel is checked against its own module's
 file only, not against the modules it calls (`baking.kernels` calls this one,
@@ -88,7 +92,8 @@ def uniform2(keys: np.ndarray, dim: int) -> np.ndarray:
 
 
 @numba.njit(**JIT)
-def tangent_frame(nx, ny, nz):
+def tangent_frame(nx: _Real, ny: _Real, nz: _Real
+                  ) -> tuple[_Real, _Real, _Real, _Real, _Real, _Real]:
     """Tangents (tx, ty, tz), (bx, by, bz) completing the unit normal n to a right-handed
     frame (Duff et al. 2017, branchless; `baking.sampling.orthonormal_basis`), in the
     precision of n (float32 normals stay float32 inside vectorised loops)."""
@@ -100,7 +105,7 @@ def tangent_frame(nx, ny, nz):
 
 
 @numba.njit(**JIT)
-def sincos_turns(u):
+def sincos_turns(u: _Real) -> tuple[_Real, _Real]:
     """(cos 2πu, sin 2πu) for float32 u in [0, 1), in float32 to ~1e-7.
 
     The angle is cut into quarter turns, each rotated about its middle (|x| ≤ π/4), where

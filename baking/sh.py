@@ -36,16 +36,22 @@ import itertools
 import math
 from collections.abc import Callable
 from functools import lru_cache
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 from isolume.baking.environment import (
     ConstantEnvironment,
+    Environment,
     ImageEnvironment,
     RotatedEnvironment,
     SkyEnvironment,
     as_dirs,
 )
+
+if TYPE_CHECKING:
+    from isolume.baking.config import BakeConfig
 
 __all__ = [
     "band_rotation",
@@ -222,7 +228,8 @@ def _window_factors(order: int, window_spec) -> np.ndarray:
     return factors
 
 
-def project_environment(env, order: int, window=None) -> np.ndarray:
+def project_environment(env: Environment, order: int,
+                        window: str | npt.ArrayLike | None = None) -> np.ndarray:
     """Radiance coefficients ℓ_i = ∫ L(ω) Y_i(ω) dω of an environment.
 
     env: a ``baking.environment.Environment``. order: number of bands. window: None,
@@ -370,7 +377,18 @@ def irradiance_coefficients(l_coeffs: np.ndarray, order: int | None = None) -> n
     return c[: order * order] * a.reshape((-1,) + (1,) * (c.ndim - 1))
 
 
-def transfer_blocks(lattice) -> int:
+class _BakedLattice(Protocol):
+    """What `transfer_blocks` reads of a lattice (`baking.lattice.Lattice`, a
+    `baking.view_texels.HeldLattice`)."""
+
+    @property
+    def config(self) -> BakeConfig | None: ...
+
+    @property
+    def kind(self) -> str: ...
+
+
+def transfer_blocks(lattice: _BakedLattice) -> int:
     """Transfer blocks per texel of `lattice` (a `baking.lattice.Lattice`): 2 for an SH bake
     with ``direct_light="pixels"`` (direct transfer T₀, then indirect T₁:
     `baking.integrator`), else 1."""
@@ -379,7 +397,8 @@ def transfer_blocks(lattice) -> int:
     return 2 if split else 1
 
 
-def display_coefficients(env, order: int, blocks: int = 1, window=None) -> np.ndarray:
+def display_coefficients(env: Environment, order: int, blocks: int = 1,
+                         window: str | npt.ArrayLike | None = None) -> np.ndarray:
     """(blocks·order², 3) environment coefficients an SH lattice's transfer blocks are
     dotted with (`project_environment` with `window`): for one block the environment's;
     for a split transfer (2 blocks) the environment without its sun (seen by the direct

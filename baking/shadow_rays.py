@@ -23,6 +23,7 @@ A directional light takes one ray, a point light one ray that stops at the light
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,6 +32,9 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.lights import DirectionalLight, PointLight, SunLight
 from isolume.baking.sampling import orthonormal_basis
 from isolume.volumes import cores
+
+if TYPE_CHECKING:  # embreex is imported only when shadow rays are traced
+    from isolume.baking.trace import Scene
 
 SUN_RAYS = 16
 """Rays per pixel over a sun's disc."""
@@ -99,7 +103,8 @@ def _seen_cosine(scene, light, starts: np.ndarray, normals: np.ndarray,
     return np.where(blocked, 0.0, cosine).mean(axis=1).astype(np.float32)
 
 
-def light_factors(scene, starts: np.ndarray, normals: np.ndarray, lights: tuple, *,
+def light_factors(scene: Scene, starts: np.ndarray, normals: np.ndarray,
+                  lights: tuple[SunLight | DirectionalLight | PointLight, ...], *,
                   workers: int | None = None) -> np.ndarray:
     """(P, L) float32 factor of each of `lights` (`SunLight`, `DirectionalLight`,
     `PointLight`) at the (P, 3) world `starts` with unit `normals` (P, 3) on the
@@ -127,7 +132,7 @@ def light_factors(scene, starts: np.ndarray, normals: np.ndarray, lights: tuple,
     return out
 
 
-def pixel_starts(scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
+def pixel_starts(scene: Scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
                  points: np.ndarray, config: BakeConfig, *, smooth: bool = True
                  ) -> tuple[np.ndarray, np.ndarray]:
     """(P, 3) start points and (P, 3) unit normals of the shadow rays of P pixels: where

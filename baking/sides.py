@@ -35,6 +35,7 @@ from isolume.volumes import cores
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
     from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.trace import Scene
 
 PROBES = 16
 """Rays per side and texel. A side a tenth of whose rays would leave is found with
@@ -138,7 +139,7 @@ def parity(geometry: LatticeGeometry, ids: np.ndarray) -> np.ndarray:
     return ((k + j + i) & 1).astype(bool)
 
 
-def level_surface(volume: volumes.Volume, iso: float):
+def level_surface(volume: volumes.Volume, iso: float) -> Scene:
     """Embree scene of the level surface ρ = `iso` (the one the bake traces)."""
     from isolume.baking.trace import Scene
 
@@ -146,7 +147,7 @@ def level_surface(volume: volumes.Volume, iso: float):
     return Scene(vertices, faces)
 
 
-def open_rays(scene, volume: volumes.Volume, config: BakeConfig, ids: np.ndarray,
+def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.ndarray,
               points: np.ndarray, level: float, default: bool
               ) -> tuple[np.ndarray, np.ndarray]:
     """How many of `PROBES` rays, cosine-distributed about each side's normal from the
@@ -186,7 +187,7 @@ def open_rays(scene, volume: volumes.Volume, config: BakeConfig, ids: np.ndarray
     return (other, mine) if default else (mine, other)
 
 
-def unblocked_rays(scene, key: np.uint32, ids: np.ndarray, origins: np.ndarray,
+def unblocked_rays(scene: Scene, key: np.uint32, ids: np.ndarray, origins: np.ndarray,
                    normals: np.ndarray) -> np.ndarray:
     """(N,) int: how many of the `PROBES` rays of each point (keys as the paths of samples
     0 … PROBES − 1 of texel `ids[i]` under the seed key `key`, cosine-distributed about

@@ -11,6 +11,7 @@ tuple, resolved when numba compiles.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -23,6 +24,9 @@ from isolume.baking.sampling_kernels import (
     uniform31,
     uniform_f32,
 )
+
+if TYPE_CHECKING:
+    from isolume.baking.environment.models import SkyEnvironment
 
 ZENITH = slice(0, 3)
 """Radiance (linear RGB) of the gradient straight up."""
@@ -46,7 +50,7 @@ SKY_PARAMS = 19
 """Length of `sky_params`."""
 
 
-def sky_params(env) -> np.ndarray:
+def sky_params(env: SkyEnvironment) -> np.ndarray:
     """(SKY_PARAMS,) float64 description of a `SkyEnvironment` for the sky kernels."""
     cone = 2.0 * math.pi * (1.0 - env.sun_cos_radius)
     out = np.empty(SKY_PARAMS)

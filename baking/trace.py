@@ -20,9 +20,11 @@ import gc
 import itertools
 import threading
 import time
+from concurrent.futures import Executor
 from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 from embreex import rtcore, rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
@@ -71,7 +73,7 @@ class RayRecorder:
         """Keep the first `count` rays written since this thread's last `reserve`."""
         self._buffer().commit(count)
 
-    def batches(self) -> list[tuple]:
+    def batches(self) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]]:
         """Every batch recorded since `clear`: (query, origins, dirs, dists or None)."""
         return [batch for buffer in self._buffers for batch in buffer.batches()]
 
@@ -112,8 +114,8 @@ class _RecordBuffer:
         self.spans.append((query, self.used, self.used + n, dists is not None))
         self.used += n
 
-    def batches(self) -> list[tuple]:
-        out = []
+    def batches(self) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]]:
+        out: list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]] = []
         for query, lo, hi, has_dists in self.spans:
             rows = self.rows[lo:hi]
             if query != "TRACED":
@@ -185,7 +187,7 @@ _DEVICES: dict[int, object] = {}
 _DEVICES_LOCK = threading.Lock()
 
 
-def sized_device(threads: int):
+def sized_device(threads: int) -> object:
     """An embreex ``EmbreeDevice`` whose Embree device builds with at most `threads`
     threads (``rtcNewDevice("threads=N")``; embreex makes its devices unconfigured, with
     every core), one per count, kept; None where its layout or the library cannot be
@@ -253,26 +255,26 @@ class Scene:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        self.empty = len(faces) == 0
+        self.empty: bool = len(faces) == 0
         faces = np.asarray(faces)  # uint32 indices (< 2³¹) read as int32 without a copy
-        self.faces = padded(faces.view(np.int32) if faces.dtype == np.uint32 else faces,
-                            np.int32)
-        self.vertices = padded(vertices, np.float32)
+        self.faces: np.ndarray = padded(
+            faces.view(np.int32) if faces.dtype == np.uint32 else faces, np.int32)
+        self.vertices: np.ndarray = padded(vertices, np.float32)
         self.recorder: RayRecorder | None = None  # benchmarks: a copy of every batch
-        self.built_by = ""
+        self.built_by: str = ""
         """How the Embree scene was built: "native", "embreex", or "" (empty)."""
-        self.mesh_seconds = 0.0
+        self.mesh_seconds: float = 0.0
         """Seconds the mesh took to make (set by whoever made it)."""
         began = time.perf_counter()
         if not self.empty:
             self._scene = _new_scene()
             with cores.timed_item("bvh"):  # on Embree's own threads (`sized_device`)
                 self.built_by = _attach_mesh(self._scene, self.vertices, self.faces)
-        self.pieces = {"native": len(_pieces(len(faces))), "embreex": 1}.get(self.built_by, 0)
+        self.pieces: int = {"native": len(_pieces(len(faces))), "embreex": 1}.get(self.built_by, 0)
         """Embree scenes the triangles were built as (`PIECE_TRIANGLES`; 0 when empty)."""
-        self.build_seconds = time.perf_counter() - began
+        self.build_seconds: float = time.perf_counter() - began
         """Seconds Embree's geometry and BVH took to build."""
-        self.calls = embree_calls(self)
+        self.calls: EmbreeCalls | None = embree_calls(self)
         """`EmbreeCalls` for compiled chunk calls, or None (then only `intersect` and
         `occluded` trace)."""
 
@@ -340,7 +342,7 @@ can differ in the last bits of its distance and normal from the same hit in one 
 smaller meshes stay one scene."""
 
 
-def padded(array: np.ndarray, dtype) -> np.ndarray:
+def padded(array: np.ndarray, dtype: npt.DTypeLike) -> np.ndarray:
     """`array` as a C-contiguous `dtype` array whose buffer goes on at least `PAD_BYTES`
     past its end, as Embree's shared buffers need (rtcSetSharedGeometryBuffer: the last
     element must be readable with 16-byte loads): `array` itself when its buffer does
@@ -574,7 +576,9 @@ def _build_bvh(scene) -> None:
     scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))
 
 
-def replay(scene: Scene, batches: list, pool) -> tuple[int, float]:
+def replay(scene: Scene,
+           batches: list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]],
+           pool: Executor) -> tuple[int, float]:
     """Trace recorded ray batches again on `scene`'s Embree scene, straight through
     embreex (the same query kinds, on the threads of `pool`, a ThreadPoolExecutor) and
     time it: the baseline the baker's throughput is compared with.

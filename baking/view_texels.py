@@ -16,9 +16,12 @@ texels.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import (
@@ -30,6 +33,9 @@ from isolume.baking.lattice import (
     sky_everywhere,
 )
 from isolume.baking.lattice_file import LatticeFile
+
+if TYPE_CHECKING:
+    from isolume.volumes.core import Volume
 
 
 class HeldLattice:
@@ -46,19 +52,19 @@ class HeldLattice:
     """
 
     def __init__(self, geometry: LatticeGeometry, texels: np.ndarray, channels: int,
-                 meta: dict, config: BakeConfig | None = None) -> None:
-        self.geometry = geometry
-        self.texels = np.asarray(texels, np.int64)
+                 meta: dict[str, Any], config: BakeConfig | None = None) -> None:
+        self.geometry: LatticeGeometry = geometry
+        self.texels: np.ndarray = np.asarray(texels, np.int64)
         if len(self.texels) and np.any(np.diff(self.texels) <= 0):
             raise ValueError("texels must be sorted and unique")
-        self.values = np.zeros((len(self.texels), channels), np.float32)
-        self.facing = np.zeros((len(self.texels), 2), np.uint8)
-        self.paths = np.zeros(len(self.texels), np.uint16)
-        self.meta = meta
-        self.config = config
+        self.values: np.ndarray = np.zeros((len(self.texels), channels), np.float32)
+        self.facing: np.ndarray = np.zeros((len(self.texels), 2), np.uint8)
+        self.paths: np.ndarray = np.zeros(len(self.texels), np.uint16)
+        self.meta: dict[str, Any] = meta
+        self.config: BakeConfig | None = config
 
     @classmethod
-    def for_texels(cls, volume, config: BakeConfig, texels: np.ndarray) -> HeldLattice:
+    def for_texels(cls, volume: Volume, config: BakeConfig, texels: np.ndarray) -> HeldLattice:
         """Nothing yet at (K,) sorted flat `texels` of the lattice of `volume` baked with
         `config` (its geometry and metadata, as `baking.bake` makes them)."""
         from isolume.baking.bake import lattice_meta, path_settings
@@ -90,7 +96,7 @@ class HeldLattice:
         self.facing[traced] = codes
         self.paths[rows] = paths
 
-    def _find(self, region) -> tuple[np.ndarray, np.ndarray]:
+    def _find(self, region: slice | tuple[npt.ArrayLike, ...]) -> tuple[np.ndarray, np.ndarray]:
         """(rows, held) of the texels of `region` — a z-slab (a slice of z) or a tuple of
         z, y, x index arrays that broadcast — each of the region's shape: the row of the
         texel in the arrays, and whether it is held."""
@@ -110,7 +116,7 @@ class HeldLattice:
         held = (self.texels[rows] == flat) if len(self.texels) else np.zeros(flat.shape, bool)
         return rows, held
 
-    def _shown(self, region) -> tuple[np.ndarray, np.ndarray]:
+    def _shown(self, region: slice | tuple[npt.ArrayLike, ...]) -> tuple[np.ndarray, np.ndarray]:
         """(rows, shown) of the texels of `region` (`_find`): shown where a preview is,
         except the trapped (`baking.lattice.TRAPPED_PATHS`)."""
         rows, held = self._find(region)
@@ -123,20 +129,21 @@ class HeldLattice:
         return rows, drop_trapped(shown, shown & (paths >= TRAPPED_PATHS),
                                   lambda at: self.values[rows[at]])
 
-    def shown(self, region: slice | tuple = slice(None)) -> np.ndarray:
+    def shown(self, region: slice | tuple[npt.ArrayLike, ...] = slice(None)) -> np.ndarray:
         """Bool mask of the texels in `region` (a z-slice, or z, y, x index arrays) that
         hold a preview, except the trapped."""
         return self._shown(region)[1]
 
-    def displayed(self, region: slice | tuple = slice(None)) -> np.ndarray:
+    def displayed(self, region: slice | tuple[npt.ArrayLike, ...] = slice(None)) -> np.ndarray:
         """(…, C) float32 preview values in `region` (0 where none is shown)."""
         return self._picked(region, self.values)
 
-    def displayed_facing(self, region: slice | tuple = slice(None)) -> np.ndarray:
+    def displayed_facing(self, region: slice | tuple[npt.ArrayLike, ...] = slice(None)
+                         ) -> np.ndarray:
         """(…, 2) uint8 facing codes in `region` (unknown where no preview is shown)."""
         return self._picked(region, self.facing)
 
-    def _picked(self, region, held: np.ndarray) -> np.ndarray:
+    def _picked(self, region: slice | tuple[npt.ArrayLike, ...], held: np.ndarray) -> np.ndarray:
         """(…, C) rows of the (K, C) array `held` at the texels of `region` that show a
         preview, zeros elsewhere, in its type."""
         rows, shown = self._shown(region)
@@ -162,7 +169,8 @@ class LatticeOnFile:
     config: BakeConfig | None
 
     @classmethod
-    def open(cls, path, volume=None) -> LatticeOnFile:
+    def open(cls, path: str | os.PathLike[str], volume: Volume | None = None
+             ) -> LatticeOnFile:
         """`path` opened; with `volume`, checked to be baked for it.
 
         Raises:
@@ -171,7 +179,7 @@ class LatticeOnFile:
         return cls(*open_lattice(path, volume))
 
     @property
-    def meta(self) -> dict:
+    def meta(self) -> dict[str, Any]:
         """The file's metadata (as `baking.Lattice.meta`)."""
         return self.file.meta
 

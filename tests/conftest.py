@@ -46,3 +46,14 @@ def renderer(gl):
     yield r
     r.release()
     assert gl.error == "GL_NO_ERROR"
+
+
+FIRST = ("test_napari.py",)
+"""Test modules that run before all others: napari's Qt window draws with the GL context
+its widget makes current, which a headless context made current on the same thread by an
+earlier test (EGL, OSMesa) would replace."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Run the `FIRST` modules' tests first, in their order; the rest as collected."""
+    items.sort(key=lambda item: item.path.name not in FIRST)

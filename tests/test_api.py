@@ -247,13 +247,18 @@ def test_nothing_under_app_baking_or_volumes_imports_the_api():
                     assert {a.name for a in node.names} <= subpackages, path
 
 
-PUBLIC_SHARE = 0.95
-"""The least share of the public API's symbols (the names `import isolume` gives, their
-members, and the functions behind them) whose types pyright knows."""
+PACKAGE_SHARE = 0.95
+"""The least share of the package's symbols whose types pyright knows."""
+UNTYPED_BASES = {
+    "isolume.NotebookView": "a jupyter_rfb widget: ipywidgets ships no types, so pyright "
+                            "knows no ipywidgets widget's base class",
+    "isolume.show": "returns a NotebookView",
+}
+"""Reviewed symbols of the public API whose types pyright cannot know, and why."""
 
 
 @pytest.mark.slow
-def test_the_public_api_is_typed(tmp_path):
+def test_the_package_and_its_public_api_are_typed(tmp_path):
     import json
     import os
     import shutil
@@ -271,11 +276,11 @@ def test_the_public_api_is_typed(tmp_path):
     report = json.loads(run.stdout)["typeCompleteness"]
     public = [s for s in report["symbols"] if s["name"].count(".") == 1
               or s["name"].split(".")[1] in ("_calls", "_picture")]
-    known = sum(s["isTypeKnown"] for s in public) / len(public)
-    print(f"pyright --verifytypes isolume: public API {known:.1%} of {len(public)} symbols; "
-          f"the whole package {report['completenessScore']:.1%}")
-    assert len(public) >= 30 and known >= PUBLIC_SHARE, [
-        s["name"] for s in public if not s["isTypeKnown"]]
+    unknown = sorted(s["name"] for s in public if not s["isTypeKnown"])
+    print(f"pyright --verifytypes isolume: {report['completenessScore']:.1%} of the package; "
+          f"public API: {len(public) - len(unknown)} of {len(public)} symbols known")
+    assert report["completenessScore"] >= PACKAGE_SHARE
+    assert len(public) >= 30 and set(unknown) <= set(UNTYPED_BASES), unknown
 
 
 @pytest.mark.slow

@@ -109,7 +109,8 @@ def _viewer_with(make_napari_viewer, volume: volumes.Volume, **placement):
     from isolume.app.napari_plugin import IsolumeWidget
 
     viewer = make_napari_viewer(show=True)
-    viewer.window.resize(*WINDOW)
+    viewer.window._qt_viewer.canvas._scene_canvas.set_current()  # not a headless context
+    viewer.window.resize(*WINDOW)  # of an earlier test: vispy draws into the current one
     placement = {"scale": volume.spacing[::-1], "translate": volume.origin[::-1]} | placement
     image = viewer.add_image(volume.data, name=volume.name, **placement)
     viewer.dims.ndisplay = 3
@@ -380,8 +381,10 @@ def test_the_saved_view_renders_from_naparis_camera(lit, qtbot, tmp_path):
     np.testing.assert_allclose(saved_camera.target, np.asarray(camera.center)[::-1],
                                atol=1e-6)
     picture = tmp_path / "engine.png"
-    assert main(["render", "--state", str(path), "--size", "96x72", "--samples", "4",
-                 "--out", str(picture)]) == 0
+    command = ["render", "--state", str(path), "--size", "96x72", "--samples", "4",
+               "--out", str(picture)]  # in its own process: its GL context is not Qt's
+    subprocess.run([sys.executable, "-m", "isolume.app.cli", *command], check=True,
+                   capture_output=True, timeout=300)
     from PIL import Image as Picture
 
     shown = np.asarray(Picture.open(picture), float)[..., :3].mean(axis=-1)

@@ -63,6 +63,52 @@ def drag(view, start: tuple[float, float], end: tuple[float, float], **how) -> N
     view.handle_event(pointer("pointer_up", *end, **how))
 
 
+def test_messages_from_another_thread_are_handled_on_the_views_own(engine):
+    """A kernel may deliver widget messages on another thread (ipykernel's subshells,
+    JupyterLab's default): the drag, the slider and the frames they ask for run on the
+    thread of the loop the view was made on, where its GL context is current."""
+    import asyncio
+    import threading
+
+    async def session() -> tuple[set[int], float, int]:
+        v = show(engine, size=SIZE, no_bake=True)
+        try:
+            first = v.snapshot()
+            drawn_on: set[int] = set()
+            get_frame = v.get_frame
+
+            def recorded() -> np.ndarray | None:
+                drawn_on.add(threading.get_ident())
+                return get_frame()
+
+            v.get_frame = recorded  # what jupyter_rfb calls to draw
+            v._has_visible_views = True  # as a browser showing it says
+            v._rfb_handle_msg(v, {"type": "resize", "width": SIZE[0], "height": SIZE[1]}, [])
+
+            async def subshell() -> None:  # a thread with its own running loop
+                message = {k: list(x) if isinstance(x, tuple) else x
+                           for k, x in pointer("pointer_down", 50, 50).items()}
+                v._rfb_handle_msg(v, message, [])
+                v._rfb_handle_msg(v, {**message, "type": "pointer_move", "x": 90}, [])
+                v._rfb_handle_msg(v, {**message, "type": "pointer_up", "x": 90}, [])
+                v.controls.iso.value = v.controls.iso.value * 1.02
+                await asyncio.sleep(0.3)  # what it schedules on its own loop runs
+
+            other = threading.Thread(target=asyncio.run, args=(subshell(),))
+            other.start()
+            while other.is_alive():
+                await asyncio.sleep(0.01)
+            for _ in range(50):  # the calls sent to this loop run, and the frames they ask
+                await asyncio.sleep(0.02)
+            return drawn_on, differs(first, v.snapshot()), threading.get_ident()
+        finally:
+            v.close()
+
+    drawn_on, change, home = asyncio.run(session())
+    assert drawn_on == {home}
+    assert change > 1
+
+
 def test_show_takes_the_view_commands_options_and_defaults():
     """Every keyword but `volume`, `size` and `gl` is an ``isolume view`` option, with its
     default."""

@@ -14,7 +14,7 @@ Public API::
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from isolume.volumes.core import STORED_TYPES, Volume, VolumeError
 from isolume.volumes.orientation import UP_AXES, turn_up
@@ -50,7 +50,7 @@ _COMPILED = {
 that ``import isolume.volumes`` (and the Python API's ``import isolume``) stays light."""
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> object:
     if name not in _COMPILED:
         raise AttributeError(f"module 'isolume.volumes' has no attribute {name!r}")
     import importlib
@@ -88,7 +88,7 @@ __all__ = [
 
 
 def load(spec: str | os.PathLike[str] | None = None, *, crop: str | None = None,
-         downsample: int = 1, **options) -> Volume:
+         downsample: int = 1, **options: Any) -> Volume:
     """Load a volume from a file path or build ``synthetic:NAME[:SIZE]``, or a part of it.
 
     Args:

@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import IsolumeError
 
@@ -148,8 +149,8 @@ class Volume:
         return self._cache["hash"]
 
 
-def checked_geometry(spacing, origin, where: str) -> tuple[tuple[float, float, float],
-                                                           tuple[float, float, float]]:
+def checked_geometry(spacing: npt.ArrayLike, origin: npt.ArrayLike, where: str
+                     ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
     """(spacing, origin) as float triples, x, y, z: spacing positive, both finite.
 
     Raises:

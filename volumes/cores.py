@@ -35,10 +35,13 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
+from typing import Any, TypeVar
 
 from isolume.volumes.errors import IsolumeError
+
+_T = TypeVar("_T")
 
 STAGES = (
     "load",
@@ -203,9 +206,9 @@ class Inline:
     """An executor that runs each function when it is submitted, on the caller's thread
     (`executor` for one worker)."""
 
-    def submit(self, function: Callable, /, *args, **kwargs) -> Future:
+    def submit(self, function: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]:
         """Run `function(*args, **kwargs)` now; a finished Future of its result."""
-        future: Future = Future()
+        future: Future[_T] = Future()
         try:
             future.set_result(function(*args, **kwargs))
         except Exception as error:
@@ -420,13 +423,13 @@ class Timeline:
     last and returns the record (`save` writes it as JSON)."""
 
     def __init__(self, sample_s: float = SAMPLE_S) -> None:
-        self.began = time.perf_counter()
-        self.sample_s = sample_s
-        self.stages: list[dict] = []
+        self.began: float = time.perf_counter()
+        self.sample_s: float = sample_s
+        self.stages: list[dict[str, Any]] = []
         self.items: list[tuple[int, int, str, float, float]] = []
         self.names: dict[int, str] = {}
         self.samples: list[tuple[float, dict[int, float]]] = []
-        self._open: dict | None = None
+        self._open: dict[str, Any] | None = None
         self._stop = threading.Event()
         self._sampler = threading.Thread(target=self._sample, name="isolume-timeline",
                                          daemon=True)
@@ -479,14 +482,14 @@ class Timeline:
         self.names.setdefault(tid, threading.current_thread().name)
         self.items.append((batch, tid, kind, began - self.began, ended - self.began))
 
-    def finish(self) -> dict:
+    def finish(self) -> dict[str, Any]:
         """End the last stage and the sampling; the record (see `summary`)."""
         self._end()
         self._stop.set()
         self._sampler.join()
         return self.summary()
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """The record: the stages (wall, CPU, per-thread CPU, serial seconds, items), the
         sampled busy cores, the threads' names."""
         busy = _busy_cores(self.samples, self._own)
@@ -546,14 +549,14 @@ def _item(batch: int, kind: str) -> Iterator[None]:
             _TIMELINE.item(batch, kind, began, time.perf_counter())
 
 
-def timed_item(kind: str):
+def timed_item(kind: str) -> AbstractContextManager[None]:
     """A context that records the work inside as one item of the timeline, a batch of its
     own (a scene build, a commit, a chunk of paths)."""
     return _item(next(_BATCHES), kind)
 
 
 @contextmanager
-def recording(path: str | os.PathLike[str] | None, **about) -> Iterator[Timeline | None]:
+def recording(path: str | os.PathLike[str] | None, **about: Any) -> Iterator[Timeline | None]:
     """Record a timeline of the work inside into `path` (JSON, with `about`: the command,
     its arguments) — also when the work fails or is interrupted; nothing when `path` is
     None."""

@@ -25,6 +25,7 @@ import functools
 
 import numba
 import numpy as np
+import numpy.typing as npt
 
 from isolume.volumes import cores
 from isolume.volumes.core import Volume
@@ -238,14 +239,14 @@ PAD_BYTES = 16
 (`baking.trace.padded`) and reads 16 bytes at a time, up to the last element's end."""
 
 
-def padded_empty(shape: tuple[int, int], dtype) -> np.ndarray:
+def padded_empty(shape: tuple[int, ...], dtype: npt.DTypeLike) -> np.ndarray:
     """An uninitialised (N, 3) array followed by `PAD_BYTES` more in its buffer."""
     n = int(np.prod(shape))
     flat = np.empty(n + -(-PAD_BYTES // np.dtype(dtype).itemsize), dtype)
     return flat[:n].reshape(shape)
 
 
-def padded_copy(array: np.ndarray, dtype) -> np.ndarray:
+def padded_copy(array: np.ndarray, dtype: npt.DTypeLike) -> np.ndarray:
     """`array` as `dtype` in a buffer with `PAD_BYTES` more after it."""
     out = padded_empty(array.shape, dtype)
     out[...] = array

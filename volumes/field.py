@@ -291,7 +291,7 @@ def _neighbour_directions(spacing: np.ndarray) -> np.ndarray:
     return lines
 
 
-def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: np.ndarray,
+def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: float | np.ndarray,
                     max_move: float, iterations: int = 4, smooth: bool = True) -> np.ndarray:
     """(N, 3) world points moved onto ρ = levels (N,) by Newton steps along the gradient
     (smoothed unless not `smooth`), the total move clamped to `max_move` world units.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +48,8 @@ class Mesh:
 
 def marching_cubes(data: np.ndarray, iso: float, *, step_size: int = 1,
                    keep_degenerate: bool = False, slab_voxels: int | None = None,
-                   cancelled=None) -> tuple[np.ndarray, np.ndarray] | None:
+                   cancelled: Callable[[], bool] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
     """scikit-image's marching cubes of the (Z, Y, X) `data` at `iso`, whole or in z-slabs.
 
     scikit-image holds the GIL for a whole call (0.17 s on the engine CT's 8.4 M voxels),

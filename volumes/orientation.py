@@ -21,6 +21,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from isolume.volumes.core import Volume, VolumeError
 
@@ -72,7 +73,8 @@ def nearest_axes(directions: np.ndarray) -> tuple[tuple[int, ...], tuple[int, ..
     return tuple(best), signs
 
 
-def place(data: np.ndarray, spacing, origin, directions: np.ndarray | None,
+def place(data: np.ndarray, spacing: npt.ArrayLike, origin: npt.ArrayLike,
+          directions: np.ndarray | None,
           where: str = "volume") -> Placement:
     """Reorder (Z, Y, X) `data` whose voxel (k, j, i) lies at ``origin + directions @
     (spacing * (i, j, k))`` so that its axes run along world +x, +y, +z.

@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import operator
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from isolume.volumes.core import STORED_TYPES, Volume, VolumeError
 
@@ -92,12 +94,12 @@ class Region:
         """Bytes of the result at most (float32 samples)."""
         return 4 * int(np.prod(self.shape_xyz, dtype=np.int64))
 
-    def spacing(self, spacing) -> tuple[float, float, float]:
+    def spacing(self, spacing: Sequence[float] | np.ndarray) -> tuple[float, float, float]:
         """(3,) voxel size of the result, x, y, z: `spacing` × factor."""
         x, y, z = (float(s) * self.factor for s in spacing)
         return (x, y, z)
 
-    def origin(self, spacing, origin) -> tuple[float, float, float]:
+    def origin(self, spacing: npt.ArrayLike, origin: npt.ArrayLike) -> tuple[float, float, float]:
         """(3,) world position x, y, z of the result's first sample: the centre of its
         first block, ``origin + (start + (factor − 1)/2) * spacing``."""
         first = np.asarray(self.start, np.float64) + (self.factor - 1) / 2
@@ -153,7 +155,8 @@ def check_factor(factor: Any) -> int:
     return value
 
 
-def resolve_region(dims_xyz, crop: Crop | str | None, factor: int, where: str) -> Region:
+def resolve_region(dims_xyz: Sequence[int] | np.ndarray, crop: Crop | str | None, factor: int,
+                   where: str) -> Region:
     """The `Region` of `crop` (None: the whole volume) and `factor` in a volume of
     `dims_xyz` voxels.
 
@@ -193,7 +196,7 @@ def _check_range(axis: str, a: int, b: int, n: int, factor: int, crop: Crop | No
                           f"block(s) of {span}; at least 2 are needed {of}")
 
 
-def check_sample_type(dtype, where: str) -> None:
+def check_sample_type(dtype: npt.DTypeLike, where: str) -> None:
     """Refuse samples that are not integers, floats or booleans (before any is read).
 
     Raises:
@@ -204,7 +207,7 @@ def check_sample_type(dtype, where: str) -> None:
                           "integers, floats or booleans")
 
 
-def read_region(array, region: Region) -> np.ndarray:
+def read_region(array: Any, region: Region) -> np.ndarray:
     """The samples of `region`, read slab by slab.
 
     Args:

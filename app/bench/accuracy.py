@@ -35,11 +35,17 @@ import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from isolume.app.bench.accuracy_output import Report
 from isolume.volumes.errors import IsolumeError
+
+if TYPE_CHECKING:
+    from isolume.app.bench.accuracy_output import Tile
+    from isolume.baking.config import BakeConfig
+    from isolume.volumes import Volume
 
 HELP = "lighting accuracy of the default render and bake against path tracing, every scan"
 DEFAULT_MAX_SIZE = 128
@@ -274,12 +280,12 @@ class Prepared:
             placement.
     """
 
-    volume: object
+    volume: Volume
     name: str
     source: str
     isovalues: tuple[float, ...]
     suggested: tuple[float, ...]
-    notes: dict = field(default_factory=dict)
+    notes: dict[str, Any] = field(default_factory=dict)
 
 
 def block_factor(shape_xyz: tuple[int, int, int], max_size: int) -> int:
@@ -334,7 +340,7 @@ class Shot:
     mask: np.ndarray
     render_seconds: float
     bake_seconds: float | None
-    extra: dict
+    extra: dict[str, Any]
 
 
 def _settings(ns: argparse.Namespace, size: tuple[int, int], shading: str, albedo):
@@ -348,7 +354,7 @@ def _settings(ns: argparse.Namespace, size: tuple[int, int], shading: str, albed
                           env_rotation=floats(ns.env_rotation, 2, "--env-rotation"))
 
 
-def render_default(volume, iso: float, sweep: Sweep):
+def render_default(volume: Volume, iso: float, sweep: Sweep) -> tuple[Shot, BakeConfig]:
     """(`Shot`, its light's `BakeConfig`): the picture ``isolume render`` draws."""
     from isolume.app.options import parse_albedo, view_light
     from isolume.app.render.offscreen import render_volume
@@ -366,7 +372,7 @@ def render_default(volume, iso: float, sweep: Sweep):
     return Shot("render", *_flat(frame), seconds, None, extra), config
 
 
-def render_baked(volume, iso: float, sweep: Sweep) -> Shot:
+def render_baked(volume: Volume, iso: float, sweep: Sweep) -> Shot:
     """The picture drawn with a default bake around `iso` (see the module docstring)."""
     from isolume.app.options import bake_config
     from isolume.app.render.offscreen import render_volume
@@ -412,7 +418,8 @@ class Truth:
     seconds: float
 
 
-def settle_reference(volume, iso: float, shots: list[Shot], config, sweep: Sweep) -> Truth:
+def settle_reference(volume: Volume, iso: float, shots: list[Shot], config: BakeConfig,
+                     sweep: Sweep) -> Truth:
     """Path-trace the reference of `shots`' view under `config`'s light (seed + 1) from
     `START_SPP` samples per pixel until its noise is at most `NOISE_RATIO` × the smallest
     error less that noise, or ``--ref-spp``.
@@ -469,7 +476,8 @@ def _trace(tracer, stats, spp: int, progress: bool) -> None:
 
 
 # -- a case ----------------------------------------------------------------------------------
-def measure(prep: Prepared, iso: float, sweep: Sweep) -> tuple[list[dict], list]:
+def measure(prep: Prepared, iso: float, sweep: Sweep
+            ) -> tuple[list[dict[str, Any]], list[Tile]]:
     """The rows (one per mode) and contact-sheet tiles of `prep` at `iso`."""
     from isolume import volumes
 
@@ -482,7 +490,7 @@ def measure(prep: Prepared, iso: float, sweep: Sweep) -> tuple[list[dict], list]
                                                                          strict=True)]
 
 
-def case_row(prep: Prepared, iso: float, shot: Shot, truth: Truth) -> dict:
+def case_row(prep: Prepared, iso: float, shot: Shot, truth: Truth) -> dict[str, Any]:
     """The JSON row of one picture (`accuracy_metrics.case_figures` and the times)."""
     from isolume.app.bench.accuracy_metrics import case_figures
 
@@ -493,7 +501,7 @@ def case_row(prep: Prepared, iso: float, shot: Shot, truth: Truth) -> dict:
             "reference_spp": truth.spp, **shot.extra}
 
 
-def case_tile(row: dict, shot: Shot, truth: Truth, size: tuple[int, int]):
+def case_tile(row: dict[str, Any], shot: Shot, truth: Truth, size: tuple[int, int]) -> Tile:
     """The contact-sheet row of one picture: it and the reference at the reference's
     automatic exposure, and the signed error map."""
     from isolume.app.bench.accuracy_output import Tile, display, error_map

@@ -23,6 +23,7 @@ Arrays are flat in pixels (row-major from the top-left): radiance (N, 3), masks 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -86,7 +87,7 @@ def p99_error(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> flo
 
 
 def case_figures(image: np.ndarray, image_mask: np.ndarray, reference: np.ndarray,
-                 mask: np.ndarray, noise: float) -> dict:
+                 mask: np.ndarray, noise: float) -> dict[str, Any]:
     """Every figure of one picture against the reference (see the module docstring).
 
     Args:
@@ -133,7 +134,7 @@ def _spread(values: list[float]) -> dict:
             "worst": float(max(values))}
 
 
-def summarize(rows: list[dict], failures: list[dict]) -> dict:
+def summarize(rows: list[dict[str, Any]], failures: list[dict[str, Any]]) -> dict[str, Any]:
     """The summary over measured `rows` (dicts of `case_figures` plus volume, iso, mode).
 
     Returns:

@@ -10,6 +10,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +52,7 @@ def table_header() -> str:
                     for name, w, form in _COLUMNS)
 
 
-def table_row(row: dict) -> str:
+def table_row(row: dict[str, Any]) -> str:
     """One case as a table line; a '*' ends the line where the reference's noise exceeds
     `NOISE_RATIO` × the error less the noise (the sample cap was reached)."""
     line = " ".join(_cell(row.get(key), w, form)
@@ -63,7 +64,7 @@ def _pct(value) -> str:
     return "-" if value is None else f"{value:.2%}"
 
 
-def summary_lines(summary: dict) -> list[str]:
+def summary_lines(summary: dict[str, Any]) -> list[str]:
     """The summary printed after the table."""
     lines = []
     for mode, figures in summary["modes"].items():
@@ -82,7 +83,7 @@ def summary_lines(summary: dict) -> list[str]:
     return lines
 
 
-def write_json(path: Path, document: dict) -> None:
+def write_json(path: Path, document: dict[str, Any]) -> None:
     """Write `document` (settings, rows, failures, summary) as indented JSON."""
     path.write_text(json.dumps(document, indent=1, default=_plain) + "\n")
 
@@ -212,11 +213,15 @@ def contact_sheet(path: Path, tiles: list[Tile], limit: float = ERROR_LIMIT) -> 
 class Report:
     """Rows, failures and tiles as they come; the table on stdout; the files in `out`."""
 
-    def __init__(self, out: Path, settings: dict) -> None:
+    out: Path
+    settings: dict[str, Any]
+    began: float
+
+    def __init__(self, out: Path, settings: dict[str, Any]) -> None:
         self.out, self.settings = out, settings
-        self.rows: list[dict] = []
-        self.failures: list[dict] = []
-        self.tiles: list = []
+        self.rows: list[dict[str, Any]] = []
+        self.failures: list[dict[str, Any]] = []
+        self.tiles: list[Tile] = []
         self.lines: list[str] = []
         self.began = time.perf_counter()
 
@@ -225,7 +230,7 @@ class Report:
         print(line, flush=True)
         self.lines.append(line)
 
-    def add(self, rows: list[dict], tiles: list) -> None:
+    def add(self, rows: list[dict[str, Any]], tiles: list[Tile]) -> None:
         for row in rows:
             self.say(table_row(row))
         self.rows += rows
@@ -241,7 +246,7 @@ class Report:
               flush=True)
         self.failures.append({"volume": volume, "iso": iso, "error": message})
 
-    def save(self, final: bool = False) -> dict:
+    def save(self, final: bool = False) -> dict[str, Any]:
         """Write accuracy.json and table.txt (and, when `final`, accuracy.png); returns
         the summary."""
         summary = summarize(self.rows, self.failures)

@@ -43,6 +43,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from isolume.volumes import cores
 
@@ -145,7 +146,7 @@ def command_argv(args: argparse.Namespace, command: str, threads: int, work: Pat
     return _cli(*words)
 
 
-def run_child(argv: list[str], work: Path) -> tuple[float, dict]:
+def run_child(argv: list[str], work: Path) -> tuple[float, dict[str, Any]]:
     """Run `argv` (a fresh process) after deleting its outputs in `work` (a bake resumes
     from an existing file); (its wall seconds, its timeline). Raises CLIError when it
     fails."""
@@ -167,14 +168,14 @@ def run_child(argv: list[str], work: Path) -> tuple[float, dict]:
     return wall, json.loads((work / "timeline.json").read_text())
 
 
-def median_run(runs: list[tuple[float, dict]]) -> tuple[float, dict]:
+def median_run(runs: list[tuple[float, dict[str, Any]]]) -> tuple[float, dict[str, Any]]:
     """The run of median wall time (the lower one of an even count)."""
     ordered = sorted(runs, key=lambda run: run[0])
     return ordered[(len(ordered) - 1) // 2]
 
 
 # -- the figures (pure) -------------------------------------------------------------------
-def duration(item: list) -> float:
+def duration(item: list[Any]) -> float:
     """Seconds of a timeline item ``[batch, tid, kind, start_s, end_s]``."""
     return max(0.0, item[4] - item[3])
 
@@ -184,7 +185,7 @@ def efficiency(cpu_s: float, wall_s: float, threads: int) -> float | None:
     return cpu_s / (wall_s * threads) if wall_s > 0 else None
 
 
-def aggregate(timeline: dict) -> dict[str, dict]:
+def aggregate(timeline: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per stage name, in the order first visited: its visits added up — visits, wall_s,
     cpu_s, serial_s, items, item_s (seconds of its items), largest_item_s — and
     efficiency, largest_share (largest item over item_s; None without items)."""
@@ -207,12 +208,12 @@ def aggregate(timeline: dict) -> dict[str, dict]:
     return out
 
 
-def outside_stages_s(timeline: dict) -> float:
+def outside_stages_s(timeline: dict[str, Any]) -> float:
     """Seconds of the timeline in no stage (before the first, between two)."""
     return max(0.0, timeline["wall_s"] - sum(s["wall_s"] for s in timeline["stages"]))
 
 
-def whole(timeline: dict, process_wall_s: float) -> dict:
+def whole(timeline: dict[str, Any], process_wall_s: float) -> dict[str, Any]:
     """The whole command's figures: wall_s (the timeline's), process_wall_s (with the
     interpreter's start and imports), startup_s (their difference), cpu_s, serial_s (the
     stages' and the time outside them), efficiency."""
@@ -242,12 +243,12 @@ def makespan(durations: list[float], n: int) -> float:
     return max(free, default=0.0)
 
 
-def batch_sizes(timeline: dict) -> Counter:
+def batch_sizes(timeline: dict[str, Any]) -> Counter[int]:
     """Items per batch id over the whole timeline (1: a single item)."""
     return Counter(item[0] for stage in timeline["stages"] for item in stage["items"])
 
 
-def work_units(items: list, sizes: Counter | None = None,
+def work_units(items: list[list[Any]], sizes: Counter[int] | None = None,
                split: Callable[[str], list[float] | None] | None = None) -> list[list[float]]:
     """The items of a stage visit as units run one after another, each the durations of
     items that may run side by side: a batch's items (placed at its first item), a run of
@@ -274,7 +275,7 @@ def work_units(items: list, sizes: Counter | None = None,
     return [durations for _, durations in units]
 
 
-def split_hints(timeline: dict) -> dict[tuple[str, str], list[list[float]]]:
+def split_hints(timeline: dict[str, Any]) -> dict[tuple[str, str], list[list[float]]]:
     """Per (stage, kind): the shares of the items of each batch of that kind, in order (how
     a run with several threads cut its parallel calls)."""
     sizes = batch_sizes(timeline)
@@ -304,7 +305,7 @@ def _splitter(stage: str, hints: dict, taken: Counter) -> Callable[[str], list[f
     return split
 
 
-def replay_stage(stage: dict, n: int, sizes: Counter | None = None,
+def replay_stage(stage: dict[str, Any], n: int, sizes: Counter[int] | None = None,
                  split: Callable[[str], list[float] | None] | None = None) -> float:
     """Predicted seconds of one stage visit (of a one-thread run) on `n` threads: its glue
     (wall less its items' seconds, at least 0) plus its `work_units`' makespans."""
@@ -313,7 +314,8 @@ def replay_stage(stage: dict, n: int, sizes: Counter | None = None,
     return glue + sum(makespan(unit, n) for unit in units)
 
 
-def replay(timeline: dict, n: int, hints: dict | None = None) -> dict[str, float]:
+def replay(timeline: dict[str, Any], n: int,
+           hints: dict[tuple[str, str], list[list[float]]] | None = None) -> dict[str, float]:
     """Predicted seconds of each stage (visits added up by name) of the one-thread
     `timeline` on `n` threads, and of the whole command ("whole": the stages and the
     time outside them). `hints`: `split_hints` of a run with several threads."""
@@ -326,7 +328,7 @@ def replay(timeline: dict, n: int, hints: dict | None = None) -> dict[str, float
     return out
 
 
-def predictions(one: dict, most: dict) -> dict:
+def predictions(one: dict[str, Any], most: dict[str, Any]) -> dict[str, Any]:
     """Speed-ups at `PREDICT_AT` and `CURVE_AT` threads of each stage and the whole command,
     from the one-thread timeline `one` and the timeline `most` with the most threads (its
     serial seconds for Amdahl, its cut of parallel calls for the replay)."""
@@ -350,7 +352,7 @@ def predictions(one: dict, most: dict) -> dict:
     return out
 
 
-def measured_speedups(runs: list[dict]) -> dict[str, dict[str, float]]:
+def measured_speedups(runs: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """Per run label: the one-thread run's wall over its, per stage, for the whole
     timeline ("whole") and the whole process ("process")."""
     one = next(r for r in runs if r["threads"] == 1 and r["scheduler"] is None)
@@ -365,7 +367,7 @@ def measured_speedups(runs: list[dict]) -> dict[str, dict[str, float]]:
 
 
 def figures_of(command: str, label: str, threads: int, scheduler: str | None,
-               walls: list[float], kept: tuple[float, dict]) -> dict:
+               walls: list[float], kept: tuple[float, dict[str, Any]]) -> dict[str, Any]:
     """A run's record for cores.json: its settings, every repeat's wall, the kept run's
     per-stage and whole figures and its timeline."""
     wall, timeline = kept
@@ -385,7 +387,7 @@ def _run_name(run: dict) -> str:
     return f"{run['threads']} thread" + ("s" if run["threads"] > 1 else "")
 
 
-def table(command: str, runs: list[dict], predicted: dict) -> list[str]:
+def table(command: str, runs: list[dict[str, Any]], predicted: dict[str, Any]) -> list[str]:
     """The lines of one command's table: per stage, each run's wall, CPU and efficiency,
     then the serial seconds and largest item share of the run with the most threads and
     the replay's predicted speed-ups; then the whole command."""
@@ -412,7 +414,7 @@ def table(command: str, runs: list[dict], predicted: dict) -> list[str]:
     return lines
 
 
-def whole_lines(command: str, runs: list[dict], predicted: dict) -> list[str]:
+def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, Any]) -> list[str]:
     """The whole command: each run's process and timeline wall, CPU, efficiency, measured
     speed-up; Amdahl's and the replay's predictions."""
     speedups = measured_speedups(runs)
@@ -454,7 +456,7 @@ def _thread_rows(timeline: dict) -> list[int]:
                                        names.get(str(t), ""), t))
 
 
-def stage_labels(stages: list[dict], gap_s: float) -> list[tuple[float, str]]:
+def stage_labels(stages: list[dict[str, Any]], gap_s: float) -> list[tuple[float, str]]:
     """(start seconds, name) of the stage visits to name on a chart: the longest first,
     each name once, none within `gap_s` of another."""
     chosen: list[tuple[float, str]] = []
@@ -498,7 +500,7 @@ def _gantt_panel(ax, strip, run: dict) -> None:
     strip.set_xlim(0, timeline["wall_s"])
 
 
-def gantt_chart(runs: list[dict], path: Path) -> None:
+def gantt_chart(runs: list[dict[str, Any]], path: Path) -> None:
     """``gantt.png``: per command, its run with the most threads."""
     import matplotlib
 
@@ -526,7 +528,7 @@ def gantt_chart(runs: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def speedup_chart(results: dict, path: Path) -> None:
+def speedup_chart(results: dict[str, Any], path: Path) -> None:
     """``speedup.png``: per command, the whole command's speed-up against threads."""
     import matplotlib
 
@@ -582,7 +584,7 @@ def speedup_chart(results: dict, path: Path) -> None:
 
 # -- the benchmark ------------------------------------------------------------------------
 def measure_command(args: argparse.Namespace, command: str, counts: list[int], work: Path,
-                    dask: str | None) -> list[dict]:
+                    dask: str | None) -> list[dict[str, Any]]:
     """One command: a warm-up (unless not `args.warmup`), then `args.repeats` rounds over
     the thread counts (and the Dask scheduler `dask`, a bake only), a line printed per
     run; each count's median run."""

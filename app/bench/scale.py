@@ -38,6 +38,7 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -164,7 +165,7 @@ class Run:
 
 
 def measure(argv: list[str], timeout: float, marker: Path | None = None,
-            env: dict | None = None) -> tuple[str, float, float, str]:
+            env: dict[str, str] | None = None) -> tuple[str, float, float, str]:
     """Run `argv`; returns (status, seconds, peak MiB of its process tree's resident
     memory, its stdout + stderr). `marker`: the seconds are those until that file exists
     (the process still runs on to its end)."""
@@ -278,7 +279,7 @@ def exponent(xs: list[float], ys: list[float]) -> float | None:
     return float(np.polyfit(np.log(xs), np.log(ys), 1)[0])
 
 
-def exponents(runs: list[Run]) -> list[dict]:
+def exponents(runs: list[Run]) -> list[dict[str, Any]]:
     """Per source and command: the exponents of memory and time against voxels and
     against texels, over the runs that finished."""
     rows = []
@@ -414,7 +415,7 @@ def sweep(plan: Plan) -> None:
             (plan.work / f"{volume.stem}.npz").unlink(missing_ok=True)
 
 
-def write_outputs(plan: Plan, fits: list[dict]) -> None:
+def write_outputs(plan: Plan, fits: list[dict[str, Any]]) -> None:
     """scale.json, table.txt and scale.png in `plan.out`."""
     plan.out.mkdir(parents=True, exist_ok=True)
     settings = {k: v for k, v in asdict(plan).items() if k not in ("runs", "work", "out")}
@@ -427,7 +428,7 @@ def write_outputs(plan: Plan, fits: list[dict]) -> None:
     chart(plan.runs, plan.out / "scale.png")
 
 
-def fit_text(fit: dict) -> str:
+def fit_text(fit: dict[str, Any]) -> str:
     """One line of exponents."""
     parts = [f"{k.replace('_vs_', ' ~ ')}^{v:.2f}" for k, v in fit.items()
              if "_vs_" in k and v is not None]

@@ -19,15 +19,23 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from isolume.volumes import cores
+
+if TYPE_CHECKING:
+    from isolume.app.render.camera import Camera
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice
+    from isolume.volumes import Volume
 
 DATA_ENV = "ISOLUME_DATA"
 """Environment variable naming the data folder (real volumes) when ``--data`` does not."""
@@ -78,7 +86,7 @@ def _add_volume_and_iso(parser) -> None:
 
 
 # -- frames --------------------------------------------------------------------------------
-def add_frames_arguments(parser) -> None:
+def add_frames_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``isolume bench frames``."""
     _add_volume_and_iso(parser)
     parser.add_argument("--size", default="512x512", help="WxH pixels")
@@ -159,8 +167,8 @@ def _jobs(preview: bool) -> list[tuple[str, str, str | None, tuple | None]]:
     return sorted(jobs, key=lambda job: order[job[2]])
 
 
-def frame_times(volume, iso: float, size: tuple[int, int], frames: int = 20,
-                backend: str = "egl", rounds: int = 4) -> dict:
+def frame_times(volume: Volume, iso: float, size: tuple[int, int], frames: int = 20,
+                backend: str = "egl", rounds: int = 4) -> dict[str, Any]:
     """Frame times of every shading mode (and the preview mesh) in one headless context,
     the frames of each mode split over `rounds` interleaved rounds.
 
@@ -225,7 +233,7 @@ def frame_times(volume, iso: float, size: tuple[int, int], frames: int = 20,
     return result
 
 
-def frames(args) -> int:
+def frames(args: argparse.Namespace) -> int:
     """``isolume bench frames``: print ms/frame of every mode and the GI ratios."""
     from isolume import volumes
     from isolume.app.options import isovalue, parse_size
@@ -250,7 +258,7 @@ def frames(args) -> int:
 
 
 # -- lazy ------------------------------------------------------------------------------------
-def add_lazy_arguments(parser) -> None:
+def add_lazy_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``isolume bench lazy``."""
     _add_volume_and_iso(parser)
     parser.add_argument("--size", default="512x512", help="view WxH (visible texels)")
@@ -282,7 +290,8 @@ def add_lazy_arguments(parser) -> None:
     parser.add_argument("--json", help="also write the figures to this JSON file")
 
 
-def visible_pixels_headless(volume, iso: float, size: tuple[int, int], backend: str):
+def visible_pixels_headless(volume: Volume, iso: float, size: tuple[int, int], backend: str
+                            ) -> tuple[np.ndarray, np.ndarray, Camera]:
     """World positions (M, 3) of the visible pixels of the default view, their flat pixel
     indices (M,) (row 0 at the top), and the camera (rendered off-screen with the
     position pass, as the viewer does)."""
@@ -321,7 +330,7 @@ class PixelTruth:
     albedo: np.ndarray
     normals: np.ndarray
 
-    def error(self, lattice) -> float:
+    def error(self, lattice: Lattice) -> float:
         """RMS over the pixels of the relative difference between the luminance `lattice`
         shows there (`Lattice.sample`, normalized like the shader) and the truth; the
         truth is floored at 1 % of its median, as `Lattice.relative_error` does."""
@@ -330,7 +339,7 @@ class PixelTruth:
         rel = (_luminance(shown) - self.luminance) / self._floored()
         return float(np.sqrt(np.mean(rel**2)))
 
-    def rmse(self, lattice) -> float:
+    def rmse(self, lattice: Lattice) -> float:
         """The charts' error (`app.charts.metrics.relative_rmse`) of the luminance `lattice` shows:
         RMS difference over the mean truth. Unlike `error`, a dark pixel weighs no more
         than a bright one (on CThead one crack of luminance 0.003, shown at 0.6, makes
@@ -348,8 +357,9 @@ class PixelTruth:
         return np.maximum(self.luminance, 0.01 * float(np.median(self.luminance)))
 
 
-def pixel_truth(volume, config, iso: float, camera, size: tuple[int, int],
-                pixels: np.ndarray, paths: int, workers: int | None) -> PixelTruth:
+def pixel_truth(volume: Volume, config: BakeConfig, iso: float, camera: Camera,
+                size: tuple[int, int], pixels: np.ndarray, paths: int, workers: int | None
+                ) -> PixelTruth:
     """Trace `paths` paths at each of the (P,) flat `pixels` of `camera`'s view (of `size`)
     on the displayed isosurface, with the bake's lighting (`baking.reference`)."""
     from dataclasses import replace
@@ -370,7 +380,7 @@ def pixel_truth(volume, config, iso: float, camera, size: tuple[int, int],
                           tracer.hits.normals)
 
 
-def visible_error(lattice, flat: np.ndarray) -> float:
+def visible_error(lattice: Lattice, flat: np.ndarray) -> float:
     """RMS over texels `flat` of the relative standard error of their means (inf while
     any has fewer than 2 paths)."""
     from isolume.baking.lazy import relative_error
@@ -389,7 +399,7 @@ def _luminance(values: np.ndarray) -> np.ndarray:
     return values[:, :3] @ LUMINANCE if values.shape[1] >= 3 else values[:, 0]
 
 
-def reference_values(volume, config, flat: np.ndarray, samples: int,
+def reference_values(volume: Volume, config: BakeConfig, flat: np.ndarray, samples: int,
                      workers: int | None) -> np.ndarray:
     """(N,) luminance of texels `flat` baked to `samples` paths with another seed and the
     bake's default number of levels (so a capped `config.max_levels` shows its bias)."""
@@ -410,8 +420,8 @@ def reference_values(volume, config, flat: np.ndarray, samples: int,
     return _luminance(values)
 
 
-def full_bake_error(volume, config, corners: np.ndarray, truth, workers: int | None
-                    ) -> tuple[float, float]:
+def full_bake_error(volume: Volume, config: BakeConfig, corners: np.ndarray,
+                    truth: PixelTruth, workers: int | None) -> tuple[float, float]:
     """The picture's error (`PixelTruth.rmse`) when the texels it reads, (N,) flat ids
     `corners`, are baked to `config.samples` paths (the lazy bake's end for this view),
     and the seconds that bake took."""
@@ -427,7 +437,7 @@ def full_bake_error(volume, config, corners: np.ndarray, truth, workers: int | N
         baker.close()
 
 
-def lazy(args) -> int:
+def lazy(args: argparse.Namespace) -> int:
     """``isolume bench lazy``: time to first estimates and to the error target."""
     from dataclasses import replace
 

@@ -23,9 +23,9 @@ from isolume.app.charts.levels import chart_levels
 from isolume.app.charts.model import Chart, Run
 from isolume.app.charts.tracing import equal_time_path_tracing
 
-SCALES = (0.5, 1.0, 2.0)
+SCALES: tuple[float, ...] = (0.5, 1.0, 2.0)
 """Lattice texels per voxel along the finest axis (`--scale`) of chart 2."""
-NORMAL_SCHEMES = {
+NORMAL_SCHEMES: dict[str, dict[str, str | float]] = {
     "gradient": {"normals": "gradient", "offset": 0.0},
     "smoothed": {"normals": "smooth", "offset": 0.0},
     "smoothed + offset": {"normals": "smooth", "offset": 0.25},

@@ -15,10 +15,17 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from isolume.app.charts.progress import say
+
+if TYPE_CHECKING:
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice
+    from isolume.volumes import Volume
+    from isolume.volumes.mesh import Mesh
 
 
 @dataclass
@@ -31,11 +38,11 @@ class Baked:
         cached: True when it was read from the cache instead of baked in this run.
     """
 
-    lattice: object
+    lattice: Lattice
     seconds: float
     cached: bool
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """JSON-ready figures of the bake."""
         meta = self.lattice.meta
         return {"bake_seconds": self.seconds, "cached": self.cached,
@@ -53,7 +60,11 @@ class LatticeStore:
     same other settings; its `Baked.seconds` adds the wall times of the chain.
     """
 
-    def __init__(self, volume, folder: Path, workers: int | None) -> None:
+    volume: Volume
+    folder: Path
+    workers: int | None
+
+    def __init__(self, volume: Volume, folder: Path, workers: int | None) -> None:
         self.volume, self.folder, self.workers = volume, folder, workers
         self._memory: dict = {}
         folder.mkdir(parents=True, exist_ok=True)
@@ -104,7 +115,7 @@ class LatticeStore:
                     best = int(n)
         return None if best is None else self._load(dataclasses.replace(config, samples=best))
 
-    def get(self, config) -> Baked:
+    def get(self, config: BakeConfig) -> Baked:
         """The lattice of `config`: from memory, the cache, or baked now."""
         baked = self._load(config)
         if baked is None:
@@ -137,7 +148,7 @@ class LatticeStore:
         return Baked(lattice, seconds, False)
 
 
-def texture_bytes(lattice, lookup: str = "trilinear") -> int:
+def texture_bytes(lattice: Lattice, lookup: str = "trilinear") -> int:
     """Bytes of the GL textures that hold `lattice` (`app.render.lattice_gl`): irradiance is
     RGB9_E5 (4 B/texel) plus the R8 valid mask (1 B), plus R32F texel isovalues (4 B)
     for the closest-isovalue lookup; SH is ⌈n²/4⌉ RGBA16F textures (8 B/texel) per
@@ -155,7 +166,7 @@ def texture_bytes(lattice, lookup: str = "trilinear") -> int:
     return texels * (8 * per_group * groups + 1)
 
 
-def lattice_coverage(lattice, mesh) -> dict:
+def lattice_coverage(lattice: Lattice, mesh: Mesh) -> dict[str, float | None]:
     """How much of the displayed surface `lattice` covers, from the trilinear weight w of
     its computed texels at the (V, 3) mesh vertices (what the shader divides by):
     "surface_uncovered" is the fraction with w < 0.25, where the shader shows mostly its

@@ -11,6 +11,7 @@ point is a fresh bake (a resumed one keeps its file's levels), timed end to end.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from isolume.app.charts.model import Chart, Run
 from isolume.app.charts.plotting import figure, finish, noise_line, plain_log_ticks
@@ -52,7 +53,7 @@ def chart_levels(run: Run) -> Chart:
                  {"series": series, "x": "seconds (wall)", "y": "relative RMSE"})
 
 
-def plot_levels(record: dict, path: Path) -> None:
+def plot_levels(record: dict[str, Any], path: Path) -> None:
     """Log–log error against seconds, one line per policy, points labelled by samples
     and level count."""
     plt, fig, (ax,) = figure()

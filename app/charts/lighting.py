@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-AMBIENT_ORDER = 9
+AMBIENT_ORDER: int = 9
 """SH order of the sky's irradiance for the local models' hemisphere ambient (the clamped
 cosine's coefficients fall as l^-2.5: order 9 leaves < 0.2 % of a smooth sky's E)."""
 
@@ -34,7 +34,7 @@ class LocalLighting:
     ground: tuple[float, float, float]
     mean_radiance: tuple[float, float, float]
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, tuple[float, float, float]]:
         return dataclasses.asdict(self)
 
 

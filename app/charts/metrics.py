@@ -7,8 +7,12 @@ pixels that both images mark as surface and over their RGB values (`relative_rms
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from isolume.baking.reference import ReferenceImage
 
 
 @dataclass
@@ -24,7 +28,7 @@ class Image:
     mask: np.ndarray
 
 
-def relative_rmse(image: Image, reference) -> tuple[float | None, int]:
+def relative_rmse(image: Image, reference: ReferenceImage) -> tuple[float | None, int]:
     """(error, pixels): ``sqrt(mean((img − ref)²)) / mean(ref)`` over the RGB values of the
     pixels both mark as surface (`reference`: a `baking.reference.ReferenceImage`); None
     when they share no pixel."""
@@ -36,7 +40,7 @@ def relative_rmse(image: Image, reference) -> tuple[float | None, int]:
     return float(np.sqrt(np.mean(diff * diff)) / np.mean(ref)), int(both.sum())
 
 
-def error_record(image: Image, reference) -> dict:
+def error_record(image: Image, reference: ReferenceImage) -> dict[str, Any]:
     """"error" and "pixels" (`relative_rmse`) plus "error_less_reference_noise":
     ``sqrt(max(error² − noise², 0))`` with the reference's noise over the same pixels,
     an estimate of the error against the exact image (E(img − ref)² = (img − exact)² +
@@ -50,7 +54,7 @@ def error_record(image: Image, reference) -> dict:
             "error_less_reference_noise": float(np.sqrt(max(error**2 - noise**2, 0.0)))}
 
 
-def reference_noise(reference) -> float:
+def reference_noise(reference: ReferenceImage) -> float:
     """``sqrt(mean(stderr²)) / mean(ref)`` over the RGB values of the reference's surface
     pixels: the relative error its own Monte Carlo noise contributes (inf with < 2 spp)."""
     m = reference.mask
@@ -59,7 +63,7 @@ def reference_noise(reference) -> float:
     return float(np.sqrt(np.mean(reference.stderr[m] ** 2)) / np.mean(reference.radiance[m]))
 
 
-def image_entries(node) -> list[dict]:
+def image_entries(node: object) -> list[dict[str, Any]]:
     """Every dict under `node` (nested dicts and lists) that names an image."""
     if isinstance(node, dict):
         found = [node] if "image" in node else []

@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from isolume.app.charts.lattices import Baked, LatticeStore, lattice_coverage
 from isolume.app.charts.progress import say
 from isolume.app.charts.scene import GLScene
+
+if TYPE_CHECKING:
+    from isolume.app.charts.metrics import Image
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice
+    from isolume.volumes import Volume
 
 
 @dataclass(frozen=True)
@@ -46,26 +53,26 @@ class Run:
         facts: measured figures recorded in every JSON (GL renderer, s/spp, ...).
     """
 
-    volume: object
+    volume: Volume
     iso: float
     origins: np.ndarray
     dirs: np.ndarray
-    config: object
+    config: BakeConfig
     plan: Plan
     store: LatticeStore
     gl: GLScene
     workers: int | None
-    images: dict = field(default_factory=dict)
-    facts: dict = field(default_factory=dict)
+    images: dict[str, Image] = field(default_factory=dict)
+    facts: dict[str, Any] = field(default_factory=dict)
 
-    def lattice(self, **changes) -> Baked:
+    def lattice(self, **changes: Any) -> Baked:
         """The lattice of the base config with `changes` (e.g. samples, mode, scale); where
         the direct light goes is chosen anew for it (`BakeConfig.direct_light`: per pixel
         for irradiance with a sun or lights) unless `changes` say."""
         changes.setdefault("direct_light", None)
         return self.store.get(dataclasses.replace(self.config, **changes))
 
-    def summary(self, baked: Baked) -> dict:
+    def summary(self, baked: Baked) -> dict[str, Any]:
         """`Baked.summary` plus how much of the displayed surface the lattice covers."""
         coverage = lattice_coverage(baked.lattice, self.gl.mesh)
         if (coverage["surface_uncovered"] or 0) > 0.01:
@@ -75,7 +82,7 @@ class Run:
                 "computed texels (the renderer shows its local fallback there)")
         return {**baked.summary(), **coverage}
 
-    def render(self, key: str, shading: str, lattice=None) -> str:
+    def render(self, key: str, shading: str, lattice: Lattice | None = None) -> str:
         """Render `shading` into ``images[key]``; returns `key`."""
         self.images[key] = self.gl.render(shading, lattice)
         return key
@@ -94,5 +101,5 @@ class Chart:
 
     name: str
     title: str
-    data: dict
+    data: dict[str, Any]
 

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -20,13 +22,14 @@ from isolume.app.charts.plotting import (
     plot_shading_modes,
 )
 
-PLOTTERS = {"chart1_bake_time": plot_bake_time, "chart2_resolution": plot_resolution,
-            "chart3_lookup_normals": plot_lookup_normals,
-            "chart4_shading_modes": plot_shading_modes, "chart5_levels": plot_levels}
+PLOTTERS: dict[str, Callable[[dict[str, Any], Path], None]] = {
+    "chart1_bake_time": plot_bake_time, "chart2_resolution": plot_resolution,
+    "chart3_lookup_normals": plot_lookup_normals,
+    "chart4_shading_modes": plot_shading_modes, "chart5_levels": plot_levels}
 """Chart name → plot(record, png path)."""
 
 
-def jsonable(node):
+def jsonable(node: object) -> Any:
     """`node` with numpy scalars and tuples made JSON-ready and non-finite floats None."""
     if isinstance(node, dict):
         return {str(k): jsonable(v) for k, v in node.items()}
@@ -39,7 +42,8 @@ def jsonable(node):
     return node
 
 
-def write_chart(chart: Chart, out: Path, settings: dict, reference: dict) -> Path:
+def write_chart(chart: Chart, out: Path, settings: dict[str, Any],
+                reference: dict[str, Any]) -> Path:
     """Write ``NAME.json`` (numbers, settings, reference rule) and ``NAME.png``."""
     chart_errors = [e["error"] for e in image_entries(chart.data) if e.get("error") is not None]
     record = {"chart": chart.name, "title": chart.title, "png": f"{chart.name}.png",

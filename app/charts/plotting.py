@@ -5,11 +5,17 @@ the chart's JSON record into a PNG (matplotlib, Agg)."""
 from __future__ import annotations
 
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
-def figure(ncols: int = 1):
+
+def figure(ncols: int = 1) -> tuple[ModuleType, Figure, list[Axes]]:
     """(pyplot, figure, axes): one row of `ncols` 6.4 × 4.8 inch panels (Agg backend)."""
     import matplotlib
 
@@ -28,7 +34,7 @@ def _subtitle(record: dict) -> str:
             f"spp, noise {r['noise']:.2%} ({'meets' if r['holds'] else 'misses'} the 1/4 rule)")
 
 
-def finish(plt, fig, record: dict, path: Path) -> None:
+def finish(plt: ModuleType, fig: Figure, record: dict[str, Any], path: Path) -> None:
     """Title `fig` from `record` (title, scene, reference), save it to `path` (PNG, 110
     dpi) and close it."""
     fig.suptitle(f"{record['title']}\n{_subtitle(record)}", fontsize=9)
@@ -37,13 +43,13 @@ def finish(plt, fig, record: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def noise_line(ax, record: dict) -> None:
+def noise_line(ax: Axes, record: dict[str, Any]) -> None:
     """A dotted horizontal line at the reference's relative noise."""
     ax.axhline(record["reference"]["noise"], color="0.6", ls=":", lw=1,
                label="reference noise")
 
 
-def plain_log_ticks(ax, axes: str = "xy") -> None:
+def plain_log_ticks(ax: Axes, axes: str = "xy") -> None:
     """Log axes ticked at 1, 2, 5 × 10ⁿ and labelled 0.1, 0.2, 0.5 (not 10⁻¹ ...)."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
@@ -54,7 +60,7 @@ def plain_log_ticks(ax, axes: str = "xy") -> None:
         axis.set_minor_formatter(NullFormatter())
 
 
-def plot_bake_time(record: dict, path: Path) -> None:
+def plot_bake_time(record: dict[str, Any], path: Path) -> None:
     """Log–log error against seconds, one line per method, points labelled by samples."""
     plt, fig, (ax,) = figure()
     styles = {"irradiance": ("o-", "irradiance lattice"), "sh3": ("s-", "SH lattice, order 3"),
@@ -80,7 +86,7 @@ def plot_bake_time(record: dict, path: Path) -> None:
     finish(plt, fig, record, path)
 
 
-def plot_resolution(record: dict, path: Path) -> None:
+def plot_resolution(record: dict[str, Any], path: Path) -> None:
     """Error and texture memory against lattice scale."""
     plt, fig, (ax, mem) = figure(2)
     pts = record["points"]
@@ -129,7 +135,7 @@ def _bars(ax, labels: list[str], errors: list[float], colour: str) -> None:
     ax.grid(True, axis="y", alpha=0.3)
 
 
-def plot_lookup_normals(record: dict, path: Path) -> None:
+def plot_lookup_normals(record: dict[str, Any], path: Path) -> None:
     """Bars: error per lookup scheme, error per normal scheme."""
     plt, fig, (ax, nx) = figure(2)
     _bars(ax, [e["lookup"] for e in record["lookups"]],
@@ -149,7 +155,7 @@ KIND_LABELS = {"local": "local model", "irradiance": "irradiance lattice",
                "sh": "SH lattice", "occlusion": "occlusion lattice (constant sky, no bounce)"}
 
 
-def plot_shading_modes(record: dict, path: Path) -> None:
+def plot_shading_modes(record: dict[str, Any], path: Path) -> None:
     """One row per shading mode, best first: error (log) and frame time side by side, so
     local models and lattices share both axes."""
     plt, fig, (ax, ft) = figure(2)

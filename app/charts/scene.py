@@ -7,18 +7,41 @@ measured get the per-pixel lights' direct light traced as ``isolume render`` tra
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from isolume.app.charts.lighting import LocalLighting
 from isolume.app.charts.metrics import Image
 
+if TYPE_CHECKING:
+    import moderngl
+
+    from isolume.app.render.camera import Camera
+    from isolume.app.render.glcontext import HeadlessContext
+    from isolume.app.render.renderer import SurfaceRenderer
+    from isolume.app.render.settings import RenderSettings
+    from isolume.baking.lattice import Lattice
+    from isolume.volumes import Volume
+    from isolume.volumes.mesh import Mesh
+
 
 class GLScene:
     """One headless context, renderer, mesh and camera for every image of a run."""
 
-    def __init__(self, volume, iso: float, camera, size: tuple[int, int], backend: str,
-                 lighting: LocalLighting, albedo: float, env_spec: str) -> None:
+    volume: Volume
+    camera: Camera
+    size: tuple[int, int]
+    lighting: LocalLighting
+    albedo: float
+    env_spec: str
+    mesh: Mesh
+    gl: HeadlessContext
+    ctx: moderngl.Context
+    renderer: SurfaceRenderer
+
+    def __init__(self, volume: Volume, iso: float, camera: Camera, size: tuple[int, int],
+                 backend: str, lighting: LocalLighting, albedo: float, env_spec: str) -> None:
         from isolume import volumes
         from isolume.app.render.glcontext import create_headless
         from isolume.app.render.renderer import SurfaceRenderer
@@ -43,7 +66,7 @@ class GLScene:
         info = self.ctx.info
         return f"{info.get('GL_RENDERER')} ({info.get('GL_VERSION')}, {self.gl.backend})"
 
-    def settings(self, shading: str):
+    def settings(self, shading: str) -> RenderSettings:
         """`RenderSettings` of `shading`: the run's size and albedo, the local lighting."""
         from isolume.app.render.settings import RenderSettings
 
@@ -53,7 +76,7 @@ class GLScene:
                               head_irradiance=(0.0, 0.0, 0.0), sky_irradiance=light.sky,
                               ground_irradiance=light.ground)
 
-    def use(self, shading: str, lattice=None) -> None:
+    def use(self, shading: str, lattice: Lattice | None = None) -> None:
         """Upload what `shading` reads: the lattice (with texel isovalues for the
         closest-isovalue lookup) and, for SH, the environment's coefficients."""
         from isolume.app.render.settings import SHADING_MODES
@@ -89,7 +112,7 @@ class GLScene:
                                                                order, blocks)
         return self._env[order, blocks]
 
-    def render(self, shading: str, lattice=None) -> Image:
+    def render(self, shading: str, lattice: Lattice | None = None) -> Image:
         """Draw `shading` (with `lattice` where it reads one) and read it back."""
         self.use(shading, lattice)
         self._trace_direct(shading)
@@ -120,7 +143,8 @@ class GLScene:
                            position_pass(self.renderer, self.camera, settings), self._scene,
                            smooth=config.normals == "smooth")
 
-    def frame_seconds(self, shading: str, lattice, draws: int, warmup: int = 3) -> np.ndarray:
+    def frame_seconds(self, shading: str, lattice: Lattice | None, draws: int,
+                      warmup: int = 3) -> np.ndarray:
         """(draws,) wall seconds of single frames (linear pass + tone-mapping pass, ended by
         ``ctx.finish()``, no read-back) after `warmup` untimed ones, the per-pixel lights
         shadowed by the viewer's shadow maps."""

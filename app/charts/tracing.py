@@ -15,10 +15,14 @@ import dataclasses
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from isolume.app.charts.metrics import Image, error_record, image_entries, reference_noise
 from isolume.app.charts.model import Chart, Plan, Run
 from isolume.app.charts.progress import say
+
+if TYPE_CHECKING:
+    from isolume.baking.reference import PixelStats, ReferenceImage, ReferenceTracer
 
 NOISE_RATIO = 0.25
 """The reference's relative noise may be at most this fraction of the smallest error."""
@@ -29,6 +33,11 @@ CALIBRATION_SPP = 16
 class Reference:
     """The reference image: per-pixel path tracing that gains samples on request, with
     its state kept in ``path`` (resumed when the settings match)."""
+
+    path: Path
+    seconds: float
+    tracer: ReferenceTracer
+    stats: PixelStats
 
     def __init__(self, run: Run, path: Path) -> None:
         from isolume.baking.reference import PixelStats, ReferenceTracer, load_state
@@ -65,14 +74,15 @@ class Reference:
         save_state(self.path, self.stats, {"identity": self.tracer.identity,
                                            "seconds": self.seconds})
 
-    def image(self):
+    def image(self) -> ReferenceImage:
         return self.tracer.image(self.stats)
 
     def close(self) -> None:
         self.tracer.close()
 
 
-def equal_time_path_tracing(run: Run, targets: list[tuple[str, float]]) -> list[dict]:
+def equal_time_path_tracing(run: Run, targets: list[tuple[str, float]]
+                            ) -> list[dict[str, Any]]:
     """Per-pixel path tracing given the time of each bake.
 
     The seconds per sample per pixel are measured first (`CALIBRATION_SPP` samples on a
@@ -119,7 +129,8 @@ def equal_time_path_tracing(run: Run, targets: list[tuple[str, float]]) -> list[
 
 
 
-def fill_errors(charts: list[Chart], images: dict, reference) -> list[float]:
+def fill_errors(charts: list[Chart], images: dict[str, Image], reference: ReferenceImage
+                ) -> list[float]:
     """Set "error" and "pixels" of every image entry against `reference` (a
     `baking.reference.ReferenceImage`); returns the errors (not None)."""
     errors = []
@@ -131,7 +142,8 @@ def fill_errors(charts: list[Chart], images: dict, reference) -> list[float]:
     return errors
 
 
-def settle_reference(ref: Reference, charts: list[Chart], images: dict, plan: Plan) -> dict:
+def settle_reference(ref: Reference, charts: list[Chart], images: dict[str, Image],
+                     plan: Plan) -> dict[str, Any]:
     """Add reference samples until its noise is ≤ `NOISE_RATIO` × the smallest error (or
     the time cap); fill in the errors against the final reference.
 

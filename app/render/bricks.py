@@ -69,7 +69,8 @@ def needed_bricks(shown: Callable[[slice], np.ndarray], shape: tuple[int, int, i
     return out
 
 
-def block_region(bricks: np.ndarray, shape: tuple[int, int, int]) -> tuple:
+def block_region(bricks: np.ndarray, shape: tuple[int, int, int]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Index arrays that read the `STORED`³ blocks of (M, 3) z, y, x bricks from a
     (Z, Y, X) grid: they broadcast to (M, 9, 9, 9); apron texels past the lattice's edge
     repeat the edge texel (a lookup never reads them)."""

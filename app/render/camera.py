@@ -129,7 +129,7 @@ the object; what lies just past it stays within the margin that `FRAME_FILL` lea
 Sets of under a thousand points (a box's corners) are framed whole."""
 
 
-def frame_points(camera: Camera, points, aspect: float,
+def frame_points(camera: Camera, points: np.ndarray, aspect: float,
                  free: tuple[float, float] = (0.0, 1.0), centre: bool = False) -> Camera:
     """`camera` (its azimuth, elevation and field of view) aimed at the (N, 3) world
     `points` (a surface's, or a box's corners) so that their projections fill

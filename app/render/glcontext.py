@@ -19,6 +19,7 @@ import ctypes.util
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
+from types import ModuleType
 
 import moderngl
 import numpy as np
@@ -246,7 +247,7 @@ NO_DISPLAY_HINT = ("the viewer needs a display; render off-screen with `isolume 
                    "[VOLUME] --out FILE.png` instead")
 
 
-def import_glfw():
+def import_glfw() -> ModuleType:
     """Import pyglfw, after imgui_bundle when it is installed.
 
     imgui_bundle ships its own libglfw and, when imported first, points pyglfw at it
@@ -346,7 +347,7 @@ def _display_available() -> bool:
 
 
 def create_window(size: tuple[int, int] = (1024, 768), title: str = "isolume",
-                  visible: bool = True):
+                  visible: bool = True) -> Window:
     """Open a window with an OpenGL 3.3 core context and bind moderngl to it.
 
     Args:

@@ -43,7 +43,8 @@ def write_png(path: str | os.PathLike[str], srgb: np.ndarray) -> None:
     Image.fromarray(np.ascontiguousarray(srgb, np.uint8), "RGB").save(path)
 
 
-def write_exr(path: str | os.PathLike[str], linear: np.ndarray, extra: dict | None = None) -> None:
+def write_exr(path: str | os.PathLike[str], linear: np.ndarray,
+              extra: dict[str, np.ndarray] | None = None) -> None:
     """Write an (H, W, 3) float32 linear-radiance image as a ZIP-compressed float EXR.
 
     Args:

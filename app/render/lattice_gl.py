@@ -48,8 +48,8 @@ from isolume.baking import octahedral
 from isolume.baking.lattice import FACING_POWER, SIDE_BLEND, Lattice
 from isolume.baking.sh import transfer_blocks
 
-MAX_TEXTURE_UNITS = 16  # guaranteed by GL 3.3 for fragment shaders
-SH_FIRST_UNIT = 2  # units 0: HDR resolve input or shadow map, 1: the texels' state
+MAX_TEXTURE_UNITS: int = 16  # guaranteed by GL 3.3 for fragment shaders
+SH_FIRST_UNIT: int = 2  # units 0: HDR resolve input or shadow map, 1: the texels' state
 _LOWER = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)])
 """(8, 3) z, y, x offsets to a brick's lower neighbours (itself first): their aprons
 copy its first texels."""
@@ -99,6 +99,22 @@ class LatticeTextures:
         facing_known: whether any uploaded texel has a known facing (the FACING define:
             without one, the lookup is the plain trilinear one, exactly).
     """
+
+    shape: tuple[int, ...]
+    sh_order: int
+    sh_groups: int
+    sh_textures: int
+    sh_coefficients: int
+    slot: np.ndarray
+    facing_known: bool
+    state: moderngl.Texture3D | None
+    texel_iso: moderngl.Texture3D | None
+    indirection: moderngl.Texture3D | None
+    box_lo: np.ndarray
+    box_size: np.ndarray
+    used: int
+    layout: AtlasLayout
+    owner: np.ndarray
 
     def __init__(self, ctx: moderngl.Context, lattice: Lattice,
                  texel_isovalues: np.ndarray | None = None) -> None:

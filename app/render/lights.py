@@ -11,12 +11,20 @@ its light comes from its bake config (`baking.lattice.Lattice.config`).
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from isolume.app.render.camera import Camera
 from isolume.app.render.settings import RenderError, RenderSettings, direct_tiles
+
+if TYPE_CHECKING:
+    from isolume.app.render.settings import DirectLight
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.lights import DirectionalLight, SunLight
+    from isolume.baking.view_texels import HeldLattice, LatticeOnFile
 
 
 def key_direction(camera: Camera, settings: RenderSettings) -> np.ndarray:
@@ -29,7 +37,8 @@ def key_direction(camera: Camera, settings: RenderSettings) -> np.ndarray:
     return d / np.linalg.norm(d)
 
 
-def lattice_direct_lights(lattice) -> tuple:
+def lattice_direct_lights(lattice: Lattice | HeldLattice | LatticeOnFile | None
+                          ) -> tuple[DirectLight, ...]:
     """The lights a lattice leaves to the renderer: its point/directional lights and its
     sky's sun when baked with direct light "pixels" (`baking.lighting.Lighting.pixel_lights`),
     else () (a lattice without the setting holds all its light)."""
@@ -39,7 +48,7 @@ def lattice_direct_lights(lattice) -> tuple:
     return config.lighting.pixel_lights()
 
 
-def lattice_start_offset(lattice) -> float:
+def lattice_start_offset(lattice: Lattice | HeldLattice | LatticeOnFile | None) -> float:
     """World distance by which the baker lifted a lattice's start points off the surface
     (its ``offset`` in voxels × the volume's mean spacing): per-pixel direct light is
     looked up from there too, as the reference's shadow rays start there (0 when the
@@ -52,7 +61,7 @@ def lattice_start_offset(lattice) -> float:
     return float(lattice.config.offset) * float(np.mean(spacing))
 
 
-def occlusion_sky(lattice) -> np.ndarray:
+def occlusion_sky(lattice: Lattice | HeldLattice) -> np.ndarray:
     """(3,) radiance L of the constant sky an occlusion lattice was baked under.
 
     "vicinity" and "ao" read lattices baked with a constant sky, no bounces and no lights
@@ -82,7 +91,8 @@ def occlusion_sky(lattice) -> np.ndarray:
     return sky
 
 
-def rotated_lights(lights: tuple, env_rotation: tuple[float, float]) -> tuple:
+def rotated_lights(lights: Iterable[DirectLight], env_rotation: tuple[float, float]
+                   ) -> tuple[DirectLight, ...]:
     """Distant lights (`DirectionalLight`, `SunLight`) carried along with the environment
     by ``--env-rotation AZ,EL`` (`baking.sh.rotation_from_az_el`: direction d → R·d)."""
     from isolume.baking.sh import rotation_from_az_el
@@ -92,7 +102,8 @@ def rotated_lights(lights: tuple, env_rotation: tuple[float, float]) -> tuple:
                  for light in lights)
 
 
-def aimed_lights(lights: tuple, direction) -> tuple:
+def aimed_lights(lights: tuple[DirectLight, ...], direction: Sequence[float] | np.ndarray
+                 ) -> tuple[DirectLight, ...]:
     """`lights` with the first distant one (the sun or a directional light) turned to point
     towards the unit vector `direction` (3,): a light moved in the viewer. Its direct
     light and shadows follow exactly; the lattice's share of it (its bounces) does not."""
@@ -108,7 +119,7 @@ def aimed_lights(lights: tuple, direction) -> tuple:
     return tuple(out)
 
 
-def first_distant_light(lights: tuple):
+def first_distant_light(lights: Iterable[DirectLight]) -> DirectionalLight | SunLight | None:
     """The first `SunLight` or `DirectionalLight` of `lights`, or None."""
     from isolume.baking.lights import DirectionalLight, SunLight
 
@@ -116,14 +127,14 @@ def first_distant_light(lights: tuple):
                  if isinstance(light, DirectionalLight | SunLight)), None)
 
 
-def is_point(light) -> bool:
+def is_point(light: object) -> bool:
     """Whether `light` is a `baking.lights.PointLight` (six shadow tiles, a position)."""
     from isolume.baking.lights import PointLight
 
     return isinstance(light, PointLight)
 
 
-def direct_sum(lights) -> str:
+def direct_sum(lights: Sequence[DirectLight]) -> str:
     """The ``DIRECT_SUM(p, n, f)`` body of ``direct.glsl`` for `lights`: one call per light
     with constant light and tile indices (a program per set of light kinds)."""
     from isolume.baking.lights import SunLight

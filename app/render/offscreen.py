@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from isolume import volumes
@@ -12,6 +14,11 @@ from isolume.app.render.settings import SHADING_MODES, Frame, RenderSettings
 from isolume.app.render.traced_light import position_pass, trace_direct_light
 from isolume.baking.view_texels import LatticeOnFile
 from isolume.volumes import cores
+
+if TYPE_CHECKING:
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import HeldLattice
 
 
 def _texel_isovalues(volume: volumes.Volume, lattice, shading: str) -> np.ndarray | None:
@@ -83,9 +90,9 @@ def render_volume(
     backend: str = "auto",
     normals: str = "smooth",
     flip_normals: bool = False,
-    lattice=None,
-    env_coeffs=None,
-    view_light=None,
+    lattice: Lattice | HeldLattice | LatticeOnFile | None = None,
+    env_coeffs: np.ndarray | None = None,
+    view_light: BakeConfig | None = None,
     shadows: str = "traced",
     workers: int | None = None,
     progress: bool = False,

@@ -29,7 +29,8 @@ class Targets:
     hdr_color: moderngl.Texture
     ldr: moderngl.Framebuffer
     depth: moderngl.Renderbuffer
-    objects: list = field(default_factory=list)
+    objects: list[moderngl.Framebuffer | moderngl.Texture | moderngl.Renderbuffer] = field(
+        default_factory=list)
     g_surface: moderngl.Texture | None = None
     deferred: moderngl.Framebuffer | None = None
     forward_g: moderngl.Framebuffer | None = None
@@ -61,7 +62,7 @@ class Targets:
             obj.release()
 
 
-def pixel_rays(camera: Camera, size: tuple[int, int]) -> dict:
+def pixel_rays(camera: Camera, size: tuple[int, int]) -> dict[str, tuple[float, ...]]:
     """``deferred.frag``'s eye rays: the uniforms u_ray0, u_rayx, u_rayy (3,) such that
     the ray through the pixel centre at window coordinates (x, y) (gl_FragCoord: from the
     lower left, centres at half-integers) of a `size` (W, H) view runs along

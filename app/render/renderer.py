@@ -25,9 +25,11 @@ sky without its sun (direct block) and the whole turned sky (indirect block).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import moderngl
 import numpy as np
+import numpy.typing as npt
 
 from isolume import shaders
 from isolume.app.render.camera import Camera, frame_points
@@ -59,6 +61,12 @@ from isolume.app.render.shadows import (
     direct_uniforms,
 )
 
+if TYPE_CHECKING:
+    from isolume.app.render.settings import DirectLight
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import HeldLattice
+    from isolume.volumes import Volume
+
 VERTEX_BYTES = 24
 """Bytes per vertex in the mesh's vertex buffer: position and normal, float32 xyz each."""
 VERTEX_CHUNK = 1 << 20
@@ -71,7 +79,7 @@ class TracedLight:
     (`SurfaceRenderer.set_traced_light`): the lights, the size (W, H) and the GL texture
     array of their factors (one float layer per light)."""
 
-    lights: tuple
+    lights: tuple[DirectLight, ...]
     size: tuple[int, int]
     texture: moderngl.TextureArray
 
@@ -89,7 +97,7 @@ class SurfaceRenderer:
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
         self._iso: float | None = None
         self._targets: Targets | None = None
-        self._lattice_lights: tuple = ()
+        self._lattice_lights: tuple[DirectLight, ...] = ()
         self._direct_offset = 0.0
         self._traced: TracedLight | None = None
         self.lattice: LatticeTextures | None = None
@@ -147,7 +155,7 @@ class SurfaceRenderer:
         self._mesh_objects, self._triangles, self._mesh_box = [], 0, None
         self._mesh_generation += 1
 
-    def set_bounds(self, lo, hi) -> None:
+    def set_bounds(self, lo: npt.ArrayLike | None, hi: npt.ArrayLike | None) -> None:
         """Scene box (lo, hi), each (3,) world xyz, usually the volume's `box`: the shadow
         map is fitted to its bounding sphere and fog starts at that sphere's near side and
         is measured in its diagonal. Until set (or after `set_bounds(None, None)`), the
@@ -160,7 +168,8 @@ class SurfaceRenderer:
         lo, hi = self._bounds if self._bounds is not None else self._mesh_box
         return (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
 
-    def set_lattice(self, lattice, texel_isovalues: np.ndarray | None = None) -> None:
+    def set_lattice(self, lattice: Lattice | HeldLattice | None,
+                    texel_isovalues: np.ndarray | None = None) -> None:
         """Upload an illumination lattice (`baking.Lattice`) for the lattice modes; None
         removes it. `texel_isovalues` (Z, Y, X): the field value at each texel centre
         (`baking.plan.texel_values(volume, lattice.geometry)`), needed by
@@ -173,7 +182,8 @@ class SurfaceRenderer:
         if lattice is not None:
             self.lattice = LatticeTextures(self.ctx, lattice, texel_isovalues)
 
-    def set_traced_light(self, lights: tuple, seen: np.ndarray | None) -> None:
+    def set_traced_light(self, lights: tuple[DirectLight, ...], seen: np.ndarray | None
+                         ) -> None:
         """Light the per-pixel `lights` by traced rays instead of the shadow atlas:
         `seen` (H, W, L) float32 factor of each light at each pixel (the cosine-weighted
         fraction seen, `baking.shadow_rays.light_factors`), rows top to bottom, for
@@ -296,11 +306,11 @@ class SurfaceRenderer:
                               f"the lattice needs {order * order}")
 
     @property
-    def lattice_lights(self) -> tuple:
+    def lattice_lights(self) -> tuple[DirectLight, ...]:
         """The lights the lattice shown leaves to the pixels (`lattice_direct_lights`)."""
         return self._lattice_lights
 
-    def direct_lights(self, settings: RenderSettings) -> tuple:
+    def direct_lights(self, settings: RenderSettings) -> tuple[DirectLight, ...]:
         """The lights `settings` shades per pixel: in the irradiance lattice modes the
         settings' own or the lattice's (`RenderSettings.direct_lights`); in "sh" mode the
         sun of a split lattice, turned with the environment (`env_rotation`); else none."""
@@ -494,7 +504,8 @@ class SurfaceRenderer:
             self._deferred_pass(targets, camera, settings)
         return targets
 
-    def resolve(self, targets: Targets, settings: RenderSettings, fbo=None,
+    def resolve(self, targets: Targets, settings: RenderSettings,
+                fbo: moderngl.Framebuffer | None = None,
                 auto: float = 1.0) -> None:
         """Tone-map the HDR target into `fbo` (default: the internal 8-bit target), the
         radiance scaled by the settings' exposure times `auto` (the automatic exposure)."""
@@ -529,7 +540,7 @@ class SurfaceRenderer:
                      settings.exposure * auto)
 
 
-def default_camera(volume, view: tuple[float, float, float | None] | None = None) -> Camera:
+def default_camera(volume: Volume, view: tuple[float, float, float | None] | None = None) -> Camera:
     """Orbit camera around the centre of `volume`'s sample box (distance in diagonals)."""
     lo, hi = volume.sample_box
     az, el, dist = view if view is not None else (30.0, 30.0, None)
@@ -539,7 +550,7 @@ def default_camera(volume, view: tuple[float, float, float | None] | None = None
     )
 
 
-def framed_camera(volume, iso: float, view: tuple[float, float, float | None] | None = None,
+def framed_camera(volume: Volume, iso: float, view: tuple[float, float, float | None] | None = None,
                   size: tuple[int, int] = (512, 512), *, iso_hi: float | None = None,
                   azimuths: tuple[float, ...] = ()) -> Camera:
     """The camera of ``render``, ``reference`` and ``movie``: at `view`'s azimuth and

@@ -16,18 +16,28 @@ Shading modes (paper Figs. 1, 6, 8–10), all on the same mesh and camera:
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from isolume.volumes.errors import IsolumeError
+
+if TYPE_CHECKING:
+    from typing import TypeAlias
+
+    from isolume.baking.lights import DirectionalLight, PointLight, SunLight
+
+    DirectLight: TypeAlias = PointLight | DirectionalLight | SunLight
+    """A light shaded per pixel (`RenderSettings.direct_lights`)."""
 
 
 class RenderError(IsolumeError):
     """A frame that cannot be drawn as asked (mode without its lattice or environment)."""
 
 
-LOOKUPS = {"trilinear": 0, "nearest": 1, "closest": 2, "bspline": 3}
+LOOKUPS: dict[str, int] = {"trilinear": 0, "nearest": 1, "closest": 2, "bspline": 3}
 """Irradiance lattice lookups (paper Fig. 6) -> LOOKUP define in ``lattice.glsl``."""
 
 
@@ -57,7 +67,7 @@ class ShadingMode:
                 ("FOG", int(self.fog)), ("LOOKUP", LOOKUPS[self.lookup]))
 
 
-SHADING_MODES = {
+SHADING_MODES: dict[str, ShadingMode] = {
     "lambert": ShadingMode(1),  # key light + headlight, albedo·E/π
     "phong": ShadingMode(2),  # lambert + energy-normalised Blinn–Phong lobes
     "lambert_hemi": ShadingMode(3),  # lambert + hemisphere ambient varying with n
@@ -85,7 +95,7 @@ LOCAL_MODES = {name: m for name, m in SHADING_MODES.items() if m.lattice is None
 """Local shading models (no lattice)."""
 LATTICE_MODES = {name: m for name, m in SHADING_MODES.items() if m.lattice is not None}
 """Modes that read an illumination lattice."""
-DEBUG_MODES = {"position": ShadingMode(9)}
+DEBUG_MODES: dict[str, ShadingMode] = {"position": ShadingMode(9)}
 """Modes for tests and picking, not offered to users: world position in the HDR target."""
 
 
@@ -94,15 +104,15 @@ def shading_mode(name: str) -> ShadingMode:
     return {**SHADING_MODES, **DEBUG_MODES}[name]
 
 
-TONEMAPS = {"clamp": 0, "reinhard": 1, "aces": 2}
+TONEMAPS: dict[str, int] = {"clamp": 0, "reinhard": 1, "aces": 2}
 """Tone curves -> TONEMAP define in ``tonemap.frag``."""
 
-MAX_DIRECT_LIGHTS = 8
-MAX_DIRECT_TILES = 16
+MAX_DIRECT_LIGHTS: int = 8
+MAX_DIRECT_TILES: int = 16
 """Per-pixel lights and shadow-atlas tiles ``direct.glsl`` holds (a point light takes 6)."""
 
 
-def direct_tiles(lights) -> list[int]:
+def direct_tiles(lights: Iterable[object]) -> list[int]:
     """The first shadow-atlas tile of each per-pixel light (a distant light or the sun
     takes one, a point light six).
 
@@ -180,7 +190,7 @@ class RenderSettings:
     env_rotation: tuple[float, float] = (0.0, 0.0)
     shadow_resolution: int = 2048
     fog_density: float = 1.5
-    direct_lights: tuple | None = None
+    direct_lights: tuple[DirectLight, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.shading not in SHADING_MODES and self.shading not in DEBUG_MODES:

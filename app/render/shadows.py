@@ -10,14 +10,18 @@ sun's penumbra comes from its angular radius, read against the atlas's raw depth
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import moderngl
 import numpy as np
 
 from isolume.app.render.lights import is_point
 from isolume.app.render.settings import MAX_DIRECT_LIGHTS, MAX_DIRECT_TILES, direct_tiles
+
+if TYPE_CHECKING:
+    from isolume.app.render.settings import DirectLight
 
 SHADOW_BIAS_TEXELS = (0.5, 2.5)
 """Shadow-map depth bias, in shadow texels of world depth: constant + slope × tan θ (θ the
@@ -79,7 +83,8 @@ def point_face_view_proj(position: np.ndarray, face: int, near: float, far: floa
     return proj @ view, plane
 
 
-def light_tiles(light, centre: np.ndarray, radius: float):
+def light_tiles(light: DirectLight, centre: np.ndarray, radius: float
+                ) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
     """(view_proj (4, 4), linear depth plane (4,), world units per unit of depth) of each
     shadow tile of `light` for a scene within the sphere (`centre`, `radius`)."""
     if is_point(light):
@@ -95,7 +100,10 @@ def light_tiles(light, centre: np.ndarray, radius: float):
     yield view_proj, 0.5 * view_proj[2] + 0.5 * np.eye(4)[3], 2.0 * radius
 
 
-def direct_uniforms(lights, matrices, planes, rects, ranges, tile_texels) -> dict:
+def direct_uniforms(lights: Sequence[DirectLight], matrices: Sequence[np.ndarray],
+                    planes: Sequence[np.ndarray],
+                    rects: Sequence[tuple[float, float, float, float]],
+                    ranges: Sequence[float], tile_texels: Sequence[int]) -> dict[str, bytes]:
     """The ``direct.glsl`` uniform arrays (padded to their declared sizes); `tile_texels`:
     each tile's side in texels (no tiles: the lights' arrays alone, for traced light)."""
     from isolume.baking.lights import SunLight
@@ -126,7 +134,7 @@ def direct_uniforms(lights, matrices, planes, rects, ranges, tile_texels) -> dic
     }
 
 
-def active_parts(prog: moderngl.Program, arrays: dict) -> dict:
+def active_parts(prog: moderngl.Program, arrays: dict[str, Any]) -> dict[str, Any]:
     """The `direct_uniforms` arrays cut to the lengths the compiled program keeps (a
     compiler drops the tail of an array that only constant indices below it read)."""
     out = {}
@@ -148,8 +156,8 @@ class DirectAtlas:
     depth: moderngl.Texture
     raw: moderngl.Texture
     fbo: moderngl.Framebuffer
-    key: tuple | None = None
-    uniforms: dict = field(default_factory=dict)
+    key: tuple[object, ...] | None = None
+    uniforms: dict[str, bytes] = field(default_factory=dict)
 
     def release(self) -> None:
         self.fbo.release()
@@ -165,7 +173,7 @@ class ShadowMap:
     depth: moderngl.Texture
     fbo: moderngl.Framebuffer
     view_proj: np.ndarray | None = None
-    key: tuple | None = None
+    key: tuple[object, ...] | None = None
 
     @property
     def resolution(self) -> int:
@@ -251,8 +259,8 @@ class ShadowMaps:
             color_attachments=[raw], depth_attachment=depth))
         return self._atlas
 
-    def atlas(self, lights: tuple, resolution: int, sphere: tuple[np.ndarray, float],
-              generation: int) -> DirectAtlas:
+    def atlas(self, lights: tuple[DirectLight, ...], resolution: int,
+              sphere: tuple[np.ndarray, float], generation: int) -> DirectAtlas:
         """The per-pixel `lights`' shadow tiles (at most `resolution` texels square) for
         mesh `generation` within the scene `sphere` (centre (3,), radius), drawn unless it
         shows just that, and the shader's uniforms for them."""

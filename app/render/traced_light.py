@@ -9,6 +9,7 @@ pass and an Embree scene of the surface drawn (`SurfaceRenderer.set_traced_light
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -16,6 +17,9 @@ from isolume import volumes
 from isolume.app.render.camera import Camera
 from isolume.app.render.renderer import SurfaceRenderer
 from isolume.app.render.settings import RenderSettings
+
+if TYPE_CHECKING:
+    from isolume.baking.trace import Scene
 
 
 def position_pass(renderer: SurfaceRenderer, camera: Camera,
@@ -28,7 +32,8 @@ def position_pass(renderer: SurfaceRenderer, camera: Camera,
 
 
 def trace_direct_light(renderer: SurfaceRenderer, camera: Camera, settings: RenderSettings,
-                       volume: volumes.Volume, seen: tuple[np.ndarray, np.ndarray], scene, *,
+                       volume: volumes.Volume, seen: tuple[np.ndarray, np.ndarray],
+                       scene: Scene | None, *,
                        smooth: bool = True, workers: int | None = None) -> None:
     """Give `renderer` the traced light of the per-pixel lights of a frame of `settings`
     seen by `camera` (none: nothing to do): `seen` = (points, mask) of that frame's

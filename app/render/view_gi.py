@@ -18,11 +18,18 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from isolume import volumes
 from isolume.volumes import cores
+
+if TYPE_CHECKING:
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.passes import Tracing
+    from isolume.baking.trace import Scene
+    from isolume.baking.view_texels import HeldLattice
 
 DEFAULT_PATHS = 64
 """Paths per texel of a render's view lattice (``isolume render --samples``)."""
@@ -30,9 +37,9 @@ CHUNK_PATHS = 1 << 19
 """Paths traced between progress reports (about a second on 2 cores)."""
 
 
-def view_lattice(volume: volumes.Volume, config, iso: float, points: np.ndarray,
+def view_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points: np.ndarray,
                  eye: np.ndarray, *, workers: int | None = None, progress: bool = True,
-                 scene=None, tracing=None):
+                 scene: Scene | None = None, tracing: Tracing | None = None) -> HeldLattice:
     """A lattice lit for the view whose visible surface points are `points`.
 
     Args:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -50,6 +51,13 @@ def check_mode(drawing: Drawing, mode: str) -> None:
 class Actions:
     """The viewer's public interface (`app.viewer.script.ScriptTarget`): requests change
     the state; problems raise `ViewerError` (a `ValueError`)."""
+
+    volume: volumes.Volume
+    state: ViewerState
+    drawing: Drawing
+    surfaces: SurfaceFeed
+    illumination: Illumination
+    saver: Saver
 
     def __init__(self, volume: volumes.Volume, state: ViewerState, drawing: Drawing,
                  surfaces: SurfaceFeed, illumination: Illumination, saver: Saver) -> None:
@@ -201,7 +209,7 @@ class Actions:
         """No lazy bake writes texels now (none runs, or it acknowledged a pause)."""
         return self.illumination.held()
 
-    def check_lattice(self) -> dict:
+    def check_lattice(self) -> dict[str, Any]:
         """Compare the GL textures with the lattice
         (`app.viewer.illumination.Illumination.check`)."""
         return self.illumination.check()

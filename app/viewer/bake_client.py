@@ -22,6 +22,7 @@ import dataclasses
 import json
 import os
 import time
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +32,15 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lattice_file import MEMBERS
 from isolume.volumes import cores
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from multiprocessing.process import BaseProcess
+    from multiprocessing.queues import Queue
+    from multiprocessing.shared_memory import SharedMemory
+
+    from isolume.baking.lazy import Progress, View
+    from isolume.baking.view_texels import LatticeOnFile
 
 PLAN_PREVIEW_PATHS = 64
 """Preview passes of at most this many paths go on while a plan is made (`_plan`)."""
@@ -43,7 +53,13 @@ class SharedLattice:
     reads them for upload and saving.
     """
 
-    def __init__(self, lattice, blocks: list, owner: bool, relit: np.ndarray) -> None:
+    lattice: Lattice
+    blocks: list[SharedMemory]
+    owner: bool
+    relit: np.ndarray
+
+    def __init__(self, lattice: Lattice, blocks: list[SharedMemory], owner: bool,
+                 relit: np.ndarray) -> None:
         self.lattice, self.blocks, self.owner = lattice, blocks, owner
         self.relit = relit  # (Z, Y, X) bool: texels showing the turned light's bake
 
@@ -57,7 +73,8 @@ class SharedLattice:
                 "relit": (shape, "bool")}
 
     @classmethod
-    def create(cls, geometry, channels: int, meta: dict, source=None) -> SharedLattice:
+    def create(cls, geometry: LatticeGeometry, channels: int, meta: dict[str, Any],
+               source: LatticeOnFile | None = None) -> SharedLattice:
         """New shared arrays, zero or read from the lattice file `source` (a
         `baking.view_texels.LatticeOnFile`, read into them a slab at a time); `meta`: as
         `lattice_meta` describes a lattice (its "config" a dict), or the file's own."""
@@ -82,7 +99,7 @@ class SharedLattice:
         return cls(_shared_lattice(geometry, arrays, meta, config), blocks, owner=True,
                    relit=arrays["relit"])
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         """What `attach` needs (picklable)."""
         g = self.lattice.geometry
         return {"names": [b.name for b in self.blocks], "shape": list(g.shape),
@@ -91,7 +108,7 @@ class SharedLattice:
                 "config": self.lattice.config and self.lattice.config.to_dict()}
 
     @classmethod
-    def attach(cls, description: dict) -> SharedLattice:
+    def attach(cls, description: dict[str, Any]) -> SharedLattice:
         """The same arrays, in another process."""
         from multiprocessing import shared_memory
 
@@ -110,7 +127,7 @@ class SharedLattice:
                                   _config(description["config"]))
         return cls(lattice, blocks, owner=False, relit=arrays["relit"])
 
-    def snapshot(self, relit: bool = False):
+    def snapshot(self, relit: bool = False) -> Lattice:
         """A private copy of the lattice (for saving while the bake goes on); `relit`:
         only the texels baked under the turned light (`relit`), the others as not
         computed (a lattice file holds one light)."""
@@ -152,7 +169,7 @@ def _config(d: dict | None) -> BakeConfig | None:
     return None if d is None else BakeConfig.from_dict(d)
 
 
-def lattice_meta(volume: volumes.Volume, config) -> dict:
+def lattice_meta(volume: volumes.Volume, config: BakeConfig) -> dict[str, Any]:
     """How a bake process is told of a new lattice baked with `config` for `volume`
     (`SharedLattice.create`): the metadata `baking.bake` writes, and the config as a dict
     under "config"."""
@@ -504,7 +521,7 @@ class _BakeProcess:
                                            and not self.turned(view)))
 
 
-def range_warning(meta: dict, iso: float) -> tuple[str, ...]:
+def range_warning(meta: dict[str, Any], iso: float) -> tuple[str, ...]:
     """A panel line when `iso` lies outside the iso range of the lattice whose metadata is
     `meta` (its texels are lit on surfaces inside it); () otherwise."""
     from isolume.baking.plan import served_range
@@ -519,7 +536,15 @@ def range_warning(meta: dict, iso: float) -> tuple[str, ...]:
 class BakeLink:
     """The viewer's side of the lazy bake process: send views, receive committed texels."""
 
-    def __init__(self, volume: volumes.Volume, config, shared: SharedLattice,
+    inbox: Queue[Any]
+    outbox: Queue[Any]
+    process: BaseProcess
+    previews: list[tuple[float, dict[str, Any]]]
+    warm: dict[str, Any] | None
+    light_baked: tuple[float, ...] | None
+    turns: list[dict[str, Any]]
+
+    def __init__(self, volume: volumes.Volume, config: BakeConfig, shared: SharedLattice,
                  workers: int | None, iso: float, batch_paths: int | None = None,
                  follow_iso: bool = False) -> None:
         import multiprocessing
@@ -537,32 +562,32 @@ class BakeLink:
             "batch_paths": batch_paths or BATCH_PATHS, "started": time.time(),
             "follow_iso": follow_iso,
         }
-        self.started = time.perf_counter()
+        self.started: float = time.perf_counter()
         self.process = ctx.Process(target=_bake_main, args=(job, self.inbox, self.outbox),
                                    name="isolume-bake", daemon=True)
         self.process.start()
-        self.ready: dict | None = None
+        self.ready: dict[str, Any] | None = None
         self.ready_config: BakeConfig | None = None  # the config of the last "ready"
-        self.progress = None
-        self.stats: dict = {}
+        self.progress: Progress | None = None
+        self.stats: dict[str, Any] = {}
         self.error: str | None = None
-        self.paused = False
-        self.paused_ack = False
+        self.paused: bool = False
+        self.paused_ack: bool = False
         self.history: list[tuple[float, object]] = []
-        self.previews: list[tuple[float, dict]] = []  # (seconds since start, figures) per pass
-        self.warm: dict | None = None  # the process is ready for views (its start-up time)
+        self.previews = []  # (seconds since start, figures) per pass
+        self.warm = None  # the process is ready for views (its start-up time)
         self.planning: tuple[float, str] = (self.started, "")  # since when, which stage
-        self.replans = 0
+        self.replans: int = 0
         from isolume.baking.lazy import turned_light
 
         baked = turned_light(config)  # the light the lattice was baked with, if turnable
         self.light_baked = None if baked is None else tuple(float(v) for v in baked)
-        self.light_sent = self.light_baked  # that of the last view sent
-        self.turns: list[dict] = []  # per turned light: direction, seconds to each stage
-        self.relit: dict | None = None  # the last turned light's progress on screen
+        self.light_sent: tuple[float, ...] | None = self.light_baked  # that of the last view sent
+        self.turns = []  # per turned light: direction, seconds to each stage
+        self.relit: dict[str, Any] | None = None  # the last turned light's progress on screen
         self.relit_config: BakeConfig | None = None  # the config it is baked with
 
-    def send_view(self, view) -> None:
+    def send_view(self, view: View) -> None:
         from isolume.baking.lazy import same_direction
 
         if view.light is not None and (self.light_sent is None
@@ -641,7 +666,7 @@ class BakeLink:
         if status["surface"] and status["surface_done"] == status["surface"]:
             self._turn_event(status["direction"], "surface_s")
 
-    def relit_fraction(self, direction) -> float | None:
+    def relit_fraction(self, direction: Sequence[float] | np.ndarray) -> float | None:
         """Share of the visible texels (of the surface texels when none is known) that
         show the bake under the light turned to `direction` (3,); None when the bake
         reports no progress under that light; 1 when it is the light baked and was
@@ -658,7 +683,7 @@ class BakeLink:
             return r["visible_done"] / r["visible"]
         return r["surface_done"] / r["surface"] if r["surface"] else None
 
-    def relit_line(self, direction, name: str) -> str | None:
+    def relit_line(self, direction: Sequence[float] | np.ndarray, name: str) -> str | None:
         """The panel's line on the bounced light of the `name` ("sun", "light") turned to
         `direction` (3,), or None when the bake has not started on that light."""
         from isolume.baking.lazy import same_direction
@@ -679,7 +704,7 @@ class BakeLink:
                     f"{100 * r['surface_done'] / r['surface']:.0f} % of the surface")
         return f"Bounced light: up to date with the turned {name}."
 
-    def snapshot(self, shared: SharedLattice):
+    def snapshot(self, shared: SharedLattice) -> Lattice:
         """A copy of `shared` to save, with the bake's metadata: after a turn, only the
         texels baked under the turned light, with its config (a file holds one light)."""
         relit = self.relit_config is not None

@@ -7,9 +7,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from isolume.app.render.camera import Camera
 from isolume.app.state import VolumeSource, add_state_argument
+
+if TYPE_CHECKING:
+    import argparse
+
+    from isolume.app.viewer.script import Command
 
 HELP = "open the interactive viewer (live isovalue, light, lazy global illumination)"
 
@@ -17,7 +23,7 @@ DEFAULT_BAKE_SAMPLES = 256
 """Paths per texel a new lazy lattice is refined up to (rounds of 4, 16, 64, 256)."""
 
 
-def add_arguments(parser) -> None:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``isolume view``."""
     from isolume.app.options import add_timeline_option, add_volume_options
     from isolume.baking.config import DEFAULT_ENV
@@ -100,7 +106,7 @@ class Options:
     auto_exposure: bool
     frames: int | None
     screenshot: Path | None
-    script: tuple
+    script: tuple[Command, ...]
     stats: Path | None
     bake: bool
     bake_mode: str
@@ -117,7 +123,7 @@ class Options:
     light: tuple[float, float] | None
 
 
-def read_options(args) -> Options:
+def read_options(args: argparse.Namespace) -> Options:
     """Check the command line; raise `app.options.CLIError` with one-line messages."""
     from isolume.app.options import CLIError, parse_size
     from isolume.app.render.images import check_output_path
@@ -156,7 +162,7 @@ def read_options(args) -> Options:
     )
 
 
-def script_commands(options: Options) -> list:
+def script_commands(options: Options) -> list[Command]:
     """The `app.viewer.script.Command`s the viewer runs: ``--script``, then, for
     ``--frames N``, N frames (after the surface, without a script) and quit."""
     from isolume.app.viewer.script import Command

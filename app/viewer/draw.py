@@ -14,11 +14,23 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from isolume import volumes
 from isolume.app.render.bricks import BRICK, brick_grid, needed_bricks
+
+if TYPE_CHECKING:
+    import moderngl
+
+    from isolume.app.render.camera import Camera
+    from isolume.app.render.glcontext import Window
+    from isolume.app.render.lattice_gl import LatticeTextures
+    from isolume.app.render.renderer import SurfaceRenderer
+    from isolume.app.render.settings import Frame, RenderSettings
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import HeldLattice
 
 UPLOAD_BUDGET_S = 0.006
 """Seconds per frame spent re-uploading texels (the rest waits for the next frame)."""
@@ -57,7 +69,7 @@ class ViewState:
     show_ui: bool = True
 
 
-def frame_size(window) -> tuple[int, int]:
+def frame_size(window: Window) -> tuple[int, int]:
     """(W, H) pixels of `window`'s framebuffer (an `app.render.glcontext.Window`), at
     least 1 × 1 (a minimised window has none)."""
     w, h = window.framebuffer_size
@@ -68,11 +80,11 @@ class TexelUploader:
     """Tracks which bricks (`app.render.bricks.BRICK`³ texels) hold newly committed texels
     and re-uploads them (`LatticeTextures.write_bricks`) within a time budget."""
 
-    def __init__(self, textures) -> None:
-        self.textures = textures
-        self.shape = tuple(textures.lattice.geometry.shape)
-        self.dirty = np.zeros(brick_grid(self.shape), bool)
-        self.uploaded = 0
+    def __init__(self, textures: LatticeTextures) -> None:
+        self.textures: LatticeTextures = textures
+        self.shape: tuple[int, ...] = tuple(textures.lattice.geometry.shape)
+        self.dirty: np.ndarray = np.zeros(brick_grid(self.shape), bool)
+        self.uploaded: int = 0
 
     def mark(self, flat_ids: np.ndarray) -> None:
         """Note (N,) flat texel ids whose values changed."""
@@ -102,7 +114,7 @@ class TexelUploader:
         return n
 
 
-def check_textures(textures) -> dict:
+def check_textures(textures: LatticeTextures) -> dict[str, Any]:
     """Read the GL atlases back and compare them with the lattice.
 
     Returns:
@@ -169,17 +181,18 @@ class Blitter:
     """Scales an 8-bit render target onto the window (glBlitFramebuffer, linear filter),
     which moderngl's ``copy_framebuffer`` cannot do (it copies 1:1)."""
 
-    def __init__(self, ctx) -> None:
+    def __init__(self, ctx: moderngl.Context) -> None:
         import ctypes
 
         proc = ctx.extra["proc_address"]
-        self.ctx = ctx
+        self.ctx: moderngl.Context = ctx
         self._bind = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_uint)(
             proc("glBindFramebuffer"))
         self._blit = ctypes.CFUNCTYPE(None, *([ctypes.c_int] * 8), ctypes.c_uint,
                                       ctypes.c_uint)(proc("glBlitFramebuffer"))
 
-    def blit(self, fbo, src: tuple[int, int], dst_fbo, dst: tuple[int, int],
+    def blit(self, fbo: moderngl.Framebuffer, src: tuple[int, int],
+             dst_fbo: moderngl.Framebuffer | None, dst: tuple[int, int],
              nearest: bool = False) -> None:
         """Scale `fbo`'s (W, H) `src` onto `dst_fbo` (None: the window) at `dst`."""
         self._bind(_GL_READ_FRAMEBUFFER, fbo.glo)
@@ -208,30 +221,34 @@ class Drawing:
         adapting: the automatic exposure is still moving (keep drawing frames).
     """
 
-    def __init__(self, ctx, volume: volumes.Volume, auto_exposure: bool = True) -> None:
+    ctx: moderngl.Context
+    volume: volumes.Volume
+
+    def __init__(self, ctx: moderngl.Context, volume: volumes.Volume,
+                 auto_exposure: bool = True) -> None:
         from isolume.app.render.renderer import SurfaceRenderer
         from isolume.app.render.settings import SHADING_MODES, RenderSettings
 
         self.ctx, self.volume = ctx, volume
-        self.renderer = SurfaceRenderer(ctx)
+        self.renderer: SurfaceRenderer = SurfaceRenderer(ctx)
         self.renderer.set_bounds(*volume.box)  # shadows and fog do not follow the isovalue
         self._render_fields = {f.name for f in fields(RenderSettings)}
-        self.modes = tuple(SHADING_MODES)
-        self.albedo = (0.8, 0.8, 0.8)
+        self.modes: tuple[str, ...] = tuple(SHADING_MODES)
+        self.albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
         self.meshes: dict[str, volumes.Mesh] = {}
         self.on_gpu: str | None = None
         self.uploader: TexelUploader | None = None
-        self.quality = Quality()
-        self.blitter = Blitter(ctx)
+        self.quality: Quality = Quality()
+        self.blitter: Blitter = Blitter(ctx)
         self._usable: tuple[str, ...] | None = None
-        self.auto_exposure = auto_exposure
+        self.auto_exposure: bool = auto_exposure
         self.auto: float | None = None
-        self.adapting = False
+        self.adapting: bool = False
         self._adapted_at = 0.0
         self._probe = None  # a small float framebuffer the HDR target is sampled into
 
     # -- the lattice ---------------------------------------------------------------------
-    def show_lattice(self, lattice) -> str | None:
+    def show_lattice(self, lattice: Lattice | HeldLattice | None) -> str | None:
         """Upload `lattice` (and, for SH, the environment it was baked for); returns why
         it cannot be shown, or None."""
         self._usable = None
@@ -298,14 +315,14 @@ class Drawing:
         self.uploader.upload(budget_s)
         return True
 
-    def check_lattice(self) -> dict:
+    def check_lattice(self) -> dict[str, Any]:
         """Upload every pending texel, then compare the GL textures with the lattice
         (`check_textures`)."""
         self.upload_texels(budget_s=None)
         return check_textures(self.renderer.lattice)
 
     # -- the light -----------------------------------------------------------------------
-    def settings(self, state: ViewState, size: tuple[int, int]):
+    def settings(self, state: ViewState, size: tuple[int, int]) -> RenderSettings:
         """The `RenderSettings` of a frame of `size` (W, H) pixels in `state`."""
         from isolume.app.render.settings import RenderSettings
         from isolume.app.viewer.panel import direction_from_angles
@@ -372,7 +389,7 @@ class Drawing:
         name = "sun" if isinstance(light, SunLight) else "light"
         return name, tuple(float(v) for v in light.direction)
 
-    def light_angles(self, state: ViewState, camera) -> tuple[float, float]:
+    def light_angles(self, state: ViewState, camera: Camera) -> tuple[float, float]:
         """The light's (azimuth, elevation) in degrees (from the camera-fixed light if need
         be)."""
         from isolume.app.render.lights import first_distant_light, key_direction
@@ -407,8 +424,8 @@ class Drawing:
         self.on_gpu = want
 
     # -- frames --------------------------------------------------------------------------
-    def draw(self, camera, state: ViewState, size: tuple[int, int], scale: float,
-             target=None) -> None:
+    def draw(self, camera: Camera, state: ViewState, size: tuple[int, int], scale: float,
+             target: moderngl.Framebuffer | None = None) -> None:
         """Render at `scale` × the framebuffer `size` (W, H) and put it on the window, or
         into the framebuffer `target` of that size (a headless context's picture).
 
@@ -428,7 +445,7 @@ class Drawing:
             self.renderer.resolve(targets, settings, auto=change)
             self.blitter.blit(targets.ldr, small, target, size)
 
-    def exposed(self, settings):
+    def exposed(self, settings: RenderSettings) -> RenderSettings:
         """`settings` with the automatic exposure (as it stands) folded into `exposure`."""
         if not self.auto_exposure or self.auto is None:
             return settings
@@ -476,12 +493,13 @@ class Drawing:
         data = np.frombuffer(fbo.read(components=4, dtype="f4"), np.float32)
         return data.reshape(small[1], small[0], 4)
 
-    def frame(self, camera, state: ViewState, size: tuple[int, int]):
+    def frame(self, camera: Camera, state: ViewState, size: tuple[int, int]) -> Frame:
         """An off-screen `app.render.renderer` frame (sRGB and linear radiance) of `size` (W, H),
         exposed as the window is (`metered`)."""
         return self.renderer.render(camera, self.metered(camera, state, size))
 
-    def metered(self, camera, state: ViewState, size: tuple[int, int]):
+    def metered(self, camera: Camera, state: ViewState,
+                size: tuple[int, int]) -> RenderSettings:
         """The `RenderSettings` of a frame of `size` exposed as the window is; while no
         window frame has shown the surface yet, the automatic exposure is first metered on
         this one (as the window's first frame with the surface would)."""
@@ -490,7 +508,8 @@ class Drawing:
             self._adapt(self.renderer.draw_hdr(camera, settings), size)
         return self.exposed(settings)
 
-    def visible_points(self, camera, state: ViewState, size: tuple[int, int]) -> np.ndarray:
+    def visible_points(self, camera: Camera, state: ViewState,
+                       size: tuple[int, int]) -> np.ndarray:
         """(N, 3) world positions of the surface under the pixels of a view of `size`
         (W, H), read at most 512 pixels across."""
         w, h = size

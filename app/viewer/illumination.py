@@ -12,12 +12,17 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict
+from typing import TYPE_CHECKING, Any
 
 from isolume import volumes
 from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta, range_warning
 from isolume.app.viewer.command import Options
 from isolume.app.viewer.draw import Drawing
 from isolume.app.viewer.state import ViewerError, ViewerState
+
+if TYPE_CHECKING:
+    from isolume.baking.lattice import Lattice
+    from isolume.baking.view_texels import HeldLattice, LatticeOnFile
 
 SETTLE_S = 0.2
 """The view must be still this long before the visible texels are measured again."""
@@ -53,20 +58,27 @@ class Illumination:
         checks: results of `check` (``check-lattice``), for ``--stats``.
     """
 
+    volume: volumes.Volume
+    drawing: Drawing
+    state: ViewerState
+    options: Options
+    static_lattice: HeldLattice | None
+    static_file: LatticeOnFile | None
+
     def __init__(self, volume: volumes.Volume, drawing: Drawing, state: ViewerState,
                  options: Options) -> None:
         self.volume, self.drawing, self.state, self.options = volume, drawing, state, options
         self.shared: SharedLattice | None = None
         self.bake: BakeLink | None = None
         self.static_lattice = self.static_file = None
-        self.relit_file = False
-        self.checks: list[dict] = []
+        self.relit_file: bool = False
+        self.checks: list[dict[str, Any]] = []
         self._view_sent: tuple | None = None
         self._view_seen: tuple | None = None
         self._view_since = 0.0
 
     # -- starting ------------------------------------------------------------------------
-    def start(self, lattice, iso: float) -> None:
+    def start(self, lattice: LatticeOnFile | None, iso: float) -> None:
         """Show `lattice` (a lattice file opened, `baking.view_texels.LatticeOnFile`, or
         None) and start the lazy bake when it is missing or incomplete (unless
         ``--no-bake``, or the file's texels are not those a bake places: it is shown as it
@@ -237,7 +249,7 @@ class Illumination:
             return (1.0 if same_direction(turned[1], baked) else None), None
         return self.bake.relit_fraction(turned[1]), self.bake.error
 
-    def check(self) -> dict:
+    def check(self) -> dict[str, Any]:
         """Upload what is pending, compare the GL textures with the lattice
         (`app.viewer.draw.check_textures`), note and print the result.
 
@@ -289,7 +301,7 @@ class Illumination:
         """A lazy bake runs and is paused."""
         return bool(self.bake and self.bake.paused)
 
-    def snapshot(self):
+    def snapshot(self) -> Lattice | None:
         """A `baking.lattice.Lattice` copy of the lattice being baked, to save (None: no
         lazy bake started)."""
         if self.shared is None:
@@ -297,7 +309,7 @@ class Illumination:
         return (self.bake.snapshot(self.shared) if self.bake is not None
                 else self.shared.snapshot())
 
-    def figures(self) -> dict | None:
+    def figures(self) -> dict[str, Any] | None:
         """The lazy bake's part of ``--stats`` (None: no lazy bake ran)."""
         if self.bake is None:
             return None

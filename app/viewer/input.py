@@ -8,6 +8,8 @@ becomes an `app.viewer.panel.Action` (keys, `app.viewer.panel.key_action`), appl
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from isolume.app.viewer.actions import Actions
@@ -15,11 +17,15 @@ from isolume.app.viewer.panel import (
     ROTATE_DEG_PER_PX,
     ZOOM_PER_WHEEL,
     Drag,
+    ImGuiLayer,
     drag_target,
     key_action,
     pan_per_pixel,
 )
 from isolume.app.viewer.state import ViewerState
+
+if TYPE_CHECKING:
+    from isolume.app.render.glcontext import Window
 
 
 class Input:
@@ -30,8 +36,14 @@ class Input:
             take it (None: no press waits).
     """
 
-    def __init__(self, window, ui, state: ViewerState, actions: Actions,
-                 modes: tuple[str, ...]) -> None:
+    window: Window
+    ui: ImGuiLayer | None
+    state: ViewerState
+    actions: Actions
+    modes: tuple[str, ...]
+
+    def __init__(self, window: Window, ui: ImGuiLayer | None, state: ViewerState,
+                 actions: Actions, modes: tuple[str, ...]) -> None:
         """`window`: the `app.render.glcontext.Window`; `ui`: its `ImGuiLayer` (None: no
         panel); `modes`: shading modes in the order of the number keys."""
         self.window, self.ui, self.state, self.actions, self.modes = (

@@ -18,10 +18,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from isolume.app.render.camera import Camera
+
+if TYPE_CHECKING:
+    from imgui_bundle import imgui as _imgui
 
 ROTATE_DEG_PER_PX = 0.4
 """Camera and light rotation per mouse movement (screen coordinates)."""
@@ -147,7 +152,8 @@ class PanelModel:
     keys_help: tuple[str, ...] = field(default_factory=tuple)
 
 
-def key_action(glfw, key: int, mods: int, modes: tuple[str, ...]) -> Action | None:
+def key_action(glfw: ModuleType, key: int, mods: int,
+               modes: tuple[str, ...]) -> Action | None:
     """What a key press asks for (see KEYS_HELP), as an `Action`; None for other keys.
 
     Args:
@@ -183,7 +189,7 @@ KEYS_HELP = (
 )
 
 
-def draw_panel(imgui, model: PanelModel) -> list[Action]:
+def draw_panel(imgui: ModuleType, model: PanelModel) -> list[Action]:
     """Draw the control panel for `model`; return what the user changed this frame."""
     actions: list[Action] = []
     imgui.set_next_window_pos(imgui.ImVec2(10, 10), imgui.Cond_.once)
@@ -300,14 +306,17 @@ class ImGuiLayer:
     a panel).
     """
 
-    def __init__(self, glfw, ui_scale: float = 1.0) -> None:
+    imgui: ModuleType
+    glfw: ModuleType
+
+    def __init__(self, glfw: ModuleType, ui_scale: float = 1.0) -> None:
         """`ui_scale`: factor for widget and font sizes in window coordinates
         (`app.render.glcontext.Window.ui_scale`); ImGui itself renders fonts at the framebuffer's
         density."""
         from imgui_bundle import imgui
 
         self.imgui, self.glfw = imgui, glfw
-        self.context = imgui.create_context()
+        self.context: _imgui.internal.Context = imgui.create_context()
         io = imgui.get_io()
         io.set_ini_filename(None)  # no imgui.ini next to the user's files
         style = imgui.get_style()

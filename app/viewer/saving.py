@@ -8,6 +8,7 @@ import os
 import time
 from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from isolume.app.viewer.command import Options
 from isolume.app.viewer.draw import Drawing, frame_size
 from isolume.app.viewer.illumination import Illumination
 from isolume.app.viewer.state import ViewerError, ViewerState
+
+if TYPE_CHECKING:
+    from isolume.app.render.glcontext import Window
 
 
 class Saver:
@@ -28,12 +32,19 @@ class Saver:
         lattice_path: ``--lattice`` (None: none), the default file of `save_lattice`.
     """
 
-    def __init__(self, volume: volumes.Volume, window, drawing: Drawing, state: ViewerState,
-                 illumination: Illumination, options: Options) -> None:
+    volume: volumes.Volume
+    window: Window | None
+    drawing: Drawing
+    state: ViewerState
+    illumination: Illumination
+    options: Options
+
+    def __init__(self, volume: volumes.Volume, window: Window | None, drawing: Drawing,
+                 state: ViewerState, illumination: Illumination, options: Options) -> None:
         """`window`: the `app.render.glcontext.Window` drawn into."""
         self.volume, self.window, self.drawing = volume, window, drawing
         self.state, self.illumination, self.options = state, illumination, options
-        self.lattice_path = options.lattice_path
+        self.lattice_path: Path | None = options.lattice_path
 
     def _stamped(self, suffix: str) -> Path:
         """isolume-NAME-DATE-TIME + `suffix` in the working folder: the file a screenshot
@@ -142,7 +153,7 @@ class Saver:
         print(f"isolume: {message}")
 
 
-def write_json(path: Path, figures: dict) -> None:
+def write_json(path: Path, figures: dict[str, Any]) -> None:
     """Write `figures` (NumPy scalars and arrays included) as indented JSON."""
     path.write_text(json.dumps(figures, indent=1, default=_json_default))
 

@@ -41,7 +41,7 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -67,7 +67,7 @@ class Command:
     """
 
     name: str
-    args: tuple
+    args: tuple[Any, ...]
     line: int
 
 
@@ -267,7 +267,7 @@ class ScriptTarget(Protocol):
     def relit_progress(self) -> tuple[float | None, str | None]: ...
     def hold_bake(self, held: bool) -> None: ...
     def bake_held(self) -> bool: ...
-    def check_lattice(self) -> dict: ...
+    def check_lattice(self) -> dict[str, Any]: ...
 
 
 class ScriptRunner:
@@ -275,12 +275,12 @@ class ScriptRunner:
     commands (frames, sleep, wait-*) keep frames coming. Errors raise `ScriptError` naming
     the line."""
 
-    def __init__(self, commands: list) -> None:
-        self.commands = deque(commands)
-        self.current = None
-        self.frames_left = 0
-        self.deadline = 0.0
-        self.started = 0.0
+    def __init__(self, commands: list[Command]) -> None:
+        self.commands: deque[Command] = deque(commands)
+        self.current: Command | None = None
+        self.frames_left: int = 0
+        self.deadline: float = 0.0
+        self.started: float = 0.0
         self.pending_window_shot: Path | None = None
 
     @property

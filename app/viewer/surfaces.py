@@ -14,11 +14,17 @@ import functools
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from isolume import volumes
+
+if TYPE_CHECKING:
+    from isolume.app.viewer.draw import Drawing
+    from isolume.app.viewer.state import ViewerState
 
 SLAB_VOXELS = 1 << 19
 """Voxels per marching-cubes call (a GIL hold of ~25 ms on one core)."""
@@ -49,7 +55,7 @@ def estimated_triangles(coarsest: volumes.Mesh) -> int:
 
 def extract_surface(volume: volumes.Volume, iso: float, *, step: int = 1,
                     normals: str = "smooth", flip: bool = False,
-                    cancelled=None) -> volumes.Mesh | None:
+                    cancelled: Callable[[], bool] | None = None) -> volumes.Mesh | None:
     """The isosurface ρ = iso by marching cubes in z-slabs (see the module docstring).
 
     The triangles are those of `volumes.isosurface` at the same step (vertices on slab
@@ -98,10 +104,14 @@ class MeshWorker:
     """Extracts isosurfaces on a background thread, coarse then full; a newer request
     cancels the older one between slabs, and `poll` returns results of the newest only."""
 
+    volume: volumes.Volume
+    normals: str
+    flip: bool
+
     def __init__(self, volume: volumes.Volume, *, normals: str = "smooth",
                  flip: bool = False) -> None:
         self.volume, self.normals, self.flip = volume, normals, flip
-        self.coarse = min(volume.data.shape) >= 8 * COARSE_STEP
+        self.coarse: bool = min(volume.data.shape) >= 8 * COARSE_STEP
         self._cv = threading.Condition()
         self._pending: tuple[int, float, float] | None = None
         self._latest = 0
@@ -219,10 +229,10 @@ class SurfaceFeed:
 
     def __init__(self, volume: volumes.Volume, *, normals: str = "smooth",
                  flip: bool = False) -> None:
-        self.worker = MeshWorker(volume, normals=normals, flip=flip)
+        self.worker: MeshWorker = MeshWorker(volume, normals=normals, flip=flip)
         self.stage: str | None = None
         self.iso: float | None = None
-        self.info = "extracting..."
+        self.info: str = "extracting..."
         self.extractions: list[Extraction] = []
 
     def request(self, iso: float) -> None:
@@ -269,7 +279,7 @@ class SurfaceFeed:
         self.worker.close()
 
 
-def hand_over(feed: SurfaceFeed, drawing, state) -> bool:
+def hand_over(feed: SurfaceFeed, drawing: Drawing, state: ViewerState) -> bool:
     """Hand the surfaces that arrived from `feed` to `drawing` (an `app.viewer.draw.
     Drawing`: the lighter "lod" preview kept for moving the camera, the others shown and
     put on the GPU, the preview while `state`, an `app.viewer.state.ViewerState`, is

@@ -33,6 +33,7 @@ import sys
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,6 +50,14 @@ from isolume.app.viewer.state import ViewerError, ViewerState
 from isolume.app.viewer.surfaces import SurfaceFeed, hand_over
 from isolume.volumes import cores
 
+if TYPE_CHECKING:
+    import argparse
+
+    from isolume.app.render.glcontext import Window
+    from isolume.app.viewer.panel import ImGuiLayer
+    from isolume.app.viewer.script import ScriptRunner
+    from isolume.baking.view_texels import LatticeOnFile
+
 BAKE_REFRESH_S = 0.5
 BAKE_FRAME_SPACING = 4.0
 """New texels alone bring a frame at most every `BAKE_REFRESH_S` seconds and no sooner than
@@ -56,7 +65,7 @@ BAKE_FRAME_SPACING = 4.0
 
 
 # -- the command --------------------------------------------------------------------------
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     """Entry point of ``isolume view``: bad input ends in one line on stderr, status 2.
 
     (The errors are reported here rather than by `app.cli.main`: under ``python -m isolume.app.cli``
@@ -72,7 +81,7 @@ def run(args) -> int:
         return EXIT_USER_ERROR
 
 
-def _run(args) -> int:
+def _run(args: argparse.Namespace) -> int:
     from isolume.app.options import isovalue, load_volume
 
     options = read_options(args)
@@ -104,9 +113,9 @@ def _run(args) -> int:
 class FrameClock:
     """Frame times of the render thread."""
 
-    times: deque = field(default_factory=lambda: deque(maxlen=120))
-    all_ms: list = field(default_factory=list)
-    interactive_ms: list = field(default_factory=list)
+    times: deque[float] = field(default_factory=lambda: deque(maxlen=120))
+    all_ms: list[float] = field(default_factory=list)
+    interactive_ms: list[float] = field(default_factory=list)
     last_end: float | None = None
     count: int = 0
 
@@ -146,7 +155,24 @@ class Viewer:
         clock: frame times; reduced: the last frame had less detail than there is.
     """
 
-    def __init__(self, volume: volumes.Volume, iso: float, lattice, options: Options) -> None:
+    volume: volumes.Volume
+    options: Options
+    window: Window
+    drawing: Drawing
+    ui: ImGuiLayer | None
+    state: ViewerState
+    illumination: Illumination
+    surfaces: SurfaceFeed
+    saver: Saver
+    actions: Actions
+    reduced: bool
+    clock: FrameClock
+    surface_shown: bool
+    script: ScriptRunner
+    input: Input
+
+    def __init__(self, volume: volumes.Volume, iso: float, lattice: LatticeOnFile | None,
+                 options: Options) -> None:
         from isolume.app.render.glcontext import create_window
         from isolume.app.render.renderer import default_camera
         from isolume.app.viewer.script import ScriptRunner
@@ -177,7 +203,7 @@ class Viewer:
         self.input = Input(self.window, self.ui, self.state, self.actions, self.drawing.modes)
         self.actions.request_iso(iso)
 
-    def _make_ui(self):
+    def _make_ui(self) -> ImGuiLayer | None:
         from isolume.app.viewer.panel import ImGuiLayer
 
         try:
@@ -344,7 +370,7 @@ class Viewer:
         )
 
     # -- figures and shutdown ------------------------------------------------------------
-    def figures(self) -> dict:
+    def figures(self) -> dict[str, Any]:
         """What `--stats` writes."""
         times = np.array(self.clock.all_ms) if self.clock.all_ms else np.zeros(1)
         cam = self.state.camera

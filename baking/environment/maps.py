@@ -77,7 +77,8 @@ def angular_dir_to_image(dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return r * ea, r * eb
 
 
-def angular_point_to_pixel(a: np.ndarray, b: np.ndarray, n: int):
+def angular_point_to_pixel(a: np.ndarray, b: np.ndarray, n: int
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     col = np.floor((a + 1.0) * (0.5 * n)).astype(np.intp)
     row = np.floor((1.0 - b) * (0.5 * n)).astype(np.intp)
     inside = (col >= 0) & (col < n) & (row >= 0) & (row < n)

@@ -274,7 +274,8 @@ class _PixelSampler:
         for name, arr in (("p", p), ("row_cdf", row_cdf), ("col_cdf", col_cdf), ("_flat", flat)):
             object.__setattr__(self, name, readonly(arr))
 
-    def sample(self, u: np.ndarray):
+    def sample(self, u: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """u (N, 2) → rows (N,), cols (N,), du (N,), dv (N,)."""
         h, w = self.p.shape
         rows = np.clip(np.searchsorted(self.row_cdf, u[:, 0], side="right") - 1, 0, h - 1)

@@ -7,8 +7,10 @@ import math
 import re
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from isolume.baking.environment.files import EnvSpecError, read_image
 from isolume.baking.environment.models import (
@@ -23,12 +25,12 @@ from isolume.baking.environment.models import (
 
 
 # ----------------------------------------------------------------------------- constructors
-def constant(rgb) -> ConstantEnvironment:
+def constant(rgb: npt.ArrayLike) -> ConstantEnvironment:
     """Uniform environment of radiance rgb (scalar or (3,))."""
     return ConstantEnvironment(np.asarray(rgb, dtype=np.float64))
 
 
-def sky(**params) -> SkyEnvironment:
+def sky(**params: Any) -> SkyEnvironment:
     """Procedural sky; keyword parameters as in :class:`SkyEnvironment` / the module docs."""
     return SkyEnvironment(**params)
 

@@ -45,8 +45,8 @@ class ZarrVolume:
         self.array = array
         self.space = space
         self.where = where
-        self.shape = tuple(int(array.shape[axis]) for axis in space)
-        self.dtype = np.dtype(array.dtype)
+        self.shape: tuple[int, ...] = tuple(int(array.shape[axis]) for axis in space)
+        self.dtype: np.dtype[Any] = np.dtype(array.dtype)
 
     def __getitem__(self, key: tuple[slice, slice, slice]) -> np.ndarray:
         """Samples ``[z0:z1, y0:y1, x0:x1]`` (three slices), read from the chunks they
