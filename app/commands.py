@@ -162,17 +162,16 @@ def cmd_bake(args: argparse.Namespace) -> int:
     """Bake an illumination lattice (resumes when --out holds a compatible one)."""
     from isolume.baking.lattice import open_lattice
 
+    out = args.out
     try:
         lattice = bake_lattice(args)
     except KeyboardInterrupt:
-        out = args.out
         if Path(out).exists():
             _, held = open_lattice(out)[0].read_texels(None, ("samples",))
             finished = int((held["samples"] > 0).sum())
             print(f"isolume: interrupted; {finished:,} finished texels "
                   f"saved in {out}; run the same command again to resume", file=sys.stderr)
         return 130
-    out = args.out
     plan, stats = lattice.meta["plan"], lattice.meta["stats"]
     total = plan["total_texels"]
     print(f"wrote {out}: {plan['active_texels']:,} of {total:,} texels active "

@@ -164,46 +164,22 @@ def _served_isovalue(args: argparse.Namespace, volume: volumes.Volume, lattice) 
 
 def _vertex_light(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, lattice,
                   shading: Shading, args: argparse.Namespace) -> VertexLight:
-    """The radiance at the mesh's vertices: the lattice's light (or the light traced for
-    the surface without one) plus the direct light it leaves to the pixels."""
-    from isolume.app.export_light import (
-        COVERED,
-        coverage,
-        direct_radiance,
-        lattice_radiance,
-        traced_lattice,
-    )
-    from isolume.app.render.lights import lattice_start_offset
+    """The radiance at the mesh's vertices (`app.export_light.surface_radiance`): the
+    lattice's light (or the light traced for the surface without one) plus the direct
+    light it leaves to the pixels."""
+    from isolume.app.export_light import COVERED, coverage, surface_radiance
     from isolume.baking.trace import Scene
 
-    points = np.asarray(mesh.vertices, np.float64)
-    normals = np.asarray(mesh.normals, np.float64)
-    scene = Scene(mesh.vertices, mesh.faces)
-    if lattice is None:
-        lattice = traced_lattice(volume, shading.traced, iso, points, normals, scene,
-                                 workers=args.workers, progress=True)
-        source = f"global illumination traced with {shading.traced.samples} paths per texel"
-    else:
-        source = f"{lattice.kind} lattice {args.lattice}"
-    radiance = lattice_radiance(lattice, points, normals, shading.albedo, shading.env_coeffs,
-                                shading.env_rotation)
-    lights = _pixel_lights(lattice, shading.env_rotation)
+    radiance, read, lights = surface_radiance(
+        volume, iso, mesh, Scene(mesh.vertices, mesh.faces), lattice, shading.traced,
+        shading.albedo, env_coeffs=shading.env_coeffs, env_rotation=shading.env_rotation,
+        workers=args.workers, progress=True)
+    source = (f"global illumination traced with {shading.traced.samples} paths per texel"
+              if lattice is None else f"{lattice.kind} lattice {args.lattice}")
     if lights:
-        radiance += direct_radiance(scene, lights, points, normals,
-                                    lattice_start_offset(lattice), shading.albedo,
-                                    progress=True)
         source += f" + direct light of {len(lights)} light(s) through shadow rays"
-    uncovered = int((coverage(lattice, points) < COVERED).sum())
-    return VertexLight(radiance, source, _lighting_text(lattice), uncovered)
-
-
-def _pixel_lights(lattice, rotation: tuple[float, float]) -> tuple:
-    """The lights the lattice leaves to the pixels (`lattice_direct_lights`), an SH
-    lattice's sun turned with its environment, as `SurfaceRenderer.direct_lights`."""
-    from isolume.app.render.lights import lattice_direct_lights, rotated_lights
-
-    lights = lattice_direct_lights(lattice)
-    return rotated_lights(lights, rotation) if lattice.kind == "sh" and lights else lights
+    uncovered = int((coverage(read, np.asarray(mesh.vertices, np.float64)) < COVERED).sum())
+    return VertexLight(radiance, source, _lighting_text(read), uncovered)
 
 
 def _lighting_text(lattice) -> str:

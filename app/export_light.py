@@ -150,6 +150,48 @@ def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, point
     return lattice
 
 
+def pixel_lights(lattice: Lattice | HeldLattice,
+                 rotation: tuple[float, float] = (0.0, 0.0)) -> tuple:
+    """The lights `lattice` leaves to the pixels (`app.render.lights.lattice_direct_lights`),
+    an SH lattice's sun turned by `rotation` (azimuth, elevation degrees) with its
+    environment, as `SurfaceRenderer.direct_lights` does."""
+    from isolume.app.render.lights import lattice_direct_lights, rotated_lights
+
+    lights = lattice_direct_lights(lattice)
+    return rotated_lights(lights, rotation) if lattice.kind == "sh" and lights else lights
+
+
+def surface_radiance(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, scene: Scene,
+                     lattice: Lattice | HeldLattice | None, traced: BakeConfig | None,
+                     albedo: Sequence[float] | np.ndarray, *,
+                     env_coeffs: np.ndarray | None = None,
+                     env_rotation: tuple[float, float] = (0.0, 0.0),
+                     workers: int | None = None, progress: bool = False
+                     ) -> tuple[np.ndarray, Lattice | HeldLattice, tuple]:
+    """The light ``isolume export`` gives `mesh`'s vertices: the lattice's (without one,
+    `traced_lattice` under `traced`: the light traced for the surface ρ = `iso`) through
+    the side-aware lookup (`lattice_radiance`), plus the lights it leaves to the pixels
+    through shadow rays on `scene` (`direct_radiance`).
+
+    Returns:
+        ((V, 3) linear outgoing radiance (irradiance units / sr), the lattice read, the
+        per-pixel lights added).
+    """
+    from isolume.app.render.lights import lattice_start_offset
+
+    points = np.asarray(mesh.vertices, np.float64)
+    normals = np.asarray(mesh.normals, np.float64)
+    if lattice is None:
+        lattice = traced_lattice(volume, traced, iso, points, normals, scene,
+                                 workers=workers, progress=progress)
+    radiance = lattice_radiance(lattice, points, normals, albedo, env_coeffs, env_rotation)
+    lights = pixel_lights(lattice, env_rotation)
+    if lights:
+        radiance += direct_radiance(scene, lights, points, normals,
+                                    lattice_start_offset(lattice), albedo, progress=progress)
+    return radiance, lattice, lights
+
+
 def direct_radiance(scene: Scene, lights: Sequence[PointLight | DirectionalLight | SunLight],
                     points: np.ndarray, normals: np.ndarray, offset: float,
                     albedo: Sequence[float] | np.ndarray, *, progress: bool = False

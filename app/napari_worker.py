@@ -1,10 +1,10 @@
 """The napari plugin's background lighting: global illumination of the shown isosurface,
 traced in a separate process and refined pass by pass.
 
-The light is ``isolume export``'s without a lattice (`app.export_light`): the texels the
-vertices' lookups read get paths traced on the isosurface itself (`traced_lattice`), then
-the side-aware lookup (`lattice_radiance`), plus the sky's sun and the lights the
-lattice leaves to the pixels, through Embree shadow rays (`direct_radiance`). Each pass
+The light is ``isolume export``'s without a lattice (`app.export_light.surface_radiance`):
+the texels the vertices' lookups read get paths traced on the isosurface itself, then the
+side-aware lookup, plus the sky's sun and the lights the lattice leaves to the pixels,
+through Embree shadow rays. Each pass
 traces `PREVIEW_PATHS` and then the requested samples, from scratch: path k of a texel
 is the same random path in every pass (the generator is keyed by texel and path), so the
 last pass is export's light exactly.
@@ -75,17 +75,10 @@ def traced_radiance(volume: volumes.Volume, config: BakeConfig, iso: float, mesh
         mesh: the isosurface ρ = `iso` (world x, y, z); scene: its `baking.trace.Scene`.
         workers: tracing threads.
     """
-    from isolume.app.export_light import direct_radiance, lattice_radiance, traced_lattice
-    from isolume.app.render.lights import lattice_direct_lights, lattice_start_offset
+    from isolume.app.export_light import surface_radiance
 
-    points = np.asarray(mesh.vertices, np.float64)
-    normals = np.asarray(mesh.normals, np.float64)
-    lattice = traced_lattice(volume, config, iso, points, normals, scene, workers=workers)
-    radiance = lattice_radiance(lattice, points, normals, config.albedo)
-    lights = lattice_direct_lights(lattice)
-    if lights:
-        radiance += direct_radiance(scene, lights, points, normals,
-                                    lattice_start_offset(lattice), config.albedo)
+    radiance, _, _ = surface_radiance(volume, iso, mesh, scene, None, config, config.albedo,
+                                      workers=workers)
     return radiance
 
 

@@ -40,13 +40,12 @@ def _parser(command: str) -> argparse.ArgumentParser:
 def option_actions(command: str) -> dict[str, argparse.Action]:
     """{keyword: action} of command `command`'s options (help left out; of two options
     writing one name, the one whose keyword is that name)."""
+    every = [a for a in _parser(command)._actions if not isinstance(a, argparse._HelpAction)]
+    names = {python_name(a) for a in every}
     actions: dict[str, argparse.Action] = {}
-    for action in _parser(command)._actions:
-        if isinstance(action, argparse._HelpAction):
-            continue
+    for action in every:
         name = python_name(action)
-        if action.const is not None and action.dest != name and action.dest in {
-                python_name(a) for a in _parser(command)._actions}:
+        if action.const is not None and action.dest != name and action.dest in names:
             continue  # an alias such as --turntable for --kind turntable
         actions[name] = action
     return actions

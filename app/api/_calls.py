@@ -92,6 +92,16 @@ def _triple(values: Numbers | str | None, what: str, default: float) -> tuple[fl
     return floats(",".join(str(v) for v in values), 3, what)
 
 
+NOT_OPTIONS = ("volume", "state", "timeline")
+"""Keywords of the functions that are not their command's options as such."""
+
+
+def _options(call: dict[str, object], *leave: str) -> dict[str, object]:
+    """The keyword arguments of a call (its ``locals()`` on entry) that its command takes
+    as options: all but `NOT_OPTIONS` and `leave`."""
+    return {name: value for name, value in call.items() if name not in NOT_OPTIONS + leave}
+
+
 def _volume(volume: Volume | str | os.PathLike[str]) -> Volume:
     from isolume import volumes
 
@@ -177,15 +187,10 @@ def render(volume: Volume | str | os.PathLike[str], *, iso: float | None = None,
     Returns:
         The `Picture` (sRGB and linear pixels; a notebook shows it).
     """
+    given = _options(locals(), "out")
     from isolume._picture import Picture
     from isolume.app.commands import render_picture
 
-    given = {"iso": iso, "lattice": lattice, "env": env, "light": light, "samples": samples,
-             "bounces": bounces, "seed": seed, "workers": workers, "albedo": albedo,
-             "env_rotation": env_rotation, "sh_window": sh_window, "exposure": exposure,
-             "no_auto_exposure": no_auto_exposure, "tonemap": tonemap, "normals": normals,
-             "flip_normals": flip_normals, "shading": shading, "size": size, "view": view,
-             "gl": gl, "shadows": shadows, "out": None}
     args = namespace("render", given | {"volume": _volume(volume)})
     args = _with_state(args, state, _changed("render", given))
     with _SESSION.lock, _running(args, timeline, ["render"]):
@@ -226,14 +231,9 @@ def bake(volume: Volume | str | os.PathLike[str], *, out: PathText | None = None
     Returns:
         The lattice (`Lattice`: `save`, `sample`; `render(…, lattice=…)` shows it).
     """
+    given = _options(locals())
     from isolume.app.commands import bake_lattice
 
-    given = {"out": out, "mode": mode, "sh_order": sh_order, "samples": samples,
-             "target_error": target_error, "max_samples": max_samples, "bounces": bounces,
-             "albedo": albedo, "scale": scale, "iso_range": iso_range, "env": env,
-             "light": light, "seed": seed, "max_levels": max_levels, "max_move": max_move,
-             "direct_light": direct_light, "workers": workers, "scheduler": scheduler,
-             "flip_normals": flip_normals, "sides": sides}
     args = namespace("bake", given | {"volume": _volume(volume)})
     with _running(args, timeline, ["bake"]):
         lattice = bake_lattice(args, dense=True, keep_interrupted=True)
@@ -245,11 +245,11 @@ def bake(volume: Volume | str | os.PathLike[str], *, out: PathText | None = None
     return lattice
 
 
-def _run_command(module: str, command: str, values: dict) -> int:
+def _run_command(module: str, args) -> int:
+    """Run the command of `module` (its ``run``) on the parsed options `args`."""
     import importlib
 
-    args = namespace(command, values)
-    with _running(args, None, [command]):
+    with _running(args, None, [args.command]):
         return importlib.import_module(module).run(args)
 
 
@@ -269,13 +269,8 @@ def export(volume: Volume | str | os.PathLike[str], out: PathText, *,
     Returns:
         The file written.
     """
-    values = {"volume": _volume(volume), "out": out, "iso": iso, "lattice": lattice,
-              "env": env, "light": light, "samples": samples, "bounces": bounces,
-              "seed": seed, "workers": workers, "albedo": albedo,
-              "env_rotation": env_rotation, "sh_window": sh_window, "exposure": exposure,
-              "no_auto_exposure": no_auto_exposure, "tonemap": tonemap, "normals": normals,
-              "flip_normals": flip_normals}
-    _run_command("isolume.app.export", "export", values)
+    values = _options(locals()) | {"volume": _volume(volume)}
+    _run_command("isolume.app.export", namespace("export", values))
     return Path(out)
 
 
@@ -304,23 +299,11 @@ def movie(volume: Volume | str | os.PathLike[str], out: PathText, *,
     Returns:
         The file or folder written.
     """
-    folder = not Path(out).suffix and not os.fspath(out).endswith("/")
-    given = {"out": os.fspath(out) + ("/" if folder else ""), "kind": kind, "sweep": sweep,
-             "frames": frames, "fps": fps, "turntable_light": turntable_light,
-             "degrees": degrees, "iso_range": iso_range,
-             "save_lattice": save_lattice, "meter_frames": meter_frames, "crf": crf,
-             "iso": iso, "lattice": lattice, "env": env, "light": light, "samples": samples,
-             "bounces": bounces, "seed": seed, "workers": workers, "albedo": albedo,
-             "env_rotation": env_rotation, "sh_window": sh_window, "exposure": exposure,
-             "no_auto_exposure": no_auto_exposure, "tonemap": tonemap, "normals": normals,
-             "flip_normals": flip_normals, "shading": shading, "size": size, "view": view,
-             "gl": gl, "shadows": shadows}
-    import importlib
-
+    given = _options(locals())
+    if not Path(out).suffix and not os.fspath(out).endswith("/"):
+        given["out"] = os.fspath(out) + "/"  # a folder of frames
     args = namespace("movie", given | {"volume": _volume(volume)})
-    args = _with_state(args, state, _changed("movie", given))
-    with _running(args, None, ["movie"]):
-        importlib.import_module("isolume.app.movie").run(args)
+    _run_command("isolume.app.movie", _with_state(args, state, _changed("movie", given)))
     return Path(out)
 
 
@@ -339,11 +322,8 @@ def reference(volume: Volume | str | os.PathLike[str], out: PathText, *,
     Returns:
         The EXR written.
     """
-    values = {"volume": _volume(volume), "out": out, "iso": iso, "spp": spp, "size": size,
-              "view": view, "env": env, "env_rotation": env_rotation, "light": light,
-              "albedo": albedo, "bounces": bounces, "seed": seed, "workers": workers,
-              "normals": normals, "flip_normals": flip_normals}
-    if _run_command("isolume.app.reference", "reference", values) == 130:
+    values = _options(locals()) | {"volume": _volume(volume)}
+    if _run_command("isolume.app.reference", namespace("reference", values)) == 130:
         warnings.warn(f"reference interrupted; the finished passes are saved in {out}",
                       stacklevel=2)
     return Path(out)
