@@ -129,12 +129,14 @@ def say_outlook(outlook: BakeOutlook, config: BakeConfig) -> None:
 
 def cheaper_options(config: BakeConfig) -> str:
     """The options that make a bake of `config` cheaper: an iso range, half its paths
-    per texel (while it has more than one) and half its lattice scale (while that is
-    allowed: `baking.config.SCALES`)."""
+    per texel (while it has more than one; with a noise target, twice the target) and
+    half its lattice scale (while that is allowed: `baking.config.SCALES`)."""
     from isolume.baking.config import SCALES
 
     options = ["--iso-range LO HI around the isovalues you will show"]
-    if config.samples > 1:
+    if config.target_error is not None:
+        options.append(f"--target-error {min(2 * config.target_error, 0.5):g}")
+    elif config.samples > 1:
         options.append(f"--samples {config.samples // 2}")
     if config.scale / 2 >= SCALES[0]:
         options.append(f"--scale {config.scale / 2:g}")

@@ -300,15 +300,35 @@ def bake_config(args: argparse.Namespace) -> BakeConfig:
     """The `BakeConfig` of ``isolume bake``'s options (`add_bake_options`)."""
     from isolume.baking.config import BakeConfig
 
+    samples, target = bake_samples(args.samples, args.target_error)
     return BakeConfig.lit_by(
         parse_lighting(args.env, args.light),
-        mode=args.mode, sh_order=args.sh_order, samples=args.samples, bounces=args.bounces,
+        mode=args.mode, sh_order=args.sh_order, samples=samples, bounces=args.bounces,
         albedo=parse_albedo(args.albedo), scale=args.scale,
         iso_range=tuple(args.iso_range) if args.iso_range else None, seed=args.seed,
-        flip_normals=args.flip_normals, sides=args.sides, target_error=args.target_error,
-        max_samples=max(args.max_samples, args.samples), max_levels=args.max_levels,
+        flip_normals=args.flip_normals, sides=args.sides, target_error=target,
+        max_samples=max(args.max_samples, samples), max_levels=args.max_levels,
         max_move=args.max_move, direct_light=args.direct_light,
     )
+
+
+def bake_samples(samples: int | None, target: float | None) -> tuple[int, float | None]:
+    """(samples, target error) of ``bake``'s ``--samples`` and ``--target-error``: exactly
+    `samples` paths a texel (`DEFAULT_SAMPLES` when not given) without a target; with one,
+    paths where the noise is (`baking.adaptive`) from a minimum of `samples`
+    (`ADAPTIVE_MIN_SAMPLES` when not given)."""
+    if target is None:
+        return (DEFAULT_SAMPLES if samples is None else samples), None
+    return (ADAPTIVE_MIN_SAMPLES if samples is None else samples), target
+
+
+DEFAULT_SAMPLES = 100
+"""``bake``'s paths per texel when neither ``--samples`` nor ``--target-error`` is given."""
+ADAPTIVE_MIN_SAMPLES = 16
+"""The fewest paths a texel of a bake to a noise target gets when ``--samples`` is not
+given."""
+DEFAULT_MAX_SAMPLES = 1024
+"""The most paths a texel of a bake to a noise target gets (``--max-samples``)."""
 
 
 def add_bake_options(p: argparse.ArgumentParser) -> None:
@@ -320,12 +340,16 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
                    help="irradiance (static lights) or SH radiance transfer (an environment "
                    "that can turn) (default irradiance)")
     p.add_argument("--sh-order", type=int, default=5, help="SH bands (n² coefficients)")
-    p.add_argument("--samples", type=int, default=100,
-                   help="paths per texel (the minimum, with --target-error)")
+    p.add_argument("--samples", type=int, default=None, metavar="N",
+                   help=f"exactly N paths per texel (default {DEFAULT_SAMPLES}); with "
+                   f"--target-error, the fewest (default {ADAPTIVE_MIN_SAMPLES})")
     p.add_argument("--target-error", type=float, default=None, metavar="E",
-                   help="sample each texel until its relative standard error is below E")
-    p.add_argument("--max-samples", type=int, default=4096,
-                   help="cap on paths per texel with --target-error")
+                   help="paths where the noise is: texels get paths in doubling rounds, in "
+                   "proportion to the spread of their paths, until each isosurface's noise "
+                   "is E of its light level (e.g. 0.1)")
+    p.add_argument("--max-samples", type=int, default=DEFAULT_MAX_SAMPLES, metavar="N",
+                   help="the most paths a texel gets with a target (default "
+                   f"{DEFAULT_MAX_SAMPLES})")
     p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (0 = direct)")
     p.add_argument("--albedo", default="0.8", help="A or R,G,B")
     p.add_argument("--scale", type=float, default=1.0,

@@ -23,6 +23,14 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels, rng
+from isolume.baking.adaptive import (
+    ROUND_KEY,
+    RoundState,
+    group_brightness,
+    ladder,
+    path_spread,
+    still_going,
+)
 from isolume.baking.backend import (
     BakeJob,
     BakeStats,
@@ -37,10 +45,12 @@ from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
 from isolume.baking.lattice import (
     LUMINANCE,
+    TRAPPED_PATHS,
     Lattice,
     LatticeGeometry,
     open_lattice,
     other_texels,
+    sky_everywhere,
     volume_identity,
 )
 from isolume.baking.lattice_file import LatticeFile
@@ -278,10 +288,9 @@ class Baker:
             return (samples if self.rows is None else samples[self.rows]).astype(np.int64)
         return samples[rows_at(self.rows, positions)].astype(np.int64)
 
-    def relative_errors(self) -> np.ndarray:
-        """(T,) relative standard error of the plan's texels (`Lattice.relative_error`)."""
-        error = self.lattice.relative_error().reshape(-1)
-        return error if self.rows is None else error[self.rows]
+    def rows_of(self, positions: np.ndarray) -> np.ndarray:
+        """(N,) rows of the texels at plan `positions` in the lattice's flattened arrays."""
+        return rows_at(self.rows, positions)
 
     def relight(self, config: BakeConfig, lattice: Lattice) -> None:
         """Trace under `config`'s lights into `lattice` from the next `run` on (a light
@@ -408,7 +417,8 @@ class BakeOutlook:
     """What a bake is about to trace, known once its plan is made.
 
     Attributes:
-        texels: active texels; levels: isovalue levels; paths: paths still to trace;
+        texels: active texels; levels: isovalue levels; paths: paths still to trace
+            (with a noise target, about: `BakeConfig.plan_samples` a texel);
         threads: local tracing threads (0 on a cluster).
     """
 
@@ -463,6 +473,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     """
     out = Path(out) if out is not None else None
     resume = _resumable(volume, config, out)
+    adaptive = config.target_error is not None
     backend = None
     if scheduler is not None:
         from isolume.baking.cluster import ClusterBackend
@@ -470,20 +481,24 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
         backend = ClusterBackend(scheduler)
     with _PlanBars(progress) as bars:
         baker = Baker(volume, config, workers=workers, backend=backend, progress=bars,
-                      packed=True, resume=resume,
+                      packed=True, resume=resume, scene_cache=2 if adaptive else 1,
                       records_dir=out.parent if out is not None else None)
-    pending = int(np.maximum(config.samples - baker.samples_done(), 0).sum())
+    done = baker.samples_done()
+    pending = int(np.maximum(config.samples - done, 0).sum())  # the first round's
     if outlook is not None:
         threads = 0 if scheduler is not None else (workers or cores.threads())
-        outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), pending, threads))
+        expected = int(np.maximum(config.plan_samples - done, 0).sum())
+        outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), expected, threads))
+    del done
     bar = _progress(pending, progress)
     held = baker.lattice
     checkpoint = Checkpoints(held, out, checkpoint_seconds)
     cores.stage("tracing")
     try:
-        baker.run(bar=bar, after_commit=checkpoint)
-        if config.target_error is not None:
-            _refine_to_target(baker, bar, checkpoint)
+        if adaptive:
+            bake_to_target(baker, bar, checkpoint)
+        else:
+            baker.run(bar=bar, after_commit=checkpoint)
     except KeyboardInterrupt:
         if out is not None:
             held.save(out)
@@ -530,26 +545,61 @@ class Checkpoints:
         self.due = ended + max(self.seconds, (ended - began) / SAVE_SHARE)
 
 
-def _refine_to_target(baker: Baker, bar, checkpoint, passes: int = 4) -> None:
-    """Give more samples to texels whose relative standard error exceeds the target.
-
-    The error falls as 1/sqrt(n), so a texel with error e after n paths needs about
-    n (e / target)² in all; each pass asks for 1.2 times that (at most 8 n, at most
-    `max_samples`), so a few passes — each rebuilding the level scenes — suffice.
-    """
+def bake_to_target(baker: Baker, bar: Any, checkpoint: Any) -> None:
+    """Trace `baker`'s texels group by group in rounds until each meets
+    ``config.target_error`` or has ``config.max_samples`` paths (`baking.adaptive`),
+    going on from the round recorded in its lattice's metadata."""
     config = baker.config
-    for _ in range(passes):
-        error = baker.relative_errors()
-        done = baker.samples_done()
-        todo = np.flatnonzero((error > config.target_error) & (done < config.max_samples))
-        if len(todo) == 0:
-            return
-        need = 1.2 * done[todo] * (error[todo] / config.target_error) ** 2
-        target = np.minimum(np.clip(np.ceil(need), done[todo] + 1, 8 * done[todo]),
-                            config.max_samples).astype(np.int64)
-        if bar is not None:
-            bar.total += int((target - done[todo]).sum())
+    rungs = ladder(config.samples, config.max_samples)
+    state = RoundState.resumed(baker.lattice.meta.get(ROUND_KEY), config.target_error,
+                               config.samples, config.max_samples)
+    lower = baker.plan.lower
+    if state.finished:
+        return
+    groups = range(state.group, int(lower.max()) + 1) if len(lower) else range(0)
+    for group in groups:
+        members = baker.groups.of(group)
+        if len(members):
+            _bake_group(baker, state, group, members, rungs, bar, checkpoint)
+        state.group, state.rung, state.brightness, state.going = group + 1, 0, None, None
+    state.finished = True
+    baker.lattice.meta[ROUND_KEY] = state.record()
+
+
+def _bake_group(baker: Baker, state: RoundState, group: int, members: np.ndarray,
+                rungs: list[int], bar: Any, checkpoint: Any) -> None:
+    """The rounds of one level group (plan positions (N,) `members`) from `state`'s."""
+    ids = baker.plan.ids[members]
+    shape = baker.geometry.shape
+    dark_until = TRAPPED_PATHS if sky_everywhere(baker.config) else 0
+    weights = baker.job.tracing.weights
+    while True:
+        state.group = group
+        baker.lattice.meta[ROUND_KEY] = state.record()
+        going = (np.ones(len(members), bool) if state.going is None else state.going)
+        todo = members[going]
+        target = rungs[state.rung]
+        if bar is not None and state.rung > 0:  # the first round's are in its total
+            bar.total += int(np.maximum(target - baker.samples_done(todo), 0).sum())
         baker.run(todo, target, bar=bar, after_commit=checkpoint)
+        rows = baker.rows_of(members)
+        luminance = baker.lattice.values.reshape(-1, len(weights))[rows] @ weights
+        second = baker.lattice.second.reshape(-1)[rows]
+        samples = baker.samples_done(members)
+        which = np.flatnonzero(going)
+        spread = path_spread(luminance, second, samples, ids, shape, which)
+        if state.brightness is None:
+            state.brightness = group_brightness(luminance)
+            state.spread = float(np.mean(spread)) if len(spread) else 0.0
+        if state.rung + 1 >= len(rungs):
+            return
+        going = np.zeros(len(members), bool)
+        going[which] = still_going(spread, samples[which], state.brightness, state.spread,
+                                   state.target, rungs[-1], luminance[which] == 0,
+                                   dark_until)
+        if not going.any():
+            return
+        state.rung, state.going = state.rung + 1, going
 
 
 def _finish_meta(lattice: Lattice | PlanLattice, plan: Plan, high_texels: int, stats: BakeStats,

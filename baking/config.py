@@ -25,6 +25,8 @@ SIDES = ("seen", "normals")
 """Which side of its surface a texel is lit on (`BakeConfig.sides`)."""
 
 
+MIN_TARGET_SAMPLES = 4
+"""The fewest first-round paths of a bake to a noise target."""
 SCALES = (0.05, 8.0)
 """Smallest and largest lattice scale, texels per voxel."""
 
@@ -57,10 +59,12 @@ class BakeConfig:
         sides: "seen" (each texel lit on the side of its surface that a camera outside
             the volume can see, both sides in a checkerboard where both can be seen:
             `baking.sides`) or "normals" (the side the normals point to, everywhere).
-        target_error: None for a fixed `samples` per texel; else keep doubling the samples
-            of each texel whose relative standard error (of its luminance, or of the SH DC
-            term) exceeds this, from `samples` up to `max_samples` ("model no more than a
-            scene needs": easy texels stop early).
+        target_error: None for exactly `samples` paths per texel; else paths where the
+            noise is (`baking.adaptive`): texels get paths in doubling rounds from
+            `samples` up to `max_samples`, in proportion to the spread of their paths'
+            brightness (luminance, or the SH DC term), until each isosurface's
+            root-mean-square standard error is this fraction of its light level ("model
+            no more than a scene needs": easy texels stop early).
         max_samples: cap on paths per texel with `target_error`.
         direct_light: "pixels": the lights' and the sun's direct light (at a texel's own
             point) is left out of the lattice, which the renderer adds per pixel with
@@ -131,7 +135,11 @@ class BakeConfig:
             raise BakeError(f"--max-levels {self.max_levels}: expected 2 to 1024 levels")
         if self.target_error is not None and not 0 < self.target_error < 1:
             raise BakeError(f"--target-error {self.target_error:g}: expected a relative "
-                            "standard error between 0 and 1, e.g. 0.02")
+                            "standard error between 0 and 1, e.g. 0.1")
+        if self.target_error is not None and self.samples < MIN_TARGET_SAMPLES:
+            raise BakeError(f"--samples {self.samples} with --target-error: expected at "
+                            f"least {MIN_TARGET_SAMPLES} (a texel's noise is estimated from "
+                            "its first paths)")
         if self.max_samples < self.samples:
             raise BakeError(f"--max-samples {self.max_samples} is below --samples "
                             f"{self.samples}")
@@ -184,6 +192,16 @@ class BakeConfig:
         """This config lit by `lighting` (whose `lighting` property is that very value)."""
         env, lights = remember(lighting).to_spec()
         return dataclasses.replace(self, env=env, lights=lights)
+
+    @property
+    def plan_samples(self) -> int:
+        """The paths per texel the level plan is sized for (`baking.plan.move_limit`,
+        `level_budget`): `samples`; with a `target_error` E, the uniform count whose noise
+        meets E where a path's brightness spreads as much as its mean, 1 / E², within
+        `samples` … `max_samples`."""
+        if self.target_error is None:
+            return self.samples
+        return int(np.clip(round(1 / self.target_error ** 2), self.samples, self.max_samples))
 
     @property
     def gray(self) -> bool:

@@ -445,6 +445,42 @@ def trace_chunk(calls: tuple[int, ...], seed_key: np.uint32, ids: np.ndarray, po
     return rays
 
 
+@numba.njit(**JIT)
+def neighbour_medians(ids: np.ndarray, variance: np.ndarray, nz: int, ny: int, nx: int,
+                      which: np.ndarray, out: np.ndarray) -> None:
+    """Into (K,) `out`: for each of the texels at positions (K,) `which` of (N,) sorted
+    flat lattice `ids` of an (nz, ny, nx) box, the median of the (N,) `variance` of its
+    26-connected neighbours among `ids` (0 where it has none)."""
+    found = np.empty(26)
+    n = len(ids)
+    for k in range(len(which)):
+        flat = ids[which[k]]
+        z, rest = divmod(flat, ny * nx)
+        y, x = divmod(rest, nx)
+        count = 0
+        for dz in range(-1, 2):
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    zz, yy, xx = z + dz, y + dy, x + dx
+                    if ((dz == 0 and dy == 0 and dx == 0) or zz < 0 or yy < 0 or xx < 0
+                            or zz >= nz or yy >= ny or xx >= nx):
+                        continue
+                    other = (zz * ny + yy) * nx + xx
+                    at = np.searchsorted(ids, other)
+                    if at < n and ids[at] == other:
+                        value = variance[at]
+                        slot = count  # insertion sort: `found` stays ascending
+                        while slot > 0 and found[slot - 1] > value:
+                            found[slot] = found[slot - 1]
+                            slot -= 1
+                        found[slot] = value
+                        count += 1
+        if count == 0:
+            out[k] = 0.0
+        else:
+            out[k] = 0.5 * (found[(count - 1) // 2] + found[count // 2])
+
+
 def warm_up() -> None:
     """Load (or compile, the first time on a machine) every kernel for the argument types
     the path tracer uses, so that the first bake's timings measure tracing only."""
@@ -473,3 +509,4 @@ def warm_up() -> None:
     idx, _, _ = shadow_rays(useful, vec, vec)
     add_unblocked(result, index, idx, np.zeros(len(idx), np.bool_), vec, contrib)
     sky_add_escaped(sky, result, index, prim, vec, vec, vec, True)
+    neighbour_medians(index, np.zeros(1), 1, 1, 1, index, np.zeros(1))

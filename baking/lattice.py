@@ -273,20 +273,6 @@ def standard_error(values: np.ndarray, samples: np.ndarray, second: np.ndarray,
     return se.astype(np.float32)
 
 
-def relative_error(values: np.ndarray, samples: np.ndarray, second: np.ndarray, kind: str,
-                   floor_fraction: float = 0.01) -> np.ndarray:
-    """(…) `standard_error` / mean of the luminance (SH: of the DC term).
-
-    The mean is floored at `floor_fraction` of the median computed texel, so texels in
-    deep shadow are judged against the scene's light level, not against ~0.
-    """
-    lum = _luminance(values, kind)
-    computed = samples > 0
-    typical = float(np.median(np.abs(lum[computed]))) if computed.any() else 1.0
-    return standard_error(values, samples, second, kind) / np.maximum(
-        np.abs(lum), floor_fraction * typical)
-
-
 @dataclass
 class Lattice:
     """An illumination lattice.
@@ -429,11 +415,6 @@ class Lattice:
     def standard_error(self) -> np.ndarray:
         """(Z, Y, X) float32 standard error of the luminance mean (`standard_error`)."""
         return standard_error(self.values, self.samples, self.second, self.kind)
-
-    def relative_error(self, floor_fraction: float = 0.01) -> np.ndarray:
-        """(Z, Y, X) standard error / mean of the luminance (`relative_error`)."""
-        return relative_error(self.values, self.samples, self.second, self.kind,
-                              floor_fraction)
 
     def sample(self, points_xyz: np.ndarray, normalized: bool = False,
                normals: np.ndarray | None = None) -> np.ndarray:

@@ -469,7 +469,7 @@ def move_limit(config: BakeConfig) -> float:
         return float(config.max_move)
     if noise_free(config):
         return REFERENCE_MOVE
-    scaled = REFERENCE_MOVE * math.sqrt(REFERENCE_SAMPLES / config.samples)
+    scaled = REFERENCE_MOVE * math.sqrt(REFERENCE_SAMPLES / config.plan_samples)
     return float(np.clip(scaled, *MOVE_LIMITS))
 
 
@@ -502,7 +502,7 @@ def level_budget(volume: volumes.Volume, geometry: LatticeGeometry, config: Bake
         return config.max_levels
     lighting = config.lighting
     sampled = bool(lighting.lights) or not isinstance(lighting.environment, ConstantEnvironment)
-    rays = texels * config.samples * (config.bounces + 1) * (2 if sampled else 1)
+    rays = texels * config.plan_samples * (config.bounces + 1) * (2 if sampled else 1)
     voxels_per_cell = float(np.prod(np.asarray(volume.data.shape) / geometry.shape))
     triangles = 2 * crossed * voxels_per_cell ** (2 / 3)
     scene = SCENE_RAYS_PER_VOXEL * volume.data.size + SCENE_RAYS_PER_TRIANGLE * triangles

@@ -22,7 +22,6 @@ from isolume.baking.lattice import (
     LatticeGeometry,
     file_meta,
     lattice_kind,
-    relative_error,
 )
 from isolume.baking.lattice_file import LatticeFile, write_rows
 
@@ -63,11 +62,6 @@ class PlanLattice:
         rows = np.searchsorted(self.ids, read)
         for name in kept:
             getattr(self, name)[rows] = arrays[name]
-
-    def relative_error(self, floor_fraction: float = 0.01) -> np.ndarray:
-        """(T,) `baking.lattice.relative_error` of the texels."""
-        return relative_error(self.values, self.samples, self.second, self.kind,
-                              floor_fraction)
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write atomically to `path`, as `baking.Lattice.save` would write `dense()`."""

@@ -27,6 +27,12 @@ FAST = ["--size", "24x24", "--paths", "4", "--ref-spp", "64", "--gl", "osmesa"]
 """Options that keep a case to about a second."""
 
 
+@pytest.fixture(autouse=True)
+def _own_cache(tmp_path, monkeypatch):
+    """References are kept under this test's folder, not the user's cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+
+
 def _hand_made():
     """Five pixels: four on the reference's surface at radiance 2 (grey), one off it.
     The picture shows 2.2, 2.2, 1.8 and black on them, and something off the surface."""
@@ -156,6 +162,9 @@ def test_the_command_writes_its_table_json_and_contact_sheet(tmp_path, capsys):
         assert row["reference_spp"] == 64 and row["surface_pixels"] > 50
         assert row["black_fraction"] == 0.0
     assert rows[1]["bake_seconds"] > 0 and rows[1]["iso_range"][0] < 0.5
+    assert rows[1]["paths"] == 4 * rows[1]["active_texels"] and rows[1]["lattice_bytes"] > 0
+    assert rows[1]["target_error"] is None  # --paths: exactly that many
+    assert len(list((tmp_path / "xdg" / "isolume" / "references").iterdir())) == 1
     assert document["failures"][0]["volume"] == str(missing)
     assert document["summary"]["cases"] == 2 and document["complete"]
     table = (out / "table.txt").read_text().splitlines()
@@ -164,6 +173,27 @@ def test_the_command_writes_its_table_json_and_contact_sheet(tmp_path, capsys):
     assert table[1] in stdout
     sheet = Image.open(out / "accuracy.png")
     assert sheet.height > 2 * 96 and sheet.width > 3 * 96
+
+
+def test_a_kept_reference_is_where_a_later_sweep_starts(tmp_path, capsys):
+    """The second sweep of the same case starts from the first's reference (the same
+    figures; its row says so); another lighting is another reference; ``--cache none``
+    keeps none."""
+    pytest.importorskip("moderngl")
+    cache = tmp_path / "refs"
+    args = ["bench", "accuracy", "synthetic:torus:24", *FAST, "--skip-bake",
+            "--cache", str(cache)]
+    rows = []
+    for out in ("a", "b"):
+        assert main([*args, "--out", str(tmp_path / out)]) == 0
+        rows.append(json.loads((tmp_path / out / "accuracy.json").read_text())["rows"][0])
+    capsys.readouterr()
+    assert [r["reference_kept"] for r in rows] == [False, True]
+    assert rows[0]["rel_rmse"] == rows[1]["rel_rmse"]
+    assert rows[1]["reference_seconds"] < rows[0]["reference_seconds"]
+    assert main([*args[:-2], "--cache", "none", "--out", str(tmp_path / "c")]) == 0
+    capsys.readouterr()
+    assert len(list(cache.iterdir())) == 1
 
 
 def test_a_missing_data_folder_is_one_line(tmp_path, capsys, monkeypatch):

@@ -39,7 +39,6 @@ def test_a_lattice_over_the_plan_is_the_dense_lattice_to_the_bit(tmp_path):
         assert isinstance(packed.lattice, PlanLattice)
         assert packed.lattice.values.shape[0] == len(packed.plan.ids) < dense.lattice.samples.size
         _same(packed.lattice.dense(), dense.lattice)
-        np.testing.assert_array_equal(packed.relative_errors(), dense.relative_errors())
         packed.lattice.save(tmp_path / "p.npz")
         dense.lattice.save(tmp_path / "d.npz")
         _same(Lattice.load(tmp_path / "p.npz"), Lattice.load(tmp_path / "d.npz"))

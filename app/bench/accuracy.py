@@ -9,17 +9,21 @@ the volume as loaded, turned by ``--up`` where asked), two pictures are measured
   illumination (`app.render.offscreen.render_volume` with no lattice, lit by
   `app.options.view_light` from the render command's defaults);
 * **bake**: a bake with ``isolume bake``'s defaults (`app.options.bake_config`: the
-  default sky, 100 paths per texel, 2 bounces, scale 1) restricted, for time, to the iso
+  default sky, 100 paths per texel, 2 bounces, scale 1), or with ``--paths N`` or
+  ``--target-error E`` (paths where the noise is), restricted, for time, to the iso
   range a lazy bake serves for that isovalue (`baking.lazy.view_iso_range`: ±3 % of the
-  data range around it), then the picture drawn with that lattice;
+  data range around it), then the picture drawn with that lattice; its row records the
+  paths it traced and its file's bytes;
 
 both against the per-pixel path-traced reference of ``isolume reference``
 (`baking.reference.ReferenceTracer`) with the same camera, size and lighting (the seed
 one above the render's, so their noise is independent). The reference starts at
 `START_SPP` samples per pixel and gains samples until its own noise (from its per-pixel
 standard errors) is at most a quarter of the smaller error it measures, or up to
-``--ref-spp``. The figures are those of `app.bench.accuracy_metrics`; the output that of
-`app.bench.accuracy_output`.
+``--ref-spp``. References are kept in ``--cache DIR`` (`reference_cache`), keyed by the
+reference tracer's identity (volume, isovalue, camera rays, lighting), and a later sweep
+starts from them: a curve of bake settings costs bakes, not references. The figures are
+those of `app.bench.accuracy_metrics`; the output that of `app.bench.accuracy_output`.
 
 Volumes larger than ``--max-size`` along an axis are reduced by block means of F³ voxels
 (`volumes.crop_downsample`) after the isovalues are suggested. A volume that
@@ -84,6 +88,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--paths", type=int, default=None, metavar="N",
                    help="paths per texel of the render's and the bake's light (default: "
                    "theirs, 64 and 100)")
+    p.add_argument("--target-error", type=float, default=None, metavar="E",
+                   help="the bake's noise target, as bake's --target-error (with --paths: "
+                   "its minimum paths)")
+    p.add_argument("--cache", default=None, metavar="DIR|none",
+                   help="folder of the references kept for later sweeps (default "
+                   "$XDG_CACHE_HOME/isolume/references, else ~/.cache/isolume/references; "
+                   "none: keep none)")
     p.add_argument("--skip-bake", action="store_true", help="measure the render only")
     p.add_argument("--isovalues", choices=["first", "all"], default="all",
                    help="the first suggested isovalue or all of them (default all)")
@@ -106,6 +117,9 @@ class Sweep:
         max_size: largest dimension kept, voxels (0: no reduction).
         ref_spp: cap on the reference's samples per pixel.
         paths: paths per texel of the render and the bake (None: their defaults).
+        target_error: the bake's noise target (None: the bake's default, or exactly
+            `paths`).
+        cache: the folder of kept references (None: none kept).
         up: ([NAME], AXIS) rules of ``--up``; progress: progress bars on stderr.
     """
 
@@ -115,6 +129,8 @@ class Sweep:
     max_size: int
     ref_spp: int
     paths: int | None
+    target_error: float | None
+    cache: Path | None
     skip_bake: bool
     first_only: bool
     up: tuple[tuple[str, str], ...]
@@ -143,8 +159,34 @@ def sweep_of(args: argparse.Namespace) -> Sweep:
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     return Sweep(parse_size(args.size), view, args.view, args.max_size, args.ref_spp,
-                 args.paths, args.skip_bake, args.isovalues == "first",
-                 parse_up_rules(args.up), args.workers, args.gl, sys.stderr.isatty())
+                 args.paths, args.target_error, reference_cache(args.cache), args.skip_bake,
+                 args.isovalues == "first", parse_up_rules(args.up), args.workers, args.gl,
+                 sys.stderr.isatty())
+
+
+def reference_cache(text: str | None) -> Path | None:
+    """The folder of kept references that ``--cache`` names ("none": None), made if
+    missing.
+
+    Raises:
+        CLIError: the folder cannot be made.
+    """
+    import os
+
+    from isolume.app.options import CLIError
+
+    if text is not None and text.lower() == "none":
+        return None
+    if text is None:
+        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+        folder = Path(base) / "isolume" / "references"
+    else:
+        folder = Path(text).expanduser()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CLIError(f"--cache {folder}: cannot make the folder ({exc.strerror})") from None
+    return folder
 
 
 def parse_up_rules(values: list[str] | None) -> tuple[tuple[str, str], ...]:
@@ -200,8 +242,7 @@ def bake_options(sweep: Sweep, iso_range: tuple[float, float]) -> argparse.Names
 
     ns = _defaults(add_bake_options, "--out", "unused.npz")
     ns.iso_range, ns.workers = list(iso_range), sweep.workers
-    if sweep.paths is not None:
-        ns.samples = sweep.paths
+    ns.samples, ns.target_error = sweep.paths, sweep.target_error
     return ns
 
 
@@ -368,7 +409,7 @@ def render_default(volume: Volume, iso: float, sweep: Sweep) -> tuple[Shot, Bake
                                 view_light=config, shadows=ns.shadows,
                                 workers=sweep.workers, progress=sweep.progress)
     seconds = time.perf_counter() - began
-    extra = {"paths": config.samples, "triangles": len(mesh.faces)}
+    extra = {"paths_per_texel": config.samples, "triangles": len(mesh.faces)}
     return Shot("render", *_flat(frame), seconds, None, extra), config
 
 
@@ -383,6 +424,7 @@ def render_baked(volume: Volume, iso: float, sweep: Sweep) -> Shot:
     began = time.perf_counter()
     lattice = bake(volume, config, workers=sweep.workers, progress=sweep.progress)
     bake_seconds = time.perf_counter() - began
+    file_bytes = lattice_bytes(lattice)
     ns = render_options(sweep)
     settings = _settings(ns, sweep.size, lattice.kind, lattice.config.albedo)
     began = time.perf_counter()
@@ -390,9 +432,22 @@ def render_baked(volume: Volume, iso: float, sweep: Sweep) -> Shot:
                              normals=ns.normals, flip_normals=ns.flip_normals,
                              lattice=lattice, shadows=ns.shadows, workers=sweep.workers)
     plan = lattice.meta["plan"]
-    extra = {"paths": config.samples, "iso_range": list(config.iso_range),
+    extra = {"paths": lattice.meta["stats"]["paths"],
+             "paths_per_texel": lattice.meta["stats"]["paths"] / max(plan["active_texels"], 1),
+             "samples": config.samples, "target_error": config.target_error,
+             "iso_range": list(config.iso_range), "lattice_bytes": file_bytes,
              "active_texels": plan["active_texels"], "levels": len(plan["levels"])}
     return Shot("bake", *_flat(frame), time.perf_counter() - began, bake_seconds, extra)
+
+
+def lattice_bytes(lattice) -> int:
+    """The bytes of `lattice`'s file (`Lattice.save`, written to a temporary folder)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="isolume-accuracy-") as folder:
+        path = Path(folder) / "lattice.npz"
+        lattice.save(path)
+        return path.stat().st_size
 
 
 def _flat(frame) -> tuple[np.ndarray, np.ndarray]:
@@ -406,8 +461,9 @@ class Truth:
 
     Attributes:
         radiance, stderr: (N, 3) linear radiance and its standard error; mask: (N,)
-        surface pixels; noise: relative (`accuracy_metrics.reference_noise`); spp: samples
-        per pixel; seconds: wall time (tracer set-up included).
+        surface pixels; noise: relative (`accuracy_metrics.reference_noise`); spp: the
+        median samples per surface pixel; seconds: wall time (tracer set-up included);
+        kept: it started from a kept reference (``--cache``).
     """
 
     radiance: np.ndarray
@@ -416,6 +472,7 @@ class Truth:
     noise: float
     spp: int
     seconds: float
+    kept: bool = False
 
 
 def settle_reference(volume: Volume, iso: float, shots: list[Shot], config: BakeConfig,
@@ -435,7 +492,7 @@ def settle_reference(volume: Volume, iso: float, shots: list[Shot], config: Bake
         relative_rmse,
     )
     from isolume.app.render.renderer import framed_camera
-    from isolume.baking.reference import PixelStats, ReferenceTracer
+    from isolume.baking.reference import PixelStats, ReferenceTracer, save_state
 
     camera = framed_camera(volume, iso, sweep.view, sweep.size)
     origins, dirs = camera.primary_rays(*sweep.size)
@@ -446,7 +503,9 @@ def settle_reference(volume: Volume, iso: float, shots: list[Shot], config: Bake
         if len(tracer.hits.pixels) == 0:
             raise AccuracyError(f"iso {iso:.6g}: no pixel of the {sweep.view_text} view sees "
                                 "the surface")
-        stats = PixelStats.empty(tracer.pixels)
+        kept = _kept_reference(sweep.cache, tracer)
+        stats = kept if kept is not None else PixelStats.empty(tracer.pixels)
+        had = int(stats.count.sum())
         spp = min(START_SPP, sweep.ref_spp)
         while True:
             _trace(tracer, stats, spp, sweep.progress)
@@ -457,8 +516,40 @@ def settle_reference(volume: Volume, iso: float, shots: list[Shot], config: Bake
             if noise <= NOISE_RATIO * error or spp >= sweep.ref_spp:
                 break
             spp = next_spp(spp, noise, error, sweep.ref_spp)
-    return Truth(image.radiance, image.stderr, image.mask, noise, spp,
-                 time.perf_counter() - began)
+        if sweep.cache is not None and int(stats.count.sum()) > had:
+            save_state(_cache_file(sweep.cache, tracer), stats, {"identity": tracer.identity})
+    return Truth(image.radiance, image.stderr, image.mask, noise,
+                 int(np.median(stats.count[stats.count > 0])), time.perf_counter() - began,
+                 kept is not None)
+
+
+def _cache_file(folder: Path, tracer) -> Path:
+    """The kept reference of `tracer`'s identity in `folder`."""
+    import hashlib
+    import json
+
+    key = json.dumps(tracer.identity, sort_keys=True)
+    return folder / f"{hashlib.sha1(key.encode()).hexdigest()}.state.npz"
+
+
+def _kept_reference(folder: Path | None, tracer):
+    """The `PixelStats` kept in `folder` for `tracer`'s identity, or None (none kept, no
+    cache, or a file of another identity or format: it is replaced later)."""
+    from isolume.baking.errors import BakeError
+    from isolume.baking.reference import load_state
+
+    if folder is None:
+        return None
+    path = _cache_file(folder, tracer)
+    if not path.exists():
+        return None
+    try:
+        stats, meta = load_state(path)
+    except BakeError:
+        return None
+    if meta.get("identity") != tracer.identity or len(stats.count) != tracer.pixels:
+        return None
+    return stats
 
 
 def _trace(tracer, stats, spp: int, progress: bool) -> None:
@@ -498,7 +589,7 @@ def case_row(prep: Prepared, iso: float, shot: Shot, truth: Truth) -> dict[str, 
     return {"volume": prep.name, "source": prep.source, "iso": float(iso), "mode": shot.mode,
             **figures, "render_seconds": shot.render_seconds,
             "bake_seconds": shot.bake_seconds, "reference_seconds": truth.seconds,
-            "reference_spp": truth.spp, **shot.extra}
+            "reference_spp": truth.spp, "reference_kept": truth.kept, **shot.extra}
 
 
 def case_tile(row: dict[str, Any], shot: Shot, truth: Truth, size: tuple[int, int]) -> Tile:
@@ -531,7 +622,8 @@ def _settings_record(sweep: Sweep, specs: list[str]) -> dict:
         "render": {"paths": render.samples or "default (64)", "bounces": render.bounces,
                    "env": "render's default", "seed": render.seed},
         "bake": None if sweep.skip_bake else {
-            "samples": bake_ns.samples, "bounces": bake_ns.bounces, "env": bake_ns.env,
+            "samples": bake_ns.samples, "target_error": bake_ns.target_error,
+            "bounces": bake_ns.bounces, "env": bake_ns.env,
             "scale": bake_ns.scale, "max_levels": bake_ns.max_levels,
             "iso_range": "baking.lazy.view_iso_range: ±3 % of the data range around iso"},
         "reference": {"start_spp": START_SPP, "max_spp": sweep.ref_spp,

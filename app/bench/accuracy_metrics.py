@@ -33,6 +33,9 @@ BLACK_LIMIT = 0.001
 """Cases whose black fraction exceeds this are counted in the summary (0.1 %)."""
 RATIO_BAND = (0.97, 1.03)
 """Cases whose mean ratio falls outside this band are counted in the summary."""
+TOTALS = ("paths", "bake_seconds", "lattice_bytes")
+"""Row figures a mode's summary sums over its cases (a bake's: paths traced, wall time
+and file bytes), to compare whole sweeps."""
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 """Rec. 709 luminance weights of linear RGB."""
 
@@ -140,9 +143,10 @@ def summarize(rows: list[dict[str, Any]], failures: list[dict[str, Any]]) -> dic
     Returns:
         JSON-ready: per mode the cases and the median, p90 and worst of the relative
         RMSE less the reference's noise and of the plain relative RMSE (with the worst
-        case's volume and isovalue); the counts of cases with black fraction above
-        `BLACK_LIMIT`, with mean ratio outside `RATIO_BAND`, where the reference's noise
-        rule does not hold, and of failures.
+        case's volume and isovalue), and the sums of `TOTALS` where every case has them;
+        the counts of cases with black fraction above `BLACK_LIMIT`, with mean ratio
+        outside `RATIO_BAND`, where the reference's noise rule does not hold, and of
+        failures.
     """
     modes = {}
     for mode in dict.fromkeys(row["mode"] for row in rows):
@@ -153,7 +157,9 @@ def summarize(rows: list[dict[str, Any]], failures: list[dict[str, Any]]) -> dic
                     if math.isfinite(r["rel_rmse_less_noise"]) else r["rel_rmse"])
         modes[mode] = {"cases": len(mine), "rel_rmse_less_noise": _spread(corrected),
                        "rel_rmse": _spread([r["rel_rmse"] for r in mine]),
-                       "worst_case": {"volume": worst["volume"], "iso": worst["iso"]}}
+                       "worst_case": {"volume": worst["volume"], "iso": worst["iso"]},
+                       **{f"total_{key}": sum(r[key] for r in mine) for key in TOTALS
+                          if all(r.get(key) is not None for r in mine)}}
     lo, hi = RATIO_BAND
     return {
         "modes": modes,

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from isolume.app.bench.accuracy_metrics import LUMINANCE, NOISE_RATIO, summarize
+from isolume.app.bench.accuracy_metrics import LUMINANCE, NOISE_RATIO, TOTALS, summarize
 from isolume.volumes.errors import IsolumeError
 
 ERROR_LIMIT = 0.25
@@ -27,10 +27,10 @@ LABEL_WIDTH = 260
 _COLUMNS = (("volume", 24, "s"), ("iso", 9, "iso"), ("mode", 6, "s"), ("rel RMSE", 9, "%"),
             ("less noise", 10, "%"), ("ref noise", 9, "%"), ("ratio", 6, ".3f"),
             ("black", 7, "%"), ("p99", 7, "%"), ("render s", 8, ".1f"), ("bake s", 7, ".1f"),
-            ("ref s", 6, ".1f"), ("ref spp", 7, "d"))
+            ("ref s", 6, ".1f"), ("ref spp", 7, "d"), ("paths/tx", 8, ".1f"))
 _KEYS = ("volume", "iso", "mode", "rel_rmse", "rel_rmse_less_noise", "reference_noise",
          "mean_ratio", "black_fraction", "p99_error", "render_seconds", "bake_seconds",
-         "reference_seconds", "reference_spp")
+         "reference_seconds", "reference_spp", "paths_per_texel")
 
 
 def _cell(value, width: int, form: str) -> str:
@@ -75,6 +75,10 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                      f"worst {_pct(c['worst'])} ({worst['volume']} at iso "
                      f"{worst['iso']:.5g}); plain median {_pct(raw['median'])}, "
                      f"p90 {_pct(raw['p90'])}, worst {_pct(raw['worst'])}")
+        if all(f"total_{key}" in figures for key in TOTALS):
+            lines.append(f"{mode:6s} totals: {figures['total_paths']:,} paths, "
+                         f"{figures['total_bake_seconds']:.1f} s of bakes, "
+                         f"{figures['total_lattice_bytes'] / 1e6:.2f} MB of lattice files")
     lo, hi = summary["ratio_band"]
     lines.append(f"black fraction > {summary['black_limit']:.1%}: {summary['black_cases']} "
                  f"of {summary['cases']} cases; mean ratio outside {lo:g}-{hi:g}: "

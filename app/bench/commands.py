@@ -13,7 +13,9 @@
   render's and a default bake's lighting against path tracing on every scan
   (`app.bench.accuracy`); ``bench scale``: peak memory and time against the volume's size
   (`app.bench.scale`); ``bench cores``: parallel efficiency per stage against threads, and
-  the speed-up predicted at 16 and 64 threads (`app.bench.cores`).
+  the speed-up predicted at 16 and 64 threads (`app.bench.cores`); ``bench front``: the
+  bake's error against paths, time and bytes over several accuracy sweeps
+  (`app.bench.front`).
 """
 
 from __future__ import annotations
@@ -59,6 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     scale.add_arguments(sub.add_parser("scale", help=scale.HELP,
                                        description=description_of(scale.HELP)))
+    from isolume.app.bench import front
+
+    front.add_arguments(sub.add_parser("front", help=front.HELP,
+                                       description=description_of(front.HELP)))
     from isolume.app.bench import cores as cores_bench
 
     cores_bench.add_arguments(sub.add_parser("cores", help=cores_bench.HELP,
@@ -86,6 +92,10 @@ def run(args: argparse.Namespace) -> int:
         return bench_bake(args)
     if args.bench == "accuracy":
         return _accuracy_module().run(args)
+    if args.bench == "front":
+        from isolume.app.bench import front
+
+        return front.run(args)
     if args.bench == "scale":
         from isolume.app.bench import scale
 
