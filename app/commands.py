@@ -180,6 +180,9 @@ def cmd_bake(args: argparse.Namespace) -> int:
           f"({plan['active_texels'] / total:.1%}), {len(plan['levels'])} levels, "
           f"{stats['rays_traced']:,} rays in {stats['bake_seconds']:.1f} s "
           f"({stats['rays_traced'] / max(stats['bake_seconds'], 1e-9) / 1e6:.2f} Mrays/s)")
+    if lattice.config is not None and lattice.config.target_error is not None:
+        print(f"noise target {lattice.config.target_error:g}: {stats['paths']:,} paths, "
+              f"{stats['paths'] / max(plan['active_texels'], 1):.1f} a texel on average")
     if args.scheduler:
         moved = lattice.meta["cluster"]
         print(f"cluster: {moved['tasks']:,} tasks, {moved['bytes_sent'] / 1e6:.1f} MB sent and "

@@ -196,3 +196,16 @@ def test_the_command_line_bakes_exact_samples_unless_given_a_target():
     assert bake_samples(64, None) == (64, None)
     assert bake_samples(None, 0.05) == (ADAPTIVE_MIN_SAMPLES, 0.05)
     assert bake_samples(32, 0.05) == (32, 0.05)
+
+
+def test_the_bake_command_says_what_a_target_traced(tmp_path, capsys):
+    from isolume.app.cli import main
+
+    out = tmp_path / "l.npz"
+    assert main(["bake", "synthetic:sphere:16", "--target-error", "0.2", "--bounces", "1",
+                 "--out", str(out), "--workers", "2"]) == 0
+    said = capsys.readouterr().out
+    lattice = Lattice.load(out)
+    paths = int(lattice.samples.sum())
+    assert f"noise target 0.2: {paths:,} paths" in said
+    assert lattice.config.target_error == 0.2 and lattice.samples.max() >= 16
