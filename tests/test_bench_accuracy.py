@@ -163,7 +163,7 @@ def test_the_command_writes_its_table_json_and_contact_sheet(tmp_path, capsys):
         assert row["black_fraction"] == 0.0
     assert rows[1]["bake_seconds"] > 0 and rows[1]["iso_range"][0] < 0.5
     assert rows[1]["paths"] == 4 * rows[1]["active_texels"] and rows[1]["lattice_bytes"] > 0
-    assert rows[1]["target_error"] is None  # --paths: exactly that many
+    assert rows[1]["target_error"] is None and rows[1]["scale"] == 1.0  # --paths: exactly
     assert len(list((tmp_path / "xdg" / "isolume" / "references").iterdir())) == 1
     assert document["failures"][0]["volume"] == str(missing)
     assert document["summary"]["cases"] == 2 and document["complete"]

@@ -8,14 +8,15 @@ from isolume.app.bench.front import FrontError, front, read_sweep
 from isolume.app.cli import main
 
 
-def _sweep(folder, samples, target, cases):
+def _sweep(folder, samples, target, cases, scale=1.0):
     """A bench accuracy folder whose bake rows are `cases`: (volume, iso, error, paths)."""
     folder.mkdir(parents=True)
     rows = [{"volume": v, "iso": iso, "mode": "render", "rel_rmse_less_noise": 0.5,
              "paths_per_texel": 64} for v, iso, _, _ in cases]
     rows += [{"volume": v, "iso": iso, "mode": "bake", "rel_rmse_less_noise": error,
               "reference_noise": 0.004, "black_fraction": 0.0, "paths": paths,
-              "samples": samples, "target_error": target, "bake_seconds": paths / 1e6,
+              "samples": samples, "target_error": target, "scale": scale,
+              "bake_seconds": paths / 1e6,
               "lattice_bytes": 1000} for v, iso, error, paths in cases]
     (folder / "accuracy.json").write_text(json.dumps({"rows": rows}))
     return folder
@@ -36,6 +37,8 @@ def test_the_front_sums_and_spreads_the_shared_cases(tmp_path):
     assert t["kind"] == "target" and u["kind"] == "uniform"
     assert record["left_out"] == [{"volume": "c", "iso": 3.0}]
     assert record["cases"][1]["error"]["target 0.1 (from 16)"] == 0.07
+    coarse = read_sweep(_sweep(tmp_path / "c", 100, None, [("a", 1.0, 0.03, 400_000)], 0.5))
+    assert (coarse["kind"], coarse["label"]) == ("uniform, scale 0.5", "100 paths x0.5")
 
 
 def test_the_command_writes_the_chart_and_refuses_what_it_cannot_read(tmp_path, capsys):

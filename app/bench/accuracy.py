@@ -91,6 +91,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--target-error", type=float, default=None, metavar="E",
                    help="the bake's noise target, as bake's --target-error (with --paths: "
                    "its minimum paths)")
+    p.add_argument("--scale", type=float, default=1.0, metavar="S",
+                   help="the bake's lattice texels per voxel, as bake's --scale (default 1)")
     p.add_argument("--cache", default=None, metavar="DIR|none",
                    help="folder of the references kept for later sweeps (default "
                    "$XDG_CACHE_HOME/isolume/references, else ~/.cache/isolume/references; "
@@ -118,7 +120,7 @@ class Sweep:
         ref_spp: cap on the reference's samples per pixel.
         paths: paths per texel of the render and the bake (None: their defaults).
         target_error: the bake's noise target (None: the bake's default, or exactly
-            `paths`).
+            `paths`); scale: the bake's texels per voxel.
         cache: the folder of kept references (None: none kept).
         up: ([NAME], AXIS) rules of ``--up``; progress: progress bars on stderr.
     """
@@ -130,6 +132,7 @@ class Sweep:
     ref_spp: int
     paths: int | None
     target_error: float | None
+    scale: float
     cache: Path | None
     skip_bake: bool
     first_only: bool
@@ -159,7 +162,8 @@ def sweep_of(args: argparse.Namespace) -> Sweep:
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     return Sweep(parse_size(args.size), view, args.view, args.max_size, args.ref_spp,
-                 args.paths, args.target_error, reference_cache(args.cache), args.skip_bake,
+                 args.paths, args.target_error, args.scale, reference_cache(args.cache),
+                 args.skip_bake,
                  args.isovalues == "first", parse_up_rules(args.up), args.workers, args.gl,
                  sys.stderr.isatty())
 
@@ -237,12 +241,12 @@ def render_options(sweep: Sweep) -> argparse.Namespace:
 
 def bake_options(sweep: Sweep, iso_range: tuple[float, float]) -> argparse.Namespace:
     """``isolume bake``'s options at their defaults, for `iso_range`, with this sweep's
-    paths and workers."""
+    paths, target, scale and workers."""
     from isolume.app.options import add_bake_options
 
     ns = _defaults(add_bake_options, "--out", "unused.npz")
     ns.iso_range, ns.workers = list(iso_range), sweep.workers
-    ns.samples, ns.target_error = sweep.paths, sweep.target_error
+    ns.samples, ns.target_error, ns.scale = sweep.paths, sweep.target_error, sweep.scale
     return ns
 
 
@@ -435,6 +439,7 @@ def render_baked(volume: Volume, iso: float, sweep: Sweep) -> Shot:
     extra = {"paths": lattice.meta["stats"]["paths"],
              "paths_per_texel": lattice.meta["stats"]["paths"] / max(plan["active_texels"], 1),
              "samples": config.samples, "target_error": config.target_error,
+             "scale": config.scale,
              "iso_range": list(config.iso_range), "lattice_bytes": file_bytes,
              "active_texels": plan["active_texels"], "levels": len(plan["levels"])}
     return Shot("bake", *_flat(frame), time.perf_counter() - began, bake_seconds, extra)

@@ -2,13 +2,13 @@
 
 Each ``bench accuracy`` sweep (its ``--out`` folder's ``accuracy.json``) with other bake
 settings — ``--paths N`` (exactly N paths a texel) or ``--target-error E`` (paths where
-the noise is, `baking.adaptive`) — is one point: over the bake cases every sweep measured
-(the same volumes and isovalues; cases missing from any sweep are left out, and said),
-the median, 90th percentile and worst relative RMSE less the reference's noise against
-the summed paths traced, bake wall time and lattice file bytes. Sweeps of one kind are
-joined by a line, cheapest first: the front of speed against accuracy the defaults are
-chosen on. Writes ``FILE.png`` and ``FILE.json`` (every number plotted and the per-case
-figures) and prints the table.
+the noise is, `baking.adaptive`), at a lattice ``--scale`` — is one point: over the bake
+cases every sweep measured (the same volumes and isovalues; cases missing from any sweep
+are left out, and said), the median, 90th percentile and worst relative RMSE less the
+reference's noise against the summed paths traced, bake wall time and lattice file bytes.
+Sweeps of one kind (uniform or target, at one scale) are joined by a line, cheapest first:
+the front of speed against accuracy the defaults are chosen on. Writes ``FILE.png`` and
+``FILE.json`` (every number plotted and the per-case figures) and prints the table.
 """
 
 from __future__ import annotations
@@ -58,12 +58,14 @@ def read_sweep(folder: Path) -> dict[str, Any]:
         raise FrontError(f"{path}: holds no bake case with its paths (a sweep of --skip-bake, "
                          "or one made before paths were recorded)")
     first = next(iter(rows.values()))
-    target = first.get("target_error")
+    target, scale = first.get("target_error"), float(first.get("scale", 1.0))
     kind = "uniform" if target is None else "target"
     label = (f"{first['samples']} paths" if target is None
              else f"target {target:g} (from {first['samples']})")
+    if scale != 1.0:
+        kind, label = f"{kind}, scale {scale:g}", f"{label} x{scale:g}"
     return {"folder": str(folder), "label": label, "kind": kind, "target_error": target,
-            "samples": first["samples"], "rows": rows}
+            "samples": first["samples"], "scale": scale, "rows": rows}
 
 
 def _spread(values: list[float]) -> dict[str, float]:
@@ -86,7 +88,8 @@ def front(sweeps: list[dict[str, Any]]) -> dict[str, Any]:
                   if math.isfinite(r["rel_rmse_less_noise"])]
         points.append({"label": sweep["label"], "kind": sweep["kind"],
                        "folder": sweep["folder"], "samples": sweep["samples"],
-                       "target_error": sweep["target_error"], **_spread(errors),
+                       "target_error": sweep["target_error"], "scale": sweep["scale"],
+                       **_spread(errors),
                        "black_cases": sum(r["black_fraction"] > 0.001 for r in rows),
                        **{key: sum(r.get(key) or 0 for r in rows) for key, _, _ in FIGURES}})
     per_case = [{"volume": v, "iso": iso,
@@ -106,7 +109,9 @@ def plot(record: dict[str, Any], path: Path) -> None:
     from isolume.app.charts.plotting import figure, plain_log_ticks
 
     plt, fig, axes = figure(len(FIGURES))
-    colours = {"uniform": "tab:blue", "target": "tab:orange"}
+    kinds = list(dict.fromkeys(p["kind"] for p in record["points"]))
+    colours = dict(zip(kinds, plt.rcParams["axes.prop_cycle"].by_key()["color"],
+                       strict=False))
     for ax, (key, label, scale) in zip(axes, FIGURES, strict=True):
         for kind, colour in colours.items():
             pts = sorted((p for p in record["points"] if p["kind"] == kind),
@@ -127,7 +132,8 @@ def plot(record: dict[str, Any], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=7)
     names = sorted({c["volume"] for c in record["cases"]})
-    fig.suptitle("bake error against cost: uniform paths and paths where the noise is\n"
+    fig.suptitle("bake error against cost: uniform paths, paths where the noise is, "
+                 "lattice scales\n"
                  f"{', '.join(names)}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
