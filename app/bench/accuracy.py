@@ -181,11 +181,8 @@ def reference_cache(text: str | None) -> Path | None:
 
     if text is not None and text.lower() == "none":
         return None
-    if text is None:
-        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-        folder = Path(base) / "isolume" / "references"
-    else:
-        folder = Path(text).expanduser()
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    folder = base / "isolume" / "references" if text is None else Path(text).expanduser()
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
