@@ -314,16 +314,17 @@ def bake_config(args: argparse.Namespace) -> BakeConfig:
 
 def bake_samples(samples: int | None, target: float | None) -> tuple[int, float | None]:
     """(samples, target error) of ``bake``'s ``--samples`` and ``--target-error``: exactly
-    `samples` paths a texel (`DEFAULT_SAMPLES` when not given) without a target; with one,
+    `samples` paths a texel (`baking.config.DEFAULT_SAMPLES` when not given) without a
+    target; with one,
     paths where the noise is (`baking.adaptive`) from a minimum of `samples`
     (`ADAPTIVE_MIN_SAMPLES` when not given)."""
+    from isolume.baking.config import DEFAULT_SAMPLES
+
     if target is None:
         return (DEFAULT_SAMPLES if samples is None else samples), None
     return (ADAPTIVE_MIN_SAMPLES if samples is None else samples), target
 
 
-DEFAULT_SAMPLES = 100
-"""``bake``'s paths per texel when neither ``--samples`` nor ``--target-error`` is given."""
 ADAPTIVE_MIN_SAMPLES = 16
 """The fewest paths a texel of a bake to a noise target gets when ``--samples`` is not
 given."""
@@ -333,7 +334,7 @@ DEFAULT_MAX_SAMPLES = 1024
 
 def add_bake_options(p: argparse.ArgumentParser) -> None:
     """The options of ``isolume bake`` after the volume's."""
-    from isolume.baking.config import DEFAULT_ENV
+    from isolume.baking.config import DEFAULT_ENV, DEFAULT_SAMPLES
 
     p.add_argument("--out", required=True, help="lattice file FILE.npz (resumed if present)")
     p.add_argument("--mode", default="irradiance", choices=["irradiance", "sh"],

@@ -135,7 +135,7 @@ def _resume(outputs: _Outputs, tracer):
     if not outputs.state.exists():
         return PixelStats.empty(tracer.pixels), {}
     stats, meta = load_state(outputs.state)
-    if meta.get("identity") != tracer.identity or len(stats.count) != tracer.pixels:
+    if not tracer.holds(stats, meta):
         raise BakeError(
             f"{outputs.state}: holds a reference of another volume, camera or lighting; to "
             "add samples repeat its settings, or delete it (or choose another --out)")

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from isolume.baking import kernels
+from isolume.baking.lattice import path_variance
 from isolume.volumes import cores
 
 ROUND_KEY = "rounds"
@@ -104,15 +105,6 @@ def group_brightness(luminance: np.ndarray) -> float:
     1 where every texel is dark, so that the target is then an absolute one)."""
     level = float(np.mean(np.abs(luminance))) if len(luminance) else 0.0
     return level if level > 0 else 1.0
-
-
-def path_variance(luminance: np.ndarray, second: np.ndarray, samples: np.ndarray
-                  ) -> np.ndarray:
-    """(N,) float64 unbiased per-path variance of texels' brightness from their (N,)
-    means, mean squares and sample counts (0 with fewer than 2 samples)."""
-    n = samples.astype(np.float64)
-    var = np.maximum(second.astype(np.float64) - luminance.astype(np.float64) ** 2, 0.0)
-    return np.where(n > 1, var * n / np.maximum(n - 1, 1), 0.0)
 
 
 def neighbour_variance(ids: np.ndarray, variance: np.ndarray, shape: tuple[int, int, int],

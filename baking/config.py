@@ -25,6 +25,8 @@ SIDES = ("seen", "normals")
 """Which side of its surface a texel is lit on (`BakeConfig.sides`)."""
 
 
+DEFAULT_SAMPLES = 100
+"""Paths per texel of a bake that names no count nor noise target."""
 MIN_TARGET_SAMPLES = 4
 """The fewest first-round paths of a bake to a noise target."""
 SCALES = (0.05, 8.0)
@@ -80,7 +82,7 @@ class BakeConfig:
 
     mode: str = "irradiance"
     sh_order: int = 5
-    samples: int = 100
+    samples: int = DEFAULT_SAMPLES
     bounces: int = 2
     albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
     scale: float = 1.0

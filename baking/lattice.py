@@ -261,15 +261,20 @@ def _luminance(values: np.ndarray, kind: str) -> np.ndarray:
     return values[..., :3] @ LUMINANCE if kind == "irradiance" else values[..., 0]
 
 
+def path_variance(mean: np.ndarray, second: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """(…) float64 unbiased per-path variance of a brightness from its (…) `mean`, mean
+    square `second` and sample counts `samples` (0 with fewer than 2 samples)."""
+    n = samples.astype(np.float64)
+    var = np.maximum(second.astype(np.float64) - mean.astype(np.float64) ** 2, 0.0)
+    return np.where(n > 1, var * n / np.maximum(n - 1, 1), 0.0)
+
+
 def standard_error(values: np.ndarray, samples: np.ndarray, second: np.ndarray,
                    kind: str) -> np.ndarray:
     """(…) float32 standard error of the luminance mean of texels with (…, C) `values`,
     (…) `samples` and `second` moments (`Lattice`'s, of `kind`); inf where < 2 samples."""
-    n = samples.astype(np.float64)
-    var = np.maximum(second - _luminance(values, kind).astype(np.float64) ** 2, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        se = np.where(n > 1, np.sqrt(var * n / np.maximum(n - 1, 1) / np.maximum(n, 1)),
-                      np.inf)
+    var = path_variance(_luminance(values, kind), second, samples)
+    se = np.where(samples > 1, np.sqrt(var / np.maximum(samples, 1)), np.inf)
     return se.astype(np.float32)
 
 

@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry
+from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, path_variance
 from isolume.baking.plan import Plan
 
 if TYPE_CHECKING:
@@ -385,12 +385,9 @@ def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) 
         (N,) float64; inf where fewer than 2 samples (no variance estimate yet).
     """
     lum = values[:, :3] @ LUMINANCE if values.shape[1] >= 3 else values[:, 0]
-    lum = lum.astype(np.float64)
-    n = samples.astype(np.float64)
-    var = np.maximum(second - lum * lum, 0.0) * n / np.maximum(n - 1, 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        se = np.sqrt(var / np.maximum(n, 1)) / np.maximum(np.abs(lum), 1e-12)
-    return np.where(n > 1, se, np.inf)
+    se = np.sqrt(path_variance(lum, second, samples) / np.maximum(samples, 1))
+    return np.where(samples > 1, se / np.maximum(np.abs(lum.astype(np.float64)), 1e-12),
+                    np.inf)
 
 
 def scene_cache_size(volume: Volume, iso: float, levels: int, budget_bytes: float) -> int:

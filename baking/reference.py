@@ -431,6 +431,11 @@ class ReferenceTracer:
         self._max_in_flight = 2 * threads + 2  # keeps every thread busy, memory bounded
         self.counters.setup_seconds = time.perf_counter() - started
 
+    def holds(self, stats: PixelStats, meta: dict[str, Any]) -> bool:
+        """Whether a state file's `stats` and `meta` (`load_state`) are of this tracer's
+        volume, isovalue, camera rays and lighting (`identity`), its samples to add to."""
+        return meta.get("identity") == self.identity and len(stats.count) == self.pixels
+
     def pending_paths(self, stats: PixelStats, spp: int) -> int:
         """Paths still to trace to bring every hit pixel to `spp` samples."""
         return int(np.maximum(spp - stats.count[self.hits.pixels], 0).sum())

@@ -190,7 +190,8 @@ def test_the_noise_left_follows_the_target_and_paths_follow_the_spread():
 def test_the_command_line_bakes_exact_samples_unless_given_a_target():
     """``bake`` alone: exactly the default paths; ``--target-error E``: paths where the
     noise is, from the adaptive minimum unless ``--samples`` says."""
-    from isolume.app.options import ADAPTIVE_MIN_SAMPLES, DEFAULT_SAMPLES, bake_samples
+    from isolume.app.options import ADAPTIVE_MIN_SAMPLES, bake_samples
+    from isolume.baking.config import DEFAULT_SAMPLES
 
     assert bake_samples(None, None) == (DEFAULT_SAMPLES, None)
     assert bake_samples(64, None) == (64, None)

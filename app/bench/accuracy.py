@@ -549,9 +549,7 @@ def _kept_reference(folder: Path | None, tracer):
         stats, meta = load_state(path)
     except BakeError:
         return None
-    if meta.get("identity") != tracer.identity or len(stats.count) != tracer.pixels:
-        return None
-    return stats
+    return stats if tracer.holds(stats, meta) else None
 
 
 def _trace(tracer, stats, spp: int, progress: bool) -> None:

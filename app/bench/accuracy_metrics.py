@@ -129,7 +129,7 @@ def next_spp(spp: int, noise: float, error: float, cap: int) -> int:
     return int(min(cap, max(2 * spp, min(needed, 16 * spp))))
 
 
-def _spread(values: list[float]) -> dict:
+def spread(values: list[float]) -> dict:
     """Median, 90th percentile and largest of `values` (None when empty)."""
     if not values:
         return {"median": None, "p90": None, "worst": None}
@@ -155,8 +155,8 @@ def summarize(rows: list[dict[str, Any]], failures: list[dict[str, Any]]) -> dic
                      if math.isfinite(r["rel_rmse_less_noise"])]
         worst = max(mine, key=lambda r: r["rel_rmse_less_noise"]
                     if math.isfinite(r["rel_rmse_less_noise"]) else r["rel_rmse"])
-        modes[mode] = {"cases": len(mine), "rel_rmse_less_noise": _spread(corrected),
-                       "rel_rmse": _spread([r["rel_rmse"] for r in mine]),
+        modes[mode] = {"cases": len(mine), "rel_rmse_less_noise": spread(corrected),
+                       "rel_rmse": spread([r["rel_rmse"] for r in mine]),
                        "worst_case": {"volume": worst["volume"], "iso": worst["iso"]},
                        **{f"total_{key}": sum(r[key] for r in mine) for key in TOTALS
                           if all(r.get(key) is not None for r in mine)}}

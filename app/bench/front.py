@@ -19,8 +19,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from isolume.app.bench.accuracy_metrics import BLACK_LIMIT, spread
 from isolume.volumes.errors import IsolumeError
 
 HELP = "the bake's error against paths, time and bytes over several bench accuracy sweeps"
@@ -68,11 +67,6 @@ def read_sweep(folder: Path) -> dict[str, Any]:
             "samples": first["samples"], "scale": scale, "rows": rows}
 
 
-def _spread(values: list[float]) -> dict[str, float]:
-    return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)),
-            "worst": float(max(values))}
-
-
 def front(sweeps: list[dict[str, Any]]) -> dict[str, Any]:
     """The points of `sweeps` (`read_sweep`) over the cases they share: per sweep its
     error spread and the sums of `FIGURES`, and per case every sweep's error and paths."""
@@ -89,8 +83,8 @@ def front(sweeps: list[dict[str, Any]]) -> dict[str, Any]:
         points.append({"label": sweep["label"], "kind": sweep["kind"],
                        "folder": sweep["folder"], "samples": sweep["samples"],
                        "target_error": sweep["target_error"], "scale": sweep["scale"],
-                       **_spread(errors),
-                       "black_cases": sum(r["black_fraction"] > 0.001 for r in rows),
+                       **spread(errors),
+                       "black_cases": sum(r["black_fraction"] > BLACK_LIMIT for r in rows),
                        **{key: sum(r.get(key) or 0 for r in rows) for key, _, _ in FIGURES}})
     per_case = [{"volume": v, "iso": iso,
                  "error": {s["label"]: s["rows"][(v, iso)]["rel_rmse_less_noise"]
