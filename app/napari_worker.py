@@ -211,13 +211,8 @@ class LightingLink:
         return messages
 
     def close(self) -> None:
-        """Stop the process (terminated after `STOP_WAIT_S` seconds if it does not end)."""
-        if self.process.is_alive():
-            self.inbox.put("stop")
-            self.process.join(STOP_WAIT_S)
-        if self.process.is_alive():
-            self.process.terminate()
-            self.process.join(STOP_WAIT_S)
-        for q in (self.inbox, self.outbox):
-            q.cancel_join_thread()
-            q.close()
+        """Stop the process, dropping the results it still sends meanwhile (terminated
+        after `STOP_WAIT_S` seconds if it does not end: `bake_client.stop_process`)."""
+        from isolume.app.viewer.bake_client import stop_process
+
+        stop_process(self.process, self.inbox, self.outbox, self.poll, STOP_WAIT_S)

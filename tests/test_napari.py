@@ -392,3 +392,25 @@ def test_the_saved_view_renders_from_naparis_camera(lit, qtbot, tmp_path):
 
     shown = np.asarray(Picture.open(picture), float)[..., :3].mean(axis=-1)
     assert shown.shape == (72, 96) and shown[30:42, 40:56].mean() > 20
+
+
+def test_the_lighting_process_exits_cleanly_with_results_unread():
+    """Closed while results it sent are still unread, the lighting process is not left
+    blocked on its queue until it is terminated: it exits by itself (code 0)."""
+    import argparse
+
+    from isolume.app.napari_worker import LightingLink
+    from isolume.app.options import view_light
+
+    volume = volumes.load("synthetic:torus:32")
+    options = argparse.Namespace(env=None, light=None, samples=4, bounces=1, albedo=None,
+                                 seed=0, normals="smooth", flip_normals=False)
+    link = LightingLink(volume, 2)
+    link.send({"id": 1, "iso": volumes.suggest_isovalues(volume)[0],
+               "config": view_light(options, volume).to_dict()})
+    deadline = time.perf_counter() + 60
+    while link.outbox.qsize() < 2 and time.perf_counter() < deadline:  # mesh and light
+        time.sleep(0.1)
+    assert link.outbox.qsize() >= 2
+    link.close()
+    assert link.process.exitcode == 0

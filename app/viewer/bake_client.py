@@ -22,6 +22,7 @@ import dataclasses
 import json
 import os
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -533,6 +534,27 @@ def range_warning(meta: dict[str, Any], iso: float) -> tuple[str, ...]:
             f"{served[1]:.4g}: light of the surface at the range's end",)
 
 
+def stop_process(process: Any, inbox: Any, outbox: Any, receive: Callable[[], object],
+                 timeout: float) -> None:
+    """Ask a worker `process` to finish and exit ("stop" on its `inbox`), calling
+    `receive` (which reads its `outbox`) while it winds down — a process whose queue
+    holds more than its pipe takes cannot exit until that is read — and terminate it if
+    it has not ended after `timeout` seconds (at once for 0: it has written nothing);
+    then close both queues."""
+    if process.is_alive() and timeout > 0:
+        inbox.put("stop")
+        deadline = time.perf_counter() + timeout
+        while process.is_alive() and time.perf_counter() < deadline:
+            process.join(0.05)
+            receive()
+    if process.is_alive():
+        process.terminate()
+        process.join(2)
+    for q in (inbox, outbox):
+        q.cancel_join_thread()
+        q.close()
+
+
 class BakeLink:
     """The viewer's side of the lazy bake process: send views, receive committed texels."""
 
@@ -761,15 +783,5 @@ class BakeLink:
         that is read); terminate it if it has not ended after `timeout` seconds (at once
         while it is still planning: it has written nothing yet)."""
         self.poll()
-        if self.process.is_alive() and self.ready is not None:
-            self.inbox.put("stop")
-            deadline = time.perf_counter() + timeout
-            while self.process.is_alive() and time.perf_counter() < deadline:
-                self.process.join(0.05)
-                self.poll()
-        if self.process.is_alive():
-            self.process.terminate()
-            self.process.join(2)
-        for q in (self.inbox, self.outbox):
-            q.cancel_join_thread()
-            q.close()
+        stop_process(self.process, self.inbox, self.outbox, self.poll,
+                     timeout if self.ready is not None else 0.0)
