@@ -25,7 +25,6 @@ import numpy as np
 from isolume import volumes
 from isolume.baking import kernels
 from isolume.baking.config import BakeConfig
-from isolume.baking.errors import BakeError
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.passes import (
     LevelPaths,
@@ -37,7 +36,7 @@ from isolume.baking.passes import (
     level_scene,
     trace_texels,
 )
-from isolume.baking.plan import Plan, index_type, resolved_iso_range
+from isolume.baking.plan import Plan, index_type
 from isolume.baking.plan_records import LevelGroups, PlanRecords
 from isolume.volumes import cores
 
@@ -45,8 +44,10 @@ if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.trace import Scene
 
 AHEAD_LEVELS = 1
-"""Scenes of the lowest levels a `ThreadBackend` builds beside the plan: the helper thread
-is done with level 0's before the plan is (its side probes then start on it)."""
+"""Scenes of the highest levels a `ThreadBackend` builds beside the plan: the helper
+thread is done with the top level's before the plan's side probes start on it (they go
+down the levels, leaving the lowest one's scene, where the tracing starts, in the
+cache)."""
 REPORT_S = 0.5
 """Seconds between progress-bar updates while a level is traced."""
 TEXELS_PER_BATCH = 1 << 20
@@ -101,10 +102,10 @@ class PassWork:
     """What one pass traces (`Baker.pending`).
 
     Attributes:
-        done, remaining: paths done and still to trace per plan position: (T,) arrays
-            (0 outside the pass), or 0-d arrays where they are the same for every texel
-            of the plan (a whole bake from scratch holds no per-texel counts); uint16
-            where they fit (`bake._count_type`), else int32.
+        done, remaining: paths done and still to trace by busy texel: (N,) arrays in the
+            order of ``groups.members``, or 0-d arrays where they are the same for every
+            texel of the plan (a whole bake from scratch holds no per-texel counts);
+            uint16 where they fit (`bake._count_type`), else int32.
         first, last: the first and last level the pass traces (`last` = the highest lower
             level + 1).
         groups: the busy texels, those that need paths, by lower level (`LevelGroups`:
@@ -123,11 +124,13 @@ class PassWork:
         return self.groups.members
 
     def counts(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N,) paths done and (N,) paths to trace of the texels at plan `positions`."""
+        """(N,) paths done and (N,) paths to trace of the busy texels at plan
+        `positions`."""
         if self.done.ndim == 0:
             return (np.full(len(positions), self.done, self.done.dtype),
                     np.full(len(positions), self.remaining, self.remaining.dtype))
-        return self.done[positions], self.remaining[positions]
+        at = np.searchsorted(self.busy, positions)
+        return self.done[at], self.remaining[at]
 
     def lower_on(self, level: int) -> np.ndarray:
         """(N,) sorted busy positions whose lower level is `level` (`LevelGroups.of`)."""
@@ -209,18 +212,16 @@ class TracingBackend(Protocol):
         """Stop tracing and let go of threads, processes and connections."""
 
 
-def _first_level(volume: volumes.Volume, config: BakeConfig,
-                kept: np.ndarray | None) -> float | None:
-    """The lowest level the plan will choose, known before it: a resumed bake's first kept
-    level, else the bottom of the iso range (`choose_levels` starts there whenever a
-    texel's value lies at or below it, as at every surface that crosses it); None when the
-    range cannot be resolved (the plan then says why)."""
-    if kept is not None:
-        return float(kept[0])
-    try:
-        return float(resolved_iso_range(volume, config)[0])
-    except BakeError:
-        return None
+class _Beside(NamedTuple):
+    """Work submitted to a `ThreadBackend`'s helper thread, waited for later: its `future`
+    and its `batch` in a timeline (`volumes.cores.beside_call`)."""
+
+    future: Future
+    batch: int
+
+    def wait(self):
+        """The work's result (`cores.waited`: the timeline marks where it was needed)."""
+        return cores.waited(self.future, self.batch)
 
 
 class PassStep(NamedTuple):
@@ -272,7 +273,7 @@ class ThreadBackend:
         workers: threads tracing concurrently (default: CPU count); the result does not
             depend on it.
         scene_cache: how many level scenes to keep alive (at least 1).
-        ahead: scenes of the lowest levels to build beside the plan.
+        ahead: scenes of the highest levels to build beside the plan (`AHEAD_LEVELS`).
     """
 
     def __init__(self, workers: int | None = None, scene_cache: int = 1,
@@ -286,10 +287,9 @@ class ThreadBackend:
         self._scenes: OrderedDict[int, Scene] = OrderedDict()
         self._scene_cache = max(1, scene_cache)
         self._scene_lock = threading.Lock()
-        self._pending: dict[int, Future] = {}  # scenes being built ahead
+        self._pending: dict[int, _Beside] = {}  # scenes being built ahead
         self._ahead = ahead
-        self._first_guess: float | None = None
-        self._warm: Future | None = None
+        self._warm: _Beside | None = None
         self._volume: volumes.Volume | None = None
         self._config: BakeConfig | None = None
         self._levels: np.ndarray | None = None
@@ -297,24 +297,24 @@ class ThreadBackend:
 
     def begin(self, volume: volumes.Volume, config: BakeConfig,
               kept: np.ndarray | None, stats: BakeStats) -> None:
-        """Load the compiled code and build the scene of the plan's likely first level
-        (`_first_level`) on the helper thread while the plan is made."""
+        """Load the compiled code on the helper thread while the plan is made."""
         self._volume, self._config, self._stats = volume, config, stats
-        self._warm = self._helper.submit(kernels.warm_up)
-        self._first_guess = _first_level(volume, config, kept) if self._ahead > 0 else None
-        if self._first_guess is not None:
-            self._pending[0] = self._helper.submit(level_scene, volume, self._first_guess,
-                                                   config)
+        self._warm = self._beside("warm up", kernels.warm_up)
 
     def levels_known(self, levels: np.ndarray) -> None:
-        """Build the scenes of the lowest `ahead` levels (where a whole bake starts) on the
-        helper thread while the plan goes on; level 0's is the one started by `begin`
-        when the guess was right."""
+        """Build the scenes of the highest `ahead` levels, where the plan's side probes
+        start (`sides.choose_sides`), on the helper thread while the plan goes on."""
         self._levels = np.asarray(levels, np.float64)
-        for level in range(min(self._ahead, len(levels))):
-            if level > 0 or self._first_guess != float(levels[0]):
-                self._pending[level] = self._helper.submit(
-                    level_scene, self._volume, float(levels[level]), self._config)
+        for level in range(len(levels) - 1, max(len(levels) - self._ahead, 0) - 1, -1):
+            self._pending[level] = self._beside("scene", level_scene, self._volume,
+                                                float(levels[level]), self._config)
+
+    def _beside(self, kind: str, function, *args) -> _Beside:
+        """`function(*args)` submitted to the helper thread, an item of `kind` done beside
+        (`cores.beside_call`)."""
+        batch = cores.new_batch()
+        return _Beside(self._helper.submit(cores.beside_call, kind, function, *args,
+                                           batch=batch), batch)
 
     def plan_scene(self, level: int) -> Scene:
         """The scene of level `level`, from the cache (`_scene`): the plan's side probes
@@ -324,7 +324,7 @@ class ThreadBackend:
     def start(self, job: BakeJob) -> None:
         """Trace with `job` (once the compiled code is loaded)."""
         if self._warm is not None:
-            self._warm.result()
+            self._warm.wait()
         self.job = job
 
     def trace_pass(self, work: PassWork, report: PassReport) -> None:
@@ -350,11 +350,13 @@ class ThreadBackend:
         between = None  # the sums of the texels whose lower level was the last traced
         traced: list = []  # a batch complete on its upper level, not yet committed
         try:
-            lay = self._waited(self._with_scene, self._lay_out(work, step))
+            with cores.timed_item("layout"):
+                first = self._lay_out(work, step)
+            lay = self._waited(self._with_scene, first)
             for following in itertools.chain(steps, [None]):
                 step = lay.step
                 same_level = following is not None and following.level == step.level
-                upcoming = (self._helper.submit(self._lay_out, work, following)
+                upcoming = (self._beside("layout", self._lay_out, work, following)
                             if following is not None else None)
                 if not step.upper and step.first == 0:  # this level's upper steps are done:
                     _commit(traced, report)  # their group's sums go
@@ -362,7 +364,8 @@ class ThreadBackend:
                     between = PassSums(len(work.lower_on(step.level)), channels)
                 sums = between.rows(slice(step.first, step.first + len(step.texels)))
                 chunks = self._submit_level(lay, sums)
-                _commit(traced, report)  # the batch before, while this one is traced
+                with cores.beside():  # the batch before, while this one is traced
+                    _commit(traced, report)
                 self._collect(chunks, step.level, report)
                 chunks = []
                 if step.upper:
@@ -370,7 +373,7 @@ class ThreadBackend:
                 if following is not None:
                     if not same_level:  # this level's scene goes before the next one's is built
                         lay = sums = None
-                    lay = self._waited(self._with_scene, upcoming.result())
+                    lay = self._waited(self._with_scene, upcoming.wait())
             _commit(traced, report)
         except BaseException:
             _cancel(chunks)
@@ -400,7 +403,7 @@ class ThreadBackend:
             ahead = self._pending.pop(level, None)
             while len(self._scenes) >= self._scene_cache:
                 self._scenes.popitem(last=False)
-        scene = ahead.result() if ahead is not None else level_scene(
+        scene = ahead.wait() if ahead is not None else level_scene(
             self._volume, float(self._levels[level]), self._config)
         with self._scene_lock:
             self._stats.mesh_seconds += scene.mesh_seconds

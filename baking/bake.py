@@ -147,6 +147,12 @@ def _resumable(volume: volumes.Volume, config: BakeConfig, out: Path | None
     return file
 
 
+BAR_REFRESH_S = 0.1
+"""Seconds between redraws of a plan stage's progress bar."""
+CHECKPOINT_S = 60.0
+"""Seconds between a bake's checkpoints, at least (`Checkpoints`)."""
+
+
 class _PlanBars:
     """The plan's stages on stderr as progress bars, one a stage, while `enabled`
     (`make_plan`'s ``progress(stage[, fraction])``: a large volume's plan takes minutes).
@@ -157,6 +163,7 @@ class _PlanBars:
         self.enabled = enabled
         self.stage: str | None = None
         self.bar = None
+        self.shown = 0.0  # when the bar was last drawn
 
     def __enter__(self) -> _PlanBars:
         return self
@@ -175,7 +182,10 @@ class _PlanBars:
                             bar_format="{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
         if fraction is not None:
             self.bar.n = min(100.0, 100.0 * fraction)
-            self.bar.refresh()
+            now = time.perf_counter()
+            if now - self.shown >= BAR_REFRESH_S or self.bar.n >= 100.0:
+                self.bar.refresh()  # not at every block: a bar drawn costs 0.2 ms
+                self.shown = now
 
     def _end(self, finished: bool) -> None:
         """End the current stage's bar, full when the stage `finished`."""
@@ -364,16 +374,13 @@ class Baker:
         had = self.samples_done(positions)
         wanted = np.maximum(np.asarray(target) - had, 0)
         count = _count_type(int((had + wanted).max(initial=0)))
-        done = np.zeros(len(plan.ids), count)
-        remaining = np.zeros(len(plan.ids), count)
-        done[positions], remaining[positions] = had, wanted
-        busy = positions[wanted > 0]
-        del had, wanted
+        needs = wanted > 0
+        busy = positions[needs]
         if len(busy) == 0:
             return None
         lower = plan.lower[busy]
-        return PassWork(done, remaining, int(lower.min()), int(lower.max()) + 1,
-                        LevelGroups(plan.lower, busy))
+        return PassWork(had[needs].astype(count), wanted[needs].astype(count),
+                        int(lower.min()), int(lower.max()) + 1, LevelGroups(plan.lower, busy))
 
     def _alike(self, done: int, target: int) -> PassWork | None:
         """The pass that brings every texel of the plan from `done` paths to `target`."""
@@ -443,7 +450,7 @@ threads of the machine the docs' figures come from (0.6 M per thread)."""
 
 def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[str] | None = None,
          workers: int | None = None, progress: bool = False,
-         checkpoint_seconds: float = 60.0, scheduler: str | None = None,
+         checkpoint_seconds: float = CHECKPOINT_S, scheduler: str | None = None,
          outlook: Callable[[BakeOutlook], None] | None = None,
          dense: bool = True, keep_interrupted: bool = False) -> Lattice | PlanLattice:
     """Bake (or resume) the illumination lattice of `volume` for `config`.
@@ -510,7 +517,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
         bar.close()
     cores.stage("save")
     if out is not None and not held.meta.get("interrupted"):
-        held.save(out)
+        with cores.timed_item("save"):  # deflated in pieces on the pool (`lattice_file`)
+            held.save(out)
     del baker  # its plan goes before the lattice is made dense
     return held.dense() if dense else held
 

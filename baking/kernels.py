@@ -481,6 +481,25 @@ def neighbour_medians(ids: np.ndarray, variance: np.ndarray, nz: int, ny: int, n
             out[k] = 0.5 * (found[(count - 1) // 2] + found[count // 2])
 
 
+@numba.njit(**JIT)
+def count_bins(which: np.ndarray, lo: int, hi: int, counts: np.ndarray) -> None:
+    """Into (B,) `counts`: how many of ``which[lo:hi]`` (bin indices < B) fall in each bin."""
+    for i in range(lo, hi):
+        counts[which[i]] += 1
+
+
+@numba.njit(**JIT)
+def scatter_by_bin(which: np.ndarray, values: np.ndarray, lo: int, hi: int,
+                   places: np.ndarray, out: np.ndarray) -> None:
+    """Put ``values[lo:hi]`` into `out`, each at its bin's next place (`places`, (B,), moved
+    on as they fill): with each block's places where the blocks before it end in each
+    bin, the blocks together make ``values[np.argsort(which, kind="stable")]``."""
+    for i in range(lo, hi):
+        b = which[i]
+        out[places[b]] = values[i]
+        places[b] += 1
+
+
 def warm_up() -> None:
     """Load (or compile, the first time on a machine) every kernel for the argument types
     the path tracer uses, so that the first bake's timings measure tracing only."""

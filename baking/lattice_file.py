@@ -176,6 +176,7 @@ class _Deflating:
         self.crc, self.size = 0, 0
         self.pending: deque = deque()
         self.pool = cores.pool() if cores.threads() > 1 else cores.Inline()
+        self.batch = cores.new_batch()  # the pieces, side by side in a timeline
 
     def write(self, data) -> None:
         """Add `data` (bytes or a byte memoryview) to the member."""
@@ -186,7 +187,7 @@ class _Deflating:
             piece = data[lo:lo + DEFLATE_PIECE]
             self.crc = zlib.crc32(piece, self.crc)
             self.size += len(piece)
-            self.pending.append(self.pool.submit(_deflated, piece))
+            self.pending.append(self.pool.submit(_deflated, piece, self.batch))
             while len(self.pending) > 2 * cores.threads():
                 self.member.write(self.pending.popleft().result())
 
@@ -217,11 +218,13 @@ class _Passing:
         return b""
 
 
-def _deflated(piece) -> bytes:
+def _deflated(piece, batch: int) -> bytes:
     """`piece` deflated on its own (raw deflate, zipfile's level), ended by a sync flush:
-    byte-aligned and not final, so that pieces concatenate into one stream."""
-    deflate = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
-    return deflate.compress(piece) + deflate.flush(zlib.Z_SYNC_FLUSH)
+    byte-aligned and not final, so that pieces concatenate into one stream; an item of
+    `batch` in a timeline."""
+    with cores.batch_item(batch, "deflate"):
+        deflate = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
+        return deflate.compress(piece) + deflate.flush(zlib.Z_SYNC_FLUSH)
 
 
 def _write_whole(zf: zipfile.ZipFile, name: str, array: np.ndarray) -> None:

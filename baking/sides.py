@@ -73,14 +73,15 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
         levels: (K,) isovalues; which_level: (T,) index of each texel's nearer level.
         scenes: ``scenes(k)``, the Embree scene of level k from the baker's cache (no
             scene beside the baker's), or None to build each here (`level_surface`);
-            levels are probed lowest first.
+            levels are probed highest first, so that the one left in the baker's cache
+            is the lowest, where its tracing starts.
         progress: told the fraction of the found texels probed so far, after each batch
             of `TEXELS_PER_BATCH` texels the calling thread probes.
     """
     default = bool(config.flip_normals)
     high = np.full(len(ids), default)
     total, probed = max(int(np.count_nonzero(found)), 1), 0
-    for k in np.unique(which_level[found]):
+    for k in np.unique(which_level[found])[::-1]:
         on = np.flatnonzero(found & (which_level == k))
         scene = scenes(int(k)) if scenes is not None else None
         if scene is None:

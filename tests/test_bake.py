@@ -230,6 +230,27 @@ def test_a_bake_holds_one_group_of_sums_and_one_scene(monkeypatch):
     np.testing.assert_array_equal(batched.samples, whole.samples)
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_the_tracing_starts_on_the_scene_the_side_probes_left(monkeypatch, workers):
+    """The side probes go down the levels from the top one (built beside the plan), so the
+    lowest level's scene, where the tracing starts, is built once for both: a bake of K
+    levels builds 2K − 1 scenes, not 2K."""
+    from isolume.baking import backend
+
+    built, build = [], backend.level_scene
+
+    def level_scene(volume, iso, config):
+        built.append(iso)
+        return build(volume, iso, config)
+
+    monkeypatch.setattr(backend, "level_scene", level_scene)
+    lattice = bake(make("engine", 36), BakeConfig(samples=4, bounces=1), workers=workers)
+    levels = list(lattice.meta["plan"]["levels"])
+    k = len(levels)
+    assert k >= 4
+    assert built == levels[::-1] + levels[1:]  # 2K − 1 builds
+
+
 @pytest.mark.parametrize("env, albedo, direct", [
     ("constant:1,0.6,0.3", (0.8, 0.5, 0.3), None), ("sky:sun=3", (0.7, 0.7, 0.7), "pixels"),
     ("sky:sun=3", (0.7, 0.7, 0.7), "lattice")])
@@ -446,9 +467,10 @@ def test_sphere_radius_constant_is_what_the_volume_uses():
 def test_a_pass_counts_its_samples_in_two_bytes_where_they_fit():
     """`Baker.pending` keeps no per-texel counts where every texel of the plan has the
     same samples done and to do (a whole bake from scratch), else the samples done and to
-    do of every plan position in uint16 while done + to do fits (the counts of a 512³
-    CT's 41 M texels: 165 MB, not 330) and in int32 past that, with the same counts and
-    busy texels either way; the busy texels are grouped by lower level when asked."""
+    do of the busy texels only (a round of a noise target on one level group allocates
+    nothing over the whole plan), in uint16 while done + to do fits and in int32 past
+    that, with the same counts and busy texels either way; the busy texels are grouped
+    by lower level when asked."""
     from isolume.baking.bake import Baker
 
     baker = Baker(make("sphere", 12), BakeConfig(samples=3, bounces=0), workers=1)
@@ -471,9 +493,14 @@ def test_a_pass_counts_its_samples_in_two_bytes_where_they_fit():
         positions = np.arange(0, count, 2)
         wide = baker.pending(positions, np.full(len(positions), 70_000))
         assert wide.done.dtype == np.int32 and wide.remaining.dtype == np.int32
-        np.testing.assert_array_equal(np.flatnonzero(wide.remaining), positions)
-        assert (wide.remaining[positions] == 70_000).all()
+        assert wide.done.shape == wide.remaining.shape == (len(positions),)
+        done, remaining = wide.counts(positions[::-3])
+        assert (done == 0).all() and (remaining == 70_000).all()
         np.testing.assert_array_equal(wide.busy, positions)
+        some = baker.pending(np.arange(count), np.arange(count) % 4)  # texel 4k needs none
+        np.testing.assert_array_equal(some.busy, np.flatnonzero(np.arange(count) % 4))
+        np.testing.assert_array_equal(some.counts(some.busy[::-1])[1],
+                                      (some.busy % 4)[::-1])
         busy = np.concatenate([wide.lower_on(level)
                                for level in range(wide.first, wide.last + 1)])
         np.testing.assert_array_equal(np.sort(busy), positions)

@@ -13,16 +13,20 @@ from isolume.app.bench.cores import (
     aggregate,
     amdahl,
     default_threads,
-    makespan,
     median_run,
     predictions,
-    replay,
-    replay_stage,
     run_child,
-    split_hints,
     stage_labels,
     thread_counts,
     whole,
+)
+from isolume.app.bench.replay import (
+    inner_factors,
+    makespan,
+    replay,
+    replay_stage,
+    split_hints,
+    thinned,
     work_units,
 )
 from isolume.app.cli import main
@@ -102,6 +106,93 @@ def test_the_whole_command_replays_its_stages_and_the_time_outside_them():
     assert at2["tracing"] == pytest.approx(3)
     assert at2["whole"] == pytest.approx(1 + 7 + 3 + 1)
     assert replay(one, 1)["whole"] == pytest.approx(20)
+
+
+def test_work_done_beside_joins_the_next_unit_of_work():
+    # a step's layout (beside, 2 s) recorded before the chunks it overlaps, then a commit
+    # batch done beside (1 s each) between two steps' chunks
+    items = [(1, 1, "layout", 0, 2, 1), *_batch(2, "trace", 2, [3, 3]),
+             *[(*item, 1) for item in _batch(3, "commit", 8, [1, 1])],
+             (4, 1, "trace", 10, 13)]
+    assert work_units(items) == [[2, 3, 3], [1, 1, 3]]
+    stage = _stage("tracing", 0, 13, items)
+    assert replay_stage(stage, 1) == pytest.approx(13)
+    assert replay_stage(stage, 2) == pytest.approx(5 + 4)  # (2 | 3, 3) then (1, 1 | 3)
+    assert replay_stage(stage, 3) == pytest.approx(3 + 3)
+    # beside work left at a stage's end waits for the next stage's work
+    sides = _stage("seen sides", 0, 4, [*_batch(5, "side probes", 0, [1, 1]),
+                                        (6, 1, "scene", 2, 4, 1)])
+    tracing = _stage("tracing", 4, 4, _batch(7, "trace", 4, [2, 2]))
+    at2 = replay(_timeline([sides, tracing]), 2)
+    assert at2["seen sides"] == pytest.approx(1)
+    assert at2["tracing"] == pytest.approx(4)  # (2, 2, 2) on two threads
+    # and left at the very end, it runs on its own
+    assert replay(_timeline([sides]), 2)["seen sides"] == pytest.approx(1 + 2)
+
+
+def test_work_waited_for_by_name_runs_on_a_lane_of_its_own_until_then():
+    """Loading the compiled code (6 s, beside) while the plan runs; the tracing waits for
+    it: on eight threads the plan's 8 s take 1 s (and 6/8 s of the lane's share), the
+    tracing waits until 6 s, then takes 2 s."""
+    warm = (9, 1, "warm up", 0, 6, 1)
+    one = _timeline([
+        _stage("load", 0, 6, [warm]),
+        _stage("texel values", 6, 8, _batch(1, "grid values", 6, [1] * 8)),
+        _stage("tracing", 14, 16, [(9, 1, "wait", 14, 14), *_batch(2, "trace", 14, [1] * 16)]),
+    ])
+    assert replay(one, 1)["whole"] == pytest.approx(30)
+    at8 = replay(one, 8)
+    assert at8["load"] == pytest.approx(0.75) and at8["texel values"] == pytest.approx(1)
+    assert at8["tracing"] == pytest.approx(6 - 1.75 + 2)
+    assert at8["whole"] == pytest.approx(8)
+    assert aggregate(one)["tracing"]["items"] == 16  # the mark is no work item
+
+
+def test_short_gaps_between_a_units_items_are_the_items_own_overhead():
+    # four probe items with 1 ms between them (a progress update after each), then 0.5 s of
+    # glue (a scene let go) before the next level's items
+    items = [(1, 1, "side probes", t, t + 1) for t in (0, 1.001, 2.002, 3.003)]
+    items += [(2, 1, "side probes", t, t + 1) for t in (4.503, 5.504)]
+    stage = _stage("seen sides", 0, 6.504, items)
+    units = work_units(items)
+    assert [len(unit) for unit in units] == [4, 2]
+    assert sum(units[0]) == pytest.approx(4.003) and sum(units[1]) == pytest.approx(2.001)
+    assert replay_stage(stage, 1) == pytest.approx(6.504)  # one thread: the run itself
+    assert replay_stage(stage, 4) == pytest.approx(0.5 + 1.001 + 1.001)
+
+
+def test_an_item_parallel_inside_is_shortened_as_it_scaled_when_measured():
+    # a BVH build: 8 s on one thread, 5 s on two -> serial fraction (2·5/8 − 1)/(2 − 1) = 0.25
+    one = _timeline([_stage("tracing", 0, 8, [(1, 1, "bvh", 0, 8)])])
+    two = _timeline([_stage("tracing", 0, 5, [(1, 1, "bvh", 0, 5)])], threads=2)
+    inner = inner_factors(one, two)
+    assert inner["bvh"] == pytest.approx(0.25)
+    assert replay(one, 2, inner=inner)["tracing"] == pytest.approx(5)
+    assert replay(one, 16, inner=inner)["tracing"] == pytest.approx(8 * (0.25 + 0.75 / 16))
+    assert replay(one, 16)["tracing"] == pytest.approx(8)  # without the fit: serial
+    assert inner_factors(one, one)["bvh"] == 1.0  # no run with more threads: serial
+    slower = _timeline([_stage("tracing", 0, 9, [(1, 1, "bvh", 0, 9)])], threads=2)
+    assert inner_factors(one, slower)["bvh"] == 1.0  # clamped
+    assert predictions(one, two)["tracing"]["replay"]["2"] == pytest.approx(8 / 5)
+
+
+def test_checkpoints_come_as_often_as_the_predicted_wall_time_allows():
+    """A bake saves a checkpoint every 60 s at most: one thread made three in 200 s of
+    tracing; on two threads (100 s) there is room for one, on sixteen for none."""
+    items, t = [], 0.0
+    for k in range(100):
+        items.append((k, 1, "trace", t, t + 2))
+        t += 2
+        if k in (29, 59, 89):
+            items.append((1000 + k, 1, "checkpoint", t, t + 1, 1))
+            t += 1
+    one = _timeline([_stage("tracing", 0, t, items)])
+    assert replay(one, 1)["whole"] == pytest.approx(203)
+    assert replay(one, 2)["whole"] == pytest.approx(30 + 71)  # the first kept: 30 | 1 + 70
+    assert replay(one, 16)["whole"] == pytest.approx(14)  # 100 items of 2 s: 7 rounds
+    fewer = thinned(one, 1)
+    assert fewer["wall_s"] == pytest.approx(201)
+    assert [i[2] for i in fewer["stages"][0]["items"]].count("checkpoint") == 1
 
 
 def test_amdahl():

@@ -159,6 +159,36 @@ def test_a_timeline_records_stages_cpu_and_items(tmp_path, three_threads):
         cores.Timeline().stage("nowhere")
 
 
+def test_a_timeline_marks_work_done_beside_and_records_memory(tmp_path, three_threads):
+    """Items of `beside()` work — its own and its `for_items` calls' on other threads —
+    carry the mark; the others do not; each stage holds the highest resident memory
+    sampled in it, at least what an array it allocates and touches takes."""
+    path = tmp_path / "t.json"
+    with cores.recording(path):
+        cores.for_items(lambda _i: time.sleep(0.01), 6, "plain")
+        with cores.beside():
+            cores.for_items(lambda _i: time.sleep(0.01), 6, "commit")
+        cores.beside_call("layout", time.sleep, 0.01)
+        cores.stage("tracing")
+        big = np.ones(64 << 20, np.uint8)  # 64 MiB, touched
+        time.sleep(0.2)
+        alive = _resident_mib()
+        del big
+    record = json.loads(path.read_text())
+    load, tracing = record["stages"]
+    marked = {item[2]: len(item) > 5 and item[5] == 1 for item in load["items"]}
+    assert marked == {"plain": False, "commit": True, "layout": True}
+    assert len([i for i in load["items"] if i[2] == "commit"]) == 6
+    assert tracing["rss_mb"] >= alive - 1 and alive > 64
+    assert record["peak_rss_mb"] >= tracing["rss_mb"] - 1
+
+
+def _resident_mib() -> float:
+    """This process's resident memory now, MiB (``/proc/self/statm``)."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
 def _stages(path) -> list[dict]:
     return json.loads(path.read_text())["stages"]
 
@@ -166,7 +196,8 @@ def _stages(path) -> list[dict]:
 @pytest.mark.parametrize("command", ["bake", "render"])
 def test_one_worker_keeps_one_core_busy_in_every_stage(tmp_path, command):
     """``--workers 1``: in every stage, the CPU time of all the process's threads (tracing,
-    Embree's builds, Mesa's rasterizer, BLAS) is at most 1.05 × its wall time."""
+    Embree's builds, Mesa's rasterizer, BLAS) is at most 1.05 × its wall time (and 5 ms:
+    the threads' counters are read one after another at a stage's two ends)."""
     timeline = tmp_path / "t.json"
     out = tmp_path / ("l.npz" if command == "bake" else "p.png")
     args = [command, "synthetic:engine:72", "--workers", "1", "--samples", "8",
@@ -179,7 +210,7 @@ def test_one_worker_keeps_one_core_busy_in_every_stage(tmp_path, command):
         if command == "bake" else {"surface", "tracing", "draw"} <= {s["name"] for s in stages}
     for stage in stages:
         if stage["wall_s"] > 0.05:
-            assert stage["cpu_s"] / stage["wall_s"] <= 1.05, stage["name"]
+            assert stage["cpu_s"] <= 1.05 * stage["wall_s"] + 0.005, stage["name"]
             assert len(stage["threads_cpu_s"]) >= 1
 
 

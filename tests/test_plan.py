@@ -170,6 +170,27 @@ def test_binned_percentiles_equal_numpy_per_bin():
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("threads", [1, 3])
+def test_values_grouped_by_bin_in_blocks_are_a_stable_sort(threads):
+    """The counting sort of the level choice, in blocks on several threads, is
+    ``values[argsort(which, stable)]`` to the bit, with numpy's bin counts — ties, empty
+    bins, one bin holding most values and blocks of 1024 included."""
+    from isolume.baking.plan import _grouped_by_bin
+    from isolume.volumes import cores
+
+    gen = np.random.default_rng(3)
+    which = np.minimum(gen.exponential(30, 70_000), 511).astype(np.uint16)
+    which[:40_000] = 9
+    values = np.round(gen.gamma(2, 1, len(which)), 1).astype(np.float32)
+    cores.use(threads)
+    try:
+        ranked, counts = _grouped_by_bin(which, values, 512)
+    finally:
+        cores.use(None)
+    np.testing.assert_array_equal(ranked, values[np.argsort(which, kind="stable")])
+    np.testing.assert_array_equal(counts, np.bincount(which, minlength=512))
+
+
 def test_bake_command_records_levels_and_takes_max_move(tmp_path, capsys):
     from isolume.app.cli import main
     from isolume.baking import Lattice

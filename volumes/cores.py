@@ -20,8 +20,12 @@ A `Timeline` (``--timeline FILE.json``) records, per stage of a fixed list (`STA
 the wall time, every thread's CPU time from the OS (``/proc/self/task/*/schedstat``,
 child processes from ``/proc`` and `resource`) — not the intervals of tasks, which count
 a thread waiting for the GIL as busy — the seconds with at most one core busy (sampled),
-and the work items with their threads and durations (`app.bench.cores` replays them on
-more simulated threads than this machine has).
+the peak resident memory, and the work items with their threads and durations
+(`app.bench.cores` replays them on more simulated threads than this machine has). Work
+that a command does beside its critical path — the next step laid out, a level scene
+built ahead, a batch committed while the next one is traced — runs inside `beside()`:
+its items are marked so, and the replay lets them share the threads of the work that
+follows instead of running between it and the work before.
 """
 
 from __future__ import annotations
@@ -232,6 +236,7 @@ class _Items:
         self.error: BaseException | None = None
         self.cond = threading.Condition()
         self.batch = next(_BATCHES)
+        self.beside = getattr(_LOCAL, "beside", False)  # the caller's, for every thread
 
     def run(self, on_done: Callable[[int], None] | None = None) -> None:
         """Take and run items until none is left (or the call stopped); `on_done(done)`
@@ -245,7 +250,7 @@ class _Items:
                 i = next(self.next)
                 if i >= self.count:
                     break
-                with _item(self.batch, self.kind):
+                with _item(self.batch, self.kind, self.beside):
                     self.work(i)
                 with self.cond:
                     self.done += 1
@@ -386,6 +391,20 @@ def _task_cpu() -> dict[int, float]:
     return out
 
 
+def _resident_bytes() -> int:
+    """This process's resident memory now, in bytes (``/proc/self/statm``; 0 without)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def _peak_resident_bytes() -> int:
+    """This process's peak resident memory so far, in bytes (the OS's high-water mark)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
 def _children_cpu() -> float:
     """CPU seconds of this process's child processes: those waited for (`resource`) and
     those still running (their ``/proc`` stat, and their children's)."""
@@ -426,7 +445,7 @@ class Timeline:
         self.began: float = time.perf_counter()
         self.sample_s: float = sample_s
         self.stages: list[dict[str, Any]] = []
-        self.items: list[tuple[int, int, str, float, float]] = []
+        self.items: list[tuple[int, int, str, float, float, bool]] = []
         self.names: dict[int, str] = {}
         self.samples: list[tuple[float, dict[int, float]]] = []
         self._open: dict[str, Any] | None = None
@@ -436,12 +455,15 @@ class Timeline:
         self._sampler.start()
         self._own = None
         self._seen: dict[int, float] = {}
+        self._rss: list[tuple[float, int]] = []  # (time, resident bytes) sampled
 
     def _sample(self) -> None:
         self._own = threading.get_native_id()
         while not self._stop.wait(self.sample_s):
             reading = _task_cpu()
-            self.samples.append((self._now(), reading))
+            now = self._now()
+            self.samples.append((now, reading))
+            self._rss.append((now, _resident_bytes()))
             self._seen.update(reading)
 
     def _threads_cpu(self) -> dict[int, float]:
@@ -474,13 +496,17 @@ class Timeline:
             "cpu_s": sum(per_thread.values()) + children - opened["children"],
             "threads_cpu_s": {str(t): s for t, s in sorted(per_thread.items())},
             "children_cpu_s": children - opened["children"],
+            "rss_mb": max([_resident_bytes(), *(b for t, b in self._rss
+                                                if opened["start_s"] <= t <= end)]) / 2**20,
         })
 
-    def item(self, batch: int, kind: str, began: float, ended: float) -> None:
-        """Record one work item that ran on the calling thread."""
+    def item(self, batch: int, kind: str, began: float, ended: float,
+             beside: bool = False) -> None:
+        """Record one work item that ran on the calling thread (`beside`: off the
+        critical path, see the module docstring)."""
         tid = threading.get_native_id()
         self.names.setdefault(tid, threading.current_thread().name)
-        self.items.append((batch, tid, kind, began - self.began, ended - self.began))
+        self.items.append((batch, tid, kind, began - self.began, ended - self.began, beside))
 
     def finish(self) -> dict[str, Any]:
         """End the last stage and the sampling; the record (see `summary`)."""
@@ -490,21 +516,24 @@ class Timeline:
         return self.summary()
 
     def summary(self) -> dict[str, Any]:
-        """The record: the stages (wall, CPU, per-thread CPU, serial seconds, items), the
-        sampled busy cores, the threads' names."""
+        """The record: the stages (wall, CPU, per-thread CPU, serial seconds, the highest
+        resident memory sampled in them as ``rss_mb``, items: ``[batch, thread, kind,
+        start_s, end_s]`` and a sixth element 1 for an item done beside), the sampled
+        busy cores, the threads' names, the process's peak resident memory (MiB)."""
         busy = _busy_cores(self.samples, self._own)
         for stage in self.stages:
             inside = [(t, dt, cores) for t, dt, cores in busy
                       if stage["start_s"] < t <= stage["end_s"]]
             stage["serial_s"] = min(stage["wall_s"], sum(dt for _, dt, c in inside
                                                          if c <= SERIAL_CORES))
-            stage["items"] = [[b, tid, kind, round(s, 6), round(e, 6)]
-                              for b, tid, kind, s, e in self.items
+            stage["items"] = [[b, tid, kind, round(s, 6), round(e, 6), *([1] if side else [])]
+                              for b, tid, kind, s, e, side in self.items
                               if stage["start_s"] <= s < stage["end_s"]]
         return {
             "threads": threads(), "available_cores": available(),
             "load_average": list(os.getloadavg()),
             "wall_s": self._now(), "sample_s": self.sample_s,
+            "peak_rss_mb": _peak_resident_bytes() / 2**20,
             "stages": self.stages,
             "busy": [[round(t, 4), round(c, 3)] for t, _, c in busy],
             "thread_names": {str(t): n for t, n in self.names.items()},
@@ -535,9 +564,10 @@ def stage(name: str) -> None:
 
 
 @contextmanager
-def _item(batch: int, kind: str) -> Iterator[None]:
+def _item(batch: int, kind: str, beside: bool | None = None) -> Iterator[None]:
     """Record the work inside as an item of `batch` in the timeline being recorded, unless
-    it runs inside another item (whose time holds it already)."""
+    it runs inside another item (whose time holds it already); `beside` (None: whether
+    this thread is inside `beside()`) marks it off the critical path."""
     depth = getattr(_LOCAL, "depth", 0)
     _LOCAL.depth = depth + 1
     began = time.perf_counter()
@@ -546,13 +576,58 @@ def _item(batch: int, kind: str) -> Iterator[None]:
     finally:
         _LOCAL.depth = depth
         if _TIMELINE is not None and depth == 0:
-            _TIMELINE.item(batch, kind, began, time.perf_counter())
+            side = getattr(_LOCAL, "beside", False) if beside is None else beside
+            _TIMELINE.item(batch, kind, began, time.perf_counter(), side)
 
 
 def timed_item(kind: str) -> AbstractContextManager[None]:
     """A context that records the work inside as one item of the timeline, a batch of its
     own (a scene build, a commit, a chunk of paths)."""
     return _item(next(_BATCHES), kind)
+
+
+def new_batch() -> int:
+    """A batch id for items recorded one at a time (`batch_item`) that may run side by
+    side, as a `for_items` call's do."""
+    return next(_BATCHES)
+
+
+def batch_item(batch: int, kind: str) -> AbstractContextManager[None]:
+    """A context that records the work inside as one item of `batch` (`new_batch`)."""
+    return _item(batch, kind)
+
+
+@contextmanager
+def beside() -> Iterator[None]:
+    """Mark the work inside, and the `for_items` calls it makes, as done beside the
+    critical path (see the module docstring): the next step prepared while this one
+    runs."""
+    before = getattr(_LOCAL, "beside", False)
+    _LOCAL.beside = True
+    try:
+        yield
+    finally:
+        _LOCAL.beside = before
+
+
+def beside_call(kind: str, function: Callable[..., _T], /, *args: Any,
+                batch: int | None = None) -> _T:
+    """`function(*args)` inside `beside()`, recorded as one item of `kind` (what a command
+    submits to a helper thread, or, with one thread, runs in turn), of `batch` where the
+    command waits for it by that id (`waited`)."""
+    with beside(), _item(next(_BATCHES) if batch is None else batch, kind):
+        return function(*args)
+
+
+def waited(future: Future[_T], batch: int) -> _T:
+    """`future`'s result, the point where a command needs the work it submitted as
+    `beside_call(..., batch=batch)` marked in the timeline (an item of kind "wait" and no
+    length): the replay lets that work run beside everything before this point."""
+    result = future.result()
+    if _TIMELINE is not None:
+        now = time.perf_counter()
+        _TIMELINE.item(batch, "wait", now, now)
+    return result
 
 
 @contextmanager

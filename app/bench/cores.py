@@ -13,15 +13,7 @@ one core busy), the largest work item's share of the stage's items.
 Two predictions for 16 and 64 threads, both from the one-thread run:
 
 * Amdahl: T1 / (S + (T1 − S) / N), S the serial seconds of the run with the most threads;
-* replay: per stage visit, the glue between its items (its wall at one thread less its
-  items' seconds, taken as serial) plus the makespan of its items on N simulated threads:
-  a batch (one parallel call) list-scheduled greedily in recorded order, batches one after
-  another (each ends at a barrier), a run of consecutive single items of one kind (the
-  tracing chunks of a level step) scheduled together. One thread runs a `for_ranges` call
-  as a single item; where the run with the most threads cut the same stage's call of that
-  kind into items, the one-thread item is cut in the same shares (that cut is the one any
-  thread count gets, unless it reached `cores.ITEMS_PER_CALL`: then more threads would
-  cut finer, and the replay is pessimistic).
+* replay: the one-thread run played again on N simulated threads (`app.bench.replay`).
 
 Writes ``cores.json`` (every run's figures and timeline, the predictions) and the charts
 ``gantt.png`` (the run with the most threads: items per thread coloured by stage, the
@@ -31,7 +23,6 @@ cores busy) and ``speedup.png`` (measured, Amdahl, replay, ideal) into ``--out``
 from __future__ import annotations
 
 import argparse
-import heapq
 import importlib.util
 import json
 import os
@@ -40,11 +31,16 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import Counter
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from isolume.app.bench.replay import (
+    duration,
+    inner_factors,
+    outside_stages_s,
+    replay,
+    split_hints,
+)
 from isolume.volumes import cores
 
 HELP = ("parallel efficiency of bake and render per stage against threads, and their "
@@ -59,8 +55,6 @@ BUSY_LOAD = 0.5
 (a note is printed)."""
 TIMEOUT_S = 3600.0
 """Longest a measured child process may run."""
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("volume", nargs="?", default="synthetic:engine",
                    help="volume (default synthetic:engine)")
@@ -175,11 +169,6 @@ def median_run(runs: list[tuple[float, dict[str, Any]]]) -> tuple[float, dict[st
 
 
 # -- the figures (pure) -------------------------------------------------------------------
-def duration(item: list[Any]) -> float:
-    """Seconds of a timeline item ``[batch, tid, kind, start_s, end_s]``."""
-    return max(0.0, item[4] - item[3])
-
-
 def efficiency(cpu_s: float, wall_s: float, threads: int) -> float | None:
     """CPU seconds over the seconds `threads` cores had (1: all busy); None for no wall."""
     return cpu_s / (wall_s * threads) if wall_s > 0 else None
@@ -194,7 +183,7 @@ def aggregate(timeline: dict[str, Any]) -> dict[str, dict[str, Any]]:
         f = out.setdefault(stage["name"], {"visits": 0, "wall_s": 0.0, "cpu_s": 0.0,
                                            "serial_s": 0.0, "items": 0, "item_s": 0.0,
                                            "largest_item_s": 0.0})
-        seconds = [duration(item) for item in stage["items"]]
+        seconds = [duration(item) for item in stage["items"] if item[2] != "wait"]
         f["visits"] += 1
         f["wall_s"] += stage["wall_s"]
         f["cpu_s"] += stage["cpu_s"]
@@ -206,11 +195,6 @@ def aggregate(timeline: dict[str, Any]) -> dict[str, dict[str, Any]]:
         f["efficiency"] = efficiency(f["cpu_s"], f["wall_s"], timeline["threads"])
         f["largest_share"] = f["largest_item_s"] / f["item_s"] if f["item_s"] > 0 else None
     return out
-
-
-def outside_stages_s(timeline: dict[str, Any]) -> float:
-    """Seconds of the timeline in no stage (before the first, between two)."""
-    return max(0.0, timeline["wall_s"] - sum(s["wall_s"] for s in timeline["stages"]))
 
 
 def whole(timeline: dict[str, Any], process_wall_s: float) -> dict[str, Any]:
@@ -234,112 +218,19 @@ def amdahl(t1: float, serial: float, n: float) -> float:
     return t1 / (serial + (t1 - serial) / n)
 
 
-def makespan(durations: list[float], n: int) -> float:
-    """Seconds until `n` threads finish `durations`, each item in order given to the thread
-    free first (greedy list scheduling)."""
-    free = [0.0] * max(1, min(n, len(durations)))
-    for seconds in durations:
-        heapq.heapreplace(free, free[0] + seconds)
-    return max(free, default=0.0)
-
-
-def batch_sizes(timeline: dict[str, Any]) -> Counter[int]:
-    """Items per batch id over the whole timeline (1: a single item)."""
-    return Counter(item[0] for stage in timeline["stages"] for item in stage["items"])
-
-
-def work_units(items: list[list[Any]], sizes: Counter[int] | None = None,
-               split: Callable[[str], list[float] | None] | None = None) -> list[list[float]]:
-    """The items of a stage visit as units run one after another, each the durations of
-    items that may run side by side: a batch's items (placed at its first item), a run of
-    consecutive single items of one kind, or a single item that `split(kind)` cuts into
-    shares (its own unit). `sizes`: items per batch id (default: counted in `items`)."""
-    sizes = sizes if sizes is not None else Counter(item[0] for item in items)
-    units: list[tuple[tuple, list[float]]] = []
-    batches: dict[int, list[float]] = {}
-    for item in sorted(items, key=lambda item: item[3]):
-        batch, kind, seconds = item[0], item[2], duration(item)
-        if sizes[batch] > 1:
-            if batch not in batches:
-                batches[batch] = []
-                units.append((("batch", batch), batches[batch]))
-            batches[batch].append(seconds)
-            continue
-        shares = split(kind) if split is not None else None
-        if shares:
-            units.append((("split", batch), [seconds * share for share in shares]))
-        elif units and units[-1][0] == ("single", kind):
-            units[-1][1].append(seconds)
-        else:
-            units.append((("single", kind), [seconds]))
-    return [durations for _, durations in units]
-
-
-def split_hints(timeline: dict[str, Any]) -> dict[tuple[str, str], list[list[float]]]:
-    """Per (stage, kind): the shares of the items of each batch of that kind, in order (how
-    a run with several threads cut its parallel calls)."""
-    sizes = batch_sizes(timeline)
-    hints: dict[tuple[str, str], list[list[float]]] = {}
-    for stage in timeline["stages"]:
-        batches: dict[int, tuple[str, list[float]]] = {}
-        for item in sorted(stage["items"], key=lambda item: item[3]):
-            if sizes[item[0]] > 1:
-                batches.setdefault(item[0], (item[2], []))[1].append(duration(item))
-        for kind, seconds in batches.values():
-            if sum(seconds) > 0:
-                hints.setdefault((stage["name"], kind), []).append(
-                    [s / sum(seconds) for s in seconds])
-    return hints
-
-
-def _splitter(stage: str, hints: dict, taken: Counter) -> Callable[[str], list[float] | None]:
-    """`work_units`'s `split` for `stage`: the k-th single item of a kind gets the shares of
-    the k-th batch of that kind in `hints` (the last one's past the end)."""
-    def split(kind: str) -> list[float] | None:
-        found = hints.get((stage, kind))
-        if not found:
-            return None
-        k = taken[stage, kind]
-        taken[stage, kind] += 1
-        return found[min(k, len(found) - 1)]
-    return split
-
-
-def replay_stage(stage: dict[str, Any], n: int, sizes: Counter[int] | None = None,
-                 split: Callable[[str], list[float] | None] | None = None) -> float:
-    """Predicted seconds of one stage visit (of a one-thread run) on `n` threads: its glue
-    (wall less its items' seconds, at least 0) plus its `work_units`' makespans."""
-    units = work_units(stage["items"], sizes, split)
-    glue = max(0.0, stage["wall_s"] - sum(sum(unit) for unit in units))
-    return glue + sum(makespan(unit, n) for unit in units)
-
-
-def replay(timeline: dict[str, Any], n: int,
-           hints: dict[tuple[str, str], list[list[float]]] | None = None) -> dict[str, float]:
-    """Predicted seconds of each stage (visits added up by name) of the one-thread
-    `timeline` on `n` threads, and of the whole command ("whole": the stages and the
-    time outside them). `hints`: `split_hints` of a run with several threads."""
-    sizes, taken = batch_sizes(timeline), Counter()
-    out: dict[str, float] = {}
-    for stage in timeline["stages"]:
-        split = _splitter(stage["name"], hints or {}, taken)
-        out[stage["name"]] = out.get(stage["name"], 0.0) + replay_stage(stage, n, sizes, split)
-    out["whole"] = sum(out.values()) + outside_stages_s(timeline)
-    return out
-
-
 def predictions(one: dict[str, Any], most: dict[str, Any]) -> dict[str, Any]:
     """Speed-ups at `PREDICT_AT` and `CURVE_AT` threads of each stage and the whole command,
     from the one-thread timeline `one` and the timeline `most` with the most threads (its
     serial seconds for Amdahl, its cut of parallel calls for the replay)."""
     stages1, stages_n = aggregate(one), aggregate(most)
     hints = split_hints(most) if most["threads"] > 1 else {}
+    inner = inner_factors(one, most)
     t1 = {name: f["wall_s"] for name, f in stages1.items()}
     t1["whole"] = one["wall_s"]
     serial = {name: stages_n.get(name, {}).get("serial_s", 0.0) for name in stages1}
     serial["whole"] = whole(most, most["wall_s"])["serial_s"]
     counts = sorted({*CURVE_AT, *PREDICT_AT})
-    replays = {n: replay(one, n, hints) for n in counts}
+    replays = {n: replay(one, n, hints, inner) for n in counts}
     out = {}
     for name in t1:
         out[name] = {
@@ -425,13 +316,23 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
                      f"(start-up {w['startup_s']:.2f} s), timeline {w['wall_s']:.2f} s, "
                      f"cpu {w['cpu_s']:.2f} s, efficiency {_pct(w['efficiency'])}, serial "
                      f"{w['serial_s']:.2f} s; speed-up x{speedups[r['label']]['whole']:.2f} "
-                     f"(process x{speedups[r['label']]['process']:.2f})")
+                     f"(process x{speedups[r['label']]['process']:.2f}); peak memory "
+                     f"{r['timeline'].get('peak_rss_mb', 0):.0f} MiB")
     p = predicted["whole"]
     lines.append(f"{command} whole, predicted from 1 thread (T1 {p['t1_s']:.2f} s, serial "
                  f"{p['serial_s']:.2f} s): " + ", ".join(
                      f"{n} threads: Amdahl x{p['amdahl'][str(n)]:.1f}, replay "
                      f"x{p['replay'][str(n)]:.1f}" for n in PREDICT_AT))
     return lines
+
+
+def inner_line(inner: dict[str, float], threads: int) -> str:
+    """How the replay took the items parallel inside (`inner_factors`)."""
+    if threads <= 1:
+        return "replay: items parallel inside (" + ", ".join(inner) + ") taken as serial"
+    return "replay: items parallel inside, Amdahl fitted to 1 against " + f"{threads} threads: " + \
+        ", ".join(f"{kind} serial fraction {f:.2f} (x{threads / (f * threads + 1 - f):.2f} "
+                  f"measured)" for kind, f in inner.items())
 
 
 # -- charts -------------------------------------------------------------------------------
@@ -640,6 +541,8 @@ def run(args: argparse.Namespace) -> int:
             most = max((r for r in runs if r["scheduler"] is None), key=lambda r: r["threads"])
             results[command] = {"runs": runs,
                                 "predicted": predictions(one["timeline"], most["timeline"]),
+                                "inner": inner_factors(one["timeline"], most["timeline"]),
+                                "inner_threads": most["threads"],
                                 "measured_speedups": measured_speedups(runs)}
     after = os.getloadavg()
     print(f"load average (1 min) after: {after[0]:.2f}")
@@ -652,6 +555,7 @@ def run(args: argparse.Namespace) -> int:
         print()
         print("\n".join(table(command, result["runs"], result["predicted"])))
         print("\n".join(whole_lines(command, result["runs"], result["predicted"])))
+        print(inner_line(result["inner"], result["inner_threads"]))
     settings = {k: v for k, v in vars(args).items() if isinstance(v, str | int | float | bool)}
     (out / "cores.json").write_text(json.dumps(
         {"settings": {**settings, "threads": counts, "commands": commands, "dask": dask},
