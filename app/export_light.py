@@ -166,12 +166,15 @@ def surface_radiance(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, sce
                      albedo: Sequence[float] | np.ndarray, *,
                      env_coeffs: np.ndarray | None = None,
                      env_rotation: tuple[float, float] = (0.0, 0.0),
-                     workers: int | None = None, progress: bool = False
+                     workers: int | None = None, progress: bool = False,
+                     direct: dict | None = None
                      ) -> tuple[np.ndarray, Lattice | HeldLattice, tuple]:
     """The light ``isolume export`` gives `mesh`'s vertices: the lattice's (without one,
     `traced_lattice` under `traced`: the light traced for the surface ρ = `iso`) through
     the side-aware lookup (`lattice_radiance`), plus the lights it leaves to the pixels
-    through shadow rays on `scene` (`direct_radiance`).
+    through shadow rays on `scene` (`direct_radiance`). `direct`, where given, keeps that
+    direct light by its lights and offset for a later call on the same mesh (passes of
+    more paths under the same lights trace no shadow ray again).
 
     Returns:
         ((V, 3) linear outgoing radiance (irradiance units / sr), the lattice read, the
@@ -187,8 +190,16 @@ def surface_radiance(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, sce
     radiance = lattice_radiance(lattice, points, normals, albedo, env_coeffs, env_rotation)
     lights = pixel_lights(lattice, env_rotation)
     if lights:
-        radiance += direct_radiance(scene, lights, points, normals,
-                                    lattice_start_offset(lattice), albedo, progress=progress)
+        offset = lattice_start_offset(lattice)
+        key = (tuple(lights), offset, tuple(np.asarray(albedo, np.float64).ravel()))
+        if direct is None or key not in direct:
+            shone = direct_radiance(scene, lights, points, normals, offset, albedo,
+                                    progress=progress)
+            if direct is None:
+                return radiance + shone, lattice, lights
+            direct.clear()
+            direct[key] = shone
+        radiance += direct[key]
     return radiance, lattice, lights
 
 

@@ -160,8 +160,10 @@ class IsolumeWidget(QWidget):
         self.iso, self.sun, self.env = 0.0, None, self.controls.env.text()
         self.request: dict[str, Any] | None = None
         self._ids = itertools.count(1)
-        self._mesh: tuple | None = None  # (request id, (V, 3) indices, faces, areas)
-        self._surface_mesh = None  # the request id of the mesh the Surface layer shows
+        self._surface: tuple | None = None  # the last surface sent: (key, vertices, …)
+        self._mesh: tuple | None = None  # (request id, surface key, (V, 3) indices, faces,
+        # areas): the surface of the request on screen
+        self._surface_mesh = None  # the key of the surface the Surface layer shows
         self.radiance: np.ndarray | None = None
         self.shown_paths, self.exposure_used = 0, 1.0
         self._debounce = QTimer(self)
@@ -262,6 +264,7 @@ class IsolumeWidget(QWidget):
         volume = layer_volume(layer)
         self.stop()
         self.layer, self.volume, self.surface = layer, volume, None
+        self._surface = self._mesh = None  # the new process sends its surfaces anew
         self.controls.layer.setCurrentText(layer.name)
         from isolume.app.napari_worker import LightingLink
 
@@ -357,11 +360,16 @@ class IsolumeWidget(QWidget):
     def _poll(self) -> None:
         """Show what the lighting process sent since the last look."""
         for kind, rid, *rest in self.link.poll() if self.link is not None else ():
+            if kind == "mesh" and len(rest) > 1:  # a new surface: kept whoever asked
+                key, vertices, faces, areas = rest
+                self._surface = (key, data_vertices(self.volume, vertices), faces, areas)
             if rid is not None and (self.request is None or rid != self.request["id"]):
                 continue  # an older request's
-            if kind == "mesh":
-                vertices, faces, areas = rest
-                self._mesh = (rid, data_vertices(self.volume, vertices), faces, areas)
+            if kind == "mesh":  # the surface sent last (its key: the worker's check)
+                if self._surface is None or self._surface[0] != rest[0]:
+                    self._say(f"iso {self.iso:.4g}: the lighting process's surface was lost")
+                    continue
+                self._mesh = (rid, *self._surface)
                 self.shown_paths, self.radiance = 0, None
             elif kind == "light":
                 self.shown_paths, self.radiance = rest
@@ -375,7 +383,7 @@ class IsolumeWidget(QWidget):
         """Colour the Surface layer from the light on screen at the exposure set."""
         if self.radiance is None or self._mesh is None:
             return
-        _, vertices, faces, areas = self._mesh
+        _, _, vertices, faces, areas = self._mesh
         colours, self.exposure_used = display_colours(self.radiance, areas,
                                                       self.controls.exposure.value())
         self._update_surface(vertices, faces, colours)
@@ -401,12 +409,12 @@ class IsolumeWidget(QWidget):
         colours."""
         if self.surface is None:
             self._add_surface()
-        if self._surface_mesh != self._mesh[0]:
+        if self._surface_mesh != self._mesh[1]:  # a new surface, not a new light
             with self.surface.events.data.blocker():  # one redraw, with the colours
                 self.surface.vertex_colors = None  # the old ones do not fit the new mesh
                 self.surface.data = (vertices, faces)
         self.surface.vertex_colors = colours
-        self._surface_mesh = self._mesh[0]
+        self._surface_mesh = self._mesh[1]
 
     def _show_iso(self) -> None:
         self.controls.iso_value.setText(f"{self.iso:.6g}")

@@ -65,7 +65,7 @@ def volume_job(volume: volumes.Volume) -> dict[str, Any]:
 
 
 def traced_radiance(volume: volumes.Volume, config: BakeConfig, iso: float, mesh: volumes.Mesh,
-                    scene: Scene, workers: int) -> np.ndarray:
+                    scene: Scene, workers: int, direct: dict | None = None) -> np.ndarray:
     """(V, 3) linear outgoing radiance (irradiance units / sr) at `mesh`'s vertices, as
     ``isolume export`` lights them without a lattice: global illumination traced with
     `config.samples` paths per texel, plus the per-pixel lights through shadow rays.
@@ -74,20 +74,25 @@ def traced_radiance(volume: volumes.Volume, config: BakeConfig, iso: float, mesh
         config: `baking.config.BakeConfig` of the lighting (`app.options.view_light`).
         mesh: the isosurface ρ = `iso` (world x, y, z); scene: its `baking.trace.Scene`.
         workers: tracing threads.
+        direct: `export_light.surface_radiance`'s keeper of the direct light, for passes
+            on the same mesh.
     """
     from isolume.app.export_light import surface_radiance
 
     radiance, _, _ = surface_radiance(volume, iso, mesh, scene, None, config, config.albedo,
-                                      workers=workers)
+                                      workers=workers, direct=direct)
     return radiance
 
 
 class _Surfaces:
-    """The isosurface of the last (isovalue, normals, flip) asked for, its Embree scene
-    and its vertex areas, kept while only the light changes."""
+    """The isosurface of the last (isovalue, normals, flip) asked for, its Embree scene,
+    its vertex areas and its direct light, kept while only the light changes; `sent`:
+    whether napari has been sent that mesh."""
 
     def __init__(self, volume: volumes.Volume) -> None:
         self.volume, self.key, self.value = volume, None, None
+        self.sent = False
+        self.direct: dict = {}
 
     def get(self, iso: float, normals: str, flip: bool):
         """(mesh, scene, areas) of the surface ρ = `iso`; mesh is None (and scene its
@@ -95,6 +100,8 @@ class _Surfaces:
         key = (float(iso), normals, bool(flip))
         if key != self.key:
             self.key, self.value = key, self._build(*key)
+            self.sent = False
+            self.direct.clear()
         return self.value
 
     def _build(self, iso: float, normals: str, flip: bool):
@@ -143,14 +150,18 @@ def _light(surfaces: _Surfaces, request: dict, workers: int, inbox, parent, outb
     if mesh is None:
         outbox.put(("empty", request["id"], scene))
         return _next_request(inbox, parent, block=True)
-    outbox.put(("mesh", request["id"], np.asarray(mesh.vertices, np.float32),
-                np.asarray(mesh.faces, np.int32), areas))
+    if surfaces.sent:  # napari holds it: the key alone
+        outbox.put(("mesh", request["id"], surfaces.key))
+    else:
+        outbox.put(("mesh", request["id"], surfaces.key, np.asarray(mesh.vertices, np.float32),
+                    np.asarray(mesh.faces, np.int32), areas))
+        surfaces.sent = True
     for paths in pass_paths(config.samples):
         newer = _next_request(inbox, parent, block=False)
         if newer is not False:
             return newer
         radiance = traced_radiance(surfaces.volume, replace(config, samples=paths), iso,
-                                   mesh, scene, workers)
+                                   mesh, scene, workers, surfaces.direct)
         outbox.put(("light", request["id"], paths, radiance))
     return _next_request(inbox, parent, block=True)
 

@@ -126,6 +126,7 @@ def view_options(volume: volumes.Volume, size: tuple[int, int],
     parser = argparse.ArgumentParser(prog="isolume.show")
     add_arguments(parser)
     args = parser.parse_args([])
+    _check_choices(parser, chosen)
     vars(args).update(chosen)
     args.volume = volume.source if isinstance(volume.source, str) else None
     args.size = "x".join(str(int(v)) for v in size)
@@ -135,6 +136,18 @@ def view_options(volume: volumes.Volume, size: tuple[int, int],
         raise ViewerError(f"shading {options.shading} needs a lattice: pass lattice=, or "
                           "leave out no_bake=True to bake one lazily")
     return options
+
+
+def _check_choices(parser: argparse.ArgumentParser, chosen: dict[str, Any]) -> None:
+    """Raise `ViewerError` where a value of `chosen` (None: the option's default) is not
+    one of its option's choices in `parser`, as argparse would for the command line."""
+    from isolume.app.viewer.state import ViewerError
+
+    for action in parser._actions:  # argparse keeps no public list of them
+        value = chosen.get(action.dest)
+        if value is not None and action.choices is not None and value not in action.choices:
+            raise ViewerError(f"isolume.show: {action.dest}={value!r}: expected one of "
+                              f"{', '.join(map(str, action.choices))}")
 
 
 def open_lattice(lattice: str | os.PathLike[str] | Lattice | None, volume: volumes.Volume,

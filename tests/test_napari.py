@@ -414,3 +414,40 @@ def test_the_lighting_process_exits_cleanly_with_results_unread():
     assert link.outbox.qsize() >= 2
     link.close()
     assert link.process.exitcode == 0
+
+
+def test_a_light_change_sends_no_mesh_and_passes_trace_no_shadow_ray_again(monkeypatch):
+    """The lighting process sends a surface's mesh once (a later request under another
+    light names it by its key), and traces the sun's shadow rays once per light, not in
+    each of a request's passes."""
+    import argparse
+    import queue
+
+    from isolume.app import export_light, napari_worker
+    from isolume.app.options import view_light
+
+    calls = []
+    shone = export_light.direct_radiance
+    monkeypatch.setattr(export_light, "direct_radiance",
+                        lambda *a, **k: calls.append(1) or shone(*a, **k))
+    volume = volumes.load("synthetic:torus:24")
+    iso = volumes.suggest_isovalues(volume)[0]
+    class Inbox(queue.Queue):  # says "stop" where the process would wait for napari
+        def get(self, block=True, timeout=None):
+            return "stop" if block and self.empty() else super().get(block, timeout)
+
+    inbox, outbox = Inbox(), queue.Queue()
+    surfaces = napari_worker._Surfaces(volume)
+
+    def request(rid: int, env: str) -> dict:
+        options = argparse.Namespace(env=env, light=None, samples=16, bounces=1, albedo=None,
+                                     seed=0, normals="smooth", flip_normals=False)
+        return {"id": rid, "iso": iso, "config": view_light(options, volume).to_dict()}
+
+    for rid, env in ((1, "sky:sun=3"), (2, "sky:sun=3,sun_az=90")):
+        assert napari_worker._light(surfaces, request(rid, env), 1, inbox, None, outbox) is None
+    sent = [outbox.get_nowait() for _ in range(outbox.qsize())]
+    meshes = [m for m in sent if m[0] == "mesh"]
+    assert [len(m) for m in meshes] == [6, 3] and meshes[0][2] == meshes[1][2]
+    assert [m[2] for m in sent if m[0] == "light"] == [4, 16, 4, 16]
+    assert len(calls) == 2  # one per light, not per pass

@@ -200,6 +200,10 @@ def test_bad_options_are_one_line_errors(engine):
         show(engine, bake_samples=0)
     with pytest.raises(IsolumeError, match="needs a lattice"):
         show(engine, shading="irradiance", no_bake=True)
+    with pytest.raises(IsolumeError, match=r"bake_mode='bogus': expected one of irradiance, sh"):
+        show(engine, bake_mode="bogus")
+    with pytest.raises(IsolumeError, match=r"normals='sharp': expected one of smooth, gradient"):
+        show(engine, normals="sharp", no_bake=True)
 
 
 def test_without_egl_auto_falls_back_to_osmesa_and_egl_alone_says_what_to_do(

@@ -459,11 +459,13 @@ def speedup_chart(results: dict[str, Any], path: Path) -> None:
             if r["scheduler"]:
                 ax.plot(r["threads"], speedups[r["label"]]["whole"], "D", color="C2", ms=7,
                         label=f"dask {r['scheduler']}")
-        for c in PREDICT_AT:
-            for value, colour in ((p["replay"][str(c)], "C1"), (p["amdahl"][str(c)], "C0")):
+        for c in PREDICT_AT:  # the higher prediction's figure above, the lower's below
+            pair = sorted(((p["replay"][str(c)], "C1"), (p["amdahl"][str(c)], "C0")))
+            last = c == max(PREDICT_AT)  # written to the left of the point, inside the axes
+            for (value, colour), dy in zip(pair, (-11, 5), strict=True):
                 ax.annotate(f"{value:.1f}", (c, value), textcoords="offset points",
-                            xytext=(4, -10 if colour == "C0" else 4), fontsize=7,
-                            color=colour)
+                            xytext=(-5 if last else 5, dy), fontsize=7, color=colour,
+                            ha="right" if last else "left")
         ax.set_xscale("log", base=2)
         ax.set_yscale("log", base=2)
         ax.set_xlim(0.9, 72)
