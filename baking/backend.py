@@ -322,9 +322,12 @@ class ThreadBackend:
         return self._scene(level)
 
     def start(self, job: BakeJob) -> None:
-        """Trace with `job` (once the compiled code is loaded)."""
+        """Trace with `job` (once the compiled code is loaded). A scene built ahead that
+        the plan's side probes did not take (its level had no texel to probe) goes: the
+        tracing holds one scene at a time and builds that one when it gets there."""
         if self._warm is not None:
             self._warm.wait()
+        self._pending.clear()
         self.job = job
 
     def trace_pass(self, work: PassWork, report: PassReport) -> None:

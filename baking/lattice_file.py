@@ -33,6 +33,7 @@ import zipfile
 import zlib
 from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -160,7 +161,8 @@ class _Deflating:
     `DEFLATE_PIECE`, each deflated on its own (`_deflated`: blocks ended by a sync flush,
     so that the pieces, in order, and `_FINAL_BLOCK` make one valid deflate stream, the
     same bytes on any number of threads) while this thread keeps the CRC and writes the
-    pieces done, in order.
+    pieces done, in order — and, rather than wait for the oldest piece, deflates the
+    newest one no thread has started.
 
     `zipfile` writes the member's header and sizes: the member it opened gets the pieces
     through a compressor that passes them on, and the CRC and size of the bytes before
@@ -187,9 +189,9 @@ class _Deflating:
             piece = data[lo:lo + DEFLATE_PIECE]
             self.crc = zlib.crc32(piece, self.crc)
             self.size += len(piece)
-            self.pending.append(self.pool.submit(_deflated, piece, self.batch))
+            self.pending.append((self.pool.submit(_deflated, piece, self.batch), piece))
             while len(self.pending) > 2 * cores.threads():
-                self.member.write(self.pending.popleft().result())
+                self.member.write(self._oldest())
 
     def finish(self) -> None:
         """Write the pieces still pending and the final block; give zipfile the CRC and
@@ -198,12 +200,28 @@ class _Deflating:
             return
         try:
             while self.pending:
-                self.member.write(self.pending.popleft().result())
+                self.member.write(self._oldest())
         finally:
-            for piece in self.pending:  # after an error: no piece left running
+            for piece, _ in self.pending:  # after an error: no piece left running
                 piece.cancel()
         self.member.write(_FINAL_BLOCK)
         self.member._crc, self.member._file_size = self.crc, self.size
+
+
+    def _oldest(self) -> bytes:
+        """The oldest pending piece, deflated, taken out; while it is not done, this
+        thread deflates the newest piece not started yet (taken from the pool's queue)."""
+        oldest = self.pending[0][0]
+        while not oldest.done():
+            queued = next((i for i in range(len(self.pending) - 1, 0, -1)
+                           if self.pending[i][0].cancel()), None)
+            if queued is None:
+                break
+            piece = self.pending[queued][1]
+            done: Future = Future()
+            done.set_result(_deflated(piece, self.batch))
+            self.pending[queued] = (done, piece)
+        return self.pending.popleft()[0].result()
 
 
 class _Passing:

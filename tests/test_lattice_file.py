@@ -217,6 +217,42 @@ def test_the_viewers_shared_lattice_is_read_from_the_file_in_place(tmp_path, sma
         shared.close()
 
 
+def test_the_writing_thread_deflates_queued_pieces_instead_of_waiting(tmp_path, monkeypatch):
+    """While the oldest piece is not deflated yet, the thread writing the member deflates
+    the newest one no pool thread has started: with slow pool threads it does some of
+    the work itself, and the file is the same bytes as one thread's."""
+    import threading
+    import time
+
+    from isolume.volumes import cores
+
+    monkeypatch.setattr(lattice_file, "DEFLATE_PIECE", 777)
+    lattice = _random_lattice(seed=5)
+    path1 = tmp_path / "one.npz"
+    cores.use(1)
+    try:
+        lattice.save(path1)
+    finally:
+        cores.use(None)
+    deflated, here = lattice_file._deflated, []
+
+    def slow_on_the_pool(piece, batch):
+        if threading.current_thread() is threading.main_thread():
+            here.append(len(piece))
+        else:
+            time.sleep(0.002)
+        return deflated(piece, batch)
+
+    monkeypatch.setattr(lattice_file, "_deflated", slow_on_the_pool)
+    cores.use(2)
+    try:
+        lattice.save(tmp_path / "two.npz")
+    finally:
+        cores.use(None)
+    assert len(here) > 0
+    assert (tmp_path / "two.npz").read_bytes() == path1.read_bytes()
+
+
 def test_members_deflated_in_pieces_on_threads_make_the_same_valid_file(tmp_path,
                                                                       monkeypatch):
     """A member's bytes are deflated in pieces on every core (`DEFLATE_PIECE`): the file's
