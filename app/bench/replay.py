@@ -100,10 +100,11 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
                 seconds_of: Callable[[list[Any]], float] = duration,
                 recorded: list[float] | None = None,
                 laned: frozenset[int] = frozenset()) -> list[tuple]:
-    """The items of a stage visit as events in order: ``("unit", durations)``, the units run
-    one after another, each the durations of items that may run side by side — a batch's
-    items (placed at its first item), a run of consecutive single items of one kind, or
-    a single item that `split(kind)` cuts into shares (its own unit); ``("lane", batch,
+    """The items of a stage visit as events in order: ``("unit", durations, key)``, the
+    units run one after another, each the durations of items that may run side by side —
+    a batch's items (placed at its first item; key ``("batch", id)``), a run of
+    consecutive single items of one kind (``("single", kind)``), or a single item that
+    `split(kind)` cuts into shares (its own unit, ``("split", id)``); ``("lane", batch,
     seconds)``, work done beside that the command waits for later (its batch in `laned`:
     a "wait" item marks where); ``("wait", batch)``, that mark.
 
