@@ -303,9 +303,14 @@ class ThreadBackend:
 
     def levels_known(self, levels: np.ndarray) -> None:
         """Build the scenes of the highest `ahead` levels, where the plan's side probes
-        start (`sides.choose_sides`), on the helper thread while the plan goes on."""
+        start (`sides.choose_sides`), on the helper thread while the plan goes on — or,
+        where no side is probed (``sides="normals"``), of the lowest, where the tracing
+        starts."""
         self._levels = np.asarray(levels, np.float64)
-        for level in range(len(levels) - 1, max(len(levels) - self._ahead, 0) - 1, -1):
+        count = min(self._ahead, len(levels))
+        ahead = (range(count) if self._config.sides == "normals"
+                 else range(len(levels) - 1, len(levels) - 1 - count, -1))
+        for level in ahead:
             self._pending[level] = self._beside("scene", level_scene, self._volume,
                                                 float(levels[level]), self._config)
 
@@ -322,12 +327,9 @@ class ThreadBackend:
         return self._scene(level)
 
     def start(self, job: BakeJob) -> None:
-        """Trace with `job` (once the compiled code is loaded). A scene built ahead that
-        the plan's side probes did not take (its level had no texel to probe) goes: the
-        tracing holds one scene at a time and builds that one when it gets there."""
+        """Trace with `job` (once the compiled code is loaded)."""
         if self._warm is not None:
             self._warm.wait()
-        self._pending.clear()
         self.job = job
 
     def trace_pass(self, work: PassWork, report: PassReport) -> None:
@@ -398,14 +400,20 @@ class ThreadBackend:
         built now (least recently used scenes out: the cache holds at least the level
         being traced). Room is made before a scene is built, so a scene in the making
         counts against the cache: a bake with a cache of one holds one level scene
-        (`trace_pass` lets the traced one go before the next is built)."""
+        (`trace_pass` lets the traced one go before the next is built). A scene built
+        ahead for a level above `level` (one the side probes, going down, found no
+        texel on) goes first, once built: it would be a second scene alive."""
         with self._scene_lock:
             if level in self._scenes:
                 self._scenes.move_to_end(level)
                 return self._scenes[level]
             ahead = self._pending.pop(level, None)
+            above = [self._pending.pop(k) for k in sorted(self._pending) if k > level]
             while len(self._scenes) >= self._scene_cache:
                 self._scenes.popitem(last=False)
+        for other in above:
+            other.wait()  # its scene built: let go with the future that holds it
+        above.clear()
         scene = ahead.wait() if ahead is not None else level_scene(
             self._volume, float(self._levels[level]), self._config)
         with self._scene_lock:

@@ -207,7 +207,6 @@ class _Deflating:
         self.member.write(_FINAL_BLOCK)
         self.member._crc, self.member._file_size = self.crc, self.size
 
-
     def _oldest(self) -> bytes:
         """The oldest pending piece, deflated, taken out; while it is not done, this
         thread deflates the newest piece not started yet (taken from the pool's queue)."""

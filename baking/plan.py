@@ -223,7 +223,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     ``progress(stage, fraction)`` how far the long ones (the Newton steps, the side probes,
     the reach tests: minutes on a 512³ CT) have come, a fraction in [0, 1];
     `on_levels(levels)` as soon as the levels are known (the baker starts building the
-    first level's scene while the texels' reach is tested); `scenes(k)` gives the Embree
+    scene the side probes start on beside the Newton steps); `scenes(k)` gives the Embree
     scene of level k for the side probes, or None (`choose_sides`); `traced_only`: make
     `Plan.traced_only`'s plan, letting go of what only replanning reads (the box's mask,
     the texels' values and targets: 128 + 315 MB on a 512³ CT) as soon as the levels

@@ -249,6 +249,10 @@ def test_the_tracing_starts_on_the_scene_the_side_probes_left(monkeypatch, worke
     k = len(levels)
     assert k >= 4
     assert built == levels[::-1] + levels[1:]  # 2K − 1 builds
+    built.clear()  # with no side probed, the lowest level is built ahead, for the tracing
+    lattice = bake(make("engine", 36), BakeConfig(samples=4, bounces=1, sides="normals"),
+                   workers=workers)
+    assert built == list(lattice.meta["plan"]["levels"])
 
 
 @pytest.mark.parametrize("env, albedo, direct", [

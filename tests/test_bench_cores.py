@@ -108,26 +108,27 @@ def test_the_whole_command_replays_its_stages_and_the_time_outside_them():
     assert replay(one, 1)["whole"] == pytest.approx(20)
 
 
-def test_work_done_beside_joins_the_next_unit_of_work():
-    # a step's layout (beside, 2 s) recorded before the chunks it overlaps, then a commit
-    # batch done beside (1 s each) between two steps' chunks
-    items = [(1, 1, "layout", 0, 2, 1), *_batch(2, "trace", 2, [3, 3]),
+def test_work_done_beside_shares_the_threads_of_the_work_it_overlapped():
+    # one thread records a step's chunks, then the batch before committed beside them
+    # (1 s each), then the next step's chunks; a commit before any unit of its visit
+    # waits for the next one
+    items = [*[(*item, 1) for item in _batch(1, "commit", 0, [2])],
+             *_batch(2, "trace", 2, [3, 3]),
              *[(*item, 1) for item in _batch(3, "commit", 8, [1, 1])],
              (4, 1, "trace", 10, 13)]
-    assert work_units(items) == [[2, 3, 3], [1, 1, 3]]
+    assert work_units(items) == [[2, 3, 3, 1, 1], [3]]
     stage = _stage("tracing", 0, 13, items)
     assert replay_stage(stage, 1) == pytest.approx(13)
-    assert replay_stage(stage, 2) == pytest.approx(5 + 4)  # (2 | 3, 3) then (1, 1 | 3)
-    assert replay_stage(stage, 3) == pytest.approx(3 + 3)
-    # beside work left at a stage's end waits for the next stage's work
-    sides = _stage("seen sides", 0, 4, [*_batch(5, "side probes", 0, [1, 1]),
-                                        (6, 1, "scene", 2, 4, 1)])
-    tracing = _stage("tracing", 4, 4, _batch(7, "trace", 4, [2, 2]))
+    assert replay_stage(stage, 2) == pytest.approx(5 + 3)  # (2, 3 | 3, 1, 1) then 3
+    assert replay_stage(stage, 3) == pytest.approx(4 + 3)  # (2, 1, 1 | 3 | 3) then 3
+    # a commit left at a visit's start with nothing before it waits for the next stage's work
+    sides = _stage("seen sides", 0, 2, [(6, 1, "commit", 0, 2, 1)])
+    tracing = _stage("tracing", 2, 4, _batch(7, "trace", 2, [2, 2]))
     at2 = replay(_timeline([sides, tracing]), 2)
-    assert at2["seen sides"] == pytest.approx(1)
+    assert at2["seen sides"] == pytest.approx(0)
     assert at2["tracing"] == pytest.approx(4)  # (2, 2, 2) on two threads
     # and left at the very end, it runs on its own
-    assert replay(_timeline([sides]), 2)["seen sides"] == pytest.approx(1 + 2)
+    assert replay(_timeline([sides]), 2)["seen sides"] == pytest.approx(2)
 
 
 def test_work_waited_for_by_name_runs_on_a_lane_of_its_own_until_then():

@@ -55,6 +55,8 @@ BUSY_LOAD = 0.5
 (a note is printed)."""
 TIMEOUT_S = 3600.0
 """Longest a measured child process may run."""
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("volume", nargs="?", default="synthetic:engine",
                    help="volume (default synthetic:engine)")

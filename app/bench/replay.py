@@ -24,12 +24,13 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-INNER_PARALLEL = {"bvh": "bvh", "save": "save", "checkpoint": "save"}
+INNER_PARALLEL = {"bvh": "bvh", "scene": "bvh", "save": "save", "checkpoint": "save"}
 """Kinds of item that are parallel inside (an Embree BVH build runs on Embree's own
-`--workers` threads, a lattice's save deflates its pieces on the pool): the replay
-shortens them by Amdahl's law, with the serial fraction fitted to how much faster the
-items of the kind named here ran with the most threads measured (`inner_factors`; a
-checkpoint is the same save as the last one, which shares no core with tracing)."""
+`--workers` threads, a scene built ahead is mostly its BVH build, a lattice's save
+deflates its pieces on the pool): the replay shortens them by Amdahl's law, with the
+serial fraction fitted to how much faster the items of the kind named here ran with the
+most threads measured (`inner_factors`; a checkpoint is the same save as the last one,
+which shares no core with tracing)."""
 ITEM_GAP_S = 0.005
 """Gaps up to this long between consecutive items of one unit of work (`work_units`) are
 the items' own overhead — handing an item out, a progress update after it — done by the
@@ -109,10 +110,12 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
     a "wait" item marks where); ``("wait", batch)``, that mark.
 
     An item that follows its unit's last item within `ITEM_GAP_S` takes the gap into its
-    seconds. Other items done beside (`is_beside`) join the next unit, as the threads
-    that run it would share the work; `carried` holds those not yet placed (from earlier
-    visits), taken out as they are, and those left at the end go back into it (None: they
-    make a unit at the end). `sizes`: items per batch id (default: counted in `items`);
+    seconds. Other items done beside (`is_beside`: a batch committed while the next is
+    traced, which one thread records after that next step's chunks) join the unit before
+    them in the visit, as the threads that run it would share the work, or else the next
+    one; `carried` holds those not yet placed (from earlier visits), taken out as they
+    are, and those left at the end go back into it (None: they make a unit at the end).
+    `sizes`: items per batch id (default: counted in `items`);
     `seconds_of`: an item's seconds (`duration`); `recorded`, where given, gets each
     item's recorded seconds with the gap it took (what the stage's wall holds besides
     glue)."""
@@ -145,6 +148,8 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
         if is_beside(item):
             if batch in laned:
                 events.append(("lane", batch, seconds))
+            elif ended:  # a unit so far in this visit: the last one begun
+                events[max(ended)][1].append(seconds)
             else:
                 waiting.append(seconds)
             continue
@@ -258,14 +263,11 @@ def replay(timeline: dict[str, Any], n: int,
     `inner_factors`. Work done beside that the command waits for by name (a "wait" item)
     runs on a lane of its own until then; other work done beside joins the next unit of
     work, in a later stage if need be; what is left at the end runs on its own, in the
-    last stage. A bake saves a checkpoint every `CHECKPOINT_S` seconds at most: the
-    replay keeps as many of the recorded ones, first first, as its prediction without
-    them lasts that long (`thinned`)."""
-    from isolume.baking.bake import CHECKPOINT_S
-
+    last stage. A bake's checkpoints come as often as its tracing's predicted seconds
+    allow (`checkpoints_kept`); the replay keeps that many of the recorded ones, first
+    first (`thinned`)."""
     if any(item[2] == "checkpoint" for stage in timeline["stages"] for item in stage["items"]):
-        faster = replay(thinned(timeline, 0), n, hints, inner)["whole"]
-        timeline = thinned(timeline, int(faster // CHECKPOINT_S))
+        timeline = thinned(timeline, checkpoints_kept(timeline, n, hints, inner))
     sizes, taken, play = batch_sizes(timeline), Counter(), _Play()
     laned = frozenset(item[0] for stage in timeline["stages"] for item in stage["items"]
                       if item[2] == "wait")
@@ -278,6 +280,21 @@ def replay(timeline: dict[str, Any], n: int,
         out[timeline["stages"][-1]["name"]] += makespan(play.carried, n)
     out["whole"] = sum(out.values()) + outside_stages_s(timeline)
     return out
+
+
+def checkpoints_kept(timeline: dict[str, Any], n: int,
+                     hints: dict[tuple[str, str], list[list[float]]] | None,
+                     inner: dict[str, float] | None) -> int:
+    """How many checkpoints a bake makes on `n` threads: its tracing's predicted seconds
+    (without checkpoints) over `baking.bake.Checkpoints`' spacing — `CHECKPOINT_S`, or
+    1 / `SAVE_SHARE` times a checkpoint's predicted seconds where that is longer."""
+    from isolume.baking.bake import CHECKPOINT_S, SAVE_SHARE
+
+    tracing = replay(thinned(timeline, 0), n, hints, inner).get("tracing", 0.0)
+    saves = [_on_threads(n, inner)(item) for stage in timeline["stages"]
+             for item in stage["items"] if item[2] == "checkpoint"]
+    spacing = max(CHECKPOINT_S, sum(saves) / len(saves) / SAVE_SHARE)
+    return int(tracing // spacing)
 
 
 def thinned(timeline: dict[str, Any], keep: int) -> dict[str, Any]:
