@@ -172,7 +172,7 @@ def test_a_timeline_marks_work_done_beside_and_records_memory(tmp_path, three_th
         cores.stage("tracing")
         big = np.ones(64 << 20, np.uint8)  # 64 MiB, touched
         time.sleep(0.2)
-        alive = _resident_mib()
+        alive = cores._resident_bytes() / 2**20
         del big
     record = json.loads(path.read_text())
     load, tracing = record["stages"]
@@ -182,11 +182,6 @@ def test_a_timeline_marks_work_done_beside_and_records_memory(tmp_path, three_th
     assert tracing["rss_mb"] >= alive - 1 and alive > 64
     assert record["peak_rss_mb"] >= tracing["rss_mb"] - 1
 
-
-def _resident_mib() -> float:
-    """This process's resident memory now, MiB (``/proc/self/statm``)."""
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
 def _stages(path) -> list[dict]:
