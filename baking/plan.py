@@ -560,7 +560,7 @@ def _binned_percentile(which: np.ndarray, values: np.ndarray, bins: int, q: floa
     ranks the percentile lies between put in place (a partition, not a sort: a bin may
     hold half the texels): the values there are those `np.lexsort((values, which))`
     ranks there, holding two arrays of N at a time."""
-    ranked, counts = _grouped_by_bin(which, values, bins)
+    ranked, counts = grouped_by_bin(which, values, bins)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     several = np.flatnonzero(counts > 1)
     position = starts + q / 100 * np.maximum(counts - 1, 0)
@@ -583,22 +583,22 @@ def _binned_percentile(which: np.ndarray, values: np.ndarray, bins: int, q: floa
     return np.where(counts > 0, out, empty)
 
 
-def _grouped_by_bin(which: np.ndarray, values: np.ndarray, bins: int
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) the `values` grouped by bin in their order within each bin (as
-    ``values[np.argsort(which, kind="stable")]``), and the (bins,) counts: a counting sort
-    in blocks on every core (each block's counts, then each block's values put where the
-    blocks before it end in each bin)."""
+def grouped_by_bin(which: np.ndarray, values: np.ndarray, bins: int, kind: str = "levels"
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) the `values` grouped by bin (`which`, (N,) ints < `bins`) in their order within
+    each bin (as ``values[np.argsort(which, kind="stable")]``), and the (bins,) counts: a
+    counting sort in blocks on every core (each block's counts, then each block's values
+    put where the blocks before it end in each bin), its work items named `kind`."""
     parts = cores.blocks(len(which), PLAN_BLOCK)
     counts = np.zeros((len(parts), bins), np.int64)
     cores.for_items(lambda b: kernels.count_bins(which, parts[b].start, parts[b].stop,
-                                                 counts[b]), len(parts), "levels")
+                                                 counts[b]), len(parts), kind)
     totals = counts.sum(axis=0)
     places = np.cumsum(counts, axis=0) - counts + (np.cumsum(totals) - totals)
     ranked = np.empty(len(values), values.dtype)
     cores.for_items(lambda b: kernels.scatter_by_bin(which, values, parts[b].start,
                                                      parts[b].stop, places[b], ranked),
-                    len(parts), "levels")
+                    len(parts), kind)
     return ranked, totals
 
 

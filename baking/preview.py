@@ -38,10 +38,10 @@ from isolume.baking import kernels, octahedral, rng
 from isolume.baking.bake import path_settings, tracing_lights
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import whole_paths
-from isolume.baking.lattice import Lattice, LatticeGeometry, trilinear_corners
+from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lazy import corner_offsets, visible_cells
 from isolume.baking.passes import PassSums, PathStarts, Tracing, trace_chunk
-from isolume.baking.plan import project_to_level
+from isolume.baking.plan import grouped_by_bin, project_to_level
 from isolume.baking.reference import primary_hits
 from isolume.volumes import cores
 
@@ -225,23 +225,46 @@ def seen_surface(scene: Scene, volume: volumes.Volume, config: BakeConfig,
     return SeenSurface(hits.points, hits.origins, hits.normals, texels, nearest)
 
 
+NEAREST_BINS = 1024
+"""Most bins of consecutive texel ids `nearest_points` groups the corners it reads into."""
+
+
 def nearest_points(geometry: LatticeGeometry, points: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(T,) sorted flat ids of the texels that trilinear lookups at (M, 3) world `points`
-    read, and (T,) the index of the point nearest each (world distance to its centre)."""
+    read, and (T,) the index of the point nearest each (world distance to its centre; the
+    first such point on ties).
+
+    On every core: each point's 8 corners and their distances (`kernels.corner_reads`),
+    the corners grouped into bins of consecutive texel ids by a counting sort
+    (`plan.grouped_by_bin`), and each bin's texels and their nearest points found in it
+    (`kernels.nearest_in_bins`) — what a sort of all corners by texel and distance gives,
+    without the sort."""
     if len(points) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    shape = geometry.shape
-    coords = geometry.to_texel_coords(points)  # (M, 3) z, y, x
-    idx, _ = trilinear_corners(shape, coords)  # (M, 8, 3)
-    read = ((idx[..., 0] * shape[1] + idx[..., 1]) * shape[2] + idx[..., 2]).reshape(-1)
-    size = geometry.texel_size[::-1]  # z, y, x
-    gap = ((idx - coords[:, None, :]) * size) ** 2
-    closeness = gap.sum(axis=2).reshape(-1) / (2.0 * float((size**2).sum()) + 1e-30)
-    order = np.lexsort((closeness, read))  # by texel, then nearest first
-    texel = read[order]
-    first = np.r_[True, texel[1:] != texel[:-1]]
-    return texel[first], (order // 8)[first]
+    coords = np.ascontiguousarray(geometry.to_texel_coords(points))  # (M, 3) z, y, x
+    shape = np.asarray(geometry.shape, np.int64)
+    size = np.asarray(geometry.texel_size[::-1], np.float64)  # z, y, x
+    scale = 2.0 * float((size**2).sum()) + 1e-30
+    corners = 8 * len(coords)
+    read, close = np.empty(corners, np.int64), np.empty(corners, np.float64)
+    cores.for_ranges(lambda lo, hi: kernels.corner_reads(coords, shape, size, scale, lo, hi,
+                                                         read, close),
+                     len(coords), 8, "nearest points")
+    texels = int(np.prod(shape))
+    bits = max(0, (texels - 1).bit_length() - NEAREST_BINS.bit_length() + 1)
+    entries, counts = grouped_by_bin(read >> bits, np.arange(corners),
+                                     ((texels - 1) >> bits) + 1, "nearest points")
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    bounds = [int(np.searchsorted(starts, lo)) for lo, _ in cores.item_bounds(corners, 1)]
+    bounds = sorted({*bounds, len(counts)})
+    texel, point = np.full(corners, -1, np.int64), np.empty(corners, np.int64)
+    cores.for_items(lambda i: kernels.nearest_in_bins(read, close, entries, starts,
+                                                      bounds[i], bounds[i + 1], bits,
+                                                      texel, point),
+                    len(bounds) - 1, "nearest points")
+    found = texel >= 0
+    return texel[found], point[found]
 
 
 def seen_starts(flat: np.ndarray, seen: SeenSurface) -> np.ndarray:

@@ -167,6 +167,64 @@ def test_level_points_of_a_range_and_under_a_limit():
     assert len(volumes.level_points(vol, vol.value_range[1] + 1)) == 0
 
 
+def _numpy_crossings(layers, axis, lo, hi):
+    """The crossings `cubes.edge_crossings` finds, by numpy: (L, N, 3)."""
+    n = layers.shape[axis] - 1
+    a = np.take(layers, np.arange(n), axis=axis)
+    b = np.take(layers, np.arange(1, n + 1), axis=axis)
+    index = np.nonzero((np.minimum(a, b) <= hi) & (np.maximum(a, b) >= lo) & (a != b))
+    a, b = a[index].astype(np.float64), b[index].astype(np.float64)
+    coords = np.stack(index, axis=1).astype(np.float64)
+    ends = []
+    for level in (lo,) if lo == hi else (lo, hi):
+        at = coords.copy()
+        at[:, axis] += (np.clip(level, np.minimum(a, b), np.maximum(a, b)) - a) / (b - a)
+        ends.append(at)
+    return np.stack(ends)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.float32])
+def test_edge_crossings_match_numpy_to_the_bit(dtype):
+    """The compiled crossing points of `level_points` are numpy's, in numpy's order, for
+    integer and float samples, one level and a range, edges equal to a level included
+    (float32 samples compared in float32, as numpy compares them with a Python float)."""
+    from isolume.volumes.mesh import _slab_crossings
+
+    gen = np.random.default_rng(4)
+    data = (gen.normal(100, 40, (37, 9, 11)) if dtype != np.float32
+            else gen.normal(0.5, 0.2, (37, 9, 11))).astype(dtype)
+    level = float(data.flat[17])
+    if dtype == np.float32:  # float32(0.1) > 0.1: numpy's float32 comparison counts it
+        data.flat[::7], level = np.float32(0.1), 0.1
+    for lo, hi in [(level, level), (float(np.percentile(data, 30)) + 0.25,
+                                                  float(np.percentile(data, 60)))]:
+        slabs = _slab_crossings(data, [0, 32], lo, hi)
+        for k0, parts in zip([0, 32], slabs, strict=True):
+            k1 = min(k0 + 32, data.shape[0] - 1)
+            layers = data[k0:k1 + 1] if k1 == data.shape[0] - 1 else data[k0:k1]
+            for got, (part, axis) in zip(parts, [(data[k0:k1 + 1], 0), (layers, 1),
+                                                 (layers, 2)], strict=True):
+                want = _numpy_crossings(part, axis, lo, hi).reshape(-1, 3)
+                assert len(want) > 0
+                np.testing.assert_array_equal(got, want)
+
+
+def test_level_points_are_the_same_on_any_number_of_threads():
+    """Thinned to a limit, the points do not depend on the threads that found them."""
+    from isolume.volumes import cores
+
+    vol = volumes.load("synthetic:engine:64")
+    got = []
+    for threads in (1, 3):
+        cores.use(threads)
+        try:
+            got.append(volumes.level_points(vol, 0.3, 0.5, limit=3000))
+        finally:
+            cores.use(None)
+    assert len(got[0]) == 3000
+    np.testing.assert_array_equal(got[0], got[1])
+
+
 @pytest.fixture(scope="module")
 def small_ball(tmp_path_factory) -> Path:
     """A .npy volume: a ball of radius 5 voxels in a corner of a 48³ box."""

@@ -175,7 +175,7 @@ def test_values_grouped_by_bin_in_blocks_are_a_stable_sort(threads):
     """The counting sort of the level choice, in blocks on several threads, is
     ``values[argsort(which, stable)]`` to the bit, with numpy's bin counts — ties, empty
     bins, one bin holding most values and blocks of 1024 included."""
-    from isolume.baking.plan import _grouped_by_bin
+    from isolume.baking.plan import grouped_by_bin
     from isolume.volumes import cores
 
     gen = np.random.default_rng(3)
@@ -184,7 +184,7 @@ def test_values_grouped_by_bin_in_blocks_are_a_stable_sort(threads):
     values = np.round(gen.gamma(2, 1, len(which)), 1).astype(np.float32)
     cores.use(threads)
     try:
-        ranked, counts = _grouped_by_bin(which, values, 512)
+        ranked, counts = grouped_by_bin(which, values, 512)
     finally:
         cores.use(None)
     np.testing.assert_array_equal(ranked, values[np.argsort(which, kind="stable")])

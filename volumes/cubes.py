@@ -197,6 +197,45 @@ def _fill(data: np.ndarray, iso: float, count: np.ndarray, table: np.ndarray,
         lower, upper = upper, lower
 
 
+@numba.njit(nogil=True, cache=True)
+def edge_crossings(layers: np.ndarray, axis: int, below: float, above: float,
+                   levels: np.ndarray, k0: int, k1: int) -> np.ndarray:
+    """Where the levels cross the grid edges along `axis` (0: z, 1: y, 2: x) of (K, Y, X)
+    `layers` that start in layers [`k0`, `k1`): the edges whose ends a ≠ b have
+    min(a, b) ≤ `above` and max(a, b) ≥ `below` (the range's ends in the comparisons'
+    type), in C order of their lower ends.
+
+    Returns:
+        (L, N, 3) float64: for each of the (L,) `levels` (float64), the N edges' crossing
+        points as voxel indices z, y, x in `layers`, placed where the level, clipped to
+        the edge's values, lies between them linearly (a + t (b − a), as marching cubes
+        places its vertices).
+    """
+    dk, dj, di = int(axis == 0), int(axis == 1), int(axis == 2)
+    ny, nx = layers.shape[1] - dj, layers.shape[2] - di
+    count = 0
+    for k in range(k0, k1):
+        for j in range(ny):
+            for i in range(nx):
+                a, b = layers[k, j, i], layers[k + dk, j + dj, i + di]
+                count += (min(a, b) <= above) & (max(a, b) >= below) & (a != b)
+    out = np.empty((len(levels), count, 3), np.float64)
+    n = 0
+    for k in range(k0, k1):
+        for j in range(ny):
+            for i in range(nx):
+                a, b = layers[k, j, i], layers[k + dk, j + dj, i + di]
+                if not ((min(a, b) <= above) & (max(a, b) >= below) & (a != b)):
+                    continue
+                fa, fb = np.float64(a), np.float64(b)
+                lower, upper = min(fa, fb), max(fa, fb)
+                for m in range(len(levels)):
+                    out[m, n, 0], out[m, n, 1], out[m, n, 2] = k, j, i
+                    out[m, n, axis] += (min(max(levels[m], lower), upper) - fa) / (fb - fa)
+                n += 1
+    return out
+
+
 def tracing_surface(volume: Volume, iso: float) -> tuple[np.ndarray, np.ndarray]:
     """The isosurface ρ = `iso` as a watertight indexed triangle mesh for ray tracing,
     extracted without the GIL (see the module docs): a vertex per crossed grid edge,

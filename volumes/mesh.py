@@ -8,8 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 from skimage import measure
 
+from isolume.volumes import cores
 from isolume.volumes.core import Volume, VolumeError
-from isolume.volumes.cubes import padded_copy
+from isolume.volumes.cubes import edge_crossings, padded_copy
 from isolume.volumes.field import gradient_at, normals_from_gradient
 
 
@@ -146,10 +147,14 @@ def isosurface(
 
 
 LEVEL_SLAB = 32
-"""z layers of the volume `level_points` reads at a time (its memory: a few such layers)."""
+"""z layers of the volume `level_points` thins its points after (its memory: a few such
+layers a thread)."""
 
 LEVEL_POINTS = 100_000
 """At most this many points from `level_points` (spread evenly over the crossings)."""
+
+LEVEL_ITEM = 4
+"""z layers of one work item of `level_points`."""
 
 
 def level_points(volume: Volume, lo: float, hi: float | None = None,
@@ -158,7 +163,11 @@ def level_points(volume: Volume, lo: float, hi: float | None = None,
     alone): where a level in that range crosses an edge between two neighbouring samples,
     placed by linear interpolation as marching cubes places its vertices (at both ends of
     the range). Every crossing up to `limit` of them, else a random subset (the same each
-    time; a regular stride would alias with the grid).
+    time, and on any number of threads; a regular stride would alias with the grid).
+
+    The crossings are found by a compiled kernel (`cubes.edge_crossings`) in items of
+    `LEVEL_ITEM` z layers on every core, a few slabs of `LEVEL_SLAB` layers at a time;
+    the slabs are thinned in order.
 
     Returns:
         (N, 3) float64 world xyz, N ≤ `limit`; (0, 3) when no level in the range crosses.
@@ -169,42 +178,59 @@ def level_points(volume: Volume, lo: float, hi: float | None = None,
     rng = np.random.default_rng(0)
     found: list[np.ndarray] = []
     kept, rate = 0, 1.0
-    for k0 in range(0, data.shape[0] - 1, LEVEL_SLAB):
-        k1 = min(k0 + LEVEL_SLAB, data.shape[0] - 1)
-        # z edges k0..k1; the edges within a layer: layers k0..k1-1 (and the last layer
-        # with the last slab)
-        layers = data[k0:k1 + 1] if k1 == data.shape[0] - 1 else data[k0:k1]
-        for part, axis in ((data[k0:k1 + 1], 0), (layers, 1), (layers, 2)):
-            points = _edge_crossings(part, axis, lo, hi)
-            if rate < 1.0:
-                points = points[rng.random(len(points)) < rate]
-            points[:, 0] += k0
-            found.append(points)
-            kept += len(points)
-        if kept > 2 * limit:  # thin out what was kept, and what is to come, alike
-            points = np.concatenate(found)
-            found = [points[rng.random(len(points)) < 0.5]]
-            kept, rate = len(found[0]), rate / 2
+    slabs = list(range(0, data.shape[0] - 1, LEVEL_SLAB))
+    wave = max(1, cores.threads())
+    for first in range(0, len(slabs), wave):
+        for k0, parts in zip(slabs[first:first + wave],
+                             _slab_crossings(data, slabs[first:first + wave], lo, hi),
+                             strict=True):
+            for points in parts:
+                if rate < 1.0:
+                    points = points[rng.random(len(points)) < rate]
+                points[:, 0] += k0
+                found.append(points)
+                kept += len(points)
+            if kept > 2 * limit:  # thin out what was kept, and what is to come, alike
+                points = np.concatenate(found)
+                found = [points[rng.random(len(points)) < 0.5]]
+                kept, rate = len(found[0]), rate / 2
     zyx = np.concatenate(found) if found else np.zeros((0, 3))
     if len(zyx) > limit:
         zyx = zyx[np.sort(rng.choice(len(zyx), limit, replace=False))]
     return volume.index_to_world(zyx)
 
 
-def _edge_crossings(layers: np.ndarray, axis: int, lo: float, hi: float) -> np.ndarray:
-    """(M, 3) voxel indices (z, y, x; z from the first of `layers`) of the points where the
-    levels `lo` and `hi` cross the edges along `axis` of `layers` ((K, Y, X) samples): two
-    points per edge crossed by the range, one where `lo` = `hi`."""
-    n = layers.shape[axis] - 1
-    a = np.take(layers, np.arange(n), axis=axis)
-    b = np.take(layers, np.arange(1, n + 1), axis=axis)
-    index = np.nonzero((np.minimum(a, b) <= hi) & (np.maximum(a, b) >= lo) & (a != b))
-    a, b = a[index].astype(np.float64), b[index].astype(np.float64)
-    lower, upper = np.minimum(a, b), np.maximum(a, b)
-    coords = np.stack(index, axis=1).astype(np.float64)
-    ends = []
-    for level in ((lo,) if lo == hi else (lo, hi)):
-        at = coords.copy()
-        at[:, axis] += (np.clip(level, lower, upper) - a) / (b - a)
-        ends.append(at)
-    return np.concatenate(ends)
+def _slab_crossings(data: np.ndarray, starts: list[int], lo: float, hi: float
+                    ) -> list[list[np.ndarray]]:
+    """For each slab of `LEVEL_SLAB` z layers of (Z, Y, X) `data` starting at `starts`,
+    its three (M, 3) arrays of crossing points (voxel indices z, y, x from the slab's first
+    layer) of the edges along z, y and x: two points per edge crossed by the range (all
+    at `lo`, then all at `hi`), one where `lo` = `hi`. Found in items of `LEVEL_ITEM`
+    layers on every core."""
+    levels = np.array([lo] if lo == hi else [lo, hi])
+    below, above = ((float(data.dtype.type(lo)), float(data.dtype.type(hi)))
+                    if np.issubdtype(data.dtype, np.floating) else (lo, hi))  # as numpy's
+    parts = []
+    for k0 in starts:
+        k1 = min(k0 + LEVEL_SLAB, data.shape[0] - 1)
+        # z edges k0..k1; the edges within a layer: layers k0..k1-1 (and the last layer
+        # with the last slab)
+        layers = data[k0:k1 + 1] if k1 == data.shape[0] - 1 else data[k0:k1]
+        parts += [(data[k0:k1 + 1], 0, k1 - k0), (layers, 1, len(layers)),
+                  (layers, 2, len(layers))]
+    items = [(p, a) for p, (_, _, n) in enumerate(parts) for a in range(0, n, LEVEL_ITEM)]
+    found: list[np.ndarray] = [np.zeros((len(levels), 0, 3))] * len(items)
+
+    def item(i: int) -> None:
+        part, a = items[i]
+        layers, axis, n = parts[part]
+        found[i] = edge_crossings(layers, axis, below, above, levels, a,
+                                  min(a + LEVEL_ITEM, n))
+
+    cores.for_items(item, len(items), "framing")
+    out = []
+    for p in range(len(parts)):
+        mine = [f for (part, _), f in zip(items, found, strict=True) if part == p]
+        out.append(np.concatenate([f[m] for m in range(len(levels)) for f in mine])
+                   if mine else np.zeros((0, 3)))
+    return [out[3 * s:3 * s + 3] for s in range(len(starts))]
