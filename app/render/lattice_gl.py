@@ -47,6 +47,11 @@ from isolume.app.render.settings import RenderError
 from isolume.baking import octahedral
 from isolume.baking.lattice import FACING_POWER, SIDE_BLEND, Lattice
 from isolume.baking.sh import transfer_blocks
+from isolume.volumes import cores
+
+ATLAS_WAVE = 4
+"""Atlas z-layers gathered at once (on every core) when the atlases are made: their copies
+in memory."""
 
 MAX_TEXTURE_UNITS: int = 16  # guaranteed by GL 3.3 for fragment shaders
 SH_FIRST_UNIT: int = 2  # units 0: HDR resolve input or shadow map, 1: the texels' state
@@ -165,11 +170,11 @@ class LatticeTextures:
         self.owner[1:self.used] = bricks
         self._release_atlases()
         self._make_atlases()
-        for layer in range(self.layout.dims[0]):
-            slots = self.layout.layer_slots(layer)
-            if slots.start >= self.used:
-                break
-            self._upload_layer(layer, slots)
+        layers = [layer for layer in range(self.layout.dims[0])
+                  if self.layout.layer_slots(layer).start < self.used]
+        wave = min(cores.threads(), ATLAS_WAVE)
+        for first in range(0, len(layers), wave):
+            self._upload_layers(layers[first:first + wave])
         self._write_indirection()
 
     def _make_atlases(self) -> None:
@@ -230,22 +235,41 @@ class LatticeTextures:
     def _uploaded(self, bricks: np.ndarray) -> list[np.ndarray]:
         """`blocks` of (M, 3) bricks about to be uploaded; notes a known facing."""
         parts = self.blocks(bricks)
-        self.facing_known = self.facing_known or bool(octahedral.known(parts[0][..., 1:]).any())
+        self._note_facing(parts)
         return parts
 
-    def _upload_layer(self, layer: int, slots: range) -> None:
-        """Upload the atlas z-layer `layer` (its `slots`; those past `used` stay zero)."""
+    def _note_facing(self, parts: list[np.ndarray]) -> None:
+        """Note a known facing among the `blocks` `parts` about to be uploaded."""
+        self.facing_known = self.facing_known or bool(octahedral.known(parts[0][..., 1:]).any())
+
+    def _upload_layers(self, layers: list[int]) -> None:
+        """Upload the atlas z-layers `layers` (their slots; those past `used` stay zero),
+        their texels gathered and laid out on every core, written to GL here."""
+        data: list[list[np.ndarray]] = [[] for _ in layers]
+
+        def gather(i: int) -> None:
+            data[i] = self._layer_data(self.layout.layer_slots(layers[i]))
+
+        cores.for_items(gather, len(layers), "atlas")
+        width, height, _ = self.layout.texels_xyz
+        for layer, parts in zip(layers, data, strict=True):
+            self._note_facing(parts[len(parts) // 2:])
+            viewport = (0, 0, layer * STORED, width, height, STORED)
+            for tex, laid in zip(self._textures(), parts[:len(parts) // 2], strict=True):
+                tex.write(laid.tobytes(), viewport=viewport, alignment=1)
+
+    def _layer_data(self, slots: range) -> list[np.ndarray]:
+        """The atlas z-layer of `slots` as laid out for each texture (`_textures` order),
+        then the `blocks` it was laid out from."""
         taken = np.arange(slots.start, min(slots.stop, self.used))
-        parts = self._uploaded(self.owner[taken])
+        parts = self.blocks(self.owner[taken])
+        laid = []
         for part in parts:
             part[taken == 0] = 0  # slot 0 stays empty
-        width, height, _ = self.layout.texels_xyz
-        viewport = (0, 0, layer * STORED, width, height, STORED)
-        for tex, part in zip(self._textures(), parts, strict=True):
             full = np.zeros((len(slots), *part.shape[1:]), part.dtype)
             full[:len(taken)] = part
-            data = assemble_layer(full, self.layout)
-            tex.write(np.ascontiguousarray(data).tobytes(), viewport=viewport, alignment=1)
+            laid.append(np.ascontiguousarray(assemble_layer(full, self.layout)))
+        return laid + parts
 
     def _write_indirection(self) -> None:
         """Upload each brick's slot corner (x, y, z in slots) to the indirection."""
