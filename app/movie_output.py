@@ -33,6 +33,8 @@ def check_movie_output(text: str, size: tuple[int, int]) -> Path:
     """
     path = Path(text)
     if is_folder(text):
+        if path.exists() and not path.is_dir():
+            raise OutputError(f"--out {text}: {path} is a file, not a folder for PNG frames")
         parent = path if path.is_dir() else path.parent
         if not parent.is_dir():
             raise OutputError(f"--out {text}: folder {parent} does not exist")

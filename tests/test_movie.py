@@ -4,6 +4,7 @@ exposure, each frame the picture ``isolume render`` draws for its shot at that e
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -310,6 +311,12 @@ def test_mp4_holds_every_frame(tmp_path, capsys):
 
 
 # -- one-line errors ------------------------------------------------------------------------
+def _a_file(folder: Path) -> Path:
+    """A file `folder`/taken, written."""
+    (folder / "taken").write_text("")
+    return folder / "taken"
+
+
 @pytest.mark.parametrize(
     ("make_args", "expected"),
     [
@@ -317,6 +324,7 @@ def test_mp4_holds_every_frame(tmp_path, capsys):
         (lambda t: ["--out", t / "x.gif"], "expected FILE.mp4 or a folder"),
         (lambda t: ["--out", t / "missing" / "x.mp4"], "does not exist"),
         (lambda t: ["--out", f"{t / 'missing' / 'frames'}/"], "does not exist"),
+        (lambda t: ["--out", f"{_a_file(t)}/"], "is a file, not a folder"),
         (lambda t: ["--frames", "0", "--out", f"{t}/"], "--frames 0"),
         (lambda t: ["--fps", "0", "--out", f"{t}/"], "--fps 0"),
         (lambda t: ["--crf", "60", "--out", t / "x.mp4"], "--crf 60"),

@@ -300,9 +300,11 @@ def movie(volume: Volume | str | os.PathLike[str], out: PathText, *,
     Returns:
         The file or folder written.
     """
+    from isolume.app.movie_output import is_folder
+
     given = _options(locals())
-    if not Path(out).suffix and not os.fspath(out).endswith("/"):
-        given["out"] = os.fspath(out) + "/"  # a folder of frames
+    if not Path(out).suffix and not is_folder(os.fspath(out)):
+        given["out"] = os.path.join(os.fspath(out), "")  # a folder of frames
     args = namespace("movie", given | {"volume": _volume(volume)})
     _run_command("isolume.app.movie", _with_state(args, state, _changed("movie", given)))
     return Path(out)
