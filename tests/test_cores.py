@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 
@@ -182,6 +183,46 @@ def test_a_timeline_marks_work_done_beside_and_records_memory(tmp_path, three_th
     assert tracing["rss_mb"] >= alive - 1 and alive > 64
     assert record["peak_rss_mb"] >= tracing["rss_mb"] - 1
 
+
+
+def test_a_timeline_counts_what_other_processes_use_on_its_cores(tmp_path):
+    """A stage in which another process on the same cores burns 0.5 s of CPU while this
+    one waits records that CPU as the other processes' (the machine's counters, ticks of
+    0.01 s), not as its own — a child process's is its own; the whole command's figures
+    add it up. (Only lower bounds on the others': the machine runs other work too.)"""
+    from isolume.app.bench.cores import whole
+
+    path = tmp_path / "t.json"
+    burn = ("import time\nend = time.process_time() + 0.5\n"
+            "while time.process_time() < end:\n    pass\n")
+    with cores.recording(path):
+        cores.stage("tracing")
+        subprocess.run([sys.executable, "-c", burn], check=True)  # a child: its own work
+    record = json.loads(path.read_text())
+    tracing = record["stages"][-1]
+    assert tracing["children_cpu_s"] >= 0.45 and tracing["cpu_s"] >= 0.45
+    with cores.recording(path):
+        cores.stage("tracing")
+        _burn_elsewhere(burn)
+    tracing = json.loads(path.read_text())["stages"][-1]
+    assert tracing["cpu_s"] < 0.2 and tracing["others_cpu_s"] >= 0.4
+    assert tracing["stolen_s"] >= 0.0
+    assert whole(json.loads(path.read_text()), 2.0)["others_cpu_s"] >= 0.4
+
+
+def _burn_elsewhere(code: str) -> None:
+    """Run `code` in a process that is not this one's child (a double fork: the middle
+    process exits at once), and wait for it to end."""
+    done = tempfile.NamedTemporaryFile(delete=False)
+    done.close()
+    os.unlink(done.name)
+    launcher = (f"import os, subprocess, sys\nif os.fork() == 0:\n"
+                f"    subprocess.run([sys.executable, '-c', {code!r}])\n"
+                f"    open({done.name!r}, 'w').close()\n    os._exit(0)\n")
+    subprocess.run([sys.executable, "-c", launcher], check=True)
+    while not os.path.exists(done.name):
+        time.sleep(0.02)
+    os.unlink(done.name)
 
 
 def _stages(path) -> list[dict]:

@@ -391,6 +391,28 @@ def _task_cpu() -> dict[int, float]:
     return out
 
 
+def _machine_cpu() -> tuple[float, float]:
+    """(busy, stolen) CPU seconds so far of the cores this process may use, summed over
+    every process on the machine (``/proc/stat``: user, nice, system, irq and softirq;
+    steal, the time the hypervisor gave those cores to other machines); (0, 0) without
+    it. Ticks: a hundredth of a second on Linux."""
+    try:
+        allowed = os.sched_getaffinity(0)
+        with open("/proc/stat") as f:
+            lines = [line.split() for line in f if line.startswith("cpu") and line[3].isdigit()]
+    except (OSError, AttributeError, IndexError):
+        return 0.0, 0.0
+    busy = stolen = 0
+    for name, *fields in lines:
+        if int(name[3:]) not in allowed:
+            continue
+        ticks = [int(v) for v in fields] + [0] * 8
+        busy += ticks[0] + ticks[1] + ticks[2] + ticks[5] + ticks[6]
+        stolen += ticks[7]
+    tick = os.sysconf("SC_CLK_TCK")
+    return busy / tick, stolen / tick
+
+
 def _resident_bytes() -> int:
     """This process's resident memory now, in bytes (``/proc/self/statm``; 0 without)."""
     try:
@@ -480,20 +502,24 @@ class Timeline:
             raise ValueError(f"timeline stage {name!r}: expected one of {', '.join(STAGES)}")
         self._end()
         self._open = {"name": name, "start_s": self._now(), "cpu": self._threads_cpu(),
-                      "children": _children_cpu()}
+                      "children": _children_cpu(), "machine": _machine_cpu()}
 
     def _end(self) -> None:
         if self._open is None:
             return
         opened, self._open = self._open, None
         end, cpu, children = self._now(), self._threads_cpu(), _children_cpu()
+        (busy, stolen), (busy0, stolen0) = _machine_cpu(), opened["machine"]
         per_thread = {tid: seconds - opened["cpu"].get(tid, 0.0)
                       for tid, seconds in cpu.items() if tid != self._own}
         per_thread = {tid: s for tid, s in per_thread.items() if s > 0.0005}
+        own = sum(per_thread.values()) + children - opened["children"]
         self.stages.append({
             "name": opened["name"], "start_s": opened["start_s"], "end_s": end,
             "wall_s": end - opened["start_s"],
-            "cpu_s": sum(per_thread.values()) + children - opened["children"],
+            "cpu_s": own,
+            "others_cpu_s": max(0.0, busy - busy0 - own),
+            "stolen_s": stolen - stolen0,
             "threads_cpu_s": {str(t): s for t, s in sorted(per_thread.items())},
             "children_cpu_s": children - opened["children"],
             "rss_mb": max([_resident_bytes(), *(b for t, b in self._rss
@@ -516,7 +542,9 @@ class Timeline:
         return self.summary()
 
     def summary(self) -> dict[str, Any]:
-        """The record: the stages (wall, CPU, per-thread CPU, serial seconds, the highest
+        """The record: the stages (wall, CPU, per-thread CPU, the CPU seconds other
+        processes used on this process's cores as ``others_cpu_s`` and the hypervisor took
+        from them as ``stolen_s`` (`_machine_cpu`), serial seconds, the highest
         resident memory sampled in them as ``rss_mb``, items: ``[batch, thread, kind,
         start_s, end_s]`` and a sixth element 1 for an item done beside), the sampled
         busy cores, the threads' names, the process's peak resident memory (MiB)."""

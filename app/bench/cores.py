@@ -202,14 +202,18 @@ def aggregate(timeline: dict[str, Any]) -> dict[str, dict[str, Any]]:
 def whole(timeline: dict[str, Any], process_wall_s: float) -> dict[str, Any]:
     """The whole command's figures: wall_s (the timeline's), process_wall_s (with the
     interpreter's start and imports), startup_s (their difference), cpu_s, serial_s (the
-    stages' and the time outside them), efficiency."""
+    stages' and the time outside them), efficiency, others_cpu_s and stolen_s (the CPU
+    seconds other processes used on its cores, and the hypervisor took from them, during
+    its stages)."""
     cpu = sum(s["cpu_s"] for s in timeline["stages"])
     serial = sum(s.get("serial_s", 0.0) for s in timeline["stages"])
     wall = timeline["wall_s"]
     return {"wall_s": wall, "process_wall_s": process_wall_s,
             "startup_s": process_wall_s - wall, "cpu_s": cpu,
             "serial_s": serial + outside_stages_s(timeline),
-            "efficiency": efficiency(cpu, wall, timeline["threads"])}
+            "efficiency": efficiency(cpu, wall, timeline["threads"]),
+            "others_cpu_s": sum(s.get("others_cpu_s", 0.0) for s in timeline["stages"]),
+            "stolen_s": sum(s.get("stolen_s", 0.0) for s in timeline["stages"])}
 
 
 def amdahl(t1: float, serial: float, n: float) -> float:
@@ -309,7 +313,8 @@ def table(command: str, runs: list[dict[str, Any]], predicted: dict[str, Any]) -
 
 def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, Any]) -> list[str]:
     """The whole command: each run's process and timeline wall, CPU, efficiency, measured
-    speed-up; Amdahl's and the replay's predictions."""
+    speed-up, peak memory, the CPU other processes used on its cores and the time stolen
+    from them; Amdahl's and the replay's predictions."""
     speedups = measured_speedups(runs)
     lines = []
     for r in runs:
@@ -319,7 +324,9 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
                      f"cpu {w['cpu_s']:.2f} s, efficiency {_pct(w['efficiency'])}, serial "
                      f"{w['serial_s']:.2f} s; speed-up x{speedups[r['label']]['whole']:.2f} "
                      f"(process x{speedups[r['label']]['process']:.2f}); peak memory "
-                     f"{r['timeline'].get('peak_rss_mb', 0):.0f} MiB")
+                     f"{r['timeline'].get('peak_rss_mb', 0):.0f} MiB; other processes "
+                     f"{w.get('others_cpu_s', 0.0):.1f} CPU s on its cores, stolen "
+                     f"{w.get('stolen_s', 0.0):.1f} s")
     p = predicted["whole"]
     lines.append(f"{command} whole, predicted from 1 thread (T1 {p['t1_s']:.2f} s, serial "
                  f"{p['serial_s']:.2f} s): " + ", ".join(
