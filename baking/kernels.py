@@ -504,6 +504,8 @@ def scatter_by_bin(which: np.ndarray, values: np.ndarray, lo: int, hi: int,
 def _lower_corner(c: float, n: int) -> int:
     """The lower corner along one axis of a trilinear lookup at texel coordinate `c` in a
     grid `n` texels long, clamped as `lattice.trilinear_corners` clamps."""
+    if c != c:  # NaN: the first texel, as numpy's clamps leave it
+        return 0
     c = min(max(c, 0.0), n - 1.0)
     return max(min(math.floor(c), n - 2), 0)
 
@@ -534,14 +536,16 @@ def corner_reads(coords: np.ndarray, shape: np.ndarray, size: np.ndarray, scale:
 def nearest_in_bins(read: np.ndarray, close: np.ndarray, entries: np.ndarray,
                     starts: np.ndarray, b0: int, b1: int, bits: int, texel: np.ndarray,
                     point: np.ndarray) -> None:
-    """The nearest entry of each texel, bins `b0`..`b1` of `entries`.
+    """The nearest entry of each texel, bins [`b0`, `b1`) of `entries`.
 
-    `entries` holds indices into (E,) `read` (texel ids) and `close` (their closeness),
-    grouped by bin ``read >> bits`` (bin b: ``entries[starts[b]:starts[b + 1]]``), each
-    bin in ascending order. For every texel of a bin, ascending, the bin's first slots of
-    `texel` get its id and of `point` its entry with the least closeness over 8 (the first
-    such entry on ties; a NaN closeness loses to any number): what sorting the entries by
-    texel, then closeness, stably, and keeping each texel's first would give."""
+    (E,) int64 `entries` holds indices into (E,) int64 `read` (texel ids) and (E,) float64
+    `close` (their closeness), grouped by bin ``read >> bits`` (bin b:
+    ``entries[starts[b]:starts[b + 1]]``, (B + 1,) int64 `starts`), each bin in ascending
+    order. For every texel of a bin, ascending, the bin's first slots of the (E,) int64
+    outputs get its id (`texel`) and its entry with the least closeness, over 8
+    (`point`: the first such entry on ties; a NaN closeness loses to any number): what
+    sorting the entries by texel, then closeness, stably, and keeping each texel's first
+    would give."""
     slots = 1 << bits
     best = np.full(slots, -1, np.int64)
     touched = np.empty(slots, np.int64)

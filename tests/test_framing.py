@@ -183,7 +183,7 @@ def _numpy_crossings(layers, axis, lo, hi):
     return np.stack(ends)
 
 
-@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.float32])
+@pytest.mark.parametrize("dtype", [np.uint8, np.int8, np.uint16, np.int16, np.float32])
 def test_edge_crossings_match_numpy_to_the_bit(dtype):
     """The compiled crossing points of `level_points` are numpy's, in numpy's order, for
     integer and float samples, one level and a range, edges equal to a level included
@@ -191,13 +191,16 @@ def test_edge_crossings_match_numpy_to_the_bit(dtype):
     from isolume.volumes.mesh import _slab_crossings
 
     gen = np.random.default_rng(4)
-    data = (gen.normal(100, 40, (37, 9, 11)) if dtype != np.float32
-            else gen.normal(0.5, 0.2, (37, 9, 11))).astype(dtype)
+    centre, spread = {np.int8: (0, 40), np.float32: (0.5, 0.2)}.get(dtype, (100, 40))
+    values = gen.normal(centre, spread, (37, 9, 11))
+    if dtype != np.float32:
+        values = np.clip(np.round(values), np.iinfo(dtype).min, np.iinfo(dtype).max)
+    data = values.astype(dtype)
     level = float(data.flat[17])
     if dtype == np.float32:  # float32(0.1) > 0.1: numpy's float32 comparison counts it
         data.flat[::7], level = np.float32(0.1), 0.1
-    for lo, hi in [(level, level), (float(np.percentile(data, 30)) + 0.25,
-                                                  float(np.percentile(data, 60)))]:
+    between = float(np.percentile(data, 30)) + (0.25 if dtype != np.float32 else 0.0)
+    for lo, hi in [(level, level), (between, float(np.percentile(data, 60)))]:
         slabs = _slab_crossings(data, [0, 32], lo, hi)
         for k0, parts in zip([0, 32], slabs, strict=True):
             k1 = min(k0 + 32, data.shape[0] - 1)

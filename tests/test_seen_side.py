@@ -115,7 +115,8 @@ def test_nearest_points_match_a_sort_of_every_corner_to_the_bit(threads):
     """`nearest_points` (binned, compiled, on several threads) gives what sorting every
     corner read by texel, then distance, stably, and keeping each texel's first gives —
     the first point on ties (repeated points, points on planes halfway between texel
-    centres), points outside the box, lattices finer than the bins and one texel thick."""
+    centres), points outside the box and not finite, lattices finer than the bins and one
+    texel thick."""
     from isolume.baking.lattice import LatticeGeometry, trilinear_corners
     from isolume.baking.preview import nearest_points
     from isolume.volumes import cores
@@ -123,17 +124,20 @@ def test_nearest_points_match_a_sort_of_every_corner_to_the_bit(threads):
     rng = np.random.default_rng(5)
     cases = [((40, 70, 90), 30_000), ((1, 33, 17), 5_000), ((300, 200, 100), 50_000)]
     for shape, count in cases:
-        geometry = LatticeGeometry(shape, (1.0, -2.0, 0.5), (0.7, 1.1, 0.9))
+        geometry = LatticeGeometry(shape, (1.0, -2.0, 0.5), (31.0, 40.0, 20.0))
         points = geometry.lo + rng.uniform(-0.1, 1.1, (count, 3)) * (
             np.array(geometry.hi) - geometry.lo)
         points[: count // 10] = points[count // 10: count // 5]  # repeated points
         halfway = (np.floor(geometry.to_texel_coords(points[-500:])) + 1.0)[:, ::-1]
         points[-500:] = geometry.lo + halfway * geometry.texel_size  # equal distances
+        points[1000:1003] = [[np.nan, 3.0, 4.0], [np.inf, 5.0, 1.0], [2.0, -np.inf, np.nan]]
         coords = geometry.to_texel_coords(points)
-        idx, _ = trilinear_corners(shape, coords)
+        with np.errstate(invalid="ignore"):  # NaN → int: numpy's clamps give texel 0
+            idx, _ = trilinear_corners(shape, coords)
         read = ((idx[..., 0] * shape[1] + idx[..., 1]) * shape[2] + idx[..., 2]).reshape(-1)
         size = geometry.texel_size[::-1]
-        gap = (((idx - coords[:, None, :]) * size) ** 2).sum(axis=2).reshape(-1)
+        gap = (((idx - coords[:, None, :]) * size) ** 2).sum(axis=2).reshape(-1) / (
+            2.0 * float((size**2).sum()) + 1e-30)
         order = np.lexsort((gap, read))
         first = np.r_[True, read[order][1:] != read[order][:-1]]
         cores.use(threads)

@@ -20,7 +20,9 @@ A `Timeline` (``--timeline FILE.json``) records, per stage of a fixed list (`STA
 the wall time, every thread's CPU time from the OS (``/proc/self/task/*/schedstat``,
 child processes from ``/proc`` and `resource`) — not the intervals of tasks, which count
 a thread waiting for the GIL as busy — the seconds with at most one core busy (sampled),
-the peak resident memory, and the work items with their threads and durations
+the peak resident memory, the CPU seconds other processes used on the same cores and
+those the hypervisor stole from them (``/proc/stat``), and the work items with their
+threads and durations
 (`app.bench.replay` replays them on more simulated threads than this machine has). Work
 that a command does beside its critical path — the next step laid out, a level scene
 built ahead, a batch committed while the next one is traced — runs inside `beside()`:
@@ -391,17 +393,22 @@ def _task_cpu() -> dict[int, float]:
     return out
 
 
-def _machine_cpu() -> tuple[float, float]:
+def _machine_cpu() -> tuple[float, float] | None:
     """(busy, stolen) CPU seconds so far of the cores this process may use, summed over
     every process on the machine (``/proc/stat``: user, nice, system, irq and softirq;
-    steal, the time the hypervisor gave those cores to other machines); (0, 0) without
-    it. Ticks: a hundredth of a second on Linux."""
+    steal, the time the hypervisor gave those cores to other machines), in ticks of a
+    hundredth of a second: a stage's difference is good to about its cores × 0.01 s.
+    None without ``/proc/stat``, or where a cgroup quota, not the affinity, bounds the
+    cores (the affinity's cores are then shared with work that is not this process's
+    neighbours')."""
     try:
         allowed = os.sched_getaffinity(0)
         with open("/proc/stat") as f:
             lines = [line.split() for line in f if line.startswith("cpu") and line[3].isdigit()]
     except (OSError, AttributeError, IndexError):
-        return 0.0, 0.0
+        return None
+    if available() < len(allowed):
+        return None
     busy = stolen = 0
     for name, *fields in lines:
         if int(name[3:]) not in allowed:
@@ -509,7 +516,7 @@ class Timeline:
             return
         opened, self._open = self._open, None
         end, cpu, children = self._now(), self._threads_cpu(), _children_cpu()
-        (busy, stolen), (busy0, stolen0) = _machine_cpu(), opened["machine"]
+        machine, machine0 = _machine_cpu(), opened["machine"]
         per_thread = {tid: seconds - opened["cpu"].get(tid, 0.0)
                       for tid, seconds in cpu.items() if tid != self._own}
         per_thread = {tid: s for tid, s in per_thread.items() if s > 0.0005}
@@ -518,8 +525,9 @@ class Timeline:
             "name": opened["name"], "start_s": opened["start_s"], "end_s": end,
             "wall_s": end - opened["start_s"],
             "cpu_s": own,
-            "others_cpu_s": max(0.0, busy - busy0 - own),
-            "stolen_s": stolen - stolen0,
+            "others_cpu_s": (None if machine is None or machine0 is None
+                             else max(0.0, machine[0] - machine0[0] - own)),
+            "stolen_s": None if machine is None or machine0 is None else machine[1] - machine0[1],
             "threads_cpu_s": {str(t): s for t, s in sorted(per_thread.items())},
             "children_cpu_s": children - opened["children"],
             "rss_mb": max([_resident_bytes(), *(b for t, b in self._rss
@@ -544,10 +552,11 @@ class Timeline:
     def summary(self) -> dict[str, Any]:
         """The record: the stages (wall, CPU, per-thread CPU, the CPU seconds other
         processes used on this process's cores as ``others_cpu_s`` and the hypervisor took
-        from them as ``stolen_s`` (`_machine_cpu`), serial seconds, the highest
-        resident memory sampled in them as ``rss_mb``, items: ``[batch, thread, kind,
-        start_s, end_s]`` and a sixth element 1 for an item done beside), the sampled
-        busy cores, the threads' names, the process's peak resident memory (MiB)."""
+        from them as ``stolen_s`` (`_machine_cpu`; None where it cannot tell), serial
+        seconds, the highest resident memory sampled in them as ``rss_mb``, items:
+        ``[batch, thread, kind, start_s, end_s]`` and a sixth element 1 for an item done
+        beside), the sampled busy cores, the threads' names, the process's peak resident
+        memory (MiB)."""
         busy = _busy_cores(self.samples, self._own)
         for stage in self.stages:
             inside = [(t, dt, cores) for t, dt, cores in busy

@@ -147,8 +147,13 @@ def isosurface(
 
 
 LEVEL_SLAB = 32
-"""z layers of the volume `level_points` thins its points after (its memory: a few such
-layers a thread)."""
+"""z layers of the volume after which `level_points` thins the points it keeps."""
+
+SLAB_THREADS = 8
+"""Threads per slab whose crossings `level_points` finds at once (a slab is 24 items): its
+memory is the crossings of threads / 8 slabs, up to 144 bytes a voxel (an isovalue range
+crossed everywhere: three edges, two levels, 24 bytes a point), and a part's copy as
+its items are joined."""
 
 LEVEL_POINTS = 100_000
 """At most this many points from `level_points` (spread evenly over the crossings)."""
@@ -166,8 +171,8 @@ def level_points(volume: Volume, lo: float, hi: float | None = None,
     time, and on any number of threads; a regular stride would alias with the grid).
 
     The crossings are found by a compiled kernel (`cubes.edge_crossings`) in items of
-    `LEVEL_ITEM` z layers on every core, a few slabs of `LEVEL_SLAB` layers at a time;
-    the slabs are thinned in order.
+    `LEVEL_ITEM` z layers on every core, a slab of `LEVEL_SLAB` layers for every
+    `SLAB_THREADS` threads at a time; the slabs are thinned in order.
 
     Returns:
         (N, 3) float64 world xyz, N ≤ `limit`; (0, 3) when no level in the range crosses.
@@ -179,7 +184,7 @@ def level_points(volume: Volume, lo: float, hi: float | None = None,
     found: list[np.ndarray] = []
     kept, rate = 0, 1.0
     slabs = list(range(0, data.shape[0] - 1, LEVEL_SLAB))
-    wave = max(1, cores.threads())
+    wave = -(-cores.threads() // SLAB_THREADS)
     for first in range(0, len(slabs), wave):
         for k0, parts in zip(slabs[first:first + wave],
                              _slab_crossings(data, slabs[first:first + wave], lo, hi),
@@ -219,7 +224,7 @@ def _slab_crossings(data: np.ndarray, starts: list[int], lo: float, hi: float
         parts += [(data[k0:k1 + 1], 0, k1 - k0), (layers, 1, len(layers)),
                   (layers, 2, len(layers))]
     items = [(p, a) for p, (_, _, n) in enumerate(parts) for a in range(0, n, LEVEL_ITEM)]
-    found: list[np.ndarray] = [np.zeros((len(levels), 0, 3))] * len(items)
+    found: list[np.ndarray | None] = [None] * len(items)
 
     def item(i: int) -> None:
         part, a = items[i]
@@ -230,7 +235,9 @@ def _slab_crossings(data: np.ndarray, starts: list[int], lo: float, hi: float
     cores.for_items(item, len(items), "framing")
     out = []
     for p in range(len(parts)):
-        mine = [f for (part, _), f in zip(items, found, strict=True) if part == p]
-        out.append(np.concatenate([f[m] for m in range(len(levels)) for f in mine])
+        mine = [i for i, (part, _) in enumerate(items) if part == p]
+        out.append(np.concatenate([found[i][m] for m in range(len(levels)) for i in mine])
                    if mine else np.zeros((0, 3)))
+        for i in mine:  # its items' copies go as the part is joined
+            found[i] = None
     return [out[3 * s:3 * s + 3] for s in range(len(starts))]

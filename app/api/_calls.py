@@ -293,9 +293,9 @@ def movie(volume: Volume | str | os.PathLike[str], out: PathText, *,
           view: Numbers | str = (30, 30), gl: Literal["auto", "egl", "osmesa"] = "auto",
           shadows: Literal["traced", "map"] = "traced",
           state: SavedView | PathText | None = None) -> Path:
-    """Make a movie (MP4, or a folder of PNG frames: an `out` without a suffix), as
-    ``isolume movie`` does (its options, the same defaults): a turntable, a turning light
-    or an isovalue sweep.
+    """Make a movie (MP4, or a folder of PNG frames: an existing folder, or an `out`
+    without a suffix), as ``isolume movie`` does (its options, the same defaults): a
+    turntable, a turning light or an isovalue sweep.
 
     Returns:
         The file or folder written.

@@ -31,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -212,8 +213,14 @@ def whole(timeline: dict[str, Any], process_wall_s: float) -> dict[str, Any]:
             "startup_s": process_wall_s - wall, "cpu_s": cpu,
             "serial_s": serial + outside_stages_s(timeline),
             "efficiency": efficiency(cpu, wall, timeline["threads"]),
-            "others_cpu_s": sum(s.get("others_cpu_s", 0.0) for s in timeline["stages"]),
-            "stolen_s": sum(s.get("stolen_s", 0.0) for s in timeline["stages"])}
+            "others_cpu_s": _known_sum(s.get("others_cpu_s") for s in timeline["stages"]),
+            "stolen_s": _known_sum(s.get("stolen_s") for s in timeline["stages"])}
+
+
+def _known_sum(values: Iterable[float | None]) -> float | None:
+    """The sum of `values`, None if any is None (a figure the timeline could not tell)."""
+    values = list(values)
+    return None if any(v is None for v in values) else float(sum(values))
 
 
 def amdahl(t1: float, serial: float, n: float) -> float:
@@ -311,6 +318,11 @@ def table(command: str, runs: list[dict[str, Any]], predicted: dict[str, Any]) -
     return lines
 
 
+def _seconds(value: float | None) -> str:
+    """``1.2 s``, or ``n/a`` for a figure the timeline could not tell."""
+    return "n/a" if value is None else f"{value:.1f} s"
+
+
 def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, Any]) -> list[str]:
     """The whole command: each run's process and timeline wall, CPU, efficiency, measured
     speed-up, peak memory, the CPU other processes used on its cores and the time stolen
@@ -325,8 +337,8 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
                      f"{w['serial_s']:.2f} s; speed-up x{speedups[r['label']]['whole']:.2f} "
                      f"(process x{speedups[r['label']]['process']:.2f}); peak memory "
                      f"{r['timeline'].get('peak_rss_mb', 0):.0f} MiB; other processes "
-                     f"{w.get('others_cpu_s', 0.0):.1f} CPU s on its cores, stolen "
-                     f"{w.get('stolen_s', 0.0):.1f} s")
+                     f"{_seconds(w.get('others_cpu_s'))} CPU on its cores, stolen "
+                     f"{_seconds(w.get('stolen_s'))}")
     p = predicted["whole"]
     lines.append(f"{command} whole, predicted from 1 thread (T1 {p['t1_s']:.2f} s, serial "
                  f"{p['serial_s']:.2f} s): " + ", ".join(

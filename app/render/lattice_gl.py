@@ -50,14 +50,20 @@ from isolume.baking.sh import transfer_blocks
 from isolume.volumes import cores
 
 ATLAS_WAVE = 4
-"""Atlas z-layers gathered at once (on every core) when the atlases are made: their copies
-in memory."""
+"""Atlas z-layers gathered at once, on as many of the pool's threads, when the atlases are
+made: their copies in memory."""
 
 MAX_TEXTURE_UNITS: int = 16  # guaranteed by GL 3.3 for fragment shaders
 SH_FIRST_UNIT: int = 2  # units 0: HDR resolve input or shadow map, 1: the texels' state
 _LOWER = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)])
 """(8, 3) z, y, x offsets to a brick's lower neighbours (itself first): their aprons
 copy its first texels."""
+
+
+def _facing_known(parts: list[np.ndarray]) -> bool:
+    """Whether the `blocks` `parts` (the state first: RGB8, facing code in G and B) hold
+    a known facing."""
+    return bool(octahedral.known(parts[0][..., 1:]).any())
 
 
 def _marked(bricks: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
@@ -235,41 +241,39 @@ class LatticeTextures:
     def _uploaded(self, bricks: np.ndarray) -> list[np.ndarray]:
         """`blocks` of (M, 3) bricks about to be uploaded; notes a known facing."""
         parts = self.blocks(bricks)
-        self._note_facing(parts)
+        self.facing_known = self.facing_known or _facing_known(parts)
         return parts
 
-    def _note_facing(self, parts: list[np.ndarray]) -> None:
-        """Note a known facing among the `blocks` `parts` about to be uploaded."""
-        self.facing_known = self.facing_known or bool(octahedral.known(parts[0][..., 1:]).any())
-
     def _upload_layers(self, layers: list[int]) -> None:
-        """Upload the atlas z-layers `layers` (their slots; those past `used` stay zero),
-        their texels gathered and laid out on every core, written to GL here."""
-        data: list[list[np.ndarray]] = [[] for _ in layers]
+        """Upload the atlas z-layers `layers` (their slots; those past `used` stay zero):
+        their texels gathered and laid out on the pool's threads (at most `ATLAS_WAVE`
+        layers at a time: their copies in memory), written to GL here, in order."""
+        data: list[tuple[list[np.ndarray], bool]] = [([], False)] * len(layers)
 
         def gather(i: int) -> None:
             data[i] = self._layer_data(self.layout.layer_slots(layers[i]))
 
         cores.for_items(gather, len(layers), "atlas")
         width, height, _ = self.layout.texels_xyz
-        for layer, parts in zip(layers, data, strict=True):
-            self._note_facing(parts[len(parts) // 2:])
+        for layer, (laid, known) in zip(layers, data, strict=True):
+            self.facing_known = self.facing_known or known
             viewport = (0, 0, layer * STORED, width, height, STORED)
-            for tex, laid in zip(self._textures(), parts[:len(parts) // 2], strict=True):
-                tex.write(laid.tobytes(), viewport=viewport, alignment=1)
+            for tex, texels in zip(self._textures(), laid, strict=True):
+                tex.write(texels.tobytes(), viewport=viewport, alignment=1)
 
-    def _layer_data(self, slots: range) -> list[np.ndarray]:
+    def _layer_data(self, slots: range) -> tuple[list[np.ndarray], bool]:
         """The atlas z-layer of `slots` as laid out for each texture (`_textures` order),
-        then the `blocks` it was laid out from."""
+        and whether its `blocks` hold a known facing."""
         taken = np.arange(slots.start, min(slots.stop, self.used))
         parts = self.blocks(self.owner[taken])
+        known = _facing_known(parts)
         laid = []
         for part in parts:
             part[taken == 0] = 0  # slot 0 stays empty
             full = np.zeros((len(slots), *part.shape[1:]), part.dtype)
             full[:len(taken)] = part
             laid.append(np.ascontiguousarray(assemble_layer(full, self.layout)))
-        return laid + parts
+        return laid, known
 
     def _write_indirection(self) -> None:
         """Upload each brick's slot corner (x, y, z in slots) to the indirection."""
