@@ -412,6 +412,12 @@ class Lattice:
         return np.where(self.previewed(region)[..., None], self.preview_facing[region],
                         own).astype(np.uint8)
 
+    def display(self, region: tuple[Any, ...] = (...,)
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`shown`, `displayed_facing` and `displayed` of `region` (what an upload of a
+        region reads)."""
+        return self.shown(region), self.displayed_facing(region), self.displayed(region)
+
     def facing_known(self) -> bool:
         """Whether any texel a display shows has a known facing (else the side-aware
         lookup is the plain one)."""

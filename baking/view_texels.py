@@ -143,13 +143,27 @@ class HeldLattice:
         """(…, 2) uint8 facing codes in `region` (unknown where no preview is shown)."""
         return self._picked(region, self.facing)
 
+    def display(self, region: slice | tuple[npt.ArrayLike, ...] = slice(None)
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`shown`, `displayed_facing` and `displayed` of `region`, from one lookup of
+        its texels (what an upload of a region reads)."""
+        rows, shown = self._shown(region)
+        return (shown, _picked(rows, shown, self.facing, bool(len(self.texels))),
+                _picked(rows, shown, self.values, bool(len(self.texels))))
+
     def _picked(self, region: slice | tuple[npt.ArrayLike, ...], held: np.ndarray) -> np.ndarray:
         """(…, C) rows of the (K, C) array `held` at the texels of `region` that show a
         preview, zeros elsewhere, in its type."""
         rows, shown = self._shown(region)
-        if not len(self.texels):
-            return np.zeros((*rows.shape, held.shape[1]), held.dtype)
-        return np.where(shown[..., None], held[rows], 0).astype(held.dtype)
+        return _picked(rows, shown, held, bool(len(self.texels)))
+
+
+def _picked(rows: np.ndarray, shown: np.ndarray, held: np.ndarray, any_held: bool) -> np.ndarray:
+    """(…, C) rows `rows` (…) of the (K, C) array `held` where `shown`, zeros elsewhere, in
+    its type (all zeros where no texel is held: `rows` then point nowhere)."""
+    if not any_held:
+        return np.zeros((*rows.shape, held.shape[1]), held.dtype)
+    return np.where(shown[..., None], held[rows], 0).astype(held.dtype)
 
 
 @dataclass(frozen=True)

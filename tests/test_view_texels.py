@@ -40,7 +40,17 @@ def test_slabs_and_index_arrays_read_as_the_dense_lattice():
         np.testing.assert_array_equal(sparse.displayed(region), dense.displayed(region))
         np.testing.assert_array_equal(sparse.displayed_facing(region),
                                       dense.displayed_facing(region))
+        for lattice in (sparse, dense):  # the three from one lookup
+            for got, want in zip(lattice.display(region),
+                                 (lattice.shown(region), lattice.displayed_facing(region),
+                                  lattice.displayed(region)), strict=True):
+                assert got.dtype == want.dtype
+                np.testing.assert_array_equal(got, want)
     assert sparse.shown(np.s_[:]).sum() == (sparse.paths > 0).sum() > 300
+    empty = HeldLattice(sparse.geometry, np.zeros(0, np.int64), 3, {"kind": "irradiance"})
+    shown, facing, values = empty.display(np.s_[2:4])
+    assert not shown.any() and not facing.any() and not values.any()
+    assert facing.shape == (2, 13, 17, 2) and values.shape == (2, 13, 17, 3)
 
 
 def test_it_holds_only_its_texels():

@@ -212,13 +212,10 @@ class LatticeTextures:
         """The `STORED`³ blocks of (M, 3) z, y, x `bricks`, one (M, 9, 9, 9, C) array per
         atlas (`_textures` order) as uploaded: state RGB8 (validity 255 or 0, facing
         code), values premultiplied by validity (0 where not shown), texel isovalues."""
-        lat = self.lattice
         region = block_region(bricks, self.shape)
-        shown = lat.shown(region)
-        facing = lat.displayed_facing(region)
+        shown, facing, values = self.lattice.display(region)  # values: 0 where not shown
         state = np.concatenate([np.where(shown, 255, 0).astype(np.uint8)[..., None], facing],
                                axis=-1)
-        values = lat.displayed(region)  # zero where nothing is shown
         if self.kind == "irradiance":
             out = [state, np.ascontiguousarray(values[..., :3])]
         else:
