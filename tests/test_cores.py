@@ -247,6 +247,9 @@ def test_one_worker_keeps_one_core_busy_in_every_stage(tmp_path, command):
         if stage["wall_s"] > 0.05:
             assert stage["cpu_s"] <= 1.05 * stage["wall_s"] + 0.005, stage["name"]
             assert len(stage["threads_cpu_s"]) >= 1
+    if command == "render":  # the GL drawing is an item the replay scales as measured
+        drawn = {s["name"] for s in stages for item in s["items"] if item[2] == "gl"}
+        assert {"seen surface", "draw"} <= drawn
 
 
 def test_ctrl_c_stops_a_bake_within_two_seconds_in_the_plan(tmp_path):

@@ -24,10 +24,12 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-INNER_PARALLEL = {"bvh": "bvh", "scene": "bvh", "save": "save", "checkpoint": "save"}
+INNER_PARALLEL = {"bvh": "bvh", "scene": "bvh", "save": "save", "checkpoint": "save",
+                  "gl": "gl"}
 """Kinds of item that are parallel inside (an Embree BVH build runs on Embree's own
 `--workers` threads, a scene built ahead is mostly its BVH build, a lattice's save
-deflates its pieces on the pool): the replay shortens them by Amdahl's law, with the
+deflates its pieces on the pool, a picture drawn off-screen is rasterised on Mesa's
+llvmpipe threads): the replay shortens them by Amdahl's law, with the
 serial fraction fitted to how much faster the items of the kind named here ran with the
 most threads measured (`inner_factors`; a checkpoint is the same save as the last one,
 which shares no core with tracing)."""

@@ -163,7 +163,8 @@ def render_volume(
             renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=mesh.iso)
         renderer.set_environment(env_coeffs)
         cores.stage("draw")
-        frame = renderer.render(camera, settings)
+        with cores.timed_item("gl"):  # parallel inside: Mesa's llvmpipe threads
+            frame = renderer.render(camera, settings)
         renderer.release()
     finally:
         if reuse is None:

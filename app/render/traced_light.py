@@ -17,6 +17,7 @@ from isolume import volumes
 from isolume.app.render.camera import Camera
 from isolume.app.render.renderer import SurfaceRenderer
 from isolume.app.render.settings import RenderSettings
+from isolume.volumes import cores
 
 if TYPE_CHECKING:
     from isolume.baking.trace import Scene
@@ -25,9 +26,11 @@ if TYPE_CHECKING:
 def position_pass(renderer: SurfaceRenderer, camera: Camera,
                   settings: RenderSettings) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) world points of the surface under the visible pixels and the (H, W) mask of
-    those pixels, rows top to bottom (a position pass)."""
-    position = renderer.render(camera, replace(settings, shading="position",
-                                               auto_exposure=False))
+    those pixels, rows top to bottom (a position pass: a timeline item "gl", parallel
+    inside on Mesa's llvmpipe threads)."""
+    with cores.timed_item("gl"):
+        position = renderer.render(camera, replace(settings, shading="position",
+                                                   auto_exposure=False))
     return position.linear[position.mask], position.mask
 
 
