@@ -27,11 +27,9 @@ from isolume import volumes
 from isolume.app.notebook_scene import NotebookScene
 from isolume.app.viewer.command import Options
 from isolume.app.viewer.panel import (
-    ROTATE_DEG_PER_PX,
     ZOOM_PER_WHEEL,
     Drag,
     drag_target,
-    pan_per_pixel,
 )
 
 if TYPE_CHECKING:
@@ -270,17 +268,7 @@ class NotebookView(RemoteFrameBuffer):
         x, y = float(event["x"]), float(event["y"])
         dx, dy = x - drag.x, y - drag.y
         drag.x, drag.y = x, y
-        actions = self.scene.actions
-        if drag.target == "rotate":
-            actions.move_camera("orbit", -dx * ROTATE_DEG_PER_PX, dy * ROTATE_DEG_PER_PX)
-        elif drag.target == "pan":
-            k = pan_per_pixel(self.scene.state.camera, self.size[1])
-            actions.move_camera("pan", -dx * k, dy * k)
-        else:  # "light"
-            az, el = actions.light_angles()
-            actions.set_light((az + dx * ROTATE_DEG_PER_PX,
-                               float(np.clip(el - dy * ROTATE_DEG_PER_PX, -90, 90))),
-                              moving=True)
+        self.scene.actions.drag(drag.target, dx, dy, self.size[1])
 
     def _release_button(self, _event: dict) -> None:
         """End the drag; the light's sliders show where it went."""

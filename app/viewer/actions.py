@@ -19,7 +19,14 @@ import numpy as np
 from isolume import volumes
 from isolume.app.viewer.draw import Drawing
 from isolume.app.viewer.illumination import Illumination
-from isolume.app.viewer.panel import Action, orbit, pan, zoom
+from isolume.app.viewer.panel import (
+    ROTATE_DEG_PER_PX,
+    Action,
+    orbit,
+    pan,
+    pan_per_pixel,
+    zoom,
+)
 from isolume.app.viewer.saving import Saver
 from isolume.app.viewer.state import ViewerError, ViewerState
 from isolume.app.viewer.surfaces import SurfaceFeed
@@ -117,6 +124,21 @@ class Actions:
                  "pan": lambda c: pan(c, a, b)}
         self.state.camera = moves[how](self.state.camera)
         self.state.moved()
+
+    def drag(self, target: str, dx: float, dy: float, height_px: float) -> None:
+        """Move what a drag of the pointer by (dx, dy) pixels moves (`target`, from
+        `app.viewer.panel.drag_target`): "rotate" orbits the camera, "pan" pans it (a
+        picture `height_px` pixels high), "light" turns the light, its elevation kept
+        within ±90°."""
+        if target == "rotate":
+            self.move_camera("orbit", -dx * ROTATE_DEG_PER_PX, dy * ROTATE_DEG_PER_PX)
+        elif target == "pan":
+            k = pan_per_pixel(self.state.camera, height_px)
+            self.move_camera("pan", -dx * k, dy * k)
+        elif target == "light":
+            az, el = self.light_angles()
+            self.set_light((az + dx * ROTATE_DEG_PER_PX,
+                            float(np.clip(el - dy * ROTATE_DEG_PER_PX, -90, 90))), moving=True)
 
     def reset_camera(self) -> None:
         """Back to the home camera (the first surface framed)."""

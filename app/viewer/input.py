@@ -10,17 +10,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from isolume.app.viewer.actions import Actions
 from isolume.app.viewer.panel import (
-    ROTATE_DEG_PER_PX,
     ZOOM_PER_WHEEL,
     Drag,
     ImGuiLayer,
     drag_target,
     key_action,
-    pan_per_pixel,
 )
 from isolume.app.viewer.state import ViewerState
 
@@ -87,17 +83,7 @@ class Input:
 
     def _drag_by(self, target: str, dx: float, dy: float) -> None:
         """Move what a drag by (dx, dy) screen units moves."""
-        actions = self.actions
-        if target == "rotate":
-            actions.move_camera("orbit", -dx * ROTATE_DEG_PER_PX, dy * ROTATE_DEG_PER_PX)
-        elif target == "pan":
-            k = pan_per_pixel(self.state.camera, self.window.window_size[1])
-            actions.move_camera("pan", -dx * k, dy * k)
-        elif target == "light":
-            az, el = actions.light_angles()
-            actions.set_light((az + dx * ROTATE_DEG_PER_PX,
-                               float(np.clip(el - dy * ROTATE_DEG_PER_PX, -90, 90))),
-                              moving=True)
+        self.actions.drag(target, dx, dy, self.window.window_size[1])
 
     def _on_mouse_button(self, _handle, button: int, action: int, mods: int) -> None:
         glfw = self.window.glfw
