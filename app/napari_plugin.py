@@ -333,11 +333,12 @@ class IsolumeWidget(QWidget):
         """The `BakeConfig` of the light to trace (``isolume export``'s, through
         `app.options.view_light`, for the controls' environment, paths and seed)."""
         from isolume.app.options import view_light
+        from isolume.baking.config import DEFAULT_BOUNCES
 
         options = argparse.Namespace(
             env=self.lighting_spec(), light=None, samples=self.controls.samples.value(),
-            bounces=2, albedo=None, seed=self.controls.seed.value(), normals="smooth",
-            flip_normals=False)
+            bounces=DEFAULT_BOUNCES, albedo=None, seed=self.controls.seed.value(),
+            normals="smooth", flip_normals=False)
         return view_light(options, self.volume)
 
     def relight(self) -> None:
@@ -445,6 +446,7 @@ class IsolumeWidget(QWidget):
             IsolumeError: no layer lit yet.
         """
         from isolume.app.state import SUFFIX, SavedView
+        from isolume.baking.config import DEFAULT_ALBEDO
 
         if self.volume is None:
             raise NapariLayerError("no Image layer is lit yet; nothing to save")
@@ -459,7 +461,8 @@ class IsolumeWidget(QWidget):
         SavedView(volume=str(volume_file), iso=self.iso, camera=camera,
                   size=f"{width}x{height}", shading="irradiance",
                   exposure=self.controls.exposure.value(), auto_exposure=True,
-                  shown_exposure=self.exposure_used, tonemap="aces", albedo="0.8",
+                  shown_exposure=self.exposure_used, tonemap="aces",
+                  albedo=str(DEFAULT_ALBEDO),
                   env=self.lighting_spec(), normals="smooth", flip_normals=False).save(path)
         self._say(f"saved the view in {path}")
         return path

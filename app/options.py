@@ -174,7 +174,7 @@ def add_light_options(p: argparse.ArgumentParser, traced_for: str) -> None:
     the albedo, the SH environment's turn and window, exposure and tone curve, normals."""
     from isolume.app.render.settings import TONEMAPS
     from isolume.app.render.view_gi import DEFAULT_PATHS
-    from isolume.baking.config import DEFAULT_ENV
+    from isolume.baking.config import DEFAULT_ALBEDO, DEFAULT_BOUNCES, DEFAULT_ENV
 
     p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
     p.add_argument("--lattice", help="illumination lattice from `isolume bake` (default: "
@@ -188,13 +188,14 @@ def add_light_options(p: argparse.ArgumentParser, traced_for: str) -> None:
     p.add_argument("--samples", type=int, default=None,
                    help="paths per texel of the traced global illumination (without "
                    f"--lattice; default {DEFAULT_PATHS})")
-    p.add_argument("--bounces", type=int, default=2,
-                   help="diffuse bounces of that illumination (default 2)")
+    p.add_argument("--bounces", type=int, default=DEFAULT_BOUNCES,
+                   help=f"diffuse bounces of that illumination (default {DEFAULT_BOUNCES})")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--workers", type=int, default=None,
                    help=WORKERS_HELP)
     p.add_argument("--albedo", default=None,
-                   help="A or R,G,B diffuse reflectance (default: the lattice's, else 0.8)")
+                   help="A or R,G,B diffuse reflectance (default: the lattice's, else "
+                   f"{DEFAULT_ALBEDO})")
     p.add_argument("--env-rotation", default="0,0",
                    help="AZ,EL degrees the environment of an SH lattice turns by (default 0,0)")
     p.add_argument("--sh-window", default="none", choices=["none", "hanning", "lanczos"],
@@ -283,7 +284,7 @@ def view_light(args: argparse.Namespace, volume: volumes.Volume) -> BakeConfig:
     """The `BakeConfig` of the global illumination ``render`` traces for its view (the
     lighting ``reference`` path-traces with the same arguments)."""
     from isolume.app.render.view_gi import DEFAULT_PATHS
-    from isolume.baking.config import DEFAULT_ENV, BakeConfig
+    from isolume.baking.config import DEFAULT_ALBEDO, DEFAULT_ENV, BakeConfig
 
     samples = DEFAULT_PATHS if args.samples is None else args.samples
     if not 1 <= samples <= 4096:
@@ -291,7 +292,8 @@ def view_light(args: argparse.Namespace, volume: volumes.Volume) -> BakeConfig:
     return BakeConfig.lit_by(
         parse_lighting(args.env, args.light, DEFAULT_ENV),
         mode="irradiance", samples=samples, bounces=args.bounces,
-        albedo=parse_albedo(args.albedo or "0.8"), seed=args.seed, normals=args.normals,
+        albedo=parse_albedo(args.albedo or str(DEFAULT_ALBEDO)), seed=args.seed,
+        normals=args.normals,
         flip_normals=args.flip_normals,
     )
 
@@ -334,7 +336,12 @@ DEFAULT_MAX_SAMPLES = 1024
 
 def add_bake_options(p: argparse.ArgumentParser) -> None:
     """The options of ``isolume bake`` after the volume's."""
-    from isolume.baking.config import DEFAULT_ENV, DEFAULT_SAMPLES
+    from isolume.baking.config import (
+        DEFAULT_ALBEDO,
+        DEFAULT_BOUNCES,
+        DEFAULT_ENV,
+        DEFAULT_SAMPLES,
+    )
 
     p.add_argument("--out", required=True, help="lattice file FILE.npz (resumed if present)")
     p.add_argument("--mode", default="irradiance", choices=["irradiance", "sh"],
@@ -351,8 +358,10 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-samples", type=int, default=DEFAULT_MAX_SAMPLES, metavar="N",
                    help="the most paths a texel gets with a target (default "
                    f"{DEFAULT_MAX_SAMPLES})")
-    p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (0 = direct)")
-    p.add_argument("--albedo", default="0.8", help="A or R,G,B")
+    p.add_argument("--bounces", type=int, default=DEFAULT_BOUNCES,
+                   help=f"diffuse bounces (0 = direct; default {DEFAULT_BOUNCES})")
+    p.add_argument("--albedo", default=str(DEFAULT_ALBEDO),
+                   help=f"A or R,G,B (default {DEFAULT_ALBEDO})")
     p.add_argument("--scale", type=float, default=1.0,
                    help="texels per voxel along the finest axis (cubes where voxels are not)")
     p.add_argument("--iso-range", type=float, nargs=2, metavar=("LO", "HI"),

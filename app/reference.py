@@ -38,7 +38,7 @@ from isolume.app.options import (
     parse_lighting,
     parse_size,
 )
-from isolume.baking.config import DEFAULT_ENV
+from isolume.baking.config import DEFAULT_ALBEDO, DEFAULT_BOUNCES, DEFAULT_ENV
 
 HELP = "path-trace a reference image of the isosurface (linear EXR + standard error)"
 CHECKPOINT_SECONDS = 60.0
@@ -62,8 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env-rotation", default="0,0", help="AZ,EL degrees, as in render")
     p.add_argument("--light", action="append", metavar="SPEC",
                    help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable)")
-    p.add_argument("--albedo", default="0.8", help="A or R,G,B diffuse reflectance (default 0.8)")
-    p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (0 = direct; default 2)")
+    p.add_argument("--albedo", default=str(DEFAULT_ALBEDO),
+                   help=f"A or R,G,B diffuse reflectance (default {DEFAULT_ALBEDO})")
+    p.add_argument("--bounces", type=int, default=DEFAULT_BOUNCES,
+                   help=f"diffuse bounces (0 = direct; default {DEFAULT_BOUNCES})")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
     p.add_argument("--normals", default="smooth", choices=["smooth", "gradient"],

@@ -27,6 +27,10 @@ SIDES = ("seen", "normals")
 
 DEFAULT_SAMPLES = 100
 """Paths per texel of a bake that names no count nor noise target."""
+DEFAULT_BOUNCES = 2
+"""Diffuse bounces of every command's light when none is given."""
+DEFAULT_ALBEDO = 0.8
+"""Diffuse reflectance (grey) of every command's surface when none is given."""
 MIN_TARGET_SAMPLES = 4
 """The fewest first-round paths of a bake to a noise target."""
 SCALES = (0.05, 8.0)
@@ -83,8 +87,8 @@ class BakeConfig:
     mode: str = "irradiance"
     sh_order: int = 5
     samples: int = DEFAULT_SAMPLES
-    bounces: int = 2
-    albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    bounces: int = DEFAULT_BOUNCES
+    albedo: tuple[float, float, float] = (DEFAULT_ALBEDO,) * 3
     scale: float = 1.0
     iso_range: tuple[float, float] | None = None
     env: str = "constant:1,1,1"

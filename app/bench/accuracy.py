@@ -400,10 +400,11 @@ def render_default(volume: Volume, iso: float, sweep: Sweep) -> tuple[Shot, Bake
     """(`Shot`, its light's `BakeConfig`): the picture ``isolume render`` draws."""
     from isolume.app.options import parse_albedo, view_light
     from isolume.app.render.offscreen import render_volume
+    from isolume.baking.config import DEFAULT_ALBEDO
 
     ns = render_options(sweep)
     config = view_light(ns, volume)
-    settings = _settings(ns, sweep.size, "irradiance", parse_albedo("0.8"))
+    settings = _settings(ns, sweep.size, "irradiance", parse_albedo(str(DEFAULT_ALBEDO)))
     began = time.perf_counter()
     frame, mesh = render_volume(volume, iso, settings, view=sweep.view, backend=sweep.gl,
                                 normals=ns.normals, flip_normals=ns.flip_normals,

@@ -25,6 +25,7 @@ import json
 import time
 
 from isolume.app.options import description_of
+from isolume.baking.config import DEFAULT_BOUNCES
 from isolume.volumes import cores
 
 HELP = ("benchmarks: baker throughput against bare embreex, frame times, lazy GI, lighting "
@@ -39,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("volume", nargs="?", default="synthetic:engine",
                    help="volume (default synthetic:engine)")
     p.add_argument("--samples", type=int, default=32, help="paths per texel (default 32)")
-    p.add_argument("--bounces", type=int, default=2, help="bounces per path (default 2)")
+    p.add_argument("--bounces", type=int, default=DEFAULT_BOUNCES,
+                   help=f"bounces per path (default {DEFAULT_BOUNCES})")
     p.add_argument("--env", default="constant:1,1,1",
                    help="environment light (default constant:1,1,1)")
     p.add_argument("--scale", type=float, default=1.0,

@@ -38,6 +38,7 @@ from isolume.app.charts.progress import say
 from isolume.app.charts.scene import GLScene
 from isolume.app.charts.tracing import NOISE_RATIO, Reference, settle_reference
 from isolume.app.options import CLIError, isovalue, load_volume, parse_size
+from isolume.baking.config import DEFAULT_BOUNCES
 from isolume.volumes import cores
 
 HELP = "charts of error against bake time, lattice resolution, lookups and shading modes"
@@ -85,7 +86,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env", default=CHART_SCENE_ENV,
                    help=f"environment: constant:R,G,B | sky[:k=v,...] | FILE.exr/.hdr "
                    f"(default {CHART_SCENE_ENV})")
-    p.add_argument("--bounces", type=int, default=2, help="diffuse bounces (default 2)")
+    p.add_argument("--bounces", type=int, default=DEFAULT_BOUNCES,
+                   help=f"diffuse bounces (default {DEFAULT_BOUNCES})")
     p.add_argument("--albedo", type=float, default=0.8, help="gray diffuse reflectance")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--workers", type=int, default=None, help="threads (default: all cores)")
