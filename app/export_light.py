@@ -192,14 +192,14 @@ def surface_radiance(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, sce
     if lights:
         offset = lattice_start_offset(lattice)
         key = (tuple(lights), offset, tuple(np.asarray(albedo, np.float64).ravel()))
-        if direct is None or key not in direct:
+        shone = direct.get(key) if direct is not None else None
+        if shone is None:
             shone = direct_radiance(scene, lights, points, normals, offset, albedo,
                                     progress=progress)
-            if direct is None:
-                return radiance + shone, lattice, lights
-            direct.clear()
-            direct[key] = shone
-        radiance += direct[key]
+            if direct is not None:  # the last lights' only
+                direct.clear()
+                direct[key] = shone
+        radiance += shone
     return radiance, lattice, lights
 
 

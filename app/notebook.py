@@ -140,14 +140,15 @@ def view_options(volume: volumes.Volume, size: tuple[int, int],
 
 def _check_choices(parser: argparse.ArgumentParser, chosen: dict[str, Any]) -> None:
     """Raise `ViewerError` where a value of `chosen` (None: the option's default) is not
-    one of its option's choices in `parser`, as argparse would for the command line."""
+    one of its option's choices in `parser`, as argparse would for the command line
+    (`app.options.choice_error`)."""
+    from isolume.app.options import choice_error
     from isolume.app.viewer.state import ViewerError
 
     for action in parser._actions:  # argparse keeps no public list of them
-        value = chosen.get(action.dest)
-        if value is not None and action.choices is not None and value not in action.choices:
-            raise ViewerError(f"isolume.show: {action.dest}={value!r}: expected one of "
-                              f"{', '.join(map(str, action.choices))}")
+        message = choice_error(action, action.dest, chosen.get(action.dest))
+        if message is not None:
+            raise ViewerError(f"isolume.show: {message}")
 
 
 def open_lattice(lattice: str | os.PathLike[str] | Lattice | None, volume: volumes.Volume,

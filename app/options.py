@@ -29,6 +29,15 @@ class CLIError(IsolumeError):
     """A bad command-line value; the message says what was expected."""
 
 
+def choice_error(action: argparse.Action, name: str, value: object) -> str | None:
+    """The one line saying that `value` (None: the option's default) is not among the
+    choices of the option `action`, given as `name`, as its parser would refuse it; None
+    where it is."""
+    if action.choices is None or value is None or value in action.choices:
+        return None
+    return f"{name}={value!r}: expected one of {', '.join(map(str, action.choices))}"
+
+
 def floats(text: str, count: int, what: str) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.split(","))

@@ -202,8 +202,8 @@ class _Deflating:
             while self.pending:
                 self.member.write(self._oldest())
         finally:
-            for piece, _ in self.pending:  # after an error: no piece left running
-                piece.cancel()
+            for future, _ in self.pending:  # after an error: no piece left running
+                future.cancel()
         self.member.write(_FINAL_BLOCK)
         self.member._crc, self.member._file_size = self.crc, self.size
 

@@ -148,20 +148,18 @@ class HeldLattice:
         """`shown`, `displayed_facing` and `displayed` of `region`, from one lookup of
         its texels (what an upload of a region reads)."""
         rows, shown = self._shown(region)
-        return (shown, _picked(rows, shown, self.facing, bool(len(self.texels))),
-                _picked(rows, shown, self.values, bool(len(self.texels))))
+        return shown, _rows_shown(rows, shown, self.facing), _rows_shown(rows, shown, self.values)
 
     def _picked(self, region: slice | tuple[npt.ArrayLike, ...], held: np.ndarray) -> np.ndarray:
         """(…, C) rows of the (K, C) array `held` at the texels of `region` that show a
         preview, zeros elsewhere, in its type."""
-        rows, shown = self._shown(region)
-        return _picked(rows, shown, held, bool(len(self.texels)))
+        return _rows_shown(*self._shown(region), held)
 
 
-def _picked(rows: np.ndarray, shown: np.ndarray, held: np.ndarray, any_held: bool) -> np.ndarray:
+def _rows_shown(rows: np.ndarray, shown: np.ndarray, held: np.ndarray) -> np.ndarray:
     """(…, C) rows `rows` (…) of the (K, C) array `held` where `shown`, zeros elsewhere, in
-    its type (all zeros where no texel is held: `rows` then point nowhere)."""
-    if not any_held:
+    its type (all zeros where no texel is held, K = 0: `rows` then point nowhere)."""
+    if not len(held):
         return np.zeros((*rows.shape, held.shape[1]), held.dtype)
     return np.where(shown[..., None], held[rows], 0).astype(held.dtype)
 

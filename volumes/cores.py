@@ -22,8 +22,8 @@ child processes from ``/proc`` and `resource`) — not the intervals of tasks, w
 a thread waiting for the GIL as busy — the seconds with at most one core busy (sampled),
 the peak resident memory, the CPU seconds other processes used on the same cores and
 those the hypervisor stole from them (``/proc/stat``), and the work items with their
-threads and durations
-(`app.bench.replay` replays them on more simulated threads than this machine has). Work
+threads and durations (`app.bench.replay` replays them on more simulated threads than
+this machine has). Work
 that a command does beside its critical path — the next step laid out, a level scene
 built ahead, a batch committed while the next one is traced — runs inside `beside()`:
 its items are marked so, and the replay lets them share the threads of the work that

@@ -13,7 +13,7 @@ import functools
 import os
 from collections.abc import Mapping, Sequence
 
-from isolume.app.options import CLIError
+from isolume.app.options import CLIError, choice_error
 
 
 class OptionError(CLIError):
@@ -77,10 +77,10 @@ def option_value(name: str, value: object) -> object:
 
 def check_choice(action: argparse.Action, name: str, value: object) -> None:
     """Raise `OptionError` when `value` is not among the choices of the option `action`
-    (keyword `name`), as its parser would."""
-    if action.choices is not None and value is not None and value not in action.choices:
-        choices = ", ".join(repr(c) for c in action.choices)
-        raise OptionError(f"{name}={value!r}: expected one of {choices}")
+    (keyword `name`), as its parser would (`app.options.choice_error`)."""
+    message = choice_error(action, name, value)
+    if message is not None:
+        raise OptionError(message)
 
 
 def namespace(command: str, values: Mapping[str, object]) -> argparse.Namespace:

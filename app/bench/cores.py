@@ -351,9 +351,9 @@ def inner_line(inner: dict[str, float], threads: int) -> str:
     """How the replay took the items parallel inside (`inner_factors`)."""
     if threads <= 1:
         return "replay: items parallel inside (" + ", ".join(inner) + ") taken as serial"
-    return "replay: items parallel inside, Amdahl fitted to 1 against " + f"{threads} threads: " + \
-        ", ".join(f"{kind} serial fraction {f:.2f} (x{threads / (f * threads + 1 - f):.2f} "
-                  f"measured)" for kind, f in inner.items())
+    fitted = ", ".join(f"{kind} serial fraction {f:.2f} (x{threads / (f * threads + 1 - f):.2f} "
+                       "measured)" for kind, f in inner.items())
+    return f"replay: items parallel inside, Amdahl fitted to 1 against {threads} threads: {fitted}"
 
 
 # -- charts -------------------------------------------------------------------------------
