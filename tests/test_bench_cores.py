@@ -16,6 +16,7 @@ from isolume.app.bench.cores import (
     median_run,
     predictions,
     run_child,
+    sameness_line,
     stage_labels,
     thread_counts,
     whole,
@@ -267,6 +268,18 @@ def test_a_run_deletes_the_outputs_first_and_reads_the_timeline(tmp_path):
     assert median_run([(2.0, "b"), (1.0, "a")]) == (1.0, "a")
 
 
+def test_the_sameness_line_names_the_runs_that_differ():
+    runs = [{"threads": 1, "scheduler": None, "digests": ["aa" * 32, "aa" * 32]},
+            {"threads": 4, "scheduler": None, "digests": ["bb" * 32]},
+            {"threads": 4, "scheduler": "local:4", "digests": ["aa" * 32]}]
+    line = sameness_line("bake", runs)
+    assert line.startswith("bake: a DIFFERENT lattice (decoded arrays) between runs: ")
+    assert "aaaaaaaaaaaa: 1 thread #1, 1 thread #2, dask local:4 #1" in line
+    assert "bbbbbbbbbbbb: 4 threads #1" in line
+    assert sameness_line("render", runs[:1]) == ("render: the same picture (pixels) from "
+                                                 "every run (2)")
+
+
 def test_bench_cores_end_to_end(tmp_path, capsys):
     out = tmp_path / "cores"
     assert main(["bench", "cores", "synthetic:engine:64", "--samples", "2", "--threads",
@@ -287,6 +300,9 @@ def test_bench_cores_end_to_end(tmp_path, capsys):
         assert r["whole"]["process_wall_s"] > r["whole"]["wall_s"] > 0
         assert {"paths onto levels", "tracing"} <= set(r["stages"])
         assert r["stages"]["tracing"]["items"] > 0
+        assert len(r["digests"]) == 1
+    assert runs["1"]["digests"] == runs["2"]["digests"]
+    assert "bake: the same lattice (decoded arrays) from every run (2)" in printed
     predicted = bake["predicted"]
     assert {"paths onto levels", "tracing", "whole"} <= set(predicted)
     # on one simulated thread the replay is the one-thread run itself

@@ -15,7 +15,10 @@ Two predictions for 16 and 64 threads, both from the one-thread run:
 * Amdahl: T1 / (S + (T1 − S) / N), S the serial seconds of the run with the most threads;
 * replay: the one-thread run played again on N simulated threads (`app.bench.replay`).
 
-Writes ``cores.json`` (every run's figures and timeline, the predictions) and the charts
+Every run's output is compared (`output_digest`: a bake's decoded lattice arrays, a
+render's pixels) and a line says whether all thread counts (and Dask) wrote the same.
+
+Writes ``cores.json`` (every run's figures, timeline and digests, the predictions) and the charts
 ``gantt.png`` (the run with the most threads: items per thread coloured by stage, the
 cores busy) and ``speedup.png`` (measured, Amdahl, replay, ideal) into ``--out``.
 """
@@ -23,6 +26,7 @@ cores busy) and ``speedup.png`` (measured, Amdahl, replay, ideal) into ``--out``
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib.util
 import json
 import os
@@ -34,6 +38,8 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from isolume.app.bench.replay import (
     duration,
@@ -163,6 +169,32 @@ def run_child(argv: list[str], work: Path) -> tuple[float, dict[str, Any]]:
         raise CLIError(f"bench cores: {' '.join(argv[3:])} failed "
                        f"(exit {child.returncode}): {tail}")
     return wall, json.loads((work / "timeline.json").read_text())
+
+
+LATTICE_ARRAYS = ("active", "facing", "samples", "second", "values")
+"""The decoded arrays a bake's output is compared by (dense over its box)."""
+
+
+def output_digest(command: str, work: Path) -> str:
+    """SHA-256 of what `command` wrote into `work`: a bake's lattice as its decoded
+    `LATTICE_ARRAYS` (not the file's bytes, which hold timings), a render's picture as its
+    pixels. Equal digests: the same lattice or picture to the bit."""
+    from PIL import Image
+
+    from isolume.baking.lattice import Lattice
+
+    if command == "bake":
+        lattice = Lattice.load(work / "bake.npz")
+        arrays = [getattr(lattice, name) for name in LATTICE_ARRAYS]
+    else:
+        with Image.open(work / "render.png") as picture:
+            arrays = [np.asarray(picture)]
+    digest = hashlib.sha256()
+    for array in arrays:
+        array = np.ascontiguousarray(array)
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def median_run(runs: list[tuple[float, dict[str, Any]]]) -> tuple[float, dict[str, Any]]:
@@ -347,6 +379,20 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
     return lines
 
 
+def sameness_line(command: str, runs: list[dict[str, Any]]) -> str:
+    """Whether every run of `command` wrote the same output (`output_digest`), or which
+    runs wrote which."""
+    what = "lattice (decoded arrays)" if command == "bake" else "picture (pixels)"
+    groups: dict[str, list[str]] = {}
+    for r in runs:
+        for i, digest in enumerate(r.get("digests", [])):
+            groups.setdefault(digest, []).append(f"{_run_name(r)} #{i + 1}")
+    if len(groups) <= 1:
+        return f"{command}: the same {what} from every run ({sum(map(len, groups.values()))})"
+    parts = "; ".join(f"{digest[:12]}: {', '.join(names)}" for digest, names in groups.items())
+    return f"{command}: a DIFFERENT {what} between runs: {parts}"
+
+
 def inner_line(inner: dict[str, float], threads: int) -> str:
     """How the replay took the items parallel inside (`inner_factors`)."""
     if threads <= 1:
@@ -518,15 +564,18 @@ def measure_command(args: argparse.Namespace, command: str, counts: list[int], w
     if args.warmup:
         run_child(command_argv(args, command, max(counts), work), work)  # kernels cached
     walls: dict[str, list[tuple[float, dict]]] = {label: [] for label, _, _ in plans}
+    digests: dict[str, list[str]] = {label: [] for label, _, _ in plans}
     for repeat in range(args.repeats):
         for label, n, scheduler in plans:
             wall, timeline = run_child(command_argv(args, command, n, work, scheduler), work)
             walls[label].append((wall, timeline))
+            digests[label].append(output_digest(command, work))
             name = _run_name({"threads": n, "scheduler": scheduler})
             print(f"  {command}, {name}, run {repeat + 1}/{args.repeats}: {wall:.2f} s",
                   flush=True)
-    return [figures_of(command, label, n, scheduler, [w for w, _ in walls[label]],
-                       median_run(walls[label])) for label, n, scheduler in plans]
+    return [{**figures_of(command, label, n, scheduler, [w for w, _ in walls[label]],
+                          median_run(walls[label])), "digests": digests[label]}
+            for label, n, scheduler in plans]
 
 
 def _load() -> float:
@@ -579,6 +628,7 @@ def run(args: argparse.Namespace) -> int:
         print("\n".join(table(command, result["runs"], result["predicted"])))
         print("\n".join(whole_lines(command, result["runs"], result["predicted"])))
         print(inner_line(result["inner"], result["inner_threads"]))
+        print(sameness_line(command, result["runs"]))
     settings = {k: v for k, v in vars(args).items() if isinstance(v, str | int | float | bool)}
     (out / "cores.json").write_text(json.dumps(
         {"settings": {**settings, "threads": counts, "commands": commands, "dask": dask},
