@@ -342,9 +342,11 @@ class ThreadBackend:
         Pipelined within a level: the helper thread lays out the next step while the
         workers trace this one (the chunks run without the GIL), and a batch complete on
         its upper level is committed (its facings, its means, a checkpoint) while the
-        workers trace the next step. The next level's scene is built once this level's
-        steps are traced, after this one is let go (its surface and BVH are built on
-        every core); its first step is laid out beforehand, beside this level's last one.
+        workers trace the next step — also a group's last batch, copied out of its sums
+        (one batch's rows) so that the group's sums go before the next group's are made.
+        The next level's scene is built once this level's steps are traced, after this
+        one is let go (its surface and BVH are built on every core); its first step is
+        laid out beforehand, beside this level's last one.
         """
         steps = pass_steps(work, TEXELS_PER_BATCH)  # made as they come: no group held
         step = next(steps, None)
@@ -364,9 +366,10 @@ class ThreadBackend:
                 upcoming = (self._beside("layout", self._lay_out, work, following)
                             if following is not None else None)
                 if not step.upper and step.first == 0:  # this level's upper steps are done:
-                    _commit(traced, report)  # their group's sums go
-                    sums = between = None  # before the next group's are made
-                    between = PassSums(len(work.lower_on(step.level)), channels)
+                    traced = [(done, batch.copy()) for done, batch in traced]  # the last
+                    sums = between = None  # batch kept, their group's sums go before
+                    between = PassSums(len(work.lower_on(step.level)), channels)  # the next
+                    # group's are made; that batch is committed while the next step traces
                 sums = between.rows(slice(step.first, step.first + len(step.texels)))
                 chunks = self._submit_level(lay, sums)
                 with cores.beside():  # the batch before, while this one is traced

@@ -36,13 +36,14 @@ from isolume.baking.integrator import (
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.plan import (
     GOLDEN_FRACTION,
+    LANDING_STEPS,
     Plan,
-    landed_points,
     newton_reach,
     project_to_level,
     rounded_landing,
 )
 from isolume.baking.rays import RayStats
+from isolume.baking.start_kernels import landed_starts
 from isolume.volumes import cores
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
@@ -50,8 +51,13 @@ if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.plan_records import PlanRecords, TexelRecords
     from isolume.baking.trace import Scene
 
-PATHS_PER_CHUNK = 16384
-MIN_PATHS_PER_CHUNK = 2048
+PATHS_PER_CHUNK = 32768
+"""Paths one tracing work item traces, at most (`chunk_bounds`): ~2 MB of per-path arrays
+a worker. A chunk's Python between its compiled calls (its texels' start points, the
+calls' dispatch, adding its sums: ~0.6 ms however many paths) holds the GIL; at 16384
+paths it was 5–9 % of a 64-path bake's tracing, which caps the threads that gain near 16."""
+MIN_PATHS_PER_CHUNK = 4096
+"""Paths of a level's last chunks, at least (a few milliseconds of tracing)."""
 GUIDED_WORKERS = 16
 """Workers `chunk_bounds` cuts a level's last chunks for, at least."""
 
@@ -76,6 +82,10 @@ class PassSums:
         """The sums of the texels selected by `these`: a copy for a bool mask or indices,
         views that add into these sums for a slice."""
         return PassSums.of(self.sum[these], self.second[these], self.n[these])
+
+    def copy(self) -> PassSums:
+        """These sums in arrays of their own (not views of another's)."""
+        return PassSums.of(self.sum.copy(), self.second.copy(), self.n.copy())
 
     def add(self, positions: np.ndarray, sums: PassSums) -> None:
         """Add `sums` (N texels' sums, formed from zero) to those at (N,) distinct
@@ -122,13 +132,32 @@ def landing_facing(volume: volumes.Volume, geometry: LatticeGeometry, config: Ba
     share = np.stack([1 - records.weight, records.weight], axis=1)
     mean = np.zeros((len(records.ids), 3))
     for side in (0, 1):
-        used = share[:, side] > 0
-        if used.any():
-            points = landed_points(records.landing[used, side],
-                                   geometry.centres(records.ids[used]), reach)
-            normals = lit_normals(volume, config, points, records.high[used])
+        used = np.flatnonzero(share[:, side] > 0)
+        if len(used):
+            _, normals = landed_start_points(volume, geometry, config, reach, records.ids,
+                                             used, np.full(len(used), side == 1),
+                                             records.landing, records.high)
             mean[used] += share[used, side, None] * normals
     return octahedral.encode(mean)
+
+
+def landed_start_points(volume: volumes.Volume, geometry: LatticeGeometry,
+                        config: BakeConfig, reach: float, ids: np.ndarray,
+                        positions: np.ndarray, upper: np.ndarray, landing: np.ndarray,
+                        high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`start_points` of the texels at (N,) `positions` of the (T,) lattice `ids`, from
+    their (T, 2, 3) `landing` offsets (`Plan.landing`, in steps of `reach`) on their upper
+    level where `upper` (N,), else their lower one, lit on the side (T,) `high` says: one
+    compiled call (`start_kernels.landed_starts`), the same bits.
+
+    Returns:
+        origins, normals: (N, 3) float32.
+    """
+    return landed_starts(
+        np.asarray(geometry.shape, np.int64), np.asarray(geometry.lo, np.float64),
+        np.asarray(geometry.texel_size, np.float64), ids, positions, upper, landing,
+        reach / LANDING_STEPS, high, config.offset * float(np.mean(volume.spacing)),
+        *volumes.normal_stencil(volume, config.normals == "smooth"))
 
 
 def lit_normals(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
@@ -273,15 +302,17 @@ class LevelStarts:
     reach: float
 
     def of(self, lo: int, hi: int) -> PathStarts:
-        """The `PathStarts` of the level's texels lo … hi − 1, numbered 0 … hi − lo − 1."""
+        """The `PathStarts` of the level's texels lo … hi − 1, numbered 0 … hi − lo − 1:
+        from the plan's landings in one compiled call (`start_kernels.landed_starts`, the
+        operations of `start_points`), else projected here."""
         texels = self.texels[lo:hi]
-        centres = self.geometry.centres(self.ids[texels])
-        on_level = None
         if self.landing is not None:  # `here` lands on its lower level, `below` upper
-            on_level = landed_points(self.landing[texels, self.upper[lo:hi].astype(np.int64)],
-                                     centres, self.reach)
-        origins, normals = start_points(self.volume, centres, self.iso, self.config,
-                                        self.high[texels], on_level)
+            origins, normals = landed_start_points(
+                self.volume, self.geometry, self.config, self.reach, self.ids, texels,
+                self.upper[lo:hi], self.landing, self.high)
+            return PathStarts(np.arange(hi - lo, dtype=np.int64), origins, normals)
+        origins, normals = start_points(self.volume, self.geometry.centres(self.ids[texels]),
+                                        self.iso, self.config, self.high[texels])
         return PathStarts(np.arange(hi - lo, dtype=np.int64), origins.astype(np.float32),
                           normals.astype(np.float32))
 

@@ -696,14 +696,19 @@ class _Reaches:
         moved = np.zeros(count, np.float32) if moved is None else moved.copy()
 
         def block(b: slice) -> None:
-            centres = self.geometry.centres(self.ids[b])
-            landed = landed_points(landing[b], centres, self.reach)
-            lower = self.lower[b]
+            chosen = which[b]  # the others keep what they have
+            at = b if chosen.all() else b.start + np.flatnonzero(chosen)
+            centres = self.geometry.centres(self.ids[at])
+            if len(centres) == 0:
+                return
+            landed = landed_points(landing[at], centres, self.reach)
+            lower = self.lower[at]
             tol = CONVERGED_FRACTION * (self.levels[lower + 1] - self.levels[lower])
-            ok[b], moved[b] = _reaches(self.volume, self.config, centres,
-                                       self.levels[lower + side], self.reach, tol,
-                                       self.high[b], which[b], landed, ok[b], moved[b])
-            landing[b] = landing_offsets(landed, centres, self.reach)
+            ok[at], moved[at] = _reaches(self.volume, self.config, centres,
+                                         self.levels[lower + side], self.reach, tol,
+                                         self.high[at], np.ones(len(centres), bool),
+                                         landed, ok[at], moved[at])
+            landing[at] = landing_offsets(landed, centres, self.reach)
 
         for_blocks(block, count, "reach tests")
         return ok, moved

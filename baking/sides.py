@@ -28,8 +28,8 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels
-from isolume.baking.embree_kernels import occluded_rays
 from isolume.baking.rng import seed_key
+from isolume.baking.side_kernels import open_counts
 from isolume.volumes import cores
 
 if TYPE_CHECKING:
@@ -161,7 +161,9 @@ def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.
     The side other than the `default` one (high-value when False) is probed first; the
     default side only where that one is open, since where it is closed `side_rule` lights
     the default side whatever the default side's count (left 0 there). On a closed object
-    that halves the rays.
+    that halves the rays. Each side is one compiled call (`side_kernels.open_counts`:
+    no GIL held between the rays and the counts), or, on a scene without compiled Embree
+    calls, arrays and embreex (`unblocked_rays`).
 
     Returns:
         open_low, open_high: (N,) int counts for the low- and the high-value side.
@@ -170,17 +172,28 @@ def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.
                                  ).astype(np.float64)  # towards low values
     offset = max(config.offset, PROBE_OFFSET_VOXELS) * float(np.mean(volume.spacing))
     key = np.uint32(seed_key(config.seed ^ SALT))
+    ids = np.asarray(ids, np.int64)
+    points = np.ascontiguousarray(points, np.float64)
+    if scene.calls is not None:  # one compiled call a side
+        scratch = np.empty(1, np.result_type(volume.data.dtype, np.float32))
+        fixed = (np.ascontiguousarray(volume.data)[..., None],
+                 np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64),
+                 scratch.dtype.type(level), scratch, PROBES)
 
-    def count(sign: float, which: np.ndarray) -> np.ndarray:
-        out = np.zeros(len(points), np.int64)
-        if which.any():
-            origins = points[which] + sign * offset * normals[which]
-            unblocked = unblocked_rays(scene, key, ids[which], origins,
-                                       sign * normals[which])
-            beyond = volumes.value_at(volume, origins) - level
-            on_side = beyond < 0 if sign > 0 else beyond > 0
-            out[which] = np.where(on_side, unblocked, 0)
-        return out
+        def count(sign: float, which: np.ndarray) -> np.ndarray:
+            return open_counts(scene.calls, key, ids, points, normals, offset, sign, which,
+                               *fixed)
+    else:
+        def count(sign: float, which: np.ndarray) -> np.ndarray:
+            out = np.zeros(len(points), np.int64)
+            if which.any():
+                origins = points[which] + sign * offset * normals[which]
+                unblocked = unblocked_rays(scene, key, ids[which], origins,
+                                           sign * normals[which])
+                beyond = volumes.value_at(volume, origins) - level
+                on_side = beyond < 0 if sign > 0 else beyond > 0
+                out[which] = np.where(on_side, unblocked, 0)
+            return out
 
     other_sign = 1.0 if default else -1.0  # the low side's normal is +normals
     other = count(other_sign, np.ones(len(points), bool))
@@ -193,9 +206,9 @@ def unblocked_rays(scene: Scene, key: np.uint32, ids: np.ndarray, origins: np.nd
     """(N,) int: how many of the `PROBES` rays of each point (keys as the paths of samples
     0 … PROBES − 1 of texel `ids[i]` under the seed key `key`, cosine-distributed about
     the (N, 3) `normals` from the (N, 3) `origins`) meet nothing. Compiled rays
-    (`kernels.path_starts`) traced `TEXELS_PER_BATCH` texels at a time on every core
-    (Embree per ray from compiled code where the scene allows it), so memory stays
-    bounded."""
+    (`kernels.path_starts`) traced by embreex `TEXELS_PER_BATCH` texels at a time on
+    every core, so memory stays bounded: for a scene without compiled calls
+    (`side_kernels.open_counts` does the same in one compiled call)."""
     n = len(ids)
     out = np.empty(n, np.int64)
     ids = np.asarray(ids, np.int64)
@@ -211,10 +224,7 @@ def unblocked_rays(scene: Scene, key: np.uint32, ids: np.ndarray, origins: np.nd
         _, starts, _, dirs = kernels.path_starts(key, ids[lo:hi], pos,
                                                  samples[:len(pos)], texels,
                                                  origins[lo:hi], normals[lo:hi])
-        if scene.calls is not None:
-            blocked = occluded_rays(scene.calls, starts, dirs)
-        else:
-            blocked = scene.occluded(starts.T, dirs.T)
+        blocked = scene.occluded(starts.T, dirs.T)
         out[lo:hi] = PROBES - blocked.reshape(-1, PROBES).sum(axis=1)
 
     cores.for_items(batch, -(-n // TEXELS_PER_BATCH), "probe rays")

@@ -229,10 +229,12 @@ def test_stalled_newton_falls_back_to_the_nearest_crossing_along_neighbour_lines
 
 def test_levels_start_where_the_plan_landed_their_texels():
     """The plan's reach test projects every texel onto the levels it uses; laying out a
-    level reuses those points (`Plan.landing`) and gets the start points a fresh
-    projection gives (rounded as the plan keeps them), to the bit, a chunk at a time as
-    for the whole level."""
+    level reuses those points (`Plan.landing`, in one compiled call:
+    `start_kernels.landed_starts`) and gets the start points of the array code
+    (`start_points` from the landed points) and of a fresh projection (rounded as the
+    plan keeps them), to the bit, a chunk at a time as for the whole level."""
     from isolume.baking.passes import lay_out_level, start_points
+    from isolume.baking.plan import landed_points, newton_reach
 
     vol = make("shells", 32)
     plan, config = _plan(vol, samples=8, bounces=0, iso_range=(0.2, 0.7), max_move=0.5)
@@ -253,6 +255,14 @@ def test_levels_start_where_the_plan_landed_their_texels():
     fresh = fresh.of(0, len(paths.texels))
     np.testing.assert_array_equal(reused.origins, fresh.origins)
     np.testing.assert_array_equal(reused.normals, fresh.normals)
+    centres = geometry.centres(plan.ids[paths.texels])
+    landed = landed_points(plan.landing[paths.texels, paths.upper.astype(np.int64)], centres,
+                           newton_reach(vol, config))
+    origins, normals = start_points(vol, centres, float(plan.levels[level]), config,
+                                    plan.high[paths.texels], landed)
+    np.testing.assert_array_equal(reused.origins, origins.astype(np.float32))
+    np.testing.assert_array_equal(reused.normals, normals.astype(np.float32))
+    assert paths.upper.any() and not paths.upper.all() and 0 < plan.high.mean() < 1
     cut = len(paths.texels) // 3  # a chunk's start points: those of the whole level's
     part = starts.of(cut, len(paths.texels))
     np.testing.assert_array_equal(part.origins, reused.origins[cut:])
@@ -377,8 +387,8 @@ def test_newton_steps_reuse_a_cells_gradients_to_the_bit():
             px, py, pz = qx, qy, qz
             if done:
                 break
-        start = field._value_at(data, origin, spacing, sx, sy, sz, value) - level
-        end = field._value_at(data, origin, spacing, px, py, pz, value) - level
+        start = field.value_at_world(data, origin, spacing, sx, sy, sz, value) - level
+        end = field.value_at_world(data, origin, spacing, px, py, pz, value) - level
         if abs(end) > field.STALLED_FRACTION * abs(start):
             continue  # the line search, not the steps: `test_stalled_newton_...`
         np.testing.assert_array_equal(moved[i], [px, py, pz], err_msg=f"point {i}")

@@ -139,3 +139,39 @@ def test_a_baked_cut_open_slab_matches_the_reference_from_above_and_below(view):
     assert ratios["seen"] == pytest.approx(1.0, abs=0.05)
     if view[1] > 0:
         assert ratios["normals"] < 0.8
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float64])
+def test_compiled_probes_count_what_the_array_code_counts(dtype):
+    """`side_kernels.open_counts` (one compiled call a side) against the array code that
+    scenes without compiled Embree calls run (`unblocked_rays`, embreex): the same counts
+    for every point, on both sides, for either default side — on the synthetic engine's
+    folds (counts between 0 and 16), with NaN points and points off the level."""
+    from isolume.baking.sides import level_surface, open_rays
+    from isolume.volumes import load
+
+    vol = load("synthetic:engine:40")
+    scale = 200.0 if dtype == np.uint8 else 1.0
+    vol = Volume((vol.data * scale).astype(dtype), spacing=vol.spacing, name="engine",
+                 source="engine")
+    level = 0.3019 * scale  # not a sample value
+    scene = level_surface(vol, level)
+    assert scene.calls is not None
+    rng = np.random.default_rng(5)
+    vertices = scene.vertices[:len(scene.faces)]
+    points = vertices[rng.choice(len(vertices), 1500, replace=False)].astype(np.float64)
+    points[:20] += rng.normal(0, 2.0, (20, 3))  # off the level: on neither side at times
+    points[20:23] = np.nan
+    ids = rng.choice(10**6, len(points), replace=False)
+    config = BakeConfig(**SKY)
+    compiled = [open_rays(scene, vol, config, ids, points, level, default)
+                for default in (False, True)]
+    scene.calls = None
+    arrays = [open_rays(scene, vol, config, ids, points, level, default)
+              for default in (False, True)]
+    for got, want in zip(compiled, arrays, strict=True):
+        for side in (0, 1):
+            np.testing.assert_array_equal(got[side], want[side])
+    counts = np.stack([side for pair in compiled for side in pair])
+    assert np.all(counts[:, 20:23] == 0)
+    assert ((counts > 0) & (counts < PROBES)).sum() > 100 and (counts == PROBES).sum() > 100

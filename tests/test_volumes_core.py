@@ -258,3 +258,36 @@ def test_integer_samples_stay_as_stored_and_answer_as_float32(dtype):
     for x, y in zip(tracing_surface(stored, isos[1]), tracing_surface(floats, isos[1]),
                     strict=True):
         np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.uint8, np.int16])
+def test_compiled_normals_are_the_arrays_normals_to_the_bit(dtype):
+    """`normals_at` (one compiled pass, `field.unit_normal`) against
+    `normals_from_gradient(gradient_at(...))`, the array code it stands for: the same
+    float32 bits everywhere — inside and outside the box, in a flat region (0, 0, 1), at
+    NaN points, where the squared gradient overflows float32 — smoothed or not, flipped
+    or not, on a volume with its own origin and spacing."""
+    from isolume.volumes.field import gradient_at, normals_from_gradient
+
+    rng = np.random.default_rng(1)
+    data = make("engine", 40).data.astype(np.float32)
+    data[2:8, 5:12, 5:12] = 0.25  # flat
+    scale = {np.float32: 1.0, np.uint8: 255.0, np.int16: 3000.0}[dtype]
+    data = (data * scale).astype(dtype)
+    if dtype == np.float32:
+        data[15, 20, 20], data[16, 20, 20] = 3e38, -3e38  # |g|² past float32's range
+    vol = Volume(data, spacing=(0.7, 1.0, 1.3), origin=(1.0, -2.0, 0.5))
+    lo, hi = vol.box
+    points = rng.uniform(np.array(lo) - 2, np.array(hi) + 2, (50_000, 3))
+    points[:10] = np.nan
+    points[10:20, 1] = np.nan
+    points[20:1000] = np.array(vol.origin) + np.array(vol.spacing) * (
+        np.array([8.5, 8.0, 4.5]) + rng.uniform(-1, 1, (980, 3)))  # in the flat block
+    for smooth in (True, False):
+        for flip in (False, True):
+            with np.errstate(over="ignore"):
+                want = normals_from_gradient(gradient_at(vol, points, smooth), flip)[0]
+            got = volumes.normals_at(vol, points, smooth, flip)
+            np.testing.assert_array_equal(got, want)
+            assert (np.abs(want) == [0, 0, 1]).all(axis=1).sum() > 100
+            assert np.isnan(want).any(axis=1).sum() == 20
