@@ -54,6 +54,7 @@ from isolume.baking import kernels
 from isolume.baking.config import BakeConfig
 from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
+from isolume.baking.landing_kernels import LANDING_STEPS, UNLANDED, reach_tests
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.rng import pcg_hash
 from isolume.baking.sides import choose_sides
@@ -62,8 +63,6 @@ from isolume.volumes import cores
 GOLDEN_FRACTION = 0.6180339887498949
 MAX_REACH = 4.0
 """Newton moves onto a level are limited to MAX_REACH × max_move voxels."""
-CONVERGED_FRACTION = 0.1
-"""A texel reaches a level when |ρ(p) − L| ends below this fraction of the level spacing."""
 MIN_SPAN_FRACTION = 1e-3
 """Cells whose values span less than this fraction of the data range hold no surface worth
 baking even in noise-free data (e.g. the far tails of a smooth profile)."""
@@ -302,7 +301,8 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
                      scenes, lambda fraction: say(stage, fraction))
     say("reach tests")
     cores.stage("reach tests")
-    reaches = _Reaches(volume, config, geometry, ids, reach, levels, lower, high)
+    reaches = _Reaches(volume, config, geometry, ids, reach,
+                       max(start_lift(volume, config), 0.0), levels, lower, high)
     ok_lo, move_lo = reaches(0, uses_lo, landing[:, 0])
     say("reach tests", 1 / 3)
     ok_hi, move_hi = reaches(1, uses_hi | ~ok_lo, landing[:, 1])
@@ -387,13 +387,6 @@ def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeome
 
     return choose_sides(volume, config, geometry, ids, points, found, levels, lower + upper,
                         scenes, progress)
-
-
-LANDING_STEPS = 32_000
-"""Steps of a landing offset per reach (`landing_offsets`): int16 holds ±32 767, so an
-offset of a whole reach keeps 2 % to spare for the float rounding of a clamped move."""
-UNLANDED = np.iinfo(np.int16).min
-"""The landing offset of a level a texel does not use (`Plan.landing`)."""
 
 
 def landing_offsets(points: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
@@ -673,13 +666,26 @@ def for_blocks(work: Callable[[slice], None], count: int, kind: str,
 
 @dataclass(frozen=True)
 class _Reaches:
-    """`_reaches` of a plan's (T,) texels `ids`, block by block (`for_blocks`)."""
+    """The reach tests of a plan's (T,) texels `ids` (`landing_kernels.reach_tests`), block
+    by block (`for_blocks`): can a texel be moved onto its level within `reach` world
+    units, and do its paths start on its lit side (`high` (T,): the high-value side) of
+    that level's surface?
+
+    Not where the level is the thin shell around a ridge or a valley whose extreme barely
+    passes it — a cooling fin whose peak lies just below the displayed isovalue, next to
+    the casing it stands on: the smoothed normal there is the casing's, points across the
+    shell, the start point (`lift` world units along it, as `baking.passes.start_points`
+    moves it) lands inside it and every path is blocked (such texels came out black, and
+    the casing wall beside the fin dark: the worst error of the synthetic engine). Only
+    the move is checked where `lift` is 0.
+    """
 
     volume: volumes.Volume
     config: BakeConfig
     geometry: LatticeGeometry
     ids: np.ndarray
     reach: float
+    lift: float
     levels: np.ndarray
     lower: np.ndarray
     high: np.ndarray
@@ -687,83 +693,39 @@ class _Reaches:
     def __call__(self, side: int, which: np.ndarray, landing: np.ndarray,
                  ok: np.ndarray | None = None, moved: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-        """`_reaches` of every texel from its centre onto its lower (`side` 0) or upper (1)
-        level, within `CONVERGED_FRACTION` of the spacing of its two levels (other
-        arguments as there, (T,) and (T, 3); `landing` (T, 3) int16 offsets as
-        `Plan.landing`'s, updated in place)."""
+        """The tests of the (T,) `which` texels from their centres onto their lower (`side`
+        0) or upper (1) level (landed within `landing_kernels.CONVERGED_FRACTION` of the
+        spacing of their two levels); the others keep `ok` (default True) and `moved`
+        (default 0).
+
+        Args:
+            landing: (T, 3) int16 offsets as `Plan.landing`'s of that side, written where
+                a texel had none (projected by Newton steps).
+
+        Returns:
+            ok: (T,) bool; moved: (T,) float32 length of the (clamped) move, world units.
+        """
         count = len(self.ids)
         ok = np.ones(count, bool) if ok is None else ok.copy()
         moved = np.zeros(count, np.float32) if moved is None else moved.copy()
+        g, volume = self.geometry, self.volume
+        data, newton_w, inverse, origin, spacing = volumes.normal_stencil(volume, True)
+        lift_w = volumes.normal_stencil(volume, self.config.normals == "smooth")[1]
+        fixed = (np.asarray(g.shape, np.int64), np.asarray(g.lo, np.float64),
+                 np.asarray(g.texel_size, np.float64), self.ids, self.lower, self.levels,
+                 side, self.high, which, landing, ok, moved, self.reach, self.lift,
+                 np.ascontiguousarray(data)[..., None], data, newton_w, lift_w, inverse,
+                 origin, spacing)
+        value_type = np.result_type(data.dtype, np.float32)  # `volumes.value_at`'s
 
         def block(b: slice) -> None:
-            chosen = which[b]  # the others keep what they have
-            at = b if chosen.all() else b.start + np.flatnonzero(chosen)
-            centres = self.geometry.centres(self.ids[at])
-            if len(centres) == 0:
-                return
-            landed = landed_points(landing[at], centres, self.reach)
-            lower = self.lower[at]
-            tol = CONVERGED_FRACTION * (self.levels[lower + 1] - self.levels[lower])
-            ok[at], moved[at] = _reaches(self.volume, self.config, centres,
-                                         self.levels[lower + side], self.reach, tol,
-                                         self.high[at], np.ones(len(centres), bool),
-                                         landed, ok[at], moved[at])
-            landing[at] = landing_offsets(landed, centres, self.reach)
+            reach_tests(*fixed, np.empty(1, value_type), b.start, b.stop)
 
         for_blocks(block, count, "reach tests")
         return ok, moved
 
 
-def _reaches(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
-             levels: np.ndarray, reach: float, tol: np.ndarray, high: np.ndarray,
-             which: np.ndarray, landed: np.ndarray, ok: np.ndarray | None = None,
-             moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Can each point be moved onto its level within `reach` world units, and do its paths
-    start on its lit side (`high`, (N,) bool) of that level's surface (`starts_outside`)?
-    Decided for the (N,) `which` points only, whose landing points are written into
-    `landed` (N, 3) where it holds none yet (NaN); the others keep `ok` (default True) and
-    `moved` (default 0).
-
-    Returns:
-        ok: (N,) bool; moved: (N,) distance of the (clamped) move, world units.
-    """
-    ok = np.ones(len(points), bool) if ok is None else ok.copy()
-    moved = np.zeros(len(points)) if moved is None else moved.copy()
-    if which.any():
-        todo = which & np.isnan(landed[:, 0])
-        if todo.any():
-            landed[todo] = rounded_landing(project_to_level(
-                volume, points[todo], levels[todo], max_move=reach), points[todo], reach)
-        ok[which] = (np.abs(volumes.value_at(volume, landed[which]) - levels[which])
-                     <= tol[which]) & starts_outside(volume, config, landed[which],
-                                                     levels[which], high[which])
-        moved[which] = np.linalg.norm(landed[which] - points[which], axis=1)
-    return ok, moved
-
-
-def starts_outside(volume: volumes.Volume, config: BakeConfig, landed: np.ndarray,
-                   levels: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """(N,) bool: does the start point of paths from (N, 3) points `landed` on the surfaces
-    ρ = `levels` (N,) — moved `config.offset` voxels along the normal of its lit side, as
-    `baking.passes.start_points` moves it — lie on that side of the level (lower values;
-    higher where `high`)?
-
-    Not where the level is the thin shell around a ridge or a valley whose extreme barely
-    passes it — a cooling fin whose peak lies just below the displayed isovalue, next to
-    the casing it stands on: the smoothed normal there is the casing's, points across the
-    shell, the start point lands inside it and every path is blocked (such texels came out
-    black, and the casing wall beside the fin dark: the worst error of the synthetic
-    engine). Always True without an offset.
-    """
-    if config.offset <= 0 or len(landed) == 0:
-        return np.ones(len(landed), bool)
-    h = float(np.mean(volume.spacing))
-    smooth = config.normals == "smooth"
-    out = np.empty(len(landed), bool)
-    for flip in (False, True):
-        these = high == flip
-        if these.any():
-            beyond = volumes.values_along_normals(volume, landed[these], config.offset * h,
-                                                  smooth=smooth, flip=flip) - levels[these]
-            out[these] = beyond > 0 if flip else beyond < 0
-    return out
+def start_lift(volume: volumes.Volume, config: BakeConfig) -> float:
+    """How far off its level a path starts, world units: `config.offset` voxels (of the
+    mean spacing) along its lit side's normal (`baking.passes.start_points`)."""
+    return config.offset * float(np.mean(volume.spacing))

@@ -230,7 +230,7 @@ def test_stalled_newton_falls_back_to_the_nearest_crossing_along_neighbour_lines
 def test_levels_start_where_the_plan_landed_their_texels():
     """The plan's reach test projects every texel onto the levels it uses; laying out a
     level reuses those points (`Plan.landing`, in one compiled call:
-    `start_kernels.landed_starts`) and gets the start points of the array code
+    `landing_kernels.landed_starts`) and gets the start points of the array code
     (`start_points` from the landed points) and of a fresh projection (rounded as the
     plan keeps them), to the bit, a chunk at a time as for the whole level."""
     from isolume.baking.passes import lay_out_level, start_points
@@ -320,8 +320,7 @@ def test_paths_start_outside_the_thin_shell_of_a_fin_below_the_isovalue(monkeypa
     plan, config = _plan(vol, samples=4, bounces=0, iso_range=(0.2, 0.5), max_move=0.5)
     inside = _starts_inside(vol, plan, config).sum()
     assert inside <= plan.unreachable
-    monkeypatch.setattr(plan_module, "starts_outside",
-                        lambda volume, config, landed, levels, high: np.ones(len(landed), bool))
+    monkeypatch.setattr(plan_module, "start_lift", lambda volume, config: 0.0)  # unchecked
     unchecked, _ = _plan(vol, samples=4, bounces=0, iso_range=(0.2, 0.5), max_move=0.5)
     assert _starts_inside(vol, unchecked, config).sum() >= max(50, 5 * inside)
 
@@ -347,7 +346,7 @@ def test_plan_is_the_same_whatever_its_block_size(monkeypatch):
 
 def test_newton_steps_reuse_a_cells_gradients_to_the_bit():
     """Newton steps that stay in one lattice cell of the volume reuse its corner gradients
-    (`volumes.field._newton`): the landing points equal, to the bit, steps that read the
+    (`volumes.field.newton_steps`): the landing points equal, to the bit, steps that read the
     eight corner gradients afresh every time (the compiled lookups, step for step),
     on points of the Marschner–Lobb function that converge or are clamped."""
     from isolume.volumes import field
@@ -491,3 +490,82 @@ def test_the_plan_tells_how_far_its_long_stages_have_come(monkeypatch):
         first = next(i for i, said in enumerate(told) if said == (stage,))
         assert all(i > first for i, said in enumerate(told) if said[0] == stage
                    and len(said) == 2), stage
+
+
+def _reference_reaches(volume, config, points, levels, reach, tol, high, landed):
+    """The reach tests in arrays (`volumes.value_at`, `values_along_normals`,
+    `project_to_level`), as independent of `landing_kernels.reach_tests` as numpy makes
+    them: (N,) ok, (N,) moved, and `landed` (N, 3) filled where NaN."""
+    from isolume.baking.plan import project_to_level, rounded_landing
+
+    todo = np.isnan(landed[:, 0])
+    landed[todo] = rounded_landing(project_to_level(volume, points[todo], levels[todo],
+                                                    max_move=reach), points[todo], reach)
+    ok = np.abs(volumes.value_at(volume, landed) - levels) <= tol
+    if config.offset > 0:
+        h = float(np.mean(volume.spacing))
+        for flip in (False, True):
+            these = high == flip
+            beyond = volumes.values_along_normals(
+                volume, landed[these], config.offset * h, smooth=config.normals == "smooth",
+                flip=flip) - levels[these]
+            ok[these] &= beyond > 0 if flip else beyond < 0
+    return ok, np.linalg.norm(landed - points, axis=1).astype(np.float32), landed
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.uint8])
+@pytest.mark.parametrize("normals", ["smooth", "gradient"])
+def test_compiled_reach_tests_are_the_arrays_tests_to_the_bit(dtype, normals):
+    """`landing_kernels.reach_tests` (one compiled call a block) against the same tests in
+    arrays: for texels with and without a landing yet, on either side, lit on either
+    side, the same ok flags, move lengths and landings, to the bit; the texels not asked
+    about keep what they had."""
+    from isolume.baking.plan import (
+        UNLANDED,
+        _Reaches,
+        landed_points,
+        landing_offsets,
+        newton_reach,
+        start_lift,
+    )
+
+    rng = np.random.default_rng(4)
+    data = make("engine", 40).data
+    vol = Volume((data * (200.0 if dtype == np.uint8 else 1.0)).astype(dtype),
+                 spacing=(1.0, 1.2, 0.9), origin=(0.5, -1.0, 2.0))
+    scale = 200.0 if dtype == np.uint8 else 1.0
+    config = BakeConfig(samples=4, bounces=0, max_move=0.5, normals=normals)
+    geometry = LatticeGeometry.for_volume(vol, 1.0)
+    ids = np.sort(rng.choice(int(np.prod(geometry.shape)), 4000, replace=False))
+    levels = np.array([0.2, 0.3, 0.45]) * scale
+    lower = rng.integers(0, 2, len(ids))
+    high = rng.random(len(ids)) < 0.3
+    reach = newton_reach(vol, config)
+    centres = geometry.centres(ids)
+    landing = np.full((len(ids), 3), UNLANDED, np.int16)
+    landed_before = rng.random(len(ids)) < 0.5  # projected by an earlier test
+    landing[landed_before] = landing_offsets(
+        centres[landed_before] + rng.normal(0, 0.3 * reach, (landed_before.sum(), 3)),
+        centres[landed_before], reach)
+    which = rng.random(len(ids)) < 0.8
+    ok0 = rng.random(len(ids)) < 0.5
+    moved0 = rng.random(len(ids)).astype(np.float32)
+    lift = start_lift(vol, config)
+    assert lift > 0
+    tests = _Reaches(vol, config, geometry, ids, reach, lift, levels, lower, high)
+    for side in (0, 1):
+        got_landing = landing.copy()
+        ok, moved = tests(side, which, got_landing, ok0, moved0)
+        landed = landed_points(landing[which], centres[which], reach)
+        tol = 0.1 * (levels[lower[which] + 1] - levels[lower[which]])
+        want_ok, want_moved, want_landed = _reference_reaches(
+            vol, config, centres[which], levels[lower[which] + side], reach, tol,
+            high[which], landed)
+        np.testing.assert_array_equal(ok[which], want_ok)
+        np.testing.assert_array_equal(moved[which], want_moved)
+        np.testing.assert_array_equal(got_landing[which],
+                                      landing_offsets(want_landed, centres[which], reach))
+        np.testing.assert_array_equal(ok[~which], ok0[~which])
+        np.testing.assert_array_equal(moved[~which], moved0[~which])
+        np.testing.assert_array_equal(got_landing[~which], landing[~which])
+        assert 0.2 < want_ok.mean() < 0.95

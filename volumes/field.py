@@ -160,10 +160,10 @@ def _trilinear(grid: np.ndarray, index_zyx: np.ndarray, out: np.ndarray) -> None
 
 
 @numba.njit(nogil=True, cache=True)
-def _newton(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.ndarray,
-            origin: np.ndarray, spacing: np.ndarray,
-            points: np.ndarray, levels: np.ndarray, max_move: float, iterations: int,
-            out: np.ndarray) -> None:
+def newton_steps(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.ndarray,
+                 origin: np.ndarray, spacing: np.ndarray,
+                 points: np.ndarray, levels: np.ndarray, max_move: float, iterations: int,
+                 out: np.ndarray) -> None:
     """Newton steps p += (level − ρ(p)) ∇ρ / |∇ρ|² from each (N, 3) world point, the
     total move clamped to `max_move`; stops once a step moved less than 1e-4 voxel (Newton
     converges quadratically where the gradient is regular). Steps that stay in one cell of
@@ -308,8 +308,8 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: float | np.n
              np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64))
 
     def steps(lo: int, hi: int) -> None:
-        _newton(*fixed, points[lo:hi], levels[lo:hi], float(max_move), int(iterations),
-                out[lo:hi])
+        newton_steps(*fixed, points[lo:hi], levels[lo:hi], float(max_move), int(iterations),
+                     out[lo:hi])
 
     cores.for_ranges(steps, len(points), 1, "newton")
     return out
@@ -345,9 +345,9 @@ def values_on_grid(volume: Volume, x: np.ndarray, y: np.ndarray, z: np.ndarray
 
 
 @numba.njit(nogil=True, cache=True)
-def _along_normals(data: np.ndarray, samples: np.ndarray, w: np.ndarray,
-                   inverse: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
-                   points: np.ndarray, distance: float, sign: float, out: np.ndarray) -> None:
+def along_normals(data: np.ndarray, samples: np.ndarray, w: np.ndarray,
+                  inverse: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
+                  points: np.ndarray, distance: float, sign: float, out: np.ndarray) -> None:
     """out[i] = trilinear value at points[i] + distance · n, n = sign · ∇ρ/|∇ρ| there (sign
     −1: `normals_from_gradient`'s normals, +1 flipped; (0, 0, −sign) where ∇ρ = 0)."""
     g = np.empty(3)
@@ -380,8 +380,8 @@ def values_along_normals(volume: Volume, points_xyz: np.ndarray, distance: float
              np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64))
 
     def part(lo: int, hi: int) -> None:
-        _along_normals(*fixed, points[lo:hi], float(distance), 1.0 if flip else -1.0,
-                       out[lo:hi])
+        along_normals(*fixed, points[lo:hi], float(distance), 1.0 if flip else -1.0,
+                      out[lo:hi])
 
     cores.for_ranges(part, len(points), 1, "along normals")
     return out
