@@ -33,7 +33,6 @@ from isolume.baking.integrator import (
     trace_paths,
     trace_whole_paths,
 )
-from isolume.baking.landing_kernels import landed_starts
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.plan import (
     GOLDEN_FRACTION,
@@ -43,6 +42,7 @@ from isolume.baking.plan import (
     project_to_level,
     rounded_landing,
 )
+from isolume.baking.plan_kernels import landed_starts
 from isolume.baking.rays import RayStats
 from isolume.volumes import cores
 
@@ -148,7 +148,7 @@ def landed_start_points(volume: volumes.Volume, geometry: LatticeGeometry,
     """`start_points` of the texels at (N,) `positions` of the (T,) lattice `ids`, from
     their (T, 2, 3) `landing` offsets (`Plan.landing`, in steps of `reach`) on their upper
     level where `upper` (N,), else their lower one, lit on the side (T,) `high` says: one
-    compiled call (`landing_kernels.landed_starts`), the same bits.
+    compiled call (`plan_kernels.landed_starts`), the same bits.
 
     Returns:
         origins, normals: (N, 3) float32.
@@ -303,7 +303,7 @@ class LevelStarts:
 
     def of(self, lo: int, hi: int) -> PathStarts:
         """The `PathStarts` of the level's texels lo … hi − 1, numbered 0 … hi − lo − 1:
-        from the plan's landings in one compiled call (`landing_kernels.landed_starts`, the
+        from the plan's landings in one compiled call (`plan_kernels.landed_starts`, the
         operations of `start_points`), else projected here."""
         texels = self.texels[lo:hi]
         if self.landing is not None:  # `here` lands on its lower level, `below` upper

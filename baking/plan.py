@@ -54,8 +54,13 @@ from isolume.baking import kernels
 from isolume.baking.config import BakeConfig
 from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
-from isolume.baking.landing_kernels import LANDING_STEPS, UNLANDED, reach_tests
 from isolume.baking.lattice import LatticeGeometry
+from isolume.baking.plan_kernels import (
+    LANDING_STEPS,
+    UNLANDED,
+    gradient_norms,
+    reach_tests,
+)
 from isolume.baking.rng import pcg_hash
 from isolume.baking.sides import choose_sides
 from isolume.volumes import cores
@@ -639,10 +644,13 @@ def _gradients(volume: volumes.Volume, geometry: LatticeGeometry, ids: np.ndarra
     """(T,) |∇ρ| at the centres of texels `ids`, value units per voxel (`choose_levels`)."""
     h = float(np.mean(volume.spacing))
     grad = np.empty(len(ids))
+    g = geometry
+    fixed = (np.asarray(g.shape, np.int64), np.asarray(g.lo, np.float64),
+             np.asarray(g.texel_size, np.float64))
+    stencil = volumes.normal_stencil(volume, True)
 
     def norms(block: slice) -> None:
-        grad[block] = np.linalg.norm(
-            volumes.gradient_at(volume, geometry.centres(ids[block])), axis=1) * h
+        gradient_norms(*fixed, ids[block], *stencil, h, grad[block])
 
     for_blocks(norms, len(ids), "gradients")
     return grad
@@ -666,7 +674,7 @@ def for_blocks(work: Callable[[slice], None], count: int, kind: str,
 
 @dataclass(frozen=True)
 class _Reaches:
-    """The reach tests of a plan's (T,) texels `ids` (`landing_kernels.reach_tests`), block
+    """The reach tests of a plan's (T,) texels `ids` (`plan_kernels.reach_tests`), block
     by block (`for_blocks`): can a texel be moved onto its level within `reach` world
     units, and do its paths start on its lit side (`high` (T,): the high-value side) of
     that level's surface?
@@ -694,7 +702,7 @@ class _Reaches:
                  ok: np.ndarray | None = None, moved: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
         """The tests of the (T,) `which` texels from their centres onto their lower (`side`
-        0) or upper (1) level (landed within `landing_kernels.CONVERGED_FRACTION` of the
+        0) or upper (1) level (landed within `plan_kernels.CONVERGED_FRACTION` of the
         spacing of their two levels); the others keep `ok` (default True) and `moved`
         (default 0).
 

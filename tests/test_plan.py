@@ -230,7 +230,7 @@ def test_stalled_newton_falls_back_to_the_nearest_crossing_along_neighbour_lines
 def test_levels_start_where_the_plan_landed_their_texels():
     """The plan's reach test projects every texel onto the levels it uses; laying out a
     level reuses those points (`Plan.landing`, in one compiled call:
-    `landing_kernels.landed_starts`) and gets the start points of the array code
+    `plan_kernels.landed_starts`) and gets the start points of the array code
     (`start_points` from the landed points) and of a fresh projection (rounded as the
     plan keeps them), to the bit, a chunk at a time as for the whole level."""
     from isolume.baking.passes import lay_out_level, start_points
@@ -370,7 +370,7 @@ def test_newton_steps_reuse_a_cells_gradients_to_the_bit():
             zi, yi, xi = ((pz - origin[2]) / spacing[2], (py - origin[1]) / spacing[1],
                           (px - origin[0]) / spacing[0])
             field._lerp3(data, zi, yi, xi, value)  # compiled, corners read afresh
-            field._gradient_lerp(samples, w, inverse, zi, yi, xi, corners, window, g)
+            field.gradient_lerp(samples, w, inverse, zi, yi, xi, corners, window, g)
             g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
             step = (level - value[0]) / g2
             length = abs(step) * np.sqrt(g2)
@@ -494,7 +494,7 @@ def test_the_plan_tells_how_far_its_long_stages_have_come(monkeypatch):
 
 def _reference_reaches(volume, config, points, levels, reach, tol, high, landed):
     """The reach tests in arrays (`volumes.value_at`, `values_along_normals`,
-    `project_to_level`), as independent of `landing_kernels.reach_tests` as numpy makes
+    `project_to_level`), as independent of `plan_kernels.reach_tests` as numpy makes
     them: (N,) ok, (N,) moved, and `landed` (N, 3) filled where NaN."""
     from isolume.baking.plan import project_to_level, rounded_landing
 
@@ -516,7 +516,7 @@ def _reference_reaches(volume, config, points, levels, reach, tol, high, landed)
 @pytest.mark.parametrize("dtype", [np.float32, np.uint8])
 @pytest.mark.parametrize("normals", ["smooth", "gradient"])
 def test_compiled_reach_tests_are_the_arrays_tests_to_the_bit(dtype, normals):
-    """`landing_kernels.reach_tests` (one compiled call a block) against the same tests in
+    """`plan_kernels.reach_tests` (one compiled call a block) against the same tests in
     arrays: for texels with and without a landing yet, on either side, lit on either
     side, the same ok flags, move lengths and landings, to the bit; the texels not asked
     about keep what they had."""
@@ -569,3 +569,23 @@ def test_compiled_reach_tests_are_the_arrays_tests_to_the_bit(dtype, normals):
         np.testing.assert_array_equal(moved[~which], moved0[~which])
         np.testing.assert_array_equal(got_landing[~which], landing[~which])
         assert 0.2 < want_ok.mean() < 0.95
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.uint8])
+def test_compiled_gradient_norms_are_numpys_to_the_bit(dtype):
+    """`plan._gradients` (`plan_kernels.gradient_norms`, one compiled call a block)
+    against ``np.linalg.norm(volumes.gradient_at(volume, centres), axis=1) * h`` — float32
+    gradients, their float32 length times h in float32 — on a volume with its own origin
+    and spacing, over every texel of its lattice."""
+    from isolume.baking.plan import _gradients
+
+    data = make("engine", 40).data
+    vol = Volume((data * (200.0 if dtype == np.uint8 else 1.0)).astype(dtype),
+                 spacing=(1.0, 1.2, 0.9), origin=(0.5, -1.0, 2.0))
+    geometry = LatticeGeometry.for_volume(vol, 1.5)
+    ids = np.arange(int(np.prod(geometry.shape)))
+    h = float(np.mean(vol.spacing))
+    want = np.linalg.norm(volumes.gradient_at(vol, geometry.centres(ids)), axis=1) * h
+    got = _gradients(vol, geometry, ids)
+    np.testing.assert_array_equal(got, want)
+    assert got.dtype == np.float64 and (want > 0).mean() > 0.3

@@ -35,8 +35,8 @@ def _stencil(volume: Volume, smooth: bool) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 @numba.njit(nogil=True, cache=True)
-def _gradient_lerp(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: float, y: float,
-                   x: float, corners: np.ndarray, window: np.ndarray, out: np.ndarray) -> None:
+def gradient_lerp(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: float, y: float,
+                  x: float, corners: np.ndarray, window: np.ndarray, out: np.ndarray) -> None:
     """out[:] = the gradient at the fractional index (z, y, x): the trilinear interpolation
     (as `_lerp3`, clamped at the border) of the eight surrounding voxels' gradients
     (`_corner_gradients`, into the scratch arrays `corners` and `window`)."""
@@ -101,7 +101,7 @@ def _lerp_corners(corners: np.ndarray, fz: float, fy: float, fx: float, out: np.
 @numba.njit(nogil=True, cache=True)
 def _gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, index_zyx: np.ndarray,
                out: np.ndarray) -> None:
-    """out[i] = the gradient at index_zyx[i] (N, 3) (`_gradient_lerp`); NaN where an
+    """out[i] = the gradient at index_zyx[i] (N, 3) (`gradient_lerp`); NaN where an
     index is NaN."""
     corners = np.empty((8, 3), np.float32)
     window = np.empty((4, 4, 4), np.float32)
@@ -111,7 +111,7 @@ def _gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, index_zyx: 
         if z != z or y != y or x != x:
             out[i, :] = np.nan
         else:
-            _gradient_lerp(data, w, inverse, z, y, x, corners, window, g)
+            gradient_lerp(data, w, inverse, z, y, x, corners, window, g)
             out[i, 0], out[i, 1], out[i, 2] = g[0], g[1], g[2]
 
 
@@ -356,7 +356,7 @@ def along_normals(data: np.ndarray, samples: np.ndarray, w: np.ndarray,
     window = np.empty((4, 4, 4), np.float32)
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        _gradient_lerp(samples, w, inverse, (z - origin[2]) / spacing[2],
+        gradient_lerp(samples, w, inverse, (z - origin[2]) / spacing[2],
                        (y - origin[1]) / spacing[1], (x - origin[0]) / spacing[0], corners,
                        window, g)
         norm = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
@@ -464,7 +464,7 @@ def unit_normal(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, origin: np
                 spacing: np.ndarray, x: float, y: float, z: float, flip: bool,
                 scratch: tuple[np.ndarray, np.ndarray, np.ndarray], out: np.ndarray) -> None:
     """out (3,) float32 = `normals_at`'s normal at world (x, y, z) (`_stencil`'s `data`,
-    `w`, `inverse`; (3,) float64 `origin`, `spacing`): the gradient (`_gradient_lerp`) as
+    `w`, `inverse`; (3,) float64 `origin`, `spacing`): the gradient (`gradient_lerp`) as
     float32, over its float32 length — ``-g/|g|``, (0, 0, 1) where it vanishes, NaN at
     NaN — the float32 operations of `normals_from_gradient`, negated if `flip`.
     `scratch`: `normal_scratch()`, one per thread."""
@@ -474,7 +474,7 @@ def unit_normal(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, origin: np
         out[0] = out[1] = out[2] = np.nan
         return
     corners, window, g = scratch
-    _gradient_lerp(data, w, inverse, iz, iy, ix, corners, window, g)
+    gradient_lerp(data, w, inverse, iz, iy, ix, corners, window, g)
     gx, gy, gz = np.float32(g[0]), np.float32(g[1]), np.float32(g[2])
     mag = np.sqrt(gx * gx + gy * gy + gz * gz)  # numpy's float32 norm: (x² + y²) + z²
     if mag == 0:

@@ -1,8 +1,9 @@
-"""A plan's landings in compiled code, one call per work item and no Python — so no wait
-for the GIL — between the texels: the reach tests (`plan.reach_tests`: can a texel be
-moved onto its level, and do its paths start on its lit side there?) and where a chunk's
-paths start (`passes.LevelStarts.of`). Each is the float64 (and float32) operations of the
-array code it stands for (`plan.landing_offsets`, `plan.landed_points`,
+"""A plan's per-texel work in compiled code, one call per work item and no Python — so no
+wait for the GIL — between the texels: the gradients at the texels' centres
+(`plan._gradients`), the reach tests (`plan._Reaches`: can a texel be moved onto its
+level, and do its paths start on its lit side there?) and where a chunk's paths start
+(`passes.LevelStarts.of`). Each is the float64 (and float32) operations of the array code
+it stands for (`volumes.gradient_at`, `plan.landing_offsets`, `plan.landed_points`,
 `plan.project_to_level`, `volumes.value_at`, `volumes.values_along_normals`,
 `passes.start_points`), to the bit.
 """
@@ -15,6 +16,7 @@ import numpy as np
 from isolume.baking.sampling_kernels import JIT
 from isolume.volumes.field import (
     along_normals,
+    gradient_lerp,
     newton_steps,
     normal_scratch,
     unit_normal,
@@ -43,6 +45,28 @@ def _centre(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray, flat: int
     out[0] = lo[0] + (i + 0.5) * texel_size[0]
     out[1] = lo[1] + (j + 0.5) * texel_size[1]
     out[2] = lo[2] + (k + 0.5) * texel_size[2]
+
+
+@numba.njit(**JIT)
+def gradient_norms(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
+                   ids: np.ndarray, data: np.ndarray, w: np.ndarray, inverse: np.ndarray,
+                   origin: np.ndarray, spacing: np.ndarray, h: float, out: np.ndarray) -> None:
+    """out (N,) = |∇ρ| × `h` at the centres of the (N,) texels `ids` (value units per `h`
+    world units): ``np.linalg.norm(volumes.gradient_at(volume, centres), axis=1) * h`` —
+    the gradient as float32, its float32 length times `h` in float32, as numpy computes
+    it — with the stencil of `volumes.normal_stencil`."""
+    corners = np.empty((8, 3), np.float32)
+    window = np.empty((4, 4, 4), np.float32)
+    g = np.empty(3)
+    centre = np.empty(3)
+    scale = np.float32(h)
+    for r in range(len(ids)):
+        _centre(shape, lo, texel_size, ids[r], centre)
+        gradient_lerp(data, w, inverse, (centre[2] - origin[2]) / spacing[2],
+                      (centre[1] - origin[1]) / spacing[1], (centre[0] - origin[0]) / spacing[0],
+                      corners, window, g)
+        gx, gy, gz = np.float32(g[0]), np.float32(g[1]), np.float32(g[2])
+        out[r] = np.sqrt(gx * gx + gy * gy + gz * gz) * scale
 
 
 @numba.njit(**JIT)
