@@ -136,14 +136,15 @@ def reach_tests(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
                 data: np.ndarray, newton_w: np.ndarray, lift_w: np.ndarray,
                 inverse: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
                 scratch: np.ndarray, first: int, stop: int) -> None:
-    """`plan.reach_tests` of the texels first … stop − 1 where `which` (T,) bool: each
-    is moved from its centre onto its lower (`side` 0) or upper (1) level — its landing
-    in `landing` (T, 3) int16 (that side's `Plan.landing`), projected here by Newton
-    steps (`NEWTON_ITERATIONS`, the smoothed gradient, at most `reach` world units) and
-    written there where it has none — and ``ok`` (T,) is set where it lands within
-    `CONVERGED_FRACTION` of its level spacing of the level and, when `lift` > 0, the
-    point `lift` world units along its lit side's normal (`high` (T,): the high side)
-    lies on that side (`plan.starts_outside`); ``moved`` (T,) gets the move's length.
+    """The reach tests (`plan._Reaches`) of the texels first … stop − 1 where `which`
+    (T,) bool: each is moved from its centre onto its lower (`side` 0) or upper (1) level
+    — its landing in `landing` (T, 3) int16 (that side's `Plan.landing`), projected here
+    by Newton steps (`NEWTON_ITERATIONS`, the smoothed gradient, at most `reach` world
+    units) and written there where it has none — and ``ok`` (T,) is set where it lands
+    within `CONVERGED_FRACTION` of its level spacing of the level and, when `lift` > 0,
+    the point `lift` world units along its lit side's normal (`high` (T,): the high
+    side; the bake's normals) lies on that side (its paths start outside the level);
+    ``moved`` (T,) gets the move's length, world units.
 
     Args:
         ids, lower: (T,) flat lattice ids and lower level indices; levels: (K,) isovalues.
