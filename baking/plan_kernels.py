@@ -154,35 +154,64 @@ def reach_tests(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
         scratch: (1,) of `volumes.value_at`'s result type.
     """
     centre = np.empty(3)
-    point = np.empty((1, 3))
-    target = np.empty(1)
-    landed = np.empty((1, 3))
-    beyond = np.empty(1)
+    count = stop - first
+    # the texels without a landing yet, projected together (one Newton call)
+    todo = np.empty(count, np.int64)
+    n = 0
+    for t in range(first, stop):
+        if which[t] and landing[t, 0] == UNLANDED:
+            todo[n] = t
+            n += 1
+    if n:
+        starts = np.empty((n, 3))
+        targets = np.empty(n)
+        for r in range(n):
+            _centre(shape, lo, texel_size, ids[todo[r]], starts[r])
+            targets[r] = levels[lower[todo[r]] + side]
+        projected = np.empty((n, 3))
+        newton_steps(cube, data, newton_w, inverse, origin, spacing, starts, targets, reach,
+                     NEWTON_ITERATIONS, projected)
+        for r in range(n):
+            _encode(projected[r], starts[r], reach, landing[todo[r]])
+    # every texel asked: its landing, the level check, its move; the lit-side check's
+    # points gathered by side (one call each)
+    landed = np.empty((count, 3))
+    lifted = np.empty(count, np.int64)
+    m = 0
     for t in range(first, stop):
         if not which[t]:
             continue
         _centre(shape, lo, texel_size, ids[t], centre)
+        for a in range(3):
+            landed[t - first, a] = (np.nan if landing[t, 0] == UNLANDED
+                                    else centre[a] + landing[t, a] * (reach / LANDING_STEPS))
+        x, y, z = landed[t - first, 0], landed[t - first, 1], landed[t - first, 2]
         level = levels[lower[t] + side]
         tol = CONVERGED_FRACTION * (levels[lower[t] + 1] - levels[lower[t]])
-        if landing[t, 0] == UNLANDED:
-            point[0, :] = centre
-            target[0] = level
-            newton_steps(cube, data, newton_w, inverse, origin, spacing, point, target, reach,
-                         NEWTON_ITERATIONS, landed)
-            _encode(landed[0], centre, reach, landing[t])
-        for a in range(3):
-            landed[0, a] = (np.nan if landing[t, 0] == UNLANDED
-                            else centre[a] + landing[t, a] * (reach / LANDING_STEPS))
-        x, y, z = landed[0, 0], landed[0, 1], landed[0, 2]
-        if x != x or y != y or z != z:
-            reached = False
-        else:
-            reached = abs(value_at_world(cube, origin, spacing, x, y, z, scratch) - level) <= tol
-        if reached and lift > 0:
-            sign = 1.0 if high[t] else -1.0
-            along_normals(cube, data, lift_w, inverse, origin, spacing, landed, lift, sign,
-                          beyond)
-            reached = beyond[0] - level > 0 if high[t] else beyond[0] - level < 0
+        reached = (x == x and y == y and z == z and abs(
+            value_at_world(cube, origin, spacing, x, y, z, scratch) - level) <= tol)
         ok[t] = reached
+        if reached and lift > 0:
+            lifted[m] = t
+            m += 1
         dx, dy, dz = x - centre[0], y - centre[1], z - centre[2]
         moved[t] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    for flip in (False, True):
+        rows = np.empty(m, np.int64)
+        k = 0
+        for r in range(m):
+            if high[lifted[r]] == flip:
+                rows[k] = lifted[r]
+                k += 1
+        if k == 0:
+            continue
+        points = np.empty((k, 3))
+        for r in range(k):
+            points[r] = landed[rows[r] - first]
+        beyond = np.empty(k)
+        along_normals(cube, data, lift_w, inverse, origin, spacing, points, lift,
+                      1.0 if flip else -1.0, beyond)
+        for r in range(k):
+            t = rows[r]
+            ok[t] = beyond[r] - levels[lower[t] + side] > 0 if flip else \
+                beyond[r] - levels[lower[t] + side] < 0
