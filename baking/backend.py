@@ -337,7 +337,8 @@ class ThreadBackend:
         (`pass_steps`), and commit each batch on its upper level
         (`TracingBackend.trace_pass`). A pass holds one level scene (with a cache of one),
         the sums of one group of texels between their two levels (those whose lower level
-        was the last traced: 40 bytes a texel in irradiance) and the layouts of two steps.
+        was the last traced: 40 bytes a texel in irradiance), at a group's end a copy of
+        its last batch's (`TEXELS_PER_BATCH` texels at most) and the layouts of two steps.
 
         Pipelined within a level: the helper thread lays out the next step while the
         workers trace this one (the chunks run without the GIL), and a batch complete on
@@ -365,11 +366,13 @@ class ThreadBackend:
                 same_level = following is not None and following.level == step.level
                 upcoming = (self._beside("layout", self._lay_out, work, following)
                             if following is not None else None)
-                if not step.upper and step.first == 0:  # this level's upper steps are done:
-                    traced = [(done, batch.copy()) for done, batch in traced]  # the last
-                    sums = between = None  # batch kept, their group's sums go before
-                    between = PassSums(len(work.lower_on(step.level)), channels)  # the next
-                    # group's are made; that batch is committed while the next step traces
+                if not step.upper and step.first == 0:
+                    # this level's upper steps are done: their group's last batch, copied
+                    # out, is committed while this step traces, and the group's sums go
+                    # before the next group's are made
+                    traced = [(upper_step, sums.copy()) for upper_step, sums in traced]
+                    sums = between = None
+                    between = PassSums(len(work.lower_on(step.level)), channels)
                 sums = between.rows(slice(step.first, step.first + len(step.texels)))
                 chunks = self._submit_level(lay, sums)
                 with cores.beside():  # the batch before, while this one is traced

@@ -41,10 +41,12 @@ from isolume.baking.plan import (
     newton_reach,
     project_to_level,
     rounded_landing,
+    start_lift,
 )
-from isolume.baking.plan_kernels import landed_starts
+from isolume.baking.plan_kernels import field_arrays, landed_starts, lattice_arrays
 from isolume.baking.rays import RayStats
 from isolume.volumes import cores
+from isolume.volumes.field import normal_stencil
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.plan_lattice import PlanLattice
@@ -53,9 +55,9 @@ if TYPE_CHECKING:  # embreex is imported only when a bake runs
 
 PATHS_PER_CHUNK = 32768
 """Paths one tracing work item traces, at most (`chunk_bounds`): ~2 MB of per-path arrays
-a worker. A chunk's Python between its compiled calls (its texels' start points, the
-calls' dispatch, adding its sums: ~0.6 ms however many paths) holds the GIL; at 16384
-paths it was 5–9 % of a 64-path bake's tracing, which caps the threads that gain near 16."""
+a worker. The Python around a chunk's compiled calls (their dispatch, its sums' addition:
+~0.35 ms a chunk however many paths) holds the GIL, 3–4 % of a 64-path bake's tracing on
+one thread; each thread more asks for the GIL that much more often."""
 MIN_PATHS_PER_CHUNK = 4096
 """Paths of a level's last chunks, at least (a few milliseconds of tracing)."""
 GUIDED_WORKERS = 16
@@ -153,11 +155,10 @@ def landed_start_points(volume: volumes.Volume, geometry: LatticeGeometry,
     Returns:
         origins, normals: (N, 3) float32.
     """
-    return landed_starts(
-        np.asarray(geometry.shape, np.int64), np.asarray(geometry.lo, np.float64),
-        np.asarray(geometry.texel_size, np.float64), ids, positions, upper, landing,
-        reach / LANDING_STEPS, high, config.offset * float(np.mean(volume.spacing)),
-        *volumes.normal_stencil(volume, config.normals == "smooth"))
+    return landed_starts(lattice_arrays(geometry), ids, positions, upper, landing,
+                         reach / LANDING_STEPS, high, start_lift(volume, config),
+                         field_arrays(volume),
+                         normal_stencil(volume, config.normals == "smooth")[1])
 
 
 def lit_normals(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,

@@ -57,13 +57,17 @@ from isolume.baking.errors import BakeError
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.plan_kernels import (
     LANDING_STEPS,
+    NEWTON_ITERATIONS,
     UNLANDED,
+    field_arrays,
     gradient_norms,
+    lattice_arrays,
     reach_tests,
 )
 from isolume.baking.rng import pcg_hash
 from isolume.baking.sides import choose_sides
 from isolume.volumes import cores
+from isolume.volumes.field import normal_stencil
 
 GOLDEN_FRACTION = 0.6180339887498949
 MAX_REACH = 4.0
@@ -336,7 +340,7 @@ def index_type(count: int) -> type:
     """The type of indices into `count` items — a plan's flat lattice ids in a box of
     `count` texels, or its positions: int32 (4 bytes each) while they fit, else int64.
     Compiled kernels read ids as int64 chunk by chunk (`baking.passes.trace_texels`,
-    `baking.sides.unblocked_rays`)."""
+    `baking.side_kernels.open_counts`)."""
     return np.int32 if count <= np.iinfo(np.int32).max else np.int64
 
 
@@ -628,7 +632,8 @@ def default_iso_range(volume: volumes.Volume) -> tuple[float, float]:
 
 
 def project_to_level(volume: volumes.Volume, points: np.ndarray, level: float | np.ndarray,
-                     max_move: float, iterations: int = 4, smooth: bool = True) -> np.ndarray:
+                     max_move: float, iterations: int = NEWTON_ITERATIONS, smooth: bool = True
+                     ) -> np.ndarray:
     """(N, 3) points moved onto ρ = level (a scalar or (N,) values) by Newton steps along
     the smoothed gradient (the plain one if not `smooth`).
 
@@ -644,13 +649,11 @@ def _gradients(volume: volumes.Volume, geometry: LatticeGeometry, ids: np.ndarra
     """(T,) |∇ρ| at the centres of texels `ids`, value units per voxel (`choose_levels`)."""
     h = float(np.mean(volume.spacing))
     grad = np.empty(len(ids))
-    g = geometry
-    fixed = (np.asarray(g.shape, np.int64), np.asarray(g.lo, np.float64),
-             np.asarray(g.texel_size, np.float64))
-    stencil = volumes.normal_stencil(volume, True)
+    lattice, field = lattice_arrays(geometry), field_arrays(volume)
+    w = normal_stencil(volume, True)[1]
 
     def norms(block: slice) -> None:
-        gradient_norms(*fixed, ids[block], *stencil, h, grad[block])
+        gradient_norms(lattice, ids[block], field, w, h, grad[block])
 
     for_blocks(norms, len(ids), "gradients")
     return grad
@@ -716,15 +719,12 @@ class _Reaches:
         count = len(self.ids)
         ok = np.ones(count, bool) if ok is None else ok.copy()
         moved = np.zeros(count, np.float32) if moved is None else moved.copy()
-        g, volume = self.geometry, self.volume
-        data, newton_w, inverse, origin, spacing = volumes.normal_stencil(volume, True)
-        lift_w = volumes.normal_stencil(volume, self.config.normals == "smooth")[1]
-        fixed = (np.asarray(g.shape, np.int64), np.asarray(g.lo, np.float64),
-                 np.asarray(g.texel_size, np.float64), self.ids, self.lower, self.levels,
-                 side, self.high, which, landing, ok, moved, self.reach, self.lift,
-                 np.ascontiguousarray(data)[..., None], data, newton_w, lift_w, inverse,
-                 origin, spacing)
-        value_type = np.result_type(data.dtype, np.float32)  # `volumes.value_at`'s
+        volume = self.volume
+        fixed = (lattice_arrays(self.geometry), self.ids, self.lower, self.levels, side,
+                 self.high, which, landing, ok, moved, self.reach, self.lift,
+                 field_arrays(volume), normal_stencil(volume, True)[1],
+                 normal_stencil(volume, self.config.normals == "smooth")[1])
+        value_type = np.result_type(volume.data.dtype, np.float32)  # `volumes.value_at`'s
 
         def block(b: slice) -> None:
             reach_tests(*fixed, np.empty(1, value_type), b.start, b.stop)

@@ -6,9 +6,15 @@ level, and do its paths start on its lit side there?) and where a chunk's paths 
 it stands for (`volumes.gradient_at`, `plan.landing_offsets`, `plan.landed_points`,
 `plan.project_to_level`, `volumes.value_at`, `volumes.values_along_normals`,
 `passes.start_points`), to the bit.
+
+The kernels take a lattice as ``(shape, lo, texel_size)`` (`lattice_arrays`) and a volume
+as ``(cube, data, inverse, origin, spacing)`` (`field_arrays`), with the weights of the
+gradient's stencil apart (`volumes.field.normal_stencil`).
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -19,9 +25,14 @@ from isolume.volumes.field import (
     gradient_lerp,
     newton_steps,
     normal_scratch,
+    normal_stencil,
     unit_normal,
     value_at_world,
 )
+
+if TYPE_CHECKING:
+    from isolume.baking.lattice import LatticeGeometry
+    from isolume.volumes import Volume
 
 LANDING_STEPS = 32_000
 """Steps of a landing offset per reach (`plan.landing_offsets`): int16 holds ±32 767, so an
@@ -31,13 +42,27 @@ UNLANDED = np.iinfo(np.int16).min
 CONVERGED_FRACTION = 0.1
 """A texel reaches a level when |ρ(p) − L| ends below this fraction of the level spacing."""
 NEWTON_ITERATIONS = 4
-"""`plan.project_to_level`'s default, which the reach tests project with."""
+"""Newton steps onto a level (`plan.project_to_level`'s default; the reach tests')."""
+
+
+def lattice_arrays(geometry: LatticeGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the kernels read of a lattice: its (3,) int64 shape (Z, Y, X) and its (3,)
+    float64 world xyz lower corner and texel size."""
+    return (np.asarray(geometry.shape, np.int64), np.asarray(geometry.lo, np.float64),
+            np.asarray(geometry.texel_size, np.float64))
+
+
+def field_arrays(volume: Volume) -> tuple[np.ndarray, ...]:
+    """What the kernels read of a volume: its (Z, Y, X, 1) and (Z, Y, X) samples, 1 / (2 h)
+    per axis (x, y, z), its (3,) origin and spacing (world xyz)."""
+    data, _, inverse, origin, spacing = normal_stencil(volume)
+    return data[..., None], data, inverse, origin, spacing
 
 
 @numba.njit(**JIT)
-def _centre(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray, flat: int,
-            out: np.ndarray) -> None:
+def _centre(lattice: tuple, flat: int, out: np.ndarray) -> None:
     """out (3,) = the world xyz centre of texel `flat` (`LatticeGeometry.centres`)."""
+    shape, lo, texel_size = lattice
     layer = shape[1] * shape[2]
     k = flat // layer
     j = (flat - k * layer) // shape[2]
@@ -48,20 +73,20 @@ def _centre(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray, flat: int
 
 
 @numba.njit(**JIT)
-def gradient_norms(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
-                   ids: np.ndarray, data: np.ndarray, w: np.ndarray, inverse: np.ndarray,
-                   origin: np.ndarray, spacing: np.ndarray, h: float, out: np.ndarray) -> None:
+def gradient_norms(lattice: tuple, ids: np.ndarray, field: tuple, w: np.ndarray, h: float,
+                   out: np.ndarray) -> None:
     """out (N,) = |∇ρ| × `h` at the centres of the (N,) texels `ids` (value units per `h`
     world units): ``np.linalg.norm(volumes.gradient_at(volume, centres), axis=1) * h`` —
     the gradient as float32, its float32 length times `h` in float32, as numpy computes
-    it — with the stencil of `volumes.normal_stencil`."""
+    it — with the stencil weights `w`."""
+    _, data, inverse, origin, spacing = field
     corners = np.empty((8, 3), np.float32)
     window = np.empty((4, 4, 4), np.float32)
     g = np.empty(3)
     centre = np.empty(3)
     scale = np.float32(h)
     for r in range(len(ids)):
-        _centre(shape, lo, texel_size, ids[r], centre)
+        _centre(lattice, ids[r], centre)
         gradient_lerp(data, w, inverse, (centre[2] - origin[2]) / spacing[2],
                       (centre[1] - origin[1]) / spacing[1], (centre[0] - origin[0]) / spacing[0],
                       corners, window, g)
@@ -73,38 +98,36 @@ def gradient_norms(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
 def _encode(point: np.ndarray, centre: np.ndarray, reach: float, out: np.ndarray) -> None:
     """out (3,) int16 = `plan.landing_offsets` of one point from its texel's centre."""
     scale = LANDING_STEPS / reach
-    steps = np.empty(3)
-    missing = False
-    for a in range(3):
-        steps[a] = (point[a] - centre[a]) * scale
-        missing |= steps[a] != steps[a]
-    for a in range(3):
-        out[a] = UNLANDED if missing else np.int16(
-            np.rint(min(max(steps[a], -LANDING_STEPS), LANDING_STEPS)))
+    sx = (point[0] - centre[0]) * scale
+    sy = (point[1] - centre[1]) * scale
+    sz = (point[2] - centre[2]) * scale
+    if sx != sx or sy != sy or sz != sz:
+        out[0] = out[1] = out[2] = UNLANDED
+        return
+    out[0] = np.int16(np.rint(min(max(sx, -LANDING_STEPS), LANDING_STEPS)))
+    out[1] = np.int16(np.rint(min(max(sy, -LANDING_STEPS), LANDING_STEPS)))
+    out[2] = np.int16(np.rint(min(max(sz, -LANDING_STEPS), LANDING_STEPS)))
 
 
 @numba.njit(**JIT)
-def landed_starts(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
-                  ids: np.ndarray, texels: np.ndarray, upper: np.ndarray,
+def landed_starts(lattice: tuple, ids: np.ndarray, texels: np.ndarray, upper: np.ndarray,
                   landing: np.ndarray, step: float, high: np.ndarray, lift: float,
-                  data: np.ndarray, w: np.ndarray, inverse: np.ndarray, origin: np.ndarray,
-                  spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  field: tuple, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Start points and normals of the (N,) plan positions `texels` (`passes.start_points`
     at their landings).
 
     Args:
-        shape: (3,) int64 lattice shape (Z, Y, X); lo, texel_size: (3,) float64 world xyz
-            (`LatticeGeometry`).
         ids: (T,) flat lattice ids of the plan's texels; texels: (N,) positions into them.
         upper: (N,) bool, the level is the texel's upper one (its landing's side).
         landing: (T, 2, 3) int16 `Plan.landing` offsets, in units of `step` world units.
         high: (T,) bool `Plan.high`; lift: the start point's offset off the surface,
-            world units (``config.offset · h``).
-        data, w, inverse, origin, spacing: the normals' stencil (`volumes.normal_stencil`).
+            world units (`plan.start_lift`).
+        w: the weights of the normals' stencil (the bake's).
 
     Returns:
         origins (N, 3) and normals (N, 3) float32 (NaN where a texel has no landing).
     """
+    _, data, inverse, origin, spacing = field
     n = len(texels)
     origins = np.empty((n, 3), np.float32)
     normals = np.empty((n, 3), np.float32)
@@ -115,7 +138,7 @@ def landed_starts(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
     for r in range(n):
         t = texels[r]
         side = 1 if upper[r] else 0
-        _centre(shape, lo, texel_size, ids[t], centre)
+        _centre(lattice, ids[t], centre)
         for a in range(3):
             point[a] = (np.nan if landing[t, side, 0] == UNLANDED
                         else centre[a] + landing[t, side, a] * step)
@@ -129,89 +152,118 @@ def landed_starts(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
 
 
 @numba.njit(**JIT)
-def reach_tests(shape: np.ndarray, lo: np.ndarray, texel_size: np.ndarray,
-                ids: np.ndarray, lower: np.ndarray, levels: np.ndarray, side: int,
-                high: np.ndarray, which: np.ndarray, landing: np.ndarray, ok: np.ndarray,
-                moved: np.ndarray, reach: float, lift: float, cube: np.ndarray,
-                data: np.ndarray, newton_w: np.ndarray, lift_w: np.ndarray,
-                inverse: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
-                scratch: np.ndarray, first: int, stop: int) -> None:
+def reach_tests(lattice: tuple, ids: np.ndarray, lower: np.ndarray, levels: np.ndarray,
+                side: int, high: np.ndarray, which: np.ndarray, landing: np.ndarray,
+                ok: np.ndarray, moved: np.ndarray, reach: float, lift: float, field: tuple,
+                newton_w: np.ndarray, lift_w: np.ndarray, scratch: np.ndarray, first: int,
+                stop: int) -> None:
     """The reach tests (`plan._Reaches`) of the texels first … stop − 1 where `which`
     (T,) bool: each is moved from its centre onto its lower (`side` 0) or upper (1) level
     — its landing in `landing` (T, 3) int16 (that side's `Plan.landing`), projected here
-    by Newton steps (`NEWTON_ITERATIONS`, the smoothed gradient, at most `reach` world
-    units) and written there where it has none — and ``ok`` (T,) is set where it lands
-    within `CONVERGED_FRACTION` of its level spacing of the level and, when `lift` > 0,
-    the point `lift` world units along its lit side's normal (`high` (T,): the high
-    side; the bake's normals) lies on that side (its paths start outside the level);
-    ``moved`` (T,) gets the move's length, world units.
+    where it has none (`_project_unlanded`) — and ``ok`` (T,) is set where it lands
+    within `CONVERGED_FRACTION` of its level spacing of the level (`_level_checks`) and,
+    when `lift` > 0, the point `lift` world units along its lit side's normal (`high`
+    (T,): the high side) lies on that side (`_lit_side_checks`: its paths start outside
+    the level); ``moved`` (T,) gets the move's length, world units.
 
     Args:
         ids, lower: (T,) flat lattice ids and lower level indices; levels: (K,) isovalues.
-        cube: the volume's (Z, Y, X, 1) samples; data: its (Z, Y, X) samples; newton_w,
-            lift_w: the stencil weights of Newton's gradient (smoothed) and of the lit
-            side's normal (the bake's); inverse: (3,) 1 / (2 h); origin, spacing: (3,).
+        newton_w, lift_w: the stencil weights of Newton's gradient (smoothed) and of the
+            lit side's normal (the bake's).
         scratch: (1,) of `volumes.value_at`'s result type.
     """
-    centre = np.empty(3)
-    count = stop - first
-    # the texels without a landing yet, projected together (one Newton call)
-    todo = np.empty(count, np.int64)
+    _project_unlanded(lattice, ids, lower, levels, side, which, landing, reach, field,
+                      newton_w, first, stop)
+    landed = np.empty((stop - first, 3))
+    lifted = _level_checks(lattice, ids, lower, levels, side, which, landing, ok, moved,
+                           reach, lift, field, scratch, first, stop, landed)
+    if len(lifted):
+        _lit_side_checks(lower, levels, side, high, ok, lifted, landed, lift, field, lift_w,
+                         first)
+
+
+@numba.njit(**JIT)
+def _project_unlanded(lattice: tuple, ids: np.ndarray, lower: np.ndarray,
+                      levels: np.ndarray, side: int, which: np.ndarray, landing: np.ndarray,
+                      reach: float, field: tuple, w: np.ndarray, first: int,
+                      stop: int) -> None:
+    """The texels first … stop − 1 where `which` without a landing yet, moved from their
+    centres onto their level by `NEWTON_ITERATIONS` Newton steps (stencil weights `w`, at
+    most `reach` world units) in one call, their landings written into `landing`."""
+    todo = np.empty(stop - first, np.int64)
     n = 0
     for t in range(first, stop):
         if which[t] and landing[t, 0] == UNLANDED:
             todo[n] = t
             n += 1
-    if n:
-        starts = np.empty((n, 3))
-        targets = np.empty(n)
-        for r in range(n):
-            _centre(shape, lo, texel_size, ids[todo[r]], starts[r])
-            targets[r] = levels[lower[todo[r]] + side]
-        projected = np.empty((n, 3))
-        newton_steps(cube, data, newton_w, inverse, origin, spacing, starts, targets, reach,
-                     NEWTON_ITERATIONS, projected)
-        for r in range(n):
-            _encode(projected[r], starts[r], reach, landing[todo[r]])
-    # every texel asked: its landing, the level check, its move; the lit-side check's
-    # points gathered by side (one call each)
-    landed = np.empty((count, 3))
-    lifted = np.empty(count, np.int64)
+    if n == 0:
+        return
+    cube, data, inverse, origin, spacing = field
+    starts = np.empty((n, 3))
+    targets = np.empty(n)
+    for r in range(n):
+        _centre(lattice, ids[todo[r]], starts[r])
+        targets[r] = levels[lower[todo[r]] + side]
+    projected = np.empty((n, 3))
+    newton_steps(cube, data, w, inverse, origin, spacing, starts, targets, reach,
+                 NEWTON_ITERATIONS, projected)
+    for r in range(n):
+        _encode(projected[r], starts[r], reach, landing[todo[r]])
+
+
+@numba.njit(**JIT)
+def _level_checks(lattice: tuple, ids: np.ndarray, lower: np.ndarray, levels: np.ndarray,
+                  side: int, which: np.ndarray, landing: np.ndarray, ok: np.ndarray,
+                  moved: np.ndarray, reach: float, lift: float, field: tuple,
+                  scratch: np.ndarray, first: int, stop: int, landed: np.ndarray
+                  ) -> np.ndarray:
+    """Each texel first … stop − 1 where `which`: its landing point into `landed` (row
+    t − first), ``ok`` where the field there is within the tolerance of its level, its
+    move's length into `moved`. Returns the texels whose lit side is to be checked (ok,
+    with a `lift`)."""
+    cube, _, _, origin, spacing = field
+    centre = np.empty(3)
+    lifted = np.empty(stop - first, np.int64)
     m = 0
     for t in range(first, stop):
         if not which[t]:
             continue
-        _centre(shape, lo, texel_size, ids[t], centre)
+        _centre(lattice, ids[t], centre)
+        row = landed[t - first]
         for a in range(3):
-            landed[t - first, a] = (np.nan if landing[t, 0] == UNLANDED
-                                    else centre[a] + landing[t, a] * (reach / LANDING_STEPS))
-        x, y, z = landed[t - first, 0], landed[t - first, 1], landed[t - first, 2]
-        level = levels[lower[t] + side]
+            row[a] = (np.nan if landing[t, 0] == UNLANDED
+                      else centre[a] + landing[t, a] * (reach / LANDING_STEPS))
+        x, y, z = row[0], row[1], row[2]
         tol = CONVERGED_FRACTION * (levels[lower[t] + 1] - levels[lower[t]])
-        reached = (x == x and y == y and z == z and abs(
-            value_at_world(cube, origin, spacing, x, y, z, scratch) - level) <= tol)
-        ok[t] = reached
-        if reached and lift > 0:
+        ok[t] = (x == x and y == y and z == z and abs(
+            value_at_world(cube, origin, spacing, x, y, z, scratch)
+            - levels[lower[t] + side]) <= tol)
+        if ok[t] and lift > 0:
             lifted[m] = t
             m += 1
         dx, dy, dz = x - centre[0], y - centre[1], z - centre[2]
         moved[t] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return lifted[:m]
+
+
+@numba.njit(**JIT)
+def _lit_side_checks(lower: np.ndarray, levels: np.ndarray, side: int, high: np.ndarray,
+                     ok: np.ndarray, lifted: np.ndarray, landed: np.ndarray, lift: float,
+                     field: tuple, w: np.ndarray, first: int) -> None:
+    """``ok`` of the texels `lifted`: does the point `lift` world units from its landing
+    (`landed` row t − `first`) along the normal of its lit side (stencil weights `w`) lie
+    on that side of its level? One call of `volumes.field.along_normals` a side."""
+    cube, data, inverse, origin, spacing = field
     for flip in (False, True):
-        rows = np.empty(m, np.int64)
-        k = 0
-        for r in range(m):
-            if high[lifted[r]] == flip:
-                rows[k] = lifted[r]
-                k += 1
-        if k == 0:
+        rows = lifted[high[lifted] == flip]
+        if len(rows) == 0:
             continue
-        points = np.empty((k, 3))
-        for r in range(k):
+        points = np.empty((len(rows), 3))
+        for r in range(len(rows)):
             points[r] = landed[rows[r] - first]
-        beyond = np.empty(k)
-        along_normals(cube, data, lift_w, inverse, origin, spacing, points, lift,
+        beyond = np.empty(len(rows))
+        along_normals(cube, data, w, inverse, origin, spacing, points, lift,
                       1.0 if flip else -1.0, beyond)
-        for r in range(k):
-            t = rows[r]
-            ok[t] = beyond[r] - levels[lower[t] + side] > 0 if flip else \
-                beyond[r] - levels[lower[t] + side] < 0
+        for r in range(len(rows)):
+            level = levels[lower[rows[r]] + side]
+            ok[rows[r]] = beyond[r] - level > 0 if flip else beyond[r] - level < 0

@@ -19,8 +19,8 @@ from isolume.volumes.field import value_at_world
 @numba.njit(**JIT)
 def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points: np.ndarray,
                 normals: np.ndarray, offset: float, sign: float, which: np.ndarray,
-                cube: np.ndarray, origin: np.ndarray, spacing: np.ndarray, level,
-                scratch: np.ndarray, probes: int) -> np.ndarray:
+                cube: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
+                level: float, scratch: np.ndarray, probes: int) -> np.ndarray:
     """(N,) int64: how many of `probes` rays from each point where `which` (N,) bool meet
     nothing; 0 elsewhere, and where the probes' origin does not lie on their side.
 

@@ -27,7 +27,6 @@ if TYPE_CHECKING:
     from isolume.volumes.field import (
         gradient_at,
         newton_to_level,
-        normal_stencil,
         normals_at,
         value_at,
         values_along_normals,
@@ -43,7 +42,7 @@ if TYPE_CHECKING:
 
 _COMPILED = {
     "tracing_surface": "cubes", "gradient_at": "field", "newton_to_level": "field",
-    "normals_at": "field", "normal_stencil": "field", "value_at": "field",
+    "normals_at": "field", "value_at": "field",
     "values_along_normals": "field", "values_on_grid": "field", "Mesh": "mesh",
     "check_isovalue": "mesh", "isosurface": "mesh", "level_points": "mesh",
     "marching_cubes": "mesh",
@@ -79,7 +78,6 @@ __all__ = [
     "load",
     "marching_cubes",
     "newton_to_level",
-    "normal_stencil",
     "normals_at",
     "suggest_isovalues",
     "tracing_surface",

@@ -449,7 +449,7 @@ def normals_at(
     def part(lo: int, hi: int) -> None:
         _normals(*fixed, points[lo:hi], bool(flip), out[lo:hi])
 
-    cores.for_ranges(part, len(points), 8, "gradients")
+    cores.for_ranges(part, len(points), 8, "normals")
     return out
 
 
@@ -470,11 +470,11 @@ def unit_normal(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, origin: np
     `scratch`: `normal_scratch()`, one per thread."""
     iz, iy, ix = (z - origin[2]) / spacing[2], (y - origin[1]) / spacing[1], \
         (x - origin[0]) / spacing[0]
-    if iz != iz or iy != iy or ix != ix:
-        out[0] = out[1] = out[2] = np.nan
-        return
     corners, window, g = scratch
-    gradient_lerp(data, w, inverse, iz, iy, ix, corners, window, g)
+    if iz != iz or iy != iy or ix != ix:  # `gradient_at`'s NaN gradient
+        g[0] = g[1] = g[2] = np.nan
+    else:
+        gradient_lerp(data, w, inverse, iz, iy, ix, corners, window, g)
     gx, gy, gz = np.float32(g[0]), np.float32(g[1]), np.float32(g[2])
     mag = np.sqrt(gx * gx + gy * gy + gz * gz)  # numpy's float32 norm: (x² + y²) + z²
     if mag == 0:
