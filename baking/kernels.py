@@ -281,6 +281,21 @@ def add_escaped(result: np.ndarray, alive: np.ndarray, prim: np.ndarray,
 
 
 @numba.njit(**JIT)
+def add_rows(positions: np.ndarray, acc_sum: np.ndarray, acc_second: np.ndarray,
+             acc_n: np.ndarray, add_sum: np.ndarray, add_second: np.ndarray,
+             add_n: np.ndarray) -> None:
+    """acc_*[positions[r]] += add_*[r] for the (N,) distinct `positions` (sums (A, C) and
+    (N, C), seconds and path counts (A,) and (N,)): the pass sums of some texels added to
+    a batch's (`passes.PassSums.add`)."""
+    for r in range(len(positions)):
+        p = positions[r]
+        for c in range(acc_sum.shape[1]):
+            acc_sum[p, c] += add_sum[r, c]
+        acc_second[p] += add_second[r]
+        acc_n[p] += add_n[r]
+
+
+@numba.njit(**JIT)
 def accumulate(pos: np.ndarray, estimates: np.ndarray, weights: np.ndarray,
                acc_sum: np.ndarray, acc_second: np.ndarray, acc_n: np.ndarray) -> None:
     """Add path estimates to the pass sums of their texels: each texel's paths are summed

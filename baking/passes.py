@@ -16,6 +16,7 @@ same bits too.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -55,9 +56,9 @@ if TYPE_CHECKING:  # embreex is imported only when a bake runs
 
 PATHS_PER_CHUNK = 32768
 """Paths one tracing work item traces, at most (`chunk_bounds`): ~2 MB of per-path arrays
-a worker. The Python around a chunk's compiled calls (their dispatch, its sums' addition:
-~0.35 ms a chunk however many paths) holds the GIL, 3–4 % of a 64-path bake's tracing on
-one thread; each thread more asks for the GIL that much more often."""
+a worker. The Python around a chunk's compiled calls (their dispatch: ~0.17 ms a chunk
+however many paths) holds the GIL, 1.6 % of a 64-path bake's tracing on one thread; each
+thread more asks for the GIL that much more often."""
 MIN_PATHS_PER_CHUNK = 4096
 """Paths of a level's last chunks, at least (a few milliseconds of tracing)."""
 GUIDED_WORKERS = 16
@@ -91,10 +92,9 @@ class PassSums:
 
     def add(self, positions: np.ndarray, sums: PassSums) -> None:
         """Add `sums` (N texels' sums, formed from zero) to those at (N,) distinct
-        `positions`: the same float64 additions as tracing into these sums directly."""
-        self.sum[positions] += sums.sum
-        self.second[positions] += sums.second
-        self.n[positions] += sums.n
+        `positions` (`kernels.add_rows`: one compiled call, numpy's float64 additions)."""
+        kernels.add_rows(np.asarray(positions), self.sum, self.second, self.n, sums.sum,
+                         sums.second, sums.n)
 
 
 def rows_at(rows: np.ndarray | None, positions: np.ndarray) -> np.ndarray:
@@ -133,32 +133,48 @@ def landing_facing(volume: volumes.Volume, geometry: LatticeGeometry, config: Ba
     weight); unknown where that mean vanishes."""
     share = np.stack([1 - records.weight, records.weight], axis=1)
     mean = np.zeros((len(records.ids), 3))
+    starts = LandedStarts.of(volume, geometry, config, reach)
     for side in (0, 1):
         used = np.flatnonzero(share[:, side] > 0)
         if len(used):
-            _, normals = landed_start_points(volume, geometry, config, reach, records.ids,
-                                             used, np.full(len(used), side == 1),
-                                             records.landing, records.high)
+            _, normals = starts.points(records.ids, used, np.full(len(used), side == 1),
+                                       records.landing, records.high)
             mean[used] += share[used, side, None] * normals
     return octahedral.encode(mean)
 
 
-def landed_start_points(volume: volumes.Volume, geometry: LatticeGeometry,
-                        config: BakeConfig, reach: float, ids: np.ndarray,
-                        positions: np.ndarray, upper: np.ndarray, landing: np.ndarray,
-                        high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`start_points` of the texels at (N,) `positions` of the (T,) lattice `ids`, from
-    their (T, 2, 3) `landing` offsets (`Plan.landing`, in steps of `reach`) on their upper
-    level where `upper` (N,), else their lower one, lit on the side (T,) `high` says: one
-    compiled call (`plan_kernels.landed_starts`), the same bits.
+@dataclass(frozen=True)
+class LandedStarts:
+    """What `start_points` reads of a bake to make start points from the plan's landings
+    (`Plan.landing`, in steps of `newton_reach`), gathered once for many calls (a level's
+    chunks, a commit's facings): one compiled call each (`plan_kernels.landed_starts`),
+    the same bits."""
 
-    Returns:
-        origins, normals: (N, 3) float32.
-    """
-    return landed_starts(lattice_arrays(geometry), ids, positions, upper, landing,
-                         reach / LANDING_STEPS, high, start_lift(volume, config),
-                         field_arrays(volume),
-                         normal_stencil(volume, config.normals == "smooth")[1])
+    lattice: tuple
+    step: float
+    lift: float
+    field: tuple
+    weights: np.ndarray
+
+    @classmethod
+    def of(cls, volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
+           reach: float) -> LandedStarts:
+        """The arrays of a bake of `volume` on `geometry` whose landings are in steps of
+        `reach` / `LANDING_STEPS`."""
+        return cls(lattice_arrays(geometry), reach / LANDING_STEPS, start_lift(volume, config),
+                   field_arrays(volume), normal_stencil(volume, config.normals == "smooth")[1])
+
+    def points(self, ids: np.ndarray, positions: np.ndarray, upper: np.ndarray,
+               landing: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`start_points` of the texels at (N,) `positions` of the (T,) lattice `ids`, from
+        their (T, 2, 3) `landing` offsets on their upper level where `upper` (N,), else
+        their lower one, lit on the side (T,) `high` says.
+
+        Returns:
+            origins, normals: (N, 3) float32.
+        """
+        return landed_starts(self.lattice, ids, positions, upper, landing, self.step, high,
+                             self.lift, self.field, self.weights)
 
 
 def lit_normals(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
@@ -302,15 +318,19 @@ class LevelStarts:
     upper: np.ndarray
     reach: float
 
+    @functools.cached_property
+    def _landed(self) -> LandedStarts:
+        """The level's `LandedStarts`, made for its first chunk."""
+        return LandedStarts.of(self.volume, self.geometry, self.config, self.reach)
+
     def of(self, lo: int, hi: int) -> PathStarts:
         """The `PathStarts` of the level's texels lo … hi − 1, numbered 0 … hi − lo − 1:
         from the plan's landings in one compiled call (`plan_kernels.landed_starts`, the
         operations of `start_points`), else projected here."""
         texels = self.texels[lo:hi]
         if self.landing is not None:  # `here` lands on its lower level, `below` upper
-            origins, normals = landed_start_points(
-                self.volume, self.geometry, self.config, self.reach, self.ids, texels,
-                self.upper[lo:hi], self.landing, self.high)
+            origins, normals = self._landed.points(self.ids, texels, self.upper[lo:hi],
+                                                   self.landing, self.high)
             return PathStarts(np.arange(hi - lo, dtype=np.int64), origins, normals)
         origins, normals = start_points(self.volume, self.geometry.centres(self.ids[texels]),
                                         self.iso, self.config, self.high[texels])
