@@ -366,3 +366,22 @@ def test_sky_escaped_rays_match_the_environment(spec, mis, normals):
     _add_escaped(want, alive, prim < 0, beta, dirs, normals, env, mis,
                  PathSettings(bounces=0, albedo=(1, 1, 1), hit_offset=0.0))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
+
+
+def test_rows_added_in_one_call_are_numpys_additions():
+    """`kernels.add_rows` (a chunk's sums added to its batch's, `PassSums.add`) against
+    numpy's ``acc[positions] += part`` for distinct positions: the same float64 sums and
+    counts to the bit; the rows not named keep theirs."""
+    from isolume.baking.passes import PassSums
+
+    rng = np.random.default_rng(9)
+    acc = PassSums.of(rng.random((500, 4)), rng.random(500), rng.integers(0, 9, 500))
+    part = PassSums.of(rng.random((120, 4)) * 1e-7, rng.random(120), rng.integers(1, 5, 120))
+    positions = rng.choice(500, 120, replace=False).astype(np.int32)
+    want = PassSums.of(acc.sum.copy(), acc.second.copy(), acc.n.copy())
+    want.sum[positions] += part.sum
+    want.second[positions] += part.second
+    want.n[positions] += part.n
+    acc.add(positions, part)
+    for got, expected in ((acc.sum, want.sum), (acc.second, want.second), (acc.n, want.n)):
+        np.testing.assert_array_equal(got, expected)
