@@ -37,14 +37,18 @@ from isolume.baking.integrator import (
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.plan import (
     GOLDEN_FRACTION,
-    LANDING_STEPS,
     Plan,
     newton_reach,
     project_to_level,
     rounded_landing,
     start_lift,
 )
-from isolume.baking.plan_kernels import field_arrays, landed_starts, lattice_arrays
+from isolume.baking.plan_kernels import (
+    LANDING_STEPS,
+    field_arrays,
+    landed_starts,
+    lattice_arrays,
+)
 from isolume.baking.rays import RayStats
 from isolume.volumes import cores
 from isolume.volumes.field import normal_stencil

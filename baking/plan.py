@@ -56,11 +56,13 @@ from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
 from isolume.baking.lattice import LatticeGeometry
 from isolume.baking.plan_kernels import (
-    LANDING_STEPS,
     NEWTON_ITERATIONS,
     UNLANDED,
+    NearerLandings,
     field_arrays,
     gradient_norms,
+    landed_points,
+    landing_offsets,
     lattice_arrays,
     reach_tests,
 )
@@ -389,32 +391,9 @@ def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeome
         return np.full(len(ids), bool(config.flip_normals))
     upper = weight >= 0.5
     found = np.where(upper, landing[:, 1, 0] != UNLANDED, landing[:, 0, 0] != UNLANDED)
-
-    def points(at: np.ndarray) -> np.ndarray:  # where the texels `at` land on that level
-        return landed_points(np.where(upper[at, None], landing[at, 1], landing[at, 0]),
-                             geometry.centres(ids[at]), reach)
-
-    return choose_sides(volume, config, geometry, ids, points, found, levels, lower + upper,
-                        scenes, progress)
-
-
-def landing_offsets(points: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
-    """(N, 3) int16 offsets of world points (N, 3) — Newton moves of at most `reach` world
-    units — from their texels' centres (N, 3), in steps of `reach` / `LANDING_STEPS`: how
-    `Plan.landing` keeps them (NaN becomes `UNLANDED`)."""
-    steps = (np.asarray(points, np.float64) - centres) * (LANDING_STEPS / reach)
-    missing = np.isnan(steps).any(axis=1)
-    codes = np.rint(np.clip(np.nan_to_num(steps), -LANDING_STEPS, LANDING_STEPS))
-    codes[missing] = UNLANDED
-    return codes.astype(np.int16)
-
-
-def landed_points(offsets: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
-    """(N, 3) float64 world points from `landing_offsets` (N, 3) of the same `reach` and
-    the centres (N, 3); NaN where `UNLANDED`."""
-    points = centres + offsets * (reach / LANDING_STEPS)
-    points[offsets[:, 0] == UNLANDED] = np.nan
-    return points
+    return choose_sides(volume, config, geometry, ids,
+                        NearerLandings(geometry, ids, landing, upper, reach), found, levels,
+                        lower + upper, scenes, progress)
 
 
 def rounded_landing(points: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:

@@ -14,6 +14,7 @@ gradient's stencil apart (`volumes.field.normal_stencil`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numba
@@ -59,8 +60,46 @@ def field_arrays(volume: Volume) -> tuple[np.ndarray, ...]:
     return data[..., None], data, inverse, origin, spacing
 
 
+def landing_offsets(points: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
+    """(N, 3) int16 offsets of world points (N, 3) — Newton moves of at most `reach` world
+    units — from their texels' centres (N, 3), in steps of `reach` / `LANDING_STEPS`: how
+    `Plan.landing` keeps them (NaN becomes `UNLANDED`)."""
+    steps = (np.asarray(points, np.float64) - centres) * (LANDING_STEPS / reach)
+    missing = np.isnan(steps).any(axis=1)
+    codes = np.rint(np.clip(np.nan_to_num(steps), -LANDING_STEPS, LANDING_STEPS))
+    codes[missing] = UNLANDED
+    return codes.astype(np.int16)
+
+
+def landed_points(offsets: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:
+    """(N, 3) float64 world points from `landing_offsets` (N, 3) of the same `reach` and
+    the centres (N, 3); NaN where `UNLANDED`."""
+    points = centres + offsets * (reach / LANDING_STEPS)
+    points[offsets[:, 0] == UNLANDED] = np.nan
+    return points
+
+
+@dataclass(frozen=True)
+class NearerLandings:
+    """Where a plan's (T,) texels `ids` land on their nearer level: the (T, 2, 3) `landing`
+    offsets (`Plan.landing`, in steps of `reach` / `LANDING_STEPS`) of their upper level
+    where `upper` (T,) bool, else of their lower one."""
+
+    geometry: LatticeGeometry
+    ids: np.ndarray
+    landing: np.ndarray
+    upper: np.ndarray
+    reach: float
+
+    def points(self, at: np.ndarray) -> np.ndarray:
+        """(N, 3) float64 world points of the texels at (N,) positions `at`."""
+        return landed_points(np.where(self.upper[at, None], self.landing[at, 1],
+                                      self.landing[at, 0]),
+                             self.geometry.centres(self.ids[at]), self.reach)
+
+
 @numba.njit(**JIT)
-def _centre(lattice: tuple, flat: int, out: np.ndarray) -> None:
+def centre_of(lattice: tuple, flat: int, out: np.ndarray) -> None:
     """out (3,) = the world xyz centre of texel `flat` (`LatticeGeometry.centres`)."""
     shape, lo, texel_size = lattice
     layer = shape[1] * shape[2]
@@ -86,7 +125,7 @@ def gradient_norms(lattice: tuple, ids: np.ndarray, field: tuple, w: np.ndarray,
     centre = np.empty(3)
     scale = np.float32(h)
     for r in range(len(ids)):
-        _centre(lattice, ids[r], centre)
+        centre_of(lattice, ids[r], centre)
         gradient_lerp(data, w, inverse, (centre[2] - origin[2]) / spacing[2],
                       (centre[1] - origin[1]) / spacing[1], (centre[0] - origin[0]) / spacing[0],
                       corners, window, g)
@@ -138,7 +177,7 @@ def landed_starts(lattice: tuple, ids: np.ndarray, texels: np.ndarray, upper: np
     for r in range(n):
         t = texels[r]
         side = 1 if upper[r] else 0
-        _centre(lattice, ids[t], centre)
+        centre_of(lattice, ids[t], centre)
         for a in range(3):
             point[a] = (np.nan if landing[t, side, 0] == UNLANDED
                         else centre[a] + landing[t, side, a] * step)
@@ -202,7 +241,7 @@ def _project_unlanded(lattice: tuple, ids: np.ndarray, lower: np.ndarray,
     starts = np.empty((n, 3))
     targets = np.empty(n)
     for r in range(n):
-        _centre(lattice, ids[todo[r]], starts[r])
+        centre_of(lattice, ids[todo[r]], starts[r])
         targets[r] = levels[lower[todo[r]] + side]
     projected = np.empty((n, 3))
     newton_steps(cube, data, w, inverse, origin, spacing, starts, targets, reach,
@@ -228,7 +267,7 @@ def _level_checks(lattice: tuple, ids: np.ndarray, lower: np.ndarray, levels: np
     for t in range(first, stop):
         if not which[t]:
             continue
-        _centre(lattice, ids[t], centre)
+        centre_of(lattice, ids[t], centre)
         row = landed[t - first]
         for a in range(3):
             row[a] = (np.nan if landing[t, 0] == UNLANDED

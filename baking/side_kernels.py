@@ -12,8 +12,9 @@ import numpy as np
 
 from isolume.baking.embree_kernels import occluded_rays
 from isolume.baking.kernels import path_starts
+from isolume.baking.plan_kernels import UNLANDED, centre_of
 from isolume.baking.sampling_kernels import JIT
-from isolume.volumes.field import value_at_world
+from isolume.volumes.field import normal_scratch, unit_normal, value_at_world
 
 
 @numba.njit(**JIT)
@@ -76,3 +77,62 @@ def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points:
             hit += blocked[r * probes + s]
         out[rows[r]] = probes - hit
     return out
+
+
+@numba.njit(**JIT)
+def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.ndarray,
+                at: np.ndarray, upper: np.ndarray, landing: np.ndarray, step: float,
+                field: tuple, w: np.ndarray, offset: float, level: float,
+                scratch: np.ndarray, probes: int, default: bool, clearly_more: float,
+                high: np.ndarray) -> None:
+    """`sides.open_rays` and `sides.side_rule` of the texels at plan positions `at` (N,)
+    into ``high[at]``, in one call: each texel's point on its nearer level (its `landing`
+    (T, 2, 3) offsets, in steps of `step` world units, of its upper level where `upper`
+    (T,), else its lower one; `plan_kernels.NearerLandings`), its normal there (stencil
+    weights `w`: `volumes.normals_at`), the open probe rays of the side other than the
+    `default` one, then of the default side where that one is open (`open_counts`), and
+    the rule with the texel's checkerboard parity.
+
+    Args:
+        lattice, field: `plan_kernels.lattice_arrays`, `plan_kernels.field_arrays`.
+        ids: (T,) flat lattice ids of the plan's texels (the probes' keys, the parity).
+        offset, level, scratch, probes: as `open_counts`'s; clearly_more:
+            `sides.CLEARLY_MORE`.
+    """
+    cube, data, inverse, origin, spacing = field
+    n = len(at)
+    points = np.empty((n, 3))
+    normals = np.empty((n, 3))
+    picked = np.empty(n, np.int64)
+    centre = np.empty(3)
+    unit = np.empty(3, np.float32)
+    normal = normal_scratch()
+    for r in range(n):
+        t = at[r]
+        picked[r] = ids[t]
+        centre_of(lattice, ids[t], centre)
+        side = 1 if upper[t] else 0
+        for a in range(3):
+            points[r, a] = (np.nan if landing[t, side, 0] == UNLANDED
+                            else centre[a] + landing[t, side, a] * step)
+        unit_normal(data, w, inverse, origin, spacing, points[r, 0], points[r, 1],
+                    points[r, 2], False, normal, unit)
+        for a in range(3):
+            normals[r, a] = np.float64(unit[a])
+    other_sign = 1.0 if default else -1.0  # the low side's normal is +normals
+    other = open_counts(calls, key, picked, points, normals, offset, other_sign,
+                        np.ones(n, np.bool_), cube, origin, spacing, level, scratch, probes)
+    mine = open_counts(calls, key, picked, points, normals, offset, -other_sign, other > 0,
+                       cube, origin, spacing, level, scratch, probes)
+    shape = lattice[0]
+    for r in range(n):
+        low, up = (other[r], mine[r]) if default else (mine[r], other[r])
+        flat = picked[r]
+        odd = (flat // (shape[1] * shape[2]) + flat // shape[2] % shape[1]
+               + flat % shape[2]) & 1 == 1
+        if low > 0 and up > 0:
+            lit = False if low >= clearly_more * up else (
+                True if up >= clearly_more * low else odd)
+        else:
+            lit = True if up > 0 else (False if low > 0 else default)
+        high[at[r]] = lit

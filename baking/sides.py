@@ -28,9 +28,16 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels
+from isolume.baking.plan_kernels import (
+    LANDING_STEPS,
+    NearerLandings,
+    field_arrays,
+    lattice_arrays,
+)
 from isolume.baking.rng import seed_key
-from isolume.baking.side_kernels import open_counts
+from isolume.baking.side_kernels import open_counts, probe_sides
 from isolume.volumes import cores
+from isolume.volumes.field import normal_stencil
 
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
@@ -59,7 +66,7 @@ a few ten thousand texels is still dozens of items for the cores to share."""
 
 
 def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,
-                 ids: np.ndarray, points: Callable[[np.ndarray], np.ndarray],
+                 ids: np.ndarray, nearer: NearerLandings,
                  found: np.ndarray, levels: np.ndarray, which_level: np.ndarray,
                  scenes: Callable[[int], object] | None = None,
                  progress: Callable[[float], None] | None = None) -> np.ndarray:
@@ -67,9 +74,9 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
 
     Args:
         ids: (T,) flat lattice ids of the texels (their checkerboard parity and probe keys).
-        points: ``points(at)``, the (N, 3) world points on their nearer level of the
-            texels at (N,) positions `at`, one level's texels at a time; found: (T,) bool,
-            whether a texel has one (else it is lit on the normals' side).
+        nearer: where the texels land on their nearer level (of the same `ids`); found:
+            (T,) bool, whether a texel has such a point (else it is lit on the normals'
+            side).
         levels: (K,) isovalues; which_level: (T,) index of each texel's nearer level.
         scenes: ``scenes(k)``, the Embree scene of level k from the baker's cache (no
             scene beside the baker's), or None to build each here (`level_surface`);
@@ -87,8 +94,8 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
         if scene is None:
             scene = level_surface(volume, float(levels[k]))
         if not scene.empty:
-            _probe_level(scene, volume, config, geometry, ids, points, on, float(levels[k]),
-                         default, high, _fraction(progress, probed, total))
+            _probe_level(scene, volume, config, geometry, ids, nearer, on,
+                         float(levels[k]), default, high, _fraction(progress, probed, total))
         probed += len(on)
         del scene  # gone before the next level's is built
     return high
@@ -103,23 +110,53 @@ def _fraction(progress: Callable[[float], None] | None, probed: int, total: int)
 
 
 def _probe_level(scene, volume: volumes.Volume, config: BakeConfig,
-                 geometry: LatticeGeometry, ids: np.ndarray,
-                 points: Callable[[np.ndarray], np.ndarray], on: np.ndarray, level: float,
-                 default: bool, high: np.ndarray, told: Callable[[int], None]) -> None:
+                 geometry: LatticeGeometry, ids: np.ndarray, nearer: NearerLandings,
+                 on: np.ndarray, level: float, default: bool, high: np.ndarray,
+                 told: Callable[[int], None]) -> None:
     """Choose the sides of the texels at positions `on` (M,) of one level into `high`, a
     `TEXELS_PER_BATCH` at a time on every core (`cores.for_items`): each item finds its
-    texels' points, normals and probe origins, traces their probes and applies the rule,
-    so that no glue runs between the rays on one thread."""
+    texels' points, normals and probe origins, traces their probes and applies the rule —
+    in one compiled call (`side_kernels.probe_sides`), or on a scene without compiled
+    Embree calls in arrays and embreex (`open_rays`)."""
     blocks = -(-len(on) // TEXELS_PER_BATCH)
+    if scene.calls is not None:
+        item = _compiled_item(scene, volume, config, geometry, ids, nearer, on, level,
+                              default, high)
+    else:
+        def item(b: int) -> None:
+            at = on[b * TEXELS_PER_BATCH:(b + 1) * TEXELS_PER_BATCH]
+            open_low, open_high = open_rays(scene, volume, config, ids[at],
+                                            nearer.points(at), level, default)
+            high[at] = side_rule(open_low, open_high, parity(geometry, ids[at]), default)
 
-    def block(b: int) -> None:
-        at = on[b * TEXELS_PER_BATCH:(b + 1) * TEXELS_PER_BATCH]
-        open_low, open_high = open_rays(scene, volume, config, ids[at], points(at), level,
-                                        default)
-        high[at] = side_rule(open_low, open_high, parity(geometry, ids[at]), default)
-
-    cores.for_items(block, blocks, "side probes",
+    cores.for_items(item, blocks, "side probes",
                     on_done=lambda done: told(min(done * TEXELS_PER_BATCH, len(on))))
+
+
+def _compiled_item(scene, volume: volumes.Volume, config: BakeConfig,
+                   geometry: LatticeGeometry, ids: np.ndarray, nearer: NearerLandings,
+                   on: np.ndarray, level: float, default: bool, high: np.ndarray
+                   ) -> Callable[[int], None]:
+    """``item(b)``: `side_kernels.probe_sides` of the b-th `TEXELS_PER_BATCH` texels of
+    `on`, with what every item shares made once."""
+    value_type = np.result_type(volume.data.dtype, np.float32)  # `volumes.value_at`'s
+    fixed = (scene.calls, np.uint32(seed_key(config.seed ^ SALT)),
+             lattice_arrays(geometry), np.asarray(ids, np.int64))
+    landing = (nearer.upper, nearer.landing, nearer.reach / LANDING_STEPS,
+               field_arrays(volume), normal_stencil(volume, config.normals == "smooth")[1],
+               probe_offset(volume, config), value_type.type(level))
+
+    def item(b: int) -> None:
+        probe_sides(*fixed, on[b * TEXELS_PER_BATCH:(b + 1) * TEXELS_PER_BATCH], *landing,
+                    np.empty(1, value_type), PROBES, bool(default), CLEARLY_MORE, high)
+
+    return item
+
+
+def probe_offset(volume: volumes.Volume, config: BakeConfig) -> float:
+    """How far off the surface a probe starts, world units: the bake's offset, at least
+    `PROBE_OFFSET_VOXELS` (of the mean spacing)."""
+    return max(config.offset, PROBE_OFFSET_VOXELS) * float(np.mean(volume.spacing))
 
 
 def side_rule(open_low: np.ndarray, open_high: np.ndarray, odd: np.ndarray,
@@ -170,7 +207,7 @@ def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.
     """
     normals = volumes.normals_at(volume, points, smooth=config.normals == "smooth"
                                  ).astype(np.float64)  # towards low values
-    offset = max(config.offset, PROBE_OFFSET_VOXELS) * float(np.mean(volume.spacing))
+    offset = probe_offset(volume, config)
     key = np.uint32(seed_key(config.seed ^ SALT))
     ids = np.asarray(ids, np.int64)
     points = np.ascontiguousarray(points, np.float64)

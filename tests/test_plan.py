@@ -427,7 +427,8 @@ def test_landing_offsets_keep_points_to_a_step_of_the_reach():
     back within half a step (reach / `LANDING_STEPS` / 2) per axis, a point decoded and
     encoded again is the same code (so whoever projects a texel gets the same start
     point), and a level not used (NaN) comes back NaN."""
-    from isolume.baking.plan import LANDING_STEPS, landing_offsets, rounded_landing
+    from isolume.baking.plan import landing_offsets, rounded_landing
+    from isolume.baking.plan_kernels import LANDING_STEPS
 
     rng = np.random.default_rng(5)
     reach = 3.2

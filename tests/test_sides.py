@@ -20,7 +20,7 @@ from isolume.baking import BakeConfig, bake
 from isolume.baking.plan import make_plan
 from isolume.baking.reference import render_reference
 from isolume.baking.sides import PROBES, side_rule
-from isolume.volumes import Volume
+from isolume.volumes import Volume, load
 
 SKY = dict(samples=16, bounces=0, env="constant:1,1,1", seed=3)
 
@@ -148,7 +148,6 @@ def test_compiled_probes_count_what_the_array_code_counts(dtype):
     for every point, on both sides, for either default side — on the synthetic engine's
     folds (counts between 0 and 16), with NaN points and points off the level."""
     from isolume.baking.sides import level_surface, open_rays
-    from isolume.volumes import load
 
     vol = load("synthetic:engine:40")
     scale = 200.0 if dtype == np.uint8 else 1.0
@@ -175,3 +174,22 @@ def test_compiled_probes_count_what_the_array_code_counts(dtype):
     counts = np.stack([side for pair in compiled for side in pair])
     assert np.all(counts[:, 20:23] == 0)
     assert ((counts > 0) & (counts < PROBES)).sum() > 100 and (counts == PROBES).sum() > 100
+
+
+@pytest.mark.parametrize("make_volume", [lambda: _plane(24), lambda: _ball(24, cavity=True),
+                                         lambda: load("synthetic:engine:40")])
+def test_sides_chosen_in_one_compiled_call_are_the_arrays_sides(make_volume, monkeypatch):
+    """An item's side probes in one compiled call (`side_kernels.probe_sides`: points,
+    normals, both sides' probes, the rule and the parity) against the array code that
+    scenes without compiled Embree calls run: the same side for every texel of a plane
+    open on both sides, a cavity and the synthetic engine."""
+    from isolume.baking import trace
+
+    vol = make_volume()
+    config = BakeConfig(iso_range=(0.25, 0.55), **SKY)
+    geometry = bake(vol, config, workers=2).geometry
+    compiled = make_plan(vol, geometry, config).high
+    monkeypatch.setattr(trace, "embree_calls", lambda scene: None)
+    arrays = make_plan(vol, geometry, config).high
+    np.testing.assert_array_equal(compiled, arrays)
+    assert len(compiled) > 500
