@@ -41,17 +41,10 @@ from isolume.baking.plan import (
     newton_reach,
     project_to_level,
     rounded_landing,
-    start_lift,
 )
-from isolume.baking.plan_kernels import (
-    LANDING_STEPS,
-    field_arrays,
-    landed_starts,
-    lattice_arrays,
-)
+from isolume.baking.plan_kernels import LandedStarts
 from isolume.baking.rays import RayStats
 from isolume.volumes import cores
-from isolume.volumes.field import normal_stencil
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.plan_lattice import PlanLattice
@@ -145,40 +138,6 @@ def landing_facing(volume: volumes.Volume, geometry: LatticeGeometry, config: Ba
                                        records.landing, records.high)
             mean[used] += share[used, side, None] * normals
     return octahedral.encode(mean)
-
-
-@dataclass(frozen=True)
-class LandedStarts:
-    """What `start_points` reads of a bake to make start points from the plan's landings
-    (`Plan.landing`, in steps of `newton_reach`), gathered once for many calls (a level's
-    chunks, a commit's facings): one compiled call each (`plan_kernels.landed_starts`),
-    the same bits."""
-
-    lattice: tuple
-    step: float
-    lift: float
-    field: tuple
-    weights: np.ndarray
-
-    @classmethod
-    def of(cls, volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
-           reach: float) -> LandedStarts:
-        """The arrays of a bake of `volume` on `geometry` whose landings are in steps of
-        `reach` / `LANDING_STEPS`."""
-        return cls(lattice_arrays(geometry), reach / LANDING_STEPS, start_lift(volume, config),
-                   field_arrays(volume), normal_stencil(volume, config.normals == "smooth")[1])
-
-    def points(self, ids: np.ndarray, positions: np.ndarray, upper: np.ndarray,
-               landing: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`start_points` of the texels at (N,) `positions` of the (T,) lattice `ids`, from
-        their (T, 2, 3) `landing` offsets on their upper level where `upper` (N,), else
-        their lower one, lit on the side (T,) `high` says.
-
-        Returns:
-            origins, normals: (N, 3) float32.
-        """
-        return landed_starts(self.lattice, ids, positions, upper, landing, self.step, high,
-                             self.lift, self.field, self.weights)
 
 
 def lit_normals(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,

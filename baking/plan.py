@@ -65,6 +65,7 @@ from isolume.baking.plan_kernels import (
     landing_offsets,
     lattice_arrays,
     reach_tests,
+    start_lift,
 )
 from isolume.baking.rng import pcg_hash
 from isolume.baking.sides import choose_sides
@@ -710,9 +711,3 @@ class _Reaches:
 
         for_blocks(block, count, "reach tests")
         return ok, moved
-
-
-def start_lift(volume: volumes.Volume, config: BakeConfig) -> float:
-    """How far off its level a path starts, world units: `config.offset` voxels (of the
-    mean spacing) along its lit side's normal (`baking.passes.start_points`)."""
-    return config.offset * float(np.mean(volume.spacing))

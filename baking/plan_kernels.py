@@ -32,6 +32,7 @@ from isolume.volumes.field import (
 )
 
 if TYPE_CHECKING:
+    from isolume.baking.config import BakeConfig
     from isolume.baking.lattice import LatticeGeometry
     from isolume.volumes import Volume
 
@@ -98,6 +99,46 @@ class NearerLandings:
                              self.geometry.centres(self.ids[at]), self.reach)
 
 
+def start_lift(volume: Volume, config: BakeConfig) -> float:
+    """How far off its level a path starts, world units: `config.offset` voxels (of the
+    mean spacing) along its lit side's normal (`baking.passes.start_points`)."""
+    return config.offset * float(np.mean(volume.spacing))
+
+
+@dataclass(frozen=True)
+class LandedStarts:
+    """What the kernels read of a bake to make points, normals and start points from the
+    plan's landings (`Plan.landing`, in steps of `newton_reach`), gathered once for many
+    calls (a level's chunks, a commit's facings, a level's side probes)."""
+
+    lattice: tuple
+    step: float
+    lift: float
+    field: tuple
+    weights: np.ndarray
+
+    @classmethod
+    def of(cls, volume: Volume, geometry: LatticeGeometry, config: BakeConfig,
+           reach: float) -> LandedStarts:
+        """The arrays of a bake of `volume` on `geometry` whose landings are in steps of
+        `reach` / `LANDING_STEPS`."""
+        return cls(lattice_arrays(geometry), reach / LANDING_STEPS, start_lift(volume, config),
+                   field_arrays(volume), normal_stencil(volume, config.normals == "smooth")[1])
+
+    def points(self, ids: np.ndarray, positions: np.ndarray, upper: np.ndarray,
+               landing: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`passes.start_points` of the texels at (N,) `positions` of the (T,) lattice
+        `ids`, from their (T, 2, 3) `landing` offsets on their upper level where `upper`
+        (N,), else their lower one, lit on the side (T,) `high` says
+        (`landed_starts`, one compiled call).
+
+        Returns:
+            origins, normals: (N, 3) float32.
+        """
+        return landed_starts(self.lattice, ids, positions, upper, landing, self.step, high,
+                             self.lift, self.field, self.weights)
+
+
 @numba.njit(**JIT)
 def centre_of(lattice: tuple, flat: int, out: np.ndarray) -> None:
     """out (3,) = the world xyz centre of texel `flat` (`LatticeGeometry.centres`)."""
@@ -149,6 +190,21 @@ def _encode(point: np.ndarray, centre: np.ndarray, reach: float, out: np.ndarray
 
 
 @numba.njit(**JIT)
+def landed_normal(lattice: tuple, flat: int, offsets: np.ndarray, step: float, field: tuple,
+                  w: np.ndarray, scratch: tuple, point: np.ndarray, unit: np.ndarray) -> None:
+    """point (3,) = where texel `flat` lands (its (3,) int16 `offsets` from its centre, in
+    steps of `step` world units: `landed_points`; NaN where `UNLANDED`), unit (3,) float32
+    = the normal there towards low values (stencil weights `w`: `volumes.normals_at`);
+    `scratch`: `volumes.field.normal_scratch()`."""
+    _, data, inverse, origin, spacing = field
+    centre_of(lattice, flat, point)
+    for a in range(3):
+        point[a] = np.nan if offsets[0] == UNLANDED else point[a] + offsets[a] * step
+    unit_normal(data, w, inverse, origin, spacing, point[0], point[1], point[2], False,
+                scratch, unit)
+
+
+@numba.njit(**JIT)
 def landed_starts(lattice: tuple, ids: np.ndarray, texels: np.ndarray, upper: np.ndarray,
                   landing: np.ndarray, step: float, high: np.ndarray, lift: float,
                   field: tuple, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -160,29 +216,22 @@ def landed_starts(lattice: tuple, ids: np.ndarray, texels: np.ndarray, upper: np
         upper: (N,) bool, the level is the texel's upper one (its landing's side).
         landing: (T, 2, 3) int16 `Plan.landing` offsets, in units of `step` world units.
         high: (T,) bool `Plan.high`; lift: the start point's offset off the surface,
-            world units (`plan.start_lift`).
+            world units (`start_lift`).
         w: the weights of the normals' stencil (the bake's).
 
     Returns:
         origins (N, 3) and normals (N, 3) float32 (NaN where a texel has no landing).
     """
-    _, data, inverse, origin, spacing = field
     n = len(texels)
     origins = np.empty((n, 3), np.float32)
     normals = np.empty((n, 3), np.float32)
     scratch = normal_scratch()
     unit = np.empty(3, np.float32)
-    centre = np.empty(3)
     point = np.empty(3)
     for r in range(n):
         t = texels[r]
-        side = 1 if upper[r] else 0
-        centre_of(lattice, ids[t], centre)
-        for a in range(3):
-            point[a] = (np.nan if landing[t, side, 0] == UNLANDED
-                        else centre[a] + landing[t, side, a] * step)
-        unit_normal(data, w, inverse, origin, spacing, point[0], point[1], point[2], False,
-                    scratch, unit)
+        landed_normal(lattice, ids[t], landing[t, 1 if upper[r] else 0], step, field, w,
+                      scratch, point, unit)
         for a in range(3):
             normal = -np.float64(unit[a]) if high[t] else np.float64(unit[a])
             origins[r, a] = np.float32(point[a] + lift * normal)

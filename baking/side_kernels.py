@@ -1,8 +1,10 @@
-"""Side probes in one compiled call per work item (`baking.sides.open_rays`): the probe
-origins, their rays, Embree called per ray (`embree_kernels.occluded_rays`), the open
-counts and the on-side test, with no Python — and so no wait for the GIL — between them.
-The same numbers as the array code `baking.sides` runs where a scene has no compiled
-calls (`trace.EmbreeCalls`).
+"""A level's side probes in one compiled call per work item (`baking.sides`): each
+texel's point on its nearer level and its normal there, the probe origins of each side,
+their rays, Embree called per ray (`embree_kernels.occluded_rays`), the open counts, the
+on-side test and the side rule — with no Python, and so no wait for the GIL, between
+them. The same numbers as the array code `baking.sides` runs where a scene has no
+compiled calls (`trace.EmbreeCalls`): `sides.open_rays`, `sides.side_rule`,
+`sides.parity`.
 """
 
 from __future__ import annotations
@@ -12,9 +14,9 @@ import numpy as np
 
 from isolume.baking.embree_kernels import occluded_rays
 from isolume.baking.kernels import path_starts
-from isolume.baking.plan_kernels import UNLANDED, centre_of
+from isolume.baking.plan_kernels import landed_normal
 from isolume.baking.sampling_kernels import JIT
-from isolume.volumes.field import normal_scratch, unit_normal, value_at_world
+from isolume.volumes.field import normal_scratch, value_at_world
 
 
 @numba.njit(**JIT)
@@ -99,24 +101,18 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
         offset, level, scratch, probes: as `open_counts`'s; clearly_more:
             `sides.CLEARLY_MORE`.
     """
-    cube, data, inverse, origin, spacing = field
+    cube, _, _, origin, spacing = field
     n = len(at)
     points = np.empty((n, 3))
     normals = np.empty((n, 3))
     picked = np.empty(n, np.int64)
-    centre = np.empty(3)
     unit = np.empty(3, np.float32)
     normal = normal_scratch()
     for r in range(n):
         t = at[r]
         picked[r] = ids[t]
-        centre_of(lattice, ids[t], centre)
-        side = 1 if upper[t] else 0
-        for a in range(3):
-            points[r, a] = (np.nan if landing[t, side, 0] == UNLANDED
-                            else centre[a] + landing[t, side, a] * step)
-        unit_normal(data, w, inverse, origin, spacing, points[r, 0], points[r, 1],
-                    points[r, 2], False, normal, unit)
+        landed_normal(lattice, ids[t], landing[t, 1 if upper[t] else 0], step, field, w,
+                      normal, points[r], unit)
         for a in range(3):
             normals[r, a] = np.float64(unit[a])
     other_sign = 1.0 if default else -1.0  # the low side's normal is +normals

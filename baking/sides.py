@@ -28,16 +28,10 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels
-from isolume.baking.plan_kernels import (
-    LANDING_STEPS,
-    NearerLandings,
-    field_arrays,
-    lattice_arrays,
-)
+from isolume.baking.plan_kernels import LandedStarts, NearerLandings
 from isolume.baking.rng import seed_key
-from isolume.baking.side_kernels import open_counts, probe_sides
+from isolume.baking.side_kernels import probe_sides
 from isolume.volumes import cores
-from isolume.volumes.field import normal_stencil
 
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
@@ -140,10 +134,10 @@ def _compiled_item(scene, volume: volumes.Volume, config: BakeConfig,
     """``item(b)``: `side_kernels.probe_sides` of the b-th `TEXELS_PER_BATCH` texels of
     `on`, with what every item shares made once."""
     value_type = np.result_type(volume.data.dtype, np.float32)  # `volumes.value_at`'s
-    fixed = (scene.calls, np.uint32(seed_key(config.seed ^ SALT)),
-             lattice_arrays(geometry), np.asarray(ids, np.int64))
-    landing = (nearer.upper, nearer.landing, nearer.reach / LANDING_STEPS,
-               field_arrays(volume), normal_stencil(volume, config.normals == "smooth")[1],
+    starts = LandedStarts.of(volume, geometry, config, nearer.reach)
+    fixed = (scene.calls, np.uint32(seed_key(config.seed ^ SALT)), starts.lattice,
+             np.asarray(ids, np.int64))
+    landing = (nearer.upper, nearer.landing, starts.step, starts.field, starts.weights,
                probe_offset(volume, config), value_type.type(level))
 
     def item(b: int) -> None:
@@ -198,9 +192,8 @@ def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.
     The side other than the `default` one (high-value when False) is probed first; the
     default side only where that one is open, since where it is closed `side_rule` lights
     the default side whatever the default side's count (left 0 there). On a closed object
-    that halves the rays. Each side is one compiled call (`side_kernels.open_counts`:
-    no GIL held between the rays and the counts), or, on a scene without compiled Embree
-    calls, arrays and embreex (`unblocked_rays`).
+    that halves the rays. Arrays and embreex (`unblocked_rays`), for a scene without
+    compiled Embree calls (`side_kernels.probe_sides` does the same in one call).
 
     Returns:
         open_low, open_high: (N,) int counts for the low- and the high-value side.
@@ -209,28 +202,17 @@ def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.
                                  ).astype(np.float64)  # towards low values
     offset = probe_offset(volume, config)
     key = np.uint32(seed_key(config.seed ^ SALT))
-    ids = np.asarray(ids, np.int64)
-    points = np.ascontiguousarray(points, np.float64)
-    if scene.calls is not None:  # one compiled call a side
-        scratch = np.empty(1, np.result_type(volume.data.dtype, np.float32))
-        fixed = (np.ascontiguousarray(volume.data)[..., None],
-                 np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64),
-                 scratch.dtype.type(level), scratch, PROBES)
 
-        def count(sign: float, which: np.ndarray) -> np.ndarray:
-            return open_counts(scene.calls, key, ids, points, normals, offset, sign, which,
-                               *fixed)
-    else:
-        def count(sign: float, which: np.ndarray) -> np.ndarray:
-            out = np.zeros(len(points), np.int64)
-            if which.any():
-                origins = points[which] + sign * offset * normals[which]
-                unblocked = unblocked_rays(scene, key, ids[which], origins,
-                                           sign * normals[which])
-                beyond = volumes.value_at(volume, origins) - level
-                on_side = beyond < 0 if sign > 0 else beyond > 0
-                out[which] = np.where(on_side, unblocked, 0)
-            return out
+    def count(sign: float, which: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(points), np.int64)
+        if which.any():
+            origins = points[which] + sign * offset * normals[which]
+            unblocked = unblocked_rays(scene, key, ids[which], origins,
+                                       sign * normals[which])
+            beyond = volumes.value_at(volume, origins) - level
+            on_side = beyond < 0 if sign > 0 else beyond > 0
+            out[which] = np.where(on_side, unblocked, 0)
+        return out
 
     other_sign = 1.0 if default else -1.0  # the low side's normal is +normals
     other = count(other_sign, np.ones(len(points), bool))
@@ -245,7 +227,7 @@ def unblocked_rays(scene: Scene, key: np.uint32, ids: np.ndarray, origins: np.nd
     the (N, 3) `normals` from the (N, 3) `origins`) meet nothing. Compiled rays
     (`kernels.path_starts`) traced by embreex `TEXELS_PER_BATCH` texels at a time on
     every core, so memory stays bounded: for a scene without compiled calls
-    (`side_kernels.open_counts` does the same in one compiled call)."""
+    (`side_kernels.open_counts` does the same)."""
     n = len(ids)
     out = np.empty(n, np.int64)
     ids = np.asarray(ids, np.int64)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from test_seen_side import SIZE, _cut_open_slab
 
+from isolume import volumes
 from isolume.app.render.offscreen import render_volume
 from isolume.app.render.renderer import default_camera
 from isolume.app.render.settings import RenderSettings
@@ -143,11 +144,14 @@ def test_a_baked_cut_open_slab_matches_the_reference_from_above_and_below(view):
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.float64])
 def test_compiled_probes_count_what_the_array_code_counts(dtype):
-    """`side_kernels.open_counts` (one compiled call a side) against the array code that
-    scenes without compiled Embree calls run (`unblocked_rays`, embreex): the same counts
-    for every point, on both sides, for either default side — on the synthetic engine's
-    folds (counts between 0 and 16), with NaN points and points off the level."""
-    from isolume.baking.sides import level_surface, open_rays
+    """`side_kernels.open_counts` (one compiled call a side, as `probe_sides` calls it)
+    against the array code that scenes without compiled Embree calls run (`open_rays`:
+    `unblocked_rays`, embreex): the same counts for every point, on both sides, for
+    either default side — on the synthetic engine's folds (counts between 0 and 16), with
+    NaN points and points off the level."""
+    from isolume.baking.rng import seed_key
+    from isolume.baking.side_kernels import open_counts
+    from isolume.baking.sides import SALT, level_surface, open_rays, probe_offset
 
     vol = load("synthetic:engine:40")
     scale = 200.0 if dtype == np.uint8 else 1.0
@@ -163,8 +167,22 @@ def test_compiled_probes_count_what_the_array_code_counts(dtype):
     points[20:23] = np.nan
     ids = rng.choice(10**6, len(points), replace=False)
     config = BakeConfig(**SKY)
-    compiled = [open_rays(scene, vol, config, ids, points, level, default)
-                for default in (False, True)]
+    normals = volumes.normals_at(vol, points).astype(np.float64)
+    scratch = np.empty(1, np.result_type(vol.data.dtype, np.float32))
+    fixed = (np.asarray(vol.data)[..., None], np.asarray(vol.origin, np.float64),
+             np.asarray(vol.spacing, np.float64), scratch.dtype.type(level), scratch, PROBES)
+
+    def count(sign, which):
+        return open_counts(scene.calls, np.uint32(seed_key(config.seed ^ SALT)),
+                           ids.astype(np.int64), points, normals, probe_offset(vol, config),
+                           sign, which, *fixed)
+
+    compiled = []
+    for default in (False, True):
+        other_sign = 1.0 if default else -1.0
+        other = count(other_sign, np.ones(len(points), bool))
+        mine = count(-other_sign, other > 0)
+        compiled.append((other, mine) if default else (mine, other))
     scene.calls = None
     arrays = [open_rays(scene, vol, config, ids, points, level, default)
               for default in (False, True)]

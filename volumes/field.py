@@ -304,8 +304,7 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: float | np.n
     points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
     levels = np.ascontiguousarray(np.broadcast_to(levels, (len(points),)), np.float64)
     out = np.empty_like(points)
-    fixed = (volume.data[..., None], *_stencil(volume, smooth),
-             np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64))
+    fixed = (volume.data[..., None], *normal_stencil(volume, smooth))
 
     def steps(lo: int, hi: int) -> None:
         newton_steps(*fixed, points[lo:hi], levels[lo:hi], float(max_move), int(iterations),
@@ -376,8 +375,7 @@ def values_along_normals(volume: Volume, points_xyz: np.ndarray, distance: float
     compiled pass on threads — where a path starting there would begin."""
     points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
     out = np.empty(len(points))
-    fixed = (volume.data[..., None], *_stencil(volume, smooth),
-             np.asarray(volume.origin, np.float64), np.asarray(volume.spacing, np.float64))
+    fixed = (volume.data[..., None], *normal_stencil(volume, smooth))
 
     def part(lo: int, hi: int) -> None:
         along_normals(*fixed, points[lo:hi], float(distance), 1.0 if flip else -1.0,
