@@ -141,6 +141,30 @@ def test_every_command_has_help(capsys):
         assert out.startswith("usage: isolume"), (command, out[:80])
 
 
+def test_a_command_parses_alone_as_among_all(capsys):
+    """A command line that names its command builds that command's parser alone (the
+    others' modules not imported): the same values and the same help as the parser of
+    every command; a line that names none gets every command."""
+    from isolume.app.cli import build_parser, command_named
+
+    lines = [["info", "synthetic:engine:48", "--up", "x"],
+             ["render", "synthetic:sphere:16", "--out", "a.png", "--size", "64x48"],
+             ["bake", "v.npy", "--out", "l.npz", "--samples", "4", "--workers", "1"],
+             ["bench", "cores", "--threads", "1,2"], ["movie", "v.npy", "--out", "m.mp4"],
+             ["view", "v.npy"], ["reference", "v.npy", "--out", "a.exr"]]
+    for words in lines:
+        assert command_named(words) == words[0]
+        assert build_parser(words[0]).parse_args(words) == build_parser().parse_args(words)
+        helps = []
+        for parser in (build_parser(words[0]), build_parser()):
+            with pytest.raises(SystemExit):
+                parser.parse_args([words[0], "--help"])
+            helps.append(capsys.readouterr().out)
+        assert helps[0] == helps[1] and helps[0].startswith(f"usage: isolume {words[0]}")
+    assert command_named([]) is None and command_named(["--help"]) is None
+    assert command_named(["bak"]) is None
+
+
 def test_render_traces_global_illumination_by_default(tmp_path, capsys):
     """Without --lattice, render shows global illumination for its view: under a constant
     white sky a convex sphere sees the whole sky everywhere (E = π, every path escapes), so

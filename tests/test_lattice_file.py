@@ -281,3 +281,42 @@ def test_members_deflated_in_pieces_on_threads_make_the_same_valid_file(tmp_path
         held = lattice_file.held_mask({"active": lattice.active, "samples": lattice.samples})
         np.testing.assert_array_equal(archive["values"], lattice.values[held])
     _same(Lattice.load(tmp_path / "l3.npz"), lattice)
+
+
+def test_a_zipfile_without_its_private_sizes_deflates_the_members_itself(tmp_path,
+                                                                         monkeypatch):
+    """Where zipfile's member lacks the compressor, CRC and size that the pieces need,
+    zipfile deflates each member itself: a valid file of the same arrays."""
+    import zipfile
+
+    class Plain:
+        """A member opened for writing, with only the public file methods."""
+
+        def __init__(self, member):
+            self.member = member
+
+        def write(self, data):
+            return self.member.write(data)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.member.__exit__(*exc)
+
+    opened = zipfile.ZipFile.open
+
+    def plain_open(self, name, mode="r", **kwargs):
+        member = opened(self, name, mode, **kwargs)
+        return Plain(member) if mode == "w" else member
+
+    monkeypatch.setattr(lattice_file, "DEFLATE_PIECE", 777)
+    lattice = _random_lattice(seed=6)
+    lattice.save(tmp_path / "pieces.npz")
+    monkeypatch.setattr(zipfile.ZipFile, "open", plain_open)
+    lattice.save(tmp_path / "whole.npz")
+    monkeypatch.undo()
+    assert (tmp_path / "whole.npz").read_bytes() != (tmp_path / "pieces.npz").read_bytes()
+    with zipfile.ZipFile(tmp_path / "whole.npz") as zf:
+        assert zf.testzip() is None
+    _same(Lattice.load(tmp_path / "whole.npz"), lattice)
