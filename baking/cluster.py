@@ -45,7 +45,7 @@ import numpy as np
 
 from isolume import volumes
 from isolume.baking import kernels
-from isolume.baking.backend import REPORT_S, BakeJob, BakeStats, PassReport, PassWork
+from isolume.baking.backend import REPORT_S, BakeJob, BakeStats, PassReport, PassWork, warm_up
 from isolume.baking.config import BakeConfig
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, TracingLights, WholePaths
@@ -459,9 +459,9 @@ class ClusterBackend:
 
     def begin(self, volume: volumes.Volume, config: BakeConfig,
               kept: np.ndarray | None, stats: BakeStats) -> None:
-        """Load the compiled code (for the commits) while the plan is made; the workers
-        build the level scenes."""
-        self._warm = self._helper.submit(kernels.warm_up)
+        """Load the compiled code (for the commits) and hash the volume while the plan is
+        made (`backend.warm_up`); the workers build the level scenes."""
+        self._warm = self._helper.submit(warm_up, volume)
 
     def levels_known(self, levels: np.ndarray) -> None:
         """Nothing: the workers build the level scenes."""

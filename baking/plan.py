@@ -213,6 +213,49 @@ def _select_kernel(rho: np.ndarray, lo: float, hi: float, min_span: float, mid: 
                         crossed[k] += 1
 
 
+def active_texels(active: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (N,) flat ids (`index_type`) of the True texels of the (Z, Y, X) bool `active`,
+    in order (`numpy.flatnonzero`), and their (N,) values in the (Z, Y, X) `rho`:
+    counted, then gathered, by z-slabs on every core (`cores.for_ranges`)."""
+    layers = active.shape[0]
+    counts = np.zeros(layers + 1, np.int64)
+    cores.for_ranges(lambda k0, k1: _count_layers(active, counts, k0, k1), layers,
+                     active[0].size, "texel values")
+    starts = np.cumsum(counts)  # layer k's rows start at starts[k]
+    ids = np.empty(int(starts[-1]), index_type(active.size))
+    values = np.empty(len(ids), rho.dtype)
+    cores.for_ranges(lambda k0, k1: _gather_layers(active, rho, starts, ids, values, k0, k1),
+                     layers, active[0].size, "texel values")
+    return ids, values
+
+
+@numba.njit(nogil=True, cache=True)
+def _count_layers(active: np.ndarray, counts: np.ndarray, k0: int, k1: int) -> None:
+    """counts[k + 1] = the True texels of layer k of `active`, for k0 ≤ k < k1."""
+    for k in range(k0, k1):
+        n = 0
+        for j in range(active.shape[1]):
+            for i in range(active.shape[2]):
+                n += active[k, j, i]
+        counts[k + 1] = n
+
+
+@numba.njit(nogil=True, cache=True)
+def _gather_layers(active: np.ndarray, rho: np.ndarray, starts: np.ndarray, ids: np.ndarray,
+                   values: np.ndarray, k0: int, k1: int) -> None:
+    """The flat ids and values of layers k0 … k1 − 1's True texels, from each layer's
+    first row `starts[k]` of `ids` and `values` (`active_texels`)."""
+    ny, nx = active.shape[1], active.shape[2]
+    for k in range(k0, k1):
+        row = starts[k]
+        for j in range(ny):
+            for i in range(nx):
+                if active[k, j, i]:
+                    ids[row] = (k * ny + j) * nx + i
+                    values[row] = rho[k, j, i]
+                    row += 1
+
+
 def texel_values(volume: volumes.Volume, geometry: LatticeGeometry) -> np.ndarray:
     """(Z, Y, X) float32 field value at every texel centre: `volumes.value_at` at
     `geometry.centres`, computed on the grid of centres in one compiled pass (no
@@ -250,7 +293,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     rho = texel_values(volume, geometry)
     min_span = MIN_SPAN_FRACTION * (vmax - vmin)
     active, crossed = select_cells(rho, lo, hi, min_span, 0.5 * (lo + hi))
-    ids = np.flatnonzero(active).astype(index_type(active.size))
+    ids, texel_rho = active_texels(active, rho)
     if traced_only:
         active = None
     if len(ids) == 0:
@@ -258,7 +301,6 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
             f"{volume.source or volume.name}: no isosurface in --iso-range [{lo:g}, {hi:g}] "
             "(no lattice cell's values span any of it); nothing to bake"
         )
-    texel_rho = rho.reshape(-1)[ids]
     del rho  # the box's grid (4 bytes a texel): the rest of the plan is per active texel
     say("gradients")
     cores.stage("gradients")

@@ -158,6 +158,30 @@ def test_separable_texel_values_equal_trilinear_lookups(spec, scale):
                                   want.reshape(geometry.shape).astype(np.float32))
 
 
+@pytest.mark.parametrize("threads", [1, 3])
+def test_active_texels_are_flatnonzero_and_their_values(threads):
+    """The active texels' ids, counted and gathered by z-slabs on several threads, are
+    ``numpy.flatnonzero`` in its index type, and their values those of the grid — empty
+    layers, an empty mask and a full one included."""
+    from isolume.baking.plan import active_texels, index_type
+    from isolume.volumes import cores
+
+    gen = np.random.default_rng(5)
+    masks = [gen.random((37, 20, 11)) < 0.3, np.zeros((4, 3, 2), bool), np.ones((3, 1, 5), bool)]
+    masks[0][5:9] = False
+    cores.use(threads)
+    try:
+        for active in masks:
+            rho = gen.normal(size=active.shape).astype(np.float32)
+            ids, values = active_texels(active, rho)
+            want = np.flatnonzero(active).astype(index_type(active.size))
+            assert ids.dtype == want.dtype and values.dtype == np.float32
+            np.testing.assert_array_equal(ids, want)
+            np.testing.assert_array_equal(values, rho.reshape(-1)[want])
+    finally:
+        cores.use(None)
+
+
 def test_binned_percentiles_equal_numpy_per_bin():
     from isolume.baking.plan import _binned_percentile
 
