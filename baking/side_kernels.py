@@ -97,7 +97,8 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
 
     Args:
         lattice, field: `plan_kernels.lattice_arrays`, `plan_kernels.field_arrays`.
-        ids: (T,) flat lattice ids of the plan's texels (the probes' keys, the parity).
+        ids: (T,) int32 or int64 flat lattice ids of the plan's texels (the probes' keys,
+            the parity).
         offset, level, scratch, probes: as `open_counts`'s; clearly_more:
             `sides.CLEARLY_MORE`.
     """

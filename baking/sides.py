@@ -132,11 +132,12 @@ def _compiled_item(scene, volume: volumes.Volume, config: BakeConfig,
                    on: np.ndarray, level: float, default: bool, high: np.ndarray
                    ) -> Callable[[int], None]:
     """``item(b)``: `side_kernels.probe_sides` of the b-th `TEXELS_PER_BATCH` texels of
-    `on`, with what every item shares made once."""
+    `on`, with what every item shares made once (the plan's `ids` as they are, int32 in
+    a box of fewer than 2³¹ texels: an int64 copy of the 512³ foot's 41 M took 0.8 s of
+    one core at each level)."""
     value_type = np.result_type(volume.data.dtype, np.float32)  # `volumes.value_at`'s
     starts = LandedStarts.of(volume, geometry, config, nearer.reach)
-    fixed = (scene.calls, np.uint32(seed_key(config.seed ^ SALT)), starts.lattice,
-             np.asarray(ids, np.int64))
+    fixed = (scene.calls, np.uint32(seed_key(config.seed ^ SALT)), starts.lattice, ids)
     landing = (nearer.upper, nearer.landing, starts.step, starts.field, starts.weights,
                probe_offset(volume, config), value_type.type(level))
 
