@@ -129,8 +129,9 @@ def say_outlook(outlook: BakeOutlook, config: BakeConfig) -> None:
 
 def cheaper_options(config: BakeConfig) -> str:
     """The options that make a bake of `config` cheaper: an iso range, half its paths
-    per texel (while it has more than one; with a noise target, twice the target) and
-    half its lattice scale (while that is allowed: `baking.config.SCALES`)."""
+    per texel (while it has more than one; with a noise target, twice the target), a
+    texel error (twice its own) and half its lattice scale (while that is allowed:
+    `baking.config.SCALES`)."""
     from isolume.baking.config import SCALES
 
     options = ["--iso-range LO HI around the isovalues you will show"]
@@ -138,6 +139,7 @@ def cheaper_options(config: BakeConfig) -> str:
         options.append(f"--target-error {min(2 * config.target_error, 0.5):g}")
     elif config.samples > 1:
         options.append(f"--samples {config.samples // 2}")
+    options.append(f"--texel-error {min(2 * (config.texel_error or 0.01), 0.5):g}")
     if config.scale / 2 >= SCALES[0]:
         options.append(f"--scale {config.scale / 2:g}")
     return ", ".join(options)
@@ -183,6 +185,12 @@ def cmd_bake(args: argparse.Namespace) -> int:
     if lattice.config is not None and lattice.config.target_error is not None:
         print(f"noise target {lattice.config.target_error:g}: {stats['paths']:,} paths, "
               f"{stats['paths'] / max(plan['active_texels'], 1):.1f} a texel on average")
+    if "filled" in lattice.meta:
+        filled = lattice.meta["filled"]
+        print(f"texel error {filled['texel_error']:g}: {filled['fine_bricks']:,} of "
+              f"{filled['bricks']:,} bricks traced whole, {filled['filled']:,} of "
+              f"{filled['count']:,} texels filled from the half lattice, "
+              f"{stats['paths'] / max(plan['active_texels'], 1):.1f} paths a texel on average")
     if args.scheduler:
         moved = lattice.meta["cluster"]
         print(f"cluster: {moved['tasks']:,} tasks, {moved['bytes_sent'] / 1e6:.1f} MB sent and "

@@ -318,8 +318,8 @@ def bake_config(args: argparse.Namespace) -> BakeConfig:
         albedo=parse_albedo(args.albedo), scale=args.scale,
         iso_range=tuple(args.iso_range) if args.iso_range else None, seed=args.seed,
         flip_normals=args.flip_normals, sides=args.sides, target_error=target,
-        max_samples=max(args.max_samples, samples), max_levels=args.max_levels,
-        max_move=args.max_move, direct_light=args.direct_light,
+        texel_error=args.texel_error, max_samples=max(args.max_samples, samples),
+        max_levels=args.max_levels, max_move=args.max_move, direct_light=args.direct_light,
     )
 
 
@@ -364,6 +364,10 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
                    help="paths where the noise is: texels get paths in doubling rounds, in "
                    "proportion to the spread of their paths, until each isosurface's noise "
                    "is E of its light level (e.g. 0.1)")
+    p.add_argument("--texel-error", type=float, default=None, metavar="E",
+                   help="texels where the light varies: a brick of the lattice is traced at "
+                   "half resolution, its other texels filled from it, where that "
+                   "reproduces its light within E of the scene's light level (e.g. 0.02)")
     p.add_argument("--max-samples", type=int, default=DEFAULT_MAX_SAMPLES, metavar="N",
                    help="the most paths a texel gets with a target (default "
                    f"{DEFAULT_MAX_SAMPLES})")

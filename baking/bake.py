@@ -40,6 +40,7 @@ from isolume.baking.backend import (
     TracingBackend,
 )
 from isolume.baking.config import BakeConfig
+from isolume.baking.density import bake_texels, clear_filled
 from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
@@ -227,6 +228,11 @@ class Baker:
         progress: `make_plan`'s stage callback.
         backend: who traces the paths (e.g. `cluster.ClusterBackend`); the Baker closes
             it in `close`, or when the Baker cannot be made.
+
+    Attributes:
+        facings_made: every texel's facing was made for this plan (`baking.density`
+            makes them all before tracing): commits keep them rather than make them
+            again for texels without samples.
     """
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig, *,
@@ -263,6 +269,7 @@ class Baker:
                 self.lattice.active, self.rows = self.plan.active, self.plan.ids
             self.texels_done: int = int(np.count_nonzero(self.samples_done()))
             self.previous: dict[str, Any] = dict(self.lattice.meta.get("stats", {}))
+            self.facings_made: bool = False
             self.job: BakeJob = BakeJob(volume, config, self.geometry, self.plan,
                                         self.records, self._tracing(), self.stats)
             self.backend.start(self.job)
@@ -342,7 +349,8 @@ class Baker:
             complete = positions[traced]
             if len(complete):
                 commit_facing(self.lattice, self.volume, self.config, self.plan,
-                              self.records, complete, self.rows)
+                              self.records, complete, self.rows,
+                              unsampled=not self.facings_made)
             self.texels_done += commit_sums(self.lattice, rows_at(self.rows, positions),
                                             sums, traced)
             if len(complete) and after_commit is not None:
@@ -490,6 +498,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
         baker = Baker(volume, config, workers=workers, backend=backend, progress=bars,
                       packed=True, resume=resume, scene_cache=2 if adaptive else 1,
                       records_dir=out.parent if out is not None else None)
+    clear_filled(baker.lattice, len(baker.plan.ids), config.texel_error is not None)
     done = baker.samples_done()
     pending = int(np.maximum(config.samples - done, 0).sum())  # the first round's
     if outlook is not None:
@@ -504,6 +513,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     try:
         if adaptive:
             bake_to_target(baker, bar, checkpoint)
+        elif config.texel_error is not None:
+            bake_texels(baker, bar, checkpoint)
         else:
             baker.run(bar=bar, after_commit=checkpoint)
     except KeyboardInterrupt:

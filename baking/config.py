@@ -72,6 +72,12 @@ class BakeConfig:
             root-mean-square standard error is this fraction of its light level ("model
             no more than a scene needs": easy texels stop early).
         max_samples: cap on paths per texel with `target_error`.
+        texel_error: None for every active texel traced; else texels where the light
+            varies (`baking.density`): a brick of the lattice is traced at half
+            resolution, and its other texels filled from it, where the interpolation's
+            error, estimated from the light's surpluses at twice that spacing, is within
+            this fraction of the scene's light level (traced texels get `samples` paths,
+            the nodes that fill texels twice that).
         direct_light: "pixels": the lights' and the sun's direct light (at a texel's own
             point) is left out of the lattice, which the renderer adds per pixel with
             shadow maps; their bounces and the rest of the sky stay in the lattice.
@@ -102,6 +108,7 @@ class BakeConfig:
     sides: str = "seen"
     target_error: float | None = None
     max_samples: int = 4096
+    texel_error: float | None = None
     direct_light: str | None = None
 
     def __post_init__(self) -> None:
@@ -146,6 +153,13 @@ class BakeConfig:
             raise BakeError(f"--samples {self.samples} with --target-error: expected at "
                             f"least {MIN_TARGET_SAMPLES} (a texel's noise is estimated from "
                             "its first paths)")
+        if self.texel_error is not None and not 0 < self.texel_error < 1:
+            raise BakeError(f"--texel-error {self.texel_error:g}: expected a fraction of the "
+                            "light level between 0 and 1, e.g. 0.02")
+        if self.texel_error is not None and self.target_error is not None:
+            raise BakeError("--texel-error with --target-error: a bake takes one of them "
+                            "(texels where the light varies at --samples paths each, or "
+                            "paths where the noise is over every texel)")
         if self.max_samples < self.samples:
             raise BakeError(f"--max-samples {self.max_samples} is below --samples "
                             f"{self.samples}")
@@ -238,6 +252,7 @@ class BakeConfig:
     def same_result_as(self, other: BakeConfig) -> bool:
         """True when both configs give the same per-sample estimates (samples may differ)."""
         def core(c: BakeConfig) -> BakeConfig:
-            return dataclasses.replace(c, samples=1, target_error=None, max_samples=4096)
+            return dataclasses.replace(c, samples=1, target_error=None, max_samples=4096,
+                                       texel_error=None)
 
         return core(self) == core(other)

@@ -151,16 +151,20 @@ def lit_normals(volume: volumes.Volume, config: BakeConfig, points: np.ndarray,
 
 def commit_facing(lattice: Lattice | PlanLattice, volume: volumes.Volume,
                   config: BakeConfig, plan: Plan, records: PlanRecords,
-                  positions: np.ndarray, rows: np.ndarray | None) -> None:
+                  positions: np.ndarray, rows: np.ndarray | None,
+                  unsampled: bool = True) -> None:
     """Set the facings (`landing_facing`) of the texels at plan `positions` about to be
-    committed that have none yet, or no samples yet (a texel reset by another plan),
-    from the plan's `records`; `rows`: the (T,) rows of the plan's texels in the
-    lattice's flattened arrays (a `Lattice`: the plan's ids), None where they are the
-    plan positions (a `PlanLattice`). `FACING_BLOCK` texels at a time."""
+    committed that have none yet, or no samples yet (a texel reset by another plan; not
+    where `unsampled` is False: their facings are this plan's), from the plan's
+    `records`; `rows`: the (T,) rows of the plan's texels in the lattice's flattened
+    arrays (a `Lattice`: the plan's ids), None where they are the plan positions (a
+    `PlanLattice`). `FACING_BLOCK` texels at a time."""
     flat = rows_at(rows, positions)
     codes = lattice.facing.reshape(-1, 2)
-    todo = np.flatnonzero(~octahedral.known(codes[flat])
-                          | (lattice.samples.reshape(-1)[flat] == 0))
+    todo = ~octahedral.known(codes[flat])
+    if unsampled:
+        todo |= lattice.samples.reshape(-1)[flat] == 0
+    todo = np.flatnonzero(todo)
 
     def facings(part: slice) -> None:
         block = todo[part]

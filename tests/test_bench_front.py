@@ -8,7 +8,7 @@ from isolume.app.bench.front import FrontError, front, read_sweep
 from isolume.app.cli import main
 
 
-def _sweep(folder, samples, target, cases, scale=1.0):
+def _sweep(folder, samples, target, cases, scale=1.0, texel=None):
     """A bench accuracy folder whose bake rows are `cases`: (volume, iso, error, paths)."""
     folder.mkdir(parents=True)
     rows = [{"volume": v, "iso": iso, "mode": "render", "rel_rmse_less_noise": 0.5,
@@ -16,7 +16,7 @@ def _sweep(folder, samples, target, cases, scale=1.0):
     rows += [{"volume": v, "iso": iso, "mode": "bake", "rel_rmse_less_noise": error,
               "reference_noise": 0.004, "black_fraction": 0.0, "paths": paths,
               "samples": samples, "target_error": target, "scale": scale,
-              "bake_seconds": paths / 1e6,
+              "texel_error": texel, "bake_seconds": paths / 1e6,
               "lattice_bytes": 1000} for v, iso, error, paths in cases]
     (folder / "accuracy.json").write_text(json.dumps({"rows": rows}))
     return folder
@@ -39,6 +39,11 @@ def test_the_front_sums_and_spreads_the_shared_cases(tmp_path):
     assert record["cases"][1]["error"]["target 0.1 (from 16)"] == 0.07
     coarse = read_sweep(_sweep(tmp_path / "c", 100, None, [("a", 1.0, 0.03, 400_000)], 0.5))
     assert (coarse["kind"], coarse["label"]) == ("uniform, scale 0.5", "100 paths x0.5")
+    texels = read_sweep(_sweep(tmp_path / "x", 100, None, [("a", 1.0, 0.02, 900_000)],
+                               texel=0.05))
+    assert (texels["kind"], texels["label"]) == ("texels, uniform",
+                                                 "100 paths, texel error 0.05")
+    assert texels["texel_error"] == 0.05
 
 
 def test_the_command_writes_the_chart_and_refuses_what_it_cannot_read(tmp_path, capsys):

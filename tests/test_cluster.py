@@ -238,6 +238,17 @@ def test_target_error_refinement_on_the_cluster_equals_the_local_one(cluster):
     _same_bits(local, remote)
 
 
+def test_a_texel_error_bake_on_the_cluster_equals_the_local_one(cluster):
+    """`--texel-error` passes (the nodes, then the fine bricks' texels) on the cluster."""
+    config = BakeConfig(samples=8, bounces=1, env="sky:sun=3", texel_error=0.05)
+    vol = make("torus", 32)
+    local = bake(vol, config, workers=2)
+    remote = bake(vol, config, scheduler=cluster.scheduler_address)
+    assert local.meta["filled"]["filled"] > 0
+    _same_bits(local, remote)
+    assert local.meta["filled"] == remote.meta["filled"]
+
+
 def test_a_task_dask_cancels_is_queued_again(cluster, monkeypatch):
     """A worker lost in flight can take a task's inputs with it: Dask cancels the task.
     The backend queues it once more (a new key) and the lattice is the local one to the

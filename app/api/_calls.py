@@ -214,7 +214,7 @@ def _changed(command: str, given: dict) -> dict:
 def bake(volume: Volume | str | os.PathLike[str], *, out: PathText | None = None,
          mode: Literal["irradiance", "sh"] = "irradiance", sh_order: int = 5,
          samples: int | None = None, target_error: float | None = None,
-         max_samples: int = 1024,
+         texel_error: float | None = None, max_samples: int = 1024,
          bounces: int = 2, albedo: float | Numbers | str = 0.8, scale: float = 1.0,
          iso_range: tuple[float, float] | None = None, env: str = DEFAULT_ENV,
          light: str | Sequence[str] | None = None, seed: int = 0, max_levels: int = 64,

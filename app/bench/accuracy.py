@@ -9,11 +9,11 @@ the volume as loaded, turned by ``--up`` where asked), two pictures are measured
   illumination (`app.render.offscreen.render_volume` with no lattice, lit by
   `app.options.view_light` from the render command's defaults);
 * **bake**: a bake with ``isolume bake``'s defaults (`app.options.bake_config`: the
-  default sky, 100 paths per texel, 2 bounces, scale 1), or with ``--paths N`` or
-  ``--target-error E`` (paths where the noise is), restricted, for time, to the iso
-  range a lazy bake serves for that isovalue (`baking.lazy.view_iso_range`: ±3 % of the
-  data range around it), then the picture drawn with that lattice; its row records the
-  paths it traced and its file's bytes;
+  default sky, 100 paths per texel, 2 bounces, scale 1), or with ``--paths N``,
+  ``--target-error E`` (paths where the noise is) or ``--texel-error E`` (texels where
+  the light varies), restricted, for time, to the iso range a lazy bake serves for that
+  isovalue (`baking.lazy.view_iso_range`: ±3 % of the data range around it), then the
+  picture drawn with that lattice; its row records the paths it traced and its bytes;
 
 both against the per-pixel path-traced reference of ``isolume reference``
 (`baking.reference.ReferenceTracer`) with the same camera, size and lighting (the seed
@@ -91,6 +91,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--target-error", type=float, default=None, metavar="E",
                    help="the bake's noise target, as bake's --target-error (with --paths: "
                    "its minimum paths)")
+    p.add_argument("--texel-error", type=float, metavar="E", help="as bake's --texel-error")
     p.add_argument("--scale", type=float, default=1.0, metavar="S",
                    help="the bake's lattice texels per voxel, as bake's --scale (default 1)")
     p.add_argument("--cache", default=None, metavar="DIR|none",
@@ -120,9 +121,9 @@ class Sweep:
         ref_spp: cap on the reference's samples per pixel.
         paths: paths per texel of the render and the bake (None: their defaults).
         target_error: the bake's noise target (None: the bake's default, or exactly
-            `paths`); scale: the bake's texels per voxel.
-        cache: the folder of kept references (None: none kept).
-        up: ([NAME], AXIS) rules of ``--up``; progress: progress bars on stderr.
+            `paths`); texel_error: its texel error (None: none); scale: its texels per voxel.
+        cache: the folder of kept references (None: none kept); up: ([NAME], AXIS) rules
+            of ``--up``; progress: progress bars on stderr.
     """
 
     size: tuple[int, int]
@@ -132,6 +133,7 @@ class Sweep:
     ref_spp: int
     paths: int | None
     target_error: float | None
+    texel_error: float | None
     scale: float
     cache: Path | None
     skip_bake: bool
@@ -162,10 +164,9 @@ def sweep_of(args: argparse.Namespace) -> Sweep:
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     return Sweep(parse_size(args.size), view, args.view, args.max_size, args.ref_spp,
-                 args.paths, args.target_error, args.scale, reference_cache(args.cache),
-                 args.skip_bake,
-                 args.isovalues == "first", parse_up_rules(args.up), args.workers, args.gl,
-                 sys.stderr.isatty())
+                 args.paths, args.target_error, args.texel_error, args.scale,
+                 reference_cache(args.cache), args.skip_bake, args.isovalues == "first",
+                 parse_up_rules(args.up), args.workers, args.gl, sys.stderr.isatty())
 
 
 def reference_cache(text: str | None) -> Path | None:
@@ -238,12 +239,13 @@ def render_options(sweep: Sweep) -> argparse.Namespace:
 
 def bake_options(sweep: Sweep, iso_range: tuple[float, float]) -> argparse.Namespace:
     """``isolume bake``'s options at their defaults, for `iso_range`, with this sweep's
-    paths, target, scale and workers."""
+    paths, target, texel error, scale and workers."""
     from isolume.app.options import add_bake_options
 
     ns = _defaults(add_bake_options, "--out", "unused.npz")
     ns.iso_range, ns.workers = list(iso_range), sweep.workers
-    ns.samples, ns.target_error, ns.scale = sweep.paths, sweep.target_error, sweep.scale
+    ns.samples, ns.target_error, ns.texel_error, ns.scale = (
+        sweep.paths, sweep.target_error, sweep.texel_error, sweep.scale)
     return ns
 
 
@@ -437,9 +439,10 @@ def render_baked(volume: Volume, iso: float, sweep: Sweep) -> Shot:
     extra = {"paths": lattice.meta["stats"]["paths"],
              "paths_per_texel": lattice.meta["stats"]["paths"] / max(plan["active_texels"], 1),
              "samples": config.samples, "target_error": config.target_error,
-             "scale": config.scale,
-             "iso_range": list(config.iso_range), "lattice_bytes": file_bytes,
-             "active_texels": plan["active_texels"], "levels": len(plan["levels"])}
+             "texel_error": config.texel_error, "scale": config.scale, "lattice_bytes": file_bytes,
+             "filled_texels": lattice.meta.get("filled", {}).get("filled", 0),
+             "iso_range": list(config.iso_range), "active_texels": plan["active_texels"],
+             "levels": len(plan["levels"])}
     return Shot("bake", *_flat(frame), time.perf_counter() - began, bake_seconds, extra)
 
 
@@ -624,7 +627,7 @@ def _settings_record(sweep: Sweep, specs: list[str]) -> dict:
                    "env": "render's default", "seed": render.seed},
         "bake": None if sweep.skip_bake else {
             "samples": bake_ns.samples, "target_error": bake_ns.target_error,
-            "bounces": bake_ns.bounces, "env": bake_ns.env,
+            "texel_error": bake_ns.texel_error, "bounces": bake_ns.bounces, "env": bake_ns.env,
             "scale": bake_ns.scale, "max_levels": bake_ns.max_levels,
             "iso_range": "baking.lazy.view_iso_range: ±3 % of the data range around iso"},
         "reference": {"start_spp": START_SPP, "max_spp": sweep.ref_spp,

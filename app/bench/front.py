@@ -2,12 +2,14 @@
 
 Each ``bench accuracy`` sweep (its ``--out`` folder's ``accuracy.json``) with other bake
 settings — ``--paths N`` (exactly N paths a texel) or ``--target-error E`` (paths where
-the noise is, `baking.adaptive`), at a lattice ``--scale`` — is one point: over the bake
+the noise is, `baking.adaptive`), at a lattice ``--scale``, with or without
+``--texel-error E`` (texels where the light varies, `baking.density`) — is one point: over the bake
 cases every sweep measured (the same volumes and isovalues; cases missing from any sweep
 are left out, and said), the median, 90th percentile and worst relative RMSE less the
 reference's noise against the summed paths traced, bake wall time and lattice file bytes.
-Sweeps of one kind (uniform or target, at one scale) are joined by a line, cheapest first:
-the front of speed against accuracy the defaults are chosen on. Writes ``FILE.png`` and
+Sweeps of one kind (uniform or target, at one scale, with or without a texel error) are
+joined by a line, cheapest first: the front of speed against accuracy the defaults are
+chosen on. Writes ``FILE.png`` and
 ``FILE.json`` (every number plotted and the per-case figures) and prints the table.
 """
 
@@ -58,13 +60,16 @@ def read_sweep(folder: Path) -> dict[str, Any]:
                          "or one made before paths were recorded)")
     first = next(iter(rows.values()))
     target, scale = first.get("target_error"), float(first.get("scale", 1.0))
+    texel = first.get("texel_error")
     kind = "uniform" if target is None else "target"
     label = (f"{first['samples']} paths" if target is None
              else f"target {target:g} (from {first['samples']})")
+    if texel is not None:
+        kind, label = f"texels, {kind}", f"{label}, texel error {texel:g}"
     if scale != 1.0:
         kind, label = f"{kind}, scale {scale:g}", f"{label} x{scale:g}"
     return {"folder": str(folder), "label": label, "kind": kind, "target_error": target,
-            "samples": first["samples"], "scale": scale, "rows": rows}
+            "texel_error": texel, "samples": first["samples"], "scale": scale, "rows": rows}
 
 
 def front(sweeps: list[dict[str, Any]]) -> dict[str, Any]:
@@ -82,7 +87,8 @@ def front(sweeps: list[dict[str, Any]]) -> dict[str, Any]:
                   if math.isfinite(r["rel_rmse_less_noise"])]
         points.append({"label": sweep["label"], "kind": sweep["kind"],
                        "folder": sweep["folder"], "samples": sweep["samples"],
-                       "target_error": sweep["target_error"], "scale": sweep["scale"],
+                       "target_error": sweep["target_error"],
+                       "texel_error": sweep["texel_error"], "scale": sweep["scale"],
                        **spread(errors),
                        "black_cases": sum(r["black_fraction"] > BLACK_LIMIT for r in rows),
                        **{key: sum(r.get(key) or 0 for r in rows) for key, _, _ in FIGURES}})
@@ -127,7 +133,7 @@ def plot(record: dict[str, Any], path: Path) -> None:
     axes[0].legend(fontsize=7)
     names = sorted({c["volume"] for c in record["cases"]})
     fig.suptitle("bake error against cost: uniform paths, paths where the noise is, "
-                 "lattice scales\n"
+                 "texels where the light varies, lattice scales\n"
                  f"{', '.join(names)}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -1,0 +1,526 @@
+"""Texels where the light varies: bricks of the lattice traced at half resolution where
+that reproduces their light (`BakeConfig.texel_error`).
+
+The lattice is cut into `BRICK`³ bricks (those of the renderer's GPU atlas). Its *nodes*
+are the active texels whose z, y and x are all even: a lattice at half the resolution,
+nested in the full one (node k at texel 2k), so that at any texel the trilinear mix of its
+surrounding nodes is exactly what a display's trilinear lookup of the half lattice shows
+there. A bake to a texel error (`bake_texels`):
+
+1. traces every node — the even ones, and the odd ones (z, y, x all odd: the other half
+   lattice) around the texels whose even nodes face away from them (`odd_nodes_needed`:
+   where both sides of a sheet are lit in a checkerboard, `baking.sides`, the even nodes
+   lie on one colour of it), chosen from the plan's facings before any path;
+2. judges each brick by its *surpluses*: at each of its nodes and along each of 13
+   directions (the axes, the face and the body diagonals), the node's light less the
+   mean of the two nodes a step of the half lattice either side of it, where both are
+   shown and face its way — the error of linear interpolation at four texels' spacing
+   (more along a diagonal). Their mean square at each node, and the root of its mean over
+   the brick's nodes, less what the nodes' path noise accounts for and `SURE` standard
+   deviations of that (`noise_free_rms`: noise alone does not make a brick fine; a node's
+   pairs share its noise, so each node counts once), estimates that error; at two
+   texels' spacing, the fill's, it is `EDGE_SHARE` of it (the error falls as the spacing
+   where the light has an edge, as its square where it is smooth: the half is the
+   cautious one). A brick whose
+   estimate is above `texel_error` times the scene's light level (`light_level`) is
+   *fine*; so is a brick without a single pair to judge by;
+3. traces the other texels of the fine bricks, and every texel that neither half lattice
+   can fill (`split_texels`: no shown node around it facing its way, `SIDE_FLOOR`);
+4. gives the nodes that fill texels `NODE_PATHS` times `samples` paths, with step 3's
+   texels (their light is spread over the filled texels around them), and fills the
+   rest (*filled* texels) with the side-aware mix of their nodes
+   (`baking.lattice.sided_mix`, what the shader does with the half lattice), their
+   facings from the plan as a traced texel's.
+
+The lattice stays one uniform grid that every reader reads as it is, seamless by
+construction (a filled brick is the half lattice's trilinear field, sampled at its own
+texels). Decisions are made from finished node values alone and per texel, so the same
+seed gives the same lattice for any worker count or backend; the decisions are kept in
+the lattice's metadata (`JUDGED_KEY`, `Judgement`), so that a resumed bake makes the same
+ones. The filled texels are recorded there too (`FILLED_KEY`); a later bake of the same
+file first clears them (`clear_filled`), so that a resumed, a finer or a uniform bake never
+takes a filled texel for a traced one.
+"""
+
+from __future__ import annotations
+
+import base64
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from isolume.baking import octahedral
+from isolume.baking.lattice import (
+    TRAPPED_PATHS,
+    path_variance,
+    side_weights,
+    sided_mix,
+    sky_everywhere,
+)
+from isolume.baking.passes import commit_facing
+from isolume.volumes import cores
+
+BRICK = 8
+"""Texels per side of a brick (the renderer's atlas bricks, `app.render.bricks`)."""
+FILLED_KEY = "filled"
+"""The lattice metadata's record of the texels a bake filled (`clear_filled`)."""
+JUDGED_KEY = "texel_judgement"
+"""The lattice metadata's record of a bake's decisions (`Judgement`)."""
+SIDE_FLOOR = 0.5
+"""The least side-aware share of the weight (`side_share`) a texel is filled on, and the
+least side weight of a node's pair in its surplus."""
+SURE = 3.0
+"""Standard deviations of the noise's sum of squares a brick's surpluses must exceed it
+by before their excess counts (`noise_free_rms`)."""
+EDGE_SHARE = 0.5
+"""The error of the half-resolution fill, per unit of the quarter-resolution surplus."""
+NODE_PATHS = 2
+"""Paths of a node that fills texels per path of a traced texel (`BakeConfig.samples`):
+its light is mixed into up to 26 filled texels around it, so its noise shows over a larger
+part of the picture (docs/accuracy.md measures the choice)."""
+BLOCK = 1 << 16
+"""Texels one item of the judging and filling passes takes, at most."""
+DIRECTIONS = np.array([d for d in np.ndindex(3, 3, 3)
+                       if np.ravel_multi_index(d, (3, 3, 3)) > 13], np.int64) - 1
+"""(13, 3) z, y, x steps of the half lattice to the neighbours of a node on one side
+(the other 13 of its 26 are their opposites): the axes, the face and the body diagonals."""
+CORNERS = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], np.int64)
+"""(8, 3) z, y, x steps of a cell's corners, in corner order x + 2 y + 4 z."""
+
+
+def texel_coords(ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """(T, 3) int32 z, y, x of (T,) flat lattice `ids` of a (Z, Y, X) box."""
+    ids = np.asarray(ids)
+    plane = shape[1] * shape[2]
+    z, rest = np.divmod(ids, plane)
+    y, x = np.divmod(rest, shape[2])
+    return np.stack([z, y, x], axis=1).astype(np.int32)
+
+
+class Nodes:
+    """A half lattice of nodes: texels whose z, y and x are all ≡ `offset` (mod 2), as a
+    dense (⌈(Z − offset)/2⌉, …) int32 map `rows` from a node's half index to its plan
+    position (−1: none there), and their (N,) sorted plan `positions`.
+
+    Args:
+        coords: (T, 3) z, y, x of the plan's texels (`texel_coords`).
+        shape: (Z, Y, X) texels of the lattice.
+        offset: 0 (the even nodes) or 1 (the odd ones).
+        positions: the plan positions of the nodes (default: every texel of the plan
+            on the half lattice).
+    """
+
+    def __init__(self, coords: np.ndarray, shape: tuple[int, int, int], offset: int = 0,
+                 positions: np.ndarray | None = None) -> None:
+        self.shape: np.ndarray = np.array(shape, np.int64)
+        self.coords: np.ndarray = coords
+        self.offset: int = offset
+        self.positions: np.ndarray = (
+            np.flatnonzero(((coords & 1) == offset).all(axis=1)) if positions is None
+            else np.asarray(positions, np.int64))
+        self.rows: np.ndarray = np.full(tuple(-(-(self.shape - offset) // 2)), -1, np.int32)
+        half = self.half(self.positions)
+        self.rows[half[:, 0], half[:, 1], half[:, 2]] = self.positions
+
+    def half(self, positions: np.ndarray) -> np.ndarray:
+        """(N, 3) int64 half indices of the nodes at plan `positions`."""
+        return (self.coords[positions].astype(np.int64) - self.offset) // 2
+
+    def row_at(self, half: np.ndarray) -> np.ndarray:
+        """(N,) plan positions of the nodes at (N, 3) half indices (−1: none, or outside)."""
+        inside = ((half >= 0) & (half < self.rows.shape)).all(axis=1)
+        safe = np.where(inside[:, None], half, 0)
+        return np.where(inside, self.rows[safe[:, 0], safe[:, 1], safe[:, 2]], -1)
+
+    def corners(self, coords: np.ndarray, stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """The nodes of the trilinear mix at `stride` texels' spacing (2 or 4) of (N, 3)
+        texel `coords`: (N, 8) int64 plan positions (−1 where no node, or a weight of 0)
+        and (N, 8) float64 trilinear weights (0 there)."""
+        c = np.asarray(coords, np.int64) - self.offset
+        low = c - c % stride
+        frac = (c - low) / stride
+        at = low[:, None, :] + stride * CORNERS[None]
+        weights = np.prod(np.where(CORNERS[None] == 1, frac[:, None, :],
+                                   1.0 - frac[:, None, :]), axis=2)
+        inside = ((at >= 0) & (at + self.offset < self.shape)).all(axis=2) & (weights > 0)
+        half = np.where(inside[..., None], at // 2, 0)
+        rows = np.where(inside, self.rows[half[..., 0], half[..., 1], half[..., 2]], -1)
+        return rows.astype(np.int64), np.where(rows >= 0, weights, 0.0)
+
+
+def usable(rows: np.ndarray, weights: np.ndarray, luminance: np.ndarray,
+           samples: np.ndarray, trapped_at: int) -> np.ndarray:
+    """(N, 8) `weights` of the nodes at plan positions (N, 8) `rows` (−1: none) that a
+    display shows (`shown_texels`)."""
+    safe = np.maximum(rows, 0)
+    shown = shown_texels(luminance[safe], samples[safe], trapped_at)
+    return np.where((rows >= 0) & shown, weights, 0.0)
+
+
+def node_mix(rows: np.ndarray, weights: np.ndarray, facing: np.ndarray,
+             own_facing: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(N, C) the side-aware mix (`sided_mix`) of the (T, C) `values` of the nodes at
+    (N, 8) plan positions `rows` with (N, 8) `weights`, for texels whose facings are
+    (N, 2) `own_facing` (unknown: the plain mix); `facing`: (T, 2) every texel's."""
+    safe = np.maximum(rows, 0)
+    normals = octahedral.decode(own_facing)
+    sides = side_weights(facing[safe], normals)
+    sides = np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
+    return sided_mix(weights, sides, values[safe].astype(np.float64))
+
+
+def light_level(luminance: np.ndarray) -> float:
+    """The scene's light level: the mean brightness of the (N,) node luminances (1 where
+    every node is dark: the tolerance is then an absolute one)."""
+    level = float(np.mean(np.abs(luminance))) if len(luminance) else 0.0
+    return level if level > 0 else 1.0
+
+
+def noise_free_rms(squares: np.ndarray, noise: np.ndarray, noise_squares: np.ndarray,
+                   counts: np.ndarray) -> np.ndarray:
+    """(B,) root-mean-square of bricks' surpluses beyond their noise:
+    √(max(Σs² − Σσ² − `SURE`·√(2 Σσ⁴), 0) / n) from (B,) sums of the squared surpluses s²,
+    of their noise variances σ² and of σ⁴, and (B,) counts n (0 where n = 0). Where the
+    surpluses are Gaussian noise of those variances, Σs² has mean Σσ² and standard
+    deviation √(2 Σσ⁴)."""
+    excess = np.maximum(squares - noise - SURE * np.sqrt(2.0 * noise_squares), 0.0)
+    return np.sqrt(np.divide(excess, counts, out=np.zeros_like(excess), where=counts > 0))
+
+
+def pair_surpluses(nodes: Nodes, at: np.ndarray, luminance: np.ndarray,
+                   error: np.ndarray, shown: np.ndarray, facing: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 13) surpluses of the nodes at plan positions (N,) `at` along the 13 directions
+    of `DIRECTIONS`: a node's brightness less the mean of the two nodes a step of the half
+    lattice either side of it (0 where either is missing, not `shown`, or faces away:
+    side weight below `SIDE_FLOOR`), and (N, 13) their noise variances from the (T,)
+    `error` variances of the texels' means (NaN where there is no pair).
+
+    Args:
+        luminance: (T,) brightness; shown: (T,) bool, what a display shows;
+        facing: (T, 2) octahedral facings.
+    """
+    half = nodes.half(at)
+    surplus = np.zeros((len(at), len(DIRECTIONS)))
+    noise = np.full((len(at), len(DIRECTIONS)), np.nan)
+    own = octahedral.decode(facing[at])
+    known = octahedral.known(facing[at])
+    for k, direction in enumerate(DIRECTIONS):
+        pair = []
+        for step in (-1, 1):
+            row = nodes.row_at(half + step * direction)
+            safe = np.maximum(row, 0)
+            turned = side_weights(facing[safe][:, None], own)[:, 0]
+            pair.append((safe, (row >= 0) & shown[safe] & (~known | (turned >= SIDE_FLOOR))))
+        (low, ok_low), (high, ok_high) = pair
+        both = ok_low & ok_high
+        surplus[both, k] = (luminance[at[both]]
+                            - 0.5 * (luminance[low[both]] + luminance[high[both]]))
+        noise[both, k] = error[at[both]] + 0.25 * (error[low[both]] + error[high[both]])
+    return surplus, noise
+
+
+def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray,
+                variance: np.ndarray, samples: np.ndarray, facing: np.ndarray,
+                tolerance: float, trapped_at: int) -> tuple[np.ndarray, np.ndarray]:
+    """(B,) bool over the flat (⌈Z/8⌉, ⌈Y/8⌉, ⌈X/8⌉) bricks, twice: those the half
+    lattices do not reproduce within `tolerance` of the light level (see the module's
+    docs), and those holding a texel of the plan.
+
+    Args:
+        lattices: the traced half lattices (the even nodes; the odd ones where traced);
+            coords: (T, 3) the plan's texels' z, y, x.
+        luminance, variance, samples: (T,) each texel's brightness, per-path variance of
+            it and paths (the nodes' are read).
+        facing: (T, 2) octahedral facings.
+        tolerance: `BakeConfig.texel_error`; trapped_at: as `usable`'s.
+    """
+    grid = tuple(-(-np.array(lattices[0].shape) // BRICK))
+    count = int(np.prod(grid))
+    error = variance / np.maximum(samples, 1)
+    shown = shown_texels(luminance, samples, trapped_at)
+    sums = np.zeros((4, count))
+    for nodes in lattices:
+        at = nodes.positions
+        per_node = np.zeros((4, len(at)))
+
+        def judge(part: slice, nodes: Nodes = nodes, at: np.ndarray = at,
+                  per_node: np.ndarray = per_node) -> None:
+            surplus, var = pair_surpluses(nodes, at[part], luminance, error, shown, facing)
+            has = ~np.isnan(var)
+            pairs = has.sum(axis=1)
+            judged = np.maximum(pairs, 1)
+            square = np.where(has, surplus ** 2, 0.0).sum(axis=1) / judged
+            noise = np.where(has, var, 0.0).sum(axis=1) / judged
+            per_node[:, part] = [square, noise, noise ** 2, pairs > 0]
+
+        cores.for_blocks(judge, len(at), BLOCK, "texels")
+        brick = np.ravel_multi_index(tuple((coords[at] // BRICK).T), grid)
+        sums += [np.bincount(brick, v, count) for v in per_node]
+    every = np.bincount(np.ravel_multi_index(tuple((coords // BRICK).T), grid),
+                        minlength=count) > 0
+    level = light_level(luminance[lattices[0].positions])
+    rough = EDGE_SHARE * noise_free_rms(*sums) > tolerance * level
+    return every & (rough | (sums[3] == 0)), every
+
+
+def shown_texels(luminance: np.ndarray, samples: np.ndarray, trapped_at: int) -> np.ndarray:
+    """(T,) bool: the texels a display shows: traced, and not trapped (dark on at least
+    `trapped_at` paths, 0: never; `baking.lattice.TRAPPED_PATHS`)."""
+    shown = samples > 0
+    if trapped_at:
+        shown &= ~((luminance == 0) & (samples >= trapped_at))
+    return shown
+
+
+def facing_away(nodes: Nodes, at: np.ndarray, coords: np.ndarray, facing: np.ndarray,
+                weigh) -> np.ndarray:
+    """(N,) bool: the texels at plan positions (N,) `at` that the half lattice `nodes`
+    cannot fill: their nodes' side-aware weight (`side_share`) below `SIDE_FLOOR`.
+
+    Args:
+        weigh: (rows, weights) → the weights of the nodes that count (e.g. `usable`).
+    """
+    away = np.zeros(len(at), bool)
+
+    def look(part: slice) -> None:
+        rows, w = nodes.corners(coords[at[part]])
+        away[part] = side_share(rows, weigh(rows, w), facing, facing[at[part]]) < SIDE_FLOOR
+
+    cores.for_blocks(look, len(at), BLOCK, "texels")
+    return away
+
+
+def odd_nodes_needed(even: Nodes, coords: np.ndarray, facing: np.ndarray,
+                     others: np.ndarray) -> np.ndarray:
+    """The plan positions of the odd nodes to trace: the active ones around the texels
+    among (K,) `others` whose even nodes face away from them (every active even node
+    counted: nothing is traced yet), sorted."""
+    away = others[facing_away(even, others, coords, facing,
+                              lambda rows, w: np.where(rows >= 0, w, 0.0))]
+    odd = Nodes(coords, tuple(even.shape), 1)
+    rows, w = odd.corners(coords[away])
+    return np.unique(rows[w > 0])
+
+
+def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
+                 facing: np.ndarray, luminance: np.ndarray, samples: np.ndarray,
+                 trapped_at: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """The plan positions of the texels that are not nodes: those of `fine` bricks,
+    those of the others that are traced all the same (*alone*: no half lattice has shown
+    nodes around them that face their way, `SIDE_FLOOR` — e.g. the other side of a sheet,
+    lit in a checkerboard, `baking.sides`, where only the even nodes are traced), and
+    per half lattice of `lattices` (in order), those it fills; sorted arrays."""
+    grid = tuple(-(-np.array(lattices[0].shape) // BRICK))
+    nodes = np.concatenate([n.positions for n in lattices])
+    others = np.setdiff1d(np.arange(len(coords)), nodes)
+    in_fine = fine[np.ravel_multi_index(tuple((coords[others] // BRICK).T), grid)]
+    left = others[~in_fine]
+    fills = []
+
+    def weigh(rows: np.ndarray, w: np.ndarray) -> np.ndarray:
+        return usable(rows, w, luminance, samples, trapped_at)
+
+    for lattice in lattices:
+        away = facing_away(lattice, left, coords, facing, weigh)
+        fills.append(left[~away])
+        left = left[away]
+    return others[in_fine], left, fills
+
+
+def side_share(rows: np.ndarray, weights: np.ndarray, facing: np.ndarray,
+               own_facing: np.ndarray) -> np.ndarray:
+    """(N,) the side-aware weight of the nodes at (N, 8) plan positions `rows` with (N, 8)
+    `weights`, over the plain weight, for texels facing (N, 2) `own_facing` (1 where it is
+    unknown; 0 where no node has weight)."""
+    plain = weights.sum(axis=1)
+    safe = np.maximum(rows, 0)
+    sides = side_weights(facing[safe], octahedral.decode(own_facing))
+    sides = np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
+    sided = (weights * sides).sum(axis=1)
+    return np.divide(sided, plain, out=np.zeros_like(plain), where=plain > 0)
+
+
+def fill(lattice: Any, nodes: Nodes, coords: np.ndarray, filled: np.ndarray,
+         luminance: np.ndarray, samples: int, trapped_at: int) -> None:
+    """Write the half lattice's mix into `lattice`'s rows (plan positions) `filled`: values
+    and second moments, side-aware (`node_mix`) from the `nodes` around each; `samples`
+    paths each (`BakeConfig.samples`, as a traced texel: its noise is at most theirs)."""
+    values = lattice.values.reshape(len(coords), -1)
+    second = lattice.second.reshape(-1)
+    count = lattice.samples.reshape(-1)
+    facing = lattice.facing.reshape(-1, 2)
+
+    def mix(part: slice) -> None:
+        at = filled[part]
+        rows, w = nodes.corners(coords[at])
+        w = usable(rows, w, luminance, count, trapped_at)
+        values[at] = node_mix(rows, w, facing, facing[at], values)
+        second[at] = node_mix(rows, w, facing, facing[at], second[:, None])[:, 0]
+        count[at] = samples
+
+    cores.for_blocks(mix, len(filled), BLOCK, "texels")
+
+
+def packed(positions: np.ndarray, total: int) -> str:
+    """(K,) positions among `total` as text: a bit mask, `numpy.packbits`, zlib-deflated,
+    base64."""
+    mask = np.zeros(total, bool)
+    mask[positions] = True
+    return base64.b64encode(zlib.compress(np.packbits(mask).tobytes(), 6)).decode()
+
+
+def unpacked(text: str, total: int) -> np.ndarray:
+    """(K,) sorted positions among `total` of `packed` text."""
+    bits = np.frombuffer(zlib.decompress(base64.b64decode(text)), np.uint8)
+    return np.flatnonzero(np.unpackbits(bits, count=total))
+
+
+def filled_positions(record: dict[str, Any]) -> np.ndarray:
+    """(F,) plan positions of the texels a bake filled (its ``meta[FILLED_KEY]``)."""
+    return unpacked(record["bits"], int(record["count"]))
+
+
+@dataclass
+class Judgement:
+    """What a bake to a texel error decided once its nodes were traced: the (B,) `fine`
+    bricks, and the plan positions each half lattice fills (`fills`: even, odd). Kept in
+    the lattice's metadata (`JUDGED_KEY`) from then on, so that a resumed bake, or the
+    same bake of a finished file — whose nodes have more paths by then — goes on with
+    the same decisions."""
+
+    fine: np.ndarray
+    fills: list[np.ndarray]
+
+    def record(self, config: Any, total: int) -> dict[str, Any]:
+        """JSON-ready, for a bake of `config` over `total` texels."""
+        return {"texel_error": config.texel_error, "samples": config.samples,
+                "count": total, "bricks": len(self.fine),
+                "fine": packed(np.flatnonzero(self.fine), len(self.fine)),
+                "fills": [packed(f, total) for f in self.fills]}
+
+    @classmethod
+    def resumed(cls, record: dict[str, Any] | None, config: Any, total: int
+                ) -> Judgement | None:
+        """The judgement of `record` where it is of a bake of `config`'s texel error and
+        samples over `total` texels, else None."""
+        if not record or (record.get("texel_error"), record.get("samples"),
+                          record.get("count")) != (config.texel_error, config.samples, total):
+            return None
+        fine = np.zeros(int(record["bricks"]), bool)
+        fine[unpacked(record["fine"], len(fine))] = True
+        return cls(fine, [unpacked(f, total) for f in record["fills"]])
+
+
+def clear_filled(lattice: Any, plan_size: int, texel_bake: bool) -> None:
+    """Take the filled texels of an earlier bake out of `lattice` (over the plan's
+    texels, `PlanLattice`): no samples, values nor moments, and drop the record, so a
+    bake goes on from traced texels alone; a bake that is not to a texel error
+    (`texel_bake` False) drops an unfinished one's judgement too.
+
+    Raises:
+        ValueError: the record is of another plan (another texel count).
+    """
+    if not texel_bake:
+        lattice.meta.pop(JUDGED_KEY, None)
+    record = lattice.meta.pop(FILLED_KEY, None)
+    if record is None:
+        return
+    if int(record["count"]) != plan_size:
+        raise ValueError(f"the lattice's filled texels are of a plan of {record['count']:,} "
+                         f"texels, this one has {plan_size:,}")
+    at = filled_positions(record)
+    lattice.samples.reshape(-1)[at] = 0
+    lattice.values.reshape(plan_size, -1)[at] = 0
+    lattice.second.reshape(-1)[at] = 0
+
+
+def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
+    """Bake `baker`'s texels (a `baking.bake.Baker` holding a `PlanLattice`) to its
+    config's `texel_error` at `samples` paths a texel: nodes, judgement, the fine bricks'
+    texels and more paths for the nodes that fill, the fill (see the module's docs); the
+    record in the metadata."""
+    config, plan, lattice = baker.config, baker.plan, baker.lattice
+    shape = baker.geometry.shape
+    coords = texel_coords(plan.ids, shape)
+    even = Nodes(coords, shape)
+    commit_facing(lattice, baker.volume, config, plan, baker.records,
+                  np.arange(len(coords)), None)  # every texel's, the nodes' with the rest
+    baker.facings_made = True  # the commits keep them
+    facing = lattice.facing.reshape(-1, 2)
+    others = np.setdiff1d(np.arange(len(coords)), even.positions, assume_unique=True)
+    odd = Nodes(coords, shape, 1, odd_nodes_needed(even, coords, facing, others))
+    del others
+    nodes = np.union1d(even.positions, odd.positions)
+    _count_paths(bar, baker, nodes, config.samples, restart=True)
+    baker.run(nodes, bar=bar, after_commit=checkpoint)
+    trapped_at = TRAPPED_PATHS if sky_everywhere(config) else 0
+    weights = baker.job.tracing.weights
+    judged = Judgement.resumed(lattice.meta.get(JUDGED_KEY), config, len(coords))
+    if judged is None:
+        judged = judge(baker, [even, odd], coords, facing, trapped_at)
+        lattice.meta[JUDGED_KEY] = judged.record(config, len(coords))
+    grid = tuple(-(-np.array(shape) // BRICK))
+    others = np.setdiff1d(np.arange(len(coords)), nodes, assume_unique=True)
+    in_fine = others[judged.fine[np.ravel_multi_index(tuple((coords[others] // BRICK).T),
+                                                      grid)]]
+    alone = np.setdiff1d(others, np.union1d(in_fine, np.union1d(*judged.fills)))
+    del others
+    filling = np.union1d(*(filling_nodes(half, coords, filled)
+                           for half, filled in zip((even, odd), judged.fills, strict=True)))
+    traced = np.union1d(np.union1d(in_fine, alone), filling)
+    paths = np.where(np.isin(traced, filling), NODE_PATHS * config.samples, config.samples)
+    _count_paths(bar, baker, traced, paths)
+    baker.run(traced, paths, bar=bar, after_commit=checkpoint)
+    luminance = lattice.values.reshape(len(coords), -1) @ weights
+    for half, filled in zip((even, odd), judged.fills, strict=True):
+        fill(lattice, half, coords, filled, luminance, config.samples, trapped_at)
+    filled = np.union1d(*judged.fills)
+    lattice.meta[FILLED_KEY] = {
+        "texel_error": config.texel_error, "count": len(coords),
+        "even_nodes": len(even.positions), "odd_nodes": len(odd.positions),
+        "filling_nodes": len(filling), "in_fine_bricks": len(in_fine), "alone": len(alone),
+        "filled": len(filled), "fine_bricks": int(judged.fine.sum()),
+        "bricks": int(_bricks_used(coords, grid)), "bits": packed(filled, len(coords))}
+
+
+def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, facing: np.ndarray,
+          trapped_at: int) -> Judgement:
+    """The fine bricks and the fills of `baker`'s lattice with its `lattices` of nodes
+    traced (`fine_bricks`, `split_texels`)."""
+    lattice, config = baker.lattice, baker.config
+    luminance = lattice.values.reshape(len(coords), -1) @ baker.job.tracing.weights
+    samples = lattice.samples.reshape(-1)
+    variance = path_variance(luminance, lattice.second.reshape(-1), samples)
+    fine, _ = fine_bricks(lattices, coords, luminance, variance, samples, facing,
+                          config.texel_error, trapped_at)
+    _, _, fills = split_texels(lattices, coords, fine, facing, luminance, samples,
+                               trapped_at)
+    return Judgement(fine, fills)
+
+
+def _bricks_used(coords: np.ndarray, grid: tuple[int, int, int]) -> int:
+    """Bricks of the (BZ, BY, BX) `grid` holding one of the (T, 3) texels."""
+    return int(np.count_nonzero(np.bincount(
+        np.ravel_multi_index(tuple((coords // BRICK).T), grid), minlength=int(np.prod(grid)))))
+
+
+def filling_nodes(nodes: Nodes, coords: np.ndarray, filled: np.ndarray) -> np.ndarray:
+    """The plan positions of the `nodes` that the texels at plan positions (F,) `filled`
+    are filled from (the corners of their mixes), sorted."""
+    rows, weights = nodes.corners(coords[filled])
+    return np.unique(rows[weights > 0])
+
+
+def _count_paths(bar: Any, baker: Any, positions: np.ndarray, paths: int | np.ndarray,
+                 restart: bool = False) -> None:
+    """Size the progress `bar` (None: none) for the paths the texels at plan `positions`
+    still need to have `paths` each (or (N,) per texel): in place of its total
+    (`restart`), or on top of what it has done."""
+    if bar is None:
+        return
+    wanted = int(np.maximum(paths - baker.samples_done(positions), 0).sum())
+    bar.total = wanted if restart else int(bar.n) + wanted
+    bar.refresh()

@@ -1,0 +1,295 @@
+"""Texels where the light varies (`baking.density`): the nodes' interpolation against the
+lattice's own trilinear lookup, the judgement of bricks, the fill, and bakes that keep the
+same bits for any workers, clear their filled texels for a later bake, and trace fewer
+paths where the light is smooth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from isolume.baking import BakeConfig, bake
+from isolume.baking.density import (
+    BRICK,
+    FILLED_KEY,
+    JUDGED_KEY,
+    NODE_PATHS,
+    Nodes,
+    fill,
+    filled_positions,
+    fine_bricks,
+    noise_free_rms,
+    split_texels,
+    texel_coords,
+)
+from isolume.baking.errors import BakeError
+from isolume.baking.lattice import trilinear_corners
+from isolume.volumes.synthetic import make
+
+SHAPE = (20, 18, 17)
+"""A lattice box with odd and even sides, a few bricks along each."""
+RNG = np.random.default_rng(7)
+
+
+def _all_texels(shape=SHAPE):
+    ids = np.arange(int(np.prod(shape)))
+    return ids, texel_coords(ids, shape)
+
+
+def test_texel_coords_are_numpy_unravel_index():
+    ids = RNG.integers(0, np.prod(SHAPE), 500)
+    np.testing.assert_array_equal(texel_coords(ids, SHAPE),
+                                  np.stack(np.unravel_index(ids, SHAPE), axis=1))
+
+
+def test_the_nodes_mix_is_the_half_lattice_trilinear_lookup():
+    """At every texel of a box full of texels, the nodes' weights at two texels' spacing
+    are those of the half lattice's trilinear lookup at half the texel's coordinates (node
+    k at texel 2k), read by `baking.lattice.trilinear_corners`; at four, the quarter's."""
+    ids, coords = _all_texels()
+    nodes = Nodes(coords, SHAPE)
+    values = RNG.random(len(ids))
+    for stride in (2, 4):
+        rows, w = nodes.corners(coords, stride)
+        got = np.where(rows >= 0, values[np.maximum(rows, 0)], 0.0)
+        got = (got * w).sum(axis=1) / w.sum(axis=1)
+        coarse = tuple(-(-n // stride) for n in SHAPE)
+        keep = (coords < (np.array(coarse) - 1) * stride).all(axis=1)  # inside the last node
+        idx, tw = trilinear_corners(coarse, coords[keep] / stride)
+        grid = values[np.ravel_multi_index(tuple((idx * stride).transpose(2, 0, 1)), SHAPE)]
+        np.testing.assert_allclose(got[keep], (grid * tw).sum(axis=1), rtol=1e-12)
+        np.testing.assert_allclose(w.sum(axis=1)[keep], 1.0)
+
+
+def test_a_missing_node_leaves_its_weight_out():
+    ids, coords = _all_texels()
+    keep = ids != np.ravel_multi_index((2, 2, 2), SHAPE)
+    nodes = Nodes(coords[keep], SHAPE)
+    rows, w = nodes.corners(np.array([[1, 1, 1], [3, 2, 2]]), 2)
+    assert (rows >= 0).sum(axis=1).tolist() == [7, 1]  # (2, 2, 2) gone; (3,2,2): (4,2,2)
+    assert w[0].sum() == pytest.approx(7 / 8) and w[1].sum() == pytest.approx(0.5)
+
+
+def test_noise_free_rms_sees_an_offset_and_not_noise():
+    """Surpluses that are noise alone, their variance known: no excess (their sum of
+    squares is within `SURE` standard deviations of its mean, but for a chance of 0.1 %);
+    the same noise about an offset of 0.2: the offset, within the chi-square spread."""
+    n, sigma = 20000, 0.3
+    s = RNG.normal(0, sigma, n)
+    noise = [np.array([n * sigma ** 2]), np.array([n * sigma ** 4]), np.array([float(n)])]
+    assert noise_free_rms(np.array([np.sum(s ** 2)]), *noise)[0] == 0
+    edge = noise_free_rms(np.array([np.sum((s + 0.2) ** 2)]), *noise)[0]
+    assert edge == pytest.approx(0.2, rel=0.1)
+
+
+def _judge(luminance, variance=None, tolerance=0.02):
+    ids, coords = _all_texels()
+    nodes = Nodes(coords, SHAPE)
+    variance = np.zeros(len(ids)) if variance is None else variance
+    samples = np.full(len(ids), 100)
+    facing = np.zeros((len(ids), 2), np.uint8)
+    fine, used = fine_bricks([nodes], coords, luminance, variance, samples, facing,
+                             tolerance, 0)
+    return nodes, coords, fine.reshape(tuple(-(-np.array(SHAPE) // BRICK))), used
+
+
+def test_smooth_light_is_coarse_and_an_edge_is_fine():
+    """Light linear in position: every brick whose surplus nodes are judged is coarse; a
+    step across x = 9 (a shadow's edge, in the second column of bricks) makes the bricks
+    it crosses fine, and only those (the last bricks, too thin to hold a node of odd half
+    index with its quarter lattice, are fine either way)."""
+    _, coords = _all_texels()
+    linear = 1.0 + 0.01 * coords @ np.array([1.0, 2.0, 3.0])
+    _, _, fine, used = _judge(linear)
+    assert used.all()
+    assert not fine[:2, :2, :2].any()
+    step = linear + 0.5 * (coords[:, 2] >= 9)
+    _, _, fine, _ = _judge(step)
+    assert fine[:2, :2, 1].all() and not fine[:2, :2, 0].any()
+
+
+def test_noise_alone_does_not_make_a_brick_fine():
+    _, coords = _all_texels()
+    noisy = 1.0 + RNG.normal(0, 0.1, len(coords))
+    _, _, fine, _ = _judge(noisy, variance=np.full(len(coords), 0.01 * 100))
+    assert not fine[:2, :2, :2].any()
+    _, _, fine, _ = _judge(noisy)  # the same spread, unexplained by noise: fine
+    assert fine[:2, :2, :2].all()
+
+
+class _Held:
+    """The arrays of a lattice held over the plan's texels (as `PlanLattice`)."""
+
+    def __init__(self, values):
+        self.values = values.astype(np.float32)
+        self.second = (values[:, 0] ** 2).astype(np.float32)
+        self.samples = np.full(len(values), 100, np.uint32)
+        self.facing = np.zeros((len(values), 2), np.uint8)
+
+
+def test_a_linear_light_is_filled_exactly():
+    """Trilinear interpolation reproduces a linear field: every filled texel gets the
+    field's value (3 channels), away from the box's far sides (no node beyond)."""
+    ids, coords = _all_texels()
+    nodes = Nodes(coords, SHAPE)
+    field = 2.0 + coords @ np.array([[0.1, 0.0, 0.3], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]])
+    held = _Held(field)
+    fine = np.zeros(int(np.prod(-(-np.array(SHAPE) // BRICK))), bool)
+    luminance = field[:, 0]
+    in_fine, alone, (filled,) = split_texels([nodes], coords, fine, held.facing, luminance,
+                                             held.samples, 0)
+    assert len(in_fine) == 0
+    inner = filled[(coords[filled] < np.array(SHAPE) - 1 + np.array(SHAPE) % 2).all(axis=1)]
+    assert len(inner) > 0.8 * len(filled)
+    held.values[filled] = 0
+    fill(held, nodes, coords, filled, luminance, 100, 0)
+    np.testing.assert_allclose(held.values[inner], field[inner], rtol=1e-5)
+    assert len(alone) == len(np.setdiff1d(ids, np.union1d(filled, nodes.positions)))
+
+
+CONFIG = BakeConfig(samples=16, bounces=1, env="sky:sun=3", direct_light="lattice",
+                    max_move=0.5, texel_error=0.02)
+"""A small bake to a texel error: the sun's shadows give the light edges."""
+
+
+def _same_bits(a, b):
+    for name in ("values", "second", "samples", "facing"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+@pytest.fixture(scope="module")
+def sphere_bakes():
+    vol = make("shells", 32)
+    return vol, bake(vol, CONFIG, workers=1), bake(vol, CONFIG, workers=2)
+
+
+def test_a_texel_bake_is_the_same_bits_on_any_number_of_workers(sphere_bakes):
+    _, one, two = sphere_bakes
+    _same_bits(one, two)
+    record = one.meta[FILLED_KEY]
+    assert 0 < record["fine_bricks"] < record["bricks"]
+    computed = int((one.samples > 0).sum())
+    assert 0 < record["filled"] < computed
+    filled = np.zeros(one.samples.size, bool)
+    filled[np.flatnonzero(one.samples.reshape(-1) > 0)[filled_positions(record)]] = True
+    traced = one.samples.reshape(-1)[~filled]
+    assert one.meta["stats"]["paths"] == traced.sum()
+    assert (traced == NODE_PATHS * CONFIG.samples).sum() == record["filling_nodes"] > 0
+    assert (traced == CONFIG.samples).sum() == (
+        record["even_nodes"] + record["odd_nodes"] - record["filling_nodes"]
+        + record["in_fine_bricks"] + record["alone"])
+
+
+def test_filled_texels_are_close_to_traced_ones(sphere_bakes):
+    """Uniform bakes of the same seed have the traced texels: to the bit at `samples`
+    paths, to float rounding at the filling nodes' (a running mean over two passes); the
+    filled texels differ from the finer uniform bake's by at most what the texel error
+    and the paths' noise allow (RMS within 3× the tolerance plus twice the traced texels'
+    standard error, of the light level)."""
+    vol, one, _ = sphere_bakes
+    fine = bake(vol, dataclasses.replace(CONFIG, texel_error=None,
+                                         samples=NODE_PATHS * CONFIG.samples), workers=2)
+    plain = bake(vol, dataclasses.replace(CONFIG, texel_error=None), workers=2)
+    count = one.samples.reshape(-1)
+    values, finer = one.values.reshape(-1, 3), fine.values.reshape(-1, 3)
+    ids = np.flatnonzero(count > 0)
+    filled = ids[filled_positions(one.meta[FILLED_KEY])]
+    traced = np.setdiff1d(ids, filled)
+    at_samples = traced[count[traced] == CONFIG.samples]
+    np.testing.assert_array_equal(values[at_samples],
+                                  plain.values.reshape(-1, 3)[at_samples])
+    filling = traced[count[traced] == NODE_PATHS * CONFIG.samples]
+    np.testing.assert_allclose(values[filling], finer[filling], rtol=1e-5, atol=1e-6)
+    diff = values[filled] - finer[filled]
+    level = np.mean(np.abs(finer[ids]))
+    se = np.sqrt(np.mean(fine.standard_error().reshape(-1)[filled] ** 2))
+    assert np.sqrt(np.mean(diff ** 2)) < 3 * CONFIG.texel_error * level + 2 * se
+
+
+def test_a_later_bake_clears_the_filled_texels(tmp_path):
+    """The same bake of a finished file changes nothing; a uniform bake of it (at the
+    nodes' paths) traces the filled texels afresh — to the bit what a fresh uniform bake
+    gives them — and adds paths to the others (the same means to float rounding: a
+    running mean over two passes)."""
+    vol = make("shells", 32)
+    path = tmp_path / "t.npz"
+    first = bake(vol, CONFIG, out=path, workers=2)
+    record = first.meta[FILLED_KEY]
+    assert record["filled"] > 0 and record["in_fine_bricks"] > 0
+    again = bake(vol, CONFIG, out=path, workers=2)
+    _same_bits(again, first)
+    uniform = dataclasses.replace(CONFIG, texel_error=None,
+                                  samples=NODE_PATHS * CONFIG.samples)  # the nodes' paths
+    done = bake(vol, uniform, out=path, workers=2)
+    fresh = bake(vol, uniform, workers=2)
+    assert FILLED_KEY not in done.meta and JUDGED_KEY not in done.meta
+    np.testing.assert_array_equal(done.samples, fresh.samples)
+    computed = np.flatnonzero(first.samples.reshape(-1) > 0)
+    filled = computed[filled_positions(record)]
+    for name in ("values", "second"):
+        a, b = (getattr(x, name).reshape(first.samples.size, -1) for x in (done, fresh))
+        np.testing.assert_array_equal(a[filled], b[filled], err_msg=name)
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
+
+
+def test_an_interrupted_texel_bake_resumes_to_the_same_bits(tmp_path, monkeypatch):
+    """Cut while the fine bricks' texels are traced, the file keeps the nodes and the
+    texels finished; the resumed bake judges alike and ends with the uninterrupted
+    lattice to the bit."""
+    from isolume.baking import density
+    from isolume.baking.backend import ThreadBackend
+
+    vol = make("shells", 32)
+    whole = bake(vol, CONFIG, workers=2)
+    original, judge = ThreadBackend._submit_level, density.fine_bricks
+    calls = {"n": 0, "judged": False}
+
+    def judging(*args):
+        calls["judged"] = True
+        return judge(*args)
+
+    def interrupting(self, lay, sums):
+        calls["n"] += calls["judged"]
+        if calls["n"] == 2:  # in the second pass, a level done
+            raise KeyboardInterrupt
+        return original(self, lay, sums)
+
+    monkeypatch.setattr(density, "fine_bricks", judging)
+    monkeypatch.setattr(ThreadBackend, "_submit_level", interrupting)
+    path = tmp_path / "cut.npz"
+    with pytest.raises(KeyboardInterrupt):
+        bake(vol, CONFIG, out=path, workers=2)
+    from isolume.baking import Lattice
+
+    cut = Lattice.load(path, vol)
+    assert FILLED_KEY not in cut.meta and JUDGED_KEY in cut.meta
+    assert 0 < (cut.samples > 0).sum() < (whole.samples > 0).sum()
+    even = np.zeros(whole.samples.shape, bool)
+    even[::2, ::2, ::2] = True
+    assert (cut.samples[even & (whole.samples > 0)] > 0).all()  # cut after the nodes
+    monkeypatch.setattr(ThreadBackend, "_submit_level", original)
+    _same_bits(bake(vol, CONFIG, out=path, workers=1), whole)
+
+
+def test_a_bake_takes_one_of_texel_error_and_target_error():
+    with pytest.raises(BakeError, match="--texel-error with --target-error"):
+        dataclasses.replace(CONFIG, target_error=0.1)
+    with pytest.raises(BakeError, match="--texel-error 2"):
+        dataclasses.replace(CONFIG, texel_error=2.0)
+
+
+def test_the_bake_command_says_what_a_texel_error_filled(tmp_path, capsys):
+    from isolume.app.cli import main
+    from isolume.baking import Lattice
+
+    out = tmp_path / "l.npz"
+    assert main(["bake", "synthetic:torus:32", "--texel-error", "0.05", "--samples", "8",
+                 "--bounces", "1", "--out", str(out), "--workers", "2"]) == 0
+    said = capsys.readouterr().out
+    lattice = Lattice.load(out)
+    record = lattice.meta[FILLED_KEY]
+    assert lattice.config.texel_error == 0.05
+    assert f"{record['filled']:,} of {record['count']:,} texels filled" in said
+    assert record["filled"] > 0
