@@ -378,7 +378,7 @@ class Baker:
             del held
         index = index_type(len(plan.ids))
         positions = (np.arange(len(plan.ids), dtype=index) if positions is None
-                     else np.unique(positions).astype(index))
+                     else sorted_unique(positions).astype(index, copy=False))
         had = self.samples_done(positions)
         wanted = np.maximum(np.asarray(target) - had, 0)
         count = _count_type(int((had + wanted).max(initial=0)))
@@ -418,6 +418,14 @@ class Baker:
         return (f"texels {self.texels_done:,}/{len(self.plan.ids):,} "
                 f"level {level + 1}/{len(self.plan.levels)} {note}"
                 f"{self.stats.rays / max(elapsed, 1e-9) / 1e6:.2f} Mrays/s")
+
+
+def sorted_unique(positions: np.ndarray) -> np.ndarray:
+    """`numpy.unique` of (N,) `positions`, without its sort where they already rise."""
+    positions = np.asarray(positions)
+    if len(positions) < 2 or bool(np.all(positions[1:] > positions[:-1])):
+        return positions
+    return np.unique(positions)
 
 
 def _count_type(most: int) -> type:

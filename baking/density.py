@@ -49,6 +49,7 @@ import zlib
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 
 from isolume.baking import octahedral
@@ -60,6 +61,7 @@ from isolume.baking.lattice import (
     sky_everywhere,
 )
 from isolume.baking.passes import commit_facing
+from isolume.baking.sampling_kernels import JIT
 from isolume.volumes import cores
 
 BRICK = 8
@@ -86,8 +88,6 @@ DIRECTIONS = np.array([d for d in np.ndindex(3, 3, 3)
                        if np.ravel_multi_index(d, (3, 3, 3)) > 13], np.int64) - 1
 """(13, 3) z, y, x steps of the half lattice to the neighbours of a node on one side
 (the other 13 of its 26 are their opposites): the axes, the face and the body diagonals."""
-CORNERS = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], np.int64)
-"""(8, 3) z, y, x steps of a cell's corners, in corner order x + 2 y + 4 z."""
 
 
 def texel_coords(ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
@@ -137,17 +137,37 @@ class Nodes:
     def corners(self, coords: np.ndarray, stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
         """The nodes of the trilinear mix at `stride` texels' spacing (2 or 4) of (N, 3)
         texel `coords`: (N, 8) int64 plan positions (−1 where no node, or a weight of 0)
-        and (N, 8) float64 trilinear weights (0 there)."""
-        c = np.asarray(coords, np.int64) - self.offset
-        low = c - c % stride
-        frac = (c - low) / stride
-        at = low[:, None, :] + stride * CORNERS[None]
-        weights = np.prod(np.where(CORNERS[None] == 1, frac[:, None, :],
-                                   1.0 - frac[:, None, :]), axis=2)
-        inside = ((at >= 0) & (at + self.offset < self.shape)).all(axis=2) & (weights > 0)
-        half = np.where(inside[..., None], at // 2, 0)
-        rows = np.where(inside, self.rows[half[..., 0], half[..., 1], half[..., 2]], -1)
-        return rows.astype(np.int64), np.where(rows >= 0, weights, 0.0)
+        and (N, 8) float64 trilinear weights (0 there), in corner order x + 2 y + 4 z
+        (x, y, z: 0 or 1, the step along each axis)."""
+        rows = np.empty((len(coords), 8), np.int64)
+        weights = np.empty((len(coords), 8))
+        corner_nodes(self.rows, np.asarray(coords), self.offset, stride, self.shape,
+                     rows, weights)
+        return rows, weights
+
+
+@numba.njit(**JIT)
+def corner_nodes(node_rows: np.ndarray, coords: np.ndarray, offset: int, stride: int,
+                 shape: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> None:
+    """`Nodes.corners` into (N, 8) `rows` and `weights`, from a half lattice's
+    `node_rows` map (`Nodes.rows`) at `offset`; `shape`: (3,) the lattice's texels."""
+    half = np.empty(3, np.int64)
+    for n in range(len(coords)):
+        for k in range(8):
+            weight = 1.0
+            inside = True
+            for axis in range(3):
+                c = np.int64(coords[n, axis]) - offset
+                low = c - (c % stride + stride) % stride
+                frac = (c - low) / stride
+                step = (k >> (2 - axis)) & 1
+                weight *= frac if step == 1 else 1.0 - frac
+                at = low + stride * step
+                inside &= at >= 0 and at + offset < shape[axis]
+                half[axis] = at // 2
+            row = node_rows[half[0], half[1], half[2]] if inside and weight > 0 else -1
+            rows[n, k] = row
+            weights[n, k] = weight if row >= 0 else 0.0
 
 
 def usable(rows: np.ndarray, weights: np.ndarray, luminance: np.ndarray,
@@ -314,8 +334,7 @@ def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
     lit in a checkerboard, `baking.sides`, where only the even nodes are traced), and
     per half lattice of `lattices` (in order), those it fills; sorted arrays."""
     grid = tuple(-(-np.array(lattices[0].shape) // BRICK))
-    nodes = np.concatenate([n.positions for n in lattices])
-    others = np.setdiff1d(np.arange(len(coords)), nodes)
+    others = np.flatnonzero(~mask_of(len(coords), *(n.positions for n in lattices)))
     in_fine = fine[np.ravel_multi_index(tuple((coords[others] // BRICK).T), grid)]
     left = others[~in_fine]
     fills = []
@@ -442,48 +461,63 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     config's `texel_error` at `samples` paths a texel: nodes, judgement, the fine bricks'
     texels and more paths for the nodes that fill, the fill (see the module's docs); the
     record in the metadata."""
-    config, plan, lattice = baker.config, baker.plan, baker.lattice
+    config, lattice = baker.config, baker.lattice
     shape = baker.geometry.shape
-    coords = texel_coords(plan.ids, shape)
+    coords = texel_coords(baker.plan.ids, shape)
+    total = len(coords)
     even = Nodes(coords, shape)
-    commit_facing(lattice, baker.volume, config, plan, baker.records,
-                  np.arange(len(coords)), None)  # every texel's, the nodes' with the rest
-    baker.facings_made = True  # the commits keep them
+    make_facings(baker)
     facing = lattice.facing.reshape(-1, 2)
-    others = np.setdiff1d(np.arange(len(coords)), even.positions, assume_unique=True)
-    odd = Nodes(coords, shape, 1, odd_nodes_needed(even, coords, facing, others))
-    del others
-    nodes = np.union1d(even.positions, odd.positions)
+    node = mask_of(total, even.positions)
+    odd = Nodes(coords, shape, 1, odd_nodes_needed(even, coords, facing,
+                                                   np.flatnonzero(~node)))
+    node[odd.positions] = True
+    nodes = np.flatnonzero(node)
     _count_paths(bar, baker, nodes, config.samples, restart=True)
     baker.run(nodes, bar=bar, after_commit=checkpoint)
     trapped_at = TRAPPED_PATHS if sky_everywhere(config) else 0
     weights = baker.job.tracing.weights
-    judged = Judgement.resumed(lattice.meta.get(JUDGED_KEY), config, len(coords))
+    judged = Judgement.resumed(lattice.meta.get(JUDGED_KEY), config, total)
     if judged is None:
         judged = judge(baker, [even, odd], coords, facing, trapped_at)
-        lattice.meta[JUDGED_KEY] = judged.record(config, len(coords))
+        lattice.meta[JUDGED_KEY] = judged.record(config, total)
     grid = tuple(-(-np.array(shape) // BRICK))
-    others = np.setdiff1d(np.arange(len(coords)), nodes, assume_unique=True)
-    in_fine = others[judged.fine[np.ravel_multi_index(tuple((coords[others] // BRICK).T),
-                                                      grid)]]
-    alone = np.setdiff1d(others, np.union1d(in_fine, np.union1d(*judged.fills)))
-    del others
-    filling = np.union1d(*(filling_nodes(half, coords, filled)
-                           for half, filled in zip((even, odd), judged.fills, strict=True)))
-    traced = np.union1d(np.union1d(in_fine, alone), filling)
-    paths = np.where(np.isin(traced, filling), NODE_PATHS * config.samples, config.samples)
+    in_fine = ~node & judged.fine[np.ravel_multi_index(tuple((coords // BRICK).T), grid)]
+    filled = mask_of(total, *judged.fills)
+    alone = ~(node | in_fine | filled)
+    filling = mask_of(total, *(filling_nodes(half, coords, fills)
+                               for half, fills in zip((even, odd), judged.fills, strict=True)))
+    traced = np.flatnonzero(in_fine | alone | filling)
+    paths = np.where(filling[traced], NODE_PATHS * config.samples, config.samples)
     _count_paths(bar, baker, traced, paths)
     baker.run(traced, paths, bar=bar, after_commit=checkpoint)
-    luminance = lattice.values.reshape(len(coords), -1) @ weights
-    for half, filled in zip((even, odd), judged.fills, strict=True):
-        fill(lattice, half, coords, filled, luminance, config.samples, trapped_at)
-    filled = np.union1d(*judged.fills)
+    luminance = lattice.values.reshape(total, -1) @ weights
+    for half, fills in zip((even, odd), judged.fills, strict=True):
+        fill(lattice, half, coords, fills, luminance, config.samples, trapped_at)
     lattice.meta[FILLED_KEY] = {
-        "texel_error": config.texel_error, "count": len(coords),
+        "texel_error": config.texel_error, "count": total,
         "even_nodes": len(even.positions), "odd_nodes": len(odd.positions),
-        "filling_nodes": len(filling), "in_fine_bricks": len(in_fine), "alone": len(alone),
-        "filled": len(filled), "fine_bricks": int(judged.fine.sum()),
-        "bricks": int(_bricks_used(coords, grid)), "bits": packed(filled, len(coords))}
+        "filling_nodes": int(filling.sum()), "in_fine_bricks": int(in_fine.sum()),
+        "alone": int(alone.sum()), "filled": int(filled.sum()),
+        "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid)),
+        "bits": packed(np.flatnonzero(filled), total)}
+
+
+def make_facings(baker: Any) -> None:
+    """Every texel's facing (`commit_facing`) before any path, a level's texels at a time
+    (their records one run of the plan's records), and the commits told to keep them."""
+    for level in range(len(baker.plan.levels)):
+        commit_facing(baker.lattice, baker.volume, baker.config, baker.plan, baker.records,
+                      baker.groups.of(level), None)
+    baker.facings_made = True
+
+
+def mask_of(total: int, *positions: np.ndarray) -> np.ndarray:
+    """(`total`,) bool: True at every one of the plan `positions` arrays."""
+    mask = np.zeros(total, bool)
+    for at in positions:
+        mask[at] = True
+    return mask
 
 
 def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, facing: np.ndarray,

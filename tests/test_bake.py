@@ -510,3 +510,13 @@ def test_a_pass_counts_its_samples_in_two_bytes_where_they_fit():
         np.testing.assert_array_equal(np.sort(busy), positions)
     finally:
         baker.close()
+
+
+def test_sorted_unique_matches_numpy_unique():
+    """`bake.sorted_unique` gives `numpy.unique`'s answer, rising input or not."""
+    from isolume.baking.bake import sorted_unique
+
+    rng = np.random.default_rng(5)
+    for values in (rng.integers(0, 50, 200), np.arange(7), np.array([3]), np.array([], int),
+                   np.array([1, 2, 2, 3])):
+        np.testing.assert_array_equal(sorted_unique(values), np.unique(values))
