@@ -103,6 +103,8 @@ def test_interrupted_cluster_bake_keeps_whole_texels_and_resumes(cluster, tmp_pa
         if calls["n"] == 3:  # Ctrl-C with later levels in flight
             raise KeyboardInterrupt
 
+    cluster_module.fingerprint()  # of the code as it is: the patch below stands for a
+    # Ctrl-C, not for other code, and the master's fingerprint is made once per process
     monkeypatch.setattr(cluster_module.ClusterBackend, "_apply", interrupting)
     cut = tmp_path / "cut.npz"
     with pytest.raises(KeyboardInterrupt):
