@@ -130,8 +130,8 @@ def say_outlook(outlook: BakeOutlook, config: BakeConfig) -> None:
 def cheaper_options(config: BakeConfig) -> str:
     """The options that make a bake of `config` cheaper: an iso range, half its paths
     per texel (while it has more than one; with a noise target, twice the target), a
-    texel error (twice its own) and half its lattice scale (while that is allowed:
-    `baking.config.SCALES`)."""
+    texel error (where it has none and no noise target: the two are not combined) and
+    half its lattice scale (while that is allowed: `baking.config.SCALES`)."""
     from isolume.baking.config import SCALES
 
     options = ["--iso-range LO HI around the isovalues you will show"]
@@ -139,7 +139,8 @@ def cheaper_options(config: BakeConfig) -> str:
         options.append(f"--target-error {min(2 * config.target_error, 0.5):g}")
     elif config.samples > 1:
         options.append(f"--samples {config.samples // 2}")
-    options.append(f"--texel-error {min(2 * (config.texel_error or 0.01), 0.5):g}")
+    if config.texel_error is None and config.target_error is None:
+        options.append("--texel-error 0.02")
     if config.scale / 2 >= SCALES[0]:
         options.append(f"--scale {config.scale / 2:g}")
     return ", ".join(options)

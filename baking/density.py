@@ -54,7 +54,9 @@ import numpy as np
 
 from isolume.baking import octahedral
 from isolume.baking.lattice import (
+    BRICK,
     TRAPPED_PATHS,
+    brick_grid,
     path_variance,
     side_weights,
     sided_mix,
@@ -64,8 +66,6 @@ from isolume.baking.passes import commit_facing
 from isolume.baking.sampling_kernels import JIT
 from isolume.volumes import cores
 
-BRICK = 8
-"""Texels per side of a brick (the renderer's atlas bricks, `app.render.bricks`)."""
 FILLED_KEY = "filled"
 """The lattice metadata's record of the texels a bake filled (`clear_filled`)."""
 JUDGED_KEY = "texel_judgement"
@@ -92,11 +92,13 @@ DIRECTIONS = np.array([d for d in np.ndindex(3, 3, 3)
 
 def texel_coords(ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
     """(T, 3) int32 z, y, x of (T,) flat lattice `ids` of a (Z, Y, X) box."""
-    ids = np.asarray(ids)
-    plane = shape[1] * shape[2]
-    z, rest = np.divmod(ids, plane)
-    y, x = np.divmod(rest, shape[2])
-    return np.stack([z, y, x], axis=1).astype(np.int32)
+    return np.stack(np.unravel_index(ids, shape), axis=1).astype(np.int32)
+
+
+def brick_of(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
+    """(N,) flat indices, over the (BZ, BY, BX) `grid` (`brick_grid`), of the bricks
+    holding the texels at (N, 3) z, y, x `coords`."""
+    return np.ravel_multi_index(tuple((coords // BRICK).T), grid)
 
 
 class Nodes:
@@ -257,7 +259,7 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray
         facing: (T, 2) octahedral facings.
         tolerance: `BakeConfig.texel_error`; trapped_at: as `usable`'s.
     """
-    grid = tuple(-(-np.array(lattices[0].shape) // BRICK))
+    grid = brick_grid(lattices[0].shape)
     count = int(np.prod(grid))
     error = variance / np.maximum(samples, 1)
     shown = shown_texels(luminance, samples, trapped_at)
@@ -277,10 +279,9 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray
             per_node[:, part] = [square, noise, noise ** 2, pairs > 0]
 
         cores.for_blocks(judge, len(at), BLOCK, "texels")
-        brick = np.ravel_multi_index(tuple((coords[at] // BRICK).T), grid)
+        brick = brick_of(coords[at], grid)
         sums += [np.bincount(brick, v, count) for v in per_node]
-    every = np.bincount(np.ravel_multi_index(tuple((coords // BRICK).T), grid),
-                        minlength=count) > 0
+    every = np.bincount(brick_of(coords, grid), minlength=count) > 0
     level = light_level(luminance[lattices[0].positions])
     rough = EDGE_SHARE * noise_free_rms(*sums) > tolerance * level
     return every & (rough | (sums[3] == 0)), every
@@ -333,9 +334,9 @@ def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
     nodes around them that face their way, `SIDE_FLOOR` — e.g. the other side of a sheet,
     lit in a checkerboard, `baking.sides`, where only the even nodes are traced), and
     per half lattice of `lattices` (in order), those it fills; sorted arrays."""
-    grid = tuple(-(-np.array(lattices[0].shape) // BRICK))
+    grid = brick_grid(lattices[0].shape)
     others = np.flatnonzero(~mask_of(len(coords), *(n.positions for n in lattices)))
-    in_fine = fine[np.ravel_multi_index(tuple((coords[others] // BRICK).T), grid)]
+    in_fine = fine[brick_of(coords[others], grid)]
     left = others[~in_fine]
     fills = []
 
@@ -383,11 +384,8 @@ def fill(lattice: Any, nodes: Nodes, coords: np.ndarray, filled: np.ndarray,
     cores.for_blocks(mix, len(filled), BLOCK, "texels")
 
 
-def packed(positions: np.ndarray, total: int) -> str:
-    """(K,) positions among `total` as text: a bit mask, `numpy.packbits`, zlib-deflated,
-    base64."""
-    mask = np.zeros(total, bool)
-    mask[positions] = True
+def packed(mask: np.ndarray) -> str:
+    """A (K,) bool `mask` as text: `numpy.packbits`, zlib-deflated, base64."""
     return base64.b64encode(zlib.compress(np.packbits(mask).tobytes(), 6)).decode()
 
 
@@ -417,8 +415,8 @@ class Judgement:
         """JSON-ready, for a bake of `config` over `total` texels."""
         return {"texel_error": config.texel_error, "samples": config.samples,
                 "count": total, "bricks": len(self.fine),
-                "fine": packed(np.flatnonzero(self.fine), len(self.fine)),
-                "fills": [packed(f, total) for f in self.fills]}
+                "fine": packed(self.fine),
+                "fills": [packed(mask_of(total, f)) for f in self.fills]}
 
     @classmethod
     def resumed(cls, record: dict[str, Any] | None, config: Any, total: int
@@ -481,8 +479,8 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     if judged is None:
         judged = judge(baker, [even, odd], coords, facing, trapped_at)
         lattice.meta[JUDGED_KEY] = judged.record(config, total)
-    grid = tuple(-(-np.array(shape) // BRICK))
-    in_fine = ~node & judged.fine[np.ravel_multi_index(tuple((coords // BRICK).T), grid)]
+    grid = brick_grid(shape)
+    in_fine = ~node & judged.fine[brick_of(coords, grid)]
     filled = mask_of(total, *judged.fills)
     alone = ~(node | in_fine | filled)
     filling = mask_of(total, *(filling_nodes(half, coords, fills)
@@ -500,7 +498,7 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
         "filling_nodes": int(filling.sum()), "in_fine_bricks": int(in_fine.sum()),
         "alone": int(alone.sum()), "filled": int(filled.sum()),
         "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid)),
-        "bits": packed(np.flatnonzero(filled), total)}
+        "bits": packed(filled)}
 
 
 def make_facings(baker: Any) -> None:
@@ -537,8 +535,7 @@ def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, facing: np.ndar
 
 def _bricks_used(coords: np.ndarray, grid: tuple[int, int, int]) -> int:
     """Bricks of the (BZ, BY, BX) `grid` holding one of the (T, 3) texels."""
-    return int(np.count_nonzero(np.bincount(
-        np.ravel_multi_index(tuple((coords // BRICK).T), grid), minlength=int(np.prod(grid)))))
+    return int(np.count_nonzero(np.bincount(brick_of(coords, grid))))
 
 
 def filling_nodes(nodes: Nodes, coords: np.ndarray, filled: np.ndarray) -> np.ndarray:

@@ -126,6 +126,16 @@ class LatticeGeometry:
         return f[:, ::-1]
 
 
+BRICK = 8
+"""Texels per side of a brick: the renderer's atlas keeps a lattice in bricks
+(`app.render.bricks`), and a bake to a texel error judges it by them (`baking.density`)."""
+
+
+def brick_grid(shape: tuple[int, int, int]) -> tuple[int, int, int]:
+    """(BZ, BY, BX) bricks over a (Z, Y, X) lattice."""
+    return tuple(-(-int(n) // BRICK) for n in shape)
+
+
 def trilinear_corners(shape: tuple[int, int, int], coords_zyx: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """The texels a trilinear lookup at (N, 3) texel coordinates reads in a (Z, Y, X)

@@ -1,5 +1,6 @@
 """The command line: outputs, and one-line errors with exit status 2 for bad input."""
 
+import dataclasses
 import re
 import subprocess
 import sys
@@ -364,6 +365,23 @@ def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypat
                           "--bounces", "0", "--scale", "0.08", "--out", str(tmp_path / "u.npz"))
     cheaper = next(x for x in err.splitlines() if x.startswith("bake: cheaper"))
     assert status == 0 and "--samples" not in cheaper and "--scale" not in cheaper, cheaper
+
+
+def test_cheaper_options_name_only_options_the_bake_takes():
+    """A texel error is named for a bake without one, never beside a noise target (the
+    two are refused together), and the named options make a config that is accepted."""
+    from isolume.app.commands import cheaper_options
+    from isolume.baking import BakeConfig
+
+    def texel_error(config: BakeConfig) -> float | None:
+        named = re.search(r"--texel-error ([0-9.]+)", cheaper_options(config))
+        if named:  # the suggestion is a config the bake takes
+            dataclasses.replace(config, texel_error=float(named.group(1)))
+        return float(named.group(1)) if named else None
+
+    assert texel_error(BakeConfig(samples=100)) == 0.02
+    assert texel_error(BakeConfig(samples=16, target_error=0.1)) is None
+    assert texel_error(BakeConfig(samples=100, texel_error=0.02)) is None
 
 
 def test_a_plan_that_fails_leaves_its_stage_unfinished_and_says_why(tmp_path, capsys,

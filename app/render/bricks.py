@@ -1,14 +1,14 @@
 """Where a lattice's texels live on the GPU: bricks in an atlas, through an indirection.
 
-A lattice of (Z, Y, X) texels is cut into `BRICK`³ bricks; only the bricks a lookup can
-read a shown texel from get a *slot* in the atlas textures, so texture memory follows the
-shown texels, not the lattice's box. A slot holds `STORED`³ texels: the brick's own and
-one more layer on each high side (the *apron*, a copy of the first texels of the next
-bricks), so that every lookup of a cell — the eight texels around a point, hardware
-trilinear included — reads one slot, chosen by the brick of the cell's lower corner. A
-brick needs a slot when a texel of its `STORED`³ block is shown (`needed_bricks`). Slot 0
-stays empty (all zeros: not shown), and the indirection texture sends every brick
-without a slot there.
+A lattice of (Z, Y, X) texels is cut into `BRICK`³ bricks (`baking.lattice.brick_grid`);
+only the bricks a lookup can read a shown texel from get a *slot* in the atlas textures,
+so texture memory follows the shown texels, not the lattice's box. A slot holds `STORED`³
+texels: the brick's own and one more layer on each high side (the *apron*, a copy of the
+first texels of the next bricks), so that every lookup of a cell — the eight texels
+around a point, hardware trilinear included — reads one slot, chosen by the brick of the
+cell's lower corner. A brick needs a slot when a texel of its `STORED`³ block is shown
+(`needed_bricks`). Slot 0 stays empty (all zeros: not shown), and the indirection texture
+sends every brick without a slot there.
 
 Slots fill the atlas x first, then y, then z (`AtlasLayout`), `STORED` texels apart.
 """
@@ -20,17 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BRICK = 8
-"""Texels per side of a brick."""
+from isolume.baking.lattice import BRICK, brick_grid
+
 STORED = BRICK + 1
 """Texels per side of a slot: the brick and its apron."""
 GROWTH = 1.25
 """Slots an atlas is made with, per slot needed (room for a lazy bake to grow into)."""
-
-
-def brick_grid(shape: tuple[int, int, int]) -> tuple[int, int, int]:
-    """(BZ, BY, BX) bricks over a (Z, Y, X) lattice."""
-    return tuple(-(-int(n) // BRICK) for n in shape)
 
 
 def cell_bricks(shape: tuple[int, int, int]) -> tuple[int, int, int]:
