@@ -25,7 +25,12 @@ there. A bake to a texel error (`bake_texels`):
    estimate is above `texel_error` times the scene's light level (`light_level`) is
    *fine*; so is a brick without a single pair to judge by;
 3. traces the other texels of the fine bricks, and every texel that neither half lattice
-   can fill (`split_texels`: no shown node around it facing its way, `SIDE_FLOOR`);
+   can fill (`split_texels`): no shown node around it facing its way (`SIDE_FLOOR`);
+   shown nodes on one side of it only (the others missing: the fill would extrapolate)
+   that face its way less closely (`ONE_SIDED_FLOOR` — in the gap under a sphere that
+   rests on a plane, a texel of one surface beside a node of the other); or a node of its
+   mix on an edge of the light (`EDGE_NODE`: that node's own surpluses, beyond their
+   noise, where its brick's mean hides them — a contact, a shadow's edge in a corner);
 4. gives the nodes that fill texels `NODE_PATHS` times `samples` paths, with step 3's
    texels (their light is spread over the filled texels around them), and fills the
    rest (*filled* texels) with the side-aware mix of their nodes
@@ -78,6 +83,14 @@ SURE = 3.0
 by before their excess counts (`noise_free_rms`)."""
 EDGE_SHARE = 0.5
 """The error of the half-resolution fill, per unit of the quarter-resolution surplus."""
+EDGE_NODE = 3.0
+"""A node whose own surpluses, beyond their noise, put the fill's error above this many
+times the tolerance is on an edge of the light (a contact, a shadow's edge): the texels
+whose mix it is part of are traced, whatever its brick's mean says."""
+ONE_SIDED_FLOOR = 0.8
+"""The least side-aware share (`side_share`) a texel is filled on from nodes that carry
+at most half of its trilinear weight (the others missing or not shown: the texel lies
+past the half lattice's edge, and the fill extrapolates from one side of it)."""
 NODE_PATHS = 2
 """Paths of a node that fills texels per path of a traced texel (`BakeConfig.samples`):
 its light is mixed into up to 26 filled texels around it, so its noise shows over a larger
@@ -246,10 +259,13 @@ def pair_surpluses(nodes: Nodes, at: np.ndarray, luminance: np.ndarray,
 
 def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray,
                 variance: np.ndarray, samples: np.ndarray, facing: np.ndarray,
-                tolerance: float, trapped_at: int) -> tuple[np.ndarray, np.ndarray]:
+                tolerance: float, trapped_at: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(B,) bool over the flat (⌈Z/8⌉, ⌈Y/8⌉, ⌈X/8⌉) bricks, twice: those the half
     lattices do not reproduce within `tolerance` of the light level (see the module's
-    docs), and those holding a texel of the plan.
+    docs), and those holding a texel of the plan; and (T,) bool the nodes on an edge of
+    the light (`EDGE_NODE`: a node's pairs share its noise, so its surpluses are one term
+    of `noise_free_rms`).
 
     Args:
         lattices: the traced half lattices (the even nodes; the odd ones where traced);
@@ -264,6 +280,8 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray
     error = variance / np.maximum(samples, 1)
     shown = shown_texels(luminance, samples, trapped_at)
     sums = np.zeros((4, count))
+    level = light_level(luminance[lattices[0].positions])
+    edges = np.zeros(len(coords), bool)
     for nodes in lattices:
         at = nodes.positions
         per_node = np.zeros((4, len(at)))
@@ -277,14 +295,15 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray
             square = np.where(has, surplus ** 2, 0.0).sum(axis=1) / judged
             noise = np.where(has, var, 0.0).sum(axis=1) / judged
             per_node[:, part] = [square, noise, noise ** 2, pairs > 0]
+            own = noise_free_rms(square, noise, noise ** 2, 1.0 * (pairs > 0))
+            edges[at[part]] = EDGE_SHARE * own > EDGE_NODE * tolerance * level
 
         cores.for_blocks(judge, len(at), BLOCK, "texels")
         brick = brick_of(coords[at], grid)
         sums += [np.bincount(brick, v, count) for v in per_node]
     every = np.bincount(brick_of(coords, grid), minlength=count) > 0
-    level = light_level(luminance[lattices[0].positions])
     rough = EDGE_SHARE * noise_free_rms(*sums) > tolerance * level
-    return every & (rough | (sums[3] == 0)), every
+    return every & (rough | (sums[3] == 0)), every, edges
 
 
 def shown_texels(luminance: np.ndarray, samples: np.ndarray, trapped_at: int) -> np.ndarray:
@@ -297,18 +316,27 @@ def shown_texels(luminance: np.ndarray, samples: np.ndarray, trapped_at: int) ->
 
 
 def facing_away(nodes: Nodes, at: np.ndarray, coords: np.ndarray, facing: np.ndarray,
-                weigh) -> np.ndarray:
+                weigh, edges: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: the texels at plan positions (N,) `at` that the half lattice `nodes`
-    cannot fill: their nodes' side-aware weight (`side_share`) below `SIDE_FLOOR`.
+    cannot fill: their nodes' side-aware weight (`side_share`) below `SIDE_FLOOR`, or below
+    `ONE_SIDED_FLOOR` where those nodes carry at most half of the trilinear weight, or a
+    node of their mix on an edge of the light.
 
     Args:
         weigh: (rows, weights) → the weights of the nodes that count (e.g. `usable`).
+        edges: (T,) bool over the plan, the nodes on an edge (`fine_bricks`), or None.
     """
     away = np.zeros(len(at), bool)
 
     def look(part: slice) -> None:
         rows, w = nodes.corners(coords[at[part]])
-        away[part] = side_share(rows, weigh(rows, w), facing, facing[at[part]]) < SIDE_FLOOR
+        w = weigh(rows, w)
+        sides = node_sides(rows, facing, facing[at[part]])
+        share = side_share(w, sides)
+        one_sided = w.sum(axis=1) <= 0.5 + 1e-9
+        away[part] = (share < SIDE_FLOOR) | (one_sided & (share < ONE_SIDED_FLOOR))
+        if edges is not None:
+            away[part] |= ((w * sides > 0) & edges[np.maximum(rows, 0)]).any(axis=1)
 
     cores.for_blocks(look, len(at), BLOCK, "texels")
     return away
@@ -328,12 +356,15 @@ def odd_nodes_needed(even: Nodes, coords: np.ndarray, facing: np.ndarray,
 
 def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
                  facing: np.ndarray, luminance: np.ndarray, samples: np.ndarray,
-                 trapped_at: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+                 trapped_at: int, edges: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """The plan positions of the texels that are not nodes: those of `fine` bricks,
     those of the others that are traced all the same (*alone*: no half lattice has shown
     nodes around them that face their way, `SIDE_FLOOR` — e.g. the other side of a sheet,
-    lit in a checkerboard, `baking.sides`, where only the even nodes are traced), and
-    per half lattice of `lattices` (in order), those it fills; sorted arrays."""
+    lit in a checkerboard, `baking.sides`, where only the even nodes are traced; nodes
+    on one side of them only, facing less closely, `ONE_SIDED_FLOOR`; or a node on an
+    edge of the light among them, `edges`, (T,) bool over the plan, if given), and per
+    half lattice of `lattices` (in order), those it fills; sorted arrays."""
     grid = brick_grid(lattices[0].shape)
     others = np.flatnonzero(~mask_of(len(coords), *(n.positions for n in lattices)))
     in_fine = fine[brick_of(coords[others], grid)]
@@ -344,21 +375,24 @@ def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
         return usable(rows, w, luminance, samples, trapped_at)
 
     for lattice in lattices:
-        away = facing_away(lattice, left, coords, facing, weigh)
+        away = facing_away(lattice, left, coords, facing, weigh, edges)
         fills.append(left[~away])
         left = left[away]
     return others[in_fine], left, fills
 
 
-def side_share(rows: np.ndarray, weights: np.ndarray, facing: np.ndarray,
-               own_facing: np.ndarray) -> np.ndarray:
-    """(N,) the side-aware weight of the nodes at (N, 8) plan positions `rows` with (N, 8)
-    `weights`, over the plain weight, for texels facing (N, 2) `own_facing` (1 where it is
-    unknown; 0 where no node has weight)."""
+def node_sides(rows: np.ndarray, facing: np.ndarray, own_facing: np.ndarray) -> np.ndarray:
+    """(N, 8) side weights (`side_weights`) of the nodes at (N, 8) plan positions `rows`
+    (their (T, 2) `facing`) for texels facing (N, 2) `own_facing` (1 where it is
+    unknown)."""
+    sides = side_weights(facing[np.maximum(rows, 0)], octahedral.decode(own_facing))
+    return np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
+
+
+def side_share(weights: np.ndarray, sides: np.ndarray) -> np.ndarray:
+    """(N,) the side-aware weight of nodes with (N, 8) `weights` and (N, 8) `sides`
+    (`node_sides`), over the plain weight (0 where no node has weight)."""
     plain = weights.sum(axis=1)
-    safe = np.maximum(rows, 0)
-    sides = side_weights(facing[safe], octahedral.decode(own_facing))
-    sides = np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
     sided = (weights * sides).sum(axis=1)
     return np.divide(sided, plain, out=np.zeros_like(plain), where=plain > 0)
 
@@ -526,10 +560,10 @@ def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, facing: np.ndar
     luminance = lattice.values.reshape(len(coords), -1) @ baker.job.tracing.weights
     samples = lattice.samples.reshape(-1)
     variance = path_variance(luminance, lattice.second.reshape(-1), samples)
-    fine, _ = fine_bricks(lattices, coords, luminance, variance, samples, facing,
-                          config.texel_error, trapped_at)
+    fine, _, edges = fine_bricks(lattices, coords, luminance, variance, samples, facing,
+                                 config.texel_error, trapped_at)
     _, _, fills = split_texels(lattices, coords, fine, facing, luminance, samples,
-                               trapped_at)
+                               trapped_at, edges)
     return Judgement(fine, fills)
 
 

@@ -90,7 +90,7 @@ def _judge(luminance, variance=None, tolerance=0.02):
     variance = np.zeros(len(ids)) if variance is None else variance
     samples = np.full(len(ids), 100)
     facing = np.zeros((len(ids), 2), np.uint8)
-    fine, used = fine_bricks([nodes], coords, luminance, variance, samples, facing,
+    fine, used, _ = fine_bricks([nodes], coords, luminance, variance, samples, facing,
                              tolerance, 0)
     return nodes, coords, fine.reshape(tuple(-(-np.array(SHAPE) // BRICK))), used
 

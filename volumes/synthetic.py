@@ -114,6 +114,14 @@ def _shells(x, y, z, w):
     return _density(sdf, w)
 
 
+def _contact(x, y, z, w):
+    """A sphere of radius 0.2 hanging about a voxel (at 56 samples) above a plane, the
+    solid below z = −0.25, their shells 1.5 voxels wide: a contact gap, where the light
+    changes within a texel."""
+    sdf = np.minimum(z + 0.25, np.sqrt(x * x + y * y + (z + 0.02) ** 2) - 0.2)
+    return _density(sdf, 1.25 * w)
+
+
 SPHERE_RADIUS = 0.35
 """Radius of ``synthetic:sphere`` in world units (the analytic answer for tests)."""
 
@@ -128,6 +136,7 @@ _SPECS: dict[str, _Spec] = {
         _mixing_layer, 96, (1, 1, 0.75), (0.5,), "Richtmyer–Meshkov-like mixing layer"
     ),
     "shells": _Spec(_shells, 96, (1, 1, 1), (0.5,), "nested shells with openings"),
+    "contact": _Spec(_contact, 56, (1, 1, 1), (0.5,), "sphere just above a plane"),
 }
 
 NAMES: tuple[str, ...] = tuple(_SPECS)
