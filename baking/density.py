@@ -104,8 +104,14 @@ DIRECTIONS = np.array([d for d in np.ndindex(3, 3, 3)
 
 
 def texel_coords(ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
-    """(T, 3) int32 z, y, x of (T,) flat lattice `ids` of a (Z, Y, X) box."""
-    return np.stack(np.unravel_index(ids, shape), axis=1).astype(np.int32)
+    """(T, 3) z, y, x of (T,) flat lattice `ids` of a (Z, Y, X) box: int16 where every
+    side is shorter than 32 768 texels (6 bytes a texel, held through a bake), else
+    int32."""
+    kind = np.int16 if max(shape) <= np.iinfo(np.int16).max else np.int32
+    out = np.empty((len(ids), 3), kind)
+    for axis, index in enumerate(np.unravel_index(ids, shape)):
+        out[:, axis] = index
+    return out
 
 
 def brick_of(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
@@ -521,18 +527,21 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
                                for half, fills in zip((even, odd), judged.fills, strict=True)))
     traced = np.flatnonzero(in_fine | alone | filling)
     paths = np.where(filling[traced], NODE_PATHS * config.samples, config.samples)
-    _count_paths(bar, baker, traced, paths)
-    baker.run(traced, paths, bar=bar, after_commit=checkpoint)
-    luminance = lattice.values.reshape(total, -1) @ weights
-    for half, fills in zip((even, odd), judged.fills, strict=True):
-        fill(lattice, half, coords, fills, luminance, config.samples, trapped_at)
-    lattice.meta[FILLED_KEY] = {
+    record = {  # kept once the fill is made; the masks go before the second pass
         "texel_error": config.texel_error, "count": total,
         "even_nodes": len(even.positions), "odd_nodes": len(odd.positions),
         "filling_nodes": int(filling.sum()), "in_fine_bricks": int(in_fine.sum()),
         "alone": int(alone.sum()), "filled": int(filled.sum()),
         "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid)),
         "bits": packed(filled)}
+    del node, nodes, in_fine, filled, alone, filling
+    _count_paths(bar, baker, traced, paths)
+    baker.run(traced, paths, bar=bar, after_commit=checkpoint)
+    del traced, paths
+    luminance = lattice.values.reshape(total, -1) @ weights
+    for half, fills in zip((even, odd), judged.fills, strict=True):
+        fill(lattice, half, coords, fills, luminance, config.samples, trapped_at)
+    lattice.meta[FILLED_KEY] = record
 
 
 def make_facings(baker: Any) -> None:
