@@ -205,11 +205,8 @@ def node_mix(rows: np.ndarray, weights: np.ndarray, facing: np.ndarray,
     """(N, C) the side-aware mix (`sided_mix`) of the (T, C) `values` of the nodes at
     (N, 8) plan positions `rows` with (N, 8) `weights`, for texels whose facings are
     (N, 2) `own_facing` (unknown: the plain mix); `facing`: (T, 2) every texel's."""
-    safe = np.maximum(rows, 0)
-    normals = octahedral.decode(own_facing)
-    sides = side_weights(facing[safe], normals)
-    sides = np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
-    return sided_mix(weights, sides, values[safe].astype(np.float64))
+    return sided_mix(weights, node_sides(rows, facing, own_facing),
+                     values[np.maximum(rows, 0)].astype(np.float64))
 
 
 def light_level(luminance: np.ndarray) -> float:
@@ -300,8 +297,9 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray
             judged = np.maximum(pairs, 1)
             square = np.where(has, surplus ** 2, 0.0).sum(axis=1) / judged
             noise = np.where(has, var, 0.0).sum(axis=1) / judged
-            per_node[:, part] = [square, noise, noise ** 2, pairs > 0]
-            own = noise_free_rms(square, noise, noise ** 2, 1.0 * (pairs > 0))
+            noise_squares = noise ** 2
+            per_node[:, part] = [square, noise, noise_squares, pairs > 0]
+            own = noise_free_rms(square, noise, noise_squares, 1.0 * (pairs > 0))
             edges[at[part]] = EDGE_SHARE * own > EDGE_NODE * tolerance * level
 
         cores.for_blocks(judge, len(at), BLOCK, "texels")

@@ -19,11 +19,11 @@ import pytest
 import isolume
 from isolume.baking import BakeConfig, bake, octahedral
 from isolume.baking.density import BRICK, FILLED_KEY, filled_positions
+from isolume.baking.lattice import LUMINANCE
 from isolume.volumes.synthetic import make
 
 SAMPLES = 64
 REFERENCE_PATHS = 16 * SAMPLES
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 @pytest.fixture(scope="module", params=["pixels", "lattice"])

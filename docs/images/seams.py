@@ -21,11 +21,12 @@ from PIL import Image, ImageDraw
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+from isolume.baking.lattice import LUMINANCE  # noqa: E402
+
 ENV = "sky:sun=4,sun_az=30,sun_el=35"
 ISO = 0.2
 CROP = (slice(150, 406), slice(128, 384))
 """Rows and columns of the 512² pictures around the contact."""
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def pictures(direct_light: str) -> tuple[list[np.ndarray], list[str]]:
