@@ -127,6 +127,28 @@ def test_compiled_trilinear_equals_scipy_map_coordinates():
         np.testing.assert_array_equal(_interpolate(grid, idx), _map_coordinates(grid, idx))
 
 
+def test_world_lookups_equal_scipy_map_coordinates():
+    """The compiled lookups at world points — `value_in` (the Newton steps' and their line
+    search's, handed the grid's placement as six floats) and `value_at_world` (handed the
+    arrays, rounded to its scratch's type) — against scipy's order-1 interpolation at the
+    indices (p − origin) / spacing, on an anisotropic, shifted grid: inside, outside and
+    on its faces."""
+    from isolume.volumes.field import frame_of, value_at_world, value_in
+
+    r = np.random.default_rng(9)
+    grid = r.normal(size=(5, 6, 7)).astype(np.float32)
+    origin, spacing = np.array([-1.5, 2.0, 0.25]), np.array([0.5, 1.25, 2.0])  # x, y, z
+    world = origin + r.uniform(-2, 9, size=(2000, 3)) * spacing
+    world[:10] = origin + np.floor(r.uniform(0, 5, size=(10, 3))) * spacing  # on samples
+    expected = _map_coordinates(grid, ((world - origin) / spacing)[:, ::-1])
+    data, frame = grid[..., None], frame_of(origin, spacing)
+    scratch = np.empty(1, np.float32)
+    got = np.array([value_in(data, frame, *p) for p in world])
+    np.testing.assert_array_equal(got.astype(np.float32), expected)
+    rounded = np.array([value_at_world(data, origin, spacing, *p, scratch) for p in world])
+    np.testing.assert_array_equal(rounded, got.astype(np.float32))
+
+
 def _gradient_grid(vol) -> np.ndarray:
     """(Z, Y, X, 3) float32 smoothed gradient at the voxels, with scipy: the central
     difference along one axis, the B-spline weights [1, 4, 1] / 6 along the other two."""
