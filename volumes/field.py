@@ -167,7 +167,9 @@ def newton_steps(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: 
     """Newton steps p += (level − ρ(p)) ∇ρ / |∇ρ|² from each (N, 3) world point, the
     total move clamped to `max_move`; stops once a step moved less than 1e-4 voxel (Newton
     converges quadratically where the gradient is regular). Steps that stay in one cell of
-    the volume, as the last few mostly do, reuse its eight corner gradients.
+    the volume, as the last few mostly do, reuse its eight corner gradients, and so do
+    steps back into the cell before it (a third of the cells a step enters on a noisy CT:
+    steps that overshoot across a cell's face and come back).
 
     Damped where the field is flat: a step is at most one voxel long, and a point gets
     one more step per voxel of `max_move`, so a point in a plateau next to the surface
@@ -176,7 +178,7 @@ def newton_steps(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: 
     neighbour directions is taken instead (`_nearest_crossing`)."""
     value = np.empty(1)
     g = np.empty(3)
-    corners = np.empty((8, 3), np.float32)
+    corners = np.empty((2, 8, 3), np.float32)  # of `cell` (at `slot`) and of `before`
     window = np.empty((4, 4, 4), np.float32)
     lines = _neighbour_directions(spacing)  # the stalled points' search lines
     frame = frame_of(origin, spacing)
@@ -185,7 +187,7 @@ def newton_steps(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: 
     tiny = 1e-4 * voxel
     steps = iterations + int(max_move / voxel)
     nz, ny, nx = samples.shape
-    cell = (-1, -1, -1)  # whose corner gradients `corners` holds: steps in one cell reuse them
+    cell, before, slot = (-1, -1, -1), (-1, -1, -1), 0  # whose corner gradients are held
     for i in range(points.shape[0]):
         sx, sy, sz = points[i, 0], points[i, 1], points[i, 2]
         px, py, pz = sx, sy, sz
@@ -195,10 +197,13 @@ def newton_steps(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: 
             y0, y1, fy = _axis_weights(yi, ny)
             x0, x1, fx = _axis_weights(xi, nx)
             _lerp_cell(data, z0, z1, y0, y1, x0, x1, fz, fy, fx, value)
-            if (z0, y0, x0) != cell:
-                _corner_gradients(samples, w, inverse, z0, y0, x0, corners, window)
-                cell = (z0, y0, x0)
-            _lerp_corners(corners, fz, fy, fx, g)
+            here = (z0, y0, x0)
+            if here != cell:
+                slot = 1 - slot  # `before`'s corners, or the slot to overwrite
+                if here != before:
+                    _corner_gradients(samples, w, inverse, z0, y0, x0, corners[slot], window)
+                cell, before = here, cell
+            _lerp_corners(corners[slot], fz, fy, fx, g)
             g2 = max(g[0] * g[0] + g[1] * g[1] + g[2] * g[2], 1e-30)
             step = (levels[i] - value[0]) / g2
             length = abs(step) * np.sqrt(g2)
