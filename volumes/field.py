@@ -140,11 +140,19 @@ def _lerp_cell(grid: np.ndarray, z0: int, z1: int, y0: int, y1: int, x0: int, x1
     """out[:] = the trilinear mix of the (Z, Y, X, C) grid's cell of corners (z0 … x1) at
     the weights (fz, fy, fx) of the upper corners (`_axis_weights`)."""
     for c in range(grid.shape[3]):
-        a = (1 - fx) * grid[z0, y0, x0, c] + fx * grid[z0, y0, x1, c]
-        b = (1 - fx) * grid[z0, y1, x0, c] + fx * grid[z0, y1, x1, c]
-        d = (1 - fx) * grid[z1, y0, x0, c] + fx * grid[z1, y0, x1, c]
-        e = (1 - fx) * grid[z1, y1, x0, c] + fx * grid[z1, y1, x1, c]
-        out[c] = (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
+        out[c] = _cell_mix(grid, z0, z1, y0, y1, x0, x1, fz, fy, fx, c)
+
+
+@numba.njit(nogil=True, cache=True)
+def _cell_mix(grid: np.ndarray, z0: int, z1: int, y0: int, y1: int, x0: int, x1: int,
+              fz: float, fy: float, fx: float, c: int) -> float:
+    """Channel c's trilinear mix, float64, of the (Z, Y, X, C) grid's cell of corners
+    (z0 … x1) at the weights (fz, fy, fx) of the upper corners."""
+    a = (1 - fx) * grid[z0, y0, x0, c] + fx * grid[z0, y0, x1, c]
+    b = (1 - fx) * grid[z0, y1, x0, c] + fx * grid[z0, y1, x1, c]
+    d = (1 - fx) * grid[z1, y0, x0, c] + fx * grid[z1, y0, x1, c]
+    e = (1 - fx) * grid[z1, y1, x0, c] + fx * grid[z1, y1, x1, c]
+    return (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -255,11 +263,7 @@ def value_in(data: np.ndarray, frame: tuple[float, ...], x: float, y: float, z: 
     z0, z1, fz = _axis_weights((z - oz) / hz, nz)
     y0, y1, fy = _axis_weights((y - oy) / hy, ny)
     x0, x1, fx = _axis_weights((x - ox) / hx, nx)
-    a = (1 - fx) * data[z0, y0, x0, 0] + fx * data[z0, y0, x1, 0]
-    b = (1 - fx) * data[z0, y1, x0, 0] + fx * data[z0, y1, x1, 0]
-    d = (1 - fx) * data[z1, y0, x0, 0] + fx * data[z1, y0, x1, 0]
-    e = (1 - fx) * data[z1, y1, x0, 0] + fx * data[z1, y1, x1, 0]
-    return (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
+    return _cell_mix(data, z0, z1, y0, y1, x0, x1, fz, fy, fx, 0)
 
 
 @numba.njit(nogil=True, cache=True)
