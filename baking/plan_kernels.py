@@ -25,9 +25,9 @@ from isolume.volumes.field import (
     along_normals,
     gradient_lerp,
     newton_steps,
+    normal_in,
     normal_scratch,
     normal_stencil,
-    unit_normal,
     value_at_world,
 )
 
@@ -139,17 +139,17 @@ class LandedStarts:
                              self.lift, self.field, self.weights)
 
 
-@numba.njit(**JIT)
-def centre_of(lattice: tuple, flat: int, out: np.ndarray) -> None:
-    """out (3,) = the world xyz centre of texel `flat` (`LatticeGeometry.centres`)."""
+@numba.njit(**JIT, inline="always")
+def centre_of(lattice: tuple, flat: int) -> tuple[float, float, float]:
+    """The world (x, y, z) centre of texel `flat` (`LatticeGeometry.centres`). Compiled
+    into its callers, as `volumes.field.PART` says why."""
     shape, lo, texel_size = lattice
     layer = shape[1] * shape[2]
     k = flat // layer
     j = (flat - k * layer) // shape[2]
     i = flat - k * layer - j * shape[2]
-    out[0] = lo[0] + (i + 0.5) * texel_size[0]
-    out[1] = lo[1] + (j + 0.5) * texel_size[1]
-    out[2] = lo[2] + (k + 0.5) * texel_size[2]
+    return (lo[0] + (i + 0.5) * texel_size[0], lo[1] + (j + 0.5) * texel_size[1],
+            lo[2] + (k + 0.5) * texel_size[2])
 
 
 @numba.njit(**JIT)
@@ -163,45 +163,52 @@ def gradient_norms(lattice: tuple, ids: np.ndarray, field: tuple, w: np.ndarray,
     corners = np.empty((8, 3), np.float32)
     window = np.empty((4, 4, 4), np.float32)
     g = np.empty(3)
-    centre = np.empty(3)
     scale = np.float32(h)
     for r in range(len(ids)):
-        centre_of(lattice, ids[r], centre)
-        gradient_lerp(data, w, inverse, (centre[2] - origin[2]) / spacing[2],
-                      (centre[1] - origin[1]) / spacing[1], (centre[0] - origin[0]) / spacing[0],
+        cx, cy, cz = centre_of(lattice, ids[r])
+        gradient_lerp(data, w, inverse, (cz - origin[2]) / spacing[2],
+                      (cy - origin[1]) / spacing[1], (cx - origin[0]) / spacing[0],
                       corners, window, g)
         gx, gy, gz = np.float32(g[0]), np.float32(g[1]), np.float32(g[2])
         out[r] = np.sqrt(gx * gx + gy * gy + gz * gz) * scale
 
 
-@numba.njit(**JIT)
-def _encode(point: np.ndarray, centre: np.ndarray, reach: float, out: np.ndarray) -> None:
-    """out (3,) int16 = `plan.landing_offsets` of one point from its texel's centre."""
+@numba.njit(**JIT, inline="always")
+def _encode(point: np.ndarray, centre: np.ndarray, r: int, reach: float, out: np.ndarray,
+            t: int) -> None:
+    """out[t] (3,) int16 = `plan.landing_offsets` of the point ``point[r]`` from its
+    texel's centre ``centre[r]`` ((N, 3) both)."""
     scale = LANDING_STEPS / reach
-    sx = (point[0] - centre[0]) * scale
-    sy = (point[1] - centre[1]) * scale
-    sz = (point[2] - centre[2]) * scale
+    sx = (point[r, 0] - centre[r, 0]) * scale
+    sy = (point[r, 1] - centre[r, 1]) * scale
+    sz = (point[r, 2] - centre[r, 2]) * scale
     if sx != sx or sy != sy or sz != sz:
-        out[0] = out[1] = out[2] = UNLANDED
-        return
-    out[0] = np.int16(np.rint(min(max(sx, -LANDING_STEPS), LANDING_STEPS)))
-    out[1] = np.int16(np.rint(min(max(sy, -LANDING_STEPS), LANDING_STEPS)))
-    out[2] = np.int16(np.rint(min(max(sz, -LANDING_STEPS), LANDING_STEPS)))
+        out[t, 0] = out[t, 1] = out[t, 2] = UNLANDED
+    else:
+        out[t, 0] = np.int16(np.rint(min(max(sx, -LANDING_STEPS), LANDING_STEPS)))
+        out[t, 1] = np.int16(np.rint(min(max(sy, -LANDING_STEPS), LANDING_STEPS)))
+        out[t, 2] = np.int16(np.rint(min(max(sz, -LANDING_STEPS), LANDING_STEPS)))
 
 
-@numba.njit(**JIT)
-def landed_normal(lattice: tuple, flat: int, offsets: np.ndarray, step: float, field: tuple,
-                  w: np.ndarray, scratch: tuple, point: np.ndarray, unit: np.ndarray) -> None:
-    """point (3,) = where texel `flat` lands (its (3,) int16 `offsets` from its centre, in
-    steps of `step` world units: `landed_points`; NaN where `UNLANDED`), unit (3,) float32
-    = the normal there towards low values (stencil weights `w`: `volumes.normals_at`);
-    `scratch`: `volumes.field.normal_scratch()`."""
+@numba.njit(**JIT, inline="always")
+def landed_normal(lattice: tuple, flat: int, landing: np.ndarray, t: int, side: int,
+                  step: float, field: tuple, w: np.ndarray, scratch: tuple
+                  ) -> tuple[float, float, float, np.float32, np.float32, np.float32]:
+    """(px, py, pz, nx, ny, nz): where texel `flat` lands — its centre moved by the (3,)
+    int16 offsets ``landing[t, side]`` in steps of `step` world units (`landed_points`;
+    NaN where `UNLANDED`) — and the float32 normal there towards low values (stencil
+    weights `w`: `volumes.normals_at`); `scratch`: `volumes.field.normal_scratch()`.
+    Called per texel: it calls nothing that takes arrays (`volumes.field.PART`)."""
     _, data, inverse, origin, spacing = field
-    centre_of(lattice, flat, point)
-    for a in range(3):
-        point[a] = np.nan if offsets[0] == UNLANDED else point[a] + offsets[a] * step
-    unit_normal(data, w, inverse, origin, spacing, point[0], point[1], point[2], False,
-                scratch, unit)
+    px, py, pz = centre_of(lattice, flat)
+    if landing[t, side, 0] == UNLANDED:
+        px = py = pz = np.nan
+    else:
+        px += landing[t, side, 0] * step
+        py += landing[t, side, 1] * step
+        pz += landing[t, side, 2] * step
+    nx, ny, nz = normal_in(data, w, inverse, origin, spacing, px, py, pz, False, scratch)
+    return px, py, pz, nx, ny, nz
 
 
 @numba.njit(**JIT)
@@ -230,8 +237,8 @@ def landed_starts(lattice: tuple, ids: np.ndarray, texels: np.ndarray, upper: np
     point = np.empty(3)
     for r in range(n):
         t = texels[r]
-        landed_normal(lattice, ids[t], landing[t, 1 if upper[r] else 0], step, field, w,
-                      scratch, point, unit)
+        point[0], point[1], point[2], unit[0], unit[1], unit[2] = landed_normal(
+            lattice, ids[t], landing, t, 1 if upper[r] else 0, step, field, w, scratch)
         for a in range(3):
             normal = -np.float64(unit[a]) if high[t] else np.float64(unit[a])
             origins[r, a] = np.float32(point[a] + lift * normal)
@@ -290,13 +297,13 @@ def _project_unlanded(lattice: tuple, ids: np.ndarray, lower: np.ndarray,
     starts = np.empty((n, 3))
     targets = np.empty(n)
     for r in range(n):
-        centre_of(lattice, ids[todo[r]], starts[r])
+        starts[r, 0], starts[r, 1], starts[r, 2] = centre_of(lattice, ids[todo[r]])
         targets[r] = levels[lower[todo[r]] + side]
     projected = np.empty((n, 3))
     newton_steps(cube, data, w, inverse, origin, spacing, starts, targets, reach,
                  NEWTON_ITERATIONS, projected)
     for r in range(n):
-        _encode(projected[r], starts[r], reach, landing[todo[r]])
+        _encode(projected, starts, r, reach, landing, todo[r])
 
 
 @numba.njit(**JIT)
@@ -310,18 +317,18 @@ def _level_checks(lattice: tuple, ids: np.ndarray, lower: np.ndarray, levels: np
     move's length into `moved`. Returns the texels whose lit side is to be checked (ok,
     with a `lift`)."""
     cube, _, _, origin, spacing = field
-    centre = np.empty(3)
     lifted = np.empty(stop - first, np.int64)
     m = 0
     for t in range(first, stop):
         if not which[t]:
             continue
-        centre_of(lattice, ids[t], centre)
-        row = landed[t - first]
-        for a in range(3):
-            row[a] = (np.nan if landing[t, 0] == UNLANDED
-                      else centre[a] + landing[t, a] * (reach / LANDING_STEPS))
-        x, y, z = row[0], row[1], row[2]
+        cx, cy, cz = centre_of(lattice, ids[t])
+        x = y = z = np.nan
+        if landing[t, 0] != UNLANDED:
+            x = cx + landing[t, 0] * (reach / LANDING_STEPS)
+            y = cy + landing[t, 1] * (reach / LANDING_STEPS)
+            z = cz + landing[t, 2] * (reach / LANDING_STEPS)
+        landed[t - first, 0], landed[t - first, 1], landed[t - first, 2] = x, y, z
         tol = CONVERGED_FRACTION * (levels[lower[t] + 1] - levels[lower[t]])
         ok[t] = (x == x and y == y and z == z and abs(
             value_at_world(cube, origin, spacing, x, y, z, scratch)
@@ -329,7 +336,7 @@ def _level_checks(lattice: tuple, ids: np.ndarray, lower: np.ndarray, levels: np
         if ok[t] and lift > 0:
             lifted[m] = t
             m += 1
-        dx, dy, dz = x - centre[0], y - centre[1], z - centre[2]
+        dx, dy, dz = x - cx, y - cy, z - cz
         moved[t] = np.sqrt(dx * dx + dy * dy + dz * dz)
     return lifted[:m]
 
@@ -348,7 +355,8 @@ def _lit_side_checks(lower: np.ndarray, levels: np.ndarray, side: int, high: np.
             continue
         points = np.empty((len(rows), 3))
         for r in range(len(rows)):
-            points[r] = landed[rows[r] - first]
+            for a in range(3):
+                points[r, a] = landed[rows[r] - first, a]
         beyond = np.empty(len(rows))
         along_normals(cube, data, w, inverse, origin, spacing, points, lift,
                       1.0 if flip else -1.0, beyond)

@@ -112,8 +112,8 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
     for r in range(n):
         t = at[r]
         picked[r] = ids[t]
-        landed_normal(lattice, ids[t], landing[t, 1 if upper[t] else 0], step, field, w,
-                      normal, points[r], unit)
+        points[r, 0], points[r, 1], points[r, 2], unit[0], unit[1], unit[2] = landed_normal(
+            lattice, ids[t], landing, t, 1 if upper[t] else 0, step, field, w, normal)
         for a in range(3):
             normals[r, a] = np.float64(unit[a])
     other_sign = 1.0 if default else -1.0  # the low side's normal is +normals

@@ -284,7 +284,7 @@ def test_integer_samples_stay_as_stored_and_answer_as_float32(dtype):
 
 @pytest.mark.parametrize("dtype", [np.float32, np.uint8, np.int16])
 def test_compiled_normals_are_the_arrays_normals_to_the_bit(dtype):
-    """`normals_at` (one compiled pass, `field.unit_normal`) against
+    """`normals_at` (one compiled pass, `field.normal_in`) against
     `normals_from_gradient(gradient_at(...))`, the array code it stands for: the same
     float32 bits everywhere — inside and outside the box, in a flat region (0, 0, 1), at
     NaN points, where the squared gradient overflows float32 — smoothed or not, flipped

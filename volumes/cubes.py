@@ -191,8 +191,9 @@ def _fill(data: np.ndarray, iso: float, count: np.ndarray, table: np.ndarray,
                         edge = table[case, n, corner]
                         a, b = corner_pairs[edge, 0], corner_pairs[edge, 1]
                         axis = (b - a) >> 1  # b − a is 1, 2 or 4: along x, y or z
-                        layer = lower if (a >> 2) == 0 else upper
-                        faces[t, corner] = layer[j + (a >> 1 & 1), i + (a & 1), axis]
+                        y, x = j + (a >> 1 & 1), i + (a & 1)
+                        faces[t, corner] = lower[y, x, axis] if (a >> 2) == 0 else \
+                            upper[y, x, axis]
                     t += 1
         lower, upper = upper, lower
 

@@ -16,11 +16,29 @@ the material is denser than its surroundings); ``flip=True`` reverses them.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 
 from isolume.volumes import cores
 from isolume.volumes.core import Volume
+
+JIT: dict[str, Any] = {"nogil": True, "cache": True, "error_model": "numpy"}
+"""numba's options for this module's kernels: no GIL held, compiled once per machine,
+numpy's floating-point error model (a float division by zero gives ±inf or NaN instead of
+raising: no divisor here can be zero, and a division that may raise is a branch that
+keeps reference counting alive, `PART`)."""
+
+PART: dict[str, Any] = {**JIT, "inline": "always"}
+"""The options of the helpers that compiled loops call per point: numba compiles them
+into the loop. numba increments and decrements an array's reference count (an atomic
+operation) where a function binds it, and drops such pairs only where nothing between
+them calls a function that takes arrays or may raise: a helper called per point with
+arrays, or a view such as ``out[i]`` handed to one, keeps them in the loop: 30 a normal
+made `normals_at` take twice as long, and `value_at` 2.5 times. A loop that calls these
+helpers takes no views per point either; ``tests/test_kernel_loops.py`` counts what the
+loops keep."""
 
 _BSPLINE = np.array([1.0, 4.0, 1.0]) / 6.0
 _PLAIN = np.array([0.0, 1.0, 0.0])
@@ -34,7 +52,7 @@ def _stencil(volume: Volume, smooth: bool) -> tuple[np.ndarray, np.ndarray, np.n
             0.5 / np.asarray(volume.spacing, np.float64))
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def gradient_lerp(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: float, y: float,
                   x: float, corners: np.ndarray, window: np.ndarray, out: np.ndarray) -> None:
     """out[:] = the gradient at the fractional index (z, y, x): the trilinear interpolation
@@ -48,7 +66,7 @@ def gradient_lerp(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z: float
     _lerp_corners(corners, fz, fy, fx, out)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def _corner_gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z0: int, y0: int,
                       x0: int, corners: np.ndarray, window: np.ndarray) -> None:
     """corners (8, 3) float32 = the gradients (gx, gy, gz) at the corners of the cell
@@ -85,7 +103,7 @@ def _corner_gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, z0: 
                 k += 1
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def _lerp_corners(corners: np.ndarray, fz: float, fy: float, fx: float, out: np.ndarray
                   ) -> None:
     """out[:] = the trilinear mix of the (8, 3) `corners` (`_corner_gradients`) at the
@@ -98,7 +116,7 @@ def _lerp_corners(corners: np.ndarray, fz: float, fy: float, fx: float, out: np.
         out[c] = (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def _gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, index_zyx: np.ndarray,
                out: np.ndarray) -> None:
     """out[i] = the gradient at index_zyx[i] (N, 3) (`gradient_lerp`); NaN where an
@@ -115,7 +133,7 @@ def _gradients(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, index_zyx: 
             out[i, 0], out[i, 1], out[i, 2] = g[0], g[1], g[2]
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def _axis_weights(c: float, n: int) -> tuple[int, int, float]:
     """Lower index, upper index and upper weight of fractional index c on an axis of n
     samples, clamped to the edge samples (``map_coordinates(order=1, mode="nearest")``)."""
@@ -124,7 +142,7 @@ def _axis_weights(c: float, n: int) -> tuple[int, int, float]:
     return lo, min(lo + 1, n - 1), c - lo
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def _lerp3(grid: np.ndarray, z: float, y: float, x: float, out: np.ndarray) -> None:
     """out[:] = trilinear interpolation of the (Z, Y, X, C) grid at index (z, y, x)."""
     nz, ny, nx, _ = grid.shape
@@ -134,7 +152,7 @@ def _lerp3(grid: np.ndarray, z: float, y: float, x: float, out: np.ndarray) -> N
     _lerp_cell(grid, z0, z1, y0, y1, x0, x1, fz, fy, fx, out)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def _lerp_cell(grid: np.ndarray, z0: int, z1: int, y0: int, y1: int, x0: int, x1: int,
                fz: float, fy: float, fx: float, out: np.ndarray) -> None:
     """out[:] = the trilinear mix of the (Z, Y, X, C) grid's cell of corners (z0 … x1) at
@@ -143,7 +161,7 @@ def _lerp_cell(grid: np.ndarray, z0: int, z1: int, y0: int, y1: int, x0: int, x1
         out[c] = _cell_mix(grid, z0, z1, y0, y1, x0, x1, fz, fy, fx, c)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def _cell_mix(grid: np.ndarray, z0: int, z1: int, y0: int, y1: int, x0: int, x1: int,
               fz: float, fy: float, fx: float, c: int) -> float:
     """Channel c's trilinear mix, float64, of the (Z, Y, X, C) grid's cell of corners
@@ -155,19 +173,24 @@ def _cell_mix(grid: np.ndarray, z0: int, z1: int, y0: int, y1: int, x0: int, x1:
     return (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def _trilinear(grid: np.ndarray, index_zyx: np.ndarray, out: np.ndarray) -> None:
     """out[i] = trilinear interpolation of the (Z, Y, X, C) grid at index_zyx[i] (N, 3);
     NaN where an index is NaN."""
+    nz, ny, nx, channels = grid.shape
     for i in range(index_zyx.shape[0]):
         z, y, x = index_zyx[i, 0], index_zyx[i, 1], index_zyx[i, 2]
         if z != z or y != y or x != x:
             out[i, :] = np.nan
         else:
-            _lerp3(grid, z, y, x, out[i])
+            z0, z1, fz = _axis_weights(z, nz)  # `_lerp3`, without a view of out[i]
+            y0, y1, fy = _axis_weights(y, ny)
+            x0, x1, fx = _axis_weights(x, nx)
+            for c in range(channels):
+                out[i, c] = _cell_mix(grid, z0, z1, y0, y1, x0, x1, fz, fy, fx, c)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def newton_steps(data: np.ndarray, samples: np.ndarray, w: np.ndarray, inverse: np.ndarray,
                  origin: np.ndarray, spacing: np.ndarray,
                  points: np.ndarray, levels: np.ndarray, max_move: float, iterations: int,
@@ -242,17 +265,15 @@ started (noisy or sharp-edged data, where the smoothed gradient misleads the ste
 10 s) for the same errors."""
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def frame_of(origin: np.ndarray, spacing: np.ndarray) -> tuple[float, ...]:
     """(ox, oy, oz, hx, hy, hz): the (3,) world `origin` and `spacing` (x, y, z) as six
-    floats, for compiled loops that look values up many times (`value_in`). A compiled
-    helper handed the arrays increments and decrements their reference counts at every
-    call — atomic operations on counters that every thread shares — and a lookup costs
-    85 ns against 10 ns handed these (the Newton steps' line search)."""
+    floats, for compiled loops that look values up many times (`value_in`): the Newton
+    steps and their line search (`_nearest_crossing`)."""
     return origin[0], origin[1], origin[2], spacing[0], spacing[1], spacing[2]
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def value_in(data: np.ndarray, frame: tuple[float, ...], x: float, y: float, z: float
              ) -> float:
     """Trilinear value, float64, of the (Z, Y, X, 1) `data` at world (x, y, z), clamped
@@ -266,7 +287,7 @@ def value_in(data: np.ndarray, frame: tuple[float, ...], x: float, y: float, z: 
     return _cell_mix(data, z0, z1, y0, y1, x0, x1, fz, fy, fx, 0)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**PART)
 def value_at_world(data: np.ndarray, origin: np.ndarray, spacing: np.ndarray, x: float,
                    y: float, z: float, scratch: np.ndarray) -> float:
     """`value_in` of the (Z, Y, X, 1) `data` at world (x, y, z), in `scratch`'s type ((1,)
@@ -275,7 +296,7 @@ def value_at_world(data: np.ndarray, origin: np.ndarray, spacing: np.ndarray, x:
     return scratch[0]
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def _nearest_crossing(data: np.ndarray, frame: tuple[float, ...], lines: np.ndarray,
                       sx: float, sy: float, sz: float, start: float, level: float,
                       max_move: float, fx: float, fy: float, fz: float):
@@ -310,7 +331,7 @@ def _nearest_crossing(data: np.ndarray, frame: tuple[float, ...], lines: np.ndar
     return fx, fy, fz
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def _neighbour_directions(spacing: np.ndarray) -> np.ndarray:
     """(26, 3) unit world directions (x, y, z) from a voxel to its 26 neighbours of the
     grid of `spacing` (x, y, z), x fastest, then y, then z."""
@@ -348,7 +369,7 @@ def newton_to_level(volume: Volume, points_xyz: np.ndarray, levels: float | np.n
     return out
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def _grid_trilinear(data: np.ndarray, iz: np.ndarray, iy: np.ndarray, ix: np.ndarray,
                     out: np.ndarray) -> None:
     """out[k, j, i] = trilinear interpolation of the (Z, Y, X, 1) `data` at the fractional
@@ -377,7 +398,7 @@ def values_on_grid(volume: Volume, x: np.ndarray, y: np.ndarray, z: np.ndarray
     return out
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def along_normals(data: np.ndarray, samples: np.ndarray, w: np.ndarray,
                   inverse: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
                   points: np.ndarray, distance: float, sign: float, out: np.ndarray) -> None:
@@ -473,7 +494,7 @@ def normals_at(
 ) -> np.ndarray:
     """(N, 3) float32 unit normals (high → low values, low → high if `flip`) at (N, 3)
     world points: ``normals_from_gradient(gradient_at(...), flip)[0]``, to the bit, in one
-    compiled pass on threads (`unit_normal`)."""
+    compiled pass on threads (`normal_in`)."""
     points = np.ascontiguousarray(points_xyz, np.float64).reshape(-1, 3)
     out = np.empty((len(points), 3), np.float32)
     fixed = normal_stencil(volume, smooth)
@@ -486,20 +507,21 @@ def normals_at(
 
 
 def normal_stencil(volume: Volume, smooth: bool = True) -> tuple[np.ndarray, ...]:
-    """What `unit_normal` reads of `volume`: ``(data, w, inverse, origin, spacing)``."""
+    """What `normal_in` reads of `volume`: ``(data, w, inverse, origin, spacing)``."""
     return (*_stencil(volume, smooth), np.asarray(volume.origin, np.float64),
             np.asarray(volume.spacing, np.float64))
 
 
-@numba.njit(nogil=True, cache=True)
-def unit_normal(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, origin: np.ndarray,
-                spacing: np.ndarray, x: float, y: float, z: float, flip: bool,
-                scratch: tuple[np.ndarray, np.ndarray, np.ndarray], out: np.ndarray) -> None:
-    """out (3,) float32 = `normals_at`'s normal at world (x, y, z) (`_stencil`'s `data`,
-    `w`, `inverse`; (3,) float64 `origin`, `spacing`): the gradient (`gradient_lerp`) as
-    float32, over its float32 length — ``-g/|g|``, (0, 0, 1) where it vanishes, NaN at
-    NaN — the float32 operations of `normals_from_gradient`, negated if `flip`.
-    `scratch`: `normal_scratch()`, one per thread."""
+@numba.njit(**PART)
+def normal_in(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, origin: np.ndarray,
+              spacing: np.ndarray, x: float, y: float, z: float, flip: bool,
+              scratch: tuple[np.ndarray, np.ndarray, np.ndarray]
+              ) -> tuple[np.float32, np.float32, np.float32]:
+    """(nx, ny, nz) float32: `normals_at`'s normal at world (x, y, z) (`_stencil`'s
+    `data`, `w`, `inverse`; (3,) float64 `origin`, `spacing`): the gradient
+    (`gradient_lerp`) as float32, over its float32 length — ``-g/|g|``, (0, 0, 1) where it
+    vanishes, NaN at NaN — the float32 operations of `normals_from_gradient`, negated if
+    `flip`. `scratch`: `normal_scratch()`, one per thread."""
     iz, iy, ix = (z - origin[2]) / spacing[2], (y - origin[1]) / spacing[1], \
         (x - origin[0]) / spacing[0]
     corners, window, g = scratch
@@ -516,20 +538,21 @@ def unit_normal(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, origin: np
         nx, ny, nz = -gx / safe, -gy / safe, -gz / safe
     if flip:
         nx, ny, nz = -nx, -ny, -nz
-    out[0], out[1], out[2] = nx, ny, nz
+    return nx, ny, nz
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def normal_scratch() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The scratch arrays of one thread's `unit_normal` calls."""
+    """The scratch arrays of one thread's `normal_in` calls."""
     return (np.empty((8, 3), np.float32), np.empty((4, 4, 4), np.float32), np.empty(3))
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(**JIT)
 def _normals(data: np.ndarray, w: np.ndarray, inverse: np.ndarray, origin: np.ndarray,
              spacing: np.ndarray, points: np.ndarray, flip: bool, out: np.ndarray) -> None:
-    """out[i] = `unit_normal` at the (N, 3) world `points`[i]."""
+    """out[i] = `normal_in` at the (N, 3) world `points`[i]."""
     scratch = normal_scratch()
     for i in range(points.shape[0]):
-        unit_normal(data, w, inverse, origin, spacing, points[i, 0], points[i, 1],
-                    points[i, 2], flip, scratch, out[i])
+        out[i, 0], out[i, 1], out[i, 2] = normal_in(
+            data, w, inverse, origin, spacing, points[i, 0], points[i, 1], points[i, 2], flip,
+            scratch)
