@@ -141,8 +141,8 @@ class LandedStarts:
 
 @numba.njit(**JIT, inline="always")
 def centre_of(lattice: tuple, flat: int) -> tuple[float, float, float]:
-    """The world (x, y, z) centre of texel `flat` (`LatticeGeometry.centres`). Compiled
-    into its callers, as `volumes.field.PART` says why."""
+    """The world (x, y, z) centre of texel `flat` (`LatticeGeometry.centres`), compiled
+    into its callers' loops (`volumes.field.PART`)."""
     shape, lo, texel_size = lattice
     layer = shape[1] * shape[2]
     k = flat // layer
@@ -198,7 +198,7 @@ def landed_normal(lattice: tuple, flat: int, landing: np.ndarray, t: int, side: 
     int16 offsets ``landing[t, side]`` in steps of `step` world units (`landed_points`;
     NaN where `UNLANDED`) — and the float32 normal there towards low values (stencil
     weights `w`: `volumes.normals_at`); `scratch`: `volumes.field.normal_scratch()`.
-    Called per texel: it calls nothing that takes arrays (`volumes.field.PART`)."""
+    Compiled into its callers' loops, as `volumes.field.PART` says why."""
     _, data, inverse, origin, spacing = field
     px, py, pz = centre_of(lattice, flat)
     if landing[t, side, 0] == UNLANDED:
