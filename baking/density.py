@@ -68,8 +68,8 @@ from isolume.baking.lattice import (
     sky_everywhere,
 )
 from isolume.baking.passes import commit_facing
-from isolume.baking.sampling_kernels import JIT
 from isolume.volumes import cores
+from isolume.volumes.field import JIT
 
 FILLED_KEY = "filled"
 """The lattice metadata's record of the texels a bake filled (`clear_filled`)."""

@@ -11,7 +11,7 @@ from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
 
-from isolume.baking.sampling_kernels import JIT
+from isolume.volumes.field import JIT, PART
 
 _INVALID_ID = np.uint32(0xFFFFFFFF)  # RTC_INVALID_GEOMETRY_ID
 _ALL_GEOMETRY = np.uint32(0xFFFFFFFF)  # a ray mask that every geometry passes
@@ -36,7 +36,7 @@ def _call_embree(typingctx, function, scene, ray):
     return types.void(function, scene, ray), codegen
 
 
-@numba.njit(**JIT, inline="always")
+@numba.njit(**PART)
 def _set_ray(ray, bits, ox, oy, oz, dx, dy, dz) -> None:
     """Fill an RTCRayHit (`ray` float32, `bits` its uint32 view) for a query from (ox, oy,
     oz) towards (dx, dy, dz), distances 0 … ∞, no hit yet."""

@@ -30,7 +30,6 @@ import numpy as np
 from isolume.baking.embree_kernels import intersect_rays, occluded_rays
 from isolume.baking.sampling_kernels import (
     GOLDEN,
-    JIT,
     dimension_key,
     pcg_hash,
     sincos_turns,
@@ -45,6 +44,7 @@ from isolume.baking.sky_kernels import (
     sky_light_samples,
 )
 from isolume.baking.sky_kernels import sky_params as sky_params  # for `baking.bake`
+from isolume.volumes.field import JIT
 
 DIMS_PER_VERTEX = 4  # 2 for the cosine-sampled direction, 2 for the light sample
 

@@ -20,8 +20,9 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
-from isolume.baking.sampling_kernels import JIT
 from isolume.volumes.field import (
+    JIT,
+    PART,
     along_normals,
     gradient_lerp,
     newton_steps,
@@ -139,7 +140,7 @@ class LandedStarts:
                              self.lift, self.field, self.weights)
 
 
-@numba.njit(**JIT, inline="always")
+@numba.njit(**PART)
 def centre_of(lattice: tuple, flat: int) -> tuple[float, float, float]:
     """The world (x, y, z) centre of texel `flat` (`LatticeGeometry.centres`), compiled
     into its callers' loops (`volumes.field.PART`)."""
@@ -173,7 +174,7 @@ def gradient_norms(lattice: tuple, ids: np.ndarray, field: tuple, w: np.ndarray,
         out[r] = np.sqrt(gx * gx + gy * gy + gz * gz) * scale
 
 
-@numba.njit(**JIT, inline="always")
+@numba.njit(**PART)
 def _encode(point: np.ndarray, centre: np.ndarray, r: int, reach: float, out: np.ndarray,
             t: int) -> None:
     """out[t] (3,) int16 = `plan.landing_offsets` of the point ``point[r]`` from its
@@ -190,7 +191,7 @@ def _encode(point: np.ndarray, centre: np.ndarray, r: int, reach: float, out: np
         out[t, 2] = np.int16(np.rint(min(max(sz, -LANDING_STEPS), LANDING_STEPS)))
 
 
-@numba.njit(**JIT, inline="always")
+@numba.njit(**PART)
 def landed_normal(lattice: tuple, flat: int, landing: np.ndarray, t: int, side: int,
                   step: float, field: tuple, w: np.ndarray, scratch: tuple
                   ) -> tuple[float, float, float, np.float32, np.float32, np.float32]:

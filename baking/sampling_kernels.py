@@ -14,17 +14,10 @@ from typing import Any
 import numba
 import numpy as np
 
+from isolume.volumes.field import JIT
+
 _Real = float | np.floating[Any]
 """A scalar as the kernels see it: a Python float or a numpy one (float32 in the loops)."""
-
-JIT: dict[str, Any] = {"nogil": True, "cache": True, "error_model": "numpy"}
-"""numba's options for every kernel: no GIL held, compiled once per machine (cached),
-numpy's floating-point error model. A cached kernel is checked against its own module's
-file only, not against the modules it calls (`baking.kernels` calls this one,
-`baking.sky_kernels` and `baking.embree_kernels`; `baking.plan_kernels` and
-`baking.side_kernels` call `volumes.field`'s kernels, `baking.kernels` and
-`baking.embree_kernels`): after editing a kernel module, delete the cached kernels
-(``*.nbi``, ``*.nbc`` in ``__pycache__``)."""
 
 _MULT = np.uint32(747796405)
 _INC = np.uint32(2891336453)

@@ -15,8 +15,7 @@ import numpy as np
 from isolume.baking.embree_kernels import occluded_rays
 from isolume.baking.kernels import path_starts
 from isolume.baking.plan_kernels import landed_normal
-from isolume.baking.sampling_kernels import JIT
-from isolume.volumes.field import normal_scratch, value_at_world
+from isolume.volumes.field import JIT, normal_scratch, value_at_world
 
 
 @numba.njit(**JIT)

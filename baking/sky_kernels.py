@@ -17,13 +17,13 @@ import numba
 import numpy as np
 
 from isolume.baking.sampling_kernels import (
-    JIT,
     dimension_key,
     sincos_turns,
     tangent_frame,
     uniform31,
     uniform_f32,
 )
+from isolume.volumes.field import JIT, PART
 
 if TYPE_CHECKING:
     from isolume.baking.environment.models import SkyEnvironment
@@ -77,20 +77,20 @@ def _sky_tuple(p: np.ndarray) -> tuple:
     """The (SKY_PARAMS,) array as a tuple of its words in order, read by the same field
     names: helpers called per ray take it by value (an array argument costs reference
     counting on every call, ten times the helper's arithmetic). The helpers are inlined
-    by numba itself (``inline="always"``): left to LLVM they stay calls, and the loops
+    by numba itself (`volumes.field.PART`): left to LLVM they stay calls, and the loops
     calling them do not vectorise (65 vs 22 ns per light sample)."""
     return (p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10], p[11], p[12],
             p[13], p[14], p[15], p[16], p[17], p[18])
 
 
-@numba.njit(**JIT, inline="always")
+@numba.njit(**PART)
 def _sky_sun(p: tuple, x: float, y: float, z: float) -> bool:
     """Is unit direction (x, y, z) inside the sun's cone? (No branch: it is random.)"""
     sx, sy, sz = p[SUN_DIRECTION]
     return (p[SUN_PROBABILITY] > 0) & (x * sx + y * sy + z * sz >= p[SUN_COS_RADIUS])
 
 
-@numba.njit(**JIT, inline="always")
+@numba.njit(**PART)
 def _sky_pdf(p: tuple, x: float, y: float, z: float) -> float:
     """Density (1/sr) of the sky's sampler at unit direction (x, y, z)."""
     p_sun = p[SUN_PROBABILITY]
@@ -98,7 +98,7 @@ def _sky_pdf(p: tuple, x: float, y: float, z: float) -> float:
         p_sun * p[SUN_DENSITY] if _sky_sun(p, x, y, z) else 0.0)
 
 
-@numba.njit(**JIT, inline="always")
+@numba.njit(**PART)
 def _sky_radiance(p: tuple, x: float, y: float, z: float):
     """(r, g, b) sky radiance arriving from unit direction (x, y, z)."""
     h = p[HORIZON_BLUR]
@@ -115,7 +115,7 @@ def _sky_radiance(p: tuple, x: float, y: float, z: float):
             + sun * sun_rgb[2])
 
 
-@numba.njit(**JIT, inline="always")
+@numba.njit(**PART)
 def _sky_sample(p: tuple, sun_frame: tuple, u0: float, u1: np.float32):
     """The sky sampler's unit direction (x, y, z) for uniforms (u0, u1): the sun cone
     with probability p_sun, else the whole sphere (`SkyEnvironment.sample`); `sun_frame`

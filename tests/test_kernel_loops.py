@@ -42,7 +42,7 @@ _NRT = re.compile(r"call void @NRT_(?:incref|decref)")
 
 
 @pytest.fixture(scope="module")
-def baked():
+def baked() -> None:
     """Gives every kernel of `PER_POINT` its argument types: a small bake."""
     volume = volumes.load("synthetic:engine:32")
     bake(volume, BakeConfig(samples=2, bounces=1, env="sky:sun=3"), workers=1)
@@ -51,7 +51,6 @@ def baked():
     volumes.value_at(volume, np.zeros((2, 3)))
     volumes.values_on_grid(volume, np.zeros(2), np.zeros(2), np.zeros(2))
     volumes.values_along_normals(volume, np.zeros((2, 3)), 0.1)
-    return True
 
 
 def _functions(ir: str) -> dict[str, str]:

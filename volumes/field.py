@@ -25,10 +25,14 @@ from isolume.volumes import cores
 from isolume.volumes.core import Volume
 
 JIT: dict[str, Any] = {"nogil": True, "cache": True, "error_model": "numpy"}
-"""numba's options for this module's kernels: no GIL held, compiled once per machine,
-numpy's floating-point error model (a float division by zero gives ±inf or NaN instead of
-raising: no divisor here can be zero, and a division that may raise is a branch that
-keeps reference counting alive, `PART`)."""
+"""numba's options for every kernel (this module's and the baker's): no GIL held,
+compiled once per machine (cached), numpy's floating-point error model (a float division
+by zero gives ±inf or NaN instead of raising: a division that may raise is a branch that
+keeps reference counting alive, `PART`). A cached kernel is checked against its own
+module's file only, not against the modules it calls (`baking.plan_kernels` and
+`baking.side_kernels` call this one's, `baking.kernels` `baking.sampling_kernels`,
+`baking.sky_kernels` and `baking.embree_kernels`): after editing a kernel module, delete
+the cached kernels (``*.nbi``, ``*.nbc`` in ``__pycache__``)."""
 
 PART: dict[str, Any] = {**JIT, "inline": "always"}
 """The options of the helpers that compiled loops call per point: numba compiles them
@@ -177,17 +181,12 @@ def _cell_mix(grid: np.ndarray, z0: int, z1: int, y0: int, y1: int, x0: int, x1:
 def _trilinear(grid: np.ndarray, index_zyx: np.ndarray, out: np.ndarray) -> None:
     """out[i] = trilinear interpolation of the (Z, Y, X, C) grid at index_zyx[i] (N, 3);
     NaN where an index is NaN."""
-    nz, ny, nx, channels = grid.shape
     for i in range(index_zyx.shape[0]):
         z, y, x = index_zyx[i, 0], index_zyx[i, 1], index_zyx[i, 2]
         if z != z or y != y or x != x:
             out[i, :] = np.nan
         else:
-            z0, z1, fz = _axis_weights(z, nz)  # `_lerp3`, without a view of out[i]
-            y0, y1, fy = _axis_weights(y, ny)
-            x0, x1, fx = _axis_weights(x, nx)
-            for c in range(channels):
-                out[i, c] = _cell_mix(grid, z0, z1, y0, y1, x0, x1, fz, fy, fx, c)
+            _lerp3(grid, z, y, x, out[i])
 
 
 @numba.njit(**JIT)
