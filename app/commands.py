@@ -129,18 +129,21 @@ def say_outlook(outlook: BakeOutlook, config: BakeConfig) -> None:
 
 def cheaper_options(config: BakeConfig) -> str:
     """The options that make a bake of `config` cheaper: an iso range, half its paths
-    per texel (while it has more than one; with a noise target, twice the target), a
-    texel error (where it has none and no noise target: the two are not combined) and
-    half its lattice scale (while that is allowed: `baking.config.SCALES`)."""
-    from isolume.baking.config import SCALES
+    per texel (while it has more than one; beside its texel error, which ``--samples``
+    alone would drop; with a noise target, twice the target), a texel error (where it has
+    none and no noise target: the two are not combined) and half its lattice scale (while
+    that is allowed: `baking.config.SCALES`)."""
+    from isolume.baking.config import DEFAULT_TEXEL_ERROR, SCALES
 
     options = ["--iso-range LO HI around the isovalues you will show"]
     if config.target_error is not None:
         options.append(f"--target-error {min(2 * config.target_error, 0.5):g}")
     elif config.samples > 1:
-        options.append(f"--samples {config.samples // 2}")
+        texels = (f" --texel-error {config.texel_error:g}"
+                  if config.texel_error is not None else "")
+        options.append(f"--samples {config.samples // 2}{texels}")
     if config.texel_error is None and config.target_error is None:
-        options.append("--texel-error 0.02")
+        options.append(f"--texel-error {DEFAULT_TEXEL_ERROR:g}")
     if config.scale / 2 >= SCALES[0]:
         options.append(f"--scale {config.scale / 2:g}")
     return ", ".join(options)

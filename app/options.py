@@ -311,29 +311,43 @@ def bake_config(args: argparse.Namespace) -> BakeConfig:
     """The `BakeConfig` of ``isolume bake``'s options (`add_bake_options`)."""
     from isolume.baking.config import BakeConfig
 
-    samples, target = bake_samples(args.samples, args.target_error)
+    samples, target, texel = bake_paths(args.samples, args.target_error, args.texel_error,
+                                        args.mode)
     return BakeConfig.lit_by(
         parse_lighting(args.env, args.light),
         mode=args.mode, sh_order=args.sh_order, samples=samples, bounces=args.bounces,
         albedo=parse_albedo(args.albedo), scale=args.scale,
         iso_range=tuple(args.iso_range) if args.iso_range else None, seed=args.seed,
         flip_normals=args.flip_normals, sides=args.sides, target_error=target,
-        texel_error=args.texel_error, max_samples=max(args.max_samples, samples),
+        texel_error=texel, max_samples=max(args.max_samples, samples),
         max_levels=args.max_levels, max_move=args.max_move, direct_light=args.direct_light,
     )
 
 
-def bake_samples(samples: int | None, target: float | None) -> tuple[int, float | None]:
-    """(samples, target error) of ``bake``'s ``--samples`` and ``--target-error``: exactly
-    `samples` paths a texel (`baking.config.DEFAULT_SAMPLES` when not given) without a
-    target; with one,
-    paths where the noise is (`baking.adaptive`) from a minimum of `samples`
-    (`ADAPTIVE_MIN_SAMPLES` when not given)."""
-    from isolume.baking.config import DEFAULT_SAMPLES
+def bake_paths(samples: int | None, target: float | None, texel: float | None,
+               mode: str = "irradiance") -> tuple[int, float | None, float | None]:
+    """(samples, target error, texel error) of ``bake``'s ``--samples``,
+    ``--target-error`` and ``--texel-error``:
 
-    if target is None:
-        return (DEFAULT_SAMPLES if samples is None else samples), None
-    return (ADAPTIVE_MIN_SAMPLES if samples is None else samples), target
+    - a target: paths where the noise is (`baking.adaptive`) from a minimum of `samples`
+      (`ADAPTIVE_MIN_SAMPLES` when not given);
+    - a texel error: texels where the light varies (`baking.density`), `samples` paths a
+      traced texel (`baking.config.TEXEL_SAMPLES` when not given);
+    - `samples` alone: exactly `samples` paths a texel, every texel traced;
+    - none of them: an irradiance bake to `baking.config.DEFAULT_TEXEL_ERROR` at
+      `TEXEL_SAMPLES`; an SH bake (`mode` ``"sh"``, whose light turns: the texel judgement
+      weighs the DC term only) exactly `baking.config.DEFAULT_SAMPLES` a texel."""
+    from isolume.baking.config import DEFAULT_SAMPLES, DEFAULT_TEXEL_ERROR, TEXEL_SAMPLES
+
+    if target is not None:
+        return (ADAPTIVE_MIN_SAMPLES if samples is None else samples), target, texel
+    if texel is not None:
+        return (TEXEL_SAMPLES if samples is None else samples), None, texel
+    if samples is not None:
+        return samples, None, None
+    if mode == "sh":
+        return DEFAULT_SAMPLES, None, None
+    return TEXEL_SAMPLES, None, DEFAULT_TEXEL_ERROR
 
 
 ADAPTIVE_MIN_SAMPLES = 16
@@ -350,6 +364,8 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
         DEFAULT_BOUNCES,
         DEFAULT_ENV,
         DEFAULT_SAMPLES,
+        DEFAULT_TEXEL_ERROR,
+        TEXEL_SAMPLES,
     )
 
     p.add_argument("--out", required=True, help="lattice file FILE.npz (resumed if present)")
@@ -358,8 +374,12 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
                    "that can turn) (default irradiance)")
     p.add_argument("--sh-order", type=int, default=5, help="SH bands (n² coefficients)")
     p.add_argument("--samples", type=int, default=None, metavar="N",
-                   help=f"exactly N paths per texel (default {DEFAULT_SAMPLES}); with "
-                   f"--target-error, the fewest (default {ADAPTIVE_MIN_SAMPLES})")
+                   help="paths per texel: alone, exactly N for every texel (a uniform "
+                   f"lattice); with --texel-error, per traced texel (default "
+                   f"{TEXEL_SAMPLES}); with --target-error, the fewest (default "
+                   f"{ADAPTIVE_MIN_SAMPLES}). With none of the three: --texel-error "
+                   f"{DEFAULT_TEXEL_ERROR:g} at {TEXEL_SAMPLES} paths (irradiance), exactly "
+                   f"{DEFAULT_SAMPLES} (sh)")
     p.add_argument("--target-error", type=float, default=None, metavar="E",
                    help="paths where the noise is: texels get paths in doubling rounds, in "
                    "proportion to the spread of their paths, until each isosurface's noise "
@@ -367,7 +387,9 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--texel-error", type=float, default=None, metavar="E",
                    help="texels where the light varies: a brick of the lattice is traced at "
                    "half resolution, its other texels filled from it, where that "
-                   "reproduces its light within E of the scene's light level (e.g. 0.02)")
+                   "reproduces its light within E of the scene's light level (default "
+                   f"{DEFAULT_TEXEL_ERROR:g} for an irradiance bake that names no --samples "
+                   "nor --target-error)")
     p.add_argument("--max-samples", type=int, default=DEFAULT_MAX_SAMPLES, metavar="N",
                    help="the most paths a texel gets with a target (default "
                    f"{DEFAULT_MAX_SAMPLES})")

@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from isolume.app.options import ADAPTIVE_MIN_SAMPLES
 from isolume.baking import BakeConfig, Lattice, bake
 from isolume.baking.adaptive import (
     ROUND_KEY,
@@ -18,6 +19,7 @@ from isolume.baking.adaptive import (
     path_variance,
     still_going,
 )
+from isolume.baking.config import DEFAULT_SAMPLES, DEFAULT_TEXEL_ERROR, TEXEL_SAMPLES
 from isolume.baking.lattice import TRAPPED_PATHS, standard_error
 from isolume.volumes.synthetic import make
 
@@ -187,16 +189,27 @@ def test_the_noise_left_follows_the_target_and_paths_follow_the_spread():
     assert rank > 0.5
 
 
-def test_the_command_line_bakes_exact_samples_unless_given_a_target():
-    """``bake`` alone: exactly the default paths; ``--target-error E``: paths where the
-    noise is, from the adaptive minimum unless ``--samples`` says."""
-    from isolume.app.options import ADAPTIVE_MIN_SAMPLES, bake_samples
-    from isolume.baking.config import DEFAULT_SAMPLES
+@pytest.mark.parametrize("words, expected", [
+    ([], (TEXEL_SAMPLES, None, DEFAULT_TEXEL_ERROR)),
+    (["--mode", "sh"], (DEFAULT_SAMPLES, None, None)),
+    (["--samples", "100"], (100, None, None)),
+    (["--samples", "64", "--mode", "sh"], (64, None, None)),
+    (["--texel-error", "0.05"], (TEXEL_SAMPLES, None, 0.05)),
+    (["--texel-error", "0.05", "--samples", "32"], (32, None, 0.05)),
+    (["--target-error", "0.05"], (ADAPTIVE_MIN_SAMPLES, 0.05, None)),
+    (["--target-error", "0.05", "--samples", "32"], (32, 0.05, None)),
+])
+def test_the_command_line_bakes_exact_samples_only_when_it_names_them(words, expected):
+    """``bake`` alone (irradiance): a texel error at its paths; ``--samples N`` alone:
+    exactly N paths a texel, every texel traced; an SH bake alone: exactly the default;
+    ``--texel-error`` / ``--target-error``: their own defaults unless ``--samples`` says —
+    as the command parses them into its `BakeConfig`."""
+    from isolume.app.cli import build_parser
+    from isolume.app.options import bake_config
 
-    assert bake_samples(None, None) == (DEFAULT_SAMPLES, None)
-    assert bake_samples(64, None) == (64, None)
-    assert bake_samples(None, 0.05) == (ADAPTIVE_MIN_SAMPLES, 0.05)
-    assert bake_samples(32, 0.05) == (32, 0.05)
+    args = build_parser().parse_args(["bake", "v.raw", "--out", "l.npz", *words])
+    config = bake_config(args)
+    assert (config.samples, config.target_error, config.texel_error) == expected
 
 
 def test_the_bake_command_says_what_a_target_traced(tmp_path, capsys):

@@ -369,7 +369,8 @@ def test_bake_says_what_it_will_trace_before_tracing(tmp_path, capsys, monkeypat
 
 def test_cheaper_options_name_only_options_the_bake_takes():
     """A texel error is named for a bake without one, never beside a noise target (the
-    two are refused together), and the named options make a config that is accepted."""
+    two are refused together), and kept beside a texel bake's halved paths (``--samples``
+    alone bakes uniform texels); the named options make a config that is accepted."""
     from isolume.app.commands import cheaper_options
     from isolume.baking import BakeConfig
 
@@ -381,7 +382,9 @@ def test_cheaper_options_name_only_options_the_bake_takes():
 
     assert texel_error(BakeConfig(samples=100)) == 0.02
     assert texel_error(BakeConfig(samples=16, target_error=0.1)) is None
-    assert texel_error(BakeConfig(samples=100, texel_error=0.02)) is None
+    assert texel_error(BakeConfig(samples=64, texel_error=0.05)) == 0.05
+    assert "--samples 32 --texel-error 0.05," in cheaper_options(
+        BakeConfig(samples=64, texel_error=0.05))
 
 
 def test_a_plan_that_fails_leaves_its_stage_unfinished_and_says_why(tmp_path, capsys,
