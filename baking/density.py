@@ -37,6 +37,12 @@ there. A bake to a texel error (`bake_texels`):
    (`baking.lattice.sided_mix`, what the shader does with the half lattice), their
    facings from the plan as a traced texel's.
 
+Under a sky from every direction, a traced texel whose paths all stayed dark — a node
+before the judgement, any other once step 3 is traced — goes on to
+`baking.lattice.TRAPPED_PATHS` paths (`dark_to_trapped`): decided on fewer, a display
+would draw it black; on that many it is either lit or known to be trapped in a sealed
+pocket and left out of the lookups. So `samples` below that costs no black pixels.
+
 The lattice stays one uniform grid that every reader reads as it is, seamless by
 construction (a filled brick is the half lattice's trilinear field, sampled at its own
 texels). Decisions are made from finished node values alone and per texel, so the same
@@ -495,8 +501,8 @@ def clear_filled(lattice: Any, plan_size: int, texel_bake: bool) -> None:
 def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     """Bake `baker`'s texels (a `baking.bake.Baker` holding a `PlanLattice`) to its
     config's `texel_error` at `samples` paths a texel: nodes, judgement, the fine bricks'
-    texels and more paths for the nodes that fill, the fill (see the module's docs); the
-    record in the metadata."""
+    texels and more paths for the nodes that fill, dark texels on to the trapped count,
+    the fill (see the module's docs); the record in the metadata."""
     config, lattice = baker.config, baker.lattice
     shape = baker.geometry.shape
     coords = texel_coords(baker.plan.ids, shape)
@@ -509,9 +515,10 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
                                                    np.flatnonzero(~node)))
     node[odd.positions] = True
     nodes = np.flatnonzero(node)
+    trapped_at = TRAPPED_PATHS if sky_everywhere(config) else 0
     _count_paths(bar, baker, nodes, config.samples, restart=True)
     baker.run(nodes, bar=bar, after_commit=checkpoint)
-    trapped_at = TRAPPED_PATHS if sky_everywhere(config) else 0
+    dark_to_trapped(baker, nodes, trapped_at, bar, checkpoint)
     weights = baker.job.tracing.weights
     judged = Judgement.resumed(lattice.meta.get(JUDGED_KEY), config, total)
     if judged is None:
@@ -535,11 +542,33 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     del node, nodes, in_fine, filled, alone, filling
     _count_paths(bar, baker, traced, paths)
     baker.run(traced, paths, bar=bar, after_commit=checkpoint)
+    dark_to_trapped(baker, traced, trapped_at, bar, checkpoint)
     del traced, paths
-    luminance = lattice.values.reshape(total, -1) @ weights
+    values = lattice.values.reshape(total, -1)
+    record["trapped"] = int(np.count_nonzero(  # dark on every one of trapped_at paths
+        (lattice.samples.reshape(-1) >= trapped_at) & ~values.any(axis=1))) if trapped_at else 0
+    luminance = values @ weights
     for half, fills in zip((even, odd), judged.fills, strict=True):
         fill(lattice, half, coords, fills, luminance, config.samples, trapped_at)
     lattice.meta[FILLED_KEY] = record
+
+
+def dark_to_trapped(baker: Any, positions: np.ndarray, trapped_at: int, bar: Any,
+                    checkpoint: Any) -> None:
+    """Trace on to `trapped_at` paths (0: none, under lights that leave texels honestly
+    dark) the texels among plan `positions` (sorted) whose light is all zero on fewer: a
+    display draws such a texel black, where once it rests on `TRAPPED_PATHS` it is known
+    to be trapped in a sealed pocket and left out of the lookups (`Lattice.shown`), and a
+    texel that sees a little sky is lit. So fewer paths a texel than that cost no black
+    pixels."""
+    if trapped_at == 0 or len(positions) == 0:
+        return
+    values = baker.lattice.values.reshape(len(baker.plan.ids), -1)
+    short = positions[baker.samples_done(positions) < trapped_at]
+    dark = short[~values[short].any(axis=1)]
+    if len(dark):
+        _count_paths(bar, baker, dark, trapped_at)
+        baker.run(dark, trapped_at, bar=bar, after_commit=checkpoint)
 
 
 def make_facings(baker: Any) -> None:

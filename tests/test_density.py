@@ -25,7 +25,7 @@ from isolume.baking.density import (
     texel_coords,
 )
 from isolume.baking.errors import BakeError
-from isolume.baking.lattice import trilinear_corners
+from isolume.baking.lattice import TRAPPED_PATHS, trilinear_corners
 from isolume.volumes.synthetic import make
 
 SHAPE = (20, 18, 17)
@@ -176,10 +176,31 @@ def test_a_texel_bake_is_the_same_bits_on_any_number_of_workers(sphere_bakes):
     filled[np.flatnonzero(one.samples.reshape(-1) > 0)[filled_positions(record)]] = True
     traced = one.samples.reshape(-1)[~filled]
     assert one.meta["stats"]["paths"] == traced.sum()
-    assert (traced == NODE_PATHS * CONFIG.samples).sum() == record["filling_nodes"] > 0
-    assert (traced == CONFIG.samples).sum() == (
-        record["even_nodes"] + record["odd_nodes"] - record["filling_nodes"]
-        + record["in_fine_bricks"] + record["alone"])
+    dark = (traced > 0) & ~one.values.reshape(-1, 3)[~filled].any(axis=1)
+    on_to_trapped = traced == TRAPPED_PATHS  # dark on their first paths: lit or trapped
+    assert on_to_trapped[dark].all() and dark.sum() == record["trapped"] > 0
+    assert on_to_trapped.sum() > dark.sum()  # some found light on the further paths
+    filling = (traced == NODE_PATHS * CONFIG.samples).sum()
+    assert 0 < filling <= record["filling_nodes"]  # the others at TRAPPED_PATHS
+    assert filling + (traced == CONFIG.samples).sum() + on_to_trapped.sum() == (
+        record["even_nodes"] + record["odd_nodes"] + record["in_fine_bricks"]
+        + record["alone"])
+
+
+def test_no_texel_is_left_dark_on_fewer_paths_than_tell_it_trapped(sphere_bakes):
+    """Under the sky every traced texel whose light is zero has the paths that tell it
+    trapped (`TRAPPED_PATHS`, more than `CONFIG.samples`), so a display leaves it out of
+    its lookups instead of drawing it black; a filled texel's mix is of lit nodes."""
+    from isolume.baking.lattice import sky_everywhere
+
+    _, one, _ = sphere_bakes
+    assert sky_everywhere(CONFIG) and CONFIG.samples < TRAPPED_PATHS
+    count = one.samples.reshape(-1)
+    lit = one.values.reshape(-1, 3).any(axis=1)
+    assert (count[(count > 0) & ~lit] >= TRAPPED_PATHS).any()
+    assert not ((count > 0) & (count < TRAPPED_PATHS) & ~lit).any()
+    shown = one.shown().reshape(-1)
+    assert not (shown & ~lit).any()
 
 
 def test_filled_texels_are_close_to_traced_ones(sphere_bakes):
@@ -210,9 +231,9 @@ def test_filled_texels_are_close_to_traced_ones(sphere_bakes):
 
 def test_a_later_bake_clears_the_filled_texels(tmp_path):
     """The same bake of a finished file changes nothing; a uniform bake of it (at the
-    nodes' paths) traces the filled texels afresh — to the bit what a fresh uniform bake
-    gives them — and adds paths to the others (the same means to float rounding: a
-    running mean over two passes)."""
+    dark texels' paths, the most any texel has) traces the filled texels afresh — to the
+    bit what a fresh uniform bake gives them — and adds paths to the others (the same
+    means to float rounding: a running mean over two passes)."""
     vol = make("shells", 32)
     path = tmp_path / "t.npz"
     first = bake(vol, CONFIG, out=path, workers=2)
@@ -220,8 +241,7 @@ def test_a_later_bake_clears_the_filled_texels(tmp_path):
     assert record["filled"] > 0 and record["in_fine_bricks"] > 0
     again = bake(vol, CONFIG, out=path, workers=2)
     _same_bits(again, first)
-    uniform = dataclasses.replace(CONFIG, texel_error=None,
-                                  samples=NODE_PATHS * CONFIG.samples)  # the nodes' paths
+    uniform = dataclasses.replace(CONFIG, texel_error=None, samples=TRAPPED_PATHS)
     done = bake(vol, uniform, out=path, workers=2)
     fresh = bake(vol, uniform, workers=2)
     assert FILLED_KEY not in done.meta and JUDGED_KEY not in done.meta

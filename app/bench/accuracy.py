@@ -9,7 +9,8 @@ the volume as loaded, turned by ``--up`` where asked), two pictures are measured
   illumination (`app.render.offscreen.render_volume` with no lattice, lit by
   `app.options.view_light` from the render command's defaults);
 * **bake**: a bake with ``isolume bake``'s defaults (`app.options.bake_config`: the
-  default sky, 100 paths per texel, 2 bounces, scale 1), or with ``--paths N``,
+  default sky, a texel error of 0.02 at 40 paths a traced texel, 2 bounces, scale 1),
+  or with ``--paths N`` (exactly N a texel),
   ``--target-error E`` (paths where the noise is) or ``--texel-error E`` (texels where
   the light varies), restricted, for time, to the iso range a lazy bake serves for that
   isovalue (`baking.lazy.view_iso_range`: ±3 % of the data range around it), then the
@@ -86,8 +87,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ref-spp", type=int, default=DEFAULT_REF_SPP, metavar="N",
                    help=f"cap on the reference's samples per pixel (default {DEFAULT_REF_SPP})")
     p.add_argument("--paths", type=int, default=None, metavar="N",
-                   help="paths per texel of the render's and the bake's light (default: "
-                   "theirs, 64 and 100)")
+                   help="paths per texel of the render's and the bake's light: the bake "
+                   "then traces exactly N at every texel unless --texel-error or "
+                   "--target-error is given (default: theirs, the render's 64, the bake's "
+                   "texel error at 40)")
     p.add_argument("--target-error", type=float, default=None, metavar="E",
                    help="the bake's noise target, as bake's --target-error (with --paths: "
                    "its minimum paths)")
