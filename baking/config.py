@@ -32,12 +32,13 @@ DEFAULT_TEXEL_ERROR = 0.02
 """The texel error (`BakeConfig.texel_error`) of an irradiance bake that names no count,
 noise target nor texel error (``isolume bake``'s default), at `TEXEL_SAMPLES`
 ([accuracy.md](../docs/accuracy.md#texels-where-the-light-varies-against-uniform-texels))."""
-TEXEL_SAMPLES = 40
+TEXEL_SAMPLES = 64
 """Paths per traced texel of a bake to a texel error that names no count (the nodes that
-fill get twice as many, texels dark on all of them go on to
-`baking.lattice.TRAPPED_PATHS`). On seven scans of ``../shared/data`` the default is within
-each case's reference noise + 0.5 % of the uniform `DEFAULT_SAMPLES` bake at 0.35× its
-paths; at 32 the stent CT is not (7.52 % against 6.33 %, its reference's noise 0.67 %)."""
+fill get twice as many; below `baking.lattice.TRAPPED_PATHS`, texels dark on all of
+theirs go on to that many). Over the 58 bake cases of ``../shared/data`` the default is
+within each case's reference noise + 0.5 % of the uniform `DEFAULT_SAMPLES` bake at 0.52×
+its paths; at 48 the statue's leg at iso 124 is not (its plan, sized for the paths, has
+two levels where 64 paths give it three)."""
 DEFAULT_BOUNCES = 2
 """Diffuse bounces of every command's light when none is given."""
 DEFAULT_ALBEDO = 0.8

@@ -9,12 +9,11 @@ the volume as loaded, turned by ``--up`` where asked), two pictures are measured
   illumination (`app.render.offscreen.render_volume` with no lattice, lit by
   `app.options.view_light` from the render command's defaults);
 * **bake**: a bake with ``isolume bake``'s defaults (`app.options.bake_config`: the
-  default sky, a texel error of 0.02 at 40 paths a traced texel, 2 bounces, scale 1),
-  or with ``--paths N`` (exactly N a texel),
-  ``--target-error E`` (paths where the noise is) or ``--texel-error E`` (texels where
-  the light varies), restricted, for time, to the iso range a lazy bake serves for that
-  isovalue (`baking.lazy.view_iso_range`: ±3 % of the data range around it), then the
-  picture drawn with that lattice; its row records the paths it traced and its bytes;
+  default sky, a texel error of 0.02 at 64 paths a traced texel, 2 bounces, scale 1),
+  or with ``--paths N`` (exactly N a texel), ``--target-error E`` or ``--texel-error E``,
+  restricted, for time, to the iso range a lazy bake serves for that isovalue
+  (`baking.lazy.view_iso_range`: ±3 % of the data range), then the picture drawn with
+  that lattice; its row records the paths it traced and its bytes;
 
 both against the per-pixel path-traced reference of ``isolume reference``
 (`baking.reference.ReferenceTracer`) with the same camera, size and lighting (the seed
@@ -87,10 +86,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ref-spp", type=int, default=DEFAULT_REF_SPP, metavar="N",
                    help=f"cap on the reference's samples per pixel (default {DEFAULT_REF_SPP})")
     p.add_argument("--paths", type=int, default=None, metavar="N",
-                   help="paths per texel of the render's and the bake's light: the bake "
-                   "then traces exactly N at every texel unless --texel-error or "
-                   "--target-error is given (default: theirs, the render's 64, the bake's "
-                   "texel error at 40)")
+                   help="paths per texel of the render's and the bake's light (exactly N "
+                   "at every texel without --texel-error/--target-error; default theirs)")
     p.add_argument("--target-error", type=float, default=None, metavar="E",
                    help="the bake's noise target, as bake's --target-error (with --paths: "
                    "its minimum paths)")
@@ -241,8 +238,8 @@ def render_options(sweep: Sweep) -> argparse.Namespace:
 
 
 def bake_options(sweep: Sweep, iso_range: tuple[float, float]) -> argparse.Namespace:
-    """``isolume bake``'s options at their defaults, for `iso_range`, with this sweep's
-    paths, target, texel error, scale and workers."""
+    """``isolume bake``'s defaults for `iso_range`, with the sweep's paths, target, texel
+    error, scale and workers."""
     from isolume.app.options import add_bake_options
 
     ns = _defaults(add_bake_options, "--out", "unused.npz")
