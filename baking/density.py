@@ -516,8 +516,7 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     node[odd.positions] = True
     nodes = np.flatnonzero(node)
     trapped_at = TRAPPED_PATHS if sky_everywhere(config) else 0
-    _count_paths(bar, baker, nodes, config.samples, restart=True)
-    baker.run(nodes, bar=bar, after_commit=checkpoint)
+    _trace(baker, nodes, config.samples, bar, checkpoint, restart=True)
     dark_to_trapped(baker, nodes, trapped_at, bar, checkpoint)
     weights = baker.job.tracing.weights
     judged = Judgement.resumed(lattice.meta.get(JUDGED_KEY), config, total)
@@ -540,14 +539,13 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
         "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid)),
         "bits": packed(filled)}
     del node, nodes, in_fine, filled, alone, filling
-    _count_paths(bar, baker, traced, paths)
-    baker.run(traced, paths, bar=bar, after_commit=checkpoint)
+    _trace(baker, traced, paths, bar, checkpoint)
     dark_to_trapped(baker, traced, trapped_at, bar, checkpoint)
     del traced, paths
-    values = lattice.values.reshape(total, -1)
-    record["trapped"] = int(np.count_nonzero(  # dark on every one of trapped_at paths
-        (lattice.samples.reshape(-1) >= trapped_at) & ~values.any(axis=1))) if trapped_at else 0
-    luminance = values @ weights
+    luminance = lattice.values.reshape(total, -1) @ weights
+    samples = lattice.samples.reshape(-1)
+    record["trapped"] = int(np.count_nonzero(
+        (samples > 0) & ~shown_texels(luminance, samples, trapped_at)))
     for half, fills in zip((even, odd), judged.fills, strict=True):
         fill(lattice, half, coords, fills, luminance, config.samples, trapped_at)
     lattice.meta[FILLED_KEY] = record
@@ -567,8 +565,7 @@ def dark_to_trapped(baker: Any, positions: np.ndarray, trapped_at: int, bar: Any
     short = positions[baker.samples_done(positions) < trapped_at]
     dark = short[~values[short].any(axis=1)]
     if len(dark):
-        _count_paths(bar, baker, dark, trapped_at)
-        baker.run(dark, trapped_at, bar=bar, after_commit=checkpoint)
+        _trace(baker, dark, trapped_at, bar, checkpoint)
 
 
 def make_facings(baker: Any) -> None:
@@ -613,6 +610,14 @@ def filling_nodes(nodes: Nodes, coords: np.ndarray, filled: np.ndarray) -> np.nd
     are filled from (the corners of their mixes), sorted."""
     rows, weights = nodes.corners(coords[filled])
     return np.unique(rows[weights > 0])
+
+
+def _trace(baker: Any, positions: np.ndarray, paths: int | np.ndarray, bar: Any,
+           checkpoint: Any, restart: bool = False) -> None:
+    """Bring the texels at plan `positions` up to `paths` each (or (N,) per texel), the
+    progress `bar` sized for them (`_count_paths`), a `checkpoint` after each commit."""
+    _count_paths(bar, baker, positions, paths, restart)
+    baker.run(positions, paths, bar=bar, after_commit=checkpoint)
 
 
 def _count_paths(bar: Any, baker: Any, positions: np.ndarray, paths: int | np.ndarray,
