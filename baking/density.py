@@ -31,6 +31,8 @@ there. A bake to a texel error (`bake_texels`):
    rests on a plane, a texel of one surface beside a node of the other); or a node of its
    mix on an edge of the light (`EDGE_NODE`: that node's own surpluses, beyond their
    noise, where its brick's mean hides them — a contact, a shadow's edge in a corner);
+   or a fill that leans to one side, off by more than the tolerance where the light has
+   a slope (`drift_error`: e.g. in the gap between two surfaces that nearly touch);
 4. gives the nodes that fill texels `NODE_PATHS` times `samples` paths, with step 3's
    texels (their light is spread over the filled texels around them), and fills the
    rest (*filled* texels) with the side-aware mix of their nodes
@@ -97,6 +99,9 @@ ONE_SIDED_FLOOR = 0.8
 """The least side-aware share (`side_share`) a texel is filled on from nodes that carry
 at most half of its trilinear weight (the others missing or not shown: the texel lies
 past the half lattice's edge, and the fill extrapolates from one side of it)."""
+DRIFT = 0.25
+"""Texels along an axis the centre of a fill's side-aware weights may lie from the texel
+before the fill is judged as an extrapolation along that axis (`drift_error`)."""
 NODE_PATHS = 2
 """Paths of a node that fills texels per path of a traced texel (`BakeConfig.samples`):
 its light is mixed into up to 26 filled texels around it, so its noise shows over a larger
@@ -197,13 +202,77 @@ def corner_nodes(node_rows: np.ndarray, coords: np.ndarray, offset: int, stride:
             weights[n, k] = weight if row >= 0 else 0.0
 
 
-def usable(rows: np.ndarray, weights: np.ndarray, luminance: np.ndarray,
-           samples: np.ndarray, trapped_at: int) -> np.ndarray:
-    """(N, 8) `weights` of the nodes at plan positions (N, 8) `rows` (−1: none) that a
-    display shows (`shown_texels`)."""
-    safe = np.maximum(rows, 0)
-    shown = shown_texels(luminance[safe], samples[safe], trapped_at)
-    return np.where((rows >= 0) & shown, weights, 0.0)
+@dataclass
+class NodeLight:
+    """The traced light a fill is judged by: (T,) `luminance`, (T,) `error` variances of
+    the texels' means, (T,) bool `shown` (`shown_texels`), the error a fill may make
+    (`allowed`: the tolerance times the scene's light level) and (T,) bool the nodes on
+    an edge of the light (`fine_bricks`), each over the plan's texels."""
+
+    luminance: np.ndarray
+    error: np.ndarray
+    shown: np.ndarray
+    allowed: float
+    edges: np.ndarray
+
+    def weigh(self, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(N, 8) `weights` of the shown nodes among (N, 8) plan positions `rows`."""
+        return np.where((rows >= 0) & self.shown[np.maximum(rows, 0)], weights, 0.0)
+
+
+def drift_error(nodes: Nodes, coords: np.ndarray, rows: np.ndarray, weights: np.ndarray,
+                sides: np.ndarray, facing: np.ndarray, own_facing: np.ndarray,
+                light: NodeLight) -> np.ndarray:
+    """(N,) the error, beyond its noise, of a fill whose side-aware weights centre more
+    than `DRIFT` texels from its texel along an axis: there it holds the nodes' light flat
+    past them, and errs by the light's slope along that axis — read from each node and
+    the next node beyond it that faces the texel's way, less `SURE` standard deviations
+    of its noise — times the distance. Where the slope cannot be read (most of the weight
+    has no such node beyond it), infinite if the sides made the lean (the nodes across
+    the texel are there but face away: between two surfaces that nearly touch, where the
+    light changes fastest), else 0 (the texel lies past the last layer of nodes, at the
+    edge of the baked band: nothing to read a slope from, and nothing there that shows
+    more than the band's edge). 0 for a centred fill.
+
+    Args:
+        coords: (N, 3) the texels' z, y, x; rows: (N, 8) plan positions of their nodes
+            (`Nodes.corners`); weights: (N, 8) the shown nodes' trilinear weights;
+            sides: (N, 8) their side weights (`node_sides`).
+        facing: (T, 2) every texel's octahedral facing; own_facing: (N, 2) the texels'.
+    """
+    safe, spots = np.maximum(rows, 0), nodes.coords[np.maximum(rows, 0)].astype(np.int64)
+    share = _shares(weights * sides)
+    drift = (share[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
+    plain = (_shares(weights)[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
+    own, known = octahedral.decode(own_facing), octahedral.known(own_facing)
+    squares = np.zeros(len(rows))
+    for axis in range(3):
+        lean = np.flatnonzero(np.abs(drift[:, axis]) > DRIFT)
+        if len(lean) == 0:
+            continue
+        beyond = spots[lean] - nodes.offset
+        beyond[:, :, axis] += 2 * np.sign(drift[lean, axis]).astype(np.int64)[:, None]
+        far = nodes.row_at(beyond.reshape(-1, 3) // 2).reshape(-1, 8)
+        far_safe = np.maximum(far, 0)
+        turned = side_weights(facing[far_safe], own[lean])
+        ok = ((far >= 0) & light.shown[far_safe]
+              & (~known[lean, None] | (turned >= SIDE_FLOOR)))
+        part = np.where(ok, share[lean], 0.0)
+        covered = part.sum(axis=1)
+        held = np.maximum(covered, 1e-12)
+        near, step = safe[lean], drift[lean, axis]
+        slope = (part * (light.luminance[near] - light.luminance[far_safe])).sum(axis=1) / held
+        noise = (part ** 2 * (light.error[near] + light.error[far_safe])).sum(axis=1) / held ** 2
+        error = np.maximum(np.abs(slope) - SURE * np.sqrt(noise), 0.0) * 0.5 * np.abs(step)
+        sided = np.abs(step - plain[lean, axis]) > DRIFT
+        squares[lean] += np.where(covered >= 0.5, error ** 2, np.where(sided, np.inf, 0.0))
+    return np.sqrt(squares)
+
+
+def _shares(weights: np.ndarray) -> np.ndarray:
+    """(N, 8) `weights` over their sums (0 where a row's sum is 0)."""
+    total = weights.sum(axis=1, keepdims=True)
+    return np.divide(weights, total, out=np.zeros_like(weights), where=total > 0)
 
 
 def node_mix(rows: np.ndarray, weights: np.ndarray, facing: np.ndarray,
@@ -282,7 +351,7 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray
         luminance, variance, samples: (T,) each texel's brightness, per-path variance of
             it and paths (the nodes' are read).
         facing: (T, 2) octahedral facings.
-        tolerance: `BakeConfig.texel_error`; trapped_at: as `usable`'s.
+        tolerance: `BakeConfig.texel_error`; trapped_at: as `shown_texels`'.
     """
     grid = brick_grid(lattices[0].shape)
     count = int(np.prod(grid))
@@ -326,27 +395,27 @@ def shown_texels(luminance: np.ndarray, samples: np.ndarray, trapped_at: int) ->
 
 
 def facing_away(nodes: Nodes, at: np.ndarray, coords: np.ndarray, facing: np.ndarray,
-                weigh, edges: np.ndarray | None = None) -> np.ndarray:
+                light: NodeLight | None = None) -> np.ndarray:
     """(N,) bool: the texels at plan positions (N,) `at` that the half lattice `nodes`
     cannot fill: their nodes' side-aware weight (`side_share`) below `SIDE_FLOOR`, or below
-    `ONE_SIDED_FLOOR` where those nodes carry at most half of the trilinear weight, or a
-    node of their mix on an edge of the light.
-
-    Args:
-        weigh: (rows, weights) → the weights of the nodes that count (e.g. `usable`).
-        edges: (T,) bool over the plan, the nodes on an edge (`fine_bricks`), or None.
-    """
+    `ONE_SIDED_FLOOR` where those nodes carry at most half of the trilinear weight; and,
+    judged by the traced `light` (None: before any path, every active node counted), a
+    node of their mix on an edge of the light, or a fill leaning to one side that errs by
+    more than it allows (`drift_error`)."""
     away = np.zeros(len(at), bool)
 
     def look(part: slice) -> None:
-        rows, w = nodes.corners(coords[at[part]])
-        w = weigh(rows, w)
+        here = coords[at[part]].astype(np.int64)
+        rows, w = nodes.corners(here)
+        w = np.where(rows >= 0, w, 0.0) if light is None else light.weigh(rows, w)
         sides = node_sides(rows, facing, facing[at[part]])
         share = side_share(w, sides)
         one_sided = w.sum(axis=1) <= 0.5 + 1e-9
         away[part] = (share < SIDE_FLOOR) | (one_sided & (share < ONE_SIDED_FLOOR))
-        if edges is not None:
-            away[part] |= ((w * sides > 0) & edges[np.maximum(rows, 0)]).any(axis=1)
+        if light is not None:
+            away[part] |= ((w * sides > 0) & light.edges[np.maximum(rows, 0)]).any(axis=1)
+            away[part] |= drift_error(nodes, here, rows, w, sides, facing,
+                                      facing[at[part]], light) > light.allowed
 
     cores.for_blocks(look, len(at), BLOCK, "texels")
     return away
@@ -357,35 +426,29 @@ def odd_nodes_needed(even: Nodes, coords: np.ndarray, facing: np.ndarray,
     """The plan positions of the odd nodes to trace: the active ones around the texels
     among (K,) `others` whose even nodes face away from them (every active even node
     counted: nothing is traced yet), sorted."""
-    away = others[facing_away(even, others, coords, facing,
-                              lambda rows, w: np.where(rows >= 0, w, 0.0))]
+    away = others[facing_away(even, others, coords, facing)]
     odd = Nodes(coords, tuple(even.shape), 1)
     rows, w = odd.corners(coords[away])
     return np.unique(rows[w > 0])
 
 
 def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
-                 facing: np.ndarray, luminance: np.ndarray, samples: np.ndarray,
-                 trapped_at: int, edges: np.ndarray | None = None
+                 facing: np.ndarray, light: NodeLight
                  ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """The plan positions of the texels that are not nodes: those of `fine` bricks,
-    those of the others that are traced all the same (*alone*: no half lattice has shown
-    nodes around them that face their way, `SIDE_FLOOR` — e.g. the other side of a sheet,
-    lit in a checkerboard, `baking.sides`, where only the even nodes are traced; nodes
-    on one side of them only, facing less closely, `ONE_SIDED_FLOOR`; or a node on an
-    edge of the light among them, `edges`, (T,) bool over the plan, if given), and per
-    half lattice of `lattices` (in order), those it fills; sorted arrays."""
+    those of the others that are traced all the same (*alone*: no half lattice can fill
+    them, `facing_away` — e.g. the other side of a sheet, lit in a checkerboard,
+    `baking.sides`, where only the even nodes are traced; nodes on one side of them only,
+    facing less closely; a node on an edge of the light among them; a fill that would
+    extrapolate a slope), and per half lattice of `lattices` (in order), those it fills;
+    sorted arrays."""
     grid = brick_grid(lattices[0].shape)
     others = np.flatnonzero(~mask_of(len(coords), *(n.positions for n in lattices)))
     in_fine = fine[brick_of(coords[others], grid)]
     left = others[~in_fine]
     fills = []
-
-    def weigh(rows: np.ndarray, w: np.ndarray) -> np.ndarray:
-        return usable(rows, w, luminance, samples, trapped_at)
-
     for lattice in lattices:
-        away = facing_away(lattice, left, coords, facing, weigh, edges)
+        away = facing_away(lattice, left, coords, facing, light)
         fills.append(left[~away])
         left = left[away]
     return others[in_fine], left, fills
@@ -416,11 +479,12 @@ def fill(lattice: Any, nodes: Nodes, coords: np.ndarray, filled: np.ndarray,
     second = lattice.second.reshape(-1)
     count = lattice.samples.reshape(-1)
     facing = lattice.facing.reshape(-1, 2)
+    shown = shown_texels(luminance, count, trapped_at)
 
     def mix(part: slice) -> None:
         at = filled[part]
         rows, w = nodes.corners(coords[at])
-        w = usable(rows, w, luminance, count, trapped_at)
+        w = np.where((rows >= 0) & shown[np.maximum(rows, 0)], w, 0.0)
         values[at] = node_mix(rows, w, facing, facing[at], values)
         second[at] = node_mix(rows, w, facing, facing[at], second[:, None])[:, 0]
         count[at] = samples
@@ -595,8 +659,11 @@ def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, facing: np.ndar
     variance = path_variance(luminance, lattice.second.reshape(-1), samples)
     fine, _, edges = fine_bricks(lattices, coords, luminance, variance, samples, facing,
                                  config.texel_error, trapped_at)
-    _, _, fills = split_texels(lattices, coords, fine, facing, luminance, samples,
-                               trapped_at, edges)
+    light = NodeLight(luminance, variance / np.maximum(samples, 1),
+                      shown_texels(luminance, samples, trapped_at),
+                      config.texel_error * light_level(luminance[lattices[0].positions]),
+                      edges)
+    _, _, fills = split_texels(lattices, coords, fine, facing, light)
     return Judgement(fine, fills)
 
 

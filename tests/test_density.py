@@ -16,10 +16,14 @@ from isolume.baking.density import (
     FILLED_KEY,
     JUDGED_KEY,
     NODE_PATHS,
+    SURE,
+    NodeLight,
     Nodes,
+    drift_error,
     fill,
     filled_positions,
     fine_bricks,
+    light_level,
     noise_free_rms,
     split_texels,
     texel_coords,
@@ -129,24 +133,73 @@ class _Held:
         self.facing = np.zeros((len(values), 2), np.uint8)
 
 
+def _light(luminance, error=None, tolerance=0.02, nodes=None):
+    """The `NodeLight` of every texel traced, shown and off any edge, at `tolerance`."""
+    count = len(luminance)
+    level = light_level(luminance if nodes is None else luminance[nodes.positions])
+    return NodeLight(luminance, np.zeros(count) if error is None else error,
+                     np.ones(count, bool), tolerance * level, np.zeros(count, bool))
+
+
 def test_a_linear_light_is_filled_exactly():
-    """Trilinear interpolation reproduces a linear field: every filled texel gets the
-    field's value (3 channels), away from the box's far sides (no node beyond)."""
+    """Trilinear interpolation reproduces a linear field: every filled texel inside the
+    nodes gets the field's value (3 channels). Past the last nodes (the box's far sides)
+    a fill holds the light flat, off by the slope times a texel: where that is beyond the
+    tolerance (y = 17: 0.2 against 0.02 of a light level of 7) the texels are traced,
+    where it is within (z = 19: 0.1), filled."""
     ids, coords = _all_texels()
     nodes = Nodes(coords, SHAPE)
     field = 2.0 + coords @ np.array([[0.1, 0.0, 0.3], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]])
     held = _Held(field)
     fine = np.zeros(int(np.prod(-(-np.array(SHAPE) // BRICK))), bool)
     luminance = field[:, 0]
-    in_fine, alone, (filled,) = split_texels([nodes], coords, fine, held.facing, luminance,
-                                             held.samples, 0)
+    light = _light(luminance, nodes=nodes)
+    in_fine, alone, (filled,) = split_texels([nodes], coords, fine, held.facing, light)
     assert len(in_fine) == 0
+    assert len(alone) == len(np.setdiff1d(ids, np.union1d(filled, nodes.positions)))
+    assert (coords[alone] == [SHAPE[0] - 1, SHAPE[1] - 1, SHAPE[2]]).any(axis=1).all()
+    assert (coords[alone][:, 1] == SHAPE[1] - 1).sum() == len(alone)
     inner = filled[(coords[filled] < np.array(SHAPE) - 1 + np.array(SHAPE) % 2).all(axis=1)]
     assert len(inner) > 0.8 * len(filled)
     held.values[filled] = 0
     fill(held, nodes, coords, filled, luminance, 100, 0)
     np.testing.assert_allclose(held.values[inner], field[inner], rtol=1e-5)
-    assert len(alone) == len(np.setdiff1d(ids, np.union1d(filled, nodes.positions)))
+    assert np.abs(held.values[filled, 0] - luminance[filled]).max() <= light.allowed
+
+
+def _drift(nodes, at, light, away=None):
+    """`drift_error` at texels (N, 3) `at` of unknown facing, the nodes at x = `away`
+    facing away from them (side weight 0)."""
+    rows, w = nodes.corners(at)
+    sides = np.where(nodes.coords[np.maximum(rows, 0)][:, :, 2] == away, 0.0, 1.0)
+    unknown = np.zeros((len(light.luminance), 2), np.uint8)
+    return drift_error(nodes, at, rows, w, sides, unknown, unknown[:len(at)], light)
+
+
+def test_a_fill_leaning_to_one_side_errs_by_the_slope():
+    """Light 2 + 0.3 x and the nodes past x = 8 gone: a texel at x = 9, filled from the
+    nodes at x = 8 alone, is off by the slope times one texel, 0.3 (on an axis of
+    nodes, or between four); one between nodes on both sides, by nothing. Path noise
+    counts against the slope by `SURE` standard deviations of it: a slope of 0.6 a node's
+    step read from one pair of σ = 0.2 texels is hidden, from four pairs it shows less
+    that. With the nodes at x = 6 gone too the slope cannot be read: past the band's last
+    layer of nodes that is taken as no error, but where the nodes across the texel (x =
+    10) are there and face away — a gap between two surfaces — as an infinite one."""
+    ids, coords = _all_texels()
+    even = ((coords & 1) == 0).all(axis=1)
+    luminance = 2.0 + 0.3 * coords[:, 2]
+    at = np.array([[4, 4, 9], [5, 5, 9], [4, 4, 7]])
+    nodes = Nodes(coords, SHAPE, positions=ids[even & (coords[:, 2] <= 8)])
+    np.testing.assert_allclose(_drift(nodes, at, _light(luminance)), [0.3, 0.3, 0.0],
+                               atol=1e-12)
+    noisy = _light(luminance, error=np.full(len(ids), 0.2 ** 2))
+    four = (0.6 - SURE * 0.2 * np.sqrt(2) / 2) * 0.5  # four pairs' mean: half the noise
+    np.testing.assert_allclose(_drift(nodes, at, noisy), [0.0, four, 0.0], atol=1e-12)
+    layer = Nodes(coords, SHAPE, positions=ids[even & (coords[:, 2] == 8)])
+    assert (_drift(layer, at[:2], _light(luminance)) == 0).all()
+    gap = Nodes(coords, SHAPE, positions=ids[even & np.isin(coords[:, 2], (8, 10))])
+    assert np.isinf(_drift(gap, at[:2], _light(luminance), away=10)).all()
+    assert (_drift(gap, at[:2], _light(luminance)) == 0).all()  # centred
 
 
 CONFIG = BakeConfig(samples=16, bounces=1, env="sky:sun=3", direct_light="lattice",
