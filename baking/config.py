@@ -32,17 +32,22 @@ DEFAULT_TEXEL_ERROR = 0.02
 """The texel error (`BakeConfig.texel_error`) of an irradiance bake that names no count,
 noise target nor texel error (``isolume bake``'s default), at `TEXEL_SAMPLES`
 ([accuracy.md](../docs/accuracy.md#texels-where-the-light-varies-against-uniform-texels))."""
-TEXEL_SAMPLES = 64
+TEXEL_SAMPLES = 40
 """Paths per traced texel of a bake to a texel error that names no count (the nodes that
-fill get twice as many; below `baking.lattice.TRAPPED_PATHS`, texels dark on all of
-theirs go on to that many). Over the 58 bake cases of ``../shared/data`` the default is
-within each case's reference noise + 0.5 % of the uniform `DEFAULT_SAMPLES` bake at 0.52×
-its paths; at 48 the statue's leg at iso 124 is not (its plan, sized for the paths, has
-two levels where 64 paths give it three)."""
+fill get `NODE_PATHS` times as many, and the level plan is sized for those; below
+`baking.lattice.TRAPPED_PATHS`, texels dark on all of theirs go on to that many). Over the
+58 bake cases of ``../shared/data`` the default is within each case's reference noise +
+0.5 % of the uniform `DEFAULT_SAMPLES` bake at 0.36× its paths; at 36 the hydrogen atom at
+iso 9.46 is not (its plan, sized for 72 paths, has fewer levels than for 80)."""
 DEFAULT_BOUNCES = 2
 """Diffuse bounces of every command's light when none is given."""
 DEFAULT_ALBEDO = 0.8
 """Diffuse reflectance (grey) of every command's surface when none is given."""
+NODE_PATHS = 2
+"""Paths of a node that fills texels per path of a traced texel (`BakeConfig.samples`) in a
+bake to a texel error (`baking.density`): its light is mixed into up to 26 filled texels
+around it, so its noise shows over a larger part of the picture (docs/accuracy.md
+measures the choice)."""
 MIN_TARGET_SAMPLES = 4
 """The fewest first-round paths of a bake to a noise target."""
 SCALES = (0.05, 8.0)
@@ -228,9 +233,12 @@ class BakeConfig:
     @property
     def plan_samples(self) -> int:
         """The paths per texel the level plan is sized for (`baking.plan.move_limit`,
-        `level_budget`): `samples`; with a `target_error` E, the uniform count whose noise
-        meets E where a path's brightness spreads as much as its mean, 1 / E², within
-        `samples` … `max_samples`."""
+        `level_budget`): `samples`; with a `texel_error`, the paths of the nodes that fill
+        (`NODE_PATHS` × `samples`: what most of the picture's light rests on); with a
+        `target_error` E, the uniform count whose noise meets E where a path's brightness
+        spreads as much as its mean, 1 / E², within `samples` … `max_samples`."""
+        if self.texel_error is not None:
+            return NODE_PATHS * self.samples
         if self.target_error is None:
             return self.samples
         return int(np.clip(round(1 / self.target_error ** 2), self.samples, self.max_samples))

@@ -34,10 +34,11 @@ there. A bake to a texel error (`bake_texels`):
    or a fill that leans to one side, off by more than the tolerance where the light has
    a slope (`drift_error`: e.g. in the gap between two surfaces that nearly touch);
 4. gives the nodes that fill texels `NODE_PATHS` times `samples` paths, with step 3's
-   texels (their light is spread over the filled texels around them), and fills the
-   rest (*filled* texels) with the side-aware mix of their nodes
-   (`baking.lattice.sided_mix`, what the shader does with the half lattice), their
-   facings from the plan as a traced texel's.
+   texels (their light is spread over the filled texels around them); traces the texels
+   to be filled whose traced neighbours contradict the fill (*stray*:
+   `baking.fill_check.stray_fills`, `trace_strays`); and fills the rest (*filled*
+   texels) with the side-aware mix of their nodes (`baking.lattice.sided_mix`, what the
+   shader does with the half lattice), their facings from the plan as a traced texel's.
 
 Under a sky from every direction, a traced texel whose paths all stayed dark — a node
 before the judgement, any other once step 3 is traced — goes on to
@@ -66,13 +67,21 @@ import numba
 import numpy as np
 
 from isolume.baking import octahedral
+from isolume.baking.config import NODE_PATHS
+from isolume.baking.fill_check import (
+    SURE,
+    NodeLight,
+    drift_error,
+    node_mix,
+    node_sides,
+    stray_fills,
+)
 from isolume.baking.lattice import (
     BRICK,
     TRAPPED_PATHS,
     brick_grid,
     path_variance,
     side_weights,
-    sided_mix,
     sky_everywhere,
 )
 from isolume.baking.passes import commit_facing
@@ -86,9 +95,6 @@ JUDGED_KEY = "texel_judgement"
 SIDE_FLOOR = 0.5
 """The least side-aware share of the weight (`side_share`) a texel is filled on, and the
 least side weight of a node's pair in its surplus."""
-SURE = 3.0
-"""Standard deviations of the noise's sum of squares a brick's surpluses must exceed it
-by before their excess counts (`noise_free_rms`)."""
 EDGE_SHARE = 0.5
 """The error of the half-resolution fill, per unit of the quarter-resolution surplus."""
 EDGE_NODE = 3.0
@@ -99,13 +105,6 @@ ONE_SIDED_FLOOR = 0.8
 """The least side-aware share (`side_share`) a texel is filled on from nodes that carry
 at most half of its trilinear weight (the others missing or not shown: the texel lies
 past the half lattice's edge, and the fill extrapolates from one side of it)."""
-DRIFT = 0.25
-"""Texels along an axis the centre of a fill's side-aware weights may lie from the texel
-before the fill is judged as an extrapolation along that axis (`drift_error`)."""
-NODE_PATHS = 2
-"""Paths of a node that fills texels per path of a traced texel (`BakeConfig.samples`):
-its light is mixed into up to 26 filled texels around it, so its noise shows over a larger
-part of the picture (docs/accuracy.md measures the choice)."""
 BLOCK = 1 << 16
 """Texels one item of the judging and filling passes takes, at most."""
 DIRECTIONS = np.array([d for d in np.ndindex(3, 3, 3)
@@ -200,88 +199,6 @@ def corner_nodes(node_rows: np.ndarray, coords: np.ndarray, offset: int, stride:
             row = node_rows[half[0], half[1], half[2]] if inside and weight > 0 else -1
             rows[n, k] = row
             weights[n, k] = weight if row >= 0 else 0.0
-
-
-@dataclass
-class NodeLight:
-    """The traced light a fill is judged by: (T,) `luminance`, (T,) `error` variances of
-    the texels' means, (T,) bool `shown` (`shown_texels`), the error a fill may make
-    (`allowed`: the tolerance times the scene's light level) and (T,) bool the nodes on
-    an edge of the light (`fine_bricks`), each over the plan's texels."""
-
-    luminance: np.ndarray
-    error: np.ndarray
-    shown: np.ndarray
-    allowed: float
-    edges: np.ndarray
-
-    def weigh(self, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """(N, 8) `weights` of the shown nodes among (N, 8) plan positions `rows`."""
-        return np.where((rows >= 0) & self.shown[np.maximum(rows, 0)], weights, 0.0)
-
-
-def drift_error(nodes: Nodes, coords: np.ndarray, rows: np.ndarray, weights: np.ndarray,
-                sides: np.ndarray, facing: np.ndarray, own_facing: np.ndarray,
-                light: NodeLight) -> np.ndarray:
-    """(N,) the error, beyond its noise, of a fill whose side-aware weights centre more
-    than `DRIFT` texels from its texel along an axis: there it holds the nodes' light flat
-    past them, and errs by the light's slope along that axis — read from each node and
-    the next node beyond it that faces the texel's way, less `SURE` standard deviations
-    of its noise — times the distance. Where the slope cannot be read (most of the weight
-    has no such node beyond it), infinite if the sides made the lean (the nodes across
-    the texel are there but face away: between two surfaces that nearly touch, where the
-    light changes fastest), else 0 (the texel lies past the last layer of nodes, at the
-    edge of the baked band: nothing to read a slope from, and nothing there that shows
-    more than the band's edge). 0 for a centred fill.
-
-    Args:
-        coords: (N, 3) the texels' z, y, x; rows: (N, 8) plan positions of their nodes
-            (`Nodes.corners`); weights: (N, 8) the shown nodes' trilinear weights;
-            sides: (N, 8) their side weights (`node_sides`).
-        facing: (T, 2) every texel's octahedral facing; own_facing: (N, 2) the texels'.
-    """
-    safe, spots = np.maximum(rows, 0), nodes.coords[np.maximum(rows, 0)].astype(np.int64)
-    share = _shares(weights * sides)
-    drift = (share[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
-    plain = (_shares(weights)[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
-    own, known = octahedral.decode(own_facing), octahedral.known(own_facing)
-    squares = np.zeros(len(rows))
-    for axis in range(3):
-        lean = np.flatnonzero(np.abs(drift[:, axis]) > DRIFT)
-        if len(lean) == 0:
-            continue
-        beyond = spots[lean] - nodes.offset
-        beyond[:, :, axis] += 2 * np.sign(drift[lean, axis]).astype(np.int64)[:, None]
-        far = nodes.row_at(beyond.reshape(-1, 3) // 2).reshape(-1, 8)
-        far_safe = np.maximum(far, 0)
-        turned = side_weights(facing[far_safe], own[lean])
-        ok = ((far >= 0) & light.shown[far_safe]
-              & (~known[lean, None] | (turned >= SIDE_FLOOR)))
-        part = np.where(ok, share[lean], 0.0)
-        covered = part.sum(axis=1)
-        held = np.maximum(covered, 1e-12)
-        near, step = safe[lean], drift[lean, axis]
-        slope = (part * (light.luminance[near] - light.luminance[far_safe])).sum(axis=1) / held
-        noise = (part ** 2 * (light.error[near] + light.error[far_safe])).sum(axis=1) / held ** 2
-        error = np.maximum(np.abs(slope) - SURE * np.sqrt(noise), 0.0) * 0.5 * np.abs(step)
-        sided = np.abs(step - plain[lean, axis]) > DRIFT
-        squares[lean] += np.where(covered >= 0.5, error ** 2, np.where(sided, np.inf, 0.0))
-    return np.sqrt(squares)
-
-
-def _shares(weights: np.ndarray) -> np.ndarray:
-    """(N, 8) `weights` over their sums (0 where a row's sum is 0)."""
-    total = weights.sum(axis=1, keepdims=True)
-    return np.divide(weights, total, out=np.zeros_like(weights), where=total > 0)
-
-
-def node_mix(rows: np.ndarray, weights: np.ndarray, facing: np.ndarray,
-             own_facing: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """(N, C) the side-aware mix (`sided_mix`) of the (T, C) `values` of the nodes at
-    (N, 8) plan positions `rows` with (N, 8) `weights`, for texels whose facings are
-    (N, 2) `own_facing` (unknown: the plain mix); `facing`: (T, 2) every texel's."""
-    return sided_mix(weights, node_sides(rows, facing, own_facing),
-                     values[np.maximum(rows, 0)].astype(np.float64))
 
 
 def light_level(luminance: np.ndarray) -> float:
@@ -413,9 +330,10 @@ def facing_away(nodes: Nodes, at: np.ndarray, coords: np.ndarray, facing: np.nda
         one_sided = w.sum(axis=1) <= 0.5 + 1e-9
         away[part] = (share < SIDE_FLOOR) | (one_sided & (share < ONE_SIDED_FLOOR))
         if light is not None:
-            away[part] |= ((w * sides > 0) & light.edges[np.maximum(rows, 0)]).any(axis=1)
+            if light.edges is not None:
+                away[part] |= ((w * sides > 0) & light.edges[np.maximum(rows, 0)]).any(axis=1)
             away[part] |= drift_error(nodes, here, rows, w, sides, facing,
-                                      facing[at[part]], light) > light.allowed
+                                      facing[at[part]], light, SIDE_FLOOR) > light.allowed
 
     cores.for_blocks(look, len(at), BLOCK, "texels")
     return away
@@ -452,14 +370,6 @@ def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
         fills.append(left[~away])
         left = left[away]
     return others[in_fine], left, fills
-
-
-def node_sides(rows: np.ndarray, facing: np.ndarray, own_facing: np.ndarray) -> np.ndarray:
-    """(N, 8) side weights (`side_weights`) of the nodes at (N, 8) plan positions `rows`
-    (their (T, 2) `facing`) for texels facing (N, 2) `own_facing` (1 where it is
-    unknown)."""
-    sides = side_weights(facing[np.maximum(rows, 0)], octahedral.decode(own_facing))
-    return np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
 
 
 def side_share(weights: np.ndarray, sides: np.ndarray) -> np.ndarray:
@@ -602,17 +512,43 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
         "alone": int(alone.sum()), "filled": int(filled.sum()),
         "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid)),
         "bits": packed(filled)}
+    witness = in_fine | alone
     del node, nodes, in_fine, filled, alone, filling
     _trace(baker, traced, paths, bar, checkpoint)
     dark_to_trapped(baker, traced, trapped_at, bar, checkpoint)
     del traced, paths
+    fills = trace_strays(baker, [even, odd], judged.fills, coords, witness, bar, checkpoint)
+    del witness
     luminance = lattice.values.reshape(total, -1) @ weights
     samples = lattice.samples.reshape(-1)
     record["trapped"] = int(np.count_nonzero(
         (samples > 0) & ~shown_texels(luminance, samples, trapped_at)))
-    for half, fills in zip((even, odd), judged.fills, strict=True):
-        fill(lattice, half, coords, fills, luminance, config.samples, trapped_at)
+    record.update(stray=int(record["filled"] - sum(map(len, fills))),
+                  filled=int(sum(map(len, fills))), bits=packed(mask_of(total, *fills)))
+    for half, part in zip((even, odd), fills, strict=True):
+        fill(lattice, half, coords, part, luminance, config.samples, trapped_at)
     lattice.meta[FILLED_KEY] = record
+
+
+def trace_strays(baker: Any, lattices: list[Nodes], fills: list[np.ndarray],
+                 coords: np.ndarray, witness: np.ndarray, bar: Any, checkpoint: Any
+                 ) -> list[np.ndarray]:
+    """Trace the stray texels among the half `lattices`' `fills` (`stray_fills`, judged by
+    the (T,) bool `witness` texels: traced, not nodes) at `samples` paths, dark ones on to
+    the trapped count, and return the fills less them."""
+    lattice, config = baker.lattice, baker.config
+    trapped_at = TRAPPED_PATHS if sky_everywhere(config) else 0
+    luminance = lattice.values.reshape(len(coords), -1) @ baker.job.tracing.weights
+    samples = lattice.samples.reshape(-1)
+    variance = path_variance(luminance, lattice.second.reshape(-1), samples)
+    light = NodeLight(luminance, variance / np.maximum(samples, 1),
+                      shown_texels(luminance, samples, trapped_at),
+                      config.texel_error * light_level(luminance[lattices[0].positions]))
+    stray = stray_fills(lattices, fills, coords, baker.plan.ids, baker.geometry.shape,
+                        witness, light, lattice.facing.reshape(-1, 2), SIDE_FLOOR)
+    _trace(baker, stray, config.samples, bar, checkpoint)
+    dark_to_trapped(baker, stray, trapped_at, bar, checkpoint)
+    return [np.setdiff1d(part, stray, assume_unique=True) for part in fills]
 
 
 def dark_to_trapped(baker: Any, positions: np.ndarray, trapped_at: int, bar: Any,

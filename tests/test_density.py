@@ -16,10 +16,7 @@ from isolume.baking.density import (
     FILLED_KEY,
     JUDGED_KEY,
     NODE_PATHS,
-    SURE,
-    NodeLight,
     Nodes,
-    drift_error,
     fill,
     filled_positions,
     fine_bricks,
@@ -29,6 +26,7 @@ from isolume.baking.density import (
     texel_coords,
 )
 from isolume.baking.errors import BakeError
+from isolume.baking.fill_check import SURE, NodeLight, drift_error, stray_fills
 from isolume.baking.lattice import TRAPPED_PATHS, trilinear_corners
 from isolume.volumes.synthetic import make
 
@@ -173,7 +171,7 @@ def _drift(nodes, at, light, away=None):
     rows, w = nodes.corners(at)
     sides = np.where(nodes.coords[np.maximum(rows, 0)][:, :, 2] == away, 0.0, 1.0)
     unknown = np.zeros((len(light.luminance), 2), np.uint8)
-    return drift_error(nodes, at, rows, w, sides, unknown, unknown[:len(at)], light)
+    return drift_error(nodes, at, rows, w, sides, unknown, unknown[:len(at)], light, 0.5)
 
 
 def test_a_fill_leaning_to_one_side_errs_by_the_slope():
@@ -200,6 +198,27 @@ def test_a_fill_leaning_to_one_side_errs_by_the_slope():
     gap = Nodes(coords, SHAPE, positions=ids[even & np.isin(coords[:, 2], (8, 10))])
     assert np.isinf(_drift(gap, at[:2], _light(luminance), away=10)).all()
     assert (_drift(gap, at[:2], _light(luminance)) == 0).all()  # centred
+
+
+def test_a_fill_that_the_traced_texels_beside_it_contradict_is_traced():
+    """Light 4 everywhere but 1 on the plane x = 9, between two layers of nodes that both
+    say 4. Texels with odd y on the planes x = 5 and x = 9 are traced (witnesses; their
+    residuals 0 and 3): the texels of x = 9 to be filled beside them are stray, those of
+    x = 5 not. Noise of σ = √2 a witness hides the residual of 3 at `SURE` = 3 standard
+    deviations of their mean."""
+    ids, coords = _all_texels()
+    nodes = Nodes(coords, SHAPE)
+    luminance = np.where(coords[:, 2] == 9, 1.0, 4.0)
+    plane = np.isin(coords[:, 2], (5, 9)) & (coords[:, 0] % 2 == 0)
+    witness = plane & (coords[:, 1] % 2 == 1)
+    filled = ids[plane & (coords[:, 1] % 2 == 0)]
+    facing = np.zeros((len(ids), 2), np.uint8)
+    stray = stray_fills([nodes], [filled], coords, ids, SHAPE, witness, _light(luminance),
+                        facing, 0.5)
+    np.testing.assert_array_equal(stray, filled[coords[filled][:, 2] == 9])
+    noisy = _light(luminance, error=np.full(len(ids), 2.0))
+    assert len(stray_fills([nodes], [filled], coords, ids, SHAPE, witness, noisy,
+                           facing, 0.5)) == 0
 
 
 CONFIG = BakeConfig(samples=16, bounces=1, env="sky:sun=3", direct_light="lattice",
@@ -237,7 +256,7 @@ def test_a_texel_bake_is_the_same_bits_on_any_number_of_workers(sphere_bakes):
     assert 0 < filling <= record["filling_nodes"]  # the others at TRAPPED_PATHS
     assert filling + (traced == CONFIG.samples).sum() + on_to_trapped.sum() == (
         record["even_nodes"] + record["odd_nodes"] + record["in_fine_bricks"]
-        + record["alone"])
+        + record["alone"] + record["stray"])
 
 
 def test_no_texel_is_left_dark_on_fewer_paths_than_tell_it_trapped(sphere_bakes):

@@ -20,6 +20,7 @@ import isolume
 from isolume.baking import BakeConfig, bake, octahedral
 from isolume.baking.density import BRICK, FILLED_KEY, filled_positions
 from isolume.baking.lattice import LUMINANCE
+from isolume.baking.plan import move_limit
 from isolume.volumes.synthetic import make
 
 SAMPLES = 64
@@ -43,6 +44,7 @@ def bakes(request):
                         max_move=move)
     volume = make("contact")
     texels = dataclasses.replace(config, texel_error=0.02)
+    config = dataclasses.replace(config, max_move=move_limit(texels))  # the same levels
     reference = dataclasses.replace(config, samples=REFERENCE_PATHS)
     return tuple(bake(volume, c, workers=2) for c in (texels, reference, config))
 

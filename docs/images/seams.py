@@ -3,11 +3,11 @@
 ``python docs/images/seams.py`` bakes ``synthetic:contact`` (a sphere hanging a voxel
 above a plane) under a sky and a sun over the isovalues 0.16–0.89, with the sun's direct
 light in the pixels (top row) and in the lattice (bottom row): a reference of 1024 paths
-a texel, a uniform bake of 64 and a bake to a texel error of 0.02 at 64 (same seed). It
-renders each at 512² (iso 0.2, where the two shells nearly meet in the gap) and pastes
-the 256² around the contact: the three pictures, then each bake's relative error
-against the reference, white at 25 %. It prints the RMS and the 99.9th percentile of the
-relative error over the surface, and the bakes' paths.
+a texel, a uniform bake of 64 and a bake to a texel error of 0.02 at 64 (same seed and
+levels: the texel bake's plan). It renders each at 512² (iso 0.2, where the two shells
+nearly meet in the gap) and pastes the 256² around the contact: the three pictures, then
+each bake's relative error against the reference, white at 25 %. It prints the RMS and
+the 99.9th percentile of the relative error over the surface, and the bakes' paths.
 """
 
 from __future__ import annotations
@@ -34,14 +34,17 @@ def pictures(direct_light: str) -> tuple[list[np.ndarray], list[str]]:
     bake with `direct_light`, and their labels."""
     import isolume
     from isolume.baking import BakeConfig, bake
+    from isolume.baking.plan import move_limit
     from isolume.volumes.synthetic import make
 
     volume = make("contact")
     config = BakeConfig(samples=64, env=ENV, direct_light=direct_light, seed=5,
                         iso_range=(0.16, 0.89))
+    texels = dataclasses.replace(config, texel_error=0.02)
+    config = dataclasses.replace(config, max_move=move_limit(texels))  # the same levels
     bakes = [("reference, 1024 paths", dataclasses.replace(config, samples=1024)),
              ("uniform, 64 paths", config),
-             ("texel error 0.02, 64", dataclasses.replace(config, texel_error=0.02))]
+             ("texel error 0.02, 64", texels)]
     out, labels = [], []
     for label, settings in bakes:
         lattice = bake(volume, settings, workers=None)

@@ -1,0 +1,206 @@
+"""Checks of a bake's fill (`baking.density`): a fill that leans to one side
+(`drift_error`), and filled texels checked against the traced texels beside them
+(`stray_fills`), before the fill is made.
+
+A bake to a texel error traces, besides its nodes, the texels of its fine bricks and those
+no half lattice can fill: *witnesses*, whose light the nodes did not decide. At each, the
+half lattice's side-aware mix of its nodes' light (what a fill would give it) less its
+traced light is a *residual*: what the fill gets wrong there, measured. A texel to be
+filled whose witnesses around it (the 26 neighbours, shown, facing its way) have a mean
+residual beyond `SURE` standard deviations of their noise and above `STRAY` times the
+tolerance is *stray*: the light changes there within a texel or two in a way no pair of
+nodes spans (the top layer of a band at a contact, where the layer below the texel is lit
+twice as brightly; light that bends across a facing change), and it is traced instead.
+Decided from traced values alone, per texel: the same for any worker count, and on resume.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from isolume.baking import octahedral
+from isolume.baking.lattice import side_weights, sided_mix
+from isolume.volumes import cores
+
+SURE = 3.0
+"""Standard deviations of its noise an error measured from traced texels must exceed
+before it counts: a brick's surpluses' sum of squares (`baking.density.noise_free_rms`),
+a leaning fill's slope (`drift_error`), the witnesses' mean residual (`stray_fills`)."""
+DRIFT = 0.25
+"""Texels along an axis the centre of a fill's side-aware weights may lie from the texel
+before the fill is judged as an extrapolation along that axis (`drift_error`)."""
+STRAY = 3.0
+"""The least mean residual, in units of the tolerance (`NodeLight.allowed`), that makes a
+texel to be filled stray."""
+BLOCK = 1 << 15
+"""Texels one item of the check takes, at most."""
+OFFSETS = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], np.int64) - 1
+"""(26, 3) z, y, x steps to a texel's neighbours."""
+
+
+@dataclass
+class NodeLight:
+    """The traced light a fill is judged by: (T,) `luminance`, (T,) `error` variances of
+    the texels' means, (T,) bool `shown` (`shown_texels`), the error a fill may make
+    (`allowed`: the tolerance times the scene's light level) and (T,) bool the nodes on
+    an edge of the light (`baking.density.fine_bricks`; None: not judged), each over the
+    plan's texels."""
+
+    luminance: np.ndarray
+    error: np.ndarray
+    shown: np.ndarray
+    allowed: float
+    edges: np.ndarray | None = None
+
+    def weigh(self, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(N, 8) `weights` of the shown nodes among (N, 8) plan positions `rows`."""
+        return np.where((rows >= 0) & self.shown[np.maximum(rows, 0)], weights, 0.0)
+
+
+def drift_error(nodes: Any, coords: np.ndarray, rows: np.ndarray, weights: np.ndarray,
+                sides: np.ndarray, facing: np.ndarray, own_facing: np.ndarray,
+                light: NodeLight, floor: float) -> np.ndarray:
+    """(N,) the error, beyond its noise, of a fill whose side-aware weights centre more
+    than `DRIFT` texels from its texel along an axis: there it holds the nodes' light flat
+    past them, and errs by the light's slope along that axis — read from each node and
+    the next node beyond it that faces the texel's way, less `SURE` standard deviations
+    of its noise — times the distance. Where the slope cannot be read (most of the weight
+    has no such node beyond it), infinite if the sides made the lean (the nodes across
+    the texel are there but face away: between two surfaces that nearly touch, where the
+    light changes fastest), else 0 (the texel lies past the last layer of nodes, at the
+    edge of the baked band: nothing to read a slope from, and nothing there that shows
+    more than the band's edge). 0 for a centred fill.
+
+    Args:
+        coords: (N, 3) the texels' z, y, x; rows: (N, 8) plan positions of their nodes
+            (`Nodes.corners`); weights: (N, 8) the shown nodes' trilinear weights;
+            sides: (N, 8) their side weights (`node_sides`).
+        facing: (T, 2) every texel's octahedral facing; own_facing: (N, 2) the texels';
+            floor: the least side weight of a node beyond (`baking.density.SIDE_FLOOR`).
+    """
+    safe, spots = np.maximum(rows, 0), nodes.coords[np.maximum(rows, 0)].astype(np.int64)
+    share = _shares(weights * sides)
+    drift = (share[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
+    plain = (_shares(weights)[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
+    own, known = octahedral.decode(own_facing), octahedral.known(own_facing)
+    squares = np.zeros(len(rows))
+    for axis in range(3):
+        lean = np.flatnonzero(np.abs(drift[:, axis]) > DRIFT)
+        if len(lean) == 0:
+            continue
+        beyond = spots[lean] - nodes.offset
+        beyond[:, :, axis] += 2 * np.sign(drift[lean, axis]).astype(np.int64)[:, None]
+        far = nodes.row_at(beyond.reshape(-1, 3) // 2).reshape(-1, 8)
+        far_safe = np.maximum(far, 0)
+        turned = side_weights(facing[far_safe], own[lean])
+        ok = ((far >= 0) & light.shown[far_safe]
+              & (~known[lean, None] | (turned >= floor)))
+        part = np.where(ok, share[lean], 0.0)
+        covered = part.sum(axis=1)
+        held = np.maximum(covered, 1e-12)
+        near, step = safe[lean], drift[lean, axis]
+        slope = (part * (light.luminance[near] - light.luminance[far_safe])).sum(axis=1) / held
+        noise = (part ** 2 * (light.error[near] + light.error[far_safe])).sum(axis=1) / held ** 2
+        error = np.maximum(np.abs(slope) - SURE * np.sqrt(noise), 0.0) * 0.5 * np.abs(step)
+        sided = np.abs(step - plain[lean, axis]) > DRIFT
+        squares[lean] += np.where(covered >= 0.5, error ** 2, np.where(sided, np.inf, 0.0))
+    return np.sqrt(squares)
+
+
+def _shares(weights: np.ndarray) -> np.ndarray:
+    """(N, 8) `weights` over their sums (0 where a row's sum is 0)."""
+    total = weights.sum(axis=1, keepdims=True)
+    return np.divide(weights, total, out=np.zeros_like(weights), where=total > 0)
+
+
+def node_sides(rows: np.ndarray, facing: np.ndarray, own_facing: np.ndarray) -> np.ndarray:
+    """(N, 8) side weights (`side_weights`) of the nodes at (N, 8) plan positions `rows`
+    (their (T, 2) `facing`) for texels facing (N, 2) `own_facing` (1 where it is
+    unknown)."""
+    sides = side_weights(facing[np.maximum(rows, 0)], octahedral.decode(own_facing))
+    return np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
+
+
+def node_mix(rows: np.ndarray, weights: np.ndarray, facing: np.ndarray,
+             own_facing: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(N, C) the side-aware mix (`sided_mix`) of the (T, C) `values` of the nodes at
+    (N, 8) plan positions `rows` with (N, 8) `weights`, for texels whose facings are
+    (N, 2) `own_facing` (unknown: the plain mix); `facing`: (T, 2) every texel's."""
+    return sided_mix(weights, node_sides(rows, facing, own_facing),
+                     values[np.maximum(rows, 0)].astype(np.float64))
+
+
+def residuals(nodes: Any, coords: np.ndarray, at: np.ndarray, facing: np.ndarray,
+              luminance: np.ndarray, shown: np.ndarray) -> np.ndarray:
+    """(N,) the half lattice `nodes`' side-aware mix of its shown nodes' (T,) `luminance`
+    at the texels of plan positions (N,) `at`, less theirs (NaN where no shown node has
+    weight).
+
+    Args:
+        nodes: a half lattice (`baking.density.Nodes`); coords: (T, 3) the plan's
+            texels' z, y, x; facing: (T, 2) octahedral facings; shown: (T,) bool, what a
+            display shows.
+    """
+    rows, w = nodes.corners(coords[at])
+    w = np.where((rows >= 0) & shown[np.maximum(rows, 0)], w, 0.0)
+    mix = node_mix(rows, w, facing, facing[at], luminance[:, None])[:, 0]
+    return np.where(w.sum(axis=1) > 0, mix - luminance[at], np.nan)
+
+
+def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray,
+                ids: np.ndarray, shape: tuple[int, int, int], witness: np.ndarray,
+                light: Any, facing: np.ndarray, floor: float) -> np.ndarray:
+    """The sorted plan positions, among each half lattice's `fills`, of the stray texels
+    (see the module's docs).
+
+    Args:
+        lattices: the half lattices (`baking.density.Nodes`), in the order of `fills`.
+        coords: (T, 3) z, y, x of the plan's texels, whose (T,) sorted flat lattice `ids`
+            in a (Z, Y, X) `shape`; witness: (T,) bool, the traced texels that are not
+            nodes.
+        light: the traced light (`baking.density.NodeLight`: luminance, error, shown,
+            allowed); facing: (T, 2) octahedral facings; floor: the least side weight
+            of a witness (`baking.density.SIDE_FLOOR`).
+    """
+    seen = np.flatnonzero(witness & light.shown)
+    stray = []
+    for nodes, filled in zip(lattices, fills, strict=True):
+        residual = np.full(len(coords), np.nan)
+
+        def measure(part: slice, nodes: Any = nodes, residual: np.ndarray = residual) -> None:
+            at = seen[part]
+            residual[at] = residuals(nodes, coords, at, facing, light.luminance, light.shown)
+
+        cores.for_blocks(measure, len(seen), BLOCK, "texels")
+        out = np.zeros(len(filled), bool)
+
+        def judge(part: slice, filled: np.ndarray = filled, residual: np.ndarray = residual,
+                  out: np.ndarray = out) -> None:
+            at = filled[part]
+            near = _neighbours(coords[at], ids, shape)
+            safe = np.maximum(near, 0)
+            turned = side_weights(facing[safe], octahedral.decode(facing[at]))
+            ok = (near >= 0) & ~np.isnan(residual[safe]) & (turned >= floor)
+            count = ok.sum(axis=1)
+            mean = np.where(ok, residual[safe], 0.0).sum(axis=1) / np.maximum(count, 1)
+            noise = np.where(ok, light.error[safe], 0.0).sum(axis=1) / np.maximum(count, 1) ** 2
+            beyond = np.abs(mean) - SURE * np.sqrt(noise)
+            out[part] = (count > 0) & (beyond > STRAY * light.allowed)
+
+        cores.for_blocks(judge, len(filled), BLOCK, "texels")
+        stray.append(filled[out])
+    return np.sort(np.concatenate(stray)) if stray else np.zeros(0, np.int64)
+
+
+def _neighbours(at: np.ndarray, ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """(N, 26) plan positions of the neighbours of the texels at (N, 3) z, y, x `at`
+    (−1: outside the lattice or not in the plan), from the plan's sorted flat `ids`."""
+    spots = at.astype(np.int64)[:, None, :] + OFFSETS[None]
+    inside = ((spots >= 0) & (spots < np.array(shape))).all(axis=2)
+    flat = np.ravel_multi_index(tuple(np.where(inside[..., None], spots, 0).transpose(2, 0, 1)),
+                                shape)
+    found = np.minimum(np.searchsorted(ids, flat), len(ids) - 1)
+    return np.where(inside & (ids[found] == flat), found, -1)
