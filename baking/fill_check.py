@@ -44,10 +44,10 @@ OFFSETS = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], np.int64)
 @dataclass
 class NodeLight:
     """The traced light a fill is judged by: (T,) `luminance`, (T,) `error` variances of
-    the texels' means, (T,) bool `shown` (`shown_texels`), the error a fill may make
-    (`allowed`: the tolerance times the scene's light level) and (T,) bool the nodes on
-    an edge of the light (`baking.density.fine_bricks`; None: not judged), each over the
-    plan's texels."""
+    the texels' means, (T,) bool `shown` (`baking.density.shown_texels`), the error a fill
+    may make (`allowed`: the tolerance times the scene's light level) and (T,) bool the
+    nodes on an edge of the light (`baking.density.fine_bricks`; None: not judged), each
+    over the plan's texels."""
 
     luminance: np.ndarray
     error: np.ndarray
@@ -117,9 +117,9 @@ def _shares(weights: np.ndarray) -> np.ndarray:
 
 
 def node_sides(rows: np.ndarray, facing: np.ndarray, own_facing: np.ndarray) -> np.ndarray:
-    """(N, 8) side weights (`side_weights`) of the nodes at (N, 8) plan positions `rows`
-    (their (T, 2) `facing`) for texels facing (N, 2) `own_facing` (1 where it is
-    unknown)."""
+    """(N, K) side weights (`side_weights`) of the texels at (N, K) plan positions `rows`
+    (8 nodes, or 26 neighbours; their (T, 2) `facing`) for texels facing (N, 2)
+    `own_facing` (1 where it is unknown)."""
     sides = side_weights(facing[np.maximum(rows, 0)], octahedral.decode(own_facing))
     return np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
 
@@ -152,7 +152,7 @@ def residuals(nodes: Any, coords: np.ndarray, at: np.ndarray, facing: np.ndarray
 
 def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray,
                 ids: np.ndarray, shape: tuple[int, int, int], witness: np.ndarray,
-                light: Any, facing: np.ndarray, floor: float) -> np.ndarray:
+                light: NodeLight, facing: np.ndarray, floor: float) -> np.ndarray:
     """The sorted plan positions, among each half lattice's `fills`, of the stray texels
     (see the module's docs).
 
@@ -161,9 +161,9 @@ def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray
         coords: (T, 3) z, y, x of the plan's texels, whose (T,) sorted flat lattice `ids`
             in a (Z, Y, X) `shape`; witness: (T,) bool, the traced texels that are not
             nodes.
-        light: the traced light (`baking.density.NodeLight`: luminance, error, shown,
-            allowed); facing: (T, 2) octahedral facings; floor: the least side weight
-            of a witness (`baking.density.SIDE_FLOOR`).
+        light: the traced light (luminance, error, shown, allowed); facing: (T, 2)
+            octahedral facings; floor: the least side weight of a witness
+            (`baking.density.SIDE_FLOOR`; 1 where a texel's facing is unknown).
     """
     seen = np.flatnonzero(witness & light.shown)
     stray = []
@@ -182,8 +182,8 @@ def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray
             at = filled[part]
             near = _neighbours(coords[at], ids, shape)
             safe = np.maximum(near, 0)
-            turned = side_weights(facing[safe], octahedral.decode(facing[at]))
-            ok = (near >= 0) & ~np.isnan(residual[safe]) & (turned >= floor)
+            ok = ((near >= 0) & ~np.isnan(residual[safe])
+                  & (node_sides(near, facing, facing[at]) >= floor))
             count = ok.sum(axis=1)
             mean = np.where(ok, residual[safe], 0.0).sum(axis=1) / np.maximum(count, 1)
             noise = np.where(ok, light.error[safe], 0.0).sum(axis=1) / np.maximum(count, 1) ** 2
