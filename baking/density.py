@@ -252,30 +252,22 @@ def pair_surpluses(nodes: Nodes, at: np.ndarray, luminance: np.ndarray,
     return surplus, noise
 
 
-def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray,
-                variance: np.ndarray, samples: np.ndarray, facing: np.ndarray,
-                tolerance: float, trapped_at: int
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fine_bricks(lattices: list[Nodes], coords: np.ndarray, light: NodeLight,
+                facing: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(B,) bool over the flat (⌈Z/8⌉, ⌈Y/8⌉, ⌈X/8⌉) bricks, twice: those the half
-    lattices do not reproduce within `tolerance` of the light level (see the module's
-    docs), and those holding a texel of the plan; and (T,) bool the nodes on an edge of
-    the light (`EDGE_NODE`: a node's pairs share its noise, so its surpluses are one term
-    of `noise_free_rms`).
+    lattices do not reproduce within the error the traced `light` allows (see the
+    module's docs), and those holding a texel of the plan; and (T,) bool the nodes on an
+    edge of the light (`EDGE_NODE`: a node's pairs share its noise, so its surpluses are
+    one term of `noise_free_rms`).
 
     Args:
         lattices: the traced half lattices (the even nodes; the odd ones where traced);
-            coords: (T, 3) the plan's texels' z, y, x.
-        luminance, variance, samples: (T,) each texel's brightness, per-path variance of
-            it and paths (the nodes' are read).
-        facing: (T, 2) octahedral facings.
-        tolerance: `BakeConfig.texel_error`; trapped_at: as `shown_texels`'.
+            coords: (T, 3) the plan's texels' z, y, x; facing: (T, 2) octahedral facings.
     """
     grid = brick_grid(lattices[0].shape)
     count = int(np.prod(grid))
-    error = variance / np.maximum(samples, 1)
-    shown = shown_texels(luminance, samples, trapped_at)
+    luminance, error, shown = light.luminance, light.error, light.shown
     sums = np.zeros((4, count))
-    level = light_level(luminance[lattices[0].positions])
     edges = np.zeros(len(coords), bool)
     for nodes in lattices:
         at = nodes.positions
@@ -292,13 +284,13 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, luminance: np.ndarray
             noise_squares = noise ** 2
             per_node[:, part] = [square, noise, noise_squares, pairs > 0]
             own = noise_free_rms(square, noise, noise_squares, 1.0 * (pairs > 0))
-            edges[at[part]] = EDGE_SHARE * own > EDGE_NODE * tolerance * level
+            edges[at[part]] = EDGE_SHARE * own > EDGE_NODE * light.allowed
 
         cores.for_blocks(judge, len(at), BLOCK, "texels")
         brick = brick_of(coords[at], grid)
         sums += [np.bincount(brick, v, count) for v in per_node]
     every = np.bincount(brick_of(coords, grid), minlength=count) > 0
-    rough = EDGE_SHARE * noise_free_rms(*sums) > tolerance * level
+    rough = EDGE_SHARE * noise_free_rms(*sums) > light.allowed
     return every & (rough | (sums[3] == 0)), every, edges
 
 
@@ -381,15 +373,15 @@ def side_share(weights: np.ndarray, sides: np.ndarray) -> np.ndarray:
 
 
 def fill(lattice: Any, nodes: Nodes, coords: np.ndarray, filled: np.ndarray,
-         luminance: np.ndarray, samples: int, trapped_at: int) -> None:
+         shown: np.ndarray, samples: int) -> None:
     """Write the half lattice's mix into `lattice`'s rows (plan positions) `filled`: values
-    and second moments, side-aware (`node_mix`) from the `nodes` around each; `samples`
-    paths each (`BakeConfig.samples`, as a traced texel: its noise is at most theirs)."""
+    and second moments, side-aware (`node_mix`) from the (T,) bool `shown` `nodes` around
+    each (`shown_texels`); `samples` paths each (`BakeConfig.samples`, as a traced texel:
+    its noise is at most theirs)."""
     values = lattice.values.reshape(len(coords), -1)
     second = lattice.second.reshape(-1)
     count = lattice.samples.reshape(-1)
     facing = lattice.facing.reshape(-1, 2)
-    shown = shown_texels(luminance, count, trapped_at)
 
     def mix(part: slice) -> None:
         at = filled[part]
@@ -509,46 +501,54 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
         "texel_error": config.texel_error, "count": total,
         "even_nodes": len(even.positions), "odd_nodes": len(odd.positions),
         "filling_nodes": int(filling.sum()), "in_fine_bricks": int(in_fine.sum()),
-        "alone": int(alone.sum()), "filled": int(filled.sum()),
-        "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid)),
-        "bits": packed(filled)}
+        "alone": int(alone.sum()),
+        "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid))}
     witness = in_fine | alone
     del node, nodes, in_fine, filled, alone, filling
     _trace(baker, traced, paths, bar, checkpoint)
     dark_to_trapped(baker, traced, trapped_at, bar, checkpoint)
     del traced, paths
-    fills = trace_strays(baker, [even, odd], judged.fills, coords, witness, bar, checkpoint)
+    stray = trace_strays(baker, [even, odd], judged.fills, coords, witness, trapped_at, bar,
+                         checkpoint)
     del witness
-    luminance = lattice.values.reshape(total, -1) @ weights
+    fills = [np.setdiff1d(part, stray, assume_unique=True) for part in judged.fills]
     samples = lattice.samples.reshape(-1)
-    record["trapped"] = int(np.count_nonzero(
-        (samples > 0) & ~shown_texels(luminance, samples, trapped_at)))
-    record.update(stray=int(record["filled"] - sum(map(len, fills))),
-                  filled=int(sum(map(len, fills))), bits=packed(mask_of(total, *fills)))
+    shown = shown_texels(lattice.values.reshape(total, -1) @ weights, samples, trapped_at)
+    filled = mask_of(total, *fills)
+    record.update(trapped=int(np.count_nonzero((samples > 0) & ~shown)), stray=len(stray),
+                  filled=int(filled.sum()), bits=packed(filled))
     for half, part in zip((even, odd), fills, strict=True):
-        fill(lattice, half, coords, part, luminance, config.samples, trapped_at)
+        fill(lattice, half, coords, part, shown, config.samples)
     lattice.meta[FILLED_KEY] = record
 
 
 def trace_strays(baker: Any, lattices: list[Nodes], fills: list[np.ndarray],
-                 coords: np.ndarray, witness: np.ndarray, bar: Any, checkpoint: Any
-                 ) -> list[np.ndarray]:
+                 coords: np.ndarray, witness: np.ndarray, trapped_at: int, bar: Any,
+                 checkpoint: Any) -> np.ndarray:
     """Trace the stray texels among the half `lattices`' `fills` (`stray_fills`, judged by
     the (T,) bool `witness` texels: traced, not nodes) at `samples` paths, dark ones on to
-    the trapped count, and return the fills less them."""
-    lattice, config = baker.lattice, baker.config
-    trapped_at = TRAPPED_PATHS if sky_everywhere(config) else 0
-    luminance = lattice.values.reshape(len(coords), -1) @ baker.job.tracing.weights
+    `trapped_at` (`dark_to_trapped`), and return their sorted plan positions."""
+    light = traced_light(baker, len(coords), lattices[0].positions, trapped_at)
+    stray = stray_fills(lattices, fills, coords, baker.plan.ids, baker.geometry.shape,
+                        witness, light, baker.lattice.facing.reshape(-1, 2), SIDE_FLOOR)
+    _trace(baker, stray, baker.config.samples, bar, checkpoint)
+    dark_to_trapped(baker, stray, trapped_at, bar, checkpoint)
+    return stray
+
+
+def traced_light(baker: Any, total: int, level_at: np.ndarray, trapped_at: int
+                 ) -> NodeLight:
+    """The traced light of `baker`'s lattice over its `total` plan texels (`NodeLight`):
+    luminance, the variances of the texels' means, what a display shows, and the error a
+    fill may make — the texel error times the light level of the texels at plan positions
+    `level_at` (the even nodes: `light_level`)."""
+    lattice = baker.lattice
+    luminance = lattice.values.reshape(total, -1) @ baker.job.tracing.weights
     samples = lattice.samples.reshape(-1)
     variance = path_variance(luminance, lattice.second.reshape(-1), samples)
-    light = NodeLight(luminance, variance / np.maximum(samples, 1),
-                      shown_texels(luminance, samples, trapped_at),
-                      config.texel_error * light_level(luminance[lattices[0].positions]))
-    stray = stray_fills(lattices, fills, coords, baker.plan.ids, baker.geometry.shape,
-                        witness, light, lattice.facing.reshape(-1, 2), SIDE_FLOOR)
-    _trace(baker, stray, config.samples, bar, checkpoint)
-    dark_to_trapped(baker, stray, trapped_at, bar, checkpoint)
-    return [np.setdiff1d(part, stray, assume_unique=True) for part in fills]
+    return NodeLight(luminance, variance / np.maximum(samples, 1),
+                     shown_texels(luminance, samples, trapped_at),
+                     baker.config.texel_error * light_level(luminance[level_at]))
 
 
 def dark_to_trapped(baker: Any, positions: np.ndarray, trapped_at: int, bar: Any,
@@ -589,16 +589,8 @@ def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, facing: np.ndar
           trapped_at: int) -> Judgement:
     """The fine bricks and the fills of `baker`'s lattice with its `lattices` of nodes
     traced (`fine_bricks`, `split_texels`)."""
-    lattice, config = baker.lattice, baker.config
-    luminance = lattice.values.reshape(len(coords), -1) @ baker.job.tracing.weights
-    samples = lattice.samples.reshape(-1)
-    variance = path_variance(luminance, lattice.second.reshape(-1), samples)
-    fine, _, edges = fine_bricks(lattices, coords, luminance, variance, samples, facing,
-                                 config.texel_error, trapped_at)
-    light = NodeLight(luminance, variance / np.maximum(samples, 1),
-                      shown_texels(luminance, samples, trapped_at),
-                      config.texel_error * light_level(luminance[lattices[0].positions]),
-                      edges)
+    light = traced_light(baker, len(coords), lattices[0].positions, trapped_at)
+    fine, _, light.edges = fine_bricks(lattices, coords, light, facing)
     _, _, fills = split_texels(lattices, coords, fine, facing, light)
     return Judgement(fine, fills)
 

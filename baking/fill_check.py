@@ -81,7 +81,8 @@ def drift_error(nodes: Any, coords: np.ndarray, rows: np.ndarray, weights: np.nd
         facing: (T, 2) every texel's octahedral facing; own_facing: (N, 2) the texels';
             floor: the least side weight of a node beyond (`baking.density.SIDE_FLOOR`).
     """
-    safe, spots = np.maximum(rows, 0), nodes.coords[np.maximum(rows, 0)].astype(np.int64)
+    safe = np.maximum(rows, 0)
+    spots = nodes.coords[safe].astype(np.int64)
     share = _shares(weights * sides)
     drift = (share[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
     plain = (_shares(weights)[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)

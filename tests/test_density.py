@@ -89,11 +89,10 @@ def test_noise_free_rms_sees_an_offset_and_not_noise():
 def _judge(luminance, variance=None, tolerance=0.02):
     ids, coords = _all_texels()
     nodes = Nodes(coords, SHAPE)
-    variance = np.zeros(len(ids)) if variance is None else variance
-    samples = np.full(len(ids), 100)
+    error = None if variance is None else variance / 100  # 100 paths a texel
     facing = np.zeros((len(ids), 2), np.uint8)
-    fine, used, _ = fine_bricks([nodes], coords, luminance, variance, samples, facing,
-                             tolerance, 0)
+    fine, used, _ = fine_bricks([nodes], coords, _light(luminance, error, tolerance, nodes),
+                                facing)
     return nodes, coords, fine.reshape(tuple(-(-np.array(SHAPE) // BRICK))), used
 
 
@@ -160,7 +159,7 @@ def test_a_linear_light_is_filled_exactly():
     inner = filled[(coords[filled] < np.array(SHAPE) - 1 + np.array(SHAPE) % 2).all(axis=1)]
     assert len(inner) > 0.8 * len(filled)
     held.values[filled] = 0
-    fill(held, nodes, coords, filled, luminance, 100, 0)
+    fill(held, nodes, coords, filled, np.ones(len(ids), bool), 100)
     np.testing.assert_allclose(held.values[inner], field[inner], rtol=1e-5)
     assert np.abs(held.values[filled, 0] - luminance[filled]).max() <= light.allowed
 
