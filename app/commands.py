@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -160,10 +161,24 @@ def bake_lattice(args: argparse.Namespace, *, dense: bool = False,
 
     out = check_output_path(args.out, (".npz",)) if args.out is not None else None
     config = bake_config(args)
+    scene_memory = scene_bytes(args.scene_memory)
     vol = load_volume(args)
     return bake(vol, config, out=out, workers=args.workers, progress=True,
                 scheduler=args.scheduler, outlook=lambda o: say_outlook(o, config),
-                dense=dense, keep_interrupted=keep_interrupted)
+                dense=dense, keep_interrupted=keep_interrupted, scene_memory=scene_memory)
+
+
+def scene_bytes(gigabytes: float | None) -> float | None:
+    """Bytes of ``--scene-memory GB`` (None: the bake's default).
+
+    Raises:
+        CLIError: not a finite size of 0 or more.
+    """
+    if gigabytes is None:
+        return None
+    if not (math.isfinite(gigabytes) and gigabytes >= 0):
+        raise CLIError(f"--scene-memory {gigabytes:g}: expected a size in GB, 0 or more")
+    return gigabytes * 1e9
 
 
 def cmd_bake(args: argparse.Namespace) -> int:

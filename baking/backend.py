@@ -39,6 +39,7 @@ from isolume.baking.passes import (
 from isolume.baking.plan import Plan, index_type
 from isolume.baking.plan_records import LevelGroups, PlanRecords
 from isolume.volumes import cores
+from isolume.volumes.io.common import available_memory
 
 if TYPE_CHECKING:  # embreex is imported only when a bake runs
     from isolume.baking.trace import Scene
@@ -48,6 +49,13 @@ AHEAD_LEVELS = 1
 thread is done with the top level's before the plan's side probes start on it (they go
 down the levels, leaving the lowest one's scene, where the tracing starts, in the
 cache)."""
+SCENE_BYTES_PER_TRIANGLE = 100
+"""Memory of one triangle of a level scene, rounded up: its mesh arrays (about 18 bytes,
+`volumes.tracing_surface`) and Embree's BVH; 77–80 bytes measured on the tooth's and
+engine CT's levels."""
+SCENE_SHARE_OF_MEMORY = 0.25
+"""Share of the memory available when a bake starts that its level scenes may hold
+(`scene_budget`)."""
 REPORT_S = 0.5
 """Seconds between progress-bar updates while a level is traced."""
 TEXELS_PER_BATCH = 1 << 20
@@ -260,6 +268,18 @@ def pass_steps(work: PassWork, batch: int) -> Iterator[PassStep]:
                 yield PassStep(level, group[lo:lo + batch], upper, lo)
 
 
+def scene_budget() -> float:
+    """Bytes a bake's level scenes may hold between passes (`ThreadBackend`): a
+    `SCENE_SHARE_OF_MEMORY` of the memory available now (2 GB where unknown)."""
+    free = available_memory()
+    return SCENE_SHARE_OF_MEMORY * (free if free is not None else 8e9)
+
+
+def scene_bytes(scene: Scene) -> int:
+    """Memory `scene` holds, by its triangles (`SCENE_BYTES_PER_TRIANGLE`)."""
+    return len(scene.faces) * SCENE_BYTES_PER_TRIANGLE
+
+
 def warm_up(volume: volumes.Volume) -> None:
     """What a bake needs before it traces and can have while it plans: its compiled code
     loaded (`kernels.warm_up`) and its volume's hash made (cached in the volume)."""
@@ -272,19 +292,22 @@ class ThreadBackend:
     texels at a time on it (`pass_steps`): its paths in chunks of whole texels on a
     thread pool, while a helper thread lays out the next step of the same level. Level
     scenes are cached (least recently used first out): the one level traced, and more
-    where successive passes touch the same few levels (the lazy viewer's); the next
-    level's is built once the last step on this one is done, so a bake with a cache of
-    one holds one scene.
+    where successive passes touch the same levels — the plan's side probes and every
+    pass of a bake, the lazy viewer's batches — so that a level's scene is built once;
+    the next level's is built once the last step on this one is done, so a bake with a
+    cache of one holds one scene.
 
     Args:
         workers: threads tracing concurrently (default: CPU count); the result does not
             depend on it.
-        scene_cache: how many level scenes to keep alive (at least 1).
+        scene_cache: level scenes kept alive whatever their size (at least 1).
         ahead: scenes of the highest levels to build beside the plan (`AHEAD_LEVELS`).
+        scene_memory: bytes of level scenes kept alive beyond `scene_cache`'s, by their
+            triangles (`scene_bytes`; one scene more while one is built).
     """
 
     def __init__(self, workers: int | None = None, scene_cache: int = 1,
-                 ahead: int = AHEAD_LEVELS) -> None:
+                 ahead: int = AHEAD_LEVELS, scene_memory: float = 0.0) -> None:
         self.workers: int = max(1, workers or cores.threads())
         self.job: BakeJob | None = None
         self._pool = cores.executor(self.workers, "isolume-trace")
@@ -293,6 +316,8 @@ class ThreadBackend:
         self._helper = ThreadPoolExecutor(max_workers=1) if self.workers > 1 else cores.Inline()
         self._scenes: OrderedDict[int, Scene] = OrderedDict()
         self._scene_cache = max(1, scene_cache)
+        self._scene_memory = scene_memory
+        self._largest = 0  # bytes of the largest scene built
         self._scene_lock = threading.Lock()
         self._pending: dict[int, _Beside] = {}  # scenes being built ahead
         self._ahead = ahead
@@ -413,19 +438,19 @@ class ThreadBackend:
     def _scene(self, level: int) -> Scene:
         """The Embree scene of `level`, from the cache, from the scenes built ahead, or
         built now (least recently used scenes out: the cache holds at least the level
-        being traced). Room is made before a scene is built, so a scene in the making
-        counts against the cache: a bake with a cache of one holds one level scene
-        (`trace_pass` lets the traced one go before the next is built). A scene built
-        ahead for a level above `level` (one the side probes, going down, found no
-        texel on) goes first, once built: it would be a second scene alive."""
+        being traced). Room is made before a scene is built — for one as large as the
+        largest built — so a scene in the making counts against the cache: a bake with a
+        cache of one and no `scene_memory` holds one level scene (`trace_pass` lets the
+        traced one go before the next is built). A scene built ahead for a level above
+        `level` (one the side probes, going down, found no texel on) goes first, once
+        built: it would be a second scene alive."""
         with self._scene_lock:
             if level in self._scenes:
                 self._scenes.move_to_end(level)
                 return self._scenes[level]
             ahead = self._pending.pop(level, None)
             above = [self._pending.pop(k) for k in sorted(self._pending) if k > level]
-            while len(self._scenes) >= self._scene_cache:
-                self._scenes.popitem(last=False)
+            self._make_room(self._largest)
         for other in above:
             other.wait()  # its scene built: let go with the future that holds it
         above.clear()
@@ -435,10 +460,18 @@ class ThreadBackend:
             self._stats.mesh_seconds += scene.mesh_seconds
             self._stats.embree_seconds += scene.build_seconds
             self._stats.scenes += 1
-            while len(self._scenes) >= self._scene_cache:
-                self._scenes.popitem(last=False)
+            self._largest = max(self._largest, scene_bytes(scene))
+            self._make_room(scene_bytes(scene))
             self._scenes[level] = scene
         return scene
+
+    def _make_room(self, coming: int) -> None:
+        """Let go of the least recently used scenes until one of `coming` bytes fits: the
+        cache keeps `scene_cache` scenes, and more while they and it fit in
+        `scene_memory` (call with the lock held)."""
+        while len(self._scenes) >= self._scene_cache and (
+                sum(map(scene_bytes, self._scenes.values())) + coming > self._scene_memory):
+            self._scenes.popitem(last=False)
 
     def _waited(self, function, *args):
         """`function(*args)`, its wall time counted as waiting for level scenes."""

@@ -38,6 +38,7 @@ from isolume.baking.backend import (
     PassWork,
     ThreadBackend,
     TracingBackend,
+    scene_budget,
 )
 from isolume.baking.config import BakeConfig
 from isolume.baking.density import bake_texels, clear_filled
@@ -223,8 +224,9 @@ class Baker:
             `target` (`Plan.traced_only`), and its texel records are kept in a temporary
             file in `records_dir` (`plan_records.spill`; the system's temporary
             directory if None), read back a batch of texels at a time.
-        workers, scene_cache: the `ThreadBackend`'s threads and level scenes kept alive,
-            when no `backend` is given. The result does not depend on them.
+        workers, scene_cache, scene_memory: the `ThreadBackend`'s threads, level scenes
+            kept alive, and bytes of level scenes kept beyond those, when no `backend` is
+            given. The result does not depend on them.
         progress: `make_plan`'s stage callback.
         backend: who traces the paths (e.g. `cluster.ClusterBackend`); the Baker closes
             it in `close`, or when the Baker cannot be made.
@@ -237,12 +239,14 @@ class Baker:
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig, *,
                  lattice: Lattice | None = None, workers: int | None = None,
-                 scene_cache: int = 1, progress: Callable[..., None] | None = None,
+                 scene_cache: int = 1, scene_memory: float = 0.0,
+                 progress: Callable[..., None] | None = None,
                  backend: TracingBackend | None = None, packed: bool = False,
                  resume: LatticeFile | None = None,
                  records_dir: str | os.PathLike[str] | None = None) -> None:
-        self.backend: TracingBackend = (backend if backend is not None
-                                        else ThreadBackend(workers, scene_cache))
+        self.backend: TracingBackend = (
+            backend if backend is not None
+            else ThreadBackend(workers, scene_cache, scene_memory=scene_memory))
         self.records: PlanRecords | None = None
         try:
             self.volume: volumes.Volume = volume
@@ -468,7 +472,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
          workers: int | None = None, progress: bool = False,
          checkpoint_seconds: float = CHECKPOINT_S, scheduler: str | None = None,
          outlook: Callable[[BakeOutlook], None] | None = None,
-         dense: bool = True, keep_interrupted: bool = False) -> Lattice | PlanLattice:
+         dense: bool = True, keep_interrupted: bool = False,
+         scene_memory: float | None = None) -> Lattice | PlanLattice:
     """Bake (or resume) the illumination lattice of `volume` for `config`.
 
     Args:
@@ -489,6 +494,11 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
             dense arrays take 23 bytes a texel of the box in irradiance, 3.1 GB at 512³).
         keep_interrupted: on Ctrl-C (a notebook's interrupt), return the lattice of the
             finished texels (``meta["interrupted"]`` True) instead of raising.
+        scene_memory: bytes the level scenes may hold, so that each is built once for the
+            plan's side probes and every pass (`ThreadBackend`; one is kept whatever its
+            size, and 0 keeps only that one); None: `backend.scene_budget` for a bake in
+            several passes (to a texel error or a target), 0 for one of `samples` paths a
+            texel (one pass: the scenes kept would spare only the side probes' builds).
 
     Returns:
         The lattice (also written to `out`; on Ctrl-C the finished texels are saved
@@ -497,6 +507,9 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     out = Path(out) if out is not None else None
     resume = _resumable(volume, config, out)
     adaptive = config.target_error is not None
+    if scene_memory is None:
+        several = adaptive or config.texel_error is not None
+        scene_memory = scene_budget() if several else 0.0
     backend = None
     if scheduler is not None:
         from isolume.baking.cluster import ClusterBackend
@@ -505,6 +518,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     with _PlanBars(progress) as bars:
         baker = Baker(volume, config, workers=workers, backend=backend, progress=bars,
                       packed=True, resume=resume, scene_cache=2 if adaptive else 1,
+                      scene_memory=scene_memory,
                       records_dir=out.parent if out is not None else None)
     clear_filled(baker.lattice, len(baker.plan.ids), config.texel_error is not None)
     done = baker.samples_done()

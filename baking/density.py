@@ -482,8 +482,11 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     node[odd.positions] = True
     nodes = np.flatnonzero(node)
     trapped_at = TRAPPED_PATHS if sky_everywhere(config) else 0
-    _trace(baker, nodes, config.samples, bar, checkpoint, restart=True)
-    dark_to_trapped(baker, nodes, trapped_at, bar, checkpoint)
+    later = int(np.maximum(config.samples - baker.samples_done(np.flatnonzero(~node)),
+                           0).sum())  # the bar's estimate of the passes after the nodes'
+    _trace(baker, nodes, config.samples, bar, checkpoint, restart=True, later=later)
+    dark_to_trapped(baker, nodes, trapped_at, bar, checkpoint, later)
+    dark_share = np.mean(baker.samples_done(nodes) == trapped_at) if trapped_at else 0.0
     weights = baker.job.tracing.weights
     judged = Judgement.resumed(lattice.meta.get(JUDGED_KEY), config, total)
     if judged is None:
@@ -505,7 +508,9 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
         "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid))}
     witness = in_fine | alone
     del node, nodes, in_fine, filled, alone, filling
-    _trace(baker, traced, paths, bar, checkpoint)
+    dark_later = dark_share * np.count_nonzero(paths < trapped_at) * (trapped_at
+                                                                      - config.samples)
+    _trace(baker, traced, paths, bar, checkpoint, later=int(dark_later))  # as dark as the nodes
     dark_to_trapped(baker, traced, trapped_at, bar, checkpoint)
     del traced, paths
     stray = trace_strays(baker, [even, odd], judged.fills, coords, witness, trapped_at, bar,
@@ -552,20 +557,20 @@ def traced_light(baker: Any, total: int, level_at: np.ndarray, trapped_at: int
 
 
 def dark_to_trapped(baker: Any, positions: np.ndarray, trapped_at: int, bar: Any,
-                    checkpoint: Any) -> None:
+                    checkpoint: Any, later: int = 0) -> None:
     """Trace on to `trapped_at` paths (0: none, under lights that leave texels honestly
     dark) the texels among plan `positions` (sorted) whose light is all zero on fewer: a
     display draws such a texel black, where once it rests on `TRAPPED_PATHS` it is known
     to be trapped in a sealed pocket and left out of the lookups (`Lattice.shown`), and a
     texel that sees a little sky is lit. So fewer paths a texel than that cost no black
-    pixels."""
+    pixels. The progress `bar` counts `later` paths still to come after these."""
     if trapped_at == 0 or len(positions) == 0:
         return
     values = baker.lattice.values.reshape(len(baker.plan.ids), -1)
     short = positions[baker.samples_done(positions) < trapped_at]
     dark = short[~values[short].any(axis=1)]
     if len(dark):
-        _trace(baker, dark, trapped_at, bar, checkpoint)
+        _trace(baker, dark, trapped_at, bar, checkpoint, later=later)
 
 
 def make_facings(baker: Any) -> None:
@@ -608,20 +613,23 @@ def filling_nodes(nodes: Nodes, coords: np.ndarray, filled: np.ndarray) -> np.nd
 
 
 def _trace(baker: Any, positions: np.ndarray, paths: int | np.ndarray, bar: Any,
-           checkpoint: Any, restart: bool = False) -> None:
+           checkpoint: Any, restart: bool = False, later: int = 0) -> None:
     """Bring the texels at plan `positions` up to `paths` each (or (N,) per texel), the
-    progress `bar` sized for them (`_count_paths`), a `checkpoint` after each commit."""
-    _count_paths(bar, baker, positions, paths, restart)
+    progress `bar` sized for them and `later` paths to come (`_count_paths`), a
+    `checkpoint` after each commit."""
+    _count_paths(bar, baker, positions, paths, restart, later)
     baker.run(positions, paths, bar=bar, after_commit=checkpoint)
 
 
 def _count_paths(bar: Any, baker: Any, positions: np.ndarray, paths: int | np.ndarray,
-                 restart: bool = False) -> None:
+                 restart: bool = False, later: int = 0) -> None:
     """Size the progress `bar` (None: none) for the paths the texels at plan `positions`
-    still need to have `paths` each (or (N,) per texel): in place of its total
-    (`restart`), or on top of what it has done."""
+    still need to have `paths` each (or (N,) per texel), and the estimated `later` paths
+    of passes to come: in place of its total (`restart`), or on top of what it has done.
+    The total of a bake to a texel error is thus the outlook's until the fills are known,
+    then what is left exactly, plus the stray texels' paths when they are found."""
     if bar is None:
         return
     wanted = int(np.maximum(paths - baker.samples_done(positions), 0).sum())
-    bar.total = wanted if restart else int(bar.n) + wanted
+    bar.total = (wanted if restart else int(bar.n) + wanted) + later
     bar.refresh()

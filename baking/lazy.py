@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from isolume.baking.backend import SCENE_BYTES_PER_TRIANGLE
 from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, path_variance
 from isolume.baking.plan import Plan
 
@@ -65,9 +66,6 @@ REPORT_S = 1.0
 BATCH_PATHS = 1 << 18
 """Paths per batch (one `Baker.run`): large, because every batch visits every level it
 touches; a new view still interrupts a batch between two commits."""
-SCENE_BYTES_PER_TRIANGLE = 100
-"""Rough memory of one triangle of a level scene (mesh arrays — about 18 bytes:
-`volumes.tracing_surface` — and Embree's BVH)."""
 VIEW_RANGE_FRACTION = 0.03
 """A lazy bake following the displayed isovalue serves this fraction of the data range on
 either side of it (`view_iso_range`): texels beside steep surfaces are lit on its ends.

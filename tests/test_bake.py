@@ -184,8 +184,9 @@ def test_determinism_across_worker_counts():
 
 
 def test_a_bake_holds_one_group_of_sums_and_one_scene(monkeypatch):
-    """What bounds a bake's memory: it traces one level at a time, so one level scene is
-    alive, the side probes' included (`ThreadBackend`'s cache makes room before a build);
+    """What bounds a bake's memory: it traces one level at a time, so with no memory for
+    scenes kept between passes one level scene is alive, the side probes' included
+    (`ThreadBackend`'s cache makes room before a build);
     pass sums exist for one group of texels between their two levels (those of one lower
     level), and texels are committed a batch at a time (`backend.TEXELS_PER_BATCH`) — and
     batches of any size give the same lattice to the bit."""
@@ -220,7 +221,7 @@ def test_a_bake_holds_one_group_of_sums_and_one_scene(monkeypatch):
     monkeypatch.setattr(baking_bake, "commit_sums",
                         lambda lattice, ids, acc, slots: commits.append(len(ids))
                         or commit_sums(lattice, ids, acc, slots))
-    batched = bake(vol, config, workers=2)
+    batched = bake(vol, config, workers=2, scene_memory=0)
     assert len(batched.meta["plan"]["levels"]) >= 4
     assert most["sums"] == largest_group > 37
     assert most["scenes"] == 1
@@ -233,8 +234,9 @@ def test_a_bake_holds_one_group_of_sums_and_one_scene(monkeypatch):
 @pytest.mark.parametrize("workers", [1, 2])
 def test_the_tracing_starts_on_the_scene_the_side_probes_left(monkeypatch, workers):
     """The side probes go down the levels from the top one (built beside the plan), so the
-    lowest level's scene, where the tracing starts, is built once for both: a bake of K
-    levels builds 2K − 1 scenes, not 2K."""
+    lowest level's scene, where the tracing starts, is built once for both: with one scene
+    at a time (``scene_memory=0``, the default of a bake of `samples` paths a texel) a
+    bake of K levels builds 2K − 1 scenes, not 2K; with memory for them all, K."""
     from isolume.baking import backend
 
     built, build = [], backend.level_scene
@@ -244,15 +246,66 @@ def test_the_tracing_starts_on_the_scene_the_side_probes_left(monkeypatch, worke
         return build(volume, iso, config)
 
     monkeypatch.setattr(backend, "level_scene", level_scene)
-    lattice = bake(make("engine", 36), BakeConfig(samples=4, bounces=1), workers=workers)
+    config = BakeConfig(samples=4, bounces=1)
+    lattice = bake(make("engine", 36), config, workers=workers)
     levels = list(lattice.meta["plan"]["levels"])
     k = len(levels)
     assert k >= 4
     assert built == levels[::-1] + levels[1:]  # 2K − 1 builds
+    built.clear()
+    again = bake(make("engine", 36), config, workers=workers, scene_memory=1e9)
+    assert built == levels[::-1]  # K builds: the tracing takes the probes' scenes
+    np.testing.assert_array_equal(again.values, lattice.values)
     built.clear()  # with no side probed, the lowest level is built ahead, for the tracing
     lattice = bake(make("engine", 36), BakeConfig(samples=4, bounces=1, sides="normals"),
-                   workers=workers)
+                   workers=workers, scene_memory=0)
     assert built == list(lattice.meta["plan"]["levels"])
+
+
+def test_every_pass_of_a_bake_takes_the_scenes_kept_within_their_memory(monkeypatch):
+    """A bake to a texel error traces in several passes over the levels (nodes, fine
+    bricks, strays, dark texels); the scenes its memory holds are built once for all of
+    them and the plan's side probes. A memory for two of its largest scenes holds no more
+    than that while one more is built (`scene_bytes`), and the lattice is the same bits
+    whatever the memory."""
+    import weakref
+
+    from isolume.baking import backend
+    from isolume.baking.trace import Scene
+
+    built, alive, most = [], weakref.WeakSet(), {"bytes": 0}
+    build, init = backend.level_scene, Scene.__init__
+
+    def level_scene(volume, iso, config):
+        built.append(iso)
+        return build(volume, iso, config)
+
+    def scene(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        alive.add(self)
+        most["bytes"] = max(most["bytes"], sum(map(backend.scene_bytes, alive)))
+
+    monkeypatch.setattr(backend, "level_scene", level_scene)
+    monkeypatch.setattr(Scene, "__init__", scene)
+    vol = make("engine", 36)
+    config = BakeConfig(samples=8, bounces=1, texel_error=0.02)
+    kept = bake(vol, config, workers=2, dense=False)
+    levels = list(kept.meta["plan"]["levels"])
+    assert len(levels) >= 4 and kept.meta["filled"]["filled"] > 0
+    assert sorted(built) == sorted(levels)  # each level once
+    largest = max(backend.scene_bytes(build(vol, iso, config)) for iso in levels)
+    built.clear()
+    alive.clear()
+    most["bytes"] = 0
+    two = bake(vol, config, workers=2, dense=False, scene_memory=2 * largest)
+    assert len(built) > len(levels)  # rebuilt in later passes
+    assert largest < most["bytes"] <= 3 * largest
+    built.clear()
+    one = bake(vol, config, workers=2, dense=False, scene_memory=0)
+    assert len(built) > len(two.meta["plan"]["levels"]) * 2
+    for lattice in (two, one):
+        np.testing.assert_array_equal(lattice.values, kept.values)
+        np.testing.assert_array_equal(lattice.samples, kept.samples)
 
 
 @pytest.mark.parametrize("env, albedo, direct", [

@@ -258,6 +258,45 @@ def test_a_texel_bake_is_the_same_bits_on_any_number_of_workers(sphere_bakes):
         + record["alone"] + record["stray"])
 
 
+def test_the_bar_of_a_texel_bake_is_full_only_at_its_end(monkeypatch, sphere_bakes):
+    """The progress bar's total is the outlook's (`samples` paths a texel) until the fills
+    are known, then what is left, the dark texels' paths on to `TRAPPED_PATHS` estimated
+    from the nodes' share of dark ones: it shows the bake done only once all but the
+    stray texels (and their dark ones) are traced, and ends at the paths traced."""
+    import importlib
+
+    baking_bake = importlib.import_module("isolume.baking.bake")
+    seen = []
+
+    class Bar:
+        def __init__(self, total: int) -> None:
+            self.total, self.n = total, 0
+
+        def update(self, paths: int) -> None:
+            self.n += paths
+            seen.append((self.n, self.total))
+
+        def refresh(self) -> None:
+            seen.append((self.n, self.total))
+
+        def set_postfix_str(self, text: str, refresh: bool = True) -> None:
+            pass
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(baking_bake, "_progress", lambda total, enabled: Bar(total))
+    vol, one, _ = sphere_bakes
+    lattice = bake(vol, CONFIG, workers=2)
+    _same_bits(lattice, one)
+    done, totals = np.array(seen).T
+    assert totals[0] == CONFIG.samples * int((one.samples > 0).sum())  # the outlook's
+    assert done[-1] == totals[-1] == one.meta["stats"]["paths"]
+    full = np.flatnonzero(done[:-1] >= totals[:-1])
+    strays = one.meta[FILLED_KEY]["stray"] * TRAPPED_PATHS
+    assert all(totals[-1] - totals[i] <= strays for i in full)
+
+
 def test_no_texel_is_left_dark_on_fewer_paths_than_tell_it_trapped(sphere_bakes):
     """Under the sky every traced texel whose light is zero has the paths that tell it
     trapped (`TRAPPED_PATHS`, more than `CONFIG.samples`), so a display leaves it out of
@@ -384,3 +423,15 @@ def test_the_bake_command_says_what_a_texel_error_filled(tmp_path, capsys):
     assert lattice.config.texel_error == 0.05
     assert f"{record['filled']:,} of {record['count']:,} texels filled" in said
     assert record["filled"] > 0
+
+
+@pytest.mark.parametrize("memory", ["-1", "nan", "inf"])
+def test_the_bake_command_refuses_a_scene_memory_that_is_no_size(tmp_path, capsys, memory):
+    from isolume.app.cli import main
+
+    out = tmp_path / "l.npz"
+    assert main(["bake", "synthetic:torus:32", "--scene-memory", memory,
+                 "--out", str(out)]) == 2
+    assert f"--scene-memory {float(memory):g}: expected a size in GB, 0 or more" in (
+        capsys.readouterr().err)
+    assert not out.exists()

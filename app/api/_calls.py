@@ -220,7 +220,8 @@ def bake(volume: Volume | str | os.PathLike[str], *, out: PathText | None = None
          light: str | Sequence[str] | None = None, seed: int = 0, max_levels: int = 64,
          max_move: float | None = None,
          direct_light: Literal["pixels", "lattice"] | None = None,
-         workers: int | None = None, scheduler: str | None = None,
+         workers: int | None = None, scene_memory: float | None = None,
+         scheduler: str | None = None,
          flip_normals: bool = False, sides: Literal["seen", "normals"] = "seen",
          timeline: PathText | None = None) -> Lattice:
     """Bake an illumination lattice, as ``isolume bake`` does (its options, the same
