@@ -300,10 +300,10 @@ class ThreadBackend:
     Args:
         workers: threads tracing concurrently (default: CPU count); the result does not
             depend on it.
-        scene_cache: level scenes kept alive whatever their size (at least 1).
+        scene_cache: level scenes cached whatever their size (at least 1).
         ahead: scenes of the highest levels to build beside the plan (`AHEAD_LEVELS`).
-        scene_memory: bytes of level scenes kept alive beyond `scene_cache`'s, by their
-            triangles (`scene_bytes`; one scene more while one is built).
+        scene_memory: bytes of level scenes kept for good beside the cache's, by their
+            triangles (`scene_bytes`): the first built that fit.
     """
 
     def __init__(self, workers: int | None = None, scene_cache: int = 1,
@@ -317,6 +317,7 @@ class ThreadBackend:
         self._scenes: OrderedDict[int, Scene] = OrderedDict()
         self._scene_cache = max(1, scene_cache)
         self._scene_memory = scene_memory
+        self._kept: dict[int, Scene] = {}  # scenes kept for good, within `scene_memory`
         self._largest = 0  # bytes of the largest scene built
         self._scene_lock = threading.Lock()
         self._pending: dict[int, _Beside] = {}  # scenes being built ahead
@@ -433,24 +434,32 @@ class ThreadBackend:
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._helper.shutdown(wait=True, cancel_futures=True)
         self._scenes.clear()
+        self._kept.clear()
         self._pending.clear()
 
     def _scene(self, level: int) -> Scene:
-        """The Embree scene of `level`, from the cache, from the scenes built ahead, or
-        built now (least recently used scenes out: the cache holds at least the level
-        being traced). Room is made before a scene is built — for one as large as the
-        largest built — so a scene in the making counts against the cache: a bake with a
+        """The Embree scene of `level`: kept, from the cache, from the scenes built ahead,
+        or built now. A scene built is kept for good while it fits in `scene_memory`
+        beside those kept (`scene_bytes`), else cached (least recently used out: the cache
+        holds at least the level being traced). Passes sweep the levels in turn, so the
+        scenes kept are found by every later pass, where a least-recently-used cache of
+        fewer scenes than levels would have let each go before it came round again. Room
+        is made in the cache before a scene is built — unless one as large as the largest
+        built would be kept — so a scene in the making counts against it: a bake with a
         cache of one and no `scene_memory` holds one level scene (`trace_pass` lets the
         traced one go before the next is built). A scene built ahead for a level above
         `level` (one the side probes, going down, found no texel on) goes first, once
         built: it would be a second scene alive."""
         with self._scene_lock:
+            if level in self._kept:
+                return self._kept[level]
             if level in self._scenes:
                 self._scenes.move_to_end(level)
                 return self._scenes[level]
             ahead = self._pending.pop(level, None)
             above = [self._pending.pop(k) for k in sorted(self._pending) if k > level]
-            self._make_room(self._largest)
+            if not self._fits(self._largest):
+                self._make_room()
         for other in above:
             other.wait()  # its scene built: let go with the future that holds it
         above.clear()
@@ -461,16 +470,22 @@ class ThreadBackend:
             self._stats.embree_seconds += scene.build_seconds
             self._stats.scenes += 1
             self._largest = max(self._largest, scene_bytes(scene))
-            self._make_room(scene_bytes(scene))
-            self._scenes[level] = scene
+            if self._fits(scene_bytes(scene)):
+                self._kept[level] = scene
+            else:
+                self._make_room()
+                self._scenes[level] = scene
         return scene
 
-    def _make_room(self, coming: int) -> None:
-        """Let go of the least recently used scenes until one of `coming` bytes fits: the
-        cache keeps `scene_cache` scenes, and more while they and it fit in
-        `scene_memory` (call with the lock held)."""
-        while len(self._scenes) >= self._scene_cache and (
-                sum(map(scene_bytes, self._scenes.values())) + coming > self._scene_memory):
+    def _fits(self, coming: int) -> bool:
+        """Whether a scene of `coming` bytes fits in `scene_memory` beside the scenes kept
+        (call with the lock held)."""
+        return sum(map(scene_bytes, self._kept.values())) + coming <= self._scene_memory
+
+    def _make_room(self) -> None:
+        """Let go of the least recently used cached scenes until there is room for one
+        more (call with the lock held)."""
+        while len(self._scenes) >= self._scene_cache:
             self._scenes.popitem(last=False)
 
     def _waited(self, function, *args):

@@ -21,8 +21,8 @@ texels' own values replace the previews once they rest on as many paths.
 Batches and level scenes. Texels trace paths on their own isovalues' level surfaces
 (`baking.plan`), and those around one isosurface use almost every level. A batch is one
 `Baker.run` sweeping its texels' levels, each scene built once and kept while affordable
-(`scene_cache_size`); texels are committed (and shown) once their upper level is traced,
-and a new view interrupts a batch between two commits.
+(the `ThreadBackend`'s scene memory); texels are committed (and shown) once their upper
+level is traced, and a new view interrupts a batch between two commits.
 
 Re-targeting. A new view (isovalue, eye, visible cells) rebuilds the stages; texels already
 at a stage's target are skipped, so finished work is kept — a texel's value holds for its
@@ -48,7 +48,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from isolume.baking.backend import SCENE_BYTES_PER_TRIANGLE
 from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, path_variance
 from isolume.baking.plan import Plan
 
@@ -386,22 +385,6 @@ def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) 
     se = np.sqrt(path_variance(lum, second, samples) / np.maximum(samples, 1))
     return np.where(samples > 1, se / np.maximum(np.abs(lum.astype(np.float64)), 1e-12),
                     np.inf)
-
-
-def scene_cache_size(volume: Volume, iso: float, levels: int, budget_bytes: float) -> int:
-    """How many level scenes a lazy bake may keep alive: all `levels` if they fit in
-    `budget_bytes`, else as many as fit (at least 4).
-
-    The texels around one isosurface use almost every level (their values span the edge
-    profile of the data), so a lazy bake that revisits them round after round should not
-    rebuild scenes. A level's scene is estimated from the displayed surface: two triangles
-    per voxel face crossed by ρ = iso.
-    """
-    data = volume.data
-    inside = data > iso
-    crossed = sum(int(np.count_nonzero(np.diff(inside, axis=a))) for a in range(3))
-    per_scene = max(1, 2 * crossed) * SCENE_BYTES_PER_TRIANGLE
-    return int(np.clip(budget_bytes // per_scene, 4, max(4, levels)))
 
 
 # -- the scheduler -------------------------------------------------------------------------

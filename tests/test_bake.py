@@ -266,8 +266,9 @@ def test_every_pass_of_a_bake_takes_the_scenes_kept_within_their_memory(monkeypa
     """A bake to a texel error traces in several passes over the levels (nodes, fine
     bricks, strays, dark texels); the scenes its memory holds are built once for all of
     them and the plan's side probes. A memory for two of its largest scenes holds no more
-    than that while one more is built (`scene_bytes`), and the lattice is the same bits
-    whatever the memory."""
+    than that beside the one traced, and one more while one is built (`scene_bytes`); the
+    scenes it keeps are found by every later pass, so fewer are built than with none
+    kept; and the lattice is the same bits whatever the memory."""
     import weakref
 
     from isolume.baking import backend
@@ -298,11 +299,12 @@ def test_every_pass_of_a_bake_takes_the_scenes_kept_within_their_memory(monkeypa
     alive.clear()
     most["bytes"] = 0
     two = bake(vol, config, workers=2, dense=False, scene_memory=2 * largest)
-    assert len(built) > len(levels)  # rebuilt in later passes
-    assert largest < most["bytes"] <= 3 * largest
+    some = len(built)
+    assert some > len(levels)  # rebuilt in later passes
+    assert largest < most["bytes"] <= 4 * largest
     built.clear()
     one = bake(vol, config, workers=2, dense=False, scene_memory=0)
-    assert len(built) > len(two.meta["plan"]["levels"]) * 2
+    assert len(built) > some + 2
     for lattice in (two, one):
         np.testing.assert_array_equal(lattice.values, kept.values)
         np.testing.assert_array_equal(lattice.samples, kept.samples)

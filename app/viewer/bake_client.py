@@ -45,6 +45,11 @@ if TYPE_CHECKING:
 
 PLAN_PREVIEW_PATHS = 64
 """Preview passes of at most this many paths go on while a plan is made (`_plan`)."""
+LAZY_SCENES = 4
+"""Level scenes the lazy bake keeps alive whatever their size; more while they fit in a
+quarter of the memory available (`baking.backend.scene_budget`). The texels around one
+isosurface use almost every level (their values span the edge profile of the data), so a
+lazy bake that revisits them round after round should not rebuild scenes."""
 
 
 class SharedLattice:
@@ -177,14 +182,6 @@ def lattice_meta(volume: volumes.Volume, config: BakeConfig) -> dict[str, Any]:
     from isolume.baking.lazy import new_lattice
 
     return dict(new_lattice(volume, config).meta, config=config.to_dict())
-
-
-def scene_budget() -> float:
-    """Bytes the bake process may spend on cached level scenes: a quarter of the memory."""
-    try:
-        return 0.25 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return 2e9
 
 
 def _bake_main(job: dict, inbox, outbox) -> None:
@@ -369,10 +366,10 @@ class _BakeProcess:
         Its stages are reported as ``("planning", stage)``. None when told to stop."""
         import threading
 
+        from isolume.baking.backend import scene_budget
         from isolume.baking.bake import Baker
-        from isolume.baking.lazy import scene_cache_size
 
-        made: dict = {}
+        made: dict = {"memory": scene_budget()}
 
         def planning(stage: str, fraction: float | None = None) -> None:
             self.outbox.put(("planning", stage if fraction is None
@@ -381,13 +378,11 @@ class _BakeProcess:
         def make() -> None:
             try:
                 made["baker"] = Baker(self.volume, config, lattice=self.shared.lattice,
-                                      workers=self.job["workers"], scene_cache=made["cache"],
-                                      progress=planning)
+                                      workers=self.job["workers"], scene_cache=LAZY_SCENES,
+                                      scene_memory=made["memory"], progress=planning)
             except BaseException as exc:  # re-raised below, in this thread
                 made["error"] = exc
 
-        made["cache"] = scene_cache_size(self.volume, self.job["iso"], config.max_levels,
-                                         scene_budget())
         planner = threading.Thread(target=make, name="isolume-plan", daemon=True)
         planner.start()
         while planner.is_alive():
@@ -400,7 +395,7 @@ class _BakeProcess:
                 return None
         if "error" in made:
             raise made["error"]
-        return made["baker"], made["cache"]
+        return made["baker"], made["memory"]
 
     def run(self) -> None:
         from isolume.baking.lazy import View, view_iso_range
@@ -473,7 +468,7 @@ class _BakeProcess:
         made = self._plan(self.config)
         if made is None:
             return None
-        baker, cache = made
+        baker, scene_memory = made
         relight = self.relight
         if old_plan is not None:
             reset = carry_over(lattice, old_plan, baker.plan)
@@ -496,7 +491,7 @@ class _BakeProcess:
         self.outbox.put(("ready", {"seconds": time.perf_counter() - t0,
                                    "active": len(baker.plan.ids),
                                    "levels": len(baker.plan.levels),
-                                   "scene_cache": cache, "meta": baker.lattice.meta,
+                                   "scene_memory": scene_memory, "meta": baker.lattice.meta,
                                    "config": baker.lattice.config.to_dict()}))
         return baker
 
