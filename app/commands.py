@@ -161,14 +161,14 @@ def bake_lattice(args: argparse.Namespace, *, dense: bool = False,
 
     out = check_output_path(args.out, (".npz",)) if args.out is not None else None
     config = bake_config(args)
-    scene_memory = scene_bytes(args.scene_memory)
+    scene_memory = scene_memory_bytes(args.scene_memory)
     vol = load_volume(args)
     return bake(vol, config, out=out, workers=args.workers, progress=True,
                 scheduler=args.scheduler, outlook=lambda o: say_outlook(o, config),
                 dense=dense, keep_interrupted=keep_interrupted, scene_memory=scene_memory)
 
 
-def scene_bytes(gigabytes: float | None) -> float | None:
+def scene_memory_bytes(gigabytes: float | None) -> float | None:
     """Bytes of ``--scene-memory GB`` (None: the bake's default).
 
     Raises:

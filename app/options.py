@@ -426,10 +426,11 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
                    "(all in the lattice)")
     p.add_argument("--workers", type=int, default=None, help=WORKERS_HELP)
     p.add_argument("--scene-memory", type=float, default=None, metavar="GB",
-                   help="memory the level scenes may hold, so that each is built once for "
-                   "the plan and every pass of the bake rather than once a pass (0: one "
-                   "scene at a time; default a quarter of the memory available for a bake "
-                   "to a texel error or a target, 0 for --samples N alone)")
+                   help="memory for level scenes kept between passes, so that each is built "
+                   "once for the plan and every pass of the bake rather than once a pass (0: "
+                   "one scene at a time; default a quarter of the memory available for a "
+                   "bake to a texel error or a target, 0 for --samples N alone; threads "
+                   "only: a --scheduler worker builds the scenes it traces)")
     p.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="trace on a Dask cluster: its scheduler (tcp://host:8786), or local:N "
                    "for N worker processes here; the same lattice (pip install "

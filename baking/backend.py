@@ -292,10 +292,11 @@ class ThreadBackend:
     texels at a time on it (`pass_steps`): its paths in chunks of whole texels on a
     thread pool, while a helper thread lays out the next step of the same level. Level
     scenes are cached (least recently used first out): the one level traced, and more
-    where successive passes touch the same levels — the plan's side probes and every
-    pass of a bake, the lazy viewer's batches — so that a level's scene is built once;
-    the next level's is built once the last step on this one is done, so a bake with a
-    cache of one holds one scene.
+    where successive passes touch the same levels (the lazy viewer's batches); and those
+    that fit in `scene_memory` are kept for good, so that the plan's side probes and
+    every pass of a bake find them. The next level's is built once the last step on
+    this one is done, so a bake with a cache of one and no `scene_memory` holds one
+    scene.
 
     Args:
         workers: threads tracing concurrently (default: CPU count); the result does not
@@ -370,7 +371,8 @@ class ThreadBackend:
     def trace_pass(self, work: PassWork, report: PassReport) -> None:
         """Trace `work` one level at a time and a batch of texels at a time on it
         (`pass_steps`), and commit each batch on its upper level
-        (`TracingBackend.trace_pass`). A pass holds one level scene (with a cache of one),
+        (`TracingBackend.trace_pass`). A pass holds one level scene (with a cache of one
+        and no `scene_memory`),
         the sums of one group of texels between their two levels (those whose lower level
         was the last traced: 40 bytes a texel in irradiance), at a group's end a copy of
         its last batch's (`TEXELS_PER_BATCH` texels at most) and the layouts of two steps.
@@ -479,8 +481,9 @@ class ThreadBackend:
 
     def _fits(self, coming: int) -> bool:
         """Whether a scene of `coming` bytes fits in `scene_memory` beside the scenes kept
-        (call with the lock held)."""
-        return sum(map(scene_bytes, self._kept.values())) + coming <= self._scene_memory
+        (none without a `scene_memory`, empty ones included; call with the lock held)."""
+        return self._scene_memory > 0 and (
+            sum(map(scene_bytes, self._kept.values())) + coming <= self._scene_memory)
 
     def _make_room(self) -> None:
         """Let go of the least recently used cached scenes until there is room for one

@@ -494,11 +494,12 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
             dense arrays take 23 bytes a texel of the box in irradiance, 3.1 GB at 512³).
         keep_interrupted: on Ctrl-C (a notebook's interrupt), return the lattice of the
             finished texels (``meta["interrupted"]`` True) instead of raising.
-        scene_memory: bytes the level scenes may hold, so that each is built once for the
-            plan's side probes and every pass (`ThreadBackend`; one is kept whatever its
-            size, and 0 keeps only that one); None: `backend.scene_budget` for a bake in
-            several passes (to a texel error or a target), 0 for one of `samples` paths a
-            texel (one pass: the scenes kept would spare only the side probes' builds).
+        scene_memory: bytes of level scenes kept for good, so that each is built once for
+            the plan's side probes and every pass (`ThreadBackend`: beside its cache of
+            one scene, two for a target; a thread bake's only); None:
+            `backend.scene_budget` for a bake in several passes (to a texel error or a
+            target), 0 for one of `samples` paths a texel (one pass: the scenes kept would
+            spare only the side probes' builds).
 
     Returns:
         The lattice (also written to `out`; on Ctrl-C the finished texels are saved

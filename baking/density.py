@@ -486,7 +486,8 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
                            0).sum())  # the bar's estimate of the passes after the nodes'
     _trace(baker, nodes, config.samples, bar, checkpoint, restart=True, later=later)
     dark_to_trapped(baker, nodes, trapped_at, bar, checkpoint, later)
-    dark_share = np.mean(baker.samples_done(nodes) == trapped_at) if trapped_at else 0.0
+    dark_share = (np.mean(baker.samples_done(nodes) == trapped_at)
+                  if trapped_at and len(nodes) else 0.0)
     weights = baker.job.tracing.weights
     judged = Judgement.resumed(lattice.meta.get(JUDGED_KEY), config, total)
     if judged is None:
@@ -627,7 +628,8 @@ def _count_paths(bar: Any, baker: Any, positions: np.ndarray, paths: int | np.nd
     still need to have `paths` each (or (N,) per texel), and the estimated `later` paths
     of passes to come: in place of its total (`restart`), or on top of what it has done.
     The total of a bake to a texel error is thus the outlook's until the fills are known,
-    then what is left exactly, plus the stray texels' paths when they are found."""
+    then what is left with its dark texels' paths estimated, then exactly, plus the stray
+    texels' paths when they are found."""
     if bar is None:
         return
     wanted = int(np.maximum(paths - baker.samples_done(positions), 0).sum())

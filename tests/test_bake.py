@@ -262,6 +262,40 @@ def test_the_tracing_starts_on_the_scene_the_side_probes_left(monkeypatch, worke
     assert built == list(lattice.meta["plan"]["levels"])
 
 
+@pytest.mark.parametrize("memory, kept, builds", [
+    (0, [], 8), (250, [1, 0, 3], 4), (1000, [1, 0, 3, 2], 4)])
+def test_scenes_are_kept_first_come_within_their_memory(monkeypatch, memory, kept, builds):
+    """`ThreadBackend._scene`: the first scenes built that fit in the memory (by
+    `scene_bytes`; an empty one too where there is memory) are kept for good, the others
+    cached one at a time (least recently used out: level 2's, too large to keep, stays
+    cached while the others are kept); without memory, one scene is alive, an empty one
+    included, and every scene is built again on the second round."""
+    from types import SimpleNamespace
+
+    from isolume.baking import backend
+
+    triangles = {0: 0, 1: 1, 2: 3, 3: 1}  # level: triangles (100 bytes each)
+    built = []
+
+    def level_scene(volume, iso, config):
+        built.append(int(iso))
+        return SimpleNamespace(faces=np.zeros((triangles[int(iso)], 3)), mesh_seconds=0.0,
+                               build_seconds=0.0)
+
+    monkeypatch.setattr(backend, "level_scene", level_scene)
+    threads = backend.ThreadBackend(1, scene_memory=memory)
+    threads._levels, threads._stats = np.arange(4.0), backend.BakeStats()
+    try:
+        for level in [1, 0, 3, 2, 1, 0, 3, 2]:
+            assert threads._scene(level) is threads._scene(level)
+            assert len(threads._scenes) <= 1
+        assert list(threads._kept) == kept
+        assert sum(backend.scene_bytes(k) for k in threads._kept.values()) <= memory
+        assert built == ([1, 0, 3, 2] * 2)[:builds]
+    finally:
+        threads.close()
+
+
 def test_every_pass_of_a_bake_takes_the_scenes_kept_within_their_memory(monkeypatch):
     """A bake to a texel error traces in several passes over the levels (nodes, fine
     bricks, strays, dark texels); the scenes its memory holds are built once for all of

@@ -40,6 +40,30 @@ def test_available_cores_follow_the_affinity():
     assert cores.available() == len(os.sched_getaffinity(0))
 
 
+@pytest.mark.parametrize("files, cores_of, memory_left", [
+    ({"cpu.max": "150000 100000\n", "memory.max": "8000000000\n",
+      "memory.current": "3000000000\n"}, 2, 5_000_000_000),
+    ({"cpu.max": "max 100000\n", "memory.max": "max\n", "memory.current": "1\n"},
+     None, None),
+    ({"memory.max": "100\n", "memory.current": "200\n"}, None, 0),
+    ({}, None, None)])
+def test_a_containers_cgroup_limits_cores_and_memory(monkeypatch, files, cores_of,
+                                                     memory_left):
+    """A cgroup v2 CPU quota rounds up to whole cores; its memory limit caps the memory
+    the bake's budgets read (`available_memory`: the least of the machine's and the
+    cgroup's); no file, no limit."""
+    from isolume.volumes.io import common
+
+    monkeypatch.setattr(cores, "cgroup_file", files.get)
+    monkeypatch.setattr(common, "cgroup_file", files.get)
+    monkeypatch.setattr(common, "_machine_memory", lambda: 6_000_000_000)  # MemAvailable
+    assert cores._cgroup_quota() == cores_of
+    assert common.cgroup_memory_left() == memory_left
+    machine = 6_000_000_000
+    assert common.available_memory() == (
+        machine if memory_left is None else min(machine, memory_left))
+
+
 def test_a_thread_count_below_one_is_refused():
     with pytest.raises(cores.CoresError, match="--workers 0: expected at least 1"):
         cores.use(0)

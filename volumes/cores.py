@@ -104,22 +104,30 @@ def available() -> int:
     return max(1, min(count, quota) if quota else count)
 
 
-def _cgroup_quota() -> int | None:
-    """Cores of this process's cgroup v2 CPU quota (``cpu.max``: quota and period in µs,
-    rounded up), or None where there is none or it cannot be read."""
+def cgroup_file(name: str) -> str | None:
+    """The text of this process's cgroup v2 control file `name` (e.g. ``cpu.max``,
+    ``memory.max``), or None where there is no such cgroup or it cannot be read."""
     try:
         with open("/proc/self/cgroup") as f:
             path = next((line.strip().split("::", 1)[1] for line in f
                          if line.startswith("0::")), None)
         if path is None:
             return None
-        with open(Path("/sys/fs/cgroup") / path.lstrip("/") / "cpu.max") as f:
-            quota, period = f.read().split()[:2]
-    except (OSError, ValueError, StopIteration):
+        with open(Path("/sys/fs/cgroup") / path.lstrip("/") / name) as f:
+            return f.read()
+    except OSError:
         return None
-    if quota == "max":
+
+
+def _cgroup_quota() -> int | None:
+    """Cores of this process's cgroup v2 CPU quota (``cpu.max``: quota and period in µs,
+    rounded up), or None where there is none or it cannot be read."""
+    text = cgroup_file("cpu.max")
+    try:
+        quota, period = text.split()[:2] if text is not None else ("max", "1")
+        return None if quota == "max" else max(1, math.ceil(int(quota) / int(period)))
+    except ValueError:
         return None
-    return max(1, math.ceil(int(quota) / int(period)))
 
 
 class _Cores:

@@ -46,8 +46,8 @@ if TYPE_CHECKING:
 PLAN_PREVIEW_PATHS = 64
 """Preview passes of at most this many paths go on while a plan is made (`_plan`)."""
 LAZY_SCENES = 4
-"""Level scenes the lazy bake keeps alive whatever their size; more while they fit in a
-quarter of the memory available (`baking.backend.scene_budget`). The texels around one
+"""Level scenes the lazy bake caches whatever their size, beside those kept for good
+within a quarter of the memory available (`baking.backend.scene_budget`). The texels around one
 isosurface use almost every level (their values span the edge profile of the data), so a
 lazy bake that revisits them round after round should not rebuild scenes."""
 

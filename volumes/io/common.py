@@ -18,6 +18,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from isolume.volumes.core import VolumeError
+from isolume.volumes.cores import cgroup_file
 
 OPTIONAL_MODULES = {
     "nrrd": ("pynrrd", "nrrd"),
@@ -113,7 +114,14 @@ def byte_count(dims_xyz: Sequence[int], dtype: np.dtype) -> tuple[int, str]:
 
 def available_memory() -> int | None:
     """Bytes of memory this machine can still give a process (Linux ``MemAvailable``,
-    else physical memory), or None where neither is known."""
+    else physical memory), no more than its cgroup's limit leaves (a container's:
+    `cgroup_memory_left`), or None where none of them is known."""
+    known = [left for left in (_machine_memory(), cgroup_memory_left()) if left is not None]
+    return min(known) if known else None
+
+
+def _machine_memory() -> int | None:
+    """Linux ``MemAvailable`` in bytes, else the physical memory, else None."""
     try:
         with open("/proc/meminfo") as f:
             for line in f:
@@ -124,6 +132,18 @@ def available_memory() -> int | None:
     try:
         return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (ValueError, OSError, AttributeError):
+        return None
+
+
+def cgroup_memory_left() -> int | None:
+    """Bytes this process's cgroup v2 may still use (``memory.max`` less
+    ``memory.current``, at least 0), or None where it has no limit or none is readable."""
+    limit, current = cgroup_file("memory.max"), cgroup_file("memory.current")
+    try:
+        if limit is None or current is None or limit.strip() == "max":
+            return None
+        return max(0, int(limit) - int(current))
+    except ValueError:
         return None
 
 
