@@ -74,6 +74,7 @@ from isolume.baking.fill_check import (
     drift_error,
     node_mix,
     node_sides,
+    shown_weights,
     stray_fills,
 )
 from isolume.baking.lattice import (
@@ -386,7 +387,7 @@ def fill(lattice: Any, nodes: Nodes, coords: np.ndarray, filled: np.ndarray,
     def mix(part: slice) -> None:
         at = filled[part]
         rows, w = nodes.corners(coords[at])
-        w = np.where((rows >= 0) & shown[np.maximum(rows, 0)], w, 0.0)
+        w = shown_weights(rows, w, shown)
         values[at] = node_mix(rows, w, facing, facing[at], values)
         second[at] = node_mix(rows, w, facing, facing[at], second[:, None])[:, 0]
         count[at] = samples

@@ -56,8 +56,15 @@ class NodeLight:
     edges: np.ndarray | None = None
 
     def weigh(self, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """(N, 8) `weights` of the shown nodes among (N, 8) plan positions `rows`."""
-        return np.where((rows >= 0) & self.shown[np.maximum(rows, 0)], weights, 0.0)
+        """(N, 8) `weights` of the shown nodes among (N, 8) plan positions `rows`
+        (`shown_weights`)."""
+        return shown_weights(rows, weights, self.shown)
+
+
+def shown_weights(rows: np.ndarray, weights: np.ndarray, shown: np.ndarray) -> np.ndarray:
+    """(N, 8) `weights` of the nodes at (N, 8) plan positions `rows` (−1: none) that the
+    (T,) bool `shown` marks, 0 for the others."""
+    return np.where((rows >= 0) & shown[np.maximum(rows, 0)], weights, 0.0)
 
 
 def drift_error(nodes: Any, coords: np.ndarray, rows: np.ndarray, weights: np.ndarray,
@@ -146,7 +153,7 @@ def residuals(nodes: Any, coords: np.ndarray, at: np.ndarray, facing: np.ndarray
             display shows.
     """
     rows, w = nodes.corners(coords[at])
-    w = np.where((rows >= 0) & shown[np.maximum(rows, 0)], w, 0.0)
+    w = shown_weights(rows, w, shown)
     mix = node_mix(rows, w, facing, facing[at], luminance[:, None])[:, 0]
     return np.where(w.sum(axis=1) > 0, mix - luminance[at], np.nan)
 
