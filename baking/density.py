@@ -131,6 +131,43 @@ def brick_of(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
     return np.ravel_multi_index(tuple((coords // BRICK).T), grid)
 
 
+def texel_bricks(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
+    """(T,) intp `brick_of` all (T, 3) texel `coords`, a block at a time on every core."""
+    bricks = np.empty(len(coords), np.intp)
+
+    def part(block: slice) -> None:
+        bricks[block] = brick_of(coords[block], grid)
+
+    cores.for_blocks(part, len(coords), BLOCK, "texels")
+    return bricks
+
+
+def texel_luminance(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(T,) ``values @ weights`` of (T, C) texel `values`, a block at a time on every core
+    (each texel's sum as in one product over all of them)."""
+    luminance = np.empty(len(values), np.result_type(values.dtype, weights.dtype))
+
+    def part(block: slice) -> None:
+        luminance[block] = values[block] @ weights
+
+    cores.for_blocks(part, len(values), BLOCK, "texels")
+    return luminance
+
+
+def mixing_nodes(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """The sorted plan positions of the `nodes` with a weight in the trilinear mix of a
+    texel at plan positions (N,) `at` (`Nodes.corners`), found a block of texels at a
+    time on every core."""
+    used = np.zeros(len(coords), bool)
+
+    def mark(block: slice) -> None:
+        rows, weights = nodes.corners(coords[at[block]])
+        used[rows[weights > 0]] = True
+
+    cores.for_blocks(mark, len(at), BLOCK, "texels")
+    return np.flatnonzero(used)
+
+
 class Nodes:
     """A half lattice of nodes: texels whose z, y and x are all ≡ `offset` (mod 2), as a
     dense (⌈(Z − offset)/2⌉, …) int32 map `rows` from a node's half index to its plan
@@ -290,7 +327,7 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, light: NodeLight,
         cores.for_blocks(judge, len(at), BLOCK, "texels")
         brick = brick_of(coords[at], grid)
         sums += [np.bincount(brick, v, count) for v in per_node]
-    every = np.bincount(brick_of(coords, grid), minlength=count) > 0
+    every = np.bincount(texel_bricks(coords, grid), minlength=count) > 0
     rough = EDGE_SHARE * noise_free_rms(*sums) > light.allowed
     return every & (rough | (sums[3] == 0)), every, edges
 
@@ -338,9 +375,7 @@ def odd_nodes_needed(even: Nodes, coords: np.ndarray, facing: np.ndarray,
     among (K,) `others` whose even nodes face away from them (every active even node
     counted: nothing is traced yet), sorted."""
     away = others[facing_away(even, others, coords, facing)]
-    odd = Nodes(coords, tuple(even.shape), 1)
-    rows, w = odd.corners(coords[away])
-    return np.unique(rows[w > 0])
+    return mixing_nodes(Nodes(coords, tuple(even.shape), 1), coords, away)
 
 
 def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
@@ -494,11 +529,11 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     if judged is None:
         judged = judge(baker, [even, odd], coords, facing, trapped_at)
         lattice.meta[JUDGED_KEY] = judged.record(config, total)
-    grid = brick_grid(shape)
-    in_fine = ~node & judged.fine[brick_of(coords, grid)]
+    bricks = texel_bricks(coords, brick_grid(shape))
+    in_fine = ~node & judged.fine[bricks]
     filled = mask_of(total, *judged.fills)
     alone = ~(node | in_fine | filled)
-    filling = mask_of(total, *(filling_nodes(half, coords, fills)
+    filling = mask_of(total, *(mixing_nodes(half, coords, fills)
                                for half, fills in zip((even, odd), judged.fills, strict=True)))
     traced = np.flatnonzero(in_fine | alone | filling)
     paths = np.where(filling[traced], NODE_PATHS * config.samples, config.samples)
@@ -507,9 +542,10 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
         "even_nodes": len(even.positions), "odd_nodes": len(odd.positions),
         "filling_nodes": int(filling.sum()), "in_fine_bricks": int(in_fine.sum()),
         "alone": int(alone.sum()),
-        "fine_bricks": int(judged.fine.sum()), "bricks": int(_bricks_used(coords, grid))}
+        "fine_bricks": int(judged.fine.sum()),
+        "bricks": int(np.count_nonzero(np.bincount(bricks)))}
     witness = in_fine | alone
-    del node, nodes, in_fine, filled, alone, filling
+    del node, nodes, in_fine, filled, alone, filling, bricks
     dark_later = dark_share * np.count_nonzero(paths < trapped_at) * (trapped_at
                                                                       - config.samples)
     _trace(baker, traced, paths, bar, checkpoint, later=int(dark_later))  # as dark as the nodes
@@ -520,7 +556,8 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     del witness
     fills = [np.setdiff1d(part, stray, assume_unique=True) for part in judged.fills]
     samples = lattice.samples.reshape(-1)
-    shown = shown_texels(lattice.values.reshape(total, -1) @ weights, samples, trapped_at)
+    shown = shown_texels(texel_luminance(lattice.values.reshape(total, -1), weights), samples,
+                         trapped_at)
     filled = mask_of(total, *fills)
     record.update(trapped=int(np.count_nonzero((samples > 0) & ~shown)), stray=len(stray),
                   filled=int(filled.sum()), bits=packed(filled))
@@ -550,10 +587,16 @@ def traced_light(baker: Any, total: int, level_at: np.ndarray, trapped_at: int
     fill may make — the texel error times the light level of the texels at plan positions
     `level_at` (the even nodes: `light_level`)."""
     lattice = baker.lattice
-    luminance = lattice.values.reshape(total, -1) @ baker.job.tracing.weights
-    samples = lattice.samples.reshape(-1)
-    variance = path_variance(luminance, lattice.second.reshape(-1), samples)
-    return NodeLight(luminance, variance / np.maximum(samples, 1),
+    luminance = texel_luminance(lattice.values.reshape(total, -1), baker.job.tracing.weights)
+    samples, second = lattice.samples.reshape(-1), lattice.second.reshape(-1)
+    variance = np.empty(total)
+
+    def part(block: slice) -> None:
+        variance[block] = path_variance(luminance[block], second[block],
+                                        samples[block]) / np.maximum(samples[block], 1)
+
+    cores.for_blocks(part, total, BLOCK, "texels")
+    return NodeLight(luminance, variance,
                      shown_texels(luminance, samples, trapped_at),
                      baker.config.texel_error * light_level(luminance[level_at]))
 
@@ -600,18 +643,6 @@ def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, facing: np.ndar
     fine, _, light.edges = fine_bricks(lattices, coords, light, facing)
     _, _, fills = split_texels(lattices, coords, fine, facing, light)
     return Judgement(fine, fills)
-
-
-def _bricks_used(coords: np.ndarray, grid: tuple[int, int, int]) -> int:
-    """Bricks of the (BZ, BY, BX) `grid` holding one of the (T, 3) texels."""
-    return int(np.count_nonzero(np.bincount(brick_of(coords, grid))))
-
-
-def filling_nodes(nodes: Nodes, coords: np.ndarray, filled: np.ndarray) -> np.ndarray:
-    """The plan positions of the `nodes` that the texels at plan positions (F,) `filled`
-    are filled from (the corners of their mixes), sorted."""
-    rows, weights = nodes.corners(coords[filled])
-    return np.unique(rows[weights > 0])
 
 
 def _trace(baker: Any, positions: np.ndarray, paths: int | np.ndarray, bar: Any,

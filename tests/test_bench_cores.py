@@ -12,6 +12,7 @@ from PIL import Image
 from isolume.app.bench.cores import (
     aggregate,
     amdahl,
+    command_argv,
     default_threads,
     median_run,
     predictions,
@@ -278,6 +279,22 @@ def test_the_sameness_line_names_the_runs_that_differ():
     assert "bbbbbbbbbbbb: 4 threads #1" in line
     assert sameness_line("render", runs[:1]) == ("render: the same picture (pixels) from "
                                                  "every run (2)")
+
+
+def test_bench_cores_measures_the_commands_defaults_with_samples_0(tmp_path, capsys):
+    """``--samples N`` is passed to every command; 0 passes none, so that the bake runs to
+    its texel error as a user's does; a negative count is refused."""
+    from argparse import Namespace
+
+    args = Namespace(volume="v.raw", samples=16, size="64x64")
+    bake = command_argv(args, "bake", 2, tmp_path)
+    assert bake[bake.index("--samples") + 1] == "16"
+    args.samples = 0
+    for command in ("bake", "render"):
+        words = command_argv(args, command, 2, tmp_path)
+        assert "--samples" not in words and words[words.index("--workers") + 1] == "2"
+    assert main(["bench", "cores", "--samples", "-1", "--out", str(tmp_path / "c")]) != 0
+    assert "--samples -1: expected 0" in capsys.readouterr().err
 
 
 def test_bench_cores_end_to_end(tmp_path, capsys):

@@ -17,13 +17,17 @@ from isolume.baking.density import (
     JUDGED_KEY,
     NODE_PATHS,
     Nodes,
+    brick_of,
     fill,
     filled_positions,
     fine_bricks,
     light_level,
+    mixing_nodes,
     noise_free_rms,
     split_texels,
+    texel_bricks,
     texel_coords,
+    texel_luminance,
 )
 from isolume.baking.errors import BakeError
 from isolume.baking.fill_check import SURE, NodeLight, drift_error, stray_fills
@@ -44,6 +48,32 @@ def test_texel_coords_are_numpy_unravel_index():
     ids = RNG.integers(0, np.prod(SHAPE), 500)
     np.testing.assert_array_equal(texel_coords(ids, SHAPE),
                                   np.stack(np.unravel_index(ids, SHAPE), axis=1))
+
+
+def test_the_blockwise_helpers_give_what_one_call_over_every_texel_gives(monkeypatch):
+    """`mixing_nodes`, `texel_bricks` and `texel_luminance` cut their texels into blocks for
+    the cores; cut small here (many blocks, a short last one), they give the same as one
+    call over all of them: the sorted unique nodes of the mixes (`numpy.unique`), the
+    bricks, and the luminance to the bit."""
+    from isolume.baking import density
+    from isolume.baking.lattice import brick_grid
+
+    monkeypatch.setattr(density, "BLOCK", 333)
+    ids, coords = _all_texels()
+    at = np.sort(RNG.choice(len(ids), 2000, replace=False))
+    for offset in (0, 1):
+        nodes = Nodes(coords, SHAPE, offset)
+        rows, w = nodes.corners(coords[at])
+        np.testing.assert_array_equal(mixing_nodes(nodes, coords, at), np.unique(rows[w > 0]))
+    assert len(mixing_nodes(Nodes(coords, SHAPE), coords, at[:0])) == 0
+    grid = brick_grid(SHAPE)
+    np.testing.assert_array_equal(texel_bricks(coords, grid), brick_of(coords, grid))
+    values = RNG.random((len(ids), 3)).astype(np.float32)
+    for weights in (np.array([0.2126, 0.7152, 0.0722]), np.float32([0.3, 0.6, 0.1])):
+        whole = values @ weights
+        got = texel_luminance(values, weights)
+        assert got.dtype == whole.dtype
+        np.testing.assert_array_equal(got.view(np.uint8), whole.view(np.uint8))
 
 
 def test_the_nodes_mix_is_the_half_lattice_trilinear_lookup():

@@ -69,7 +69,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="volume (default synthetic:engine)")
     p.add_argument("--samples", type=int, default=16,
                    help="paths per texel of the bake and of the render's traced global "
-                   "illumination (default 16)")
+                   "illumination (default 16; 0: each command's own default, the bake's "
+                   "to its texel error)")
     p.add_argument("--threads", default=None, metavar="N,N,...",
                    help="thread counts (default 1, 2, 4, ... up to the cores this process "
                    "may use, that count included); 1 always runs: the predictions start "
@@ -138,7 +139,8 @@ def command_argv(args: argparse.Namespace, command: str, threads: int, work: Pat
                  scheduler: str | None = None) -> list[str]:
     """The command line of `command` on ``args.volume`` with `threads` workers, writing its
     output and its timeline (``timeline.json``) into `work`."""
-    words = [command, args.volume, "--samples", str(args.samples), "--workers", str(threads),
+    samples = ["--samples", str(args.samples)] if args.samples > 0 else []
+    words = [command, args.volume, *samples, "--workers", str(threads),
              "--timeline", str(work / "timeline.json")]
     if command == "bake":
         words += ["--out", str(work / "bake.npz")]
@@ -590,6 +592,9 @@ def run(args: argparse.Namespace) -> int:
     counts = thread_counts(args.threads, cores.available())
     if args.repeats < 1:
         raise CLIError(f"--repeats {args.repeats}: expected at least 1")
+    if args.samples < 0:
+        raise CLIError(f"--samples {args.samples}: expected 0 (the commands' defaults) "
+                       "or more paths per texel")
     if not re.fullmatch(r"\d+x\d+", args.size):
         raise CLIError(f"--size {args.size}: expected WxH, e.g. 512x512")
     dask = None
@@ -602,7 +607,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     before = os.getloadavg()
-    print(f"bench cores: {args.volume}, {args.samples} paths/texel, threads "
+    paths = f"{args.samples} paths/texel" if args.samples else "the commands' own paths"
+    print(f"bench cores: {args.volume}, {paths}, threads "
           f"{', '.join(map(str, counts))} ({cores.available()} cores available), "
           f"{args.repeats} repeat(s); load average (1 min) {before[0]:.2f}", flush=True)
     results = {}
