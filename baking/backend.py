@@ -374,14 +374,18 @@ class ThreadBackend:
         (`TracingBackend.trace_pass`). A pass holds one level scene (with a cache of one
         and no `scene_memory`),
         the sums of one group of texels between their two levels (those whose lower level
-        was the last traced: 40 bytes a texel in irradiance), at a group's end a copy of
+        was the last traced: 40 bytes a texel in irradiance; two groups' while a level's
+        last upper step and first lower one are both queued), at a group's end a copy of
         its last batch's (`TEXELS_PER_BATCH` texels at most) and the layouts of two steps.
 
         Pipelined within a level: the helper thread lays out the next step while the
-        workers trace this one (the chunks run without the GIL), and a batch complete on
-        its upper level is committed (its facings, its means, a checkpoint) while the
-        workers trace the next step — also a group's last batch, copied out of its sums
-        (one batch's rows) so that the group's sums go before the next group's are made.
+        workers trace this one (the chunks run without the GIL); the next step's chunks
+        are queued before this one's are collected (its texels are others, its sums other
+        rows), so no worker waits for a step's last chunk while the level has work; and a
+        batch complete on its upper level is committed (its facings, its means, a
+        checkpoint) while the workers trace the next step — also a group's last batch,
+        copied out of its sums (one batch's rows) so that the group's sums go once the
+        next group's first chunks are queued (both groups' sums are held meanwhile).
         The next level's scene is built once this level's steps are traced, after this
         one is let go (its surface and BVH are built on every core); its first step is
         laid out beforehand, beside this level's last one.
@@ -394,6 +398,7 @@ class ThreadBackend:
         chunks: list = []
         between = None  # the sums of the texels whose lower level was the last traced
         traced: list = []  # a batch complete on its upper level, not yet committed
+        running: _Running | None = None  # a step of this level, traced beside this one
         try:
             with cores.timed_item("layout"):
                 first = self._lay_out(work, step)
@@ -403,28 +408,37 @@ class ThreadBackend:
                 same_level = following is not None and following.level == step.level
                 upcoming = (self._beside("layout", self._lay_out, work, following)
                             if following is not None else None)
-                if not step.upper and step.first == 0:
-                    # this level's upper steps are done: their group's last batch, copied
-                    # out, is committed while this step traces, and the group's sums go
-                    # before the next group's are made
-                    traced = [(upper_step, sums.copy()) for upper_step, sums in traced]
-                    sums = between = None
+                if not step.upper and step.first == 0:  # a new group: sums of its own
                     between = PassSums(len(work.lower_on(step.level)), channels)
                 sums = between.rows(slice(step.first, step.first + len(step.texels)))
-                chunks = self._submit_level(lay, sums)
+                if running is None:  # the step before was collected: work of its own
+                    batch = cores.new_batch()
+                chunks = self._submit_level(lay, sums, batch)
+                if running is not None:  # the step before, its chunks queued ahead of these
+                    self._collect(running.chunks, running.step.level, report)
+                    if running.step.upper:
+                        traced.append((running.step, running.sums))
+                    running = None
+                if not step.upper and step.first == 0:
+                    # the last group's upper steps are done: its last batch, copied out, is
+                    # committed while this step traces, and the group's sums go
+                    traced = [(upper_step, done.copy()) for upper_step, done in traced]
                 with cores.beside():  # the batch before, while this one is traced
                     _commit(traced, report)
-                self._collect(chunks, step.level, report)
-                chunks = []
-                if step.upper:
-                    traced.append((step, sums))
+                if same_level:  # traced beside the next step, on the same scene
+                    running, chunks = _Running(step, sums, chunks), []
+                else:
+                    self._collect(chunks, step.level, report)
+                    chunks = []
+                    if step.upper:
+                        traced.append((step, sums))
                 if following is not None:
                     if not same_level:  # this level's scene goes before the next one's is built
                         lay = sums = None
                     lay = self._waited(self._with_scene, upcoming.wait())
             _commit(traced, report)
         except BaseException:
-            _cancel(chunks)
+            _cancel(chunks + (running.chunks if running is not None else []))
             _commit(traced, report)  # its paths are all traced: it is kept
             raise
 
@@ -522,8 +536,10 @@ class ThreadBackend:
             records.landing)
         return _LevelWork(step, paths, start, replace(job.tracing, ids=records.ids), None)
 
-    def _submit_level(self, lay: _LevelWork, sums: PassSums) -> list[Future]:
-        """Queue the step's chunks of paths on its scene.
+    def _submit_level(self, lay: _LevelWork, sums: PassSums, batch: int) -> list[Future]:
+        """Queue the step's chunks of paths on its scene, items of `batch` in a timeline
+        (`cores.new_batch`: the steps of a level queued one beside the next share one,
+        their chunks run side by side).
 
         Workers add their chunks' per-texel sums into the batch's pass sums `sums`: the
         chunks of one step hold disjoint texels, and the batch is committed only after
@@ -531,7 +547,7 @@ class ThreadBackend:
         """
         if len(lay.paths.texels) == 0:
             return []
-        return [self._pool.submit(_trace_into, sums, lay, lo, hi)
+        return [self._pool.submit(_trace_into, sums, lay, lo, hi, batch)
                 for lo, hi in chunk_bounds(lay.paths.counts, self.workers)]
 
     def _collect(self, chunks: list[Future], level: int, report: PassReport) -> None:
@@ -552,11 +568,12 @@ class ThreadBackend:
             report.show(level)
 
 
-def _trace_into(sums: PassSums, lay: _LevelWork, lo: int, hi: int
+def _trace_into(sums: PassSums, lay: _LevelWork, lo: int, hi: int, batch: int
                 ) -> tuple[int, int, float]:
     """Trace the paths of the step's texels lo … hi − 1 (`trace_texels`) and add their
-    sums to the batch's; returns the paths, the rays and the seconds tracing."""
-    with cores.timed_item("trace"):
+    sums to the batch's; returns the paths, the rays and the seconds tracing (an item
+    of the timeline's `batch`)."""
+    with cores.batch_item(batch, "trace"):
         part, paths, rays, seconds = trace_texels(lay.scene, lay.tracing, lay.paths, lo, hi,
                                                   lay.start)
         sums.add(lay.paths.texels[lo:hi], part)
@@ -570,6 +587,15 @@ def _commit(traced: list[tuple[PassStep, PassSums]], report: PassReport) -> None
         step, sums = traced.pop()
         if report.commit(step.texels, sums):  # its facings and means on every core
             report.show(step.level, refresh=True)
+
+
+class _Running(NamedTuple):
+    """A step whose chunks were queued and are not yet collected: its `step`, the `sums`
+    its chunks add into and their futures, `chunks`."""
+
+    step: PassStep
+    sums: PassSums
+    chunks: list[Future]
 
 
 def _cancel(chunks: list[Future]) -> None:

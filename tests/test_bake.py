@@ -2,6 +2,7 @@
 
 import dataclasses
 import importlib
+import itertools
 
 import numpy as np
 import pytest
@@ -260,6 +261,56 @@ def test_the_tracing_starts_on_the_scene_the_side_probes_left(monkeypatch, worke
     lattice = bake(make("engine", 36), BakeConfig(samples=4, bounces=1, sides="normals"),
                    workers=workers, scene_memory=0)
     assert built == list(lattice.meta["plan"]["levels"])
+
+
+def test_a_levels_next_step_is_queued_before_this_ones_chunks_are_collected(monkeypatch):
+    """On a level, the step after this one (other texels, other rows of the sums) has its
+    chunks queued before this step's are collected, so no worker waits for a step's last
+    chunk while the level has work; across levels each step is collected before the next
+    is queued (the next level's upper step adds to the same texels). The lattice is the
+    same as with every step collected first."""
+    from isolume.baking import backend
+
+    log = []
+    submit, collect = backend.ThreadBackend._submit_level, backend.ThreadBackend._collect
+
+    def submitted(self, lay, sums, batch):
+        log.append(("submit", lay.step.level, batch))
+        return submit(self, lay, sums, batch)
+
+    def collected(self, chunks, level, report):
+        log.append(("collect", level, None))
+        return collect(self, chunks, level, report)
+
+    monkeypatch.setattr(backend.ThreadBackend, "_submit_level", submitted)
+    monkeypatch.setattr(backend.ThreadBackend, "_collect", collected)
+    config = BakeConfig(samples=4, bounces=1)
+    lattice = bake(make("engine", 36), config, workers=2)
+    queued = 0
+    overlapped = []
+    for kind, level, _batch in log:
+        queued += 1 if kind == "submit" else -1
+        assert 0 <= queued <= 2
+        if kind == "submit" and queued == 2:
+            overlapped.append(level)
+    assert overlapped and len(overlapped) < len(lattice.meta["plan"]["levels"])
+    submits = [(level, batch) for kind, level, batch in log if kind == "submit"]
+    for (level, batch), (after, after_batch) in itertools.pairwise(submits):
+        if after_batch == batch:  # one timeline batch: queued side by side, one level
+            assert after == level
+    monkeypatch.setattr(backend.ThreadBackend, "_submit_level", submit)
+
+    def one_at_a_time(self, lay, sums, batch):  # each step collected before the next
+        chunks = submit(self, lay, sums, batch)
+        for chunk in chunks:
+            chunk.result()
+        return chunks
+
+    monkeypatch.setattr(backend.ThreadBackend, "_submit_level", one_at_a_time)
+    alone = bake(make("engine", 36), config, workers=2)
+    np.testing.assert_array_equal(alone.values, lattice.values)
+    np.testing.assert_array_equal(alone.second, lattice.second)
+    np.testing.assert_array_equal(alone.samples, lattice.samples)
 
 
 @pytest.mark.parametrize("memory, kept, builds", [
