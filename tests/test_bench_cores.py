@@ -151,6 +151,25 @@ def test_work_waited_for_by_name_runs_on_a_lane_of_its_own_until_then():
     assert aggregate(one)["tracing"]["items"] == 16  # the mark is no work item
 
 
+def test_work_done_beside_a_unit_is_issued_where_that_unit_began():
+    """A level's next step laid out (1 s, beside, on the calling thread) while the workers
+    trace this one (a batch of 16 items of 1 s); the command waits for it after queueing
+    the next step's chunks in the same batch, then traces the next level (8 items). On
+    eight threads the layout starts with the batch and is done at 1 s, long before the
+    batch's 2 s end: no wait, only its share of the cores (1/8 s) — where issued after the
+    batch it would make the tracing wait until 3 s."""
+    items = [*_batch(2, "trace", 0, [1] * 8, tid=2), (7, 1, "layout", 3, 4, 1),
+             (7, 1, "wait", 4, 4), *_batch(2, "trace", 8, [1] * 8, tid=2),
+             *_batch(3, "trace", 16, [1] * 8, tid=2)]
+    stage = _stage("tracing", 0, 24, items)
+    assert replay_stage(stage, 8, laned=frozenset({7})) == pytest.approx(2 + 1 / 8 + 1)
+    assert replay_stage(stage, 1, laned=frozenset({7})) == pytest.approx(24 + 1)
+    before = [*_batch(2, "trace", 1, [1] * 16, tid=2), (7, 1, "layout", 0, 1, 1),
+              (7, 1, "wait", 17, 17), *_batch(3, "trace", 17, [1] * 8, tid=2)]
+    stage = _stage("tracing", 0, 25, before)  # laid out before the batch: in order
+    assert replay_stage(stage, 8, laned=frozenset({7})) == pytest.approx(1 / 8 + 2 + 1)
+
+
 def test_short_gaps_between_a_units_items_are_the_items_own_overhead():
     # four probe items with 1 ms between them (a progress update after each), then 0.5 s of
     # glue (a scene let go) before the next level's items

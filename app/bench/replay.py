@@ -3,18 +3,20 @@ played again on more simulated threads than the machine has.
 
 Per stage visit, the glue between its items (its wall at one thread less its items'
 seconds, taken as serial) and its items as units of work run one after another — a batch
-(one parallel call) list-scheduled greedily in recorded order, a run of consecutive
-single items of one kind (the tracing chunks of a level step) scheduled together. One
-thread runs a `for_ranges` call as a single item; where the run with the most threads
-cut the same stage's call of that kind into items, the one-thread item is cut in the
-same shares (that cut is the one any thread count gets, unless it reached
-`cores.ITEMS_PER_CALL`: then more threads would cut finer, and the replay is
-pessimistic). Gaps of at most `ITEM_GAP_S` between a unit's items are the items' own
-overhead. Work done beside the critical path (`volumes.cores.beside`) runs beside it: on
-a lane of its own until the command waits for it by name, else sharing the next unit's
-threads. Items parallel inside (`INNER_PARALLEL`) are shortened as they scaled when
-measured, and checkpoints, made every `baking.bake.CHECKPOINT_S` seconds, come as often
-as the predicted wall time allows.
+(one parallel call, or the tracing chunks of a level's steps queued side by side)
+list-scheduled greedily in recorded order, a run of consecutive single items of one
+kind scheduled together. One thread runs a `for_ranges` call as a single item; where the
+run with the most threads cut the same stage's call of that kind into items, the
+one-thread item is cut in the same shares (that cut is the one any thread count gets,
+unless it reached `cores.ITEMS_PER_CALL`: then more threads would cut finer, and the
+replay is pessimistic). Gaps of at most `ITEM_GAP_S` between a unit's items are the
+items' own overhead. Work done beside the critical path (`volumes.cores.beside`) runs
+beside it: on a lane of its own until the command waits for it by name — from where the
+unit of work it was recorded beside began (the next step laid out while this one
+traces), else from where it comes in order — else sharing the next unit's threads.
+Items parallel inside (`INNER_PARALLEL`) are shortened as they scaled when measured, and
+checkpoints, made every `baking.bake.CHECKPOINT_S` seconds, come as often as the
+predicted wall time allows.
 """
 
 from __future__ import annotations
@@ -108,8 +110,10 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
     a batch's items (placed at its first item; key ``("batch", id)``), a run of
     consecutive single items of one kind (``("single", kind)``), or a single item that
     `split(kind)` cuts into shares (its own unit, ``("split", id)``); ``("lane", batch,
-    seconds)``, work done beside that the command waits for later (its batch in `laned`:
-    a "wait" item marks where); ``("wait", batch)``, that mark.
+    seconds, beside)``, work done beside that the command waits for later (its batch in
+    `laned`: a "wait" item marks where), `beside` the index of the unit whose recorded
+    items ran while it began (the latest such; None: none); ``("wait", batch)``, that
+    mark.
 
     An item that follows its unit's last item within `ITEM_GAP_S` takes the gap into its
     seconds. Other items done beside (`is_beside`: a batch committed while the next is
@@ -125,12 +129,13 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
     waiting = carried if carried is not None else []
     events: list[tuple] = []
     batches: dict[int, int] = {}  # batch id: its unit's event index
+    began: dict[int, float] = {}  # by unit event index: when its first item began
     ended: dict[int, float] = {}  # by unit event index: when its last item ended
 
-    def begin(key: tuple, durations: list[float], end: float) -> None:
+    def begin(key: tuple, durations: list[float], item: list[Any]) -> None:
         events.append(("unit", [*waiting, *durations], key))
         waiting.clear()
-        ended[len(events) - 1] = end
+        began[len(events) - 1], ended[len(events) - 1] = item[3], item[4]
 
     def join(at: int, item: list[Any], seconds: float) -> None:
         gap = item[3] - ended[at]
@@ -149,7 +154,7 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
             recorded.append(duration(item))
         if is_beside(item):
             if batch in laned:
-                events.append(("lane", batch, seconds))
+                events.append(("lane", batch, seconds, item[3]))
             elif ended:  # a unit so far in this visit: the last one begun
                 events[max(ended)][1].append(seconds)
             else:
@@ -160,20 +165,31 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
             if batch in batches:
                 join(batches[batch], item, seconds)
             else:
-                begin(("batch", batch), [seconds], item[4])
+                begin(("batch", batch), [seconds], item)
                 batches[batch] = len(events) - 1
             continue
         shares = split(kind) if split is not None else None
         if shares:
-            begin(("split", batch), [seconds * share for share in shares], item[4])
+            begin(("split", batch), [seconds * share for share in shares], item)
         elif last is not None and last[0] == "unit" and last[2] == ("single", kind) \
                 and not waiting:
             join(len(events) - 1, item, seconds)
         else:
-            begin(("single", kind), [seconds], item[4])
+            begin(("single", kind), [seconds], item)
     if carried is None and waiting:
         events.append(("unit", list(waiting), ("beside",)))
-    return events
+    return [_beside_unit(event, index, began, ended) if event[0] == "lane" else event
+            for index, event in enumerate(events)]
+
+
+def _beside_unit(lane: tuple, index: int, began: dict[int, float],
+                 ended: dict[int, float]) -> tuple:
+    """`lane` (``("lane", batch, seconds, start)``, the `index`-th event) with `start`
+    replaced by the index of the latest unit before it whose recorded items span that
+    start (`began`, `ended`: by unit index), or None."""
+    start = lane[3]
+    inside = [unit for unit in began if unit < index and began[unit] <= start <= ended[unit]]
+    return (*lane[:3], max(inside) if inside else None)
 
 
 def split_hints(timeline: dict[str, Any]) -> dict[tuple[str, str], list[list[float]]]:
@@ -237,18 +253,22 @@ def replay_stage(stage: dict[str, Any], n: int, sizes: Counter[int] | None = Non
     order — a unit's makespan; work on the lane (one more thread) from when it is issued
     or the lane is free, its share of the `n` cores (seconds / n) added to the clock; a
     wait until the lane has done that batch. `play` carries the clock and the lane from
-    visit to visit; `inner` as `replay` takes it."""
+    visit to visit; `inner` as `replay` takes it. Work for the lane recorded while a
+    unit's items ran is issued where that unit began."""
     play = play if play is not None else _Play()
     began = play.clock
     recorded: list[float] = []
     events = work_events(stage["items"], sizes, split, play.carried, _on_threads(n, inner),
                          recorded, laned)
     play.clock += max(0.0, stage["wall_s"] - sum(recorded))
-    for event in events:
+    started: dict[int, float] = {}  # by unit event index: the clock when it began
+    for index, event in enumerate(events):
         if event[0] == "unit":
+            started[index] = play.clock
             play.clock += makespan(event[1], n)
         elif event[0] == "lane":
-            play.lane = max(play.clock, play.lane) + event[2]
+            issued = started.get(event[3], play.clock) if event[3] is not None else play.clock
+            play.lane = max(issued, play.lane) + event[2]
             play.ready[event[1]] = play.lane
             play.clock += event[2] / n
         else:
