@@ -408,7 +408,8 @@ class ThreadBackend:
                 same_level = following is not None and following.level == step.level
                 upcoming = (self._beside("layout", self._lay_out, work, following)
                             if following is not None else None)
-                if not step.upper and step.first == 0:  # a new group: sums of its own
+                new_group = not step.upper and step.first == 0
+                if new_group:  # sums of its own
                     between = PassSums(len(work.lower_on(step.level)), channels)
                 sums = between.rows(slice(step.first, step.first + len(step.texels)))
                 if running is None:  # the step before was collected: work of its own
@@ -419,7 +420,7 @@ class ThreadBackend:
                     if running.step.upper:
                         traced.append((running.step, running.sums))
                     running = None
-                if not step.upper and step.first == 0:
+                if new_group:
                     # the last group's upper steps are done: its last batch, copied out, is
                     # committed while this step traces, and the group's sums go
                     traced = [(upper_step, done.copy()) for upper_step, done in traced]

@@ -132,8 +132,11 @@ def brick_of(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
 
 
 def texel_bricks(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
-    """(T,) intp `brick_of` all (T, 3) texel `coords`, a block at a time on every core."""
-    bricks = np.empty(len(coords), np.intp)
+    """(T,) `brick_of` all (T, 3) texel `coords`, a block at a time on every core: int32
+    (4 bytes a texel, held through the judgement) where the `grid` has fewer than 2³¹
+    bricks."""
+    small = int(np.prod(grid)) < np.iinfo(np.int32).max
+    bricks = np.empty(len(coords), np.int32 if small else np.intp)
 
     def part(block: slice) -> None:
         bricks[block] = brick_of(coords[block], grid)
@@ -290,7 +293,7 @@ def pair_surpluses(nodes: Nodes, at: np.ndarray, luminance: np.ndarray,
     return surplus, noise
 
 
-def fine_bricks(lattices: list[Nodes], coords: np.ndarray, light: NodeLight,
+def fine_bricks(lattices: list[Nodes], bricks: np.ndarray, light: NodeLight,
                 facing: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(B,) bool over the flat (⌈Z/8⌉, ⌈Y/8⌉, ⌈X/8⌉) bricks, twice: those the half
     lattices do not reproduce within the error the traced `light` allows (see the
@@ -300,13 +303,13 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, light: NodeLight,
 
     Args:
         lattices: the traced half lattices (the even nodes; the odd ones where traced);
-            coords: (T, 3) the plan's texels' z, y, x; facing: (T, 2) octahedral facings.
+            bricks: (T,) the brick of each of the plan's texels (`texel_bricks`);
+            facing: (T, 2) octahedral facings.
     """
-    grid = brick_grid(lattices[0].shape)
-    count = int(np.prod(grid))
+    count = int(np.prod(brick_grid(lattices[0].shape)))
     luminance, error, shown = light.luminance, light.error, light.shown
     sums = np.zeros((4, count))
-    edges = np.zeros(len(coords), bool)
+    edges = np.zeros(len(bricks), bool)
     for nodes in lattices:
         at = nodes.positions
         per_node = np.zeros((4, len(at)))
@@ -325,9 +328,8 @@ def fine_bricks(lattices: list[Nodes], coords: np.ndarray, light: NodeLight,
             edges[at[part]] = EDGE_SHARE * own > EDGE_NODE * light.allowed
 
         cores.for_blocks(judge, len(at), BLOCK, "texels")
-        brick = brick_of(coords[at], grid)
-        sums += [np.bincount(brick, v, count) for v in per_node]
-    every = np.bincount(texel_bricks(coords, grid), minlength=count) > 0
+        sums += [np.bincount(bricks[at], v, count) for v in per_node]
+    every = np.bincount(bricks, minlength=count) > 0
     rough = EDGE_SHARE * noise_free_rms(*sums) > light.allowed
     return every & (rough | (sums[3] == 0)), every, edges
 
@@ -381,16 +383,15 @@ def odd_nodes_needed(even: Nodes, coords: np.ndarray, facing: np.ndarray,
 def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
                  facing: np.ndarray, light: NodeLight
                  ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-    """The plan positions of the texels that are not nodes: those of `fine` bricks,
-    those of the others that are traced all the same (*alone*: no half lattice can fill
-    them, `facing_away` — e.g. the other side of a sheet, lit in a checkerboard,
-    `baking.sides`, where only the even nodes are traced; nodes on one side of them only,
-    facing less closely; a node on an edge of the light among them; a fill that would
-    extrapolate a slope), and per half lattice of `lattices` (in order), those it fills;
-    sorted arrays."""
-    grid = brick_grid(lattices[0].shape)
+    """The plan positions of the texels that are not nodes: those in fine bricks ((T,)
+    bool `fine`, per texel), those of the others that are traced all the same (*alone*:
+    no half lattice can fill them, `facing_away` — e.g. the other side of a sheet, lit in
+    a checkerboard, `baking.sides`, where only the even nodes are traced; nodes on one
+    side of them only, facing less closely; a node on an edge of the light among them; a
+    fill that would extrapolate a slope), and per half lattice of `lattices` (in order),
+    those it fills; sorted arrays."""
     others = np.flatnonzero(~mask_of(len(coords), *(n.positions for n in lattices)))
-    in_fine = fine[brick_of(coords[others], grid)]
+    in_fine = fine[others]
     left = others[~in_fine]
     fills = []
     for lattice in lattices:
@@ -526,10 +527,10 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
                   if trapped_at and len(nodes) else 0.0)
     weights = baker.job.tracing.weights
     judged = Judgement.resumed(lattice.meta.get(JUDGED_KEY), config, total)
-    if judged is None:
-        judged = judge(baker, [even, odd], coords, facing, trapped_at)
-        lattice.meta[JUDGED_KEY] = judged.record(config, total)
     bricks = texel_bricks(coords, brick_grid(shape))
+    if judged is None:
+        judged = judge(baker, [even, odd], coords, bricks, facing, trapped_at)
+        lattice.meta[JUDGED_KEY] = judged.record(config, total)
     in_fine = ~node & judged.fine[bricks]
     filled = mask_of(total, *judged.fills)
     alone = ~(node | in_fine | filled)
@@ -635,13 +636,13 @@ def mask_of(total: int, *positions: np.ndarray) -> np.ndarray:
     return mask
 
 
-def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, facing: np.ndarray,
-          trapped_at: int) -> Judgement:
+def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, bricks: np.ndarray,
+          facing: np.ndarray, trapped_at: int) -> Judgement:
     """The fine bricks and the fills of `baker`'s lattice with its `lattices` of nodes
-    traced (`fine_bricks`, `split_texels`)."""
+    traced (`fine_bricks`, `split_texels`; `bricks`: (T,) each texel's)."""
     light = traced_light(baker, len(coords), lattices[0].positions, trapped_at)
-    fine, _, light.edges = fine_bricks(lattices, coords, light, facing)
-    _, _, fills = split_texels(lattices, coords, fine, facing, light)
+    fine, _, light.edges = fine_bricks(lattices, bricks, light, facing)
+    _, _, fills = split_texels(lattices, coords, fine[bricks], facing, light)
     return Judgement(fine, fills)
 
 

@@ -31,7 +31,7 @@ from isolume.baking.density import (
 )
 from isolume.baking.errors import BakeError
 from isolume.baking.fill_check import SURE, NodeLight, drift_error, stray_fills
-from isolume.baking.lattice import TRAPPED_PATHS, trilinear_corners
+from isolume.baking.lattice import TRAPPED_PATHS, brick_grid, trilinear_corners
 from isolume.volumes.synthetic import make
 
 SHAPE = (20, 18, 17)
@@ -56,7 +56,6 @@ def test_the_blockwise_helpers_give_what_one_call_over_every_texel_gives(monkeyp
     call over all of them: the sorted unique nodes of the mixes (`numpy.unique`), the
     bricks, and the luminance to the bit."""
     from isolume.baking import density
-    from isolume.baking.lattice import brick_grid
 
     monkeypatch.setattr(density, "BLOCK", 333)
     ids, coords = _all_texels()
@@ -121,7 +120,8 @@ def _judge(luminance, variance=None, tolerance=0.02):
     nodes = Nodes(coords, SHAPE)
     error = None if variance is None else variance / 100  # 100 paths a texel
     facing = np.zeros((len(ids), 2), np.uint8)
-    fine, used, _ = fine_bricks([nodes], coords, _light(luminance, error, tolerance, nodes),
+    bricks = texel_bricks(coords, brick_grid(SHAPE))
+    fine, used, _ = fine_bricks([nodes], bricks, _light(luminance, error, tolerance, nodes),
                                 facing)
     return nodes, coords, fine.reshape(tuple(-(-np.array(SHAPE) // BRICK))), used
 
@@ -178,7 +178,7 @@ def test_a_linear_light_is_filled_exactly():
     nodes = Nodes(coords, SHAPE)
     field = 2.0 + coords @ np.array([[0.1, 0.0, 0.3], [0.2, 0.1, 0.0], [0.3, 0.0, 0.1]])
     held = _Held(field)
-    fine = np.zeros(int(np.prod(-(-np.array(SHAPE) // BRICK))), bool)
+    fine = np.zeros(len(ids), bool)  # no texel in a fine brick
     luminance = field[:, 0]
     light = _light(luminance, nodes=nodes)
     in_fine, alone, (filled,) = split_texels([nodes], coords, fine, held.facing, light)

@@ -123,10 +123,12 @@ def _cgroup_quota() -> int | None:
     """Cores of this process's cgroup v2 CPU quota (``cpu.max``: quota and period in µs,
     rounded up), or None where there is none or it cannot be read."""
     text = cgroup_file("cpu.max")
+    if text is None:
+        return None
     try:
-        quota, period = text.split()[:2] if text is not None else ("max", "1")
+        quota, period = text.split()[:2]
         return None if quota == "max" else max(1, math.ceil(int(quota) / int(period)))
-    except ValueError:
+    except ValueError:  # not two numbers
         return None
 
 
