@@ -13,8 +13,12 @@ from __future__ import annotations
 
 import math
 import os
+import signal
+import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -503,7 +507,9 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
 
     Returns:
         The lattice (also written to `out`; on Ctrl-C the finished texels are saved
-        before KeyboardInterrupt propagates, or before they are returned).
+        before KeyboardInterrupt propagates, or before they are returned; a Ctrl-C while
+        the finished bake is saved lets that save end first, `_through_one_interrupt`,
+        and a second abandons it, leaving `out` as it was).
     """
     out = Path(out) if out is not None else None
     resume = _resumable(volume, config, out)
@@ -541,7 +547,11 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
         else:
             baker.run(bar=bar, after_commit=checkpoint)
     except KeyboardInterrupt:
+        bar.close()  # its last line stays above what follows
         if out is not None:
+            if progress:
+                print(f"isolume: interrupted; saving the finished texels to {out} (Ctrl-C "
+                      "again to stop without them)", file=sys.stderr, flush=True)
             held.save(out)
         if not keep_interrupted:
             raise
@@ -551,10 +561,43 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
         bar.close()
     cores.stage("save")
     if out is not None and not held.meta.get("interrupted"):
-        with cores.timed_item("save"):  # deflated in pieces on the pool (`lattice_file`)
-            held.save(out)
+        note = (f"isolume: interrupted; the bake is done and its save to {out} is finished "
+                "first (Ctrl-C again to stop without it)") if progress else None
+        with _through_one_interrupt(note) as pressed, cores.timed_item("save"):
+            held.save(out)  # deflated in pieces on the pool (`lattice_file`)
+        if pressed and not keep_interrupted:
+            raise KeyboardInterrupt
     del baker  # its plan goes before the lattice is made dense
     return held.dense() if dense else held
+
+
+@contextmanager
+def _through_one_interrupt(note: str | None) -> Iterator[list[bool]]:
+    """Run the body to its end through one Ctrl-C (SIGINT): the first is recorded in the
+    list this yields (`note`, where not None, printed on stderr), a second raises
+    KeyboardInterrupt at once. So the final save of a finished bake is not lost to a
+    Ctrl-C that arrives while it writes (seconds for a large lattice, the bar at 100 %).
+    Only on the main thread with Python's own SIGINT handler installed (a signal handler is
+    the main thread's; another handler is the application's); elsewhere the body is
+    interrupted as usual."""
+    pressed: list[bool] = []
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield pressed
+        return
+
+    def deferred(_signum: int, _frame: Any) -> None:
+        if pressed:
+            raise KeyboardInterrupt
+        pressed.append(True)
+        if note is not None:
+            print(f"\n{note}", file=sys.stderr, flush=True)
+
+    signal.signal(signal.SIGINT, deferred)
+    try:
+        yield pressed
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _outlook_samples(config: BakeConfig) -> int:

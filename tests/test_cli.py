@@ -405,6 +405,33 @@ def test_a_plan_that_fails_leaves_its_stage_unfinished_and_says_why(tmp_path, ca
     assert "planning: seen sides on" in err and not re.search(r"seen sides[^\r\n]*100%", err)
 
 
+def test_a_ctrl_c_during_the_final_save_says_the_save_ends_first(tmp_path, capsys,
+                                                                  monkeypatch):
+    """Ctrl-C while `isolume bake` writes its finished lattice: it says the save ends
+    first, writes the whole file, and exits 130 counting every active texel."""
+    import os
+    import signal
+
+    from isolume.baking import Lattice
+    from isolume.baking.plan_lattice import PlanLattice
+
+    original = PlanLattice.save
+
+    def pressed(self, path):
+        os.kill(os.getpid(), signal.SIGINT)
+        original(self, path)
+
+    monkeypatch.setattr(PlanLattice, "save", pressed)
+    path = tmp_path / "s.npz"
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
+                          "--bounces", "0", "--out", str(path))
+    assert status == 130, err
+    assert f"the bake is done and its save to {path} is finished first" in err
+    saved = Lattice.load(path)
+    assert (saved.samples[saved.active] == 2).all()
+    assert f"interrupted; {int(saved.active.sum()):,} finished texels saved" in err
+
+
 def test_an_interrupted_bake_says_how_many_texels_its_file_keeps(tmp_path, capsys,
                                                                  monkeypatch):
     """Ctrl-C during `isolume bake`: exit 130, and the count of the texels with samples in
