@@ -630,8 +630,12 @@ class Checkpoints:
         began = time.perf_counter()
         if self.out is None or began < self.due:
             return
-        with cores.timed_item("checkpoint"):
-            self.lattice.save(self.out)
+        try:
+            with cores.timed_item("checkpoint"):
+                self.lattice.save(self.out)
+        except BakeError:  # the file could not be written: the error ends the bake
+            self.due = math.inf
+            raise
         self.saves += 1
         ended = time.perf_counter()
         self.due = ended + max(self.seconds, (ended - began) / SAVE_SHARE)

@@ -145,7 +145,10 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
     members = {name: member(np.dtype(dtype), (count, *tails[name]), rows(name))
                for name, dtype in MEMBERS.items()}
     members["held"] = held()
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise _unwritable(path, exc) from exc
     try:
         with os.fdopen(fd, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED,
                                                       allowZip64=True) as zf:
@@ -154,9 +157,20 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
                 np.lib.format.write_array(opened, np.array(json.dumps(meta)),
                                           allow_pickle=False)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):  # a full disk, a quota, a device gone
+            raise _unwritable(path, exc) from exc
         raise
+
+
+def _unwritable(path: Path, exc: OSError) -> BakeError:
+    """The one-line error for a lattice file that could not be written (`exc`): the file,
+    the system's reason, and what `path` holds now — its earlier contents (a bake's last
+    save, which the same bake command resumes from) or nothing."""
+    left = ("the file there is left as it was (a bake resumes from it)" if path.exists()
+            else "nothing was written")
+    return BakeError(f"{path}: cannot write the lattice: {exc.strerror or exc}; {left}")
 
 
 DEFLATE_PIECE = 1 << 20

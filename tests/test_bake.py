@@ -463,6 +463,25 @@ def test_checkpoints_take_at_most_a_share_of_the_bake(monkeypatch, tmp_path):
     assert fast.saves == 0  # no file: no saves
 
 
+def test_a_checkpoint_that_cannot_be_written_ends_the_bake_without_trying_again(tmp_path):
+    """A checkpoint's save that fails (`BakeError`: a full disk) is raised, and the commits
+    the bake still makes as it stops do not try again (each try writes the whole file)."""
+    bake_module = importlib.import_module("isolume.baking.bake")
+
+    class Full:
+        tries = 0
+
+        def save(self, path):
+            Full.tries += 1
+            raise BakeError(f"{path}: cannot write the lattice: No space left on device")
+
+    saves = bake_module.Checkpoints(Full(), tmp_path / "l.npz", 0.0)
+    with pytest.raises(BakeError, match="No space left"):
+        saves(np.zeros(0))
+    saves(np.zeros(0))
+    assert Full.tries == 1 and saves.saves == 0
+
+
 def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypatch):
     from isolume.baking.backend import ThreadBackend
 

@@ -432,6 +432,28 @@ def test_a_ctrl_c_during_the_final_save_says_the_save_ends_first(tmp_path, capsy
     assert f"interrupted; {int(saved.active.sum()):,} finished texels saved" in err
 
 
+def test_a_bake_whose_file_cannot_be_written_says_so_in_one_line(tmp_path, capsys,
+                                                                   monkeypatch):
+    """A full disk at the bake's save: exit 2 and one line naming the file and the
+    reason, not a traceback."""
+    import errno
+    import os
+
+    from isolume.baking import lattice_file
+
+    def full(zf, members):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(lattice_file, "_write_deflated", full)
+    path = tmp_path / "s.npz"
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
+                          "--bounces", "0", "--out", str(path))
+    assert status == 2
+    assert (f"isolume: error: {path}: cannot write the lattice: No space left on device; "
+            "nothing was written") in err
+    assert "Traceback" not in err and not path.exists()
+
+
 def test_an_interrupted_bake_says_how_many_texels_its_file_keeps(tmp_path, capsys,
                                                                  monkeypatch):
     """Ctrl-C during `isolume bake`: exit 130, and the count of the texels with samples in

@@ -1,7 +1,9 @@
 """`baking.lattice_file`: a lattice file holds its active or computed texels only, written
 and read a slab at a time; a display reads the texels it is asked for."""
 
+import errno
 import json
+import os
 
 import numpy as np
 import pytest
@@ -108,6 +110,34 @@ def test_the_texels_read_show_what_the_whole_lattice_shows(tmp_path, small_slabs
                                       dense.displayed(region)[shown])
         np.testing.assert_array_equal(held.displayed_facing(region)[shown],
                                       dense.displayed_facing(region)[shown])
+
+
+def _disk_full(monkeypatch):
+    """Make writing a lattice file fail as a full disk does, half-way through."""
+    def full(zf, members):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(lattice_file, "_write_deflated", full)
+
+
+def test_a_file_that_cannot_be_written_says_why_and_keeps_the_one_there(tmp_path,
+                                                                         monkeypatch):
+    """A write that fails (a full disk) raises one line naming the file, the system's
+    reason and what the path holds now; no temporary file stays, an earlier file stays
+    as it was."""
+    path = tmp_path / "l.npz"
+    _disk_full(monkeypatch)
+    with pytest.raises(BakeError, match=r"l\.npz: cannot write the lattice: No space left "
+                                        r"on device; nothing was written$"):
+        _random_lattice().save(path)
+    assert not list(tmp_path.iterdir())
+    monkeypatch.undo()
+    _random_lattice().save(path)
+    before = path.read_bytes()
+    _disk_full(monkeypatch)
+    with pytest.raises(BakeError, match="the file there is left as it was"):
+        _random_lattice(seed=1).save(path)
+    assert path.read_bytes() == before and list(tmp_path.iterdir()) == [path]
 
 
 def test_a_file_of_dense_arrays_still_loads(tmp_path):
