@@ -176,7 +176,8 @@ def _summary(image, stats, hit_pixels: np.ndarray) -> dict:
 def _save(outputs: _Outputs, tracer, stats, meta: dict, size: tuple[int, int]) -> dict:
     """Write state, EXR and sidecar; returns the sidecar's dict."""
     from isolume.app.render.images import write_exr
-    from isolume.baking.reference import atomic_write, save_state
+    from isolume.baking.reference import save_state
+    from isolume.volumes.io.common import atomic_write
 
     save_state(outputs.state, stats, meta)
     w, h = size

@@ -71,6 +71,7 @@ from isolume.baking.plan import Plan, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
 from isolume.baking.plan_records import HeldRecords, LevelGroups, PlanRecords, spill
 from isolume.volumes import cores
+from isolume.volumes.errors import WriteError
 
 
 def tracing_lights(config: BakeConfig) -> TracingLights:
@@ -633,7 +634,7 @@ class Checkpoints:
         try:
             with cores.timed_item("checkpoint"):
                 self.lattice.save(self.out)
-        except BakeError:  # the file could not be written: the error ends the bake
+        except WriteError:  # the file could not be written: the error ends the bake
             self.due = math.inf
             raise
         self.saves += 1

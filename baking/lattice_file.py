@@ -30,7 +30,6 @@ import io
 import json
 import math
 import os
-import tempfile
 import zipfile
 import zlib
 from collections import deque
@@ -44,7 +43,7 @@ import numpy as np
 
 from isolume.baking.errors import BakeError
 from isolume.volumes import cores
-from isolume.volumes.io.common import available_memory
+from isolume.volumes.io.common import atomic_write, available_memory
 
 FORMAT_VERSION = 2
 DENSE_VERSION = 1
@@ -145,32 +144,15 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
     members = {name: member(np.dtype(dtype), (count, *tails[name]), rows(name))
                for name, dtype in MEMBERS.items()}
     members["held"] = held()
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    except OSError as exc:
-        raise _unwritable(path, exc) from exc
-    try:
-        with os.fdopen(fd, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_DEFLATED,
-                                                      allowZip64=True) as zf:
+
+    def write(tmp: str) -> None:
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
             _write_deflated(zf, members)
             with zf.open("meta.npy", "w", force_zip64=True) as opened:
                 np.lib.format.write_array(opened, np.array(json.dumps(meta)),
                                           allow_pickle=False)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        Path(tmp).unlink(missing_ok=True)
-        if isinstance(exc, OSError):  # a full disk, a quota, a device gone
-            raise _unwritable(path, exc) from exc
-        raise
 
-
-def _unwritable(path: Path, exc: OSError) -> BakeError:
-    """The one-line error for a lattice file that could not be written (`exc`): the file,
-    the system's reason, and what `path` holds now — its earlier contents (a bake's last
-    save, which the same bake command resumes from) or nothing."""
-    left = ("the file there is left as it was (a bake resumes from it)" if path.exists()
-            else "nothing was written")
-    return BakeError(f"{path}: cannot write the lattice: {exc.strerror or exc}; {left}")
+    atomic_write(path, write, "lattice", kept=" (a bake resumes from it)")
 
 
 DEFLATE_PIECE = 1 << 20

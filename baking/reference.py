@@ -27,7 +27,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import tempfile
 import threading
 import time
 import zipfile
@@ -48,6 +47,7 @@ from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, RayStats, TracingLights, trace_paths
 from isolume.baking.lattice import volume_identity
 from isolume.volumes import cores
+from isolume.volumes.io.common import atomic_write
 
 if TYPE_CHECKING:
     from isolume.baking.trace import Scene
@@ -535,21 +535,6 @@ def render_reference(volume: volumes.Volume, iso: float, origins: np.ndarray,
 
 
 # -- the state file ---------------------------------------------------------------------
-def atomic_write(path: str | os.PathLike[str],
-                 write: Callable[[str], object]) -> None:
-    """Call ``write(tmp)`` on a temporary file next to `path`, then rename it to `path`:
-    an interrupted write never leaves a broken file."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_state(path: str | os.PathLike[str], stats: PixelStats, meta: dict[str, Any]) -> None:
     """Write `stats` and JSON-ready `meta` atomically to `path` (.npz)."""
     atomic_write(path, lambda tmp: np.savez_compressed(

@@ -11,6 +11,7 @@ from isolume import volumes
 from isolume.baking import BakeConfig, BakeError, Lattice, bake
 from isolume.baking.lattice import LatticeGeometry
 from isolume.volumes import Volume
+from isolume.volumes.errors import WriteError
 from isolume.volumes.synthetic import SPHERE_RADIUS, make
 
 
@@ -464,7 +465,7 @@ def test_checkpoints_take_at_most_a_share_of_the_bake(monkeypatch, tmp_path):
 
 
 def test_a_checkpoint_that_cannot_be_written_ends_the_bake_without_trying_again(tmp_path):
-    """A checkpoint's save that fails (`BakeError`: a full disk) is raised, and the commits
+    """A checkpoint's save that fails (`WriteError`: a full disk) is raised, and the commits
     the bake still makes as it stops do not try again (each try writes the whole file)."""
     bake_module = importlib.import_module("isolume.baking.bake")
 
@@ -473,10 +474,10 @@ def test_a_checkpoint_that_cannot_be_written_ends_the_bake_without_trying_again(
 
         def save(self, path):
             Full.tries += 1
-            raise BakeError(f"{path}: cannot write the lattice: No space left on device")
+            raise WriteError(f"{path}: cannot write the lattice: No space left on device")
 
     saves = bake_module.Checkpoints(Full(), tmp_path / "l.npz", 0.0)
-    with pytest.raises(BakeError, match="No space left"):
+    with pytest.raises(WriteError, match="No space left"):
         saves(np.zeros(0))
     saves(np.zeros(0))
     assert Full.tries == 1 and saves.saves == 0

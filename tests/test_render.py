@@ -121,3 +121,37 @@ def test_egl_and_osmesa_agree(tmp_path, shading):
     b = np.asarray(Image.open(osm_png), np.int16)
     assert a.shape == (72, 96, 3)
     assert np.abs(a - b).max() <= 1
+
+
+@pytest.mark.parametrize("suffix", [".png", ".exr"])
+def test_a_picture_that_cannot_be_written_is_one_line_and_no_file(tmp_path, suffix):
+    """A picture's write that fails half-way (files capped at 1 KiB, as a full disk
+    would cut them): one `WriteError` line naming the file and the system's reason; no
+    file or temporary file is left, and a picture already there stays as it was."""
+    import resource
+
+    from isolume.app.render.images import write_image
+    from isolume.volumes.errors import WriteError
+
+    rng = np.random.default_rng(0)
+    linear = rng.random((64, 64, 3)).astype(np.float32)  # noise: kilobytes once compressed
+    srgb = (linear * 255).astype(np.uint8)
+    path = tmp_path / f"p{suffix}"
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+
+    def capped_write():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1024, hard))  # Python ignores SIGXFSZ
+        try:
+            write_image(path, linear, srgb)
+        finally:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+
+    with pytest.raises(WriteError, match=rf"p\{suffix}: cannot write the picture: File too "
+                                         r"large; nothing was written$"):
+        capped_write()
+    assert not list(tmp_path.iterdir())
+    write_image(path, linear[:2, :2], srgb[:2, :2])
+    before = path.read_bytes()
+    with pytest.raises(WriteError, match=r"the file there is left as it was$"):
+        capped_write()
+    assert path.read_bytes() == before and list(tmp_path.iterdir()) == [path]

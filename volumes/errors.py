@@ -23,3 +23,8 @@ class IsolumeError(ValueError):
         super().__init__(message)
         self.subject = subject
         self.expected = expected
+
+
+class WriteError(IsolumeError):
+    """A file that could not be written (a full disk, a quota, a device gone): the message
+    names it, the system's reason and what its path holds now."""

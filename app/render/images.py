@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from isolume.volumes.errors import IsolumeError
+from isolume.volumes.io.common import atomic_write
 
 
 class OutputError(IsolumeError):
@@ -58,7 +59,10 @@ def write_exr(path: str | os.PathLike[str], linear: np.ndarray,
         channels[name] = np.ascontiguousarray(value, np.float32)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, channels) as exr:
-        exr.write(str(path))
+        try:
+            exr.write(str(path))
+        except RuntimeError as exc:  # OpenEXR's failed write ('… to image file "…". Reason.')
+            raise OSError(str(exc).rsplit('". ', 1)[-1].rstrip(".")) from exc
 
 
 def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
@@ -70,8 +74,10 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
 
 
 def write_image(path: str | os.PathLike[str], linear: np.ndarray, srgb: np.ndarray) -> None:
-    """Write `srgb` (PNG) or `linear` (EXR) according to the suffix of `path`."""
+    """Write `srgb` (PNG) or `linear` (EXR) according to the suffix of `path`, atomically
+    (`volumes.io.common.atomic_write`: a write that fails, a full disk, is one
+    `WriteError` line and leaves no broken file)."""
     if Path(path).suffix.lower() == ".exr":
-        write_exr(path, linear)
+        atomic_write(path, lambda tmp: write_exr(tmp, linear), "picture")
     else:
-        write_png(path, srgb)
+        atomic_write(path, lambda tmp: write_png(tmp, srgb), "picture")
