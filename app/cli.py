@@ -15,6 +15,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from isolume.app import blas  # noqa: F401  (first: before numpy loads its BLAS)
 from isolume.app.allocator import release_freed_blocks
 from isolume.app.commands import cmd_bake, cmd_info, cmd_render
 from isolume.app.options import (

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from isolume import volumes
+from isolume.volumes.writing import atomic_write
 
 SUFFIXES = (".glb", ".ply")
 """The mesh files ``isolume export`` writes."""
@@ -71,11 +72,10 @@ def write_mesh(path: Path, mesh: volumes.Mesh, display: np.ndarray, radiance: np
                extras: dict[str, Any]) -> None:
     """Write `mesh` with its (V, 3) `display` colours (linear, in [0, 1]) and (V, 3)
     linear `radiance` to `path` (.glb or .ply); `extras` (JSON-ready) describes how they
-    were made (glTF: the asset's extras; PLY: comments)."""
-    if path.suffix.lower() == ".glb":
-        write_glb(path, mesh, display, radiance, extras)
-    else:
-        write_ply(path, mesh, display, radiance, extras)
+    were made (glTF: the asset's extras; PLY: comments), whole or not at all
+    (`volumes.writing.atomic_write`)."""
+    write = write_glb if path.suffix.lower() == ".glb" else write_ply
+    atomic_write(path, lambda tmp: write(Path(tmp), mesh, display, radiance, extras), "mesh")
 
 
 def write_glb(path: Path, mesh: volumes.Mesh, display: np.ndarray, radiance: np.ndarray,

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from isolume.app.render.images import OutputError, check_output_path
+from isolume.volumes.writing import atomic_write
 
 FRAME_PATTERN = re.compile(r"frame_\d+\.png")
 """Names of the PNG frames a movie writes (`PngFrames.name`)."""
@@ -89,7 +90,8 @@ class PngFrames:
         for key, value in text.items():
             info.add_text(key, value)
         image = Image.fromarray(np.ascontiguousarray(srgb, np.uint8), "RGB")
-        image.save(self.folder / self.name(index), pnginfo=info)
+        atomic_write(self.folder / self.name(index),
+                     lambda tmp: image.save(tmp, pnginfo=info), "movie frame")
 
     def others(self) -> list[str]:
         """Names of the frame files in the folder that are not this movie's."""

@@ -177,7 +177,7 @@ def _save(outputs: _Outputs, tracer, stats, meta: dict, size: tuple[int, int]) -
     """Write state, EXR and sidecar; returns the sidecar's dict."""
     from isolume.app.render.images import write_exr
     from isolume.baking.reference import save_state
-    from isolume.volumes.io.common import atomic_write
+    from isolume.volumes.writing import atomic_write
 
     save_state(outputs.state, stats, meta)
     w, h = size

@@ -24,6 +24,7 @@ from isolume.app.options import CLIError, parse_albedo, parse_size
 from isolume.app.render.camera import Camera, parse_view
 from isolume.app.render.settings import SHADING_MODES, TONEMAPS
 from isolume.volumes.errors import IsolumeError
+from isolume.volumes.writing import atomic_write
 
 if TYPE_CHECKING:
     from isolume.baking.lattice import Lattice
@@ -171,9 +172,11 @@ class SavedView(VolumeSource):
         return load_state(path)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write the state to `path` (`layout`); returns the path."""
+        """Write the state to `path` (`layout`), whole or not at all
+        (`volumes.writing.atomic_write`); returns the path."""
         path = Path(path)
-        path.write_text(layout(self.to_json()) + "\n")
+        text = layout(self.to_json()) + "\n"
+        atomic_write(path, lambda tmp: Path(tmp).write_text(text), "view")
         return path
 
     @classmethod

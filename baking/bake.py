@@ -13,12 +13,9 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -70,8 +67,8 @@ from isolume.baking.passes import (
 from isolume.baking.plan import Plan, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
 from isolume.baking.plan_records import HeldRecords, LevelGroups, PlanRecords, spill
+from isolume.baking.saves import CHECKPOINT_S, Checkpoints, through_one_interrupt
 from isolume.volumes import cores
-from isolume.volumes.errors import WriteError
 
 
 def tracing_lights(config: BakeConfig) -> TracingLights:
@@ -156,10 +153,6 @@ def _resumable(volume: volumes.Volume, config: BakeConfig, out: Path | None
 
 BAR_REFRESH_S = 0.1
 """Seconds between redraws of a plan stage's progress bar."""
-CHECKPOINT_S = 60.0
-"""Seconds between a bake's checkpoints, at least (`Checkpoints`)."""
-
-
 class _PlanBars:
     """The plan's stages on stderr as progress bars, one a stage, while `enabled`
     (`make_plan`'s ``progress(stage[, fraction])``: a large volume's plan takes minutes).
@@ -489,7 +482,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
         progress: show a progress bar (texels, rays per second) on stderr.
         checkpoint_seconds: save finished texels to `out` once this long has passed
             since the last save, or later where saving would take more than
-            `SAVE_SHARE` of the time (`Checkpoints`).
+            `baking.saves.SAVE_SHARE` of the time (`Checkpoints`).
         scheduler: trace on a Dask cluster instead of local threads (``tcp://HOST:PORT``
             or ``local:N``; `baking.cluster`): the same lattice to the bit.
         outlook: told what the bake is about to trace (`BakeOutlook`) once the plan is
@@ -509,8 +502,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     Returns:
         The lattice (also written to `out`; on Ctrl-C the finished texels are saved
         before KeyboardInterrupt propagates, or before they are returned; a Ctrl-C while
-        the finished bake is saved lets that save end first, `_through_one_interrupt`,
-        and a second abandons it, leaving `out` as it was).
+        the finished bake is saved lets that save end first, a second abandons it,
+        leaving `out` as it was: `baking.saves.through_one_interrupt`).
     """
     out = Path(out) if out is not None else None
     resume = _resumable(volume, config, out)
@@ -564,7 +557,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     if out is not None and not held.meta.get("interrupted"):
         note = (f"isolume: interrupted; the bake is done and its save to {out} is finished "
                 "first (Ctrl-C again to stop without it)") if progress else None
-        with _through_one_interrupt(note) as pressed, cores.timed_item("save"):
+        with through_one_interrupt(note) as pressed, cores.timed_item("save"):
             held.save(out)  # deflated in pieces on the pool (`lattice_file`)
         if pressed and not keep_interrupted:
             raise KeyboardInterrupt
@@ -572,74 +565,11 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     return held.dense() if dense else held
 
 
-@contextmanager
-def _through_one_interrupt(note: str | None) -> Iterator[list[bool]]:
-    """Run the body to its end through one Ctrl-C (SIGINT): the first is recorded in the
-    list this yields (`note`, where not None, printed on stderr), a second raises
-    KeyboardInterrupt at once. So the final save of a finished bake is not lost to a
-    Ctrl-C that arrives while it writes (seconds for a large lattice, the bar at 100 %).
-    Only on the main thread with Python's own SIGINT handler installed (a signal handler is
-    the main thread's; another handler is the application's); elsewhere the body is
-    interrupted as usual."""
-    pressed: list[bool] = []
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
-        yield pressed
-        return
-
-    def deferred(_signum: int, _frame: Any) -> None:
-        if pressed:
-            raise KeyboardInterrupt
-        pressed.append(True)
-        if note is not None:
-            print(f"\n{note}", file=sys.stderr, flush=True)
-
-    signal.signal(signal.SIGINT, deferred)
-    try:
-        yield pressed
-    finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-
-
 def _outlook_samples(config: BakeConfig) -> int:
     """Paths a texel a bake's outlook counts: `samples` for a bake to a texel error (its
     filled texels take none, the nodes that fill twice: 0.3–1.15 × `samples` a texel on
     average over the scans of ``../shared/data`` at the default), else the plan's."""
     return config.samples if config.texel_error is not None else config.plan_samples
-
-
-SAVE_SHARE = 0.05
-"""The most of a bake's time its checkpoints take (`Checkpoints`)."""
-
-
-class Checkpoints:
-    """A bake's saves of its lattice to `out` as texels are committed (an ``after_commit``
-    of `Baker.run`): at least `seconds` apart, and apart by at least 1 / `SAVE_SHARE`
-    times the last save's duration, so that saving a large lattice takes at most 5 % of
-    the bake (the 512³ foot's file takes ~20 s to write: a save every ~7 min, not every
-    minute); none when `out` is None."""
-
-    def __init__(self, lattice: Lattice | PlanLattice, out: Path | None,
-                 seconds: float) -> None:
-        self.lattice: Lattice | PlanLattice = lattice
-        self.out: Path | None = out
-        self.seconds: float = seconds
-        self.due: float = time.perf_counter() + seconds
-        self.saves: int = 0
-
-    def __call__(self, _committed: np.ndarray) -> None:
-        began = time.perf_counter()
-        if self.out is None or began < self.due:
-            return
-        try:
-            with cores.timed_item("checkpoint"):
-                self.lattice.save(self.out)
-        except WriteError:  # the file could not be written: the error ends the bake
-            self.due = math.inf
-            raise
-        self.saves += 1
-        ended = time.perf_counter()
-        self.due = ended + max(self.seconds, (ended - began) / SAVE_SHARE)
 
 
 def bake_to_target(baker: Baker, bar: Any, checkpoint: Any) -> None:

@@ -43,7 +43,8 @@ import numpy as np
 
 from isolume.baking.errors import BakeError
 from isolume.volumes import cores
-from isolume.volumes.io.common import atomic_write, available_memory
+from isolume.volumes.io.common import available_memory
+from isolume.volumes.writing import atomic_write
 
 FORMAT_VERSION = 2
 DENSE_VERSION = 1

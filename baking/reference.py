@@ -47,7 +47,7 @@ from isolume.baking.errors import BakeError
 from isolume.baking.integrator import PathSettings, RayStats, TracingLights, trace_paths
 from isolume.baking.lattice import volume_identity
 from isolume.volumes import cores
-from isolume.volumes.io.common import atomic_write
+from isolume.volumes.writing import atomic_write
 
 if TYPE_CHECKING:
     from isolume.baking.trace import Scene

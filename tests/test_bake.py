@@ -445,21 +445,22 @@ def test_checkpoints_take_at_most_a_share_of_the_bake(monkeypatch, tmp_path):
     as long as a save took when that is longer (a clock the saves move by 10 s)."""
     import types
 
-    bake_module = importlib.import_module("isolume.baking.bake")  # `baking.bake`: the function
+    from isolume.baking import saves as saves_module
+
     clock = [0.0]
-    monkeypatch.setattr(bake_module, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
+    monkeypatch.setattr(saves_module, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
 
     class Slow:
         def save(self, path):
             clock[0] += 10.0
 
-    saves = bake_module.Checkpoints(Slow(), tmp_path / "l.npz", 60.0)
-    wait = 10 / bake_module.SAVE_SHARE  # after the first save, which ends at 71 s
+    saves = saves_module.Checkpoints(Slow(), tmp_path / "l.npz", 60.0)
+    wait = 10 / saves_module.SAVE_SHARE  # after the first save, which ends at 71 s
     for now, count in ((59.0, 0), (61.0, 1), (200.0, 1), (70 + wait, 1), (72 + wait, 2)):
         clock[0] = now
         saves(np.zeros(0))
         assert saves.saves == count, now
-    fast = bake_module.Checkpoints(Slow(), None, 0.0)
+    fast = saves_module.Checkpoints(Slow(), None, 0.0)
     fast(np.zeros(0))
     assert fast.saves == 0  # no file: no saves
 
@@ -467,7 +468,7 @@ def test_checkpoints_take_at_most_a_share_of_the_bake(monkeypatch, tmp_path):
 def test_a_checkpoint_that_cannot_be_written_ends_the_bake_without_trying_again(tmp_path):
     """A checkpoint's save that fails (`WriteError`: a full disk) is raised, and the commits
     the bake still makes as it stops do not try again (each try writes the whole file)."""
-    bake_module = importlib.import_module("isolume.baking.bake")
+    from isolume.baking import saves as saves_module
 
     class Full:
         tries = 0
@@ -476,7 +477,7 @@ def test_a_checkpoint_that_cannot_be_written_ends_the_bake_without_trying_again(
             Full.tries += 1
             raise WriteError(f"{path}: cannot write the lattice: No space left on device")
 
-    saves = bake_module.Checkpoints(Full(), tmp_path / "l.npz", 0.0)
+    saves = saves_module.Checkpoints(Full(), tmp_path / "l.npz", 0.0)
     with pytest.raises(WriteError, match="No space left"):
         saves(np.zeros(0))
     saves(np.zeros(0))

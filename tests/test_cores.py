@@ -294,3 +294,22 @@ def test_ctrl_c_stops_a_bake_within_two_seconds_in_the_plan(tmp_path):
     assert time.perf_counter() - sent < 2.0
     assert proc.returncode == 130
     assert timeline.exists()  # the timeline is written when the command is interrupted
+
+
+def test_the_command_line_loads_blas_with_one_thread_and_use_grows_it():
+    """Importing the command line starts no BLAS thread (one spins ~0.1 s as it starts, on a
+    core a ``--workers 1`` command does not hold); `cores.use(2)` grows the loaded BLAS to
+    two threads."""
+    from isolume.app import blas
+
+    script = ("import os, json; import isolume.app.cli; from isolume.volumes import cores; "
+              "from threadpoolctl import threadpool_info; "
+              "first = (len(os.listdir('/proc/self/task')), "
+              "[i['num_threads'] for i in threadpool_info()]); cores.use(2); "
+              "print(json.dumps([first, [i['num_threads'] for i in threadpool_info()]]))")
+    env = {k: v for k, v in os.environ.items() if k not in blas.THREAD_VARIABLES}
+    done = subprocess.run([sys.executable, "-c", script], env=env, check=True,
+                          capture_output=True, text=True)
+    (tasks, loaded), grown = json.loads(done.stdout)
+    assert tasks == 1 and loaded and set(loaded) == {1}
+    assert set(grown) == {2}

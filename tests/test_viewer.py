@@ -428,6 +428,30 @@ def test_actions_change_the_state_and_report_problems():
     assert state.quit
 
 
+def test_a_file_the_viewer_cannot_write_is_said_in_the_window():
+    """A save that fails (a full disk: `WriteError`) sets the window's message; the viewer
+    goes on."""
+    from types import SimpleNamespace
+
+    from isolume.app.render.camera import Camera
+    from isolume.app.viewer.actions import Actions
+    from isolume.app.viewer.draw import ViewState
+    from isolume.app.viewer.panel import Action
+    from isolume.app.viewer.state import ViewerState
+    from isolume.volumes.errors import WriteError
+
+    def full(path=None):
+        raise WriteError("x.npz: cannot write the lattice: No space left on device; "
+                         "nothing was written")
+
+    home = Camera(azimuth=10, elevation=20)
+    state = ViewerState(ViewState(1.0, "lambert", 1.0), home, home)
+    actions = Actions(SimpleNamespace(value_range=(0.0, 2.0)), state, None, None,
+                      illumination=None, saver=SimpleNamespace(save_lattice=full))
+    actions.apply(Action("save_lattice"))
+    assert "No space left on device" in state.message and not state.quit
+
+
 def test_interactive_quality_backs_off_then_recovers():
     from isolume.app.viewer.draw import INTERACTIVE_MS, RENDER_SCALES, Quality
 

@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from isolume.volumes.errors import IsolumeError
+from isolume.volumes.writing import atomic_write
 
 _T = TypeVar("_T")
 
@@ -151,7 +152,9 @@ _LOCAL = threading.local()  # .pooled: this thread is one of the pool's
 def use(workers: int | None) -> int:
     """Let this process keep `workers` threads busy (None: `available()`), everywhere: the
     pool, Embree's builds, llvmpipe's rasterizer threads (a GL context made from now on),
-    BLAS. Returns the count. Raises CoresError below 1."""
+    the BLAS libraries loaded (threadpoolctl; the command line loads them with one thread,
+    `app.blas`, and a BLAS loaded later, SciPy's, keeps the one). Returns the count. Raises
+    CoresError below 1."""
     count = available() if workers is None else int(workers)
     if count < 1:
         raise CoresError(f"--workers {workers}: expected at least 1")
@@ -489,12 +492,12 @@ class Timeline:
         self.samples: list[tuple[float, dict[int, float]]] = []
         self._open: dict[str, Any] | None = None
         self._stop = threading.Event()
-        self._sampler = threading.Thread(target=self._sample, name="isolume-timeline",
-                                         daemon=True)
-        self._sampler.start()
-        self._own = None
+        self._own: int | None = None  # the sampler's thread, whose CPU is not the command's
         self._seen: dict[int, float] = {}
         self._rss: list[tuple[float, int]] = []  # (time, resident bytes) sampled
+        self._sampler = threading.Thread(target=self._sample, name="isolume-timeline",
+                                         daemon=True)
+        self._sampler.start()  # last: it sets `_own` as it begins
 
     def _sample(self) -> None:
         self._own = threading.get_native_id()
@@ -694,7 +697,4 @@ def recording(path: str | os.PathLike[str] | None, **about: Any) -> Iterator[Tim
     finally:
         _TIMELINE = None
         record = {**about, **timeline.finish()}
-        target = Path(path)
-        temporary = target.with_name(target.name + ".part")
-        temporary.write_text(json.dumps(record))
-        temporary.replace(target)
+        atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(record)), "timeline")

@@ -15,7 +15,7 @@ beside it: on a lane of its own until the command waits for it by name — from 
 unit of work it was recorded beside began (the next step laid out while this one
 traces), else from where it comes in order — else sharing the next unit's threads.
 Items parallel inside (`INNER_PARALLEL`) are shortened as they scaled when measured, and
-checkpoints, made every `baking.bake.CHECKPOINT_S` seconds, come as often as the
+checkpoints, made every `baking.saves.CHECKPOINT_S` seconds, come as often as the
 predicted wall time allows.
 """
 
@@ -308,9 +308,9 @@ def checkpoints_kept(timeline: dict[str, Any], n: int,
                      hints: dict[tuple[str, str], list[list[float]]] | None,
                      inner: dict[str, float] | None) -> int:
     """How many checkpoints a bake makes on `n` threads: its tracing's predicted seconds
-    (without checkpoints) over `baking.bake.Checkpoints`' spacing — `CHECKPOINT_S`, or
+    (without checkpoints) over `baking.saves.Checkpoints`' spacing — `CHECKPOINT_S`, or
     1 / `SAVE_SHARE` times a checkpoint's predicted seconds where that is longer."""
-    from isolume.baking.bake import CHECKPOINT_S, SAVE_SHARE
+    from isolume.baking.saves import CHECKPOINT_S, SAVE_SHARE
 
     tracing = replay(thinned(timeline, 0), n, hints, inner).get("tracing", 0.0)
     saves = [_on_threads(n, inner)(item) for stage in timeline["stages"]

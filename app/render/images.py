@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from isolume.volumes.errors import IsolumeError
-from isolume.volumes.io.common import atomic_write
+from isolume.volumes.writing import atomic_write
 
 
 class OutputError(IsolumeError):

@@ -30,6 +30,7 @@ from isolume.app.viewer.panel import (
 from isolume.app.viewer.saving import Saver
 from isolume.app.viewer.state import ViewerError, ViewerState
 from isolume.app.viewer.surfaces import SurfaceFeed
+from isolume.volumes.errors import WriteError
 
 ISO_STEPS = 1000
 """A fine isovalue step is 1/ISO_STEPS of the data range (shift: ×10)."""
@@ -179,7 +180,7 @@ class Actions:
         }
         try:
             simple[name]()
-        except (ViewerError, OSError) as exc:
+        except (ViewerError, WriteError, OSError) as exc:  # said in the window
             self.state.message = str(exc)
         self.redraw()
 

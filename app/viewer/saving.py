@@ -59,7 +59,7 @@ class Saver:
         Raises:
             ViewerError: the directory does not exist.
         """
-        from isolume.app.render.images import write_exr, write_png
+        from isolume.app.render.images import write_image
         from isolume.app.viewer.script import screenshot_paths
 
         png, exr = screenshot_paths(self._stamped(".png") if path is None else path)
@@ -67,8 +67,8 @@ class Saver:
             raise ViewerError(f"screenshot {png}: directory {png.parent} does not exist")
         state = self.state
         frame = self.drawing.frame(state.whole_window(), state.view, frame_size(self.window))
-        write_png(png, frame.srgb)
-        write_exr(exr, frame.linear)
+        write_image(png, frame.linear, frame.srgb)  # each whole or not at all
+        write_image(exr, frame.linear, frame.srgb)
         self._announce(f"wrote {png} and {exr}")
         return png, exr
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from isolume.volumes.errors import IsolumeError
+from isolume.volumes.writing import atomic_write
 
 
 class EnvSpecError(IsolumeError):
@@ -163,7 +164,7 @@ def write_hdr(path: str | Path, rgb: np.ndarray, rle: bool = True) -> None:
             out.extend(_rle_encode(rgbe[y, :, c].tobytes()) for c in range(4))
         else:
             out.append(rgbe[y].tobytes())
-    Path(path).write_bytes(b"".join(out))
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(b"".join(out)), "light probe")
 
 
 def _rle_encode(values: bytes) -> bytes:

@@ -1,6 +1,6 @@
 """What every volume file loader shares: the loaders' result type, the frames they name,
 the low-level errors that mean a bad file, optional reader libraries, and file reading
-(and, for every layer, atomic file writing) with one-line errors."""
+with one-line errors."""
 
 from __future__ import annotations
 
@@ -8,10 +8,9 @@ import importlib
 import os
 import re
 import struct
-import tempfile
 import zipfile
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any, BinaryIO
@@ -20,7 +19,6 @@ import numpy as np
 
 from isolume.volumes.core import VolumeError
 from isolume.volumes.cores import cgroup_file
-from isolume.volumes.errors import WriteError
 
 OPTIONAL_MODULES = {
     "nrrd": ("pynrrd", "nrrd"),
@@ -198,37 +196,3 @@ def inflate_bounded(payload: bytes | memoryview, nbytes: int, wbits: int) -> byt
     compares the length with `nbytes`."""
     return zlib.decompressobj(wbits).decompress(payload, nbytes + 1)
 
-
-def atomic_write(path: str | os.PathLike[str], write: Callable[[str], object],
-                 what: str = "file", kept: str = "") -> None:
-    """Call ``write(tmp)`` on a temporary file next to `path` (its name and suffix, then
-    a random part), then rename it to `path`: an interrupted or failed write never leaves
-    a broken file, and a file already at `path` stays until the new one replaces it.
-
-    Raises:
-        WriteError: the write failed with an `OSError` (a full disk, a quota): one line
-            naming `path` as the `what`, the system's reason, and what `path` holds now
-            (the file that was there, `kept` added, or nothing).
-    """
-    path = Path(path)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=path.suffix, dir=path.parent)
-        os.close(fd)
-    except OSError as exc:
-        raise _unwritable(path, exc, what, kept) from exc
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        Path(tmp).unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            raise _unwritable(path, exc, what, kept) from exc
-        raise
-
-
-def _unwritable(path: Path, exc: OSError, what: str, kept: str) -> WriteError:
-    """`atomic_write`'s one-line error."""
-    left = (f"the file there is left as it was{kept}" if path.exists()
-            else "nothing was written")
-    return WriteError(f"{path}: cannot write the {what}: {exc.strerror or exc}; {left}",
-                      subject=path)
