@@ -16,6 +16,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -153,6 +154,8 @@ def _resumable(volume: volumes.Volume, config: BakeConfig, out: Path | None
 
 BAR_REFRESH_S = 0.1
 """Seconds between redraws of a plan stage's progress bar."""
+
+
 class _PlanBars:
     """The plan's stages on stderr as progress bars, one a stage, while `enabled`
     (`make_plan`'s ``progress(stage[, fraction])``: a large volume's plan takes minutes).
@@ -533,34 +536,38 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     held = baker.lattice
     checkpoint = Checkpoints(held, out, checkpoint_seconds)
     cores.stage("tracing")
-    try:
-        if adaptive:
-            bake_to_target(baker, bar, checkpoint)
-        elif config.texel_error is not None:
-            bake_texels(baker, bar, checkpoint)
-        else:
-            baker.run(bar=bar, after_commit=checkpoint)
-    except KeyboardInterrupt:
-        bar.close()  # its last line stays above what follows
-        if out is not None:
-            if progress:
-                print(f"isolume: interrupted; saving the finished texels to {out} (Ctrl-C "
-                      "again to stop without them)", file=sys.stderr, flush=True)
-            held.save(out)
-        if not keep_interrupted:
-            raise
-        held.meta["interrupted"] = True
-    finally:
-        baker.close()
-        bar.close()
-    cores.stage("save")
-    if out is not None and not held.meta.get("interrupted"):
-        note = (f"isolume: interrupted; the bake is done and its save to {out} is finished "
-                "first (Ctrl-C again to stop without it)") if progress else None
-        with through_one_interrupt(note) as pressed, cores.timed_item("save"):
-            held.save(out)  # deflated in pieces on the pool (`lattice_file`)
-        if pressed and not keep_interrupted:
-            raise KeyboardInterrupt
+    note = (f"isolume: interrupted; the bake is done and its save to {out} is finished "
+            "first (Ctrl-C again to stop without it)") if progress else None
+    pressed: list[bool] = []
+    with ExitStack() as finishing:
+        try:
+            if adaptive:
+                bake_to_target(baker, bar, checkpoint)
+            elif config.texel_error is not None:
+                bake_texels(baker, bar, checkpoint)
+            else:
+                baker.run(bar=bar, after_commit=checkpoint)
+            if out is not None:  # traced: from here on a Ctrl-C lets the save end first
+                pressed = finishing.enter_context(through_one_interrupt(note))
+        except KeyboardInterrupt:
+            bar.close()  # its last line stays above what follows
+            if out is not None:
+                if progress:
+                    print(f"isolume: interrupted; saving the finished texels to {out} "
+                          "(Ctrl-C again to stop without them)", file=sys.stderr, flush=True)
+                held.save(out)
+            if not keep_interrupted:
+                raise
+            held.meta["interrupted"] = True
+        finally:
+            baker.close()
+            bar.close()
+        cores.stage("save")
+        if out is not None and not held.meta.get("interrupted"):
+            with cores.timed_item("save"):  # deflated in pieces on the pool (`lattice_file`)
+                held.save(out)
+    if pressed and not keep_interrupted:
+        raise KeyboardInterrupt
     del baker  # its plan goes before the lattice is made dense
     return held.dense() if dense else held
 

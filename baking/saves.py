@@ -69,8 +69,9 @@ def through_one_interrupt(note: str | None) -> Iterator[list[bool]]:
     KeyboardInterrupt at once. So the final save of a finished bake is not lost to a
     Ctrl-C that arrives while it writes (seconds for a large lattice, the bar at 100 %).
     Only on the main thread with Python's own SIGINT handler installed (a signal handler is
-    the main thread's; another handler is the application's); elsewhere the body is
-    interrupted as usual."""
+    the main thread's); under another handler — an application's, or an outer
+    `through_one_interrupt`'s, which then records the press — the body runs as that one
+    has it."""
     pressed: list[bool] = []
     if (threading.current_thread() is not threading.main_thread()
             or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):

@@ -351,3 +351,30 @@ def test_a_zipfile_without_its_private_sizes_deflates_the_members_itself(tmp_pat
     with zipfile.ZipFile(tmp_path / "whole.npz") as zf:
         assert zf.testzip() is None
     _same(Lattice.load(tmp_path / "whole.npz"), lattice)
+
+
+def test_a_file_written_whole_keeps_permissions_links_and_read_only_files(tmp_path):
+    """`volumes.writing.atomic_write`: a new file gets a new file's permissions (not the
+    temporary file's 0600), a rewritten one keeps its own; a symbolic link is written
+    through; no temporary file shows beside it; a read-only file is refused."""
+    from isolume.volumes.writing import NEW_FILE_MODE, atomic_write
+
+    def write(text):
+        return lambda tmp: open(tmp, "w").write(text)
+
+    path = tmp_path / "a.txt"
+    atomic_write(path, write("one"))
+    assert os.stat(path).st_mode & 0o777 == NEW_FILE_MODE
+    os.chmod(path, 0o640)
+    atomic_write(path, write("two"))
+    assert os.stat(path).st_mode & 0o777 == 0o640 and path.read_text() == "two"
+    link = tmp_path / "link.txt"
+    link.symlink_to(path)
+    atomic_write(link, write("three"))
+    assert link.is_symlink() and path.read_text() == "three"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "link.txt"]
+    if os.geteuid() != 0:  # root may write any file
+        os.chmod(path, 0o440)
+        with pytest.raises(WriteError, match="Permission denied; the file there is left"):
+            atomic_write(path, write("four"))
+        assert path.read_text() == "three"

@@ -75,7 +75,7 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
 
 def write_image(path: str | os.PathLike[str], linear: np.ndarray, srgb: np.ndarray) -> None:
     """Write `srgb` (PNG) or `linear` (EXR) according to the suffix of `path`, atomically
-    (`volumes.io.common.atomic_write`: a write that fails, a full disk, is one
+    (`volumes.writing.atomic_write`: a write that fails, a full disk, is one
     `WriteError` line and leaves no broken file)."""
     if Path(path).suffix.lower() == ".exr":
         atomic_write(path, lambda tmp: write_exr(tmp, linear), "picture")

@@ -18,6 +18,7 @@ from isolume.app.viewer.command import Options
 from isolume.app.viewer.draw import Drawing, frame_size
 from isolume.app.viewer.illumination import Illumination
 from isolume.app.viewer.state import ViewerError, ViewerState
+from isolume.volumes.writing import atomic_write
 
 if TYPE_CHECKING:
     from isolume.app.render.glcontext import Window
@@ -154,8 +155,10 @@ class Saver:
 
 
 def write_json(path: Path, figures: dict[str, Any]) -> None:
-    """Write `figures` (NumPy scalars and arrays included) as indented JSON."""
-    path.write_text(json.dumps(figures, indent=1, default=_json_default))
+    """Write `figures` (NumPy scalars and arrays included) as indented JSON, whole or not
+    at all (`volumes.writing.atomic_write`)."""
+    text = json.dumps(figures, indent=1, default=_json_default)
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text), "figures")
 
 
 def _json_default(value):

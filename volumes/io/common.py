@@ -195,4 +195,3 @@ def inflate_bounded(payload: bytes | memoryview, nbytes: int, wbits: int) -> byt
     decompression bomb costs no more memory than the samples promised); the caller
     compares the length with `nbytes`."""
     return zlib.decompressobj(wbits).decompress(payload, nbytes + 1)
-
