@@ -12,6 +12,7 @@ movie, view) gives a command the defaults of a view saved in the viewer
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 from collections.abc import Callable, Sequence
 
@@ -148,7 +149,18 @@ def workers_of(args: argparse.Namespace) -> int | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``isolume`` console script; returns the exit status."""
+    """Entry point of the ``isolume`` console script; returns the exit status. Run as the
+    script (`argv` None: the process ends next), it freezes the garbage collector's heap
+    as it returns (`gc.freeze`): Python's finalization collects the heap several times, and
+    with numba's objects in it that took ~0.2 s of every command's exit."""
+    status = _run(argv)
+    if argv is None:
+        gc.freeze()
+    return status
+
+
+def _run(argv: Sequence[str] | None) -> int:
+    """The command `argv` names (None: the process's arguments); its exit status."""
     release_freed_blocks()
     words = _join_negative_axes(sys.argv[1:] if argv is None else argv)
     args = build_parser(command_named(words)).parse_args(words)
