@@ -1,7 +1,7 @@
 """How an isolume process asks the C library's allocator to behave.
 
 Every command (`app.cli.main`) and the viewer's bake process (`app.viewer.bake_client`)
-call `release_freed_blocks` first.
+call `tune_malloc` first.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ KEPT_TOP = 16 << 20
 """Free bytes a heap keeps at its top (glibc's own, once `MAPPED_BLOCK` is set: 128 KiB)."""
 
 
-def release_freed_blocks() -> None:
+def tune_malloc() -> None:
     """Have the C library's malloc map every block of `MAPPED_BLOCK` bytes or more on its
     own, so that it goes back to the system when freed. glibc raises that threshold to
     the size of the blocks freed (up to 32 MiB), and then keeps the batches a bake or a

@@ -157,10 +157,10 @@ def texel_luminance(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return luminance
 
 
-def mixing_nodes(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """The sorted plan positions of the `nodes` with a weight in the trilinear mix of a
-    texel at plan positions (N,) `at` (`Nodes.corners`), found a block of texels at a
-    time on every core."""
+def mixing_mask(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """(T,) bool over the plan's (T, 3) texels `coords`: the `nodes` with a weight in the
+    trilinear mix of a texel at plan positions (N,) `at` (`Nodes.corners`), marked a
+    block of texels at a time on every core."""
     used = np.zeros(len(coords), bool)
 
     def mark(block: slice) -> None:
@@ -168,7 +168,7 @@ def mixing_nodes(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray
         used[rows[weights > 0]] = True
 
     cores.for_blocks(mark, len(at), BLOCK, "texels")
-    return np.flatnonzero(used)
+    return used
 
 
 class Nodes:
@@ -377,7 +377,7 @@ def odd_nodes_needed(even: Nodes, coords: np.ndarray, facing: np.ndarray,
     among (K,) `others` whose even nodes face away from them (every active even node
     counted: nothing is traced yet), sorted."""
     away = others[facing_away(even, others, coords, facing)]
-    return mixing_nodes(Nodes(coords, tuple(even.shape), 1), coords, away)
+    return np.flatnonzero(mixing_mask(Nodes(coords, tuple(even.shape), 1), coords, away))
 
 
 def split_texels(lattices: list[Nodes], coords: np.ndarray, fine: np.ndarray,
@@ -534,8 +534,8 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
     in_fine = ~node & judged.fine[bricks]
     filled = mask_of(total, *judged.fills)
     alone = ~(node | in_fine | filled)
-    filling = mask_of(total, *(mixing_nodes(half, coords, fills)
-                               for half, fills in zip((even, odd), judged.fills, strict=True)))
+    even_fills, odd_fills = judged.fills
+    filling = mixing_mask(even, coords, even_fills) | mixing_mask(odd, coords, odd_fills)
     traced = np.flatnonzero(in_fine | alone | filling)
     paths = np.where(filling[traced], NODE_PATHS * config.samples, config.samples)
     record = {  # kept once the fill is made; the masks go before the second pass

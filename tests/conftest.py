@@ -1,7 +1,11 @@
-"""Shared fixtures: a headless OSMesa GL context, the optional ../shared data folder."""
+"""Shared fixtures: a headless OSMesa GL context, the optional ../shared data folder, and
+the failures a lattice's save meets (a Ctrl-C, a full disk)."""
 
 from __future__ import annotations
 
+import errno
+import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -57,3 +61,34 @@ earlier test (EGL, OSMesa) would replace."""
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Run the `FIRST` modules' tests first, in their order; the rest as collected."""
     items.sort(key=lambda item: item.path.name not in FIRST)
+
+
+@pytest.fixture
+def ctrl_c_during_save(monkeypatch):
+    """``ctrl_c_during_save(presses)``: from then on `PlanLattice.save` sends this process
+    `presses` SIGINTs (a user's Ctrl-C) before it writes."""
+    from isolume.baking.plan_lattice import PlanLattice
+
+    original = PlanLattice.save
+
+    def arm(presses: int) -> None:
+        def pressed(self, path):
+            for _ in range(presses):
+                os.kill(os.getpid(), signal.SIGINT)
+            original(self, path)
+
+        monkeypatch.setattr(PlanLattice, "save", pressed)
+
+    return arm
+
+
+@pytest.fixture
+def disk_full(monkeypatch):
+    """``disk_full()``: from then on writing a lattice file fails half-way as a full disk
+    makes it fail (ENOSPC)."""
+    from isolume.baking import lattice_file
+
+    def full(zf, members):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    return lambda: monkeypatch.setattr(lattice_file, "_write_deflated", full)

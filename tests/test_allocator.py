@@ -8,9 +8,9 @@ import pytest
 WORKER = """
 import resource, sys, threading
 import numpy as np
-from isolume.app.allocator import release_freed_blocks
+from isolume.app.allocator import tune_malloc
 if sys.argv[1] == "set":
-    release_freed_blocks()
+    tune_malloc()
 faults = []
 def chunks():
     for i in range(60):  # a chunk's arrays under a megabyte, made, written and freed
@@ -27,7 +27,7 @@ print(sum(faults[10:]))
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
 def test_a_workers_chunks_under_a_megabyte_do_not_fault_their_pages_in_again():
-    """With `release_freed_blocks`, a worker thread that makes and frees its arrays under
+    """With `tune_malloc`, a worker thread that makes and frees its arrays under
     a megabyte chunk after chunk reuses its heap's pages instead of faulting them in again
     (4 MiB a chunk: 1024 pages of 4 KiB); blocks of a megabyte and more are still mapped
     alone and given back when freed."""

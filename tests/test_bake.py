@@ -514,24 +514,8 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
     np.testing.assert_allclose(done.values, whole.values, rtol=2e-6, atol=1e-6)
 
 
-def _ctrl_c_during_the_save(monkeypatch, presses):
-    """Make `PlanLattice.save` send this process `presses` SIGINTs before it writes."""
-    import os
-    import signal
-
-    from isolume.baking.plan_lattice import PlanLattice
-
-    original = PlanLattice.save
-
-    def pressed(self, path):
-        for _ in range(presses):
-            os.kill(os.getpid(), signal.SIGINT)
-        original(self, path)
-
-    monkeypatch.setattr(PlanLattice, "save", pressed)
-
-
-def test_a_ctrl_c_while_the_finished_bake_saves_lets_the_save_end(tmp_path, monkeypatch):
+def test_a_ctrl_c_while_the_finished_bake_saves_lets_the_save_end(tmp_path,
+                                                                  ctrl_c_during_save):
     """One Ctrl-C during the final save: the file is written whole (the same lattice as a
     bake left alone), then KeyboardInterrupt; with `keep_interrupted` the lattice is
     returned. A second Ctrl-C abandons the save and leaves no file. Python's own SIGINT
@@ -541,7 +525,7 @@ def test_a_ctrl_c_while_the_finished_bake_saves_lets_the_save_end(tmp_path, monk
     config = BakeConfig(samples=4, bounces=1, env="constant:1,1,1", max_move=0.5)
     vol = make("shells", 24)
     alone = bake(vol, config, workers=2)
-    _ctrl_c_during_the_save(monkeypatch, 1)
+    ctrl_c_during_save(1)
     path = tmp_path / "once.npz"
     with pytest.raises(KeyboardInterrupt):
         bake(vol, config, out=path, workers=2)
@@ -551,11 +535,11 @@ def test_a_ctrl_c_while_the_finished_bake_saves_lets_the_save_end(tmp_path, monk
     kept = bake(vol, config, out=tmp_path / "kept.npz", workers=2, keep_interrupted=True)
     np.testing.assert_array_equal(kept.values, alone.values)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    _ctrl_c_during_the_save(monkeypatch, 2)
+    ctrl_c_during_save(2)
     with pytest.raises(KeyboardInterrupt):
         bake(vol, config, out=tmp_path / "twice.npz", workers=2)
     assert not (tmp_path / "twice.npz").exists()
-    assert not list(tmp_path.glob("twice.npz.*"))  # nor a temporary file
+    assert not list(tmp_path.glob(".twice.npz.*"))  # nor a temporary file
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 

@@ -406,22 +406,12 @@ def test_a_plan_that_fails_leaves_its_stage_unfinished_and_says_why(tmp_path, ca
 
 
 def test_a_ctrl_c_during_the_final_save_says_the_save_ends_first(tmp_path, capsys,
-                                                                  monkeypatch):
+                                                                  ctrl_c_during_save):
     """Ctrl-C while `isolume bake` writes its finished lattice: it says the save ends
     first, writes the whole file, and exits 130 counting every active texel."""
-    import os
-    import signal
-
     from isolume.baking import Lattice
-    from isolume.baking.plan_lattice import PlanLattice
 
-    original = PlanLattice.save
-
-    def pressed(self, path):
-        os.kill(os.getpid(), signal.SIGINT)
-        original(self, path)
-
-    monkeypatch.setattr(PlanLattice, "save", pressed)
+    ctrl_c_during_save(1)
     path = tmp_path / "s.npz"
     status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
                           "--bounces", "0", "--out", str(path))
@@ -433,18 +423,10 @@ def test_a_ctrl_c_during_the_final_save_says_the_save_ends_first(tmp_path, capsy
 
 
 def test_a_bake_whose_file_cannot_be_written_says_so_in_one_line(tmp_path, capsys,
-                                                                   monkeypatch):
+                                                                   disk_full):
     """A full disk at the bake's save: exit 2 and one line naming the file and the
     reason, not a traceback."""
-    import errno
-    import os
-
-    from isolume.baking import lattice_file
-
-    def full(zf, members):
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    monkeypatch.setattr(lattice_file, "_write_deflated", full)
+    disk_full()
     path = tmp_path / "s.npz"
     status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
                           "--bounces", "0", "--out", str(path))

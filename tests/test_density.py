@@ -22,7 +22,7 @@ from isolume.baking.density import (
     filled_positions,
     fine_bricks,
     light_level,
-    mixing_nodes,
+    mixing_mask,
     noise_free_rms,
     split_texels,
     texel_bricks,
@@ -51,7 +51,7 @@ def test_texel_coords_are_numpy_unravel_index():
 
 
 def test_the_blockwise_helpers_give_what_one_call_over_every_texel_gives(monkeypatch):
-    """`mixing_nodes`, `texel_bricks` and `texel_luminance` cut their texels into blocks for
+    """`mixing_mask`, `texel_bricks` and `texel_luminance` cut their texels into blocks for
     the cores; cut small here (many blocks, a short last one), they give the same as one
     call over all of them: the sorted unique nodes of the mixes (`numpy.unique`), the
     bricks, and the luminance to the bit."""
@@ -63,8 +63,9 @@ def test_the_blockwise_helpers_give_what_one_call_over_every_texel_gives(monkeyp
     for offset in (0, 1):
         nodes = Nodes(coords, SHAPE, offset)
         rows, w = nodes.corners(coords[at])
-        np.testing.assert_array_equal(mixing_nodes(nodes, coords, at), np.unique(rows[w > 0]))
-    assert len(mixing_nodes(Nodes(coords, SHAPE), coords, at[:0])) == 0
+        np.testing.assert_array_equal(np.flatnonzero(mixing_mask(nodes, coords, at)),
+                                      np.unique(rows[w > 0]))
+    assert not mixing_mask(Nodes(coords, SHAPE), coords, at[:0]).any()
     grid = brick_grid(SHAPE)
     np.testing.assert_array_equal(texel_bricks(coords, grid), brick_of(coords, grid))
     values = RNG.random((len(ids), 3)).astype(np.float32)

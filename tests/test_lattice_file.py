@@ -1,7 +1,6 @@
 """`baking.lattice_file`: a lattice file holds its active or computed texels only, written
 and read a slab at a time; a display reads the texels it is asked for."""
 
-import errno
 import json
 import os
 
@@ -113,21 +112,14 @@ def test_the_texels_read_show_what_the_whole_lattice_shows(tmp_path, small_slabs
                                       dense.displayed_facing(region)[shown])
 
 
-def _disk_full(monkeypatch):
-    """Make writing a lattice file fail as a full disk does, half-way through."""
-    def full(zf, members):
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    monkeypatch.setattr(lattice_file, "_write_deflated", full)
-
-
 def test_a_file_that_cannot_be_written_says_why_and_keeps_the_one_there(tmp_path,
-                                                                         monkeypatch):
+                                                                         monkeypatch,
+                                                                         disk_full):
     """A write that fails (a full disk) raises one line naming the file, the system's
     reason and what the path holds now; no temporary file stays, an earlier file stays
     as it was."""
     path = tmp_path / "l.npz"
-    _disk_full(monkeypatch)
+    disk_full()
     with pytest.raises(WriteError, match=r"l\.npz: cannot write the lattice: No space left "
                                         r"on device; nothing was written$"):
         _random_lattice().save(path)
@@ -135,7 +127,7 @@ def test_a_file_that_cannot_be_written_says_why_and_keeps_the_one_there(tmp_path
     monkeypatch.undo()
     _random_lattice().save(path)
     before = path.read_bytes()
-    _disk_full(monkeypatch)
+    disk_full()
     with pytest.raises(WriteError, match=r"the file there is left as it was \(a bake resumes"):
         _random_lattice(seed=1).save(path)
     assert path.read_bytes() == before and list(tmp_path.iterdir()) == [path]

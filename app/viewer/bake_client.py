@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from isolume import volumes
-from isolume.app.allocator import release_freed_blocks
+from isolume.app.allocator import tune_malloc
 from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lattice_file import MEMBERS
@@ -190,7 +190,7 @@ def _bake_main(job: dict, inbox, outbox) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the viewer's to handle
-    release_freed_blocks()
+    tune_malloc()
     try:
         os.nice(19)  # idle priority: the viewer (and llvmpipe's threads) come first
     except (AttributeError, OSError):
