@@ -57,7 +57,7 @@ from isolume.baking.lattice import (
     sky_everywhere,
     volume_identity,
 )
-from isolume.baking.lattice_file import LatticeFile
+from isolume.baking.lattice_file import LatticeFile, quick_saves
 from isolume.baking.passes import (
     PassSums,
     Tracing,
@@ -537,7 +537,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     checkpoint = Checkpoints(held, out, checkpoint_seconds)
     cores.stage("tracing")
     note = (f"isolume: interrupted; the bake is done and its save to {out} is finished "
-            "first (Ctrl-C again to stop without it)") if progress else None
+            "first, quickly: uncompressed (Ctrl-C again to stop without it)"
+            ) if progress else None
     pressed: list[bool] = []
     with ExitStack() as finishing:
         try:
@@ -548,14 +549,17 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
             else:
                 baker.run(bar=bar, after_commit=checkpoint)
             if out is not None:  # traced: from here on a Ctrl-C lets the save end first
-                pressed = finishing.enter_context(through_one_interrupt(note))
+                hurry = finishing.enter_context(quick_saves(now=False))
+                pressed = finishing.enter_context(through_one_interrupt(note, hurry))
         except KeyboardInterrupt:
             bar.close()  # its last line stays above what follows
             if out is not None:
                 if progress:
-                    print(f"isolume: interrupted; saving the finished texels to {out} "
-                          "(Ctrl-C again to stop without them)", file=sys.stderr, flush=True)
-                held.save(out)
+                    print(f"isolume: interrupted; saving the finished texels to {out}, "
+                          "uncompressed (Ctrl-C again to stop without them)",
+                          file=sys.stderr, flush=True)
+                with quick_saves(now=True):
+                    held.save(out)
             if not keep_interrupted:
                 raise
             held.meta["interrupted"] = True

@@ -10,7 +10,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Protocol
@@ -37,8 +37,8 @@ class Checkpoints:
     """A bake's saves of its lattice to `out` as texels are committed (an ``after_commit``
     of `baking.bake.Baker.run`): at least `seconds` apart, and apart by at least 1 /
     `SAVE_SHARE` times the last save's duration, so that saving a large lattice takes at
-    most 5 % of the bake (the 512³ foot's file takes ~12 s to write on two threads: a save
-    every ~4 min, not every minute); none when `out` is None."""
+    most 5 % of the bake (the 512³ foot's file takes ~7 s to write on two threads: a save
+    every ~2.3 min, not every minute); none when `out` is None."""
 
     def __init__(self, lattice: Saved, out: Path | None, seconds: float) -> None:
         self.lattice: Saved = lattice
@@ -63,10 +63,12 @@ class Checkpoints:
 
 
 @contextmanager
-def through_one_interrupt(note: str | None) -> Iterator[list[bool]]:
+def through_one_interrupt(note: str | None, on_press: Callable[[], None] | None = None
+                          ) -> Iterator[list[bool]]:
     """Run the body to its end through one Ctrl-C (SIGINT): the first is recorded in the
-    list this yields (`note`, where not None, printed on stderr), a second raises
-    KeyboardInterrupt at once. So the final save of a finished bake is not lost to a
+    list this yields (`note`, where not None, printed on stderr; `on_press` called: e.g.
+    the hurry of `baking.lattice_file.quick_saves`), a second raises KeyboardInterrupt
+    at once. So the final save of a finished bake is not lost to a
     Ctrl-C that arrives while it writes (seconds for a large lattice, the bar at 100 %).
     Only on the main thread with Python's own SIGINT handler installed (a signal handler is
     the main thread's); under another handler — an application's, or an outer
@@ -82,6 +84,8 @@ def through_one_interrupt(note: str | None) -> Iterator[list[bool]]:
         if pressed:
             raise KeyboardInterrupt
         pressed.append(True)
+        if on_press is not None:
+            on_press()
         if note is not None:
             print(f"\n{note}", file=sys.stderr, flush=True)
 

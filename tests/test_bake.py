@@ -504,6 +504,7 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
     path = tmp_path / "cut.npz"
     with pytest.raises(KeyboardInterrupt):
         bake(vol, config, out=path, workers=2)
+    assert _stored(path)  # saved quickly: the user is waiting
     cut = Lattice.load(path, vol)
     finished = cut.samples > 0
     assert 0 < finished.sum() < (whole.samples > 0).sum()
@@ -512,14 +513,26 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
     monkeypatch.setattr(ThreadBackend, "_submit_level", original)
     done = bake(vol, config, out=path, workers=2)
     np.testing.assert_allclose(done.values, whole.values, rtol=2e-6, atol=1e-6)
+    assert not _stored(path)
+
+
+def _stored(path) -> bool:
+    """Whether the values of the lattice file `path` are stored, not deflated (a save
+    made while a Ctrl-C waits: `lattice_file.quick_saves`)."""
+    import zipfile
+
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("values.npy")
+    return info.compress_size >= info.file_size
 
 
 def test_a_ctrl_c_while_the_finished_bake_saves_lets_the_save_end(tmp_path,
                                                                   ctrl_c_during_save):
     """One Ctrl-C during the final save: the file is written whole (the same lattice as a
-    bake left alone), then KeyboardInterrupt; with `keep_interrupted` the lattice is
-    returned. A second Ctrl-C abandons the save and leaves no file. Python's own SIGINT
-    handler is back afterwards."""
+    bake left alone; what was not deflated yet stored, the same bake run again deflates
+    it), then KeyboardInterrupt; with `keep_interrupted` the lattice is returned. A
+    second Ctrl-C abandons the save and leaves no file. Python's own SIGINT handler is
+    back afterwards."""
     import signal
 
     config = BakeConfig(samples=4, bounces=1, env="constant:1,1,1", max_move=0.5)
@@ -529,9 +542,15 @@ def test_a_ctrl_c_while_the_finished_bake_saves_lets_the_save_end(tmp_path,
     path = tmp_path / "once.npz"
     with pytest.raises(KeyboardInterrupt):
         bake(vol, config, out=path, workers=2)
+    assert _stored(path)  # what was left to deflate at the press: stored, to end sooner
     saved = Lattice.load(path, vol)
     np.testing.assert_array_equal(saved.values, alone.values)
     np.testing.assert_array_equal(saved.samples, alone.samples)
+    ctrl_c_during_save(0)
+    again = bake(vol, config, out=path, workers=2)  # the same bake again deflates it
+    assert not _stored(path)
+    np.testing.assert_array_equal(again.values, alone.values)
+    ctrl_c_during_save(1)
     kept = bake(vol, config, out=tmp_path / "kept.npz", workers=2, keep_interrupted=True)
     np.testing.assert_array_equal(kept.values, alone.values)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

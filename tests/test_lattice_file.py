@@ -259,12 +259,12 @@ def test_the_writing_thread_deflates_queued_pieces_instead_of_waiting(tmp_path, 
         cores.use(None)
     deflated, here = lattice_file._deflated, []
 
-    def slow_on_the_pool(piece, batch):
+    def slow_on_the_pool(piece, runs, batch):
         if threading.current_thread() is threading.main_thread():
             here.append(len(piece))
         else:
             time.sleep(0.002)
-        return deflated(piece, batch)
+        return deflated(piece, runs, batch)
 
     monkeypatch.setattr(lattice_file, "_deflated", slow_on_the_pool)
     cores.use(2)
@@ -304,6 +304,55 @@ def test_members_deflated_in_pieces_on_threads_make_the_same_valid_file(tmp_path
         held = lattice_file.held_mask({"active": lattice.active, "samples": lattice.samples})
         np.testing.assert_array_equal(archive["values"], lattice.values[held])
     _same(Lattice.load(tmp_path / "l3.npz"), lattice)
+
+
+def test_a_quick_save_stores_what_is_not_deflated_yet_in_a_file_that_reads_the_same(
+        tmp_path, monkeypatch):
+    """`quick_saves`: from the start (`now`) every member is stored; hurried half-way, the
+    pieces deflated before stay deflated and the rest are stored, in one valid stream per
+    member; either way the file checks and reads as the lattice, and saves after the
+    block deflate again, the same bytes as before it."""
+    import zipfile
+
+    from isolume.volumes import cores
+
+    monkeypatch.setattr(lattice_file, "DEFLATE_PIECE", 777)
+    lattice = _random_lattice(seed=7)
+    cores.use(1)  # pieces deflated in order: the hurry lands after the fifth
+    try:
+        lattice.save(tmp_path / "deflated.npz")
+        with lattice_file.quick_saves(now=True):
+            lattice.save(tmp_path / "stored.npz")
+        deflated, count = lattice_file._deflated, []
+        with lattice_file.quick_saves(now=False) as hurry:
+            def hurried_after_five(piece, runs, batch):
+                count.append(1)
+                if len(count) == 5:
+                    hurry()
+                return deflated(piece, runs, batch)
+
+            monkeypatch.setattr(lattice_file, "_deflated", hurried_after_five)
+            lattice.save(tmp_path / "hurried.npz")
+            monkeypatch.setattr(lattice_file, "_deflated", deflated)
+        lattice.save(tmp_path / "after.npz")
+    finally:
+        cores.use(None)
+
+    def sizes(name):
+        with zipfile.ZipFile(tmp_path / name) as zf:
+            assert zf.testzip() is None
+            info = zf.getinfo("values.npy")
+            return info.compress_size, info.file_size
+
+    deflated_size, raw = sizes("deflated.npz")
+    assert deflated_size < 0.9 * raw
+    assert sizes("stored.npz")[0] >= raw
+    assert deflated_size < sizes("hurried.npz")[0] < raw  # its first pieces deflated
+    for name in ("stored.npz", "hurried.npz"):
+        _same(Lattice.load(tmp_path / name), lattice)
+        with np.load(tmp_path / name) as archive:
+            assert archive["values"].shape[1] == 3
+    assert (tmp_path / "after.npz").read_bytes() == (tmp_path / "deflated.npz").read_bytes()
 
 
 def test_a_zipfile_without_its_private_sizes_deflates_the_members_itself(tmp_path,
