@@ -131,10 +131,14 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
                    meta: dict[str, Any]) -> None:
     """The archive of each member `name` of per-texel shape `tails[name]` from the chunks
     `rows(name)` yields in flat order, the held texels' mask (``bits()``: the packed bits
-    of the (Z, Y, X) bool mask of the `count` held texels, made while the cores deflate the
-    last members) and `meta`, written to a temporary file that then replaces `path`."""
+    of the (Z, Y, X) bool mask of the `count` held texels, made on a pool thread while the
+    cores deflate the first members: made when its member's turn came, it left the pool
+    idle, 0.13 s of the 256³ foot's 1.1 s save) and `meta`, written to a temporary file
+    that then replaces `path`."""
     path = Path(path)
     meta = dict(meta, format_version=FORMAT_VERSION)
+    pool = cores.pool() if cores.threads() > 1 else cores.Inline()
+    mask = pool.submit(_timed, "held mask", bits)
 
     def member(dtype: np.dtype, shape: tuple[int, ...], chunks: Iterable[np.ndarray]
                ) -> Iterator[memoryview]:
@@ -143,8 +147,8 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
             yield memoryview(np.ascontiguousarray(chunk, dtype).reshape(-1).view(np.uint8))
 
     def held() -> Iterator[memoryview]:
-        mask = bits()
-        yield from member(mask.dtype, mask.shape, [mask])
+        packed = mask.result()
+        yield from member(packed.dtype, packed.shape, [packed])
 
     members = {name: member(np.dtype(dtype), (count, *tails[name]), rows(name))
                for name, dtype in MEMBERS.items()}
@@ -158,6 +162,12 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
                                           allow_pickle=False)
 
     atomic_write(path, write, "lattice", kept=" (a bake resumes from it)")
+
+
+def _timed(kind: str, work: Callable[[], np.ndarray]) -> np.ndarray:
+    """``work()``, recorded as one item of `kind` in a timeline."""
+    with cores.timed_item(kind):
+        return work()
 
 
 DEFLATE_PIECE = 1 << 20
