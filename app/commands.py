@@ -192,8 +192,9 @@ def cmd_bake(args: argparse.Namespace) -> int:
         if Path(out).exists():
             _, held = open_lattice(out)[0].read_texels(None, ("samples",))
             finished = int((held["samples"] > 0).sum())
-            print(f"isolume: interrupted; {finished:,} finished texels "
-                  f"saved in {out}; run the same command again to resume", file=sys.stderr)
+            print(f"isolume: interrupted; {finished:,} finished texels saved in {out}; "
+                  "run the same command again to resume (and to compress what a Ctrl-C "
+                  "saved uncompressed)", file=sys.stderr)
         return 130
     plan, stats = lattice.meta["plan"], lattice.meta["stats"]
     total = plan["total_texels"]
