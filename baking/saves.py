@@ -67,9 +67,9 @@ def through_one_interrupt(note: str | None, on_press: Callable[[], None] | None 
                           ) -> Iterator[list[bool]]:
     """Run the body to its end through one Ctrl-C (SIGINT): the first is recorded in the
     list this yields (`note`, where not None, printed on stderr; `on_press` called: e.g.
-    the hurry of `baking.lattice_file.quick_saves`), a second raises KeyboardInterrupt
-    at once. So the final save of a finished bake is not lost to a
-    Ctrl-C that arrives while it writes (seconds for a large lattice, the bar at 100 %).
+    the hurry of `baking.lattice_file.quick_saves`), a second raises KeyboardInterrupt at
+    once. So the final save of a finished bake is not lost to a Ctrl-C that arrives while
+    it writes (seconds for a large lattice, the bar at 100 %).
     Only on the main thread with Python's own SIGINT handler installed (a signal handler is
     the main thread's); under another handler — an application's, or an outer
     `through_one_interrupt`'s, which then records the press — the body runs as that one

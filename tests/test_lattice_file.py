@@ -276,6 +276,33 @@ def test_the_writing_thread_deflates_queued_pieces_instead_of_waiting(tmp_path, 
     assert (tmp_path / "two.npz").read_bytes() == path1.read_bytes()
 
 
+def test_a_save_ends_while_every_pool_thread_is_busy(tmp_path, monkeypatch):
+    """The writing thread does what no pool thread has begun — the pieces and the held
+    mask — so a save whose pool threads are all held elsewhere ends all the same, with the
+    same bytes as one thread's."""
+    import threading
+
+    from isolume.volumes import cores
+
+    monkeypatch.setattr(lattice_file, "DEFLATE_PIECE", 777)
+    lattice = _random_lattice(seed=8)
+    cores.use(1)
+    try:
+        lattice.save(tmp_path / "one.npz")
+    finally:
+        cores.use(None)
+    cores.use(2)
+    release = threading.Event()
+    try:
+        held = [cores.pool().submit(release.wait, 60) for _ in range(2)]
+        lattice.save(tmp_path / "busy.npz")
+        assert not any(h.done() for h in held)  # the pool did none of it
+    finally:
+        release.set()
+        cores.use(None)
+    assert (tmp_path / "busy.npz").read_bytes() == (tmp_path / "one.npz").read_bytes()
+
+
 def test_members_deflated_in_pieces_on_threads_make_the_same_valid_file(tmp_path,
                                                                       monkeypatch):
     """A member's bytes are deflated in pieces on every core (`DEFLATE_PIECE`): the file's
