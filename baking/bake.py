@@ -537,7 +537,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     checkpoint = Checkpoints(held, out, checkpoint_seconds)
     cores.stage("tracing")
     note = (f"isolume: interrupted; the bake is done and its save to {out} is finished "
-            "first, quickly: uncompressed (Ctrl-C again to stop without it)"
+            "first, what is left of it uncompressed (Ctrl-C again to stop without it)"
             ) if progress else None
     pressed: list[bool] = []
     with ExitStack() as finishing:

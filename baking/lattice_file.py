@@ -13,10 +13,11 @@ An ``.npz`` archive (zip, deflated) of format version `FORMAT_VERSION`:
 
 So a file's size follows the active texels, not the lattice's box. A member is deflated in
 pieces on every core (`_write_deflated`: one standard deflate stream, the same bytes on
-any number of threads, one stream of pieces across the members; the 256³ foot's 74 MB
-file in 1.0 s on two threads, 1.9 s on one). A save that a Ctrl-C waits for
-(`quick_saves`) stores the pieces it has not deflated yet: the same format, written
-~17× faster, about twice the bytes.
+any number of threads outside a hurried quick save, one stream of pieces across the
+members; the 256³ foot's 74 MB file in 1.0 s on two threads, 1.9 s on one). A save that
+a Ctrl-C waits for (`quick_saves`) stores the pieces it has not deflated yet: the same
+format, about twice the bytes, 2.5–4.5× sooner (storing is ~17× faster a thread than
+deflating; the disk's writes are what is left).
 Members are written and read in slabs of z-layers (`SLAB_TEXELS`): neither writing a
 lattice nor reading part of one makes a copy of its held texels, and a display can read
 only the texels it shows (`LatticeFile.read_texels`). Files of `DENSE_VERSION` (every
@@ -32,7 +33,6 @@ import io
 import json
 import math
 import os
-import threading
 import zipfile
 import zlib
 from collections import deque
@@ -161,7 +161,10 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
                 np.lib.format.write_array(opened, np.array(json.dumps(meta)),
                                           allow_pickle=False)
 
-    atomic_write(path, write, "lattice", kept=" (a bake resumes from it)")
+    try:
+        atomic_write(path, write, "lattice", kept=" (a bake resumes from it)")
+    finally:  # a save that failed or was stopped leaves no mask to be made
+        mask.cancel()
 
 
 def _timed(kind: str, work: Callable[[], np.ndarray]) -> np.ndarray:
@@ -183,8 +186,17 @@ _FINAL_BLOCK = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15).
 flush."""
 
 
-_STORING = threading.Event()
-"""Set while saves store the pieces they have not deflated yet (`quick_saves`)."""
+class _Storing:
+    """Whether saves store the pieces they have not deflated yet (`quick_saves`): a plain
+    flag, set by a signal handler and read by pool threads, so that neither takes a
+    lock."""
+
+    now = False
+
+
+def _hurry() -> None:
+    """Have saves store, from now on, the pieces they have not deflated yet."""
+    _Storing.now = True
 
 
 @contextmanager
@@ -192,21 +204,26 @@ def quick_saves(now: bool) -> Iterator[Callable[[], None]]:
     """In the body, lattice files are saved quickly: from the start where `now`, else from
     when the function this yields is called (by a Ctrl-C that waits for a save), the
     pieces not deflated yet are stored (deflate level 0: the same stream format, which
-    `numpy.load` reads, written ~17× faster — 870 MB/s a thread against 50 — in about
-    twice the bytes: 966 MB against 504 MB for the 512³ foot's lattice). A bake of the
-    file run again writes it deflated. The setting is the process's, as a Ctrl-C is."""
+    `numpy.load` reads, ~17× faster a thread than deflating — 870 MB/s against 50 — in
+    about twice the bytes: 966 MB against 504 MB for the 512³ foot's lattice, stored in
+    1.5–2.7 s against 6.8 s deflated on two threads). A bake of the file run again writes
+    it deflated. The setting is the process's, as a Ctrl-C is; after the body it is what
+    it was before. Not where zipfile lacks what the pieces need (`_write_deflated`: then
+    it deflates each member itself)."""
+    was = _Storing.now
     if now:
-        _STORING.set()
+        _hurry()
     try:
-        yield _STORING.set
+        yield _hurry
     finally:
-        _STORING.clear()
+        _Storing.now = was
 
 
 RUN_LENGTH_MEMBERS = frozenset({"second", "facing"})
 """Members deflated with runs only (level 1, `zlib.Z_RLE`): path second moments and
-octahedral normal codes hold few longer repeats, so this takes a quarter of the default
-level's time for 1–2 % more of their bytes (the 512³ foot's lattice: second 143 MB/s a
+octahedral normal codes hold few longer repeats, so this takes a quarter to a third of
+the default level's time for at most 1.4 % more of their bytes (the 512³ foot's
+lattice: second 143 MB/s a
 thread to 0.714 of its size, against 37 MB/s to 0.704; facing 161 against 56 MB/s, both
 to 0.999); the others compress well at the default level (values to 0.58, against 0.73
 with runs only)."""
@@ -290,7 +307,7 @@ def _oldest(pending: deque[_Piece], batch: int) -> bytes:
     oldest = pending[0].deflated
     while not oldest.done():
         queued = next((i for i in range(len(pending) - 1, -1, -1)
-                       if pending[i].deflated.cancel()), None)
+                       if pending[i].deflated.cancel()), None)  # the oldest: then done
         if queued is None:
             break
         done: Future = Future()
@@ -312,12 +329,12 @@ class _Passing:
 
 
 def _deflated(piece, runs: bool, batch: int) -> bytes:
-    """`piece` deflated on its own (raw deflate: zipfile's level, or with `runs` only
-    `RUN_LENGTH_MEMBERS`' level and strategy; stored in a quick save: `quick_saves`),
-    ended by a sync flush: byte-aligned and not final, so that pieces concatenate into
-    one stream; an item of `batch` in a timeline."""
+    """`piece` deflated on its own (raw deflate at zipfile's level; with `runs`, as the
+    `RUN_LENGTH_MEMBERS` are; stored in a quick save: `quick_saves`), ended by a sync
+    flush: byte-aligned and not final, so that pieces concatenate into one stream; an
+    item of `batch` in a timeline."""
     level, strategy = zlib.Z_DEFAULT_COMPRESSION, zlib.Z_DEFAULT_STRATEGY
-    if _STORING.is_set():
+    if _Storing.now:
         level = zlib.Z_NO_COMPRESSION
     elif runs:
         level, strategy = 1, zlib.Z_RLE

@@ -294,13 +294,38 @@ def test_a_save_ends_while_every_pool_thread_is_busy(tmp_path, monkeypatch):
     cores.use(2)
     release = threading.Event()
     try:
-        held = [cores.pool().submit(release.wait, 60) for _ in range(2)]
+        held = [cores.pool().submit(release.wait, 10) for _ in range(2)]
         lattice.save(tmp_path / "busy.npz")
         assert not any(h.done() for h in held)  # the pool did none of it
     finally:
         release.set()
         cores.use(None)
     assert (tmp_path / "busy.npz").read_bytes() == (tmp_path / "one.npz").read_bytes()
+
+
+def test_a_failed_save_leaves_no_held_mask_to_be_made(tmp_path, monkeypatch, disk_full):
+    """A save that fails before the held mask's member (a full disk) withdraws the mask
+    from the pool's queue: no pool thread makes it afterwards (nor delays the stop)."""
+    import threading
+
+    from isolume.volumes import cores
+
+    made = []
+    monkeypatch.setattr(lattice_file, "_timed", lambda kind, work: made.append(kind))
+    disk_full()
+    cores.use(2)
+    release = threading.Event()
+    try:
+        held = [cores.pool().submit(release.wait, 10) for _ in range(2)]
+        with pytest.raises(WriteError):
+            _random_lattice().save(tmp_path / "full.npz")
+        release.set()
+        cores.pool().submit(lambda: None).result()  # after whatever was queued before
+        assert all(h.done() for h in held)
+    finally:
+        release.set()
+        cores.use(None)
+    assert made == []
 
 
 def test_members_deflated_in_pieces_on_threads_make_the_same_valid_file(tmp_path,
@@ -337,8 +362,10 @@ def test_a_quick_save_stores_what_is_not_deflated_yet_in_a_file_that_reads_the_s
         tmp_path, monkeypatch):
     """`quick_saves`: from the start (`now`) every member is stored; hurried half-way, the
     pieces deflated before stay deflated and the rest are stored, in one valid stream per
-    member; either way the file checks and reads as the lattice, and saves after the
-    block deflate again, the same bytes as before it."""
+    member (also hurried at a moment while two pool threads deflate); either way the file
+    checks and reads as the lattice, and saves after the block deflate again, the same
+    bytes as before it."""
+    import threading
     import zipfile
 
     from isolume.volumes import cores
@@ -375,11 +402,57 @@ def test_a_quick_save_stores_what_is_not_deflated_yet_in_a_file_that_reads_the_s
     assert deflated_size < 0.9 * raw
     assert sizes("stored.npz")[0] >= raw
     assert deflated_size < sizes("hurried.npz")[0] < raw  # its first pieces deflated
-    for name in ("stored.npz", "hurried.npz"):
+    cores.use(2)  # hurried at a press while pool threads deflate: stored pieces and not
+    try:
+        with lattice_file.quick_saves(now=False) as hurry:
+            threading.Timer(0.001, hurry).start()
+            lattice.save(tmp_path / "pressed.npz")
+    finally:
+        cores.use(None)
+    for name in ("stored.npz", "hurried.npz", "pressed.npz"):
+        sizes(name)
         _same(Lattice.load(tmp_path / name), lattice)
         with np.load(tmp_path / name) as archive:
             assert archive["values"].shape[1] == 3
     assert (tmp_path / "after.npz").read_bytes() == (tmp_path / "deflated.npz").read_bytes()
+
+
+def test_quick_saves_leave_the_setting_as_they_found_it():
+    """An inner block, hurried or not, gives back the outer one's setting; after the
+    outermost, saves deflate."""
+    with lattice_file.quick_saves(now=True):
+        with lattice_file.quick_saves(now=False):
+            pass
+        assert lattice_file._Storing.now
+    with lattice_file.quick_saves(now=False) as hurry:
+        with lattice_file.quick_saves(now=True):
+            assert lattice_file._Storing.now
+        assert not lattice_file._Storing.now
+        hurry()
+        assert lattice_file._Storing.now
+    assert not lattice_file._Storing.now
+
+
+def test_second_moments_and_facings_are_deflated_with_runs_only(tmp_path, monkeypatch):
+    """The pieces deflated with runs only are exactly the bytes of the
+    `RUN_LENGTH_MEMBERS` (their .npy headers included), the others at zipfile's level."""
+    import zipfile
+
+    pieces, deflated = [], lattice_file._deflated
+
+    def spy(piece, runs, batch):
+        pieces.append((len(piece), runs))
+        return deflated(piece, runs, batch)
+
+    monkeypatch.setattr(lattice_file, "_deflated", spy)
+    monkeypatch.setattr(lattice_file, "DEFLATE_PIECE", 777)
+    _random_lattice(seed=9).save(tmp_path / "l.npz")
+    with zipfile.ZipFile(tmp_path / "l.npz") as zf:
+        raw = {i.filename[:-4]: i.file_size for i in zf.infolist()}
+    assert lattice_file.RUN_LENGTH_MEMBERS == {"second", "facing"}
+    assert sum(n for n, runs in pieces if runs) == raw["second"] + raw["facing"]
+    assert sum(n for n, runs in pieces if not runs) == sum(
+        raw[m] for m in ("values", "samples", "active", "held"))
 
 
 def test_a_zipfile_without_its_private_sizes_deflates_the_members_itself(tmp_path,
