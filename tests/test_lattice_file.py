@@ -320,8 +320,11 @@ def test_a_failed_save_leaves_no_held_mask_to_be_made(tmp_path, monkeypatch, dis
         with pytest.raises(WriteError):
             _random_lattice().save(tmp_path / "full.npz")
         release.set()
-        cores.pool().submit(lambda: None).result()  # after whatever was queued before
-        assert all(h.done() for h in held)
+        for h in held:
+            h.result()
+        both = threading.Barrier(2)  # met once each pool thread is done with what came before
+        for f in [cores.pool().submit(both.wait, 10) for _ in range(2)]:
+            f.result()
     finally:
         release.set()
         cores.use(None)
@@ -405,8 +408,10 @@ def test_a_quick_save_stores_what_is_not_deflated_yet_in_a_file_that_reads_the_s
     cores.use(2)  # hurried at a press while pool threads deflate: stored pieces and not
     try:
         with lattice_file.quick_saves(now=False) as hurry:
-            threading.Timer(0.001, hurry).start()
+            press = threading.Timer(0.001, hurry)
+            press.start()
             lattice.save(tmp_path / "pressed.npz")
+            press.join()  # pressed inside the block, whenever the save ended
     finally:
         cores.use(None)
     for name in ("stored.npz", "hurried.npz", "pressed.npz"):
