@@ -183,18 +183,20 @@ def scene_memory_bytes(gigabytes: float | None) -> float | None:
 
 def cmd_bake(args: argparse.Namespace) -> int:
     """Bake an illumination lattice (resumes when --out holds a compatible one)."""
-    from isolume.baking.lattice import open_lattice
+    from isolume.baking.errors import BakeInterrupted
 
     out = args.out
     try:
         lattice = bake_lattice(args)
-    except KeyboardInterrupt:
+    except BakeInterrupted as stop:
+        print(f"isolume: interrupted; {stop.finished:,} finished texels saved in {out}; "
+              "run the same command again to resume (and to compress what a Ctrl-C saved "
+              "uncompressed)", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:  # before the tracing: nothing new to save
         if Path(out).exists():
-            _, held = open_lattice(out)[0].read_texels(None, ("samples",))
-            finished = int((held["samples"] > 0).sum())
-            print(f"isolume: interrupted; {finished:,} finished texels saved in {out}; "
-                  "run the same command again to resume (and to compress what a Ctrl-C "
-                  "saved uncompressed)", file=sys.stderr)
+            print(f"isolume: interrupted; {out} keeps the texels of its last save; run the "
+                  "same command again to resume", file=sys.stderr)
         return 130
     plan, stats = lattice.meta["plan"], lattice.meta["stats"]
     total = plan["total_texels"]

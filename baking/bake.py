@@ -45,7 +45,7 @@ from isolume.baking.backend import (
 from isolume.baking.config import BakeConfig
 from isolume.baking.density import bake_texels, clear_filled
 from isolume.baking.environment import ConstantEnvironment
-from isolume.baking.errors import BakeError
+from isolume.baking.errors import BakeError, BakeInterrupted
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
 from isolume.baking.lattice import (
     LUMINANCE,
@@ -560,6 +560,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
                           file=sys.stderr, flush=True)
                 with quick_saves(now=True):
                     held.save(out)
+                if not keep_interrupted:
+                    raise BakeInterrupted(_finished(held)) from None
             if not keep_interrupted:
                 raise
             held.meta["interrupted"] = True
@@ -571,9 +573,14 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
             with cores.timed_item("save"):  # deflated in pieces on the pool (`lattice_file`)
                 held.save(out)
     if pressed and not keep_interrupted:
-        raise KeyboardInterrupt
+        raise BakeInterrupted(_finished(held))
     del baker  # its plan goes before the lattice is made dense
     return held.dense() if dense else held
+
+
+def _finished(lattice: Lattice | PlanLattice) -> int:
+    """Texels of `lattice` with paths."""
+    return int(np.count_nonzero(lattice.samples))
 
 
 def _outlook_samples(config: BakeConfig) -> int:

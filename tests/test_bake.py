@@ -486,6 +486,7 @@ def test_a_checkpoint_that_cannot_be_written_ends_the_bake_without_trying_again(
 
 def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypatch):
     from isolume.baking.backend import ThreadBackend
+    from isolume.baking.errors import BakeInterrupted
 
     config = BakeConfig(samples=20, bounces=1, env="constant:1,1,1", max_move=0.5)
     vol = make("shells", 32)
@@ -502,12 +503,13 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
 
     monkeypatch.setattr(ThreadBackend, "_submit_level", interrupting)
     path = tmp_path / "cut.npz"
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(BakeInterrupted) as stop:
         bake(vol, config, out=path, workers=2)
     assert _stored(path)  # saved quickly: the user is waiting
     cut = Lattice.load(path, vol)
     finished = cut.samples > 0
     assert 0 < finished.sum() < (whole.samples > 0).sum()
+    assert stop.value.finished == finished.sum()  # told, not read from the file again
     assert (cut.samples[finished] == 20).all()  # only whole texels were kept
     np.testing.assert_allclose(cut.values[finished], whole.values[finished], rtol=1e-6)
     monkeypatch.setattr(ThreadBackend, "_submit_level", original)
