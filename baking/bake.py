@@ -503,10 +503,11 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
             spare only the side probes' builds).
 
     Returns:
-        The lattice (also written to `out`; on Ctrl-C the finished texels are saved
-        before KeyboardInterrupt propagates, or before they are returned; a Ctrl-C while
-        the finished bake is saved lets that save end first, a second abandons it,
-        leaving `out` as it was: `baking.saves.through_one_interrupt`).
+        The lattice (also written to `out`; on Ctrl-C the finished texels are saved,
+        quickly (`lattice_file.quick_saves`), before `errors.BakeInterrupted` (a
+        KeyboardInterrupt that counts them) propagates, or before they are returned; a
+        Ctrl-C while the finished bake is saved lets that save end first, a second
+        abandons it, leaving `out` as it was: `baking.saves.through_one_interrupt`).
     """
     out = Path(out) if out is not None else None
     resume = _resumable(volume, config, out)
