@@ -138,7 +138,7 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
     path = Path(path)
     meta = dict(meta, format_version=FORMAT_VERSION)
     pool = cores.pool() if cores.threads() > 1 else cores.Inline()
-    mask = pool.submit(_timed, "held mask", bits)
+    mask = pool.submit(cores.beside_call, "held mask", bits)
 
     def member(dtype: np.dtype, shape: tuple[int, ...], chunks: Iterable[np.ndarray]
                ) -> Iterator[memoryview]:
@@ -165,12 +165,6 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
         atomic_write(path, write, "lattice", kept=" (a bake resumes from it)")
     finally:  # a save that failed or was stopped leaves no mask to be made
         mask.cancel()
-
-
-def _timed(kind: str, work: Callable[[], np.ndarray]) -> np.ndarray:
-    """``work()``, recorded as one item of `kind` in a timeline."""
-    with cores.timed_item(kind):
-        return work()
 
 
 DEFLATE_PIECE = 1 << 20
@@ -206,7 +200,8 @@ def quick_saves(now: bool) -> Iterator[Callable[[], None]]:
     pieces not deflated yet are stored (deflate level 0: the same stream format, which
     `numpy.load` reads, ~17× faster a thread than deflating — 870 MB/s against 50 — in
     about twice the bytes: 966 MB against 504 MB for the 512³ foot's lattice, stored in
-    1.5–2.7 s against 6.8 s deflated on two threads). A bake of the file run again writes
+    0.9–1.4 s, 1.5–2.7 s right after other large writes, against 6.8 s deflated on two
+    threads). A bake of the file run again writes
     it deflated. The setting is the process's, as a Ctrl-C is; after the body it is what
     it was before. Not where zipfile lacks what the pieces need (`_write_deflated`: then
     it deflates each member itself)."""
@@ -223,18 +218,15 @@ RUN_LENGTH_MEMBERS = frozenset({"second", "facing"})
 """Members deflated with runs only (level 1, `zlib.Z_RLE`): path second moments and
 octahedral normal codes hold few longer repeats, so this takes a quarter to a third of
 the default level's time for at most 1.4 % more of their bytes (the 512³ foot's
-lattice: second 143 MB/s a
-thread to 0.714 of its size, against 37 MB/s to 0.704; facing 161 against 56 MB/s, both
-to 0.999); the others compress well at the default level (values to 0.58, against 0.73
-with runs only)."""
+lattice: second 143 MB/s a thread to 0.714 of its size, against 37 MB/s to 0.704; facing
+161 against 56 MB/s, both to 0.999); the others compress well at the default level
+(values to 0.58, against 0.73 with runs only)."""
 
 
 class _Piece(NamedTuple):
-    """A piece of a member's bytes (`member`: its index; `runs`: deflated with runs only)
-    and its deflation."""
+    """A piece of a member's bytes (`member`: its index) and its deflation."""
 
     member: int
-    runs: bool
     data: memoryview
     deflated: Future
 
@@ -275,11 +267,11 @@ def _write_deflated(zf: zipfile.ZipFile, members: dict[str, Iterator[memoryview]
                         if cut is None:
                             break
                         member, data = cut
-                        pending.append(_Piece(member, runs[member], data, pool.submit(
+                        pending.append(_Piece(member, data, pool.submit(
                             _deflated, data, runs[member], batch)))
                     if not pending or pending[0].member != index:
                         break
-                    opened.write(_oldest(pending, batch))
+                    opened.write(_oldest(pending, runs, batch))
                 opened.write(_FINAL_BLOCK)
                 opened._crc, opened._file_size = sums[index]
     finally:
@@ -300,10 +292,11 @@ def _cut(members: Iterable[Iterator[memoryview]], sums: list[list[int]]
                 yield index, piece
 
 
-def _oldest(pending: deque[_Piece], batch: int) -> bytes:
+def _oldest(pending: deque[_Piece], runs: list[bool], batch: int) -> bytes:
     """The oldest pending piece, deflated, taken out; while it is not done, this thread
-    deflates the newest piece not started yet (taken from the pool's queue), the oldest
-    itself last (so a save whose pool threads are all busy elsewhere still ends)."""
+    deflates the newest piece not started yet (taken from the pool's queue; `runs`: which
+    members are deflated with runs only), the oldest itself last (so a save whose pool
+    threads are all busy elsewhere still ends)."""
     oldest = pending[0].deflated
     while not oldest.done():
         queued = next((i for i in range(len(pending) - 1, -1, -1)
@@ -311,7 +304,8 @@ def _oldest(pending: deque[_Piece], batch: int) -> bytes:
         if queued is None:
             break
         done: Future = Future()
-        done.set_result(_deflated(pending[queued].data, pending[queued].runs, batch))
+        piece = pending[queued]
+        done.set_result(_deflated(piece.data, runs[piece.member], batch))
         pending[queued] = pending[queued]._replace(deflated=done)
     return pending.popleft().deflated.result()
 

@@ -311,7 +311,7 @@ def test_a_failed_save_leaves_no_held_mask_to_be_made(tmp_path, monkeypatch, dis
     from isolume.volumes import cores
 
     made = []
-    monkeypatch.setattr(lattice_file, "_timed", lambda kind, work: made.append(kind))
+    monkeypatch.setattr(cores, "beside_call", lambda kind, work: made.append(kind))
     disk_full()
     cores.use(2)
     release = threading.Event()

@@ -42,6 +42,8 @@ from typing import Any
 
 import numpy as np
 
+from isolume.volumes.writing import atomic_write
+
 HELP = ("peak memory and wall time of info, render, bake, render --lattice and the viewer "
         "against the volume's size, with their exponents")
 SIZES = (128, 256, 512, 1024)
@@ -89,10 +91,13 @@ def write_synthetic(size: int, folder: Path) -> Path:
     z, y, x = synthetic.shape("engine", size)
     path = folder / f"engine{size}_{x}x{y}x{z}_uint8.raw"
     if not path.exists():
-        with _PartialFile(path) as out:
-            for k0 in range(0, z, LAYERS):
-                part = synthetic.layers("engine", size, k0, min(k0 + LAYERS, z))
-                out.write(np.rint(np.clip(part, 0, 1) * 255).astype(np.uint8).tobytes())
+        def write(tmp: str) -> None:
+            with open(tmp, "wb") as out:
+                for k0 in range(0, z, LAYERS):
+                    part = synthetic.layers("engine", size, k0, min(k0 + LAYERS, z))
+                    out.write(np.rint(np.clip(part, 0, 1) * 255).astype(np.uint8).tobytes())
+
+        atomic_write(path, write, "volume")
     return path
 
 
@@ -111,33 +116,18 @@ def write_upsampled(source: str, size: int, folder: Path) -> Path:
     path = folder / f"{volume.name}{size}_{x}x{y}x{z}_uint8.raw"
     if not path.exists():
         steps = (shape - 1) / np.maximum(new - 1, 1)
-        with _PartialFile(path) as out:
-            for k0 in range(0, z, LAYERS):
-                k = np.arange(k0, min(k0 + LAYERS, z))
-                grid = np.meshgrid(k * steps[0], np.arange(y) * steps[1],
-                                   np.arange(x) * steps[2], indexing="ij")
-                part = ndimage.map_coordinates(samples, grid, order=1, mode="nearest")
-                out.write(np.rint(np.clip(part, 0, 255)).astype(np.uint8).tobytes())
+
+        def write(tmp: str) -> None:
+            with open(tmp, "wb") as out:
+                for k0 in range(0, z, LAYERS):
+                    k = np.arange(k0, min(k0 + LAYERS, z))
+                    grid = np.meshgrid(k * steps[0], np.arange(y) * steps[1],
+                                       np.arange(x) * steps[2], indexing="ij")
+                    part = ndimage.map_coordinates(samples, grid, order=1, mode="nearest")
+                    out.write(np.rint(np.clip(part, 0, 255)).astype(np.uint8).tobytes())
+
+        atomic_write(path, write, "volume")
     return path
-
-
-class _PartialFile:
-    """A file written under a temporary name and renamed when complete (an interrupted
-    write leaves no file that looks whole)."""
-
-    def __init__(self, path: Path) -> None:
-        self.path, self.part = path, path.with_suffix(".part")
-
-    def __enter__(self):
-        self.file = open(self.part, "wb")
-        return self.file
-
-    def __exit__(self, kind, value, trace) -> None:
-        self.file.close()
-        if kind is None:
-            self.part.replace(self.path)
-        else:
-            self.part.unlink(missing_ok=True)
 
 
 # -- one run ----------------------------------------------------------------------------------
