@@ -20,6 +20,7 @@ from isolume.app.bench.cores import (
     sameness_line,
     stage_labels,
     thread_counts,
+    tracing_stalls,
     whole,
 )
 from isolume.app.bench.replay import (
@@ -249,6 +250,28 @@ def test_repeated_visits_add_up_by_name():
     assert everything["efficiency"] == pytest.approx(10.5 / (7 * 2))
 
 
+def test_tracing_stalls_are_the_gaps_between_chunks_named_by_what_ran_longest():
+    """Within the tracing stage (its visits with chunks), the intervals of 10 ms or more
+    that no chunk covers, on any thread, each put down to the kind of item that ran
+    longest in it (waits left out; "nothing" where none ran); shorter gaps, gaps outside
+    the stage and a tracing visit without chunks count nothing."""
+    chunks = [(1, 1, "trace", 0.0, 1.0), (1, 2, "trace", 0.2, 0.9),  # covered to 1.0
+              (1, 1, "trace", 1.005, 2.0),  # a 5 ms gap: not a stall
+              (2, 1, "trace", 2.5, 3.0), (2, 2, "trace", 3.6, 3.9)]
+    beside = [(3, 3, "commit", 1.9, 2.4), (3, 4, "commit", 1.9, 2.4),  # 0.8 s in 2.0-2.5
+              (4, 3, "surface", 2.45, 2.5), (5, 1, "wait", 2.0, 2.5),
+              (6, 3, "layout", 3.0, 3.2), (6, 3, "bvh", 3.2, 3.5)]  # 3.0-3.6: 0.3 s bvh
+    timeline = _timeline([
+        _stage("seen sides", -1, 1, [(0, 1, "side probes", -1.0, 0.0)]),
+        _stage("tracing", 0, 4, chunks + beside),  # 3.9-4.0: nothing ran
+        _stage("tracing", 4, 1, [(7, 1, "shadow rays", 4.0, 5.0)]),
+    ], threads=4)
+    stalls = tracing_stalls(timeline)
+    assert stalls["tracing_s"] == pytest.approx(4)
+    assert stalls["stalled_s"] == pytest.approx(0.5 + 0.6 + 0.1)
+    assert stalls["by"] == pytest.approx({"commit": 0.5, "bvh": 0.6, "nothing": 0.1})
+
+
 def test_predictions_take_the_serial_seconds_of_the_most_threads():
     one = _timeline([_stage("tracing", 0, 10, _batch(1, "trace", 0, [2.5] * 4), serial=10)])
     two = _timeline([_stage("tracing", 0, 6, _batch(1, "trace", 0, [2.5, 2.5])
@@ -354,3 +377,9 @@ def test_bench_cores_end_to_end(tmp_path, capsys):
     table = printed[printed.index("stage "):]
     assert "tracing" in table and "paths onto levels" in table
     assert "bake whole, 2 threads" in printed and str(out / "cores.json") in printed
+    stalls = runs["2"]["stalls"]
+    assert 0 <= stalls["stalled_s"] <= stalls["tracing_s"] == pytest.approx(
+        runs["2"]["stages"]["tracing"]["wall_s"])
+    assert sum(stalls["by"].values()) == pytest.approx(stalls["stalled_s"])
+    assert f"bake tracing, 2 threads: no chunk tracing for {stalls['stalled_s']:.2f} s" \
+        in printed

@@ -8,7 +8,8 @@ with ``--no-warmup``), then
 wall time (the whole process, interpreter start included) is kept. Per stage (its visits
 added up by name) and for the whole command: wall and CPU seconds, the parallel
 efficiency (CPU / (wall × threads)), the serial seconds (sampled intervals with at most
-one core busy), the largest work item's share of the stage's items.
+one core busy), the largest work item's share of the stage's items; and how long the
+tracing had no chunk running, by what ran instead (`tracing_stalls`).
 
 Two predictions for 16 and 64 threads, both from the one-thread run:
 
@@ -234,6 +235,54 @@ def aggregate(timeline: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return out
 
 
+STALL_S = 0.01
+"""Shortest interval without a tracing chunk that `tracing_stalls` counts, seconds."""
+
+
+def tracing_stalls(timeline: dict[str, Any]) -> dict[str, Any]:
+    """Where the tracing stood: the seconds of the ``tracing`` stage's visits that have
+    tracing chunks (items ``trace``) during which no chunk ran, `STALL_S` or more at a
+    time — ``tracing_s`` (those visits' wall), ``stalled_s``, and ``by``: per item kind,
+    the seconds of the stalls in which items of that kind ran longest (``nothing`` where
+    none ran): what the tracing waited for (a commit, the next level's surface and BVH, a
+    layout)."""
+    out: dict[str, Any] = {"tracing_s": 0.0, "stalled_s": 0.0, "by": {}}
+    for stage in timeline["stages"]:
+        chunks = sorted((item[3], item[3] + duration(item)) for item in stage["items"]
+                        if item[2] == "trace")
+        if stage["name"] != "tracing" or not chunks:
+            continue
+        out["tracing_s"] += stage["wall_s"]
+        for lo, hi in _uncovered(chunks, stage["start_s"], stage["end_s"]):
+            kind = _longest_kind(stage["items"], lo, hi)
+            out["stalled_s"] += hi - lo
+            out["by"][kind] = out["by"].get(kind, 0.0) + hi - lo
+    return out
+
+
+def _uncovered(spans: list[tuple[float, float]], start: float, end: float
+               ) -> list[tuple[float, float]]:
+    """The intervals of [start, end] of `STALL_S` or more that no span of the sorted
+    (start, end) `spans` covers."""
+    gaps, reached = [], start
+    for lo, hi in [*spans, (end, end)]:
+        if lo - reached >= STALL_S:
+            gaps.append((reached, lo))
+        reached = max(reached, hi)
+    return gaps
+
+
+def _longest_kind(items: list[list[Any]], lo: float, hi: float) -> str:
+    """The kind of the items (not ``wait``) that ran longest within [lo, hi], summed over
+    threads; ``nothing`` where none ran."""
+    seconds: dict[str, float] = {}
+    for item in items:
+        overlap = min(hi, item[3] + duration(item)) - max(lo, item[3])
+        if item[2] != "wait" and overlap > 0:
+            seconds[item[2]] = seconds.get(item[2], 0.0) + overlap
+    return max(seconds, key=seconds.get) if seconds else "nothing"
+
+
 def whole(timeline: dict[str, Any], process_wall_s: float) -> dict[str, Any]:
     """The whole command's figures: wall_s (the timeline's), process_wall_s (with the
     interpreter's start and imports), startup_s (their difference), cpu_s, serial_s (the
@@ -311,7 +360,8 @@ def figures_of(command: str, label: str, threads: int, scheduler: str | None,
     wall, timeline = kept
     return {"command": command, "label": label, "threads": threads, "scheduler": scheduler,
             "process_walls_s": walls, "stages": aggregate(timeline),
-            "whole": whole(timeline, wall), "timeline": timeline}
+            "whole": whole(timeline, wall), "stalls": tracing_stalls(timeline),
+            "timeline": timeline}
 
 
 # -- printing -----------------------------------------------------------------------------
@@ -360,7 +410,8 @@ def _seconds(value: float | None) -> str:
 def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, Any]) -> list[str]:
     """The whole command: each run's process and timeline wall, CPU, efficiency, measured
     speed-up, peak memory, the CPU other processes used on its cores and the time stolen
-    from them; Amdahl's and the replay's predictions."""
+    from them; where a run of several threads traced, how long no chunk traced and what
+    ran meanwhile (`tracing_stalls`); Amdahl's and the replay's predictions."""
     speedups = measured_speedups(runs)
     lines = []
     for r in runs:
@@ -373,6 +424,14 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
                      f"{r['timeline'].get('peak_rss_mb', 0):.0f} MiB; other processes "
                      f"{_seconds(w.get('others_cpu_s'))} CPU on its cores, stolen "
                      f"{_seconds(w.get('stolen_s'))}")
+    for r in runs:
+        stalls = r["stalls"]
+        if r["threads"] > 1 and stalls["tracing_s"] > 0:
+            lines.append(f"{command} tracing, {_run_name(r)}: no chunk tracing for "
+                         f"{stalls['stalled_s']:.2f} s of {stalls['tracing_s']:.2f} s" + (
+                             " (" + ", ".join(f"{kind} {t:.2f} s" for kind, t in sorted(
+                                 stalls["by"].items(), key=lambda kv: -kv[1])) + ")"
+                             if stalls["by"] else ""))
     p = predicted["whole"]
     lines.append(f"{command} whole, predicted from 1 thread (T1 {p['t1_s']:.2f} s, serial "
                  f"{p['serial_s']:.2f} s): " + ", ".join(
