@@ -20,7 +20,6 @@ from isolume.app.bench.cores import (
     sameness_line,
     stage_labels,
     thread_counts,
-    tracing_stalls,
     whole,
 )
 from isolume.app.bench.replay import (
@@ -32,6 +31,7 @@ from isolume.app.bench.replay import (
     thinned,
     work_units,
 )
+from isolume.app.bench.stalls import tracing_stalls
 from isolume.app.cli import main
 from isolume.app.options import CLIError
 
