@@ -49,7 +49,7 @@ from isolume.app.bench.replay import (
     replay,
     split_hints,
 )
-from isolume.app.bench.stalls import tracing_stalls
+from isolume.app.bench.stalls import stall_line, tracing_stalls
 from isolume.volumes import cores
 
 HELP = ("parallel efficiency of bake and render per stage against threads, and their "
@@ -377,14 +377,8 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
                      f"{r['timeline'].get('peak_rss_mb', 0):.0f} MiB; other processes "
                      f"{_seconds(w.get('others_cpu_s'))} CPU on its cores, stolen "
                      f"{_seconds(w.get('stolen_s'))}")
-    for r in runs:
-        stalls = r["stalls"]
-        if r["threads"] > 1 and stalls["tracing_s"] > 0:
-            lines.append(f"{command} tracing, {_run_name(r)}: no chunk tracing for "
-                         f"{stalls['stalled_s']:.2f} s of {stalls['tracing_s']:.2f} s" + (
-                             " (" + ", ".join(f"{kind} {t:.2f} s" for kind, t in sorted(
-                                 stalls["by"].items(), key=lambda kv: -kv[1])) + ")"
-                             if stalls["by"] else ""))
+    lines += [stall_line(command, _run_name(r), r["stalls"]) for r in runs
+              if r["threads"] > 1 and r["stalls"]["tracing_s"] > 0]
     p = predicted["whole"]
     lines.append(f"{command} whole, predicted from 1 thread (T1 {p['t1_s']:.2f} s, serial "
                  f"{p['serial_s']:.2f} s): " + ", ".join(

@@ -24,9 +24,11 @@ def tracing_stalls(timeline: dict[str, Any]) -> dict[str, Any]:
     layout)."""
     out: dict[str, Any] = {"tracing_s": 0.0, "stalled_s": 0.0, "by": {}}
     for stage in timeline["stages"]:
+        if stage["name"] != "tracing":
+            continue
         chunks = sorted((item[3], item[3] + duration(item)) for item in stage["items"]
                         if item[2] == "trace")
-        if stage["name"] != "tracing" or not chunks:
+        if not chunks:
             continue
         out["tracing_s"] += stage["wall_s"]
         for lo, hi in _uncovered(chunks, stage["start_s"], stage["end_s"]):
@@ -57,3 +59,12 @@ def _longest_kind(items: list[list[Any]], lo: float, hi: float) -> str:
         if item[2] != "wait" and overlap > 0:
             seconds[item[2]] = seconds.get(item[2], 0.0) + overlap
     return max(seconds, key=seconds.get) if seconds else "nothing"
+
+
+def stall_line(command: str, run_name: str, stalls: dict[str, Any]) -> str:
+    """``COMMAND tracing, RUN: no chunk tracing for X s of Y s (KIND s, …)``: `stalls`
+    (`tracing_stalls`) in words, the longest cause first."""
+    causes = ", ".join(f"{kind} {seconds:.2f} s" for kind, seconds in
+                       sorted(stalls["by"].items(), key=lambda kv: -kv[1]))
+    return (f"{command} tracing, {run_name}: no chunk tracing for {stalls['stalled_s']:.2f} s "
+            f"of {stalls['tracing_s']:.2f} s" + (f" ({causes})" if causes else ""))
