@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from isolume.volumes import cores
+from isolume.volumes import cores, usage
 
 CLI = "import sys; from isolume.app.cli import main; sys.exit(main())"
 
@@ -197,7 +197,7 @@ def test_a_timeline_marks_work_done_beside_and_records_memory(tmp_path, three_th
         cores.stage("tracing")
         big = np.ones(64 << 20, np.uint8)  # 64 MiB, touched
         time.sleep(0.2)
-        alive = cores._resident_bytes() / 2**20
+        alive = usage.resident_bytes() / 2**20
         del big
     record = json.loads(path.read_text())
     load, tracing = record["stages"]
@@ -208,8 +208,29 @@ def test_a_timeline_marks_work_done_beside_and_records_memory(tmp_path, three_th
     assert record["peak_rss_mb"] >= tracing["rss_mb"] - 1
 
 
+def test_a_timeline_counts_kernel_time_page_faults_and_waits(tmp_path):
+    """Per stage, the OS's counts for the process: first touching 64 MiB of fresh memory
+    faults its pages in (at least one fault per 2 MiB, the largest page) and spends kernel
+    time doing it; ten sleeps are at least ten waits; a stage that touches nothing new
+    faults less than the one that does."""
+    path = tmp_path / "t.json"
+    with cores.recording(path):
+        cores.stage("tracing")
+        touched = np.empty(64 << 20, np.uint8)
+        touched.fill(1)
+        cores.stage("save")
+        for _ in range(10):
+            time.sleep(0.01)
+        del touched
+    tracing, save = _stages(path)[1:]
+    assert set(usage.ProcessCounters._fields) <= set(tracing)
+    assert tracing["minor_faults"] >= 32 and tracing["system_s"] > 0
+    assert save["voluntary_switches"] >= 10
+    assert save["minor_faults"] < tracing["minor_faults"]
+    assert all(stage[c] >= 0 for stage in (tracing, save) for c in usage.ProcessCounters._fields)
 
-@pytest.mark.skipif(cores._machine_cpu() is None or os.getpid() == 1,
+
+@pytest.mark.skipif(usage.machine_cpu(cores.available()) is None or os.getpid() == 1,
                     reason="no /proc/stat for this process's cores, or pytest reaps orphans")
 def test_a_timeline_counts_what_other_processes_use_on_its_cores(tmp_path):
     """A stage in which another process on the same cores burns 0.5 s of CPU while this

@@ -21,7 +21,9 @@ the wall time, every thread's CPU time from the OS (``/proc/self/task/*/schedsta
 child processes from ``/proc`` and `resource`) — not the intervals of tasks, which count
 a thread waiting for the GIL as busy — the seconds with at most one core busy (sampled),
 the peak resident memory, the CPU seconds other processes used on the same cores and
-those the hypervisor stole from them (``/proc/stat``), and the work items with their
+those the hypervisor stole from them (``/proc/stat``), the process's kernel time, page
+faults and context switches (`usage.ProcessCounters`: where CPU time that grows with
+the threads goes), and the work items with their
 threads and durations (`app.bench.replay` replays them on more simulated threads than
 this machine has). Work
 that a command does beside its critical path — the next step laid out, a level scene
@@ -36,7 +38,6 @@ import itertools
 import json
 import math
 import os
-import resource
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -45,6 +46,7 @@ from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
+from isolume.volumes import usage
 from isolume.volumes.errors import IsolumeError
 from isolume.volumes.writing import atomic_write
 
@@ -384,100 +386,6 @@ def for_blocks(work: Callable[[slice], None], count: int, largest: int, kind: st
 # --- the timeline -------------------------------------------------------------------------
 
 
-def _task_cpu() -> dict[int, float]:
-    """CPU seconds of every thread of this process, by thread id (``schedstat``'s time on
-    a CPU, in ns; ``stat``'s ticks where schedstat is missing)."""
-    out = {}
-    try:
-        tids = os.listdir("/proc/self/task")
-    except OSError:
-        return out
-    for tid in tids:
-        try:
-            with open(f"/proc/self/task/{tid}/schedstat") as f:
-                out[int(tid)] = int(f.read().split()[0]) * 1e-9
-        except (OSError, ValueError, IndexError):
-            try:
-                with open(f"/proc/self/task/{tid}/stat") as f:
-                    fields = f.read().rsplit(")", 1)[1].split()
-                out[int(tid)] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-            except (OSError, ValueError, IndexError):
-                continue
-    return out
-
-
-def _machine_cpu() -> tuple[float, float] | None:
-    """(busy, stolen) CPU seconds so far of the cores this process may use, summed over
-    every process on the machine (``/proc/stat``: user, nice, system, irq and softirq;
-    steal, the time the hypervisor gave those cores to other machines), in ticks of a
-    hundredth of a second: a stage's difference is good to about its cores × 0.01 s.
-    None without ``/proc/stat``, or where a cgroup quota, not the affinity, bounds the
-    cores (the affinity's cores are then shared with work that is not this process's
-    neighbours')."""
-    try:
-        allowed = os.sched_getaffinity(0)
-        with open("/proc/stat") as f:
-            lines = [line.split() for line in f if line.startswith("cpu") and line[3].isdigit()]
-    except (OSError, AttributeError, IndexError):
-        return None
-    if available() < len(allowed):
-        return None
-    busy = stolen = 0
-    for name, *fields in lines:
-        if int(name[3:]) not in allowed:
-            continue
-        ticks = [int(v) for v in fields] + [0] * 8
-        busy += ticks[0] + ticks[1] + ticks[2] + ticks[5] + ticks[6]
-        stolen += ticks[7]
-    tick = os.sysconf("SC_CLK_TCK")
-    return busy / tick, stolen / tick
-
-
-def _resident_bytes() -> int:
-    """This process's resident memory now, in bytes (``/proc/self/statm``; 0 without)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
-
-
-def _peak_resident_bytes() -> int:
-    """This process's peak resident memory so far, in bytes (the OS's high-water mark)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-def _children_cpu() -> float:
-    """CPU seconds of this process's child processes: those waited for (`resource`) and
-    those still running (their ``/proc`` stat, and their children's)."""
-    used = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return used.ru_utime + used.ru_stime + sum(_live_cpu(pid) for pid in _children(os.getpid()))
-
-
-def _children(pid: int) -> list[int]:
-    """Process ids of `pid`'s children (every thread's ``children`` list)."""
-    found = []
-    try:
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{tid}/children") as f:
-                found += [int(c) for c in f.read().split()]
-    except (OSError, ValueError):
-        pass
-    return found
-
-
-def _live_cpu(pid: int) -> float:
-    """CPU seconds of the running process `pid` and its own descendants."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        own = (int(fields[11]) + int(fields[12]) + int(fields[13]) + int(fields[14]))
-        seconds = own / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return 0.0
-    return seconds + sum(_live_cpu(child) for child in _children(pid))
-
-
 class Timeline:
     """Where a command's cores go, stage by stage (see the module docstring). `stage(name)`
     ends the stage in progress and begins `name` (one of `STAGES`); `finish()` ends the
@@ -502,16 +410,16 @@ class Timeline:
     def _sample(self) -> None:
         self._own = threading.get_native_id()
         while not self._stop.wait(self.sample_s):
-            reading = _task_cpu()
+            reading = usage.thread_cpu()
             now = self._now()
             self.samples.append((now, reading))
-            self._rss.append((now, _resident_bytes()))
+            self._rss.append((now, usage.resident_bytes()))
             self._seen.update(reading)
 
     def _threads_cpu(self) -> dict[int, float]:
         """Every thread's CPU seconds now; for a thread that has ended, its last sampled
         figure (a pool shut down before its stage ends)."""
-        return {**self._seen, **_task_cpu()}
+        return {**self._seen, **usage.thread_cpu()}
 
     def _now(self) -> float:
         return time.perf_counter() - self.began
@@ -522,14 +430,16 @@ class Timeline:
             raise ValueError(f"timeline stage {name!r}: expected one of {', '.join(STAGES)}")
         self._end()
         self._open = {"name": name, "start_s": self._now(), "cpu": self._threads_cpu(),
-                      "children": _children_cpu(), "machine": _machine_cpu()}
+                      "children": usage.children_cpu(), "machine": usage.machine_cpu(available()),
+                      "counters": usage.process_counters()}
 
     def _end(self) -> None:
         if self._open is None:
             return
         opened, self._open = self._open, None
-        end, cpu, children = self._now(), self._threads_cpu(), _children_cpu()
-        machine, machine0 = _machine_cpu(), opened["machine"]
+        end, cpu, children = self._now(), self._threads_cpu(), usage.children_cpu()
+        counted = usage.process_counters().since(opened["counters"])
+        machine, machine0 = usage.machine_cpu(available()), opened["machine"]
         per_thread = {tid: seconds - opened["cpu"].get(tid, 0.0)
                       for tid, seconds in cpu.items() if tid != self._own}
         per_thread = {tid: s for tid, s in per_thread.items() if s > 0.0005}
@@ -543,8 +453,9 @@ class Timeline:
             "stolen_s": None if machine is None or machine0 is None else machine[1] - machine0[1],
             "threads_cpu_s": {str(t): s for t, s in sorted(per_thread.items())},
             "children_cpu_s": children - opened["children"],
-            "rss_mb": max([_resident_bytes(), *(b for t, b in self._rss
+            "rss_mb": max([usage.resident_bytes(), *(b for t, b in self._rss
                                                 if opened["start_s"] <= t <= end)]) / 2**20,
+            **counted._asdict(),
         })
 
     def item(self, batch: int, kind: str, began: float, ended: float,
@@ -565,8 +476,10 @@ class Timeline:
     def summary(self) -> dict[str, Any]:
         """The record: the stages (wall, CPU, per-thread CPU, the CPU seconds other
         processes used on this process's cores as ``others_cpu_s`` and the hypervisor took
-        from them as ``stolen_s`` (`_machine_cpu`; None where it cannot tell), serial
-        seconds, the highest resident memory sampled in them as ``rss_mb``, items:
+        from them as ``stolen_s`` (`usage.machine_cpu`; None where it cannot tell), serial
+        seconds, the highest resident memory sampled in them as ``rss_mb``, the process's
+        own kernel time, page faults and context switches in them (the fields of
+        `usage.ProcessCounters`: ``user_s``, ``system_s``, ``minor_faults``, …), items:
         ``[batch, thread, kind, start_s, end_s]`` and a sixth element 1 for an item done
         beside), the sampled busy cores, the threads' names, the process's peak resident
         memory (MiB)."""
@@ -583,7 +496,7 @@ class Timeline:
             "threads": threads(), "available_cores": available(),
             "load_average": list(os.getloadavg()),
             "wall_s": self._now(), "sample_s": self.sample_s,
-            "peak_rss_mb": _peak_resident_bytes() / 2**20,
+            "peak_rss_mb": usage.peak_resident_bytes() / 2**20,
             "stages": self.stages,
             "busy": [[round(t, 4), round(c, 3)] for t, _, c in busy],
             "thread_names": {str(t): n for t, n in self.names.items()},

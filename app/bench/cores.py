@@ -8,8 +8,9 @@ with ``--no-warmup``), then
 wall time (the whole process, interpreter start included) is kept. Per stage (its visits
 added up by name) and for the whole command: wall and CPU seconds, the parallel
 efficiency (CPU / (wall × threads)), the serial seconds (sampled intervals with at most
-one core busy), the largest work item's share of the stage's items; and how long the
-tracing had no chunk running, by what ran instead (`tracing_stalls`).
+one core busy), the largest work item's share of the stage's items; how long the
+tracing had no chunk running, by what ran instead (`tracing_stalls`); and the kernel
+time, page faults and context switches the OS counted (`counter_totals`).
 
 Two predictions for 16 and 64 threads, both from the one-thread run:
 
@@ -42,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from isolume.app.bench.counters import counter_totals, counters_line
 from isolume.app.bench.replay import (
     duration,
     inner_factors,
@@ -314,7 +316,7 @@ def figures_of(command: str, label: str, threads: int, scheduler: str | None,
     return {"command": command, "label": label, "threads": threads, "scheduler": scheduler,
             "process_walls_s": walls, "stages": aggregate(timeline),
             "whole": whole(timeline, wall), "stalls": tracing_stalls(timeline),
-            "timeline": timeline}
+            "counters": counter_totals(timeline), "timeline": timeline}
 
 
 # -- printing -----------------------------------------------------------------------------
@@ -322,7 +324,7 @@ def _pct(value: float | None) -> str:
     return "-" if value is None else f"{value:.0%}"
 
 
-def _run_name(run: dict) -> str:
+def run_name(run: dict) -> str:
     if run["scheduler"]:
         return f"dask {run['scheduler']}"
     return f"{run['threads']} thread" + ("s" if run["threads"] > 1 else "")
@@ -334,7 +336,7 @@ def table(command: str, runs: list[dict[str, Any]], predicted: dict[str, Any]) -
     the replay's predicted speed-ups; then the whole command."""
     most = max((r for r in runs if r["scheduler"] is None), key=lambda r: r["threads"])
     cell = "{:>7} {:>7} {:>5}"
-    head = f"{command:<18}" + "".join(f" | {_run_name(r):^21}" for r in runs)
+    head = f"{command:<18}" + "".join(f" | {run_name(r):^21}" for r in runs)
     head += f" | {'serial':>7} {'largest':>7} | {'replay speed-up':>15}"
     sub = f"{'stage':<18}" + "".join(" | " + cell.format("wall s", "cpu s", "eff")
                                      for _ in runs)
@@ -364,12 +366,13 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
     """The whole command: each run's process and timeline wall, CPU, efficiency, measured
     speed-up, peak memory, the CPU other processes used on its cores and the time stolen
     from them; where a run of several threads traced, how long no chunk traced and what
-    ran meanwhile (`tracing_stalls`); Amdahl's and the replay's predictions."""
+    ran meanwhile (`tracing_stalls`); what the OS counted (`counters_line`); Amdahl's and
+    the replay's predictions."""
     speedups = measured_speedups(runs)
     lines = []
     for r in runs:
         w = r["whole"]
-        lines.append(f"{command} whole, {_run_name(r)}: process {w['process_wall_s']:.2f} s "
+        lines.append(f"{command} whole, {run_name(r)}: process {w['process_wall_s']:.2f} s "
                      f"(start-up {w['startup_s']:.2f} s), timeline {w['wall_s']:.2f} s, "
                      f"cpu {w['cpu_s']:.2f} s, efficiency {_pct(w['efficiency'])}, serial "
                      f"{w['serial_s']:.2f} s; speed-up x{speedups[r['label']]['whole']:.2f} "
@@ -377,8 +380,10 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
                      f"{r['timeline'].get('peak_rss_mb', 0):.0f} MiB; other processes "
                      f"{_seconds(w.get('others_cpu_s'))} CPU on its cores, stolen "
                      f"{_seconds(w.get('stolen_s'))}")
-    lines += [stall_line(command, _run_name(r), r["stalls"]) for r in runs
+    lines += [stall_line(command, run_name(r), r["stalls"]) for r in runs
               if r["threads"] > 1 and r["stalls"]["tracing_s"] > 0]
+    lines += [counters_line(command, run_name(r), r["counters"]) for r in runs
+              if r.get("counters")]
     p = predicted["whole"]
     lines.append(f"{command} whole, predicted from 1 thread (T1 {p['t1_s']:.2f} s, serial "
                  f"{p['serial_s']:.2f} s): " + ", ".join(
@@ -394,7 +399,7 @@ def sameness_line(command: str, runs: list[dict[str, Any]]) -> str:
     groups: dict[str, list[str]] = {}
     for r in runs:
         for i, digest in enumerate(r.get("digests", [])):
-            groups.setdefault(digest, []).append(f"{_run_name(r)} #{i + 1}")
+            groups.setdefault(digest, []).append(f"{run_name(r)} #{i + 1}")
     if len(groups) <= 1:
         return f"{command}: the same {what} from every run ({sum(map(len, groups.values()))})"
     parts = "; ".join(f"{digest[:12]}: {', '.join(names)}" for digest, names in groups.items())
@@ -463,7 +468,7 @@ def _gantt_panel(ax, strip, run: dict) -> None:
                 transform=ax.get_xaxis_transform())
     ax.set_yticks(range(len(rows)), [f"{names.get(str(t), t)}" for t in rows], fontsize=7)
     ax.set_ylim(-0.6, len(rows) - 0.4 + LABEL_IN / ROW_IN)
-    ax.set_title(f"{run['command']}, {_run_name(run)}: work items per thread", fontsize=9,
+    ax.set_title(f"{run['command']}, {run_name(run)}: work items per thread", fontsize=9,
                  loc="left")
     busy = timeline.get("busy", [])
     if busy:
@@ -578,7 +583,7 @@ def measure_command(args: argparse.Namespace, command: str, counts: list[int], w
             wall, timeline = run_child(command_argv(args, command, n, work, scheduler), work)
             walls[label].append((wall, timeline))
             digests[label].append(output_digest(command, work))
-            name = _run_name({"threads": n, "scheduler": scheduler})
+            name = run_name({"threads": n, "scheduler": scheduler})
             print(f"  {command}, {name}, run {repeat + 1}/{args.repeats}: {wall:.2f} s",
                   flush=True)
     return [{**figures_of(command, label, n, scheduler, [w for w, _ in walls[label]],
