@@ -317,20 +317,28 @@ def test_ctrl_c_stops_a_bake_within_two_seconds_in_the_plan(tmp_path):
     assert timeline.exists()  # the timeline is written when the command is interrupted
 
 
-def test_the_command_line_loads_blas_with_one_thread_and_use_grows_it():
+def test_the_command_line_loads_blas_with_one_thread_and_use_never_grows_it():
     """Importing the command line starts no BLAS thread (one spins ~0.1 s as it starts, on a
-    core a ``--workers 1`` command does not hold); `cores.use(2)` grows the loaded BLAS to
-    two threads."""
+    core a ``--workers 1`` command does not hold), and `cores.use` keeps the loaded BLAS at
+    its one thread; a BLAS the environment starts with more (two: OpenBLAS takes no more
+    than the machine's cores) is held to one by ``cores.use(1)`` and back to what it
+    started with, not eight, by ``cores.use(8)``."""
     from isolume.app import blas
 
     script = ("import os, json; import isolume.app.cli; from isolume.volumes import cores; "
               "from threadpoolctl import threadpool_info; "
-              "first = (len(os.listdir('/proc/self/task')), "
-              "[i['num_threads'] for i in threadpool_info()]); cores.use(2); "
-              "print(json.dumps([first, [i['num_threads'] for i in threadpool_info()]]))")
+              "count = lambda: sorted({i['num_threads'] for i in threadpool_info()}); "
+              "first = (len(os.listdir('/proc/self/task')), count()); cores.use(N); "
+              "held = count(); cores.use(8); "
+              "print(json.dumps([first, held, count()]))")
     env = {k: v for k, v in os.environ.items() if k not in blas.THREAD_VARIABLES}
-    done = subprocess.run([sys.executable, "-c", script], env=env, check=True,
-                          capture_output=True, text=True)
-    (tasks, loaded), grown = json.loads(done.stdout)
-    assert tasks == 1 and loaded and set(loaded) == {1}
-    assert set(grown) == {2}
+    done = subprocess.run([sys.executable, "-c", script.replace("N", "2")], env=env,
+                          check=True, capture_output=True, text=True)
+    (tasks, loaded), held, eight = json.loads(done.stdout)
+    assert tasks == 1 and loaded == [1]
+    assert held == [1] and eight == [1]
+    env.update(dict.fromkeys(blas.THREAD_VARIABLES, "2"))
+    done = subprocess.run([sys.executable, "-c", script.replace("N", "1")], env=env,
+                          check=True, capture_output=True, text=True)
+    (_, loaded), held, eight = json.loads(done.stdout)
+    assert held == [1] and eight == loaded

@@ -154,9 +154,9 @@ _LOCAL = threading.local()  # .pooled: this thread is one of the pool's
 def use(workers: int | None) -> int:
     """Let this process keep `workers` threads busy (None: `available()`), everywhere: the
     pool, Embree's builds, llvmpipe's rasterizer threads (a GL context made from now on),
-    the BLAS libraries loaded (threadpoolctl; the command line loads them with one thread,
-    `app.blas`, and a BLAS loaded later, SciPy's, keeps the one). Returns the count. Raises
-    CoresError below 1."""
+    the BLAS libraries loaded (at most `workers` threads, never more than they had:
+    `_limit_blas`; the command line loads them with one thread, `app.blas`, and a BLAS
+    loaded later, SciPy's, keeps the one). Returns the count. Raises CoresError below 1."""
     count = available() if workers is None else int(workers)
     if count < 1:
         raise CoresError(f"--workers {workers}: expected at least 1")
@@ -178,15 +178,22 @@ def embree_threads() -> int:
 
 
 def _limit_blas(count: int) -> None:
-    """Hold BLAS and OpenMP libraries to `count` threads (threadpoolctl), where it is
-    installed."""
+    """Hold the BLAS and OpenMP libraries loaded to at most `count` threads each
+    (threadpoolctl, where it is installed), never to more than they started with:
+    isolume's own work runs on its pool, where a BLAS grown to N threads would only start
+    them — each spinning ~0.1 s as it starts, 15 cores' worth in the first stage of a
+    16-thread command — and share them among the pool's concurrent calls."""
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import threadpool_info, threadpool_limits
     except ImportError:
         return
     if _CORES.blas is not None:
         _CORES.blas.restore_original_limits()
-    _CORES.blas = threadpool_limits(limits=count)
+    held: dict[str, int] = {}
+    for library in threadpool_info():  # by prefix: copies of one library share their limit
+        prefix = library["prefix"]
+        held[prefix] = min(held.get(prefix, count), library["num_threads"])
+    _CORES.blas = threadpool_limits(limits=held)
 
 
 def pool() -> ThreadPoolExecutor:
