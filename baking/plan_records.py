@@ -194,12 +194,17 @@ class SpilledRecords:
 
     def of(self, positions: np.ndarray) -> TexelRecords:
         positions = np.asarray(positions)
-        records = np.empty(len(positions), RECORD)
         lower = self.lower[positions]
-        for level in np.unique(lower):
-            these = lower == level
-            ranks = np.searchsorted(self.groups.of(int(level)), positions[these])
-            records[these] = self._read(self._starts[level] + ranks)
+        levels = np.unique(lower)
+        if len(levels) == 1:  # a batch of one group (`baking.backend.pass_steps`)
+            ranks = np.searchsorted(self.groups.of(int(levels[0])), positions)
+            records = self._read(self._starts[levels[0]] + ranks)
+        else:
+            records = np.empty(len(positions), RECORD)
+            for level in levels:
+                these = lower == level
+                ranks = np.searchsorted(self.groups.of(int(level)), positions[these])
+                records[these] = self._read(self._starts[level] + ranks)
         return TexelRecords(self.ids[positions],
                             *(np.ascontiguousarray(records[name]) for name in RECORD.names))
 
@@ -207,7 +212,12 @@ class SpilledRecords:
         self._file.close()
 
     def _read(self, rows: np.ndarray) -> np.ndarray:
-        """(N,) records at file `rows` (in any order), read `READ_ROWS` at a time."""
+        """(N,) records at file `rows` (in any order), read `READ_ROWS` at a time; a run of
+        consecutive rows (a batch of one group) straight into the array it returns."""
+        if len(rows) and rows[-1] - rows[0] == len(rows) - 1 and (np.diff(rows) == 1).all():
+            out = np.empty(len(rows), RECORD)
+            self._pread_into(out.view(np.uint8), int(rows[0]) * RECORD.itemsize)
+            return out
         order = np.argsort(rows, kind="stable")
         wanted = rows[order]
         out = np.empty(len(rows), RECORD)
@@ -221,6 +231,16 @@ class SpilledRecords:
             out[order[lo:hi]] = block[wanted[lo:hi] - first]
             lo = hi
         return out
+
+    def _pread_into(self, buffer: np.ndarray, offset: int) -> None:
+        """Fill the (B,) uint8 `buffer` with the file's bytes from `offset` (safe beside
+        another thread's reads)."""
+        view = memoryview(buffer)
+        while len(view):
+            read = os.preadv(self._file.fileno(), [view], offset)
+            if not read:
+                raise BakeError(f"the plan's temporary file ended {len(view)} bytes early")
+            view, offset = view[read:], offset + read
 
     def _pread(self, size: int, offset: int) -> bytes:
         """`size` bytes of the file from `offset` (safe beside another thread's reads)."""

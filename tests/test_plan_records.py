@@ -21,9 +21,10 @@ def _plan():
 
 
 def test_spilled_records_read_back_what_the_plan_holds(monkeypatch, tmp_path):
-    """Whole, in any order, across levels, empty and a few rows a read (`READ_ROWS` = 7):
-    the file gives the plan's records exactly, in its types, contiguous; it leaves no name
-    in its directory."""
+    """Whole, in any order, across levels, a run of one level's (read straight into the
+    records), that run backwards, empty and a few rows a read (`READ_ROWS` = 7): the file
+    gives the plan's records exactly, in its types, contiguous; it leaves no name in its
+    directory."""
     monkeypatch.setattr(plan_records, "READ_ROWS", 7)
     plan = _plan()
     assert len(plan.levels) >= 3
@@ -36,7 +37,7 @@ def test_spilled_records_read_back_what_the_plan_holds(monkeypatch, tmp_path):
         one_level = np.flatnonzero(plan.lower == plan.lower[count // 2])
         for positions in (np.arange(count), rng.permutation(count)[:500],
                           np.sort(rng.choice(count, 300, replace=False)), one_level[::3],
-                          np.zeros(0, np.int64)):
+                          one_level[2:40], one_level[39:1:-1], np.zeros(0, np.int64)):
             want, got = held.of(positions), spilled.of(positions)
             for name in FIELDS:
                 a, b = getattr(want, name), getattr(got, name)
