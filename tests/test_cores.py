@@ -209,14 +209,15 @@ def test_a_timeline_marks_work_done_beside_and_records_memory(tmp_path, three_th
 
 
 def test_a_timeline_counts_kernel_time_page_faults_and_waits(tmp_path):
-    """Per stage, the OS's counts for the process: first touching 64 MiB of fresh memory
-    faults its pages in (at least one fault per 2 MiB, the largest page) and spends kernel
-    time doing it; ten sleeps are at least ten waits; a stage that touches nothing new
-    faults less than the one that does."""
+    """Per stage, the OS's counts for the process: first touching 128 MiB of fresh memory
+    faults its pages in (at least one fault per 2 MiB, the largest page); ten sleeps are
+    at least ten waits; a stage that touches nothing new faults less than the one that
+    does. (The kernel time is not bounded below: where the OS splits CPU time into user
+    and kernel by sampling ticks, a tenth of a second of faults may read as none.)"""
     path = tmp_path / "t.json"
     with cores.recording(path):
         cores.stage("tracing")
-        touched = np.empty(64 << 20, np.uint8)
+        touched = np.empty(128 << 20, np.uint8)
         touched.fill(1)
         cores.stage("save")
         for _ in range(10):
@@ -224,7 +225,7 @@ def test_a_timeline_counts_kernel_time_page_faults_and_waits(tmp_path):
         del touched
     tracing, save = _stages(path)[1:]
     assert set(usage.ProcessCounters._fields) <= set(tracing)
-    assert tracing["minor_faults"] >= 32 and tracing["system_s"] > 0
+    assert tracing["minor_faults"] >= 64
     assert save["voluntary_switches"] >= 10
     assert save["minor_faults"] < tracing["minor_faults"]
     assert all(stage[c] >= 0 for stage in (tracing, save) for c in usage.ProcessCounters._fields)

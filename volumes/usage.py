@@ -109,7 +109,8 @@ def _live_cpu(pid: int) -> float:
 class ProcessCounters(NamedTuple):
     """The OS's counts for this process's own threads so far (`resource.getrusage`; child
     processes' are not in them): CPU seconds in user space and in the kernel (page
-    faults, system calls, the GIL's and the pool's futex wake-ups), page faults served
+    faults, system calls, the GIL's and the pool's futex wake-ups; where the OS splits
+    the two by sampling its clock ticks, good to a tick or so a thread), page faults served
     from memory (minor: a page first touched, or mapped again) and from disk (major), and
     context switches where a thread waited (voluntary: a lock, the GIL, I/O) or was
     preempted (involuntary: more threads ready than cores)."""
