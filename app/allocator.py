@@ -1,7 +1,8 @@
 """How an isolume process asks the C library's allocator to behave.
 
-Every command (`app.cli.main`, with its command's `mapped_block`) and the viewer's bake
-process (`app.viewer.bake_client`) call `tune_malloc` first.
+Every command (`app.cli.main`) and the viewer's bake process (`app.viewer.bake_client`)
+call `tune_malloc` first; the commands that draw pictures call `for_pictures` before they
+draw (``render``, and ``movie`` once the lattice it bakes, if any, is made).
 """
 
 from __future__ import annotations
@@ -15,28 +16,24 @@ M_MMAP_THRESHOLD = -3
 """glibc's `mallopt` parameter (malloc.h): the size from which a block is mapped alone."""
 MAPPED_BLOCK = 1 << 20
 """Blocks of this many bytes or more are mapped alone, and unmapped when freed."""
-RENDER_MAPPED_BLOCK = 32 << 20
-"""`MAPPED_BLOCK` for ``isolume render``, which makes one picture and no lattice file: its
-blocks of a megabyte or more — the picture's pixels, a shadow-ray item's directions, the
-view's texels — are made and freed a few times, not by the thousand, and mapped alone
-each faulted its pages in again: the engine CT's `render` at 512², whole processes on two
-cores, medians of seven pairs: 2.78 s against 3.07 s (0.26 s of CPU in the kernel against
-0.51 s), peak memory 470 against 452 MiB; the 256³ foot's at 1024²: 1.25 s in the kernel
-against 2.07 s, 1096 against 1165 MiB."""
+PICTURE_MAPPED_BLOCK = 32 << 20
+"""`MAPPED_BLOCK` while a command draws pictures (`for_pictures`): its blocks of a megabyte
+or more — a picture's pixels, a shadow-ray item's directions, a view's texels — are made
+and freed a few times a picture, not by the thousand, and mapped alone each faulted its
+pages in again: the engine CT's `render` at 512², whole processes on two cores, medians
+of seven pairs: 2.78 s against 3.07 s (0.26 s of CPU in the kernel against 0.51 s), peak
+memory 470 against 452 MiB; the 256³ foot's at 1024²: 1.25 s in the kernel against
+2.07 s, 1096 against 1165 MiB; six frames of the engine CT's turntable (`movie`, three
+pairs): 12.64 s against 13.28 s, 0.39 s in the kernel against 1.02 s, 570 against
+555 MiB."""
 KEPT_TOP = 16 << 20
 """Free bytes a heap keeps at its top (glibc's own, once `MAPPED_BLOCK` is set: 128 KiB)."""
 
 
-def mapped_block(command: str | None) -> int:
-    """The bytes from which `command`'s blocks are mapped alone: `RENDER_MAPPED_BLOCK` for
-    ``render``, else `MAPPED_BLOCK`."""
-    return RENDER_MAPPED_BLOCK if command == "render" else MAPPED_BLOCK
-
-
 def tune_malloc(mapped: int = MAPPED_BLOCK) -> None:
     """Have the C library's malloc map every block of `mapped` bytes or more on its own, so
-    that it goes back to the system when freed (`mapped_block`: a megabyte but for
-    ``render``). glibc raises that threshold to
+    that it goes back to the system when freed (a megabyte but while a command draws
+    pictures: `for_pictures`). glibc raises that threshold to
     the size of the blocks freed (up to 32 MiB), and then keeps the batches a bake or a
     render makes and frees by the thousand (a million texels' arrays: 4–25 MB each) in
     its heaps' free lists, one heap per thread (a 256³ CT's bake: 1151 MiB at its peak
@@ -55,3 +52,10 @@ def tune_malloc(mapped: int = MAPPED_BLOCK) -> None:
         return
     mallopt(M_MMAP_THRESHOLD, mapped)
     mallopt(M_TRIM_THRESHOLD, KEPT_TOP)
+
+
+def for_pictures() -> None:
+    """Have malloc keep blocks under `PICTURE_MAPPED_BLOCK` in its heaps from now on: what a
+    command calls before it draws pictures (not the Python API, which leaves its host
+    process's allocator as it is)."""
+    tune_malloc(PICTURE_MAPPED_BLOCK)

@@ -17,7 +17,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from isolume.app import blas  # noqa: F401  (first: before numpy loads its BLAS)
-from isolume.app.allocator import mapped_block, tune_malloc
+from isolume.app.allocator import tune_malloc
 from isolume.app.commands import cmd_bake, cmd_info, cmd_render
 from isolume.app.options import (
     EXIT_USER_ERROR,
@@ -161,8 +161,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(argv: Sequence[str] | None) -> int:
     """The command `argv` names (None: the process's arguments); its exit status."""
+    tune_malloc()
     words = _join_negative_axes(sys.argv[1:] if argv is None else argv)
-    tune_malloc(mapped_block(words[0] if words else None))
     args = build_parser(command_named(words)).parse_args(words)
     command = COMMANDS.get(args.command) or _command_module(args.command).run
     try:

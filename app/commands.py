@@ -96,11 +96,13 @@ def render_picture(args: argparse.Namespace, reuse: Reuse | None = None) -> Rend
 
 def cmd_render(args: argparse.Namespace) -> int:
     """Render the isosurface off-screen to PNG (sRGB) or EXR (linear radiance)."""
+    from isolume.app.allocator import for_pictures
     from isolume.app.render.images import check_output_path, write_image
 
     if args.out is None:
         raise CLIError("render: --out FILE.png or FILE.exr is required (or --state FILE)")
     out = check_output_path(args.out)
+    for_pictures()
     rendered = render_picture(args)
     write_image(out, rendered.frame.linear, rendered.frame.srgb)
     print(f"wrote {out} ({rendered.summary()})")

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from isolume import volumes
+from isolume.app import allocator
 from isolume.app.look import shading_look
 from isolume.app.movie_stage import (
     KINDS,
@@ -309,6 +310,7 @@ def run(args: argparse.Namespace) -> int:
     traced = look.traced
     if iso_range is not None and traced is not None:
         lattice, traced = bake_sweep(vol, traced, iso_range, args), None
+    allocator.for_pictures()
     az = request.view[0]
     camera = args.camera or movie_camera(vol, request, iso, iso_range)
     scene = Scene(vol, look.settings, camera, normals=args.normals,

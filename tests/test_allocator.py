@@ -40,8 +40,10 @@ def test_a_workers_chunks_under_a_megabyte_do_not_fault_their_pages_in_again():
 BLOCKS = """
 import resource, sys
 import numpy as np
-from isolume.app.allocator import mapped_block, tune_malloc
-tune_malloc(mapped_block(sys.argv[1]))
+from isolume.app.allocator import for_pictures, tune_malloc
+tune_malloc()
+if sys.argv[1] == "pictures":
+    for_pictures()
 faults = []
 for i in range(60):  # a 4 MiB block, made, written and freed
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -53,19 +55,30 @@ print(sum(faults[10:]))
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
-def test_render_keeps_its_blocks_of_a_few_megabytes_where_a_bake_maps_them_alone():
-    """``render`` makes and frees its blocks of a few megabytes a few times a picture: its
-    process keeps them in its heap (no fault when the next one is written), where a bake's
-    (and every other command's) are mapped alone and fault in again each time (at least
-    one fault per block: 2 MiB pages at the most)."""
-    from isolume.app.allocator import MAPPED_BLOCK, RENDER_MAPPED_BLOCK, mapped_block
-
-    assert mapped_block("render") == RENDER_MAPPED_BLOCK > 4 << 20
-    assert mapped_block("bake") == mapped_block(None) == MAPPED_BLOCK <= 1 << 20
-
-    def faults(command: str) -> int:
-        return int(subprocess.run([sys.executable, "-c", BLOCKS, command], check=True,
+def test_pictures_keep_their_blocks_of_a_few_megabytes_where_a_bake_maps_them_alone():
+    """While a command draws pictures (`for_pictures`) it keeps its blocks of a few
+    megabytes in its heap (no fault when the next one is written), where a bake's are
+    mapped alone and fault in again each time (at least one fault per block: 2 MiB pages
+    at the most)."""
+    def faults(mode: str) -> int:
+        return int(subprocess.run([sys.executable, "-c", BLOCKS, mode], check=True,
                                   capture_output=True, text=True).stdout)
 
-    assert faults("render") < 10
+    assert faults("pictures") < 10
     assert faults("bake") >= 50
+
+
+@pytest.mark.parametrize("words", [
+    ["render", "synthetic:sphere:24", "--size", "32x32", "--samples", "4"],
+    ["movie", "synthetic:sphere:24", "--size", "32x32", "--samples", "4", "--frames", "2"],
+])
+def test_the_picture_commands_keep_their_blocks_before_they_draw(tmp_path, monkeypatch, words):
+    """``render`` and ``movie`` switch to `for_pictures` once, before their pictures."""
+    from isolume.app import allocator
+    from isolume.app.cli import main
+
+    calls = []
+    monkeypatch.setattr(allocator, "for_pictures", lambda: calls.append(True))
+    out = str(tmp_path / "p.png") if words[0] == "render" else f"{tmp_path}/frames/"
+    assert main([*words, "--out", out]) == 0
+    assert calls == [True]
