@@ -179,14 +179,14 @@ class SpilledRecords:
             block = np.empty(len(at), RECORD)
             for name in RECORD.names:
                 block[name] = getattr(plan, name)[at]
-            self._pwrite(block.view(np.uint8), int(self._starts[level] + lo) * RECORD.itemsize)
+            self._pwrite(block, int(self._starts[level] + lo))
 
         cores.for_items(run, len(runs), "records")
 
-    def _pwrite(self, data: bytes | np.ndarray, offset: int) -> None:
-        """`data` (bytes, or a uint8 array: written from its memory, not copied) into the
-        file at `offset` (safe beside another thread's writes)."""
-        view = memoryview(data)
+    def _pwrite(self, records: np.ndarray, row: int) -> None:
+        """The (B,) `records` into the file from `row` on, written from their memory (safe
+        beside another thread's writes)."""
+        view, offset = memoryview(records.view(np.uint8)), row * RECORD.itemsize
         while len(view):
             written = os.pwrite(self._file.fileno(), view, offset)
             view, offset = view[written:], offset + written
@@ -214,45 +214,31 @@ class SpilledRecords:
     def _read(self, rows: np.ndarray) -> np.ndarray:
         """(N,) records at file `rows` (in any order), read `READ_ROWS` at a time; a run of
         consecutive rows (a batch of one group) straight into the array it returns."""
-        if len(rows) and rows[-1] - rows[0] == len(rows) - 1 and (np.diff(rows) == 1).all():
-            out = np.empty(len(rows), RECORD)
-            self._pread_into(out.view(np.uint8), int(rows[0]) * RECORD.itemsize)
+        out = np.empty(len(rows), RECORD)
+        if len(rows) and rows[-1] - rows[0] == len(rows) - 1 and (rows[1:] > rows[:-1]).all():
+            self._pread_into(out, int(rows[0]))
             return out
         order = np.argsort(rows, kind="stable")
         wanted = rows[order]
-        out = np.empty(len(rows), RECORD)
         lo = 0
         while lo < len(wanted):
             first = int(wanted[lo])
             hi = int(np.searchsorted(wanted, first + READ_ROWS))
-            span = int(wanted[hi - 1]) - first + 1
-            block = np.frombuffer(self._pread(span * RECORD.itemsize,
-                                              first * RECORD.itemsize), RECORD)
+            block = np.empty(int(wanted[hi - 1]) - first + 1, RECORD)
+            self._pread_into(block, first)
             out[order[lo:hi]] = block[wanted[lo:hi] - first]
             lo = hi
         return out
 
-    def _pread_into(self, buffer: np.ndarray, offset: int) -> None:
-        """Fill the (B,) uint8 `buffer` with the file's bytes from `offset` (safe beside
-        another thread's reads)."""
-        view = memoryview(buffer)
+    def _pread_into(self, records: np.ndarray, row: int) -> None:
+        """Fill the (B,) `records` with the file's from `row` on, read into their memory
+        (safe beside another thread's reads)."""
+        view, offset = memoryview(records.view(np.uint8)), row * RECORD.itemsize
         while len(view):
             read = os.preadv(self._file.fileno(), [view], offset)
             if not read:
                 raise BakeError(f"the plan's temporary file ended {len(view)} bytes early")
             view, offset = view[read:], offset + read
-
-    def _pread(self, size: int, offset: int) -> bytes:
-        """`size` bytes of the file from `offset` (safe beside another thread's reads)."""
-        parts = []
-        while size > 0:
-            part = os.pread(self._file.fileno(), size, offset)
-            if not part:
-                raise BakeError(f"the plan's temporary file ended {size} bytes early")
-            parts.append(part)
-            size -= len(part)
-            offset += len(part)
-        return b"".join(parts) if len(parts) > 1 else parts[0]
 
 
 def spill(plan: Plan, directory: str | os.PathLike[str] | Path | None = None,

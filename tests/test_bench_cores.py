@@ -23,7 +23,7 @@ from isolume.app.bench.cores import (
     thread_counts,
     whole,
 )
-from isolume.app.bench.counters import COUNTERS, counter_totals, counters_line
+from isolume.app.bench.counters import COUNTERS, counters_line
 from isolume.app.bench.replay import (
     inner_factors,
     makespan,
@@ -274,10 +274,10 @@ def test_tracing_stalls_are_the_gaps_between_chunks_named_by_what_ran_longest():
     assert stalls["by"] == pytest.approx({"commit": 0.5, "bvh": 0.6, "nothing": 0.1})
 
 
-def test_counter_totals_add_up_stages_by_name_and_name_the_most_kernel_time():
-    """A run's OS counters added up per stage name and whole; its line gives the kernel's
-    share of the CPU, the faults and switches in thousands and the stages of the most
-    kernel time; a timeline recorded without counters has none."""
+def test_counters_add_up_stages_by_name_and_name_the_most_kernel_time():
+    """A run's OS counters added up per stage name (`aggregate`) and whole (`whole`); its
+    line gives the kernel's share of the CPU, the faults and switches in thousands and
+    the stages of the most kernel time; a timeline recorded without counters has none."""
     counts = {"tracing": (8.0, 1.5, 700_000, 1, 9_000, 3_000),
               "seen sides": (3.0, 0.25, 50_000, 0, 2_500, 100), "load": (0.5, 0.0, 12, 0, 3, 1)}
     stages = []
@@ -286,16 +286,18 @@ def test_counter_totals_add_up_stages_by_name_and_name_the_most_kernel_time():
         stage = _stage(name, 0, 1, [])
         stage.update(zip(COUNTERS, values, strict=True))
         stages.append(stage)
-    totals = counter_totals(_timeline(stages))
-    assert list(totals["stages"]) == ["load", "seen sides", "tracing"]
-    assert totals["stages"]["tracing"]["minor_faults"] == 1_400_000
-    assert totals["whole"]["system_s"] == pytest.approx(3.25)
-    assert totals["whole"]["user_s"] == pytest.approx(19.5)
-    assert counters_line("bake", "2 threads", totals) == (
+    timeline = _timeline(stages)
+    by_stage, everything = aggregate(timeline), whole(timeline, 9.0)
+    assert list(by_stage) == ["load", "seen sides", "tracing"]
+    assert by_stage["tracing"]["minor_faults"] == 1_400_000
+    assert everything["system_s"] == pytest.approx(3.25)
+    assert everything["user_s"] == pytest.approx(19.5)
+    assert counters_line("bake", "2 threads", by_stage, everything) == (
         "bake kernel, 2 threads: 3.25 s of its 22.75 s CPU in the kernel (14.3%), 1450.0 k "
         "page faults (2 from disk), 20.5 k waits and 6.1 k preemptions; most kernel time: "
         "tracing 3.00 s (1400.0 k faults), seen sides 0.25 s (50.0 k faults)")
-    assert counter_totals(_timeline([_stage("load", 0, 1, [])])) is None
+    bare = _timeline([_stage("load", 0, 1, [])])
+    assert not set(COUNTERS) & (set(aggregate(bare)["load"]) | set(whole(bare, 1.0)))
 
 
 def test_predictions_take_the_serial_seconds_of_the_most_threads():
@@ -410,7 +412,7 @@ def test_bench_cores_end_to_end(tmp_path, capsys):
     assert f"bake tracing, 2 threads: no chunk tracing for {stalls['stalled_s']:.2f} s" \
         in printed
     for r in runs.values():
-        whole_counts = r["counters"]["whole"]
+        whole_counts = r["whole"]
         assert whole_counts["minor_faults"] > 0 and whole_counts["user_s"] > 0
-        assert set(r["counters"]["stages"]) == set(r["stages"])
+        assert all(set(COUNTERS) <= set(f) for f in r["stages"].values())
         assert f"bake kernel, {run_name(r)}: {whole_counts['system_s']:.2f} s of its" in printed

@@ -10,7 +10,7 @@ added up by name) and for the whole command: wall and CPU seconds, the parallel
 efficiency (CPU / (wall × threads)), the serial seconds (sampled intervals with at most
 one core busy), the largest work item's share of the stage's items; how long the
 tracing had no chunk running, by what ran instead (`tracing_stalls`); and the kernel
-time, page faults and context switches the OS counted (`counter_totals`).
+time, page faults and context switches the OS counted (`counters_line`).
 
 Two predictions for 16 and 64 threads, both from the one-thread run:
 
@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from isolume.app.bench.counters import counter_totals, counters_line
+from isolume.app.bench.counters import COUNTERS, counters_line
 from isolume.app.bench.replay import (
     duration,
     inner_factors,
@@ -217,8 +217,9 @@ def efficiency(cpu_s: float, wall_s: float, threads: int) -> float | None:
 
 def aggregate(timeline: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per stage name, in the order first visited: its visits added up — visits, wall_s,
-    cpu_s, serial_s, items, item_s (seconds of its items), largest_item_s — and
-    efficiency, largest_share (largest item over item_s; None without items)."""
+    cpu_s, serial_s, items, item_s (seconds of its items), largest_item_s, and the OS's
+    `COUNTERS` where the timeline has them — and efficiency, largest_share (largest item
+    over item_s; None without items)."""
     out: dict[str, dict] = {}
     for stage in timeline["stages"]:
         f = out.setdefault(stage["name"], {"visits": 0, "wall_s": 0.0, "cpu_s": 0.0,
@@ -232,6 +233,9 @@ def aggregate(timeline: dict[str, Any]) -> dict[str, dict[str, Any]]:
         f["items"] += len(seconds)
         f["item_s"] += sum(seconds)
         f["largest_item_s"] = max([f["largest_item_s"], *seconds])
+        for counter in COUNTERS:
+            if counter in stage:
+                f[counter] = f.get(counter, 0) + stage[counter]
     for f in out.values():
         f["efficiency"] = efficiency(f["cpu_s"], f["wall_s"], timeline["threads"])
         f["largest_share"] = f["largest_item_s"] / f["item_s"] if f["item_s"] > 0 else None
@@ -243,7 +247,9 @@ def whole(timeline: dict[str, Any], process_wall_s: float) -> dict[str, Any]:
     interpreter's start and imports), startup_s (their difference), cpu_s, serial_s (the
     stages' and the time outside them), efficiency, others_cpu_s and stolen_s (the CPU
     seconds other processes used on its cores, and the hypervisor took from them, during
-    its stages)."""
+    its stages), and the OS's `COUNTERS` summed where every stage has them."""
+    counted = {c: sum(s[c] for s in timeline["stages"]) for c in COUNTERS
+               if timeline["stages"] and all(c in s for s in timeline["stages"])}
     cpu = sum(s["cpu_s"] for s in timeline["stages"])
     serial = sum(s.get("serial_s", 0.0) for s in timeline["stages"])
     wall = timeline["wall_s"]
@@ -252,7 +258,8 @@ def whole(timeline: dict[str, Any], process_wall_s: float) -> dict[str, Any]:
             "serial_s": serial + outside_stages_s(timeline),
             "efficiency": efficiency(cpu, wall, timeline["threads"]),
             "others_cpu_s": _known_sum(s.get("others_cpu_s") for s in timeline["stages"]),
-            "stolen_s": _known_sum(s.get("stolen_s") for s in timeline["stages"])}
+            "stolen_s": _known_sum(s.get("stolen_s") for s in timeline["stages"]),
+            **counted}
 
 
 def _known_sum(values: Iterable[float | None]) -> float | None:
@@ -316,7 +323,7 @@ def figures_of(command: str, label: str, threads: int, scheduler: str | None,
     return {"command": command, "label": label, "threads": threads, "scheduler": scheduler,
             "process_walls_s": walls, "stages": aggregate(timeline),
             "whole": whole(timeline, wall), "stalls": tracing_stalls(timeline),
-            "counters": counter_totals(timeline), "timeline": timeline}
+            "timeline": timeline}
 
 
 # -- printing -----------------------------------------------------------------------------
@@ -382,8 +389,8 @@ def whole_lines(command: str, runs: list[dict[str, Any]], predicted: dict[str, A
                      f"{_seconds(w.get('stolen_s'))}")
     lines += [stall_line(command, run_name(r), r["stalls"]) for r in runs
               if r["threads"] > 1 and r["stalls"]["tracing_s"] > 0]
-    lines += [counters_line(command, run_name(r), r["counters"]) for r in runs
-              if r.get("counters")]
+    lines += [counters_line(command, run_name(r), r["stages"], r["whole"]) for r in runs
+              if "system_s" in r["whole"]]
     p = predicted["whole"]
     lines.append(f"{command} whole, predicted from 1 thread (T1 {p['t1_s']:.2f} s, serial "
                  f"{p['serial_s']:.2f} s): " + ", ".join(

@@ -8,26 +8,13 @@ from __future__ import annotations
 
 from typing import Any
 
-COUNTERS = ("user_s", "system_s", "minor_faults", "major_faults", "voluntary_switches",
-            "involuntary_switches")
-"""The counters a timeline's stages hold (the fields of `ProcessCounters`)."""
+from isolume.volumes.usage import ProcessCounters
+
+COUNTERS = ProcessCounters._fields
+"""The counters a timeline's stages hold (the fields of `ProcessCounters`), which
+``bench cores`` adds up per stage and over the run (`aggregate`, `whole`)."""
 SHOWN_STAGES = 3
 """Stages named in a run's line: those of the most kernel time."""
-
-
-def counter_totals(timeline: dict[str, Any]) -> dict[str, Any] | None:
-    """The counters of a `timeline` added up per stage name (in the order first visited)
-    and over the whole run: ``{"stages": {name: {counter: value}}, "whole": {…}}``; None
-    for a timeline recorded without them."""
-    if not timeline["stages"] or any(c not in s for s in timeline["stages"] for c in COUNTERS):
-        return None
-    stages: dict[str, dict[str, float]] = {}
-    for stage in timeline["stages"]:
-        totals = stages.setdefault(stage["name"], dict.fromkeys(COUNTERS, 0))
-        for c in COUNTERS:
-            totals[c] += stage[c]
-    return {"stages": stages,
-            "whole": {c: sum(s[c] for s in stages.values()) for c in COUNTERS}}
 
 
 def _thousands(count: float) -> str:
@@ -35,13 +22,16 @@ def _thousands(count: float) -> str:
     return f"{count / 1000:.1f} k" if count >= 1000 else f"{count:.0f}"
 
 
-def counters_line(command: str, run_name: str, totals: dict[str, Any]) -> str:
+def counters_line(command: str, run_name: str, stages: dict[str, dict[str, Any]],
+                  whole: dict[str, Any]) -> str:
     """One run's line: its kernel time against its CPU time, page faults and context
-    switches, and the stages of the most kernel time with their faults."""
-    w = totals["whole"]
+    switches (`whole`: its `COUNTERS` added up), and the stages of the most kernel time
+    with their faults (`stages`: per stage name, as ``bench cores``'s `aggregate` adds
+    them up)."""
+    w = whole
     cpu = w["user_s"] + w["system_s"]
     share = f" ({w['system_s'] / cpu:.1%})" if cpu > 0 else ""
-    busiest = sorted(totals["stages"].items(), key=lambda kv: -kv[1]["system_s"])
+    busiest = sorted(stages.items(), key=lambda kv: -kv[1]["system_s"])
     stages = ", ".join(f"{name} {f['system_s']:.2f} s ({_thousands(f['minor_faults'])} faults)"
                        for name, f in busiest[:SHOWN_STAGES] if f["system_s"] > 0)
     return (f"{command} kernel, {run_name}: {w['system_s']:.2f} s of its {cpu:.2f} s CPU in "
