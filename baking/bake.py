@@ -43,7 +43,7 @@ from isolume.baking.backend import (
     scene_budget,
 )
 from isolume.baking.config import BakeConfig
-from isolume.baking.density import bake_texels, clear_filled
+from isolume.baking.density import bake_texels, clear_filled, texel_luminance
 from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError, BakeInterrupted
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
@@ -629,7 +629,8 @@ def _bake_group(baker: Baker, state: RoundState, group: int, members: np.ndarray
             bar.total += int(np.maximum(target - baker.samples_done(todo), 0).sum())
         baker.run(todo, target, bar=bar, after_commit=checkpoint)
         rows = baker.rows_of(members)
-        luminance = baker.lattice.values.reshape(-1, len(weights))[rows] @ weights
+        luminance = texel_luminance(baker.lattice.values.reshape(-1, len(weights))[rows],
+                                    weights)
         second = baker.lattice.second.reshape(-1)[rows]
         samples = baker.samples_done(members)
         which = np.flatnonzero(going)

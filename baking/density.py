@@ -79,10 +79,10 @@ from isolume.baking.fill_check import (
 )
 from isolume.baking.lattice import (
     BRICK,
+    FACING_POWER,
     TRAPPED_PATHS,
     brick_grid,
     path_variance,
-    side_weights,
     sky_everywhere,
 )
 from isolume.baking.passes import commit_facing
@@ -146,15 +146,31 @@ def texel_bricks(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
 
 
 def texel_luminance(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(T,) ``values @ weights`` of (T, C) texel `values`, a block at a time on every core
-    (each texel's sum as in one product over all of them)."""
+    """(T,) ``values @ weights`` of (T, C) texel `values`, in the type numpy's product
+    gives, a block at a time on every core: each texel's sum over its channels in order
+    (`_weighted_sums`), so its bits depend on its values alone — not on the blocks, the
+    rows around it or the CPU's vector width, as a BLAS product's may."""
+    values = np.ascontiguousarray(values)
+    weights = np.asarray(weights)
     luminance = np.empty(len(values), np.result_type(values.dtype, weights.dtype))
+    weights = weights.astype(luminance.dtype)
 
     def part(block: slice) -> None:
-        luminance[block] = values[block] @ weights
+        _weighted_sums(values[block], weights, luminance[block])
 
     cores.for_blocks(part, len(values), BLOCK, "texels")
     return luminance
+
+
+@numba.njit(**JIT)
+def _weighted_sums(values: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
+    """out[t] = Σ_c values[t, c] · weights[c], c in order, for (T, C) `values` (C ≥ 1),
+    in the type of their products."""
+    for t in range(values.shape[0]):
+        total = values[t, 0] * weights[0]
+        for c in range(1, values.shape[1]):
+            total += values[t, c] * weights[c]
+        out[t] = total
 
 
 def mixing_mask(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -283,7 +299,7 @@ def pair_surpluses(nodes: Nodes, at: np.ndarray, luminance: np.ndarray,
         for step in (-1, 1):
             row = nodes.row_at(half + step * direction)
             safe = np.maximum(row, 0)
-            turned = side_weights(facing[safe][:, None], own)[:, 0]
+            turned = octahedral.side_rows(safe[:, None], facing, own, FACING_POWER)[:, 0]
             pair.append((safe, (row >= 0) & shown[safe] & (~known | (turned >= SIDE_FLOOR))))
         (low, ok_low), (high, ok_high) = pair
         both = ok_low & ok_high

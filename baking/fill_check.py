@@ -19,11 +19,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 
 from isolume.baking import octahedral
-from isolume.baking.lattice import side_weights, sided_mix
+from isolume.baking.lattice import FACING_POWER, sided_mix
 from isolume.volumes import cores
+from isolume.volumes.field import JIT
 
 SURE = 3.0
 """Standard deviations of its noise an error measured from traced texels must exceed
@@ -103,7 +105,7 @@ def drift_error(nodes: Any, coords: np.ndarray, rows: np.ndarray, weights: np.nd
         beyond[:, :, axis] += 2 * np.sign(drift[lean, axis]).astype(np.int64)[:, None]
         far = nodes.row_at(beyond.reshape(-1, 3) // 2).reshape(-1, 8)
         far_safe = np.maximum(far, 0)
-        turned = side_weights(facing[far_safe], own[lean])
+        turned = octahedral.side_rows(far, facing, own[lean], FACING_POWER)
         ok = ((far >= 0) & light.shown[far_safe]
               & (~known[lean, None] | (turned >= floor)))
         part = np.where(ok, share[lean], 0.0)
@@ -125,10 +127,11 @@ def _shares(weights: np.ndarray) -> np.ndarray:
 
 
 def node_sides(rows: np.ndarray, facing: np.ndarray, own_facing: np.ndarray) -> np.ndarray:
-    """(N, K) side weights (`side_weights`) of the texels at (N, K) plan positions `rows`
-    (8 nodes, or 26 neighbours; their (T, 2) `facing`) for texels facing (N, 2)
-    `own_facing` (1 where it is unknown)."""
-    sides = side_weights(facing[np.maximum(rows, 0)], octahedral.decode(own_facing))
+    """(N, K) side weights (`baking.lattice.side_weights`, compiled:
+    `octahedral.side_rows`) of the texels at (N, K) plan positions `rows` (8 nodes, or 26
+    neighbours; their (T, 2) `facing`) for texels facing (N, 2) `own_facing` (1 where it
+    is unknown)."""
+    sides = octahedral.side_rows(rows, facing, octahedral.decode(own_facing), FACING_POWER)
     return np.where(octahedral.known(own_facing)[:, None], sides, 1.0)
 
 
@@ -205,10 +208,27 @@ def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray
 
 def _neighbours(at: np.ndarray, ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
     """(N, 26) plan positions of the neighbours of the texels at (N, 3) z, y, x `at`
-    (−1: outside the lattice or not in the plan), from the plan's sorted flat `ids`."""
-    spots = at.astype(np.int64)[:, None, :] + OFFSETS[None]
-    inside = ((spots >= 0) & (spots < np.array(shape))).all(axis=2)
-    flat = np.ravel_multi_index(tuple(np.where(inside[..., None], spots, 0).transpose(2, 0, 1)),
-                                shape)
-    found = np.minimum(np.searchsorted(ids, flat), len(ids) - 1)
-    return np.where(inside & (ids[found] == flat), found, -1)
+    (−1: outside the lattice or not in the plan), from the plan's sorted flat `ids`, in
+    one compiled pass without the GIL (`_neighbour_rows`)."""
+    out = np.empty((len(at), len(OFFSETS)), np.int64)
+    _neighbour_rows(np.ascontiguousarray(at), ids, np.array(shape, np.int64), OFFSETS, out)
+    return out
+
+
+@numba.njit(**JIT)
+def _neighbour_rows(at: np.ndarray, ids: np.ndarray, shape: np.ndarray, offsets: np.ndarray,
+                    out: np.ndarray) -> None:
+    """out[i, j]: the plan position of the texel at at[i] + offsets[j] ((K, 3) z, y, x
+    steps), by binary search in the sorted flat `ids` of a (3,) `shape` lattice; −1
+    where it lies outside or is not in the plan."""
+    for i in range(at.shape[0]):
+        for j in range(offsets.shape[0]):
+            z = np.int64(at[i, 0]) + offsets[j, 0]
+            y = np.int64(at[i, 1]) + offsets[j, 1]
+            x = np.int64(at[i, 2]) + offsets[j, 2]
+            out[i, j] = -1
+            if 0 <= z < shape[0] and 0 <= y < shape[1] and 0 <= x < shape[2]:
+                flat = (z * shape[1] + y) * shape[2] + x
+                found = np.searchsorted(ids, flat)
+                if found < len(ids) and ids[found] == flat:
+                    out[i, j] = found

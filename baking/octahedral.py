@@ -105,6 +105,35 @@ def _decode_rows(codes: np.ndarray, out: np.ndarray) -> None:
             out[i, 0], out[i, 1], out[i, 2] = _decode_pair(cx, cy)
 
 
+def side_rows(rows: np.ndarray, codes: np.ndarray, normals: np.ndarray,
+              power: int) -> np.ndarray:
+    """(N, K) max(0, n·m)^`power` for the directions m of the (T, 2) `codes` at (N, K)
+    rows `rows` (−1 read as row 0) and the points' (N, 3) unit `normals` n; 1 where a
+    code is `UNKNOWN`. In one compiled pass without the GIL (`_side_rows`): the same
+    bits as decoding, a dot product over x, y, z and numpy's power."""
+    out = np.empty(rows.shape)
+    _side_rows(np.ascontiguousarray(rows), np.ascontiguousarray(codes),
+               np.ascontiguousarray(normals, np.float64), power, out)
+    return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _side_rows(rows: np.ndarray, codes: np.ndarray, normals: np.ndarray, power: int,
+               out: np.ndarray) -> None:
+    """out[i, k] = `side_rows`'s weight of rows[i, k] (N, K) for normals[i]."""
+    for i in range(rows.shape[0]):
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        for k in range(rows.shape[1]):
+            row = max(rows[i, k], 0)
+            cx, cy = int(codes[row, 0]), int(codes[row, 1])
+            if cx == 0 and cy == 0:
+                out[i, k] = 1.0
+                continue
+            dx, dy, dz = _decode_pair(cx, cy)
+            cos = max((dx * nx + dz * nz) + dy * ny, 0.0)  # numpy's einsum's order
+            out[i, k] = cos * cos if power == 2 else cos ** float(power)
+
+
 def known(codes: np.ndarray) -> np.ndarray:
     """(...) bool: which of the (..., 2) codes hold a direction (not `UNKNOWN`)."""
     return np.asarray(codes).any(axis=-1)

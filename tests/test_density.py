@@ -54,7 +54,8 @@ def test_the_blockwise_helpers_give_what_one_call_over_every_texel_gives(monkeyp
     """`mixing_mask`, `texel_bricks` and `texel_luminance` cut their texels into blocks for
     the cores; cut small here (many blocks, a short last one), they give the same as one
     call over all of them: the sorted unique nodes of the mixes (`numpy.unique`), the
-    bricks, and the luminance to the bit."""
+    bricks, and the luminance to the bit (each texel's channels summed in order, whatever
+    the rows around it: a BLAS product's bits may depend on them)."""
     from isolume.baking import density
 
     monkeypatch.setattr(density, "BLOCK", 333)
@@ -70,10 +71,28 @@ def test_the_blockwise_helpers_give_what_one_call_over_every_texel_gives(monkeyp
     np.testing.assert_array_equal(texel_bricks(coords, grid), brick_of(coords, grid))
     values = RNG.random((len(ids), 3)).astype(np.float32)
     for weights in (np.array([0.2126, 0.7152, 0.0722]), np.float32([0.3, 0.6, 0.1])):
-        whole = values @ weights
+        whole = (values[:, 0] * weights[0] + values[:, 1] * weights[1]
+                 + values[:, 2] * weights[2])
         got = texel_luminance(values, weights)
         assert got.dtype == whole.dtype
         np.testing.assert_array_equal(got.view(np.uint8), whole.view(np.uint8))
+
+
+def test_a_texels_neighbours_are_found_in_the_plan():
+    """`fill_check._neighbours` (compiled binary search) names, per texel and per step of
+    `OFFSETS`, the plan position of that neighbour, and −1 outside the box or the plan —
+    checked against a dictionary of the plan's texels, the box's faces and corners
+    included."""
+    from isolume.baking import fill_check
+
+    ids = np.sort(RNG.choice(int(np.prod(SHAPE)), 2000, replace=False))
+    coords = texel_coords(ids, SHAPE)
+    at = np.concatenate([coords[RNG.integers(0, len(ids), 300)],
+                         [[0, 0, 0], np.array(SHAPE) - 1]]).astype(coords.dtype)
+    where = {tuple(c): k for k, c in enumerate(coords.tolist())}
+    expected = [[where.get(tuple(int(v) for v in c + step), -1) for step in fill_check.OFFSETS]
+                for c in at]
+    np.testing.assert_array_equal(fill_check._neighbours(at, ids, SHAPE), expected)
 
 
 def test_the_nodes_mix_is_the_half_lattice_trilinear_lookup():

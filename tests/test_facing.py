@@ -140,6 +140,24 @@ def test_octahedral_codes_are_the_nearest_of_the_four_around_each_point():
     chosen = (octahedral.decode(octahedral.encode(v)) * v).sum(axis=1)
     np.testing.assert_array_less(nearest - chosen, 1e-12 * np.linalg.norm(v, axis=1))
 
+def test_compiled_side_weights_are_the_array_codes_bits():
+    """`octahedral.side_rows` (the baker's compiled side weights, read through rows of a
+    facing table) gives `side_weights`' bits for the square, unknown codes and rows −1
+    (row 0) included, and other powers to within rounding."""
+    rng = np.random.default_rng(5)
+    codes = rng.integers(0, 256, (3000, 2)).astype(np.uint8)
+    codes[::9] = 0
+    for k in (1, 8, 26):
+        rows = rng.integers(-1, len(codes), (4000, k))
+        normals = rng.normal(size=(4000, 3))
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        looked_up = codes[np.maximum(rows, 0)]
+        np.testing.assert_array_equal(octahedral.side_rows(rows, codes, normals, 2),
+                                      side_weights(looked_up, normals, 2))
+        np.testing.assert_allclose(octahedral.side_rows(rows, codes, normals, 3),
+                                   side_weights(looked_up, normals, 3), rtol=0, atol=1e-15)
+
+
 # -- the baker's facings ----------------------------------------------------------------------
 def test_facings_are_the_start_normals_and_do_not_depend_on_the_workers():
     vol = _plate(1.0, 0.25)
