@@ -289,24 +289,45 @@ def pair_surpluses(nodes: Nodes, at: np.ndarray, luminance: np.ndarray,
         luminance: (T,) brightness; shown: (T,) bool, what a display shows;
         facing: (T, 2) octahedral facings.
     """
-    half = nodes.half(at)
     surplus = np.zeros((len(at), len(DIRECTIONS)))
     noise = np.full((len(at), len(DIRECTIONS)), np.nan)
-    own = octahedral.decode(facing[at])
-    known = octahedral.known(facing[at])
-    for k, direction in enumerate(DIRECTIONS):
-        pair = []
-        for step in (-1, 1):
-            row = nodes.row_at(half + step * direction)
-            safe = np.maximum(row, 0)
-            turned = octahedral.side_rows(safe[:, None], facing, own, FACING_POWER)[:, 0]
-            pair.append((safe, (row >= 0) & shown[safe] & (~known | (turned >= SIDE_FLOOR))))
-        (low, ok_low), (high, ok_high) = pair
-        both = ok_low & ok_high
-        surplus[both, k] = (luminance[at[both]]
-                            - 0.5 * (luminance[low[both]] + luminance[high[both]]))
-        noise[both, k] = error[at[both]] + 0.25 * (error[low[both]] + error[high[both]])
+    _pair_surpluses(nodes.rows, nodes.half(at), np.asarray(at, np.int64), DIRECTIONS,
+                    np.asarray(luminance, np.float64), np.asarray(error, np.float64), shown,
+                    facing, SIDE_FLOOR, FACING_POWER, surplus, noise)
     return surplus, noise
+
+
+@numba.njit(**JIT)
+def _pair_surpluses(node_rows: np.ndarray, half: np.ndarray, at: np.ndarray,
+                    directions: np.ndarray, luminance: np.ndarray, error: np.ndarray,
+                    shown: np.ndarray, facing: np.ndarray, floor: float, power: int,
+                    surplus: np.ndarray, noise: np.ndarray) -> None:
+    """`pair_surpluses` into (N, K) `surplus` and `noise` (set where a pair is found), for
+    the nodes at plan positions (N,) `at` and (N, 3) half indices `half`, along (K, 3)
+    `directions`, from a half lattice's `node_rows` map (`Nodes.rows`)."""
+    shape = node_rows.shape
+    pair = np.empty(2, np.int64)
+    for i in range(len(at)):
+        cx, cy = facing[at[i], 0], facing[at[i], 1]
+        known = cx != 0 or cy != 0
+        nx, ny, nz = octahedral.decode_pair(int(cx), int(cy))
+        for k in range(len(directions)):
+            found = True
+            for s in range(2):
+                step = 2 * s - 1
+                z = half[i, 0] + step * directions[k, 0]
+                y = half[i, 1] + step * directions[k, 1]
+                x = half[i, 2] + step * directions[k, 2]
+                row = -1
+                if 0 <= z < shape[0] and 0 <= y < shape[1] and 0 <= x < shape[2]:
+                    row = node_rows[z, y, x]
+                found &= row >= 0 and shown[row] and (not known or octahedral.side_of(
+                    facing[row, 0], facing[row, 1], nx, ny, nz, power) >= floor)
+                pair[s] = row
+            if found:
+                low, high = pair[0], pair[1]
+                surplus[i, k] = luminance[at[i]] - 0.5 * (luminance[low] + luminance[high])
+                noise[i, k] = error[at[i]] + 0.25 * (error[low] + error[high])
 
 
 def fine_bricks(lattices: list[Nodes], bricks: np.ndarray, light: NodeLight,

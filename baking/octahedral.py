@@ -56,7 +56,7 @@ def _encode_rows(vectors: np.ndarray, out: np.ndarray) -> None:
         for step in range(4):
             cx = int(min(max(bx + step // 2, 0.0), STEPS))
             cy = int(min(max(by + step % 2, 0.0), STEPS))
-            dx, dy, dz = _decode_pair(cx, cy)
+            dx, dy, dz = decode_pair(cx, cy)
             cos = dx * ux + dy * uy + dz * uz
             if step == 0 or cos > best_cos:
                 best_x, best_y, best_cos = cx, cy, cos
@@ -66,7 +66,7 @@ def _encode_rows(vectors: np.ndarray, out: np.ndarray) -> None:
 
 
 @numba.njit(nogil=True, cache=True)
-def _decode_pair(cx: int, cy: int) -> tuple[float, float, float]:
+def decode_pair(cx: int, cy: int) -> tuple[float, float, float]:
     """The unit vector of the code (cx, cy), `UNKNOWN` read as the corner −z."""
     px, py = cx / STEPS * 2 - 1, cy / STEPS * 2 - 1
     z = 1 - (abs(px) + abs(py))
@@ -102,7 +102,7 @@ def _decode_rows(codes: np.ndarray, out: np.ndarray) -> None:
         if cx == 0 and cy == 0:
             out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, 0.0
         else:
-            out[i, 0], out[i, 1], out[i, 2] = _decode_pair(cx, cy)
+            out[i, 0], out[i, 1], out[i, 2] = decode_pair(cx, cy)
 
 
 def side_rows(rows: np.ndarray, codes: np.ndarray, normals: np.ndarray,
@@ -125,13 +125,18 @@ def _side_rows(rows: np.ndarray, codes: np.ndarray, normals: np.ndarray, power: 
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         for k in range(rows.shape[1]):
             row = max(rows[i, k], 0)
-            cx, cy = int(codes[row, 0]), int(codes[row, 1])
-            if cx == 0 and cy == 0:
-                out[i, k] = 1.0
-                continue
-            dx, dy, dz = _decode_pair(cx, cy)
-            cos = max((dx * nx + dz * nz) + dy * ny, 0.0)  # numpy's einsum's order
-            out[i, k] = cos * cos if power == 2 else cos ** float(power)
+            out[i, k] = side_of(codes[row, 0], codes[row, 1], nx, ny, nz, power)
+
+
+@numba.njit(nogil=True, cache=True)
+def side_of(cx: int, cy: int, nx: float, ny: float, nz: float, power: int) -> float:
+    """max(0, n·m)^`power` of the code (cx, cy)'s direction m and the unit normal (nx, ny,
+    nz): `side_rows`' weight of one texel (1 for `UNKNOWN`)."""
+    if cx == 0 and cy == 0:
+        return 1.0
+    dx, dy, dz = decode_pair(int(cx), int(cy))
+    cos = max((dx * nx + dz * nz) + dy * ny, 0.0)  # numpy's einsum's order
+    return cos * cos if power == 2 else cos ** float(power)
 
 
 def known(codes: np.ndarray) -> np.ndarray:

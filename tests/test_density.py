@@ -95,6 +95,39 @@ def test_a_texels_neighbours_are_found_in_the_plan():
     np.testing.assert_array_equal(fill_check._neighbours(at, ids, SHAPE), expected)
 
 
+def test_pair_surpluses_are_each_nodes_brightness_less_its_pairs_mean():
+    """`pair_surpluses` (a compiled kernel) against a plain loop over nodes and the 13
+    directions: a pair counts where both nodes are in the plan, shown and — where the node
+    has a facing — facing its way (side weight ≥ `SIDE_FLOOR`); elsewhere 0 and NaN."""
+    from isolume.baking import octahedral
+    from isolume.baking.density import DIRECTIONS, SIDE_FLOOR, pair_surpluses
+    from isolume.baking.lattice import side_weights
+
+    ids = np.sort(RNG.choice(int(np.prod(SHAPE)), 4000, replace=False))
+    coords = texel_coords(ids, SHAPE)
+    where = {tuple(c): k for k, c in enumerate(coords.tolist())}
+    luminance, error = RNG.random(len(ids)), RNG.random(len(ids)) * 0.01
+    shown = RNG.random(len(ids)) > 0.1
+    facing = octahedral.encode(RNG.normal(size=(len(ids), 3)) + np.array([0.0, 0.0, 1.5]))
+    facing[::7] = 0
+    nodes = Nodes(coords, SHAPE, 1)
+    surplus, noise = pair_surpluses(nodes, nodes.positions, luminance, error, shown, facing)
+    pairs = 0
+    for i, at in enumerate(nodes.positions):
+        own = octahedral.decode(facing[at])
+        for k, step in enumerate(DIRECTIONS):
+            ends = [where.get(tuple(int(v) for v in coords[at] + 2 * sign * step), -1)
+                    for sign in (-1, 1)]
+            ok = all(e >= 0 and shown[e] and (not facing[at].any() or side_weights(
+                facing[e][None, None], own[None])[0, 0] >= SIDE_FLOOR) for e in ends)
+            expected = (luminance[at] - 0.5 * (luminance[ends[0]] + luminance[ends[1]]),
+                        error[at] + 0.25 * (error[ends[0]] + error[ends[1]])) if ok \
+                else (0.0, np.nan)
+            np.testing.assert_array_equal((surplus[i, k], noise[i, k]), expected)
+            pairs += ok
+    assert pairs > 100
+
+
 def test_the_nodes_mix_is_the_half_lattice_trilinear_lookup():
     """At every texel of a box full of texels, the nodes' weights at two texels' spacing
     are those of the half lattice's trilinear lookup at half the texel's coordinates (node
