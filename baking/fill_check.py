@@ -90,34 +90,86 @@ def drift_error(nodes: Any, coords: np.ndarray, rows: np.ndarray, weights: np.nd
         facing: (T, 2) every texel's octahedral facing; own_facing: (N, 2) the texels';
             floor: the least side weight of a node beyond (`baking.density.SIDE_FLOOR`).
     """
-    safe = np.maximum(rows, 0)
-    spots = nodes.coords[safe].astype(np.int64)
-    share = _shares(weights * sides)
-    drift = (share[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
-    plain = (_shares(weights)[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
-    own, known = octahedral.decode(own_facing), octahedral.known(own_facing)
     squares = np.zeros(len(rows))
-    for axis in range(3):
-        lean = np.flatnonzero(np.abs(drift[:, axis]) > DRIFT)
-        if len(lean) == 0:
-            continue
-        beyond = spots[lean] - nodes.offset
-        beyond[:, :, axis] += 2 * np.sign(drift[lean, axis]).astype(np.int64)[:, None]
-        far = nodes.row_at(beyond.reshape(-1, 3) // 2).reshape(-1, 8)
-        far_safe = np.maximum(far, 0)
-        turned = octahedral.side_rows(far, facing, own[lean], FACING_POWER)
-        ok = ((far >= 0) & light.shown[far_safe]
-              & (~known[lean, None] | (turned >= floor)))
-        part = np.where(ok, share[lean], 0.0)
-        covered = part.sum(axis=1)
-        held = np.maximum(covered, 1e-12)
-        near, step = safe[lean], drift[lean, axis]
-        slope = (part * (light.luminance[near] - light.luminance[far_safe])).sum(axis=1) / held
-        noise = (part ** 2 * (light.error[near] + light.error[far_safe])).sum(axis=1) / held ** 2
-        error = np.maximum(np.abs(slope) - SURE * np.sqrt(noise), 0.0) * 0.5 * np.abs(step)
-        sided = np.abs(step - plain[lean, axis]) > DRIFT
-        squares[lean] += np.where(covered >= 0.5, error ** 2, np.where(sided, np.inf, 0.0))
+    _drift_squares(nodes.rows, nodes.coords, nodes.offset, np.asarray(coords, np.int64),
+                   np.asarray(rows, np.int64), np.asarray(weights, np.float64),
+                   np.asarray(sides, np.float64), facing, own_facing, light.luminance,
+                   light.error, light.shown, floor, FACING_POWER, squares)
     return np.sqrt(squares)
+
+
+@numba.njit(**JIT)
+def _drift_squares(node_rows: np.ndarray, node_coords: np.ndarray, offset: int,
+                   coords: np.ndarray, rows: np.ndarray, weights: np.ndarray,
+                   sides: np.ndarray, facing: np.ndarray, own_facing: np.ndarray,
+                   luminance: np.ndarray, error: np.ndarray, shown: np.ndarray,
+                   floor: float, power: int, squares: np.ndarray) -> None:
+    """`drift_error`'s squares into (N,) `squares`, per texel (see there for the
+    arguments; `node_rows`, `node_coords`, `offset`: the half lattice's `Nodes.rows`,
+    `Nodes.coords`, `Nodes.offset`), summed as numpy sums the arrays: over a texel's 8
+    nodes pairwise (`_sum8`), over the nodes of each axis's lean in order."""
+    shape = node_rows.shape
+    share, plain_share, part = np.empty(8), np.empty(8), np.empty(8)
+    slopes, noises = np.empty(8), np.empty(8)
+    drift, plain = np.empty(3), np.empty(3)
+    spots = np.empty((8, 3), np.int64)
+    for n in range(rows.shape[0]):
+        for k in range(8):
+            share[k] = weights[n, k] * sides[n, k]
+            spots[k] = node_coords[max(rows[n, k], 0)]
+        _to_shares(share)
+        plain_share[:] = weights[n]
+        _to_shares(plain_share)
+        for axis in range(3):
+            drift[axis] = share[0] * (spots[0, axis] - coords[n, axis])
+            plain[axis] = plain_share[0] * (spots[0, axis] - coords[n, axis])
+            for k in range(1, 8):
+                drift[axis] += share[k] * (spots[k, axis] - coords[n, axis])
+                plain[axis] += plain_share[k] * (spots[k, axis] - coords[n, axis])
+        cx, cy = own_facing[n, 0], own_facing[n, 1]
+        known = cx != 0 or cy != 0
+        nx, ny, nz = octahedral.decode_pair(int(cx), int(cy))
+        for axis in range(3):
+            step = drift[axis]
+            if not abs(step) > DRIFT:
+                continue
+            for k in range(8):
+                far = -1
+                half = (spots[k] - offset) // 2
+                half[axis] = (spots[k, axis] - offset + (2 if step > 0 else -2)) // 2
+                if (0 <= half[0] < shape[0] and 0 <= half[1] < shape[1]
+                        and 0 <= half[2] < shape[2]):
+                    far = node_rows[half[0], half[1], half[2]]
+                ok = far >= 0 and shown[far] and (not known or octahedral.side_of(
+                    facing[far, 0], facing[far, 1], nx, ny, nz, power) >= floor)
+                part[k] = share[k] if ok else 0.0
+                near, far = max(rows[n, k], 0), max(far, 0)
+                slopes[k] = part[k] * (luminance[near] - luminance[far])
+                noises[k] = part[k] ** 2 * (error[near] + error[far])
+            covered = _sum8(part)
+            held = max(covered, 1e-12)
+            slope = _sum8(slopes) / held
+            noise = _sum8(noises) / held ** 2
+            if covered >= 0.5:
+                miss = max(abs(slope) - SURE * np.sqrt(noise), 0.0) * 0.5 * abs(step)
+                squares[n] += miss ** 2
+            elif abs(step - plain[axis]) > DRIFT:
+                squares[n] += np.inf
+
+
+@numba.njit(**JIT)
+def _sum8(values: np.ndarray) -> float:
+    """The sum of (8,) `values` in numpy's pairwise order for eight."""
+    return (((values[0] + values[1]) + (values[2] + values[3]))
+            + ((values[4] + values[5]) + (values[6] + values[7])))
+
+
+@numba.njit(**JIT)
+def _to_shares(weights: np.ndarray) -> None:
+    """(8,) `weights` over their sum (`_sum8`), in place; 0 where the sum is 0."""
+    total = _sum8(weights)
+    for k in range(8):
+        weights[k] = weights[k] / total if total > 0 else 0.0
 
 
 def _shares(weights: np.ndarray) -> np.ndarray:

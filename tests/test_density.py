@@ -10,7 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from isolume.baking import BakeConfig, bake
+from isolume.baking import BakeConfig, bake, octahedral
 from isolume.baking.density import (
     BRICK,
     FILLED_KEY,
@@ -30,8 +30,8 @@ from isolume.baking.density import (
     texel_luminance,
 )
 from isolume.baking.errors import BakeError
-from isolume.baking.fill_check import SURE, NodeLight, drift_error, stray_fills
-from isolume.baking.lattice import TRAPPED_PATHS, brick_grid, trilinear_corners
+from isolume.baking.fill_check import DRIFT, SURE, NodeLight, drift_error, stray_fills
+from isolume.baking.lattice import TRAPPED_PATHS, brick_grid, side_weights, trilinear_corners
 from isolume.volumes.synthetic import make
 
 SHAPE = (20, 18, 17)
@@ -99,9 +99,7 @@ def test_pair_surpluses_are_each_nodes_brightness_less_its_pairs_mean():
     """`pair_surpluses` (a compiled kernel) against a plain loop over nodes and the 13
     directions: a pair counts where both nodes are in the plan, shown and — where the node
     has a facing — facing its way (side weight ≥ `SIDE_FLOOR`); elsewhere 0 and NaN."""
-    from isolume.baking import octahedral
     from isolume.baking.density import DIRECTIONS, SIDE_FLOOR, pair_surpluses
-    from isolume.baking.lattice import side_weights
 
     ids = np.sort(RNG.choice(int(np.prod(SHAPE)), 4000, replace=False))
     coords = texel_coords(ids, SHAPE)
@@ -254,6 +252,63 @@ def _drift(nodes, at, light, away=None):
     sides = np.where(nodes.coords[np.maximum(rows, 0)][:, :, 2] == away, 0.0, 1.0)
     unknown = np.zeros((len(light.luminance), 2), np.uint8)
     return drift_error(nodes, at, rows, w, sides, unknown, unknown[:len(at)], light, 0.5)
+
+
+def _drift_by_arrays(nodes, coords, rows, weights, sides, facing, own_facing, light, floor):
+    """`drift_error` in array code (as numpy sums: the compiled kernel's yardstick)."""
+    def shares(w):
+        total = w.sum(axis=1, keepdims=True)
+        return np.divide(w, total, out=np.zeros_like(w), where=total > 0)
+
+    safe = np.maximum(rows, 0)
+    spots = nodes.coords[safe].astype(np.int64)
+    share = shares(weights * sides)
+    drift = (share[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
+    plain = (shares(weights)[:, :, None] * (spots - coords[:, None, :])).sum(axis=1)
+    own, known = octahedral.decode(own_facing), octahedral.known(own_facing)
+    squares = np.zeros(len(rows))
+    for axis in range(3):
+        lean = np.flatnonzero(np.abs(drift[:, axis]) > DRIFT)
+        beyond = spots[lean] - nodes.offset
+        beyond[:, :, axis] += 2 * np.sign(drift[lean, axis]).astype(np.int64)[:, None]
+        far = nodes.row_at(beyond.reshape(-1, 3) // 2).reshape(-1, 8)
+        far_safe = np.maximum(far, 0)
+        turned = side_weights(facing[far_safe], own[lean])
+        ok = (far >= 0) & light.shown[far_safe] & (~known[lean, None] | (turned >= floor))
+        part = np.where(ok, share[lean], 0.0)
+        covered = part.sum(axis=1)
+        held = np.maximum(covered, 1e-12)
+        near, step = safe[lean], drift[lean, axis]
+        slope = (part * (light.luminance[near] - light.luminance[far_safe])).sum(axis=1) / held
+        noise = (part ** 2 * (light.error[near] + light.error[far_safe])).sum(axis=1) / held ** 2
+        error = np.maximum(np.abs(slope) - SURE * np.sqrt(noise), 0.0) * 0.5 * np.abs(step)
+        sided = np.abs(step - plain[lean, axis]) > DRIFT
+        squares[lean] += np.where(covered >= 0.5, error ** 2, np.where(sided, np.inf, 0.0))
+    return np.sqrt(squares)
+
+
+def test_the_compiled_drift_error_is_the_array_codes_bits():
+    """`drift_error` (one compiled pass) gives the array code's bits: random plans and
+    light, facings known and unknown, both half lattices, leaning and infinite fills."""
+    from isolume.baking.fill_check import node_sides
+
+    for seed in range(2):
+        rng = np.random.default_rng(seed)
+        ids = np.sort(rng.choice(int(np.prod(SHAPE)), 3000 + 2500 * seed, replace=False))
+        coords = texel_coords(ids, SHAPE).astype(np.int64)
+        facing = octahedral.encode(rng.normal(size=(len(ids), 3)) + np.array([0.0, 0.0, 1.0]))
+        facing[::6] = 0
+        light = NodeLight(rng.random(len(ids)) * rng.choice([0, 1, 5], len(ids)),
+                          rng.random(len(ids)) * 0.01, rng.random(len(ids)) > 0.1, 0.05)
+        for offset in (0, 1):
+            nodes = Nodes(coords, SHAPE, offset)
+            rows, w = nodes.corners(coords)
+            w = light.weigh(rows, w)
+            sides = node_sides(rows, facing, facing)
+            args = (nodes, coords, rows, w, sides, facing, facing, light, 0.25)
+            got = drift_error(*args)
+            assert np.isinf(got).sum() > 50 and (np.isfinite(got) & (got > 0)).sum() > 50
+            np.testing.assert_array_equal(got, _drift_by_arrays(*args))
 
 
 def test_a_fill_leaning_to_one_side_errs_by_the_slope():
