@@ -63,11 +63,10 @@ import zlib
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 
-from isolume.baking import octahedral
 from isolume.baking.config import NODE_PATHS
+from isolume.baking.density_kernels import corner_nodes, node_pair_surpluses, weighted_sums
 from isolume.baking.fill_check import (
     SURE,
     NodeLight,
@@ -87,7 +86,6 @@ from isolume.baking.lattice import (
 )
 from isolume.baking.passes import commit_facing
 from isolume.volumes import cores
-from isolume.volumes.field import JIT
 
 FILLED_KEY = "filled"
 """The lattice metadata's record of the texels a bake filled (`clear_filled`)."""
@@ -148,29 +146,18 @@ def texel_bricks(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
 def texel_luminance(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(T,) ``values @ weights`` of (T, C) texel `values`, in the type numpy's product
     gives, a block at a time on every core: each texel's sum over its channels in order
-    (`_weighted_sums`), so its bits depend on its values alone — not on the blocks, the
-    rows around it or the CPU's vector width, as a BLAS product's may."""
+    (`density_kernels.weighted_sums`), so its bits depend on its values alone — not on
+    the blocks, the rows around it or the CPU's vector width, as a BLAS product's may."""
     values = np.ascontiguousarray(values)
     weights = np.asarray(weights)
     luminance = np.empty(len(values), np.result_type(values.dtype, weights.dtype))
     weights = weights.astype(luminance.dtype)
 
     def part(block: slice) -> None:
-        _weighted_sums(values[block], weights, luminance[block])
+        weighted_sums(values[block], weights, luminance[block])
 
     cores.for_blocks(part, len(values), BLOCK, "texels")
     return luminance
-
-
-@numba.njit(**JIT)
-def _weighted_sums(values: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
-    """out[t] = Σ_c values[t, c] · weights[c], c in order, for (T, C) `values` (C ≥ 1),
-    in the type of their products."""
-    for t in range(values.shape[0]):
-        total = values[t, 0] * weights[0]
-        for c in range(1, values.shape[1]):
-            total += values[t, c] * weights[c]
-        out[t] = total
 
 
 def mixing_mask(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -234,30 +221,6 @@ class Nodes:
         return rows, weights
 
 
-@numba.njit(**JIT)
-def corner_nodes(node_rows: np.ndarray, coords: np.ndarray, offset: int, stride: int,
-                 shape: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> None:
-    """`Nodes.corners` into (N, 8) `rows` and `weights`, from a half lattice's
-    `node_rows` map (`Nodes.rows`) at `offset`; `shape`: (3,) the lattice's texels."""
-    half = np.empty(3, np.int64)
-    for n in range(len(coords)):
-        for k in range(8):
-            weight = 1.0
-            inside = True
-            for axis in range(3):
-                c = np.int64(coords[n, axis]) - offset
-                low = c - (c % stride + stride) % stride
-                frac = (c - low) / stride
-                step = (k >> (2 - axis)) & 1
-                weight *= frac if step == 1 else 1.0 - frac
-                at = low + stride * step
-                inside &= at >= 0 and at + offset < shape[axis]
-                half[axis] = at // 2
-            row = node_rows[half[0], half[1], half[2]] if inside and weight > 0 else -1
-            rows[n, k] = row
-            weights[n, k] = weight if row >= 0 else 0.0
-
-
 def light_level(luminance: np.ndarray) -> float:
     """The scene's light level: the mean brightness of the (N,) node luminances (1 where
     every node is dark: the tolerance is then an absolute one)."""
@@ -291,43 +254,10 @@ def pair_surpluses(nodes: Nodes, at: np.ndarray, luminance: np.ndarray,
     """
     surplus = np.zeros((len(at), len(DIRECTIONS)))
     noise = np.full((len(at), len(DIRECTIONS)), np.nan)
-    _pair_surpluses(nodes.rows, nodes.half(at), np.asarray(at, np.int64), DIRECTIONS,
-                    np.asarray(luminance, np.float64), np.asarray(error, np.float64), shown,
-                    facing, SIDE_FLOOR, FACING_POWER, surplus, noise)
+    node_pair_surpluses(nodes.rows, nodes.half(at), np.asarray(at, np.int64), DIRECTIONS,
+                        np.asarray(luminance, np.float64), np.asarray(error, np.float64), shown,
+                        facing, SIDE_FLOOR, FACING_POWER, surplus, noise)
     return surplus, noise
-
-
-@numba.njit(**JIT)
-def _pair_surpluses(node_rows: np.ndarray, half: np.ndarray, at: np.ndarray,
-                    directions: np.ndarray, luminance: np.ndarray, error: np.ndarray,
-                    shown: np.ndarray, facing: np.ndarray, floor: float, power: int,
-                    surplus: np.ndarray, noise: np.ndarray) -> None:
-    """`pair_surpluses` into (N, K) `surplus` and `noise` (set where a pair is found), for
-    the nodes at plan positions (N,) `at` and (N, 3) half indices `half`, along (K, 3)
-    `directions`, from a half lattice's `node_rows` map (`Nodes.rows`)."""
-    shape = node_rows.shape
-    pair = np.empty(2, np.int64)
-    for i in range(len(at)):
-        cx, cy = facing[at[i], 0], facing[at[i], 1]
-        known = cx != 0 or cy != 0
-        nx, ny, nz = octahedral.decode_pair(int(cx), int(cy))
-        for k in range(len(directions)):
-            found = True
-            for s in range(2):
-                step = 2 * s - 1
-                z = half[i, 0] + step * directions[k, 0]
-                y = half[i, 1] + step * directions[k, 1]
-                x = half[i, 2] + step * directions[k, 2]
-                row = -1
-                if 0 <= z < shape[0] and 0 <= y < shape[1] and 0 <= x < shape[2]:
-                    row = node_rows[z, y, x]
-                found &= row >= 0 and shown[row] and (not known or octahedral.side_of(
-                    facing[row, 0], facing[row, 1], nx, ny, nz, power) >= floor)
-                pair[s] = row
-            if found:
-                low, high = pair[0], pair[1]
-                surplus[i, k] = luminance[at[i]] - 0.5 * (luminance[low] + luminance[high])
-                noise[i, k] = error[at[i]] + 0.25 * (error[low] + error[high])
 
 
 def fine_bricks(lattices: list[Nodes], bricks: np.ndarray, light: NodeLight,
