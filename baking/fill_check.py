@@ -112,7 +112,7 @@ def _drift_squares(node_rows: np.ndarray, node_coords: np.ndarray, offset: int,
     share, plain_share, part = np.empty(8), np.empty(8), np.empty(8)
     slopes, noises = np.empty(8), np.empty(8)
     drift, plain = np.empty(3), np.empty(3)
-    spots = np.empty((8, 3), np.int64)
+    spots, half = np.empty((8, 3), np.int64), np.empty(3, np.int64)
     for n in range(rows.shape[0]):
         for k in range(8):
             share[k] = weights[n, k] * sides[n, k]
@@ -135,7 +135,7 @@ def _drift_squares(node_rows: np.ndarray, node_coords: np.ndarray, offset: int,
                 continue
             for k in range(8):
                 far = -1
-                half = (spots[k] - offset) // 2
+                half[:] = (spots[k] - offset) // 2
                 half[axis] = (spots[k, axis] - offset + (2 if step > 0 else -2)) // 2
                 if (0 <= half[0] < shape[0] and 0 <= half[1] < shape[1]
                         and 0 <= half[2] < shape[2]):
@@ -170,12 +170,6 @@ def _to_shares(weights: np.ndarray) -> None:
     total = _sum8(weights)
     for k in range(8):
         weights[k] = weights[k] / total if total > 0 else 0.0
-
-
-def _shares(weights: np.ndarray) -> np.ndarray:
-    """(N, 8) `weights` over their sums (0 where a row's sum is 0)."""
-    total = weights.sum(axis=1, keepdims=True)
-    return np.divide(weights, total, out=np.zeros_like(weights), where=total > 0)
 
 
 def node_sides(rows: np.ndarray, facing: np.ndarray, own_facing: np.ndarray) -> np.ndarray:
