@@ -203,12 +203,6 @@ class Nodes:
         """(N, 3) int64 half indices of the nodes at plan `positions`."""
         return (self.coords[positions].astype(np.int64) - self.offset) // 2
 
-    def row_at(self, half: np.ndarray) -> np.ndarray:
-        """(N,) plan positions of the nodes at (N, 3) half indices (−1: none, or outside)."""
-        inside = ((half >= 0) & (half < self.rows.shape)).all(axis=1)
-        safe = np.where(inside[:, None], half, 0)
-        return np.where(inside, self.rows[safe[:, 0], safe[:, 1], safe[:, 2]], -1)
-
     def corners(self, coords: np.ndarray, stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
         """The nodes of the trilinear mix at `stride` texels' spacing (2 or 4) of (N, 3)
         texel `coords`: (N, 8) int64 plan positions (−1 where no node, or a weight of 0)

@@ -1,7 +1,8 @@
 """The compiled kernels of a bake to a texel error (`baking.density`): a half lattice's
-nodes around texels (`corner_nodes`), the surpluses of node pairs that judge a brick
-(`node_pair_surpluses`) and texel luminance summed in a fixed order (`weighted_sums`) — each
-a block of texels per call, without the GIL, with the array code's bits.
+nodes around texels (`corner_nodes`) and at a half index (`node_at`), the surpluses of
+node pairs that judge a brick (`node_pair_surpluses`) and texel luminance summed in a
+fixed order (`weighted_sums`) — each a block of texels per call, without the GIL, with the
+array code's bits.
 """
 
 from __future__ import annotations
@@ -45,7 +46,6 @@ def node_pair_surpluses(node_rows: np.ndarray, half: np.ndarray, at: np.ndarray,
     """`density.pair_surpluses` into (N, K) `surplus` and `noise` (set where a pair is found), for
     the nodes at plan positions (N,) `at` and (N, 3) half indices `half`, along (K, 3)
     `directions`, from a half lattice's `node_rows` map (`density.Nodes.rows`)."""
-    shape = node_rows.shape
     pair = np.empty(2, np.int64)
     for i in range(len(at)):
         cx, cy = facing[at[i], 0], facing[at[i], 1]
@@ -55,12 +55,9 @@ def node_pair_surpluses(node_rows: np.ndarray, half: np.ndarray, at: np.ndarray,
             found = True
             for s in range(2):
                 step = 2 * s - 1
-                z = half[i, 0] + step * directions[k, 0]
-                y = half[i, 1] + step * directions[k, 1]
-                x = half[i, 2] + step * directions[k, 2]
-                row = -1
-                if 0 <= z < shape[0] and 0 <= y < shape[1] and 0 <= x < shape[2]:
-                    row = node_rows[z, y, x]
+                row = node_at(node_rows, half[i, 0] + step * directions[k, 0],
+                              half[i, 1] + step * directions[k, 1],
+                              half[i, 2] + step * directions[k, 2])
                 found &= row >= 0 and shown[row] and (not known or octahedral.side_of(
                     facing[row, 0], facing[row, 1], nx, ny, nz, power) >= floor)
                 pair[s] = row
@@ -68,6 +65,16 @@ def node_pair_surpluses(node_rows: np.ndarray, half: np.ndarray, at: np.ndarray,
                 low, high = pair[0], pair[1]
                 surplus[i, k] = luminance[at[i]] - 0.5 * (luminance[low] + luminance[high])
                 noise[i, k] = error[at[i]] + 0.25 * (error[low] + error[high])
+
+
+@numba.njit(**JIT)
+def node_at(node_rows: np.ndarray, z: int, y: int, x: int) -> int:
+    """The plan position of the node at half index (z, y, x) of a half lattice's
+    `node_rows` map (`density.Nodes.rows`); −1 where none is, or outside the map."""
+    shape = node_rows.shape
+    if 0 <= z < shape[0] and 0 <= y < shape[1] and 0 <= x < shape[2]:
+        return node_rows[z, y, x]
+    return -1
 
 
 @numba.njit(**JIT)

@@ -23,6 +23,7 @@ import numba
 import numpy as np
 
 from isolume.baking import octahedral
+from isolume.baking.density_kernels import node_at
 from isolume.baking.lattice import FACING_POWER, sided_mix
 from isolume.volumes import cores
 from isolume.volumes.field import JIT
@@ -108,11 +109,10 @@ def _drift_squares(node_rows: np.ndarray, node_coords: np.ndarray, offset: int,
     arguments; `node_rows`, `node_coords`, `offset`: the half lattice's `Nodes.rows`,
     `Nodes.coords`, `Nodes.offset`), summed as numpy sums the arrays: over a texel's 8
     nodes pairwise (`_sum8`), over the nodes of each axis's lean in order."""
-    shape = node_rows.shape
     share, plain_share, part = np.empty(8), np.empty(8), np.empty(8)
     slopes, noises = np.empty(8), np.empty(8)
     drift, plain = np.empty(3), np.empty(3)
-    spots, half = np.empty((8, 3), np.int64), np.empty(3, np.int64)
+    spots = np.empty((8, 3), np.int64)
     for n in range(rows.shape[0]):
         for k in range(8):
             share[k] = weights[n, k] * sides[n, k]
@@ -133,13 +133,12 @@ def _drift_squares(node_rows: np.ndarray, node_coords: np.ndarray, offset: int,
             step = drift[axis]
             if not abs(step) > DRIFT:
                 continue
+            beyond = 2 if step > 0 else -2
             for k in range(8):
-                far = -1
-                half[:] = (spots[k] - offset) // 2
-                half[axis] = (spots[k, axis] - offset + (2 if step > 0 else -2)) // 2
-                if (0 <= half[0] < shape[0] and 0 <= half[1] < shape[1]
-                        and 0 <= half[2] < shape[2]):
-                    far = node_rows[half[0], half[1], half[2]]
+                far = node_at(node_rows,
+                              (spots[k, 0] - offset + (beyond if axis == 0 else 0)) // 2,
+                              (spots[k, 1] - offset + (beyond if axis == 1 else 0)) // 2,
+                              (spots[k, 2] - offset + (beyond if axis == 2 else 0)) // 2)
                 ok = far >= 0 and shown[far] and (not known or octahedral.side_of(
                     facing[far, 0], facing[far, 1], nx, ny, nz, power) >= floor)
                 part[k] = share[k] if ok else 0.0

@@ -254,6 +254,13 @@ def _drift(nodes, at, light, away=None):
     return drift_error(nodes, at, rows, w, sides, unknown, unknown[:len(at)], light, 0.5)
 
 
+def _row_at(nodes, half):
+    """(N,) plan positions of the nodes at (N, 3) half indices (−1: none, or outside)."""
+    inside = ((half >= 0) & (half < nodes.rows.shape)).all(axis=1)
+    safe = np.where(inside[:, None], half, 0)
+    return np.where(inside, nodes.rows[safe[:, 0], safe[:, 1], safe[:, 2]], -1)
+
+
 def _drift_by_arrays(nodes, coords, rows, weights, sides, facing, own_facing, light, floor):
     """`drift_error` in array code (as numpy sums: the compiled kernel's yardstick)."""
     def shares(w):
@@ -271,7 +278,7 @@ def _drift_by_arrays(nodes, coords, rows, weights, sides, facing, own_facing, li
         lean = np.flatnonzero(np.abs(drift[:, axis]) > DRIFT)
         beyond = spots[lean] - nodes.offset
         beyond[:, :, axis] += 2 * np.sign(drift[lean, axis]).astype(np.int64)[:, None]
-        far = nodes.row_at(beyond.reshape(-1, 3) // 2).reshape(-1, 8)
+        far = _row_at(nodes, beyond.reshape(-1, 3) // 2).reshape(-1, 8)
         far_safe = np.maximum(far, 0)
         turned = side_weights(facing[far_safe], own[lean])
         ok = (far >= 0) & light.shown[far_safe] & (~known[lean, None] | (turned >= floor))
