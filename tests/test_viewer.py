@@ -216,7 +216,7 @@ def test_bad_script_fails_before_a_window_opens(tmp_path, monkeypatch, capsys):
 
 
 # -- surfaces off the render thread -------------------------------------------------------
-def test_slab_extraction_matches_whole_volume_marching_cubes():
+def test_viewer_surfaces_are_the_isosurface_and_can_be_cancelled():
     from isolume.app.viewer.surfaces import extract_surface
 
     vol = volumes.load("synthetic:engine:64")

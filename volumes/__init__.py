@@ -23,7 +23,7 @@ from isolume.volumes.stats import histogram_lines, suggest_isovalues
 from isolume.volumes.synthetic import DEFAULT
 
 if TYPE_CHECKING:
-    from isolume.volumes.cubes import tracing_surface
+    from isolume.volumes.cubes import marching_cubes, tracing_surface
     from isolume.volumes.field import (
         gradient_at,
         newton_to_level,
@@ -37,7 +37,6 @@ if TYPE_CHECKING:
         check_isovalue,
         isosurface,
         level_points,
-        marching_cubes,
     )
 
 _COMPILED = {
@@ -45,7 +44,7 @@ _COMPILED = {
     "normals_at": "field", "value_at": "field",
     "values_along_normals": "field", "values_on_grid": "field", "Mesh": "mesh",
     "check_isovalue": "mesh", "isosurface": "mesh", "level_points": "mesh",
-    "marching_cubes": "mesh",
+    "marching_cubes": "cubes",
 }
 """Names whose modules compile kernels (numba): imported when first used (PEP 562), so
 that ``import isolume.volumes`` (and the Python API's ``import isolume``) stays light."""

@@ -1,4 +1,5 @@
-"""Isosurface extraction: scikit-image marching cubes → `Mesh` in world units."""
+"""Isosurface extraction: compiled marching cubes (`volumes.cubes`) → `Mesh` in world
+units."""
 
 from __future__ import annotations
 
@@ -6,11 +7,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from skimage import measure
 
 from isolume.volumes import cores
 from isolume.volumes.core import Volume, VolumeError
-from isolume.volumes.cubes import edge_crossings, padded_copy
+from isolume.volumes.cubes import edge_crossings, marching_cubes, padded_copy, welded
 from isolume.volumes.field import gradient_at, normals_from_gradient
 
 
@@ -47,47 +47,6 @@ class Mesh:
         )
 
 
-def marching_cubes(data: np.ndarray, iso: float, *, step_size: int = 1,
-                   keep_degenerate: bool = False, slab_voxels: int | None = None,
-                   cancelled: Callable[[], bool] | None = None
-                   ) -> tuple[np.ndarray, np.ndarray] | None:
-    """scikit-image's marching cubes of the (Z, Y, X) `data` at `iso`, whole or in z-slabs.
-
-    scikit-image holds the GIL for a whole call (0.17 s on the engine CT's 8.4 M voxels),
-    stalling every other Python thread — the bake's tracing workers among them. In slabs of
-    about `slab_voxels` voxels the other threads run between slabs, slabs whose values miss
-    `iso` are skipped, and `cancelled()` (asked between slabs) can abandon the work. The
-    triangles are those of the whole call; vertices on slab boundaries appear once per slab
-    at identical positions (the same edge interpolation), so the mesh stays watertight.
-
-    Returns:
-        vertices: (V, 3) float32 fractional voxel indices (z, y, x); faces: (F, 3) int
-        (both empty when nothing crosses `iso`); or None when cancelled.
-    """
-    nz, ny, nx = data.shape
-    thick = nz if slab_voxels is None else \
-        max(step_size, (slab_voxels // (ny * nx)) // step_size * step_size)
-    parts_v, parts_f, count = [], [], 0
-    for z0 in range(0, max(nz - 1, 1), thick):
-        if cancelled is not None and cancelled():
-            return None
-        block = data[z0:min(z0 + thick, nz - 1) + 1]
-        if slab_voxels is not None and (block.min() > iso or block.max() < iso):
-            continue
-        try:
-            v, f, _, _ = measure.marching_cubes(block, level=iso, step_size=step_size,
-                                                allow_degenerate=keep_degenerate)
-        except (ValueError, RuntimeError):  # the strided samples (step_size > 1) all lie on
-            continue  # one side of iso, or a slab thinner than the step
-        v[:, 0] += z0
-        parts_v.append(v)
-        parts_f.append(f + count)
-        count += len(v)
-    if not parts_f:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
-    return np.concatenate(parts_v), np.concatenate(parts_f)
-
-
 def check_isovalue(volume: Volume, iso: float) -> float:
     """Return `iso` as float, or raise VolumeError when it lies outside the data range."""
     lo, hi = volume.value_range
@@ -108,8 +67,10 @@ def isosurface(
     flip_normals: bool = False,
     step_size: int = 1,
     keep_degenerate: bool = False,
-) -> Mesh:
-    """Extract the isosurface ρ = iso.
+    cancelled: Callable[[], bool] | None = None,
+) -> Mesh | None:
+    """Extract the isosurface ρ = iso (`volumes.cubes.marching_cubes`, on every core
+    without the GIL; triangles facing from high to low values, as the normals do).
 
     Args:
         volume: the scalar field.
@@ -117,33 +78,46 @@ def isosurface(
         normals: "smooth" (tricubic-B-spline gradient, the paper's), "gradient" (plain
             central differences) or "none" (no normals: a mesh for ray tracing only).
         flip_normals: reverse the normals (for data whose material is less dense).
-        step_size: marching-cubes step in voxels (2 gives a fast coarse preview).
-        keep_degenerate: keep zero-area triangles (ray tracing never hits them; removing
-            them costs a third of the marching cubes).
+        step_size: marching-cubes step in voxels: the cubes of every step-th sample along
+            each axis (2 gives a fast coarse preview).
+        keep_degenerate: keep the zero-area triangles around samples exactly at `iso`
+            (ray tracing never hits them), and their vertices apart; else those vertices
+            are joined and the triangles dropped (`volumes.cubes.welded`).
+        cancelled: asked during the marching cubes; True abandons the work.
 
     Returns:
         Mesh in world units; an empty mesh with a message when the surface is empty
-        (e.g. iso equal to the minimum or maximum, or a constant volume).
+        (e.g. iso equal to the minimum or maximum, or a constant volume); None when
+        cancelled.
     """
     if normals not in ("smooth", "gradient", "none"):
         raise ValueError(f"normals must be 'smooth', 'gradient' or 'none', got {normals!r}")
+    if step_size < 1:
+        raise ValueError(f"step_size must be at least 1, got {step_size}")
     iso = check_isovalue(volume, iso)
     lo, hi = volume.value_range
     if not lo < iso < hi:
         return Mesh.empty_at(iso, f"isovalue {iso:g} is at the data's extreme; nothing to show")
-    verts, faces = marching_cubes(volume.data, iso, step_size=step_size,
-                                  keep_degenerate=keep_degenerate)
-    if len(faces) == 0:
-        at_step = f" at step size {step_size}" if step_size > 1 else ""
+    step = step_size
+    data = volume.data if step == 1 else volume.data[::step, ::step, ::step]
+    surface = marching_cubes(data, iso, volume.origin, np.multiply(volume.spacing, step),
+                             cancelled=cancelled)
+    if surface is None:
+        return None
+    if len(surface.faces) == 0:
+        at_step = f" at step size {step}" if step > 1 else ""
         return Mesh.empty_at(iso, f"no surface at isovalue {iso:g}{at_step}")
-    world = volume.index_to_world(verts)
+    vertices, faces = surface.vertices, surface.faces
+    if surface.at_iso and not keep_degenerate:
+        vertices, faces = (padded_copy(a, a.dtype) for a in welded(vertices, faces))
     if normals == "none":
         n = np.zeros((0, 3), np.float32)
     else:
-        n, _ = normals_from_gradient(gradient_at(volume, world, smooth=normals == "smooth"),
+        n, _ = normals_from_gradient(gradient_at(volume, vertices.astype(np.float64),
+                                                 smooth=normals == "smooth"),
                                      flip=flip_normals)
     # with room after them, so that Embree can share them (`baking.trace.padded`)
-    return Mesh(padded_copy(world, np.float32), padded_copy(faces, np.uint32), n, iso)
+    return Mesh(vertices, faces.view(np.uint32), n, iso)
 
 
 LEVEL_SLAB = 32

@@ -1,11 +1,10 @@
 """Isosurfaces for the viewer, extracted off the render thread.
 
 `MeshWorker` (a thread) makes a coarse surface first (marching cubes every second to
-fourth voxel: `preview_step`), then the full-resolution one. Marching cubes runs in
-z-slabs of about half a million voxels (`volumes.marching_cubes`): scikit-image holds the
-GIL for a whole call (≈ 0.2–0.4 s on a 256²×128 volume), slabs bound that to ≈ 25 ms,
-skip slabs whose values miss the isovalue, and let a newer request cancel a stale
-extraction between slabs. Results for an isovalue the user has already left are dropped.
+fourth voxel: `preview_step`), then the full-resolution one. Marching cubes runs on every
+core without the GIL (`volumes.isosurface`), so the render thread keeps its pace, and a
+newer request cancels a stale extraction within its passes. Results for an isovalue the
+user has already left are dropped.
 """
 
 from __future__ import annotations
@@ -18,16 +17,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from isolume import volumes
 
 if TYPE_CHECKING:
     from isolume.app.viewer.draw import Drawing
     from isolume.app.viewer.state import ViewerState
 
-SLAB_VOXELS = 1 << 19
-"""Voxels per marching-cubes call (a GIL hold of ~25 ms on one core)."""
 COARSE_STEP = 2
 """Smallest marching-cubes step of the preview surface."""
 LARGEST_STEP = 4
@@ -56,16 +51,12 @@ def estimated_triangles(coarsest: volumes.Mesh) -> int:
 def extract_surface(volume: volumes.Volume, iso: float, *, step: int = 1,
                     normals: str = "smooth", flip: bool = False,
                     cancelled: Callable[[], bool] | None = None) -> volumes.Mesh | None:
-    """The isosurface ρ = iso by marching cubes in z-slabs (see the module docstring).
-
-    The triangles are those of `volumes.isosurface` at the same step (vertices on slab
-    boundaries appear once per slab; they coincide, so nothing shows).
+    """The isosurface ρ = iso (`volumes.isosurface`, cancellable).
 
     Args:
         step: marching-cubes step in voxels.
-        normals: "smooth" (cubic-B-spline gradient, as `volumes.isosurface`) or "gradient"
-            (central differences).
-        cancelled: called between slabs; True abandons the work (returns None).
+        normals: "smooth" (cubic-B-spline gradient) or "gradient" (central differences).
+        cancelled: asked during the marching cubes; True abandons the work (returns None).
 
     Returns:
         The mesh in world units (empty, with a message, when there is no surface), or
@@ -75,17 +66,8 @@ def extract_surface(volume: volumes.Volume, iso: float, *, step: int = 1,
     if not lo < iso < hi:
         return volumes.Mesh.empty_at(iso, f"isovalue {iso:g} is at or beyond the data's "
                                      f"extremes [{lo:g}, {hi:g}]; nothing to show")
-    result = volumes.marching_cubes(volume.data, iso, step_size=step,
-                                    slab_voxels=SLAB_VOXELS, cancelled=cancelled)
-    if result is None:
-        return None
-    verts, faces = result
-    if len(faces) == 0:
-        return volumes.Mesh.empty_at(iso, f"no surface at isovalue {iso:g}")
-    world = volume.index_to_world(verts).astype(np.float32)
-    faces = faces.astype(np.uint32)
-    n = volumes.normals_at(volume, world, smooth=normals == "smooth", flip=flip)
-    return volumes.Mesh(world, faces, n, iso)
+    return volumes.isosurface(volume, iso, normals=normals, flip_normals=flip, step_size=step,
+                              cancelled=cancelled)
 
 
 @dataclass(frozen=True)
@@ -102,7 +84,7 @@ class MeshResult:
 
 class MeshWorker:
     """Extracts isosurfaces on a background thread, coarse then full; a newer request
-    cancels the older one between slabs, and `poll` returns results of the newest only."""
+    cancels the older one as it runs, and `poll` returns results of the newest only."""
 
     volume: volumes.Volume
     normals: str
