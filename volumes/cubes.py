@@ -332,7 +332,7 @@ def _count(data: np.ndarray, iso: float, count: np.ndarray, ambiguous: np.ndarra
         for j in range(data.shape[1] - 1):
             for i in range(data.shape[2] - 1):
                 case = _case(data, iso, k, j, i)
-                if decided:  # the same for every cell: the loop is compiled twice
+                if decided:  # the same for every cell: the plain table's pass keeps its speed
                     total += count[case, _choices(data, iso, k, j, i, ambiguous[case],
                                                   corners)]
                 else:
