@@ -34,8 +34,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -46,6 +44,8 @@ import numpy.typing as npt
 
 from isolume.volumes import cores
 from isolume.volumes.core import Volume
+from isolume.volumes.errors import WriteError
+from isolume.volumes.writing import atomic_write
 
 _EDGES = np.array([(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit])
 """(12, 2) corner pairs of the cell's edges, lower corner first (corner c = x + 2y + 4z)."""
@@ -53,6 +53,8 @@ _FACES = [[c for c in range(8) if bool(c & bit) == side] for bit in (1, 2, 4)
           for side in (False, True)]
 """The 6 faces as their 4 corners, in order of corner number: the first and the last lie
 diagonally across the face, as do the middle two."""
+_FACE_CORNERS = np.array(_FACES)
+"""(6, 4) `_FACES` for the kernels."""
 _EDGE_FACES = [sum(1 << f for f, face in enumerate(_FACES) if set(map(int, ends)) <= set(face))
                for ends in _EDGES]
 """(12,) the faces (bit f of `_FACES`) that each edge lies in."""
@@ -88,7 +90,7 @@ def case_table(drawn: bool = False) -> CaseTable:
     (`facing`).
 
     Deriving the drawn table takes ~0.07 s of Python, so it is kept beside the compiled
-    kernels (`kept_table`) and read from there (~1 ms) by later processes.
+    kernels (`kept_table`) and read from there (~2 ms) by later processes.
     """
     kept = kept_table(drawn)
     if kept is not None:
@@ -135,19 +137,17 @@ def kept_table(drawn: bool) -> Path | None:
 
 
 def _keep(path: Path, table: CaseTable) -> None:
-    """Write `table` to `path` whole (a temporary file renamed), in place of the tables
-    an earlier source of this module kept, or nowhere where the folder cannot be
+    """Write `table` to `path` whole (`volumes.writing.atomic_write`), in place of the
+    tables an earlier source of this module kept, or nowhere where the folder cannot be
     written."""
     try:
         path.parent.mkdir(exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as f:
-            np.savez(f, **table._asdict())
-        os.replace(f.name, path)
+        atomic_write(path, lambda tmp: np.savez(tmp, **table._asdict()), "case table")
         kind = path.name.split(".")[1]
         for old in path.parent.glob(f"cubes.{kind}.*.npz"):
             if old != path:
                 old.unlink(missing_ok=True)
-    except OSError:
+    except (OSError, WriteError):
         return
 
 
@@ -495,7 +495,6 @@ def marching_cubes(data: np.ndarray, iso: float, origin: npt.ArrayLike = (0.0, 0
         cancelled.
     """
     count, table, ambiguous = case_table(drawn)
-    corners = np.array(_FACES)
     data = np.ascontiguousarray(data)  # the kernels compile for its type
     iso = float(iso)
     stop = cancelled or (lambda: False)
@@ -504,8 +503,8 @@ def marching_cubes(data: np.ndarray, iso: float, origin: npt.ArrayLike = (0.0, 0
     cells_per_layer = max(data.shape[1] - 1, 0) * max(data.shape[2] - 1, 0)
     totals = np.zeros(layers, np.int64)
     layer_cost = max(1, cells_per_layer // CELLS_PER_MICROSECOND)
-    cores.for_ranges(lambda lo, hi: stop() or _count(data, iso, count, ambiguous, corners, lo,
-                                                     hi, totals),
+    cores.for_ranges(lambda lo, hi: stop() or _count(data, iso, count, ambiguous, _FACE_CORNERS,
+                                                     lo, hi, totals),
                      layers, layer_cost, "surface")
     if stop():
         return None
@@ -525,7 +524,7 @@ def marching_cubes(data: np.ndarray, iso: float, origin: npt.ArrayLike = (0.0, 0
 
     def fill_layers(lo: int, hi: int) -> None:
         if not stop():
-            _fill(data, iso, count, table, ambiguous, corners, _EDGES, origin, spacing,
+            _fill(data, iso, count, table, ambiguous, _FACE_CORNERS, _EDGES, origin, spacing,
                   vertex_first, lo, hi, vertices, faces, int(firsts[lo]))
 
     cores.for_ranges(fill_layers, layers, FILL_COST * layer_cost, "surface")

@@ -98,14 +98,13 @@ def isosurface(
     lo, hi = volume.value_range
     if not lo < iso < hi:
         return Mesh.empty_at(iso, f"isovalue {iso:g} is at the data's extreme; nothing to show")
-    step = step_size
-    data = volume.data if step == 1 else volume.data[::step, ::step, ::step]
-    surface = marching_cubes(data, iso, volume.origin, np.multiply(volume.spacing, step),
+    data = volume.data[::step_size, ::step_size, ::step_size]
+    surface = marching_cubes(data, iso, volume.origin, np.multiply(volume.spacing, step_size),
                              cancelled=cancelled)
     if surface is None:
         return None
     if len(surface.faces) == 0:
-        at_step = f" at step size {step}" if step > 1 else ""
+        at_step = f" at step size {step_size}" if step_size > 1 else ""
         return Mesh.empty_at(iso, f"no surface at isovalue {iso:g}{at_step}")
     vertices, faces = surface.vertices, surface.faces
     if surface.at_iso and not keep_degenerate:
