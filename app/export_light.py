@@ -41,8 +41,6 @@ if TYPE_CHECKING:
 
 SUN_RAYS = 32
 """Shadow rays per vertex over the sun's disc: the penumbra in steps of 1/32 of the sun."""
-TEXELS_PER_REPORT = 4096
-"""Texels traced between progress updates of the traced global illumination."""
 VERTICES_PER_REPORT = 1 << 16
 """Vertices whose shadow rays are traced between progress updates."""
 COVERED = 1e-6
@@ -142,11 +140,9 @@ def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, point
     threads = workers or cores.threads()
     with tqdm(total=len(texels), unit="texel", desc="global illumination",
               disable=not progress, dynamic_ncols=True) as bar:
-        for lo in range(0, len(texels), TEXELS_PER_REPORT):
-            chunk = texels[lo:lo + TEXELS_PER_REPORT]
-            estimate(volume, config, lattice, iso, chunk, scene, 1,
-                     paths=int(config.samples), tracing=tracing, workers=threads, seen=seen)
-            bar.update(len(chunk))
+        estimate(volume, config, lattice, iso, texels, scene, 1, paths=int(config.samples),
+                 tracing=tracing, workers=threads, seen=seen,
+                 told=lambda done: bar.update(done - bar.n))
     return lattice
 
 

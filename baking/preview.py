@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -120,7 +121,8 @@ def surface_scene(volume: volumes.Volume, iso: float, step: int) -> Scene | None
 
 def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: float,
              flat: np.ndarray, scene: Scene, step: int, *, paths: int, tracing: Tracing,
-             workers: int = 1, seen: SeenSurface | None = None) -> None:
+             workers: int = 1, seen: SeenSurface | None = None,
+             told: Callable[[int], None] | None = None) -> None:
     """Trace `paths` paths from each texel `flat` (K,) and store the means as the texels'
     previews (`store_preview` of a `Lattice` whose ``preview`` and ``preview_paths`` are
     set, or of a `baking.view_texels.HeldLattice` holding the texels) for the surface
@@ -132,6 +134,10 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
     surface the eye sees, which is where the picture shows the light. Texels no visible
     point reads, and every texel without `seen`, start from their centres projected onto
     the surface (`projected_starts`).
+
+    `told(done)`, where given, is told how many of the texels are traced, as the calling
+    thread's work items end (rising, ending at K): one call traces many texels on every
+    core, with no barrier between reports.
     """
     origins = np.zeros((len(flat), 3))
     normals = np.zeros((len(flat), 3))
@@ -147,10 +153,14 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
         origins[rest], normals[rest], usable[rest] = o, n, ok
     means, codes = np.zeros((0, lattice.values.shape[-1])), np.zeros((0, 2), np.uint8)
     if usable.any():
+        skipped = len(flat) - int(np.count_nonzero(usable))
         sums = _trace(scene, tracing, flat[usable], origins[usable].astype(np.float32),
-                      normals[usable].astype(np.float32), workers, paths)
+                      normals[usable].astype(np.float32), workers, paths,
+                      None if told is None else lambda done: told(skipped + done))
         means, codes = sums / paths, octahedral.encode(normals[usable])
     lattice.store_preview(flat, np.where(usable, paths, 0), means, codes)
+    if told is not None:
+        told(len(flat))
 
 
 def projected_starts(volume: volumes.Volume, config: BakeConfig, lattice: Lattice,
@@ -454,10 +464,12 @@ def preview_tracing(volume: volumes.Volume, config: BakeConfig) -> Tracing:
                    np.zeros(settings.channels), whole_paths(lighting, settings))
 
 
-def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths) -> np.ndarray:
+def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths,
+           told: Callable[[int], None] | None = None) -> np.ndarray:
     """(K, C) sums of `paths` path estimates per texel `flat` (K,), traced on `workers`
     threads as the bake traces its chunks (`passes.trace_chunk`: one compiled call per chunk
-    where the lighting allows)."""
+    where the lighting allows); `told(done)`: the texels traced so far, after each of the
+    calling thread's chunks."""
     sums = PassSums(len(flat), tracing.settings.channels)
     tracing = dataclasses.replace(tracing, ids=flat)
     start = PathStarts(np.arange(len(flat), dtype=np.int64), origins, normals)
@@ -469,8 +481,9 @@ def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths) -> n
         samples = np.tile(np.arange(paths, dtype=np.int64), hi - lo)
         trace_chunk(scene, tracing, pos, samples, start, sums)
 
+    progress = None if told is None else lambda done: told(min(done * per_chunk, len(flat)))
     cores.for_items(lambda c: run(c * per_chunk), -(-len(flat) // per_chunk), "trace",
-                    workers=workers)
+                    on_done=progress, workers=workers)
     return sums.sum
 
 

@@ -11,12 +11,16 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lazy import visible_cells
 from isolume.baking.preview import (
+    CHUNK,
     FIRST_PASS_PATHS,
     Previewer,
     cell_corners,
+    estimate,
     first_pass_paths,
     mesh_step,
     pass_plan,
+    preview_tracing,
+    surface_scene,
 )
 
 
@@ -283,8 +287,8 @@ def test_full_surface_previews_start_on_the_surface_along_the_smoothed_normal(
     seen = []
     real = preview._trace
     monkeypatch.setattr(preview, "_trace", lambda scene, tracing, flat, origins, normals,
-                        workers, paths: seen.append((origins, normals))
-                        or real(scene, tracing, flat, origins, normals, workers, paths))
+                        *rest: seen.append((origins, normals))
+                        or real(scene, tracing, flat, origins, normals, *rest))
     _preview_all(vol, config, lat, 0.5, visible_cells(lat.geometry, mesh.vertices))
     origins, normals = seen[-1]  # the last pass: full surface
     h = float(np.mean(vol.spacing))
@@ -311,3 +315,23 @@ def test_texels_whose_start_is_inside_the_material_get_no_preview(sphere, monkey
     paths = lat.preview_paths.reshape(-1)[written[0]]
     assert (paths[1::2] == 0).all() and (paths[::2] == 4).all()
     np.testing.assert_allclose(lat.preview.reshape(-1, 3)[written[0][::2]], np.pi, rtol=1e-5)
+
+
+def test_one_estimate_reports_its_texels_as_they_are_traced_and_keeps_their_bits(sphere):
+    """`estimate(..., told=...)` traces all its texels in one call on every core and is
+    told the texels done, rising to all of them; each texel's paths are its own, so the
+    previews are the same bits as those of estimates of its texels in parts."""
+    vol, mesh = sphere
+    config = BakeConfig(env="constant:1", bounces=1, samples=8)
+    whole, parts = _empty(vol, config), _empty(vol, config)
+    flat = cell_corners(whole.geometry.shape, visible_cells(whole.geometry, mesh.vertices))
+    scene, tracing = surface_scene(vol, 0.5, 1), preview_tracing(vol, config)
+    told = []
+    estimate(vol, config, whole, 0.5, flat, scene, 1, paths=64, tracing=tracing, workers=2,
+             told=told.append)
+    assert len(flat) > 4 * CHUNK // 64  # several work items
+    assert len(told) > 2 and told == sorted(told) and told[-1] == len(flat)
+    for part in np.array_split(flat, 3):
+        estimate(vol, config, parts, 0.5, part, scene, 1, paths=64, tracing=tracing)
+    assert np.array_equal(whole.preview_paths, parts.preview_paths)
+    assert np.array_equal(whole.preview, parts.preview) and whole.preview.any()

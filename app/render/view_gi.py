@@ -33,8 +33,8 @@ if TYPE_CHECKING:
 
 DEFAULT_PATHS = 64
 """Paths per texel of a render's view lattice (``isolume render --samples``)."""
-CHUNK_PATHS = 1 << 19
-"""Paths traced between progress reports (about a second on 2 cores)."""
+REPORT_S = 0.2
+"""Seconds between rewrites of the progress line."""
 
 
 def view_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points: np.ndarray,
@@ -84,26 +84,29 @@ def view_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points:
     cores.stage("nearest points")
     seen = seen_surface(scene, volume, config, geometry, eye, points)
     cores.stage("tracing")
-    chunk = max(256, CHUNK_PATHS // int(config.samples))
-    for lo in range(0, len(texels), chunk):
-        estimate(volume, config, lattice, iso, texels[lo:lo + chunk], scene, 1,
-                 paths=int(config.samples), tracing=tracing,
-                 workers=workers or cores.threads(), seen=seen)
-        report.update(min(lo + chunk, len(texels)))
+    estimate(volume, config, lattice, iso, texels, scene, 1, paths=int(config.samples),
+             tracing=tracing, workers=workers or cores.threads(), seen=seen,
+             told=report.update)
     report.done(int((lattice.paths > 0).sum()))
     return lattice
 
 
 class _Progress:
-    """One updating line on stderr: texels done, paths per texel, seconds."""
+    """One updating line on stderr: texels done, paths per texel, seconds (rewritten at
+    most every `REPORT_S`)."""
 
     def __init__(self, enabled: bool, paths: int, total: int) -> None:
         self.enabled = enabled and sys.stderr is not None
         self.paths, self.total, self.t0 = paths, total, time.perf_counter()
+        self.shown = -REPORT_S
 
     def update(self, done: int) -> None:
+        now = time.perf_counter() - self.t0
+        if now - self.shown < REPORT_S:
+            return
+        self.shown = now
         self._line(f"global illumination: {done:,} of {self.total:,} texels, {self.paths} "
-                   f"paths each, {time.perf_counter() - self.t0:.1f} s", end="")
+                   f"paths each, {now:.1f} s", end="")
 
     def done(self, texels: int) -> None:
         self._line(f"global illumination: {texels:,} texels × {self.paths} paths in "
