@@ -32,17 +32,24 @@ DEFAULT_TEXEL_ERROR = 0.02
 """The texel error (`BakeConfig.texel_error`) of an irradiance bake that names no count,
 noise target nor texel error (``isolume bake``'s default), at `TEXEL_SAMPLES`
 ([accuracy.md](../docs/accuracy.md#texels-where-the-light-varies-against-uniform-texels))."""
-TEXEL_SAMPLES = 40
+TEXEL_SAMPLES = 36
 """Paths per traced texel of a bake to a texel error that names no count (the nodes that
-fill get `NODE_PATHS` times as many, and the level plan is sized for those; below
-`baking.lattice.TRAPPED_PATHS`, texels dark on all of theirs go on to that many). Over the
-58 bake cases of ``../shared/data`` the default is within each case's reference noise +
-0.5 % of the uniform `DEFAULT_SAMPLES` bake at 0.36× its paths; at 36 the hydrogen atom at
-iso 9.46 is not (its plan, sized for 72 paths, has fewer levels than for 80)."""
+fill get `NODE_PATHS` times as many, and the level plan is sized for at least
+`TEXEL_PLAN_SAMPLES`; below `baking.lattice.TRAPPED_PATHS`, texels dark on all of theirs
+go on to that many). Over the 58 bake cases of ``../shared/data`` the default is within
+each case's reference noise + 0.5 % of the uniform `DEFAULT_SAMPLES` bake at a third of
+its paths (0.333×; at 40 paths a texel, 0.36×)."""
 DEFAULT_BOUNCES = 2
 """Diffuse bounces of every command's light when none is given."""
 DEFAULT_ALBEDO = 0.8
 """Diffuse reflectance (grey) of every command's surface when none is given."""
+TEXEL_PLAN_SAMPLES = 80
+"""Least paths per texel the level plan of a bake to a texel error is sized for
+(`BakeConfig.plan_samples`). A plan sized for fewer spaces its levels wider
+(`baking.plan.move_limit`: a move's error need not be smaller than the noise), where the
+light of a filled texel is a mix of several nodes, less noisy than any one of them: at
+36 paths a texel, a plan for its nodes' 72 paths put the hydrogen atom at iso 9.46 at
+6.02 % against 3.74 % with one for 80 (3.66 % at 40 paths a texel)."""
 NODE_PATHS = 2
 """Paths of a node that fills texels per path of a traced texel (`BakeConfig.samples`) in a
 bake to a texel error (`baking.density`): its light is mixed into up to 26 filled texels
@@ -234,11 +241,12 @@ class BakeConfig:
     def plan_samples(self) -> int:
         """The paths per texel the level plan is sized for (`baking.plan.move_limit`,
         `level_budget`): `samples`; with a `texel_error`, the paths of the nodes that fill
-        (`NODE_PATHS` × `samples`: what most of the picture's light rests on); with a
-        `target_error` E, the uniform count whose noise meets E where a path's brightness
-        spreads as much as its mean, 1 / E², within `samples` … `max_samples`."""
+        (`NODE_PATHS` × `samples`: what most of the picture's light rests on), at least
+        `TEXEL_PLAN_SAMPLES`; with a `target_error` E, the uniform count whose noise meets
+        E where a path's brightness spreads as much as its mean, 1 / E², within
+        `samples` … `max_samples`."""
         if self.texel_error is not None:
-            return NODE_PATHS * self.samples
+            return max(NODE_PATHS * self.samples, TEXEL_PLAN_SAMPLES)
         if self.target_error is None:
             return self.samples
         return int(np.clip(round(1 / self.target_error ** 2), self.samples, self.max_samples))
