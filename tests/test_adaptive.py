@@ -19,7 +19,13 @@ from isolume.baking.adaptive import (
     path_variance,
     still_going,
 )
-from isolume.baking.config import DEFAULT_SAMPLES, DEFAULT_TEXEL_ERROR, TEXEL_SAMPLES
+from isolume.baking.config import (
+    DEFAULT_SAMPLES,
+    DEFAULT_TEXEL_ERROR,
+    NODE_PATHS,
+    TEXEL_PLAN_SAMPLES,
+    TEXEL_SAMPLES,
+)
 from isolume.baking.lattice import TRAPPED_PATHS, standard_error
 from isolume.volumes.synthetic import make
 
@@ -187,6 +193,19 @@ def test_the_noise_left_follows_the_target_and_paths_follow_the_spread():
     spread = error * np.sqrt(samples)
     rank = np.corrcoef(np.argsort(np.argsort(spread)), np.argsort(np.argsort(samples)))[0, 1]
     assert rank > 0.5
+
+
+@pytest.mark.parametrize("config, planned", [
+    (BakeConfig(samples=16), 16),
+    (BakeConfig(samples=TEXEL_SAMPLES, texel_error=0.02), TEXEL_PLAN_SAMPLES),
+    (BakeConfig(samples=8, texel_error=0.05), TEXEL_PLAN_SAMPLES),
+    (BakeConfig(samples=64, texel_error=0.02), NODE_PATHS * 64),
+    (BakeConfig(samples=16, target_error=0.05), 400),
+])
+def test_the_level_plan_is_sized_for_the_paths_the_picture_rests_on(config, planned):
+    """A uniform bake's plan: its paths; a texel bake's: its nodes' paths, at least
+    `TEXEL_PLAN_SAMPLES` (a filled texel mixes several nodes); a noise target's: 1 / E²."""
+    assert config.plan_samples == planned
 
 
 @pytest.mark.parametrize("words, expected", [
