@@ -109,11 +109,13 @@ def _luminance_weights(channels: int, irradiance: bool, second_block: int = 0) -
     return weights
 
 
-def lattice_meta(volume: volumes.Volume, config: BakeConfig, channels: int) -> dict[str, Any]:
+def lattice_meta(volume: volumes.Volume, config: BakeConfig, channels: int,
+                 hashed: bool = True) -> dict[str, Any]:
     """The metadata that identifies the volume and the bake of a lattice of `channels`
-    values per texel."""
+    values per texel (`hashed`: with the volume's hash, `volume_identity`)."""
     return {"kind": config.mode, "sh_order": config.sh_order if config.mode == "sh" else None,
-            "scale": config.scale, "volume": volume_identity(volume), "channels": channels}
+            "scale": config.scale, "volume": volume_identity(volume, hashed),
+            "channels": channels}
 
 
 def _new_lattice(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeometry,

@@ -66,12 +66,13 @@ class HeldLattice:
     @classmethod
     def for_texels(cls, volume: Volume, config: BakeConfig, texels: np.ndarray) -> HeldLattice:
         """Nothing yet at (K,) sorted flat `texels` of the lattice of `volume` baked with
-        `config` (its geometry and metadata, as `baking.bake` makes them)."""
+        `config` (its geometry and metadata, as `baking.bake` makes them, but for the
+        volume's hash: such a lattice lights one picture or mesh, and is never saved)."""
         from isolume.baking.bake import lattice_meta, path_settings
 
         channels = path_settings(volume, config).channels
         return cls(LatticeGeometry.for_volume(volume, config.scale), texels, channels,
-                   lattice_meta(volume, config, channels), config)
+                   lattice_meta(volume, config, channels, hashed=False), config)
 
     @property
     def kind(self) -> str:

@@ -61,3 +61,21 @@ def test_it_holds_only_its_texels():
         sparse.store_preview(missing, np.full(3, 8), np.ones((3, 3)), np.ones((3, 2)))
     with pytest.raises(ValueError, match="sorted"):
         HeldLattice(sparse.geometry, np.array([5, 3]), 3, {})
+
+
+def test_a_view_lattice_does_not_hash_its_volume():
+    """A lattice for one picture carries its volume's identity but for the hash (never
+    saved: the picture need not wait for a SHA-256 of the samples), and so is refused by
+    the check a lattice file gets against a volume."""
+    from isolume import volumes
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.errors import BakeError
+    from isolume.baking.lattice import check_identity
+
+    volume = volumes.load("synthetic:sphere:16")
+    held = HeldLattice.for_texels(volume, BakeConfig(samples=4), np.arange(5))
+    identity = held.meta["volume"]
+    assert identity["hash"] is None and identity["shape"] == [16, 16, 16]
+    assert identity["spacing"] == list(volume.spacing) and "hash" not in volume._cache
+    with pytest.raises(BakeError, match="hash None"):
+        check_identity(held.meta, volume)
