@@ -175,6 +175,37 @@ def test_the_command_writes_its_table_json_and_contact_sheet(tmp_path, capsys):
     assert sheet.height > 2 * 96 and sheet.width > 3 * 96
 
 
+def test_one_bake_over_the_default_range_draws_isovalues_across_it(tmp_path, capsys):
+    """``--bake-range default --isovalues across:3``: three isovalues spread evenly over
+    the range ``isolume bake`` bakes by default, all drawn from one bake of the volume,
+    whose paths, seconds and bytes the sums count once; a bad rule is one line."""
+    pytest.importorskip("moderngl")
+    from isolume import volumes
+    from isolume.baking.plan import default_iso_range
+
+    out = tmp_path / "across"
+    assert main(["bench", "accuracy", "synthetic:torus:24", *FAST, "--bake-range",
+                 "default", "--isovalues", "across:3", "--out", str(out)]) == 0
+    capsys.readouterr()
+    document = json.loads((out / "accuracy.json").read_text())
+    bakes = [r for r in document["rows"] if r["mode"] == "bake"]
+    lo, hi = default_iso_range(volumes.load("synthetic:torus:24"))
+    assert [r["iso"] for r in bakes] == pytest.approx([lo + (k + 0.5) * (hi - lo) / 3
+                                                       for k in range(3)])
+    assert all(r["iso_range"] == pytest.approx([lo, hi]) and r["shared_by"] == 3
+               for r in bakes)
+    assert len({(r["paths"], r["bake_seconds"], r["lattice_bytes"]) for r in bakes}) == 1
+    totals = document["summary"]["modes"]["bake"]
+    assert totals["total_paths"] == pytest.approx(bakes[0]["paths"])
+    assert totals["total_lattice_bytes"] == pytest.approx(bakes[0]["lattice_bytes"])
+    assert "3 across the default bake range" in document["settings"]["isovalues"]
+    for bad in ("across:0", "some"):
+        with pytest.raises(SystemExit) as exit_:
+            main(["bench", "accuracy", "--isovalues", bad, "--out", str(tmp_path / "x")])
+        assert exit_.value.code == 2
+        assert "expected first, all or across:N" in capsys.readouterr().err
+
+
 def test_a_kept_reference_is_where_a_later_sweep_starts(tmp_path, capsys):
     """The second sweep of the same case starts from the first's reference (the same
     figures; its row says so); another lighting is another reference; ``--cache none``

@@ -13,7 +13,12 @@ the volume as loaded, turned by ``--up`` where asked), two pictures are measured
   or with ``--paths N`` (exactly N a texel), ``--target-error E`` or ``--texel-error E``,
   restricted, for time, to the iso range a lazy bake serves for that isovalue
   (`baking.lazy.view_iso_range`: ±3 % of the data range), then the picture drawn with
-  that lattice; its row records the paths it traced and its bytes;
+  that lattice; its row records the paths it traced and its bytes. With ``--bake-range
+  default``, one bake of each volume over ``isolume bake``'s default iso range
+  (`baking.plan.default_iso_range`) draws every isovalue measured — with ``--isovalues
+  across:N``, N spread evenly across that range: one lattice serving every isovalue, as
+  the method means it to — and its rows carry the bake's paths, seconds and bytes with
+  the count of cases that share them (``shared_by``: sums divide by it);
 
 both against the per-pixel path-traced reference of ``isolume reference``
 (`baking.reference.ReferenceTracer`) with the same camera, size and lighting (the seed
@@ -37,13 +42,19 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from isolume.app.bench.accuracy_output import Report
+from isolume.app.bench.accuracy_reference import (
+    START_SPP,
+    AccuracyError,
+    Truth,
+    settle_reference,
+)
 from isolume.volumes.errors import IsolumeError
 
 if TYPE_CHECKING:
@@ -56,15 +67,9 @@ DEFAULT_MAX_SIZE = 128
 DEFAULT_SIZE = "128x128"
 DEFAULT_REF_SPP = 32768
 """Cap on the reference's samples per pixel."""
-START_SPP = 256
-"""The reference's first samples per pixel, before its noise is compared with the error."""
 VOLUME_SUFFIXES = (".raw.gz", ".raw", ".nrrd", ".nhdr", ".mhd", ".mha", ".nii.gz", ".nii",
                    ".npy", ".npz", ".tif", ".tiff")
 """The file names a folder's volumes end with (those `volumes.load` reads by suffix)."""
-
-
-class AccuracyError(IsolumeError):
-    """A volume or case the sweep cannot measure (the message says why)."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -99,8 +104,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "$XDG_CACHE_HOME/isolume/references, else ~/.cache/isolume/references; "
                    "none: keep none)")
     p.add_argument("--skip-bake", action="store_true", help="measure the render only")
-    p.add_argument("--isovalues", choices=["first", "all"], default="all",
-                   help="the first suggested isovalue or all of them (default all)")
+    p.add_argument("--isovalues", type=isovalue_rule, default="all",
+                   metavar="first|all|across:N",
+                   help="the first suggested isovalue, all of them (default), or N spread "
+                   "evenly across the iso range isolume bake bakes by default (the "
+                   "suggested isovalues with a quarter of their spread on either side)")
+    p.add_argument("--bake-range", choices=["view", "default"], default="view",
+                   help="each case's own bake over +-3 %% of the data range around its "
+                   "isovalue, as the viewer bakes (view, the default), or one bake of "
+                   "each volume over isolume bake's default iso range, drawn at every "
+                   "isovalue (default)")
     p.add_argument("--up", action="append", metavar="[NAME=]AXIS",
                    help="turn the volumes (whose name contains NAME) so that AXIS points up, "
                    "as render's --up (repeatable)")
@@ -124,6 +137,8 @@ class Sweep:
             `paths`); texel_error: its texel error (None: none); scale: its texels per voxel.
         cache: the folder of kept references (None: none kept); up: ([NAME], AXIS) rules
             of ``--up``; progress: progress bars on stderr.
+        first_only, across: ``--isovalues`` first, or across:N (N; else 0); bake_range:
+            ``--bake-range`` ("view" or "default").
     """
 
     size: tuple[int, int]
@@ -138,6 +153,8 @@ class Sweep:
     cache: Path | None
     skip_bake: bool
     first_only: bool
+    across: int
+    bake_range: str
     up: tuple[tuple[str, str], ...]
     workers: int | None
     gl: str
@@ -166,7 +183,26 @@ def sweep_of(args: argparse.Namespace) -> Sweep:
     return Sweep(parse_size(args.size), view, args.view, args.max_size, args.ref_spp,
                  args.paths, args.target_error, args.texel_error, args.scale,
                  reference_cache(args.cache), args.skip_bake, args.isovalues == "first",
-                 parse_up_rules(args.up), args.workers, args.gl, sys.stderr.isatty())
+                 across_count(args.isovalues), args.bake_range, parse_up_rules(args.up),
+                 args.workers, args.gl, sys.stderr.isatty())
+
+
+def isovalue_rule(text: str) -> str:
+    """``--isovalues``: "first", "all" or "across:N" (N ≥ 1).
+
+    Raises:
+        argparse.ArgumentTypeError: anything else.
+    """
+    if text in ("first", "all") or (text.startswith("across:")
+                                    and text[7:].isdigit() and int(text[7:]) >= 1):
+        return text
+    raise argparse.ArgumentTypeError(f"{text!r}: expected first, all or across:N with N "
+                                     "at least 1")
+
+
+def across_count(rule: str) -> int:
+    """N of an ``--isovalues`` rule "across:N", else 0."""
+    return int(rule[7:]) if rule.startswith("across:") else 0
 
 
 def reference_cache(text: str | None) -> Path | None:
@@ -322,6 +358,8 @@ class Prepared:
         isovalues: those measured; suggested: all that ``isolume info`` suggests.
         notes: JSON-ready: dims as loaded and measured (x, y, z), block factor, up axis,
             placement.
+        baked: the volume's one bake with ``--bake-range default`` (`case_bake`), once
+            its first case has made it.
     """
 
     volume: Volume
@@ -330,6 +368,7 @@ class Prepared:
     isovalues: tuple[float, ...]
     suggested: tuple[float, ...]
     notes: dict[str, Any] = field(default_factory=dict)
+    baked: Baked | None = None
 
 
 def block_factor(shape_xyz: tuple[int, int, int], max_size: int) -> int:
@@ -364,6 +403,12 @@ def prepare(spec: str, sweep: Sweep) -> Prepared:
         volume = volumes.crop_downsample(volume, None, factor)
     notes.update(block=factor, dims=list(volume.shape_xyz))
     isovalues = suggested[:1] if sweep.first_only else suggested
+    if sweep.across:
+        from isolume.baking.plan import default_iso_range
+
+        lo, hi = default_iso_range(volume)
+        isovalues = tuple(lo + (k + 0.5) * (hi - lo) / sweep.across
+                          for k in range(sweep.across))
     return Prepared(volume, name, source, tuple(isovalues), tuple(suggested), notes)
 
 
@@ -417,20 +462,53 @@ def render_default(volume: Volume, iso: float, sweep: Sweep) -> tuple[Shot, Bake
     return Shot("render", *_flat(frame), seconds, None, extra), config
 
 
-def render_baked(volume: Volume, iso: float, sweep: Sweep) -> Shot:
-    """The picture drawn with a default bake around `iso` (see the module docstring)."""
-    from isolume.app.options import bake_config
-    from isolume.app.render.offscreen import render_volume
-    from isolume.baking import bake
-    from isolume.baking.lazy import view_iso_range
+@dataclass
+class Baked:
+    """A lattice a sweep baked, what it cost, and how many cases it draws (`shared_by`:
+    their rows carry its paths, seconds and bytes, and sums divide them by it)."""
 
-    config = bake_config(bake_options(sweep, view_iso_range(volume, iso)))
+    lattice: Any
+    seconds: float
+    bytes: int
+    shared_by: int = 1
+
+
+def bake_cases(volume: Volume, iso_range: tuple[float, float], sweep: Sweep,
+               shared_by: int = 1) -> Baked:
+    """A bake with ``isolume bake``'s defaults (and the sweep's paths, target, texel error,
+    scale) over `iso_range`, timed, its file's bytes measured."""
+    from isolume.app.options import bake_config
+    from isolume.baking import bake
+
+    config = bake_config(bake_options(sweep, iso_range))
     began = time.perf_counter()
     lattice = bake(volume, config, workers=sweep.workers, progress=sweep.progress)
-    bake_seconds = time.perf_counter() - began
-    file_bytes = lattice_bytes(lattice)
+    seconds = time.perf_counter() - began
+    return Baked(lattice, seconds, lattice_bytes(lattice), shared_by)
+
+
+def case_bake(prep: Prepared, iso: float, sweep: Sweep) -> Baked:
+    """The bake the case at `iso` is drawn with: its own over the viewer's range around it
+    (``--bake-range view``), or the volume's one over ``isolume bake``'s default range,
+    made at its first case and kept in `prep` (``default``)."""
+    from isolume.baking.lazy import view_iso_range
+    from isolume.baking.plan import default_iso_range
+
+    if sweep.bake_range == "view":
+        return bake_cases(prep.volume, view_iso_range(prep.volume, iso), sweep)
+    if prep.baked is None:
+        prep.baked = bake_cases(prep.volume, default_iso_range(prep.volume), sweep,
+                                len(prep.isovalues))
+    return prep.baked
+
+
+def render_baked(volume: Volume, iso: float, sweep: Sweep, baked: Baked) -> Shot:
+    """The picture at `iso` drawn with the lattice of `baked` (see the module docstring)."""
+    from isolume.app.render.offscreen import render_volume
+
+    lattice, config = baked.lattice, baked.lattice.config
     ns = render_options(sweep)
-    settings = _settings(ns, sweep.size, lattice.kind, lattice.config.albedo)
+    settings = _settings(ns, sweep.size, lattice.kind, config.albedo)
     began = time.perf_counter()
     frame, _ = render_volume(volume, iso, settings, view=sweep.view, backend=sweep.gl,
                              normals=ns.normals, flip_normals=ns.flip_normals,
@@ -439,11 +517,12 @@ def render_baked(volume: Volume, iso: float, sweep: Sweep) -> Shot:
     extra = {"paths": lattice.meta["stats"]["paths"],
              "paths_per_texel": lattice.meta["stats"]["paths"] / max(plan["active_texels"], 1),
              "samples": config.samples, "target_error": config.target_error,
-             "texel_error": config.texel_error, "scale": config.scale, "lattice_bytes": file_bytes,
+             "texel_error": config.texel_error, "scale": config.scale,
+             "lattice_bytes": baked.bytes, "shared_by": baked.shared_by,
              "filled_texels": lattice.meta.get("filled", {}).get("filled", 0),
              "iso_range": list(config.iso_range), "active_texels": plan["active_texels"],
              "levels": len(plan["levels"])}
-    return Shot("bake", *_flat(frame), time.perf_counter() - began, bake_seconds, extra)
+    return Shot("bake", *_flat(frame), time.perf_counter() - began, baked.seconds, extra)
 
 
 def lattice_bytes(lattice) -> int:
@@ -461,115 +540,6 @@ def _flat(frame) -> tuple[np.ndarray, np.ndarray]:
     return frame.linear.reshape(-1, 3).astype(np.float64), frame.mask.reshape(-1)
 
 
-@dataclass
-class Truth:
-    """The settled reference.
-
-    Attributes:
-        radiance, stderr: (N, 3) linear radiance and its standard error; mask: (N,)
-        surface pixels; noise: relative (`accuracy_metrics.reference_noise`); spp: the
-        median samples per surface pixel; seconds: wall time (tracer set-up included);
-        kept: it started from a kept reference (``--cache``).
-    """
-
-    radiance: np.ndarray
-    stderr: np.ndarray
-    mask: np.ndarray
-    noise: float
-    spp: int
-    seconds: float
-    kept: bool = False
-
-
-def settle_reference(volume: Volume, iso: float, shots: list[Shot], config: BakeConfig,
-                     sweep: Sweep) -> Truth:
-    """Path-trace the reference of `shots`' view under `config`'s light (seed + 1) from
-    `START_SPP` samples per pixel until its noise is at most `NOISE_RATIO` × the smallest
-    error less that noise, or ``--ref-spp``.
-
-    Raises:
-        AccuracyError: no pixel sees the surface.
-    """
-    from isolume.app.bench.accuracy_metrics import (
-        NOISE_RATIO,
-        less_noise,
-        next_spp,
-        reference_noise,
-        relative_rmse,
-    )
-    from isolume.app.render.renderer import framed_camera
-    from isolume.baking.reference import PixelStats, ReferenceTracer, save_state
-
-    camera = framed_camera(volume, iso, sweep.view, sweep.size)
-    origins, dirs = camera.primary_rays(*sweep.size)
-    config = replace(config, seed=config.seed + 1)
-    began = time.perf_counter()
-    with ReferenceTracer(volume, iso, origins, dirs, config, smooth=config.normals == "smooth",
-                         workers=sweep.workers) as tracer:
-        if len(tracer.hits.pixels) == 0:
-            raise AccuracyError(f"iso {iso:.6g}: no pixel of the {sweep.view_text} view sees "
-                                "the surface")
-        kept = _kept_reference(sweep.cache, tracer)
-        stats = kept if kept is not None else PixelStats.empty(tracer.pixels)
-        had = int(stats.count.sum())
-        spp = min(START_SPP, sweep.ref_spp)
-        while True:
-            _trace(tracer, stats, spp, sweep.progress)
-            image = tracer.image(stats)
-            noise = reference_noise(image.radiance, image.stderr, image.mask)
-            error = min(less_noise(relative_rmse(s.linear, image.radiance, image.mask), noise)
-                        for s in shots)
-            if noise <= NOISE_RATIO * error or spp >= sweep.ref_spp:
-                break
-            spp = next_spp(spp, noise, error, sweep.ref_spp)
-        if sweep.cache is not None and int(stats.count.sum()) > had:
-            save_state(_cache_file(sweep.cache, tracer), stats, {"identity": tracer.identity})
-    return Truth(image.radiance, image.stderr, image.mask, noise,
-                 int(np.median(stats.count[stats.count > 0])), time.perf_counter() - began,
-                 kept is not None)
-
-
-def _cache_file(folder: Path, tracer) -> Path:
-    """The kept reference of `tracer`'s identity in `folder`."""
-    import hashlib
-    import json
-
-    key = json.dumps(tracer.identity, sort_keys=True)
-    return folder / f"{hashlib.sha1(key.encode()).hexdigest()}.state.npz"
-
-
-def _kept_reference(folder: Path | None, tracer):
-    """The `PixelStats` kept in `folder` for `tracer`'s identity, or None (none kept, no
-    cache, or a file of another identity or format: it is replaced later)."""
-    from isolume.baking.errors import BakeError
-    from isolume.baking.reference import load_state
-
-    if folder is None:
-        return None
-    path = _cache_file(folder, tracer)
-    if not path.exists():
-        return None
-    try:
-        stats, meta = load_state(path)
-    except BakeError:
-        return None
-    return stats if tracer.holds(stats, meta) else None
-
-
-def _trace(tracer, stats, spp: int, progress: bool) -> None:
-    """Bring every surface pixel of `tracer` to `spp` samples (a progress bar when
-    `progress`)."""
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=tracer.pending_paths(stats, spp), unit="path", unit_scale=True,
-                   dynamic_ncols=True, smoothing=0.1, desc="reference", leave=False)
-    tracer.run(stats, spp, bar=bar)
-    if bar is not None:
-        bar.close()
-
-
 # -- a case ----------------------------------------------------------------------------------
 def measure(prep: Prepared, iso: float, sweep: Sweep
             ) -> tuple[list[dict[str, Any]], list[Tile]]:
@@ -578,7 +548,10 @@ def measure(prep: Prepared, iso: float, sweep: Sweep
 
     iso = volumes.check_isovalue(prep.volume, iso)
     shot, config = render_default(prep.volume, iso, sweep)
-    shots = [shot] if sweep.skip_bake else [shot, render_baked(prep.volume, iso, sweep)]
+    if not sweep.skip_bake:
+        shots = [shot, render_baked(prep.volume, iso, sweep, case_bake(prep, iso, sweep))]
+    else:
+        shots = [shot]
     truth = settle_reference(prep.volume, iso, shots, config, sweep)
     rows = [case_row(prep, iso, s, truth) for s in shots]
     return rows, [case_tile(row, s, truth, sweep.size) for row, s in zip(rows, shots,
@@ -621,7 +594,8 @@ def _settings_record(sweep: Sweep, specs: list[str]) -> dict:
     return {
         "volumes": specs, "size": list(sweep.size), "view": sweep.view_text,
         "max_size": sweep.max_size, "downsampling": "block means of F^3 voxels",
-        "isovalues": "first" if sweep.first_only else "all suggested",
+        "isovalues": ("first" if sweep.first_only else f"{sweep.across} across the default "
+                      "bake range" if sweep.across else "all suggested"),
         "up": [list(rule) for rule in sweep.up], "gl": sweep.gl, "workers": sweep.workers,
         "render": {"paths": render.samples or "default (64)", "bounces": render.bounces,
                    "env": "render's default", "seed": render.seed},
@@ -629,7 +603,9 @@ def _settings_record(sweep: Sweep, specs: list[str]) -> dict:
             "samples": bake_ns.samples, "target_error": bake_ns.target_error,
             "texel_error": bake_ns.texel_error, "bounces": bake_ns.bounces, "env": bake_ns.env,
             "scale": bake_ns.scale, "max_levels": bake_ns.max_levels,
-            "iso_range": "baking.lazy.view_iso_range: ±3 % of the data range around iso"},
+            "iso_range": ("baking.lazy.view_iso_range: ±3 % of the data range around iso, "
+                          "a bake per case" if sweep.bake_range == "view" else
+                          "baking.plan.default_iso_range: one bake per volume")},
         "reference": {"start_spp": START_SPP, "max_spp": sweep.ref_spp,
                       "seed": "the render's + 1",
                       "rule": f"noise <= {NOISE_RATIO:g} x the smallest error less the noise"},

@@ -137,6 +137,12 @@ def spread(values: list[float]) -> dict:
             "worst": float(max(values))}
 
 
+def share(row: dict[str, Any], key: str) -> float:
+    """A case's share of its bake's `key` (one of `TOTALS`): the whole where the case has a
+    bake of its own, else the bake's over the cases it draws (``shared_by``)."""
+    return row[key] / row.get("shared_by", 1)
+
+
 def summarize(rows: list[dict[str, Any]], failures: list[dict[str, Any]]) -> dict[str, Any]:
     """The summary over measured `rows` (dicts of `case_figures` plus volume, iso, mode).
 
@@ -158,7 +164,7 @@ def summarize(rows: list[dict[str, Any]], failures: list[dict[str, Any]]) -> dic
         modes[mode] = {"cases": len(mine), "rel_rmse_less_noise": spread(corrected),
                        "rel_rmse": spread([r["rel_rmse"] for r in mine]),
                        "worst_case": {"volume": worst["volume"], "iso": worst["iso"]},
-                       **{f"total_{key}": sum(r[key] for r in mine) for key in TOTALS
+                       **{f"total_{key}": sum(share(r, key) for r in mine) for key in TOTALS
                           if all(r.get(key) is not None for r in mine)}}
     lo, hi = RATIO_BAND
     return {

@@ -76,7 +76,7 @@ def summary_lines(summary: dict[str, Any]) -> list[str]:
                      f"{worst['iso']:.5g}); plain median {_pct(raw['median'])}, "
                      f"p90 {_pct(raw['p90'])}, worst {_pct(raw['worst'])}")
         if all(f"total_{key}" in figures for key in TOTALS):
-            lines.append(f"{mode:6s} totals: {figures['total_paths']:,} paths, "
+            lines.append(f"{mode:6s} totals: {figures['total_paths']:,.0f} paths, "
                          f"{figures['total_bake_seconds']:.1f} s of bakes, "
                          f"{figures['total_lattice_bytes'] / 1e6:.2f} MB of lattice files")
     lo, hi = summary["ratio_band"]

@@ -8,14 +8,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from isolume.volumes.errors import IsolumeError
 
 if TYPE_CHECKING:
-    from isolume.app.bench.accuracy import Shot, Sweep
     from isolume.baking.config import BakeConfig
     from isolume.volumes import Volume
 
@@ -47,11 +46,12 @@ class Truth:
     kept: bool = False
 
 
-def settle_reference(volume: Volume, iso: float, shots: list[Shot], config: BakeConfig,
-                     sweep: Sweep) -> Truth:
-    """Path-trace the reference of `shots`' view under `config`'s light (seed + 1) from
-    `START_SPP` samples per pixel until its noise is at most `NOISE_RATIO` × the smallest
-    error less that noise, or ``--ref-spp``.
+def settle_reference(volume: Volume, iso: float, shots: list[Any], config: BakeConfig,
+                     sweep: Any) -> Truth:
+    """Path-trace the reference of `shots`' view (the case's `accuracy.Shot` pictures, of
+    the `accuracy.Sweep` `sweep`'s camera, size, cache and cap) under `config`'s light
+    (seed + 1) from `START_SPP` samples per pixel until its noise is at most
+    `NOISE_RATIO` × the smallest error less that noise, or ``--ref-spp``.
 
     Raises:
         AccuracyError: no pixel sees the surface.
