@@ -217,8 +217,10 @@ def comparison_lines(record: dict[str, Any]) -> list[str]:
 
 
 def plot(record: dict[str, Any], path: Path) -> None:
-    """Three log-x panels (paths, seconds, bytes) of the error's median, p90 and worst,
+    """Three log-log panels (paths, seconds, bytes) of the error's median, p90 and worst,
     one line per kind of sweep."""
+    from matplotlib.ticker import LogLocator, NullFormatter
+
     from isolume.app.charts.plotting import figure, plain_log_ticks
 
     plt, fig, axes = figure(len(FIGURES))
@@ -235,13 +237,17 @@ def plot(record: dict[str, Any], path: Path) -> None:
             for stat, style in (("median", "o-"), ("p90", "s--"), ("worst", "^:")):
                 ax.semilogx(x, [p[stat] for p in pts], style, color=colour, ms=4,
                             label=f"{kind}: {stat}")
-            for p, xv in zip(pts, x, strict=True):
+            for i, (p, xv) in enumerate(zip(pts, x, strict=True)):
                 ax.annotate(p["label"].split(" (")[0], (xv, p["median"]), fontsize=6,
-                            xytext=(2, -9), textcoords="offset points")
+                            xytext=(2, -9 if i % 2 == 0 else 4), textcoords="offset points")
         plain_log_ticks(ax, "x")
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 1.5, 2.0, 3.0, 4.0, 5.0,
+                                                              7.0)))
+        ax.yaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f"{v:.0%}"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(f"{label}, summed over the {len(record['cases'])} cases")
         ax.set_ylabel("relative RMSE less the reference's noise")
-        ax.yaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f"{v:.1%}"))
         ax.grid(True, which="both", alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=7)
