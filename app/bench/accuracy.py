@@ -110,10 +110,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "evenly across the iso range isolume bake bakes by default (the "
                    "suggested isovalues with a quarter of their spread on either side)")
     p.add_argument("--bake-range", choices=["view", "default"], default="view",
-                   help="each case's own bake over +-3 %% of the data range around its "
-                   "isovalue, as the viewer bakes (view, the default), or one bake of "
+                   help="view (the default): each case's own bake over +-3 %% of the data "
+                   "range around its isovalue, as the viewer bakes; default: one bake of "
                    "each volume over isolume bake's default iso range, drawn at every "
-                   "isovalue (default)")
+                   "isovalue measured")
     p.add_argument("--up", action="append", metavar="[NAME=]AXIS",
                    help="turn the volumes (whose name contains NAME) so that AXIS points up, "
                    "as render's --up (repeatable)")
