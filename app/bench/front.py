@@ -219,8 +219,6 @@ def comparison_lines(record: dict[str, Any]) -> list[str]:
 def plot(record: dict[str, Any], path: Path) -> None:
     """Three log-log panels (paths, seconds, bytes) of the error's median, p90 and worst,
     one line per kind of sweep."""
-    from matplotlib.ticker import LogLocator, NullFormatter
-
     from isolume.app.charts.plotting import figure, plain_log_ticks
 
     plt, fig, axes = figure(len(FIGURES))
@@ -242,10 +240,7 @@ def plot(record: dict[str, Any], path: Path) -> None:
                             xytext=(2, -9 if i % 2 == 0 else 4), textcoords="offset points")
         plain_log_ticks(ax, "x")
         ax.set_yscale("log")
-        ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 1.5, 2.0, 3.0, 4.0, 5.0,
-                                                              7.0)))
-        ax.yaxis.set_major_formatter(plt.FuncFormatter(lambda v, _: f"{v:.0%}"))
-        ax.yaxis.set_minor_formatter(NullFormatter())
+        plain_log_ticks(ax, "y", (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 7.0), "{:.0%}")
         ax.set_xlabel(f"{label}, summed over the {len(record['cases'])} cases")
         ax.set_ylabel("relative RMSE less the reference's noise")
         ax.grid(True, which="both", alpha=0.3)

@@ -49,14 +49,16 @@ def noise_line(ax: Axes, record: dict[str, Any]) -> None:
                label="reference noise")
 
 
-def plain_log_ticks(ax: Axes, axes: str = "xy") -> None:
-    """Log axes ticked at 1, 2, 5 × 10ⁿ and labelled 0.1, 0.2, 0.5 (not 10⁻¹ ...)."""
+def plain_log_ticks(ax: Axes, axes: str = "xy", subs: tuple[float, ...] = (1.0, 2.0, 5.0),
+                    text: str = "{:g}") -> None:
+    """Log axes ticked at `subs` × 10ⁿ (1, 2, 5) and labelled as `text` formats the value
+    (0.1, 0.2, 0.5, not 10⁻¹ ...)."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     for name in axes:
         axis = ax.xaxis if name == "x" else ax.yaxis
-        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=30))
-        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_major_locator(LogLocator(base=10, subs=subs, numticks=30))
+        axis.set_major_formatter(FuncFormatter(lambda v, _: text.format(v)))
         axis.set_minor_formatter(NullFormatter())
 
 
