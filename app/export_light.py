@@ -106,10 +106,11 @@ def coverage(lattice: Lattice | HeldLattice, points: np.ndarray) -> np.ndarray:
 def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points: np.ndarray,
                    normals: np.ndarray, scene: Scene, *, workers: int | None = None,
                    progress: bool = False) -> HeldLattice:
-    """A lattice lit for the whole surface ρ = `iso`: `config.samples` paths for each
-    texel the vertices' lookups read, traced on `scene` (`baking.trace.Scene` of that
-    surface), from the vertex nearest the texel, `config.offset` voxels off it along its
-    normal.
+    """A lattice lit for the whole surface ρ = `iso`: `config.samples` paths a texel on
+    average for the texels the vertices' lookups read, placed where the vertices' noise is
+    (`baking.view_paths`, each texel's share of the vertices as of a picture's pixels),
+    traced on `scene` (`baking.trace.Scene` of that surface), from the vertex nearest the
+    texel, `config.offset` voxels off it along its normal.
 
     Args:
         config: `baking.config.BakeConfig` of the lighting (`app.options.view_light`).
@@ -130,9 +131,11 @@ def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, point
         nearest_points,
         preview_tracing,
     )
+    from isolume.baking.view_paths import picture_share
     from isolume.baking.view_texels import HeldLattice
 
-    texels, nearest = nearest_points(LatticeGeometry.for_volume(volume, config.scale), points)
+    geometry = LatticeGeometry.for_volume(volume, config.scale)
+    texels, nearest = nearest_points(geometry, points)
     lattice = HeldLattice.for_texels(volume, config, texels)
     h = float(np.mean(volume.spacing))
     seen = SeenSurface(points, points + config.offset * h * normals, normals, texels, nearest)
@@ -142,7 +145,8 @@ def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, point
               disable=not progress, dynamic_ncols=True) as bar:
         estimate(volume, config, lattice, iso, texels, scene, 1, paths=int(config.samples),
                  tracing=tracing, workers=threads, seen=seen,
-                 told=lambda done: bar.update(done - bar.n))
+                 told=lambda done: bar.update(done - bar.n),
+                 share=picture_share(geometry, texels, points))
     return lattice
 
 

@@ -195,8 +195,9 @@ def add_light_options(p: argparse.ArgumentParser, traced_for: str) -> None:
                    help="point:X,Y,Z:R,G,B or dir:X,Y,Z:R,G,B (repeatable; without "
                    "--lattice; default none)")
     p.add_argument("--samples", type=int, default=None,
-                   help="paths per texel of the traced global illumination (without "
-                   f"--lattice; default {DEFAULT_PATHS})")
+                   help="paths per texel of the traced global illumination, on average: a "
+                   "few each, the rest where the picture's noise is (without --lattice; "
+                   f"default {DEFAULT_PATHS})")
     p.add_argument("--bounces", type=int, default=DEFAULT_BOUNCES,
                    help=f"diffuse bounces of that illumination (default {DEFAULT_BOUNCES})")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

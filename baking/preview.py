@@ -39,11 +39,12 @@ from isolume.baking import kernels, octahedral, rng
 from isolume.baking.bake import path_settings, tracing_lights
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import whole_paths
-from isolume.baking.lattice import Lattice, LatticeGeometry
+from isolume.baking.lattice import TRAPPED_PATHS, Lattice, LatticeGeometry, sky_everywhere
 from isolume.baking.lazy import corner_offsets, visible_cells
-from isolume.baking.passes import PassSums, PathStarts, Tracing, trace_chunk
+from isolume.baking.passes import Tracing
 from isolume.baking.plan import grouped_by_bin, project_to_level
 from isolume.baking.reference import primary_hits
+from isolume.baking.view_paths import noise_placed, trace_counts
 from isolume.volumes import cores
 
 if TYPE_CHECKING:  # embreex is imported only when a preview traces
@@ -80,9 +81,6 @@ PATHS_PER_STEP = 1 << 17
 its messages between steps, so a new view waits about that long for its first pass."""
 SEED_SALT = 0x5EED_F1A5
 """Mixed into the bake seed: previews use paths of their own."""
-CHUNK = 16384
-
-
 def cell_corners(shape: tuple[int, int, int], cells: np.ndarray) -> np.ndarray:
     """(K,) sorted unique flat ids of the 8 corner texels of (N,) cells given by the flat
     id of their (0, 0, 0) corner."""
@@ -122,12 +120,15 @@ def surface_scene(volume: volumes.Volume, iso: float, step: int) -> Scene | None
 def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: float,
              flat: np.ndarray, scene: Scene, step: int, *, paths: int, tracing: Tracing,
              workers: int = 1, seen: SeenSurface | None = None,
-             told: Callable[[int], None] | None = None) -> None:
+             told: Callable[[int], None] | None = None, share: np.ndarray | None = None
+             ) -> None:
     """Trace `paths` paths from each texel `flat` (K,) and store the means as the texels'
     previews (`store_preview` of a `Lattice` whose ``preview`` and ``preview_paths`` are
     set, or of a `baking.view_texels.HeldLattice` holding the texels) for the surface
     ρ = `iso` (whose `scene` has the given marching-cubes `step`); `tracing` is
-    `preview_tracing` (volume, config).
+    `preview_tracing` (volume, config). With the (K,) `share` of a picture each texel has
+    (`baking.view_paths.picture_share`), `paths` a texel on average, placed where the
+    picture's noise is (`baking.view_paths.noise_placed`).
 
     With `seen` (the surface the view shows), each texel starts from the visible point
     nearest it among those whose lookups read it (`seen_starts`): on the side of the
@@ -135,9 +136,10 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
     point reads, and every texel without `seen`, start from their centres projected onto
     the surface (`projected_starts`).
 
-    `told(done)`, where given, is told how many of the texels are traced, as the calling
-    thread's work items end (rising, ending at K): one call traces many texels on every
-    core, with no barrier between reports.
+    `told(done)`, where given, is told how many of the texels are traced (with a `share`,
+    the texels' worth of the budget traced), as the calling thread's work items end
+    (rising, ending at K): one call traces many texels on every core, with no barrier
+    between reports.
     """
     origins = np.zeros((len(flat), 3))
     normals = np.zeros((len(flat), 3))
@@ -152,13 +154,24 @@ def estimate(volume: volumes.Volume, config: BakeConfig, lattice: Lattice, iso: 
         o, n, ok = projected_starts(volume, config, lattice, iso, flat[rest], step)
         origins[rest], normals[rest], usable[rest] = o, n, ok
     means, codes = np.zeros((0, lattice.values.shape[-1])), np.zeros((0, 2), np.uint8)
+    counts = np.zeros(len(flat), np.int64)
     if usable.any():
         skipped = len(flat) - int(np.count_nonzero(usable))
-        sums = _trace(scene, tracing, flat[usable], origins[usable].astype(np.float32),
-                      normals[usable].astype(np.float32), workers, paths,
-                      None if told is None else lambda done: told(skipped + done))
-        means, codes = sums / paths, octahedral.encode(normals[usable])
-    lattice.store_preview(flat, np.where(usable, paths, 0), means, codes)
+        traced = dataclasses.replace(tracing, ids=np.asarray(flat[usable], np.int64))
+        starts = (origins[usable].astype(np.float32), normals[usable].astype(np.float32))
+        progress = None if told is None else lambda done: told(skipped + done)
+        if share is None:
+            count = np.full(len(traced.ids), paths, np.int64)
+            sums = trace_counts(scene, traced, *starts, np.zeros_like(count), count, workers,
+                                progress).sum
+        else:
+            sums, count = noise_placed(scene, traced, *starts, lattice.geometry.shape,
+                                       share[usable], paths,
+                                       TRAPPED_PATHS if sky_everywhere(config) else 0,
+                                       workers, progress)
+        means, codes = sums / count[:, None], octahedral.encode(normals[usable])
+        counts[usable] = count
+    lattice.store_preview(flat, counts, means, codes)
     if told is not None:
         told(len(flat))
 
@@ -456,35 +469,12 @@ class Previewer:
 
 def preview_tracing(volume: volumes.Volume, config: BakeConfig) -> Tracing:
     """What the previews trace with (lighting parsed once: an HDR map is read and its
-    sampler built here, not at every preview step); `_trace` fills in the texels and
+    sampler built here, not at every preview step); `estimate` fills in the texels and
     their sums. Previews take their own random numbers (`SEED_SALT`)."""
     lighting, settings = tracing_lights(config), path_settings(volume, config)
     return Tracing(np.zeros(0, np.int64), lighting, settings,
                    np.uint32(rng.seed_key(config.seed ^ SEED_SALT)),
                    np.zeros(settings.channels), whole_paths(lighting, settings))
-
-
-def _trace(scene, tracing: Tracing, flat, origins, normals, workers, paths,
-           told: Callable[[int], None] | None = None) -> np.ndarray:
-    """(K, C) sums of `paths` path estimates per texel `flat` (K,), traced on `workers`
-    threads as the bake traces its chunks (`passes.trace_chunk`: one compiled call per chunk
-    where the lighting allows); `told(done)`: the texels traced so far, after each of the
-    calling thread's chunks."""
-    sums = PassSums(len(flat), tracing.settings.channels)
-    tracing = dataclasses.replace(tracing, ids=flat)
-    start = PathStarts(np.arange(len(flat), dtype=np.int64), origins, normals)
-    per_chunk = max(1, CHUNK // paths)
-
-    def run(lo: int) -> None:
-        hi = min(lo + per_chunk, len(flat))
-        pos = np.repeat(start.texels[lo:hi], paths)
-        samples = np.tile(np.arange(paths, dtype=np.int64), hi - lo)
-        trace_chunk(scene, tracing, pos, samples, start, sums)
-
-    progress = None if told is None else lambda done: told(min(done * per_chunk, len(flat)))
-    cores.for_items(lambda c: run(c * per_chunk), -(-len(flat) // per_chunk), "trace",
-                    on_done=progress, workers=workers)
-    return sums.sum
 
 
 def drop_inactive(lattice: Lattice) -> np.ndarray:

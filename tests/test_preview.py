@@ -11,7 +11,6 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lazy import visible_cells
 from isolume.baking.preview import (
-    CHUNK,
     FIRST_PASS_PATHS,
     Previewer,
     cell_corners,
@@ -22,6 +21,7 @@ from isolume.baking.preview import (
     preview_tracing,
     surface_scene,
 )
+from isolume.baking.view_paths import CHUNK
 
 
 @pytest.fixture(scope="module")
@@ -285,10 +285,10 @@ def test_full_surface_previews_start_on_the_surface_along_the_smoothed_normal(
     config = BakeConfig(env="constant:1", bounces=0, samples=8)
     lat = _empty(vol, config)
     seen = []
-    real = preview._trace
-    monkeypatch.setattr(preview, "_trace", lambda scene, tracing, flat, origins, normals,
+    real = preview.trace_counts
+    monkeypatch.setattr(preview, "trace_counts", lambda scene, tracing, origins, normals,
                         *rest: seen.append((origins, normals))
-                        or real(scene, tracing, flat, origins, normals, *rest))
+                        or real(scene, tracing, origins, normals, *rest))
     _preview_all(vol, config, lat, 0.5, visible_cells(lat.geometry, mesh.vertices))
     origins, normals = seen[-1]  # the last pass: full surface
     h = float(np.mean(vol.spacing))

@@ -91,8 +91,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ref-spp", type=int, default=DEFAULT_REF_SPP, metavar="N",
                    help=f"cap on the reference's samples per pixel (default {DEFAULT_REF_SPP})")
     p.add_argument("--paths", type=int, default=None, metavar="N",
-                   help="paths per texel of the render's and the bake's light (exactly N "
-                   "at every texel without --texel-error/--target-error; default theirs)")
+                   help="paths per texel of the render's and the bake's light (the "
+                   "render's on average, as --render-spread places them; the bake's "
+                   "exactly N at every texel without --texel-error/--target-error; default "
+                   "theirs)")
+    p.add_argument("--render-spread", choices=("noise", "even"), default="noise",
+                   help="the render's paths placed where the picture's noise is, as render "
+                   "does (noise, the default), or the same number at every texel (even)")
     p.add_argument("--target-error", type=float, default=None, metavar="E",
                    help="the bake's noise target, as bake's --target-error (with --paths: "
                    "its minimum paths)")
@@ -132,7 +137,8 @@ class Sweep:
         size: (width, height) pixels; view: (azimuth, elevation, distance or None).
         max_size: largest dimension kept, voxels (0: no reduction).
         ref_spp: cap on the reference's samples per pixel.
-        paths: paths per texel of the render and the bake (None: their defaults).
+        paths: paths per texel of the render and the bake (None: their defaults);
+            render_spread: how the render places its paths (`app.render.view_gi.SPREADS`).
         target_error: the bake's noise target (None: the bake's default, or exactly
             `paths`); texel_error: its texel error (None: none); scale: its texels per voxel.
         cache: the folder of kept references (None: none kept); up: ([NAME], AXIS) rules
@@ -147,6 +153,7 @@ class Sweep:
     max_size: int
     ref_spp: int
     paths: int | None
+    render_spread: str
     target_error: float | None
     texel_error: float | None
     scale: float
@@ -181,7 +188,8 @@ def sweep_of(args: argparse.Namespace) -> Sweep:
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     return Sweep(parse_size(args.size), view, args.view, args.max_size, args.ref_spp,
-                 args.paths, args.target_error, args.texel_error, args.scale,
+                 args.paths, args.render_spread, args.target_error, args.texel_error,
+                 args.scale,
                  reference_cache(args.cache), args.skip_bake, args.isovalues == "first",
                  across_count(args.isovalues), args.bake_range, parse_up_rules(args.up),
                  args.workers, args.gl, sys.stderr.isatty())
@@ -455,10 +463,12 @@ def render_default(volume: Volume, iso: float, sweep: Sweep) -> tuple[Shot, Bake
     began = time.perf_counter()
     frame, mesh = render_volume(volume, iso, settings, view=sweep.view, backend=sweep.gl,
                                 normals=ns.normals, flip_normals=ns.flip_normals,
-                                view_light=config, shadows=ns.shadows,
-                                workers=sweep.workers, progress=sweep.progress)
+                                view_light=config, view_spread=sweep.render_spread,
+                                shadows=ns.shadows, workers=sweep.workers,
+                                progress=sweep.progress)
     seconds = time.perf_counter() - began
-    extra = {"paths_per_texel": config.samples, "triangles": len(mesh.faces)}
+    extra = {"paths_per_texel": config.samples, "spread": sweep.render_spread,
+             "triangles": len(mesh.faces)}
     return Shot("render", *_flat(frame), seconds, None, extra), config
 
 
@@ -589,6 +599,7 @@ def case_tile(row: dict[str, Any], shot: Shot, truth: Truth, size: tuple[int, in
 def _settings_record(sweep: Sweep, specs: list[str]) -> dict:
     """The settings block of accuracy.json."""
     from isolume.app.bench.accuracy_metrics import NOISE_RATIO
+    from isolume.app.render.view_gi import DEFAULT_PATHS
 
     render, bake_ns = render_options(sweep), bake_options(sweep, (0.0, 1.0))
     return {
@@ -597,7 +608,8 @@ def _settings_record(sweep: Sweep, specs: list[str]) -> dict:
         "isovalues": ("first" if sweep.first_only else f"{sweep.across} across the default "
                       "bake range" if sweep.across else "all suggested"),
         "up": [list(rule) for rule in sweep.up], "gl": sweep.gl, "workers": sweep.workers,
-        "render": {"paths": render.samples or "default (64)", "bounces": render.bounces,
+        "render": {"paths": render.samples or f"default ({DEFAULT_PATHS})",
+                   "spread": sweep.render_spread, "bounces": render.bounces,
                    "env": "render's default", "seed": render.seed},
         "bake": None if sweep.skip_bake else {
             "samples": bake_ns.samples, "target_error": bake_ns.target_error,

@@ -93,6 +93,7 @@ def render_volume(
     lattice: Lattice | HeldLattice | LatticeOnFile | None = None,
     env_coeffs: np.ndarray | None = None,
     view_light: BakeConfig | None = None,
+    view_spread: str = "noise",
     shadows: str = "traced",
     workers: int | None = None,
     progress: bool = False,
@@ -108,7 +109,8 @@ def render_volume(
     ((n², 3) SH coefficients of the environment) by "sh". Without a lattice, `view_light`
     (a `baking.config.BakeConfig`) lights this view instead: a position pass finds the
     visible surface and `app.render.view_gi.view_lattice` traces the texels it reads (`workers`
-    threads, `progress` on stderr) on an Embree scene of the mesh, while GL holds no copy of
+    threads, `progress` on stderr, the paths spread as `view_spread` says) on an Embree
+    scene of the mesh, while GL holds no copy of
     the mesh (it is uploaded again for the picture). The shadow map and the fog are fitted
     to the volume's world box; "irradiance_closest" gets the texel isovalues computed from
     `volume` here. The lights a lattice leaves to the pixels get, with `shadows` "traced",
@@ -146,7 +148,8 @@ def render_volume(
             cores.stage("level scenes")
             scene = Scene(mesh.vertices, mesh.faces)
             lattice = view_lattice(volume, view_light, iso, seen[0], camera.eye,
-                                   workers=workers, progress=progress, scene=scene)
+                                   workers=workers, progress=progress, scene=scene,
+                                   spread=view_spread)
         renderer.set_lattice(lattice, _texel_isovalues(volume, lattice, settings.shading))
         if shadows == "traced" and renderer.direct_lights(settings) and len(mesh.faces):
             if seen is None:

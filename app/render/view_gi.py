@@ -4,14 +4,17 @@ A lattice baked for every isovalue takes minutes; one picture needs only the tex
 its pixels read. So, as the lazy viewer's previews do (`baking.preview`), the corner texels
 of the lattice cells under the visible pixels get paths traced on the *displayed*
 isosurface (one Embree scene), each from the visible surface point nearest it, on the side
-the eye sees (`baking.preview.seen_starts`), in one pass of `paths` paths each; the
-picture is then drawn by the ordinary lattice shading ("irradiance": side-aware trilinear
-lookups, and whatever the renderer adds per pixel for the lattice's configuration). The
-lattice is used for this picture only, never saved: its texels hold values for the
-displayed isovalue, not their own.
+the eye sees (`baking.preview.seen_starts`), `paths` paths a texel on average placed where
+the picture's noise is (`baking.view_paths`: a few each, then the rest by the spread of
+their light and their share of the pixels); the picture is then drawn by the ordinary
+lattice shading ("irradiance": side-aware trilinear lookups, and whatever the renderer adds
+per pixel for the lattice's configuration). The lattice is used for this picture only,
+never saved: its texels hold values for the displayed isovalue, not their own.
 
 Its error against per-pixel path tracing (`isolume reference` with the same arguments) is
-the previews': a few per cent at 64 paths (README, "The first picture").
+a few per cent (README, "The first picture"); at `DEFAULT_PATHS` paths a texel on average
+it is as accurate as 64 at every texel (docs/accuracy.md, "The traced light of one
+picture").
 """
 
 from __future__ import annotations
@@ -31,20 +34,24 @@ if TYPE_CHECKING:
     from isolume.baking.trace import Scene
     from isolume.baking.view_texels import HeldLattice
 
-DEFAULT_PATHS = 64
-"""Paths per texel of a render's view lattice (``isolume render --samples``)."""
+DEFAULT_PATHS = 32
+"""Paths per texel, on average, of a render's view lattice (``isolume render --samples``)."""
+SPREADS = ("noise", "even")
+"""How a view lattice's paths are spread over its texels: where the picture's noise is
+(`baking.view_paths`), or the same number at every texel."""
 REPORT_S = 0.2
 """Seconds between rewrites of the progress line."""
 
 
 def view_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points: np.ndarray,
                  eye: np.ndarray, *, workers: int | None = None, progress: bool = True,
-                 scene: Scene | None = None, tracing: Tracing | None = None) -> HeldLattice:
+                 scene: Scene | None = None, tracing: Tracing | None = None,
+                 spread: str = "noise") -> HeldLattice:
     """A lattice lit for the view whose visible surface points are `points`.
 
     Args:
         config: `baking.config.BakeConfig` of the lighting (env, lights, bounces, albedo,
-            seed); its `samples` are the paths per texel.
+            seed); its `samples` are the paths per texel (on average: `spread`).
         iso: the displayed isovalue.
         points: (N, 3) world positions of the surface under the visible pixels (the
             renderer's position pass).
@@ -56,6 +63,7 @@ def view_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points:
             step 1 (`baking.preview.surface_scene`, or one of the displayed mesh) and the
             `preview_tracing` of (volume, config), when the caller has them (the
             displayed mesh, a movie's several views); None: made here.
+        spread: one of `SPREADS`.
 
     Returns:
         A `baking.view_texels.HeldLattice` holding the estimates of the texels the
@@ -70,12 +78,15 @@ def view_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points:
         seen_surface,
         surface_scene,
     )
+    from isolume.baking.view_paths import picture_share
     from isolume.baking.view_texels import HeldLattice
 
+    if spread not in SPREADS:
+        raise ValueError(f"spread {spread!r}: expected one of {', '.join(SPREADS)}")
     geometry = LatticeGeometry.for_volume(volume, config.scale)
     texels = picture_texels(geometry, points)
     lattice = HeldLattice.for_texels(volume, config, texels)
-    report = _Progress(progress, int(config.samples), len(texels))
+    report = _Progress(progress, int(config.samples), len(texels), spread)
     if scene is None and len(texels):
         scene = surface_scene(volume, iso, 1)
     if scene is None or not len(texels):
@@ -84,20 +95,23 @@ def view_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points:
     cores.stage("nearest points")
     seen = seen_surface(scene, volume, config, geometry, eye, points)
     cores.stage("tracing")
+    share = picture_share(geometry, texels, points) if spread == "noise" else None
     estimate(volume, config, lattice, iso, texels, scene, 1, paths=int(config.samples),
              tracing=tracing, workers=workers or cores.threads(), seen=seen,
-             told=report.update)
+             told=report.update, share=share)
     report.done(int((lattice.paths > 0).sum()))
     return lattice
 
 
 class _Progress:
-    """One updating line on stderr: texels done, paths per texel, seconds (rewritten at
-    most every `REPORT_S`)."""
+    """One updating line on stderr: texels done (their worth of the paths, where the paths
+    are placed by noise), paths per texel, seconds (rewritten at most every
+    `REPORT_S`)."""
 
-    def __init__(self, enabled: bool, paths: int, total: int) -> None:
+    def __init__(self, enabled: bool, paths: int, total: int, spread: str) -> None:
         self.enabled = enabled and sys.stderr is not None
         self.paths, self.total, self.t0 = paths, total, time.perf_counter()
+        self.each = "each" if spread == "even" else "on average"
         self.shown = -REPORT_S
 
     def update(self, done: int) -> None:
@@ -106,11 +120,11 @@ class _Progress:
             return
         self.shown = now
         self._line(f"global illumination: {done:,} of {self.total:,} texels, {self.paths} "
-                   f"paths each, {now:.1f} s", end="")
+                   f"paths {self.each}, {now:.1f} s", end="")
 
     def done(self, texels: int) -> None:
-        self._line(f"global illumination: {texels:,} texels × {self.paths} paths in "
-                   f"{time.perf_counter() - self.t0:.1f} s")
+        self._line(f"global illumination: {texels:,} texels × {self.paths} paths "
+                   f"{self.each} in {time.perf_counter() - self.t0:.1f} s")
 
     def _line(self, text: str, end: str = "\n") -> None:
         if self.enabled:
