@@ -66,7 +66,8 @@ BUILT_IN = {
     "render": ("render an isosurface off-screen to PNG or EXR",
                "Render an isosurface off-screen to PNG (sRGB) or EXR (linear). Without "
                "--lattice the view's global illumination is traced for the texels the "
-               "picture reads (64 paths each)."),
+               "picture reads (32 paths a texel on average, placed where the picture's "
+               "noise is)."),
     "bake": ("bake an illumination lattice with Embree path tracing",
              "Bake an illumination lattice for every isovalue (or --iso-range) with Embree "
              "path tracing; Ctrl-C keeps the finished texels."),

@@ -221,15 +221,20 @@ def bake_sweep(vol: volumes.Volume, traced: BakeConfig, iso_range: tuple[float, 
                args: argparse.Namespace) -> Lattice:
     """The lattice for a sweep without ``--lattice``: `traced`'s light baked for the
     isovalues `iso_range` (`baking.bake`, progress on stderr; kept in
-    ``--save-lattice``)."""
+    ``--save-lattice``): ``--samples`` paths at every texel, or without it ``isolume
+    bake``'s default (`app.options.bake_paths`)."""
+    from isolume.app.options import bake_paths
     from isolume.baking import bake
 
     out = Path(args.save_lattice) if args.save_lattice else None
-    config = replace(traced, iso_range=iso_range)
+    samples, _, texel = bake_paths(args.samples, None, None, traced.mode)
+    config = replace(traced, iso_range=iso_range, samples=samples, texel_error=texel)
     lo, hi = iso_range
     kept = f", kept in {out}" if out is not None else " (--save-lattice FILE.npz keeps it)"
-    print(f"isolume: no --lattice: baking one for isovalues {lo:g} to {hi:g} with "
-          f"{config.samples} paths per texel{kept}", file=sys.stderr)
+    paths = (f"to a texel error of {texel:g} at {samples} paths a traced texel" if texel
+             else f"with {samples} paths per texel")
+    print(f"isolume: no --lattice: baking one for isovalues {lo:g} to {hi:g} {paths}{kept}",
+          file=sys.stderr)
     return bake(vol, config, out=out, workers=args.workers, progress=True)
 
 
@@ -364,7 +369,7 @@ def report_light(scene: Scene, source: str | None) -> None:
     traced for every frame, or a lattice's sun turned per pixel over its baked bounces."""
     if scene.traced is not None:
         print(f"isolume: no --lattice: global illumination is traced for every frame "
-              f"({scene.traced.samples} paths per texel)", file=sys.stderr)
+              f"({scene.traced.samples} paths a texel on average)", file=sys.stderr)
     if scene.light is not None and scene.light.how == "pixels":
         print(f"isolume: note: the light turns per pixel; the bounces {source} holds stay "
               "as baked for its direction (without --lattice each frame's light is traced)",
