@@ -87,7 +87,8 @@ def render_picture(args: argparse.Namespace, reuse: Reuse | None = None) -> Rend
         vol, iso, look.settings, view=view, camera=args.camera,
         backend=args.gl, normals=args.normals, flip_normals=args.flip_normals,
         lattice=lattice, env_coeffs=look.env_coeffs, view_light=look.traced,
-        shadows=args.shadows, workers=args.workers, progress=True, reuse=reuse,
+        view_spread=args.spread, shadows=args.shadows, workers=args.workers, progress=True,
+        reuse=reuse,
     )
     if mesh.empty:
         print(f"isolume: warning: {mesh.message}", file=sys.stderr)

@@ -173,8 +173,9 @@ def _vertex_light(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, lattic
     radiance, read, lights = surface_radiance(
         volume, iso, mesh, Scene(mesh.vertices, mesh.faces), lattice, shading.traced,
         shading.albedo, env_coeffs=shading.env_coeffs, env_rotation=shading.env_rotation,
-        workers=args.workers, progress=True)
-    source = (f"global illumination traced with {shading.traced.samples} paths per texel"
+        workers=args.workers, progress=True, spread=args.spread)
+    each = "each" if args.spread == "even" else "a texel on average"
+    source = (f"global illumination traced with {shading.traced.samples} paths {each}"
               if lattice is None else f"{lattice.kind} lattice {args.lattice}")
     if lights:
         source += f" + direct light of {len(lights)} light(s) through shadow rays"

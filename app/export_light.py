@@ -105,10 +105,11 @@ def coverage(lattice: Lattice | HeldLattice, points: np.ndarray) -> np.ndarray:
 
 def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, points: np.ndarray,
                    normals: np.ndarray, scene: Scene, *, workers: int | None = None,
-                   progress: bool = False) -> HeldLattice:
+                   progress: bool = False, spread: str = "noise") -> HeldLattice:
     """A lattice lit for the whole surface ρ = `iso`: `config.samples` paths a texel on
     average for the texels the vertices' lookups read, placed where the vertices' noise is
-    (`baking.view_paths`, each texel's share of the vertices as of a picture's pixels),
+    (`baking.view_paths`, each texel's share of the vertices as of a picture's pixels;
+    `spread` "even": that many at every texel),
     traced on `scene` (`baking.trace.Scene` of that surface), from the vertex nearest the
     texel, `config.offset` voxels off it along its normal.
 
@@ -146,7 +147,7 @@ def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, point
         estimate(volume, config, lattice, iso, texels, scene, 1, paths=int(config.samples),
                  tracing=tracing, workers=threads, seen=seen,
                  told=lambda done: bar.update(done - bar.n),
-                 share=picture_share(geometry, texels, points))
+                 share=picture_share(geometry, texels, points) if spread == "noise" else None)
     return lattice
 
 
@@ -167,14 +168,15 @@ def surface_radiance(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, sce
                      env_coeffs: np.ndarray | None = None,
                      env_rotation: tuple[float, float] = (0.0, 0.0),
                      workers: int | None = None, progress: bool = False,
-                     direct: dict | None = None
+                     direct: dict | None = None, spread: str = "noise"
                      ) -> tuple[np.ndarray, Lattice | HeldLattice, tuple]:
     """The light ``isolume export`` gives `mesh`'s vertices: the lattice's (without one,
     `traced_lattice` under `traced`: the light traced for the surface ρ = `iso`) through
-    the side-aware lookup (`lattice_radiance`), plus the lights it leaves to the pixels
-    through shadow rays on `scene` (`direct_radiance`). `direct`, where given, keeps that
-    direct light by its lights and offset for a later call on the same mesh (passes of
-    more paths under the same lights trace no shadow ray again).
+    the side-aware lookup (`lattice_radiance`; its paths spread as `spread` says), plus
+    the lights it leaves to the pixels through shadow rays on `scene` (`direct_radiance`).
+    `direct`, where given, keeps that direct light by its lights and offset for a later
+    call on the same mesh (passes of more paths under the same lights trace no shadow ray
+    again).
 
     Returns:
         ((V, 3) linear outgoing radiance (irradiance units / sr), the lattice read, the
@@ -186,7 +188,7 @@ def surface_radiance(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, sce
     normals = np.asarray(mesh.normals, np.float64)
     if lattice is None:
         lattice = traced_lattice(volume, traced, iso, points, normals, scene,
-                                 workers=workers, progress=progress)
+                                 workers=workers, progress=progress, spread=spread)
     radiance = lattice_radiance(lattice, points, normals, albedo, env_coeffs, env_rotation)
     lights = pixel_lights(lattice, env_rotation)
     if lights:

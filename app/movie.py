@@ -320,7 +320,8 @@ def run(args: argparse.Namespace) -> int:
     camera = args.camera or movie_camera(vol, request, iso, iso_range)
     scene = Scene(vol, look.settings, camera, normals=args.normals,
                   flip_normals=args.flip_normals, lattice=lattice, env_coeffs=look.env_coeffs,
-                  traced=traced, shadows=args.shadows, workers=args.workers)
+                  traced=traced, spread=args.spread, shadows=args.shadows,
+                  workers=args.workers)
     first = scene.camera(Shot(0, az, iso))
     follows = False
     if request.kind == "light":

@@ -167,7 +167,8 @@ class Scene:
         lattice: the illumination lattice every frame reads, or None.
         env_coeffs: (n², 3) SH coefficients of the environment ("sh"), or None.
         traced: the `BakeConfig` of the light traced for each frame's view when there is
-            no lattice ("irradiance"), or None.
+            no lattice ("irradiance"), or None; spread: how its paths are spread
+            (`app.render.view_gi.SPREADS`).
         light: how the light turns (`LightTurn`; None: it does not).
         shadows: the per-pixel lights' direct light: "traced" per frame, as ``isolume
             render`` (`app.render.traced_light`), or "map" (the shadow atlas).
@@ -183,6 +184,7 @@ class Scene:
     lattice: Lattice | HeldLattice | None = None
     env_coeffs: np.ndarray | None = None
     traced: BakeConfig | None = None
+    spread: str = "noise"
     light: LightTurn | None = None
     shadows: str = "traced"
     workers: int | None = None
@@ -298,7 +300,7 @@ class Stage:
             scene, tracing = self._traced(shot.iso, config)
             lattice = view_lattice(self.scene.volume, config, shot.iso, seen()[0], camera.eye,
                                    workers=self.scene.workers, progress=False, scene=scene,
-                                   tracing=tracing)
+                                   tracing=tracing, spread=self.scene.spread)
         if keep and lattice is not None:
             self._kept[shot.index] = lattice
         self.renderer.set_lattice(lattice, None if lattice is None

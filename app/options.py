@@ -182,7 +182,7 @@ def add_light_options(p: argparse.ArgumentParser, traced_for: str) -> None:
     the lighting and the light traced for `traced_for` without a lattice ("this view"),
     the albedo, the SH environment's turn and window, exposure and tone curve, normals."""
     from isolume.app.render.settings import TONEMAPS
-    from isolume.app.render.view_gi import DEFAULT_PATHS
+    from isolume.app.render.view_gi import DEFAULT_PATHS, SPREADS
     from isolume.baking.config import DEFAULT_ALBEDO, DEFAULT_BOUNCES, DEFAULT_ENV
 
     p.add_argument("--iso", type=float, help="isovalue (default: first suggested)")
@@ -198,6 +198,9 @@ def add_light_options(p: argparse.ArgumentParser, traced_for: str) -> None:
                    help="paths per texel of the traced global illumination, on average: a "
                    "few each, the rest where the picture's noise is (without --lattice; "
                    f"default {DEFAULT_PATHS})")
+    p.add_argument("--spread", choices=SPREADS, default=SPREADS[0],
+                   help="how those paths are spread over the texels: where the picture's "
+                   "noise is (noise, the default) or --samples at every texel (even)")
     p.add_argument("--bounces", type=int, default=DEFAULT_BOUNCES,
                    help=f"diffuse bounces of that illumination (default {DEFAULT_BOUNCES})")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

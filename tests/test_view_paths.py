@@ -151,3 +151,25 @@ def test_texels_dark_on_their_paths_go_on_to_the_trapped_count():
     assert not sums[inside].any() and (count[inside] == TRAPPED_PATHS).all()
     assert sums[~inside].all() and (count[~inside] >= PILOT).all()
     assert count[~inside].max() <= 8 * 16
+
+
+def test_a_views_lattice_spreads_its_paths_as_asked(contact):
+    """`view_lattice(spread=...)`: "even" gives every texel `samples` paths, "noise" the
+    same paths in all, placed unevenly, and more only for the texels dark on theirs (on
+    to `TRAPPED_PATHS`); anything else is refused."""
+    from isolume.app.render.view_gi import view_lattice
+
+    vol, config, _, seen, scene, _ = contact
+    eye = np.asarray(vol.box[1], np.float64) * 4
+    even = view_lattice(vol, config, 0.5, seen.points, eye, workers=2, progress=False,
+                        scene=scene, spread="even")
+    noise = view_lattice(vol, config, 0.5, seen.points, eye, workers=2, progress=False,
+                         scene=scene)
+    traced = even.paths > 0
+    assert traced.any() and (even.paths[traced] == config.samples).all()
+    assert np.array_equal(noise.paths > 0, traced)
+    dark = noise.paths == TRAPPED_PATHS
+    assert noise.paths.sum() - even.paths.sum() <= TRAPPED_PATHS * dark.sum()
+    assert len(np.unique(noise.paths)) > 10
+    with pytest.raises(ValueError, match="spread 'flat'"):
+        view_lattice(vol, config, 0.5, seen.points, eye, scene=scene, spread="flat")

@@ -272,12 +272,12 @@ def _defaults(add_options, *argv: str) -> argparse.Namespace:
 
 def render_options(sweep: Sweep) -> argparse.Namespace:
     """``isolume render``'s options at their defaults, with this sweep's size, view,
-    paths, workers and GL."""
+    paths, spread, workers and GL."""
     from isolume.app.options import add_render_options
 
     ns = _defaults(add_render_options)
     ns.size, ns.view, ns.samples = f"{sweep.size[0]}x{sweep.size[1]}", sweep.view_text, sweep.paths
-    ns.workers, ns.gl = sweep.workers, sweep.gl
+    ns.workers, ns.gl, ns.spread = sweep.workers, sweep.gl, sweep.render_spread
     return ns
 
 
@@ -463,7 +463,7 @@ def render_default(volume: Volume, iso: float, sweep: Sweep) -> tuple[Shot, Bake
     began = time.perf_counter()
     frame, mesh = render_volume(volume, iso, settings, view=sweep.view, backend=sweep.gl,
                                 normals=ns.normals, flip_normals=ns.flip_normals,
-                                view_light=config, view_spread=sweep.render_spread,
+                                view_light=config, view_spread=ns.spread,
                                 shadows=ns.shadows, workers=sweep.workers,
                                 progress=sweep.progress)
     seconds = time.perf_counter() - began
