@@ -516,7 +516,7 @@ def scatter_by_bin(which: np.ndarray, values: np.ndarray, lo: int, hi: int,
 
 
 @numba.njit(**JIT)
-def _lower_corner(c: float, n: int) -> int:
+def lower_corner(c: float, n: int) -> int:
     """The lower corner along one axis of a trilinear lookup at texel coordinate `c` in a
     grid `n` texels long, clamped as `lattice.trilinear_corners` clamps."""
     if c != c:  # NaN: the first texel, as numpy's clamps leave it
@@ -537,7 +537,7 @@ def corner_reads(coords: np.ndarray, shape: np.ndarray, size: np.ndarray, scale:
     nz, ny, nx = shape[0], shape[1], shape[2]
     for i in range(lo, hi):
         cz, cy, cx = coords[i, 0], coords[i, 1], coords[i, 2]
-        z0, y0, x0 = _lower_corner(cz, nz), _lower_corner(cy, ny), _lower_corner(cx, nx)
+        z0, y0, x0 = lower_corner(cz, nz), lower_corner(cy, ny), lower_corner(cx, nx)
         for k in range(8):
             z = min(z0 + (k >> 2 & 1), nz - 1)
             y = min(y0 + (k >> 1 & 1), ny - 1)

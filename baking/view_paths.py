@@ -36,8 +36,9 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
+from isolume.baking.kernels import lower_corner
 from isolume.baking.lattice import LUMINANCE
-from isolume.baking.passes import PassSums, PathStarts, Tracing, trace_chunk
+from isolume.baking.passes import PassSums, PathStarts, Tracing, chunk_bounds, trace_chunk
 from isolume.volumes import cores
 from isolume.volumes.field import JIT
 
@@ -50,8 +51,6 @@ PILOT = 8
 CAP = 8
 """The most paths a texel gets, in units of the budget per texel (a spread misjudged high
 costs at most this)."""
-CHUNK = 16384
-"""Paths one work item traces, about (a texel's paths are never split between items)."""
 BLOCK = 1 << 15
 """Texels one work item of `neighbour_mean` takes, at most."""
 
@@ -75,14 +74,17 @@ def _shares(coords: np.ndarray, shape: np.ndarray, texels: np.ndarray, share: np
             ) -> None:
     """Add to ``share`` (K,) the squared trilinear weights of the (N, 3) z, y, x texel
     `coords` at the (K,) sorted flat ids `texels` of a box of (3,) `shape`, corners and
-    weights as `baking.lattice.trilinear_corners` makes them."""
+    weights as `baking.lattice.trilinear_corners` makes them (`kernels.lower_corner`); a
+    point with a NaN coordinate reads nothing."""
     base = np.empty(3, np.int64)
     frac = np.empty(3)
     for i in range(len(coords)):
+        if coords[i, 0] != coords[i, 0] or coords[i, 1] != coords[i, 1] \
+                or coords[i, 2] != coords[i, 2]:
+            continue
         for a in range(3):
-            c = min(max(coords[i, a], 0.0), shape[a] - 1.0)
-            base[a] = max(min(np.int64(np.floor(c)), shape[a] - 2), 0)
-            frac[a] = c - base[a]
+            base[a] = lower_corner(coords[i, a], shape[a])
+            frac[a] = min(max(coords[i, a], 0.0), shape[a] - 1.0) - base[a]
         for k in range(8):
             flat = 0
             weight = 1.0
@@ -166,26 +168,24 @@ def trace_counts(scene: Scene, tracing: Tracing, origins: np.ndarray, normals: n
     """The sums (`passes.PassSums`, K texels) of samples ``first[i]`` … ``first[i] +
     count[i] − 1`` of each of the K texels of ``tracing.ids`` (their paths from the (K, 3)
     float32 `origins` about the (K, 3) float32 unit `normals`), traced on `workers`
-    threads in items of about `CHUNK` paths, a texel's paths in one item in sample order;
+    threads in items of whole texels (`passes.chunk_bounds`: a texel's paths in one item,
+    in sample order, the items smaller as the paths left run out);
     `told(done)`: the texels traced so far, after each of the calling thread's items."""
     first, count = np.asarray(first, np.int64), np.asarray(count, np.int64)
     sums = PassSums(len(count), tracing.settings.channels)
     start = PathStarts(np.arange(len(count), dtype=np.int64), origins, normals)
-    ends = np.cumsum(count)
-    cuts = np.searchsorted(ends, np.arange(CHUNK, int(ends[-1]) if len(ends) else 0, CHUNK),
-                           side="right")
-    edges = np.unique(np.concatenate([[0], cuts, [len(count)]]))
+    bounds = list(chunk_bounds(count, workers))
 
     def run(item: int) -> None:
-        lo, hi = int(edges[item]), int(edges[item + 1])
+        lo, hi = bounds[item]
         paths = count[lo:hi]
         pos = np.repeat(start.texels[lo:hi], paths)
         step = np.arange(len(pos), dtype=np.int64) - np.repeat(np.cumsum(paths) - paths, paths)
         if len(pos):
             trace_chunk(scene, tracing, pos, np.repeat(first[lo:hi], paths) + step, start, sums)
 
-    progress = None if told is None else lambda done: told(int(edges[done]))
-    cores.for_items(run, len(edges) - 1, "trace", on_done=progress, workers=workers)
+    progress = None if told is None else lambda done: told(bounds[done - 1][1] if done else 0)
+    cores.for_items(run, len(bounds), "trace", on_done=progress, workers=workers)
     return sums
 
 

@@ -10,6 +10,7 @@ from isolume.baking.bake import Baker
 from isolume.baking.config import BakeConfig
 from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.lazy import visible_cells
+from isolume.baking.passes import MIN_PATHS_PER_CHUNK
 from isolume.baking.preview import (
     FIRST_PASS_PATHS,
     Previewer,
@@ -21,7 +22,6 @@ from isolume.baking.preview import (
     preview_tracing,
     surface_scene,
 )
-from isolume.baking.view_paths import CHUNK
 
 
 @pytest.fixture(scope="module")
@@ -329,7 +329,7 @@ def test_one_estimate_reports_its_texels_as_they_are_traced_and_keeps_their_bits
     told = []
     estimate(vol, config, whole, 0.5, flat, scene, 1, paths=64, tracing=tracing, workers=2,
              told=told.append)
-    assert len(flat) > 4 * CHUNK // 64  # several work items
+    assert len(flat) > 4 * MIN_PATHS_PER_CHUNK // 64  # several work items
     assert len(told) > 2 and told == sorted(told) and told[-1] == len(flat)
     for part in np.array_split(flat, 3):
         estimate(vol, config, parts, 0.5, part, scene, 1, paths=64, tracing=tracing)

@@ -74,6 +74,8 @@ VOLUME_SUFFIXES = (".raw.gz", ".raw", ".nrrd", ".nhdr", ".mhd", ".mha", ".nii.gz
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``isolume bench accuracy``."""
+    from isolume.app.render.view_gi import SPREADS
+
     p.add_argument("volumes", nargs="*", metavar="VOLUME|FOLDER",
                    help="volume files, synthetic:NAME[:SIZE] specs, or folders of volume "
                    "files (default: every volume in DATA/volumes)")
@@ -95,7 +97,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "render's on average, as --render-spread places them; the bake's "
                    "exactly N at every texel without --texel-error/--target-error; default "
                    "theirs)")
-    p.add_argument("--render-spread", choices=("noise", "even"), default="noise",
+    p.add_argument("--render-spread", choices=SPREADS, default=SPREADS[0],
                    help="the render's paths placed where the picture's noise is, as render "
                    "does (noise, the default), or the same number at every texel (even)")
     p.add_argument("--target-error", type=float, default=None, metavar="E",
