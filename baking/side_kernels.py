@@ -22,13 +22,14 @@ from isolume.volumes.field import JIT, normal_scratch, value_at_world
 def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points: np.ndarray,
                 normals: np.ndarray, offset: float, sign: float, which: np.ndarray,
                 cube: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
-                level: float, scratch: np.ndarray, probes: int) -> np.ndarray:
+                level: float, scratch: np.ndarray, first: int, probes: int) -> np.ndarray:
     """(N,) int64: how many of `probes` rays from each point where `which` (N,) bool meet
     nothing; 0 elsewhere, and where the probes' origin does not lie on their side.
 
     Args:
         calls: the level scene's `trace.EmbreeCalls`; key: the probes' seed key.
-        ids: (N,) int64 flat lattice ids (the paths' keys: samples 0 … probes − 1).
+        ids: (N,) int64 flat lattice ids (the paths' keys: samples `first` … `first` +
+            `probes` − 1).
         points: (N, 3) float64 world points on the level; normals: (N, 3) float64 unit
             normals towards low values.
         offset, sign: the origins are ``points + sign · offset · normals`` (world units),
@@ -69,7 +70,7 @@ def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points:
     for r in range(m):
         for s in range(probes):
             pos[r * probes + s] = r
-            samples[r * probes + s] = s
+            samples[r * probes + s] = first + s
     _, ray_origins, _, ray_dirs = path_starts(key, picked, pos, samples, texels, starts, dirs)
     blocked = occluded_rays(calls, ray_origins, ray_dirs)
     for r in range(m):
@@ -84,22 +85,23 @@ def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points:
 def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.ndarray,
                 at: np.ndarray, upper: np.ndarray, landing: np.ndarray, step: float,
                 field: tuple, w: np.ndarray, offset: float, level: float,
-                scratch: np.ndarray, probes: int, default: bool, clearly_more: float,
-                high: np.ndarray) -> None:
+                scratch: np.ndarray, probes: int, confirm: int, default: bool,
+                clearly_more: float, high: np.ndarray) -> None:
     """`sides.open_rays` and `sides.side_rule` of the texels at plan positions `at` (N,)
     into ``high[at]``, in one call: each texel's point on its nearer level (its `landing`
     (T, 2, 3) offsets, in steps of `step` world units, of its upper level where `upper`
     (T,), else its lower one; `plan_kernels.NearerLandings`), its normal there (stencil
     weights `w`: `volumes.normals_at`), the open probe rays of the side other than the
-    `default` one, then of the default side where that one is open (`open_counts`), and
-    the rule with the texel's checkerboard parity.
+    `default` one, then of the default side where that one is open, and `confirm` more
+    where none of those left (`open_counts`), and the rule with the texel's checkerboard
+    parity.
 
     Args:
         lattice, field: `plan_kernels.lattice_arrays`, `plan_kernels.field_arrays`.
         ids: (T,) int32 or int64 flat lattice ids of the plan's texels (the probes' keys,
             the parity).
-        offset, level, scratch, probes: as `open_counts`'s; clearly_more:
-            `sides.CLEARLY_MORE`.
+        offset, level, scratch, probes: as `open_counts`'s; confirm:
+            `sides.CONFIRM_PROBES`; clearly_more: `sides.CLEARLY_MORE`.
     """
     cube, _, _, origin, spacing = field
     n = len(at)
@@ -117,18 +119,22 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
             normals[r, a] = np.float64(unit[a])
     other_sign = 1.0 if default else -1.0  # the low side's normal is +normals
     other = open_counts(calls, key, picked, points, normals, offset, other_sign,
-                        np.ones(n, np.bool_), cube, origin, spacing, level, scratch, probes)
+                        np.ones(n, np.bool_), cube, origin, spacing, level, scratch, 0, probes)
     mine = open_counts(calls, key, picked, points, normals, offset, -other_sign, other > 0,
-                       cube, origin, spacing, level, scratch, probes)
+                       cube, origin, spacing, level, scratch, 0, probes)
+    confirmed = (other > 0) & (mine == 0)
+    mine += open_counts(calls, key, picked, points, normals, offset, -other_sign, confirmed,
+                        cube, origin, spacing, level, scratch, probes, confirm)
     shape = lattice[0]
     for r in range(n):
-        low, up = (other[r], mine[r]) if default else (mine[r], other[r])
         flat = picked[r]
         odd = (flat // (shape[1] * shape[2]) + flat // shape[2] % shape[1]
                + flat % shape[2]) & 1 == 1
-        if low > 0 and up > 0:
-            lit = False if low >= clearly_more * up else (
-                True if up >= clearly_more * low else odd)
+        if mine[r] > 0 and other[r] > 0:  # the default side alone where clearly more open
+            rays = probes + confirm if confirmed[r] else probes
+            lit = default if mine[r] * probes >= clearly_more * other[r] * rays else odd
+        elif other[r] > 0:
+            lit = not default
         else:
-            lit = True if up > 0 else (False if low > 0 else default)
+            lit = default
         high[at[r]] = lit

@@ -12,11 +12,23 @@ folds and pockets of the side nobody sees.
 `PROBES` rays leave each side, cosine-distributed about its normal; a side is *open* when
 some ray leaves the volume without meeting the surface (a camera outside the box, looking
 back along that ray, sees that side there). A texel is lit on its open side; where both
-are open, on the side with clearly more open rays, else on alternate sides in a 3D
-checkerboard, so that the side-aware lookup (`baking.octahedral`,
+are open, on the normals' side where it has clearly more open rays, else on alternate
+sides in a 3D checkerboard, so that the side-aware lookup (`baking.octahedral`,
 ``shaders/lattice.glsl``) finds texels facing either way among any eight neighbours;
-where neither is (a closed cavity), on the normals' side. The probe directions hash
-(seed, texel), so the choice is the same bits whoever computes it.
+where neither is (a closed cavity), on the normals' side.
+
+The side other than the normals' is lit alone only where the normals' side is closed:
+where it is open too, it is mostly the inside of the material seen through the box's cut
+— the floor under the engine CT's arches, a slab the box cuts across, whose inside sees
+the whole sky through the cut (16 of 16 rays) while the default camera sees its top face
+through the arch (1–3 of 16). Lit there alone, the side the camera sees would have no
+texels and be drawn in the cut's light: 2.6 times too bright on the engine's floor (its
+default view, lit at 256 paths under a constant sky: 10.2 % RMS against path tracing,
+2.2 % with the checkerboard). So a normals' side none of whose `PROBES` rays left, where
+the other side is open, gets `CONFIRM_PROBES` more before it is taken for closed. Sheets
+seen from their high side pay a little for the hedge (the Richtmyer–Meshkov bakes of the
+accuracy sweep: 8.56 → 9.00 % and 7.18 → 7.58 %; docs/accuracy.md). The probe directions
+hash (seed, texel, ray), so the choice is the same bits whoever computes it.
 """
 
 from __future__ import annotations
@@ -42,14 +54,17 @@ PROBES = 16
 """Rays per side and texel. A side a tenth of whose rays would leave is found with
 probability 1 − 0.9¹⁶ = 0.81; the 3D checkerboard makes a texel missed there cost half its
 neighbours' weight, not a black patch."""
+CONFIRM_PROBES = 48
+"""More rays on the normals' side of a texel whose other side is open and whose normals'
+side met the surface with all of its first `PROBES`: a side that a twentieth of the rays
+would leave is then found with probability 1 − 0.95⁶⁴ = 0.96. Only texels beside a cut or
+in a closed cavity of a solid filling the box trace them."""
 CLEARLY_MORE = 8.0
-"""Both sides open: the side with this many times the other's open rays is lit alone,
-else both in a checkerboard. Texels of a plate across the box find one side a few times
-more open than the other; lit alone there, the side-aware lookup finds enough texels
-facing each face (the lit face of a plate 2 voxels thick keeps 0.96 of its light at 8
-times, 0.88 at 16, 0.74 with no such side). The inner face of a wall seen through a cut
-is less open than its outside by more than 4 times, and lit only outside it shows the
-outside's light (the bonsai's pot at iso 101: 16.8 % at 4 times, 13.9 % at 8)."""
+"""Both sides open: the normals' side, where its fraction of open rays is this many times
+the other's, is lit alone, else both in a checkerboard. Texels of a plate across the box
+find their outer side a few times more open than the plate's inside; lit alone there,
+the side-aware lookup finds enough texels facing each face (the lit face of a plate 2
+voxels thick keeps 0.96 of its light at 8 times, 0.88 at 16, 0.74 with no such side)."""
 PROBE_OFFSET_VOXELS = 0.25
 """Least distance of a probe's origin from the surface (the bake's offset when larger)."""
 SALT = 0x51DE_5EED
@@ -119,9 +134,10 @@ def _probe_level(scene, volume: volumes.Volume, config: BakeConfig,
     else:
         def item(b: int) -> None:
             at = on[b * TEXELS_PER_BATCH:(b + 1) * TEXELS_PER_BATCH]
-            open_low, open_high = open_rays(scene, volume, config, ids[at],
-                                            nearer.points(at), level, default)
-            high[at] = side_rule(open_low, open_high, parity(geometry, ids[at]), default)
+            open_low, open_high, rays = open_rays(scene, volume, config, ids[at],
+                                                  nearer.points(at), level, default)
+            high[at] = side_rule(open_low, open_high, parity(geometry, ids[at]), default,
+                                 rays)
 
     cores.for_items(item, blocks, "side probes",
                     on_done=lambda done: told(min(done * TEXELS_PER_BATCH, len(on))))
@@ -143,7 +159,8 @@ def _compiled_item(scene, volume: volumes.Volume, config: BakeConfig,
 
     def item(b: int) -> None:
         probe_sides(*fixed, on[b * TEXELS_PER_BATCH:(b + 1) * TEXELS_PER_BATCH], *landing,
-                    np.empty(1, value_type), PROBES, bool(default), CLEARLY_MORE, high)
+                    np.empty(1, value_type), PROBES, CONFIRM_PROBES, bool(default),
+                    CLEARLY_MORE, high)
 
     return item
 
@@ -155,15 +172,15 @@ def probe_offset(volume: volumes.Volume, config: BakeConfig) -> float:
 
 
 def side_rule(open_low: np.ndarray, open_high: np.ndarray, odd: np.ndarray,
-              default: bool) -> np.ndarray:
+              default: bool, rays: np.ndarray | int = PROBES) -> np.ndarray:
     """(N,) bool high sides from the (N,) counts of open probe rays on the low and the
-    high side and the (N,) checkerboard parity `odd` (see the module docs)."""
+    high side, of `PROBES` rays on the side other than the `default` one and (N,) `rays`
+    on the default side, and the (N,) checkerboard parity `odd` (see the module docs)."""
     both = (open_low > 0) & (open_high > 0)
-    clearly_low = open_low >= CLEARLY_MORE * open_high
-    clearly_high = open_high >= CLEARLY_MORE * open_low
+    mine, other = (open_high, open_low) if default else (open_low, open_high)
+    clearly_mine = mine * PROBES >= CLEARLY_MORE * other * np.asarray(rays)
     high = np.where(open_high > 0, True, np.where(open_low > 0, False, default))
-    return np.where(both, np.where(clearly_low, False, np.where(clearly_high, True, odd)),
-                    high)
+    return np.where(both, np.where(clearly_mine, default, odd), high)
 
 
 def parity(geometry: LatticeGeometry, ids: np.ndarray) -> np.ndarray:
@@ -182,7 +199,7 @@ def level_surface(volume: volumes.Volume, iso: float) -> Scene:
 
 def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.ndarray,
               points: np.ndarray, level: float, default: bool
-              ) -> tuple[np.ndarray, np.ndarray]:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How many of `PROBES` rays, cosine-distributed about each side's normal from the
     (N, 3) `points` on the level ρ = `level` (offset from the surface along that normal),
     meet nothing. Cosine-distributed, because a camera sees a patch in proportion to its
@@ -193,23 +210,27 @@ def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.
     The side other than the `default` one (high-value when False) is probed first; the
     default side only where that one is open, since where it is closed `side_rule` lights
     the default side whatever the default side's count (left 0 there). On a closed object
-    that halves the rays. Arrays and embreex (`unblocked_rays`), for a scene without
-    compiled Embree calls (`side_kernels.probe_sides` does the same in one call).
+    that halves the rays. Where the other side is open and none of the default side's
+    rays left, `CONFIRM_PROBES` more of them are traced. Arrays and embreex
+    (`unblocked_rays`), for a scene without compiled Embree calls
+    (`side_kernels.probe_sides` does the same in one call).
 
     Returns:
-        open_low, open_high: (N,) int counts for the low- and the high-value side.
+        open_low, open_high: (N,) int counts for the low- and the high-value side;
+        rays: (N,) int rays behind the default side's count.
     """
     normals = volumes.normals_at(volume, points, smooth=config.normals == "smooth"
                                  ).astype(np.float64)  # towards low values
     offset = probe_offset(volume, config)
     key = np.uint32(seed_key(config.seed ^ SALT))
 
-    def count(sign: float, which: np.ndarray) -> np.ndarray:
+    def count(sign: float, which: np.ndarray, first: int = 0, probes: int = PROBES
+              ) -> np.ndarray:
         out = np.zeros(len(points), np.int64)
         if which.any():
             origins = points[which] + sign * offset * normals[which]
             unblocked = unblocked_rays(scene, key, ids[which], origins,
-                                       sign * normals[which])
+                                       sign * normals[which], first, probes)
             beyond = volumes.value_at(volume, origins) - level
             on_side = beyond < 0 if sign > 0 else beyond > 0
             out[which] = np.where(on_side, unblocked, 0)
@@ -218,34 +239,38 @@ def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.
     other_sign = 1.0 if default else -1.0  # the low side's normal is +normals
     other = count(other_sign, np.ones(len(points), bool))
     mine = count(-other_sign, other > 0)
-    return (other, mine) if default else (mine, other)
+    confirmed = (other > 0) & (mine == 0)
+    mine += count(-other_sign, confirmed, PROBES, CONFIRM_PROBES)
+    rays = np.where(confirmed, PROBES + CONFIRM_PROBES, PROBES)
+    return (other, mine, rays) if default else (mine, other, rays)
 
 
 def unblocked_rays(scene: Scene, key: np.uint32, ids: np.ndarray, origins: np.ndarray,
-                   normals: np.ndarray) -> np.ndarray:
-    """(N,) int: how many of the `PROBES` rays of each point (keys as the paths of samples
-    0 … PROBES − 1 of texel `ids[i]` under the seed key `key`, cosine-distributed about
-    the (N, 3) `normals` from the (N, 3) `origins`) meet nothing. Compiled rays
-    (`kernels.path_starts`) traced by embreex `TEXELS_PER_BATCH` texels at a time on
-    every core, so memory stays bounded: for a scene without compiled calls
+                   normals: np.ndarray, first: int = 0, probes: int = PROBES) -> np.ndarray:
+    """(N,) int: how many of the `probes` rays of each point (keys as the paths of samples
+    `first` … `first` + `probes` − 1 of texel `ids[i]` under the seed key `key`,
+    cosine-distributed about the (N, 3) `normals` from the (N, 3) `origins`) meet
+    nothing. Compiled rays (`kernels.path_starts`) traced by embreex `TEXELS_PER_BATCH`
+    texels at a time on every core, so memory stays bounded: for a scene without compiled
+    calls
     (`side_kernels.open_counts` does the same)."""
     n = len(ids)
     out = np.empty(n, np.int64)
     ids = np.asarray(ids, np.int64)
     origins = np.ascontiguousarray(origins, np.float32)
     normals = np.ascontiguousarray(normals, np.float32)
-    samples = np.tile(np.arange(PROBES, dtype=np.int64), TEXELS_PER_BATCH)
+    samples = np.tile(np.arange(first, first + probes, dtype=np.int64), TEXELS_PER_BATCH)
 
     def batch(b: int) -> None:
         lo = b * TEXELS_PER_BATCH
         hi = min(lo + TEXELS_PER_BATCH, n)
         texels = np.arange(hi - lo, dtype=np.int64)
-        pos = np.repeat(texels, PROBES)
+        pos = np.repeat(texels, probes)
         _, starts, _, dirs = kernels.path_starts(key, ids[lo:hi], pos,
                                                  samples[:len(pos)], texels,
                                                  origins[lo:hi], normals[lo:hi])
         blocked = scene.occluded(starts.T, dirs.T)
-        out[lo:hi] = PROBES - blocked.reshape(-1, PROBES).sum(axis=1)
+        out[lo:hi] = probes - blocked.reshape(-1, probes).sum(axis=1)
 
     cores.for_items(batch, -(-n // TEXELS_PER_BATCH), "probe rays")
     return out
