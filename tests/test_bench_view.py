@@ -14,7 +14,9 @@ pytest.importorskip("moderngl")
 def test_picture_error_is_zero_for_the_exact_lattice_and_sees_a_wrong_one():
     """Unoccluded convex sphere under a constant sky: path tracing gives albedo·L at
     every pixel with zero variance, and a lattice holding πL everywhere shows exactly
-    that; one 10 % too bright on every texel is 10 % off everywhere."""
+    that; one 10 % too bright on every texel is 10 % off everywhere — hidden behind exact
+    previews while they rest on more paths, and seen again in the hand-over figure, the
+    picture from the texels' own samples alone (`_hand_over_figures`)."""
     from isolume.app.bench.view import pixel_truth
     from isolume.app.render.renderer import default_camera
 
@@ -36,6 +38,19 @@ def test_picture_error_is_zero_for_the_exact_lattice_and_sees_a_wrong_one():
     assert truth.error(lat) == pytest.approx(0.1, rel=1e-4)
     lat.samples[...] = 0  # nothing shown: the picture is black, 100 % off
     assert truth.error(lat) == pytest.approx(1.0)
+    # exact previews on more paths than the texels' own samples, 10 % too bright: shown,
+    # the picture is exact; from the own samples alone (a saved lattice), 10 % off
+    from isolume.app.bench.view import _hand_over_figures
+
+    lat.samples[...] = 4
+    lat.preview = np.full_like(lat.values, np.pi)
+    lat.preview_paths = np.full(lat.samples.shape, 16, np.uint16)
+    assert truth.error(lat) < 1e-5
+    figures = {}
+    _hand_over_figures(figures, lat, truth, [(1.0, 0.3, 1.0), (2.0, truth.error(lat), 1.0)])
+    assert figures["own_picture_error"] == pytest.approx(0.1, rel=1e-4)
+    assert figures["least_picture_error"] < 1e-5
+    assert lat.preview is not None  # the lattice itself keeps its previews
 
 
 def test_the_data_folder_comes_from_the_option_the_variable_or_the_current_folder(

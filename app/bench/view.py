@@ -14,12 +14,16 @@
   surface (`baking.reference`, traced before the bake starts). Also reported: when the
   visible texels' *own* samples reach the target (the RMS of each texel's relative
   standard error, from its second moment), and with ``--reference N`` the own values of N
-  visible texels against the same texels baked to convergence separately.
+  visible texels against the same texels baked to convergence separately, and the
+  picture from the texels' own samples at the end of the run (what a saved lattice
+  shows: previews are never saved) against the least error any picture of the run
+  reached.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -545,6 +549,7 @@ def lazy(args: argparse.Namespace) -> int:
     finally:
         link.stop()
     _preview_figures(figures, link)
+    _hand_over_figures(figures, shared.lattice, truth, trace)
     if args.reference and subset is not None and len(subset):
         _reference_figures(args, volume, config, subset, subset_lum, figures)
     figures["trace"] = [{"s": now, "picture_error": image, "own_error": own}
@@ -587,6 +592,19 @@ def _preview_figures(figures: dict, link) -> None:
               f"{f['seconds']:.2f} s, done {at:.1f} s after the bake process was started")
     print(f"  ({warm:.1f} s of that is starting the process: imports, kernels, gradient "
           "grid — the viewer starts it with its window)")
+
+
+def _hand_over_figures(figures: dict, lattice, truth: PixelTruth, trace: list) -> None:
+    """The picture's error at the end of the run from the texels' own samples alone (what
+    a saved lattice shows), against the least error the run's pictures reached (the
+    previews', traced on the displayed surface, while they rested on more paths): a
+    display hands a texel over to its own value once that rests on as many paths."""
+    own = truth.error(dataclasses.replace(lattice, preview=None, preview_paths=None,
+                                          preview_facing=None))
+    best = min((image for _, image, _ in trace), default=float("nan"))
+    figures.update(own_picture_error=own, least_picture_error=best)
+    print(f"  the picture from the texels' own samples at the end: {own:.1%} RMS of the "
+          f"path-traced one (the least any picture of the run reached: {best:.1%})")
 
 
 def _reference_figures(args, volume, config, subset, subset_lum, figures) -> None:
