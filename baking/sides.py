@@ -57,8 +57,9 @@ neighbours' weight, not a black patch."""
 CONFIRM_PROBES = 48
 """More rays on the normals' side of a texel whose other side is open and whose normals'
 side met the surface with all of its first `PROBES`: a side that a twentieth of the rays
-would leave is then found with probability 1 − 0.95⁶⁴ = 0.96. Only texels beside a cut or
-in a closed cavity of a solid filling the box trace them."""
+would leave is then found with probability 1 − 0.95⁶⁴ = 0.96. Only texels whose other
+side is open (a solid the box cuts, a cavity in one that fills the box, a sheet) and
+whose normals' side looked closed trace them."""
 CLEARLY_MORE = 8.0
 """Both sides open: the normals' side, where its fraction of open rays is this many times
 the other's, is lit alone, else both in a checkerboard. Texels of a plate across the box

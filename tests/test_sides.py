@@ -4,8 +4,9 @@ the volume sees, both on alternate texels where both are seen.
 Phantoms with a known answer: a closed ball (only its outside is seen), a ball-shaped
 cavity in a solid that fills the box (only the cavity's outside, the high-value side, is
 seen: the solid is cut open by every face of the box), a plane across the box (both
-sides), and the cut-open slab over a shelf of `test_seen_side` baked and drawn from its
-lattice against `isolume reference`. Constant sky, no bounces: a texel's value is the
+sides), and the cut-open slab over a shelf of `test_seen_side` and a chamber on a floor
+the box cuts open, seen through a window in its roof, baked and drawn from their lattices
+against `isolume reference`. Constant sky, no bounces: a texel's value is the
 visible fraction of the sky times π, exactly π where nothing can block its paths.
 """
 
@@ -230,7 +231,7 @@ def test_sides_chosen_in_one_compiled_call_are_the_arrays_sides(make_volume, mon
 def _chamber(n: int = 32) -> Volume:
     """A closed chamber on a floor slab cut open by the bottom border (z ≤ 7), under a
     roof (z 20–23) with a window (x, y 12–19): the floor's top face sees the sky through
-    the window only (1–3 of 16 probes), its high side through the cut (all 16)."""
+    the window only, its high side through the cut."""
     z, y, x = np.mgrid[:n, :n, :n]
     walls = (np.minimum(x, y) <= 3) | (np.maximum(x, y) >= n - 4)
     window = (x >= 12) & (x <= 19) & (y >= 12) & (y <= 19)
