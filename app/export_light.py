@@ -109,9 +109,9 @@ def traced_lattice(volume: volumes.Volume, config: BakeConfig, iso: float, point
     """A lattice lit for the whole surface ρ = `iso`: `config.samples` paths a texel on
     average for the texels the vertices' lookups read, placed where the vertices' noise is
     (`baking.view_paths`, each texel's share of the vertices as of a picture's pixels;
-    `spread` "even": that many at every texel),
-    traced on `scene` (`baking.trace.Scene` of that surface), from the vertex nearest the
-    texel, `config.offset` voxels off it along its normal.
+    `spread` "even": that many at every texel), traced on `scene` (`baking.trace.Scene` of
+    that surface), from the vertex nearest the texel, `config.offset` voxels off it along
+    its normal.
 
     Args:
         config: `baking.config.BakeConfig` of the lighting (`app.options.view_light`).

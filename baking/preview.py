@@ -81,6 +81,8 @@ PATHS_PER_STEP = 1 << 17
 its messages between steps, so a new view waits about that long for its first pass."""
 SEED_SALT = 0x5EED_F1A5
 """Mixed into the bake seed: previews use paths of their own."""
+
+
 def cell_corners(shape: tuple[int, int, int], cells: np.ndarray) -> np.ndarray:
     """(K,) sorted unique flat ids of the 8 corner texels of (N,) cells given by the flat
     id of their (0, 0, 0) corner."""

@@ -52,12 +52,14 @@ def _thin_wall(n: int = 32) -> Volume:
     return _volume(data, "thin wall")
 
 
-def _pictures(volume: Volume, view: tuple[float, float, float]):
-    """(view GI luminance, reference luminance) over the pixels both show, linear."""
+def _pictures(volume: Volume, view: tuple[float, float, float], lattice=None):
+    """(picture luminance, reference luminance) over the pixels both show, linear: the
+    view's traced GI under `SKY`, or `lattice`'s light where given."""
     settings = RenderSettings(size=SIZE, shading="irradiance", auto_exposure=False,
                               tonemap="clamp", albedo=SKY.albedo)
     camera = default_camera(volume, view)
-    frame, _ = render_volume(volume, 0.5, settings, camera=camera, view_light=SKY, workers=2)
+    light = {"view_light": SKY} if lattice is None else {"lattice": lattice}
+    frame, _ = render_volume(volume, 0.5, settings, camera=camera, workers=2, **light)
     origins, dirs = camera.primary_rays(*SIZE)
     image, _ = render_reference(volume, 0.5, origins, dirs,
                                 BakeConfig(samples=256, bounces=0, env="constant:1,1,1",

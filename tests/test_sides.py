@@ -12,15 +12,11 @@ visible fraction of the sky times π, exactly π where nothing can block its pat
 
 import numpy as np
 import pytest
-from test_seen_side import SIZE, _cut_open_slab
+from test_seen_side import _cut_open_slab, _pictures
 
 from isolume import volumes
-from isolume.app.render.offscreen import render_volume
-from isolume.app.render.renderer import default_camera
-from isolume.app.render.settings import RenderSettings
 from isolume.baking import BakeConfig, bake
 from isolume.baking.plan import make_plan
-from isolume.baking.reference import render_reference
 from isolume.baking.sides import PROBES, side_rule
 from isolume.volumes import Volume, load
 
@@ -124,19 +120,7 @@ def test_a_baked_cut_open_slab_matches_the_reference_from_above_and_below(view):
     for sides in ("seen", "normals"):
         lattice = bake(volume, BakeConfig(**{**config.to_dict(), "sides": sides}),
                        workers=2)
-        settings = RenderSettings(size=SIZE, shading="irradiance", auto_exposure=False,
-                                  tonemap="clamp", albedo=config.albedo)
-        camera = default_camera(volume, view)
-        frame, _ = render_volume(volume, 0.5, settings, camera=camera, lattice=lattice)
-        origins, dirs = camera.primary_rays(*SIZE)
-        image, _ = render_reference(volume, 0.5, origins, dirs,
-                                    BakeConfig(samples=256, bounces=0,
-                                               env="constant:1,1,1", seed=6), workers=2)
-        w, h = SIZE
-        ref, mask = image.radiance.reshape(h, w, 3), image.mask.reshape(h, w)
-        both = mask & frame.mask
-        lum = np.array([0.2126, 0.7152, 0.0722])
-        picture, truth = frame.linear[both] @ lum, ref[both] @ lum
+        picture, truth = _pictures(volume, view, lattice)
         assert len(truth) > 500
         ratios[sides] = picture.mean() / truth.mean()
         if sides == "seen":
@@ -251,22 +235,8 @@ def test_a_floor_seen_through_a_window_is_lit_on_the_side_the_window_shows():
     volume = _chamber()
     config = BakeConfig(iso_range=(0.45, 0.55), samples=64, bounces=0,
                         env="constant:1,1,1", seed=5)
-    lattice = bake(volume, config, workers=2)
-    settings = RenderSettings(size=SIZE, shading="irradiance", auto_exposure=False,
-                              tonemap="clamp", albedo=config.albedo)
-    camera = default_camera(volume, (30.0, 80.0, 1.2))
-    frame, _ = render_volume(volume, 0.5, settings, camera=camera, lattice=lattice)
-    origins, dirs = camera.primary_rays(*SIZE)
-    image, _ = render_reference(volume, 0.5, origins, dirs,
-                                BakeConfig(samples=256, bounces=0, env="constant:1,1,1",
-                                           seed=6), workers=2)
-    w, h = SIZE
-    ref, mask = image.radiance.reshape(h, w, 3), image.mask.reshape(h, w)
-    lum = np.array([0.2126, 0.7152, 0.0722])
-    both = mask & frame.mask
-    picture, truth = frame.linear[both] @ lum, ref[both] @ lum
+    picture, truth = _pictures(volume, (30.0, 80.0, 1.2), bake(volume, config, workers=2))
     floor = truth < 0.5 * truth.max()  # the roof's and walls' tops see the whole sky
     assert floor.sum() > 100
-    print(picture[floor].mean() / truth[floor].mean(), (picture[floor] <= 0).mean())
     assert picture[floor].mean() / truth[floor].mean() == pytest.approx(1.0, abs=0.1)
     assert (picture[floor] <= 0).mean() <= 0.005

@@ -110,8 +110,8 @@ def render_volume(
     (a `baking.config.BakeConfig`) lights this view instead: a position pass finds the
     visible surface and `app.render.view_gi.view_lattice` traces the texels it reads (`workers`
     threads, `progress` on stderr, the paths spread as `view_spread` says) on an Embree
-    scene of the mesh, while GL holds no copy of
-    the mesh (it is uploaded again for the picture). The shadow map and the fog are fitted
+    scene of the mesh, while GL holds no copy of the mesh (it is uploaded again for the
+    picture). The shadow map and the fog are fitted
     to the volume's world box; "irradiance_closest" gets the texel isovalues computed from
     `volume` here. The lights a lattice leaves to the pixels get, with `shadows` "traced",
     the reference's own estimate of their direct light at each pixel, traced on an Embree
