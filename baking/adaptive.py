@@ -34,7 +34,13 @@ from typing import Any
 import numpy as np
 
 from isolume.baking import kernels
-from isolume.baking.lattice import path_variance
+from isolume.baking.lattice import (
+    LUMINANCE,
+    TRAPPED_PATHS,
+    Lattice,
+    lattice_kind,
+    path_variance,
+)
 from isolume.volumes import cores
 
 ROUND_KEY = "rounds"
@@ -163,3 +169,50 @@ def still_going(spread: np.ndarray, samples: np.ndarray, brightness: float,
 
 
 SQRT2 = float(np.sqrt(2.0))
+
+
+def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """(N,) estimated relative standard error of texel means: SE(luminance) / luminance.
+
+    Args:
+        values: (N, C) running means (irradiance RGB: luminance from C = 3; else channel 0).
+        second: (N,) mean squared per-path luminance.
+        samples: (N,) paths averaged.
+
+    Returns:
+        (N,) float64; inf where fewer than 2 samples (no variance estimate yet).
+    """
+    lum = values[:, :3] @ LUMINANCE if values.shape[1] >= 3 else values[:, 0]
+    se = np.sqrt(path_variance(lum, second, samples) / np.maximum(samples, 1))
+    return np.where(samples > 1, se / np.maximum(np.abs(lum.astype(np.float64)), 1e-12),
+                    np.inf)
+
+
+def round_going(lattice: Lattice, ids: np.ndarray, target: int, target_error: float,
+                shape: tuple[int, int, int]) -> np.ndarray:
+    """(N,) bool: which texels of a group (the viewer's lazy bake's visible or surface
+    texels, at the (N,) flat `ids` of `lattice`'s (Z, Y, X) `shape` box) a round to
+    `target` paths refines: those below it that have fewer than half the paths their
+    spread needs (`path_spread`, `still_going`'s n*: the group's root-mean-square
+    standard error `target_error` times its light level; half, as a round quadruples
+    the paths), those without paths, and those whose paths all stayed dark, below
+    `TRAPPED_PATHS`."""
+    ids = np.asarray(ids, np.int64)
+    order = np.argsort(ids, kind="stable")
+    sorted_ids = ids[order]
+    samples = lattice.samples.reshape(-1)[sorted_ids].astype(np.int64)
+    values = lattice.values.reshape(-1, lattice.values.shape[-1])[sorted_ids]
+    lum = (values[:, :3] @ LUMINANCE if lattice_kind(lattice.meta) == "irradiance"
+           else values[:, 0]).astype(np.float64)
+    second = lattice.second.reshape(-1)[sorted_ids]
+    lit = samples > 0
+    spread = path_spread(lum, second, samples, sorted_ids, shape, np.arange(len(sorted_ids)))
+    brightness = group_brightness(lum[lit])
+    mean_spread = float(np.mean(spread[lit])) if lit.any() else 0.0
+    need = spread * mean_spread / (target_error * brightness) ** 2
+    dark = lit & (second <= 0)
+    going = (samples < target) & ((2 * samples < need) | (dark & (samples < TRAPPED_PATHS))
+                                  | ~lit)
+    out = np.empty(len(ids), bool)
+    out[order] = going
+    return out

@@ -12,11 +12,14 @@ texels"), those under visible pixels first ("visible texels", found by the rende
 world-position pass), and within each group those nearest the eye first.
 
 How many paths. Rounds of growing targets (4, 16, 64, ... up to the bake's sample count):
-every texel of a group gets samples before any gets refined. The stage order is
-visible@4, visible@16, ..., then surface@4, surface@16, ...: what is on screen converges
-first. Before any of it, the visible texels of every new view get previews traced on the
+every texel of a group gets samples before any gets refined, and from `JUDGED_FROM` paths
+on a round takes only the texels whose noise still shows at the group's light level
+(`adaptive.round_going`, to `LAZY_TARGET_ERROR`). The stage order is visible@4,
+visible@16, ..., then surface@4, surface@16, ...: what is on screen converges first.
+Before any of it, the visible texels of every new view get previews traced on the
 displayed surface (`baking.preview`): the picture is right within seconds, and the
-texels' own values replace the previews once they rest on as many paths.
+texels' own values replace the previews once they rest on as many paths (a texel that
+rests on fewer shows its preview until the lattice is opened again).
 
 Batches and level scenes. Texels trace paths on their own isovalues' level surfaces
 (`baking.plan`), and those around one isosurface use almost every level. A batch is one
@@ -33,8 +36,7 @@ holds that light's bounces; when the viewer turns it, `Relight` bakes the same t
 the same order under the new direction (`relit_config`) into a lattice of its own, shown
 texel by texel once it rests on `RELIGHT_PATHS` paths (no mean mixes two lights' paths).
 
-Length: the stages, rounds, relighting and serving loop of one scheduler share its plan's
-per-texel arrays and views; apart, each part would take them all as arguments.
+Length: the stages, rounds, relighting and serving loop share one plan's arrays and views.
 """
 
 from __future__ import annotations
@@ -48,7 +50,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from isolume.baking.lattice import LUMINANCE, Lattice, LatticeGeometry, path_variance
+from isolume.baking.adaptive import round_going
+from isolume.baking.lattice import Lattice, LatticeGeometry
 from isolume.baking.plan import Plan
 
 if TYPE_CHECKING:
@@ -60,6 +63,10 @@ FIRST_TARGET = 4
 """Paths per texel of the first round: enough for a recognisable estimate."""
 TARGET_FACTOR = 4
 """Each round multiplies the target by this (halves the noise)."""
+JUDGED_FROM = 64
+"""Rounds to this many paths or more take only the texels whose noise still shows."""
+LAZY_TARGET_ERROR = 0.02
+"""Where the config sets none, the rounds' target: RMS standard error / the light level."""
 REPORT_S = 1.0
 """Seconds between progress reports within a batch."""
 BATCH_PATHS = 1 << 18
@@ -370,23 +377,6 @@ def sample_targets(max_samples: int, first: int = FIRST_TARGET,
     return tuple(targets)
 
 
-def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) -> np.ndarray:
-    """(N,) estimated relative standard error of texel means: SE(luminance) / luminance.
-
-    Args:
-        values: (N, C) running means (irradiance RGB: luminance from C = 3; else channel 0).
-        second: (N,) mean squared per-path luminance.
-        samples: (N,) paths averaged.
-
-    Returns:
-        (N,) float64; inf where fewer than 2 samples (no variance estimate yet).
-    """
-    lum = values[:, :3] @ LUMINANCE if values.shape[1] >= 3 else values[:, 0]
-    se = np.sqrt(path_variance(lum, second, samples) / np.maximum(samples, 1))
-    return np.where(samples > 1, se / np.maximum(np.abs(lum.astype(np.float64)), 1e-12),
-                    np.inf)
-
-
 # -- the scheduler -------------------------------------------------------------------------
 @dataclass
 class Stage:
@@ -396,6 +386,7 @@ class Stage:
     target: int
     positions: np.ndarray
     cursor: int = 0
+    judged: bool = False
 
 
 @dataclass(frozen=True)
@@ -454,11 +445,17 @@ class LazyScheduler:
             writes into it, the scheduler only reads it.
         max_samples: the last round's target (the bake's `samples`).
         batch_paths: paths per batch.
+        lattice, target_error: the lattice baked into (of the `samples`) and the noise
+            target that judge rounds from `JUDGED_FROM` paths on; no lattice: none is.
     """
 
     def __init__(self, plan: Plan, geometry: LatticeGeometry, samples: np.ndarray, *,
-                 max_samples: int, batch_paths: int = BATCH_PATHS) -> None:
+                 max_samples: int, batch_paths: int = BATCH_PATHS,
+                 lattice: Lattice | None = None,
+                 target_error: float = LAZY_TARGET_ERROR) -> None:
         self.plan: Plan = plan
+        self.lattice: Lattice | None = lattice
+        self.target_error: float = float(target_error)
         self.geometry: LatticeGeometry = geometry
         self.samples: np.ndarray = samples
         self.targets: tuple[int, ...] = sample_targets(max_samples)
@@ -499,6 +496,7 @@ class LazyScheduler:
         stage of the current view is done."""
         while self._stage < len(self.stages):
             stage = self.stages[self._stage]
+            self._judge(stage)
             window = stage.positions[stage.cursor:stage.cursor + self.batch_paths]
             if len(window) == 0:
                 self._stage += 1
@@ -511,6 +509,16 @@ class LazyScheduler:
             if len(chosen):
                 return Batch(chosen, stage.target, stage.group)
         return None
+
+    def _judge(self, stage: Stage) -> None:
+        """Keep the texels of a `stage` to `JUDGED_FROM` paths or more that are still
+        noisy (`adaptive.round_going`), once, as it starts."""
+        if stage.judged or self.lattice is None or stage.target < JUDGED_FROM:
+            return
+        stage.judged = True
+        stage.positions = stage.positions[round_going(
+            self.lattice, self.plan.ids[stage.positions], stage.target, self.target_error,
+            self.geometry.shape)]
 
     def progress(self) -> Progress:
         """Counts for the current view (cheap: reads the sample counts once)."""

@@ -49,6 +49,7 @@ def test_picture_error_is_zero_for_the_exact_lattice_and_sees_a_wrong_one():
     figures = {}
     _hand_over_figures(figures, lat, truth, [(1.0, 0.3, 1.0), (2.0, truth.error(lat), 1.0)])
     assert figures["own_picture_error"] == pytest.approx(0.1, rel=1e-4)
+    assert figures["own_picture_rmse"] == pytest.approx(0.1, rel=1e-4)  # uniform: the same
     assert figures["least_picture_error"] < 1e-5
     assert lat.preview is not None  # the lattice itself keeps its previews
 

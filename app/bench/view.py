@@ -14,10 +14,12 @@
   surface (`baking.reference`, traced before the bake starts). Also reported: when the
   visible texels' *own* samples reach the target (the RMS of each texel's relative
   standard error, from its second moment), and with ``--reference N`` the own values of N
-  visible texels against the same texels baked to convergence separately, and the
-  picture from the texels' own samples at the end of the run (what a saved lattice
-  shows: previews are never saved) against the least error any picture of the run
-  reached.
+  visible texels against the same texels baked to convergence separately, when the
+  bake's rounds over the visible texels are done (the rays traced by then, and the
+  picture from the texels' own samples then, also as the charts' RMSE), and the picture
+  from the texels' own samples at the end of the run (what a saved lattice shows:
+  previews are never saved) against the least error any picture of the run reached. The
+  run ends when both the own samples' target is met and the visible rounds are done.
 """
 
 from __future__ import annotations
@@ -387,7 +389,7 @@ def pixel_truth(volume: Volume, config: BakeConfig, iso: float, camera: Camera,
 def visible_error(lattice: Lattice, flat: np.ndarray) -> float:
     """RMS over texels `flat` of the relative standard error of their means (inf while
     any has fewer than 2 paths)."""
-    from isolume.baking.lazy import relative_error
+    from isolume.baking.adaptive import relative_error
 
     values = lattice.values.reshape(-1, lattice.values.shape[-1])[flat]
     err = relative_error(values, lattice.second.reshape(-1)[flat],
@@ -537,10 +539,12 @@ def lazy(args: argparse.Namespace) -> int:
                 values = lat.values.reshape(-1, lat.values.shape[-1])
                 subset_lum.append((now, _luminance(values[subset])))
             trace.append((now, image_err, own_err))
-            if own_err <= args.target:
+            if own_err <= args.target and "own_target_s" not in figures:
                 figures["own_target_s"] = now
                 print(f"  the visible texels' own samples: error {own_err:.3f} <= "
                       f"{args.target} after {now:.1f} s")
+            _visible_rounds(figures, p, link.stats, now, lat, truth)
+            if "own_target_s" in figures and "visible_rounds_s" in figures:
                 break
             time.sleep(0.25)
         else:
@@ -582,6 +586,30 @@ def _own_progress(figures: dict, lattice, visible_flat: np.ndarray, now: float) 
     return visible_error(lattice, visible_flat)
 
 
+def _visible_rounds(figures: dict, progress, stats: dict, now: float, lattice,
+                    truth: PixelTruth) -> None:
+    """Notes when the lazy bake's rounds over the visible texels are done (its `progress`
+    has gone on to the rest of the surface): the rays traced by then, and the picture
+    from the texels' own samples then (`own_picture`)."""
+    if (progress is None or not progress.visible or "visible_rounds_s" in figures
+            or (progress.stage is not None and progress.stage[0] == "visible")):
+        return
+    error, rmse = own_picture(lattice, truth)
+    figures.update(visible_rounds_s=now, visible_rounds_rays=stats.get("rays", 0),
+                   visible_rounds_error=error, visible_rounds_rmse=rmse)
+    print(f"  the visible texels' rounds are done after {now:.1f} s "
+          f"({figures['visible_rounds_rays']:,} rays): the picture from their own samples "
+          f"{error:.1%} RMS, RMSE {rmse:.2%}")
+
+
+def own_picture(lattice, truth: PixelTruth) -> tuple[float, float]:
+    """`truth.error` and `truth.rmse` of the picture from `lattice`'s own samples alone,
+    without its previews: what a saved lattice shows."""
+    saved = dataclasses.replace(lattice, preview=None, preview_paths=None,
+                                preview_facing=None)
+    return truth.error(saved), truth.rmse(saved)
+
+
 def _preview_figures(figures: dict, link) -> None:
     """The preview passes the bake process reported, and its start-up time."""
     figures["preview_passes"] = [{"at_s": at, **f} for at, f in link.previews]
@@ -599,12 +627,13 @@ def _hand_over_figures(figures: dict, lattice, truth: PixelTruth, trace: list) -
     a saved lattice shows), against the least error the run's pictures reached (the
     previews', traced on the displayed surface, while they rested on more paths): a
     display hands a texel over to its own value once that rests on as many paths."""
-    own = truth.error(dataclasses.replace(lattice, preview=None, preview_paths=None,
-                                          preview_facing=None))
+    own, own_rmse = own_picture(lattice, truth)
     best = min((image for _, image, _ in trace), default=float("nan"))
-    figures.update(own_picture_error=own, least_picture_error=best)
+    figures.update(own_picture_error=own, own_picture_rmse=own_rmse,
+                   least_picture_error=best)
     print(f"  the picture from the texels' own samples at the end: {own:.1%} RMS of the "
-          f"path-traced one (the least any picture of the run reached: {best:.1%})")
+          f"path-traced one (the least any picture of the run reached: {best:.1%}); "
+          f"RMSE {own_rmse:.2%} (the charts' error)")
 
 
 def _reference_figures(args, volume, config, subset, subset_lum, figures) -> None:

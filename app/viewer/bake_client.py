@@ -499,14 +499,17 @@ class _BakeProcess:
         """`baking.lazy.serve` under the light baked now (into the turned light's lattice
         after a turn) until told to stop or a view it does not serve (another isovalue
         range, a turned light) ends it; returns serve's stats."""
-        from isolume.baking.lazy import LazyScheduler, serve
+        from isolume.baking.lazy import LAZY_TARGET_ERROR, LazyScheduler, serve
 
         if self.relight is not None and baker.lattice is not self.relight.fresh:
             baker.relight(self.config, self.relight.fresh)
         self.scheduler = LazyScheduler(baker.plan, baker.geometry,
                                        baker.lattice.samples.reshape(-1),
                                        max_samples=self.config.samples,
-                                       batch_paths=self.job["batch_paths"])
+                                       batch_paths=self.job["batch_paths"],
+                                       lattice=baker.lattice,
+                                       target_error=self.config.target_error
+                                       or LAZY_TARGET_ERROR)
 
         def receive(block: bool):
             return self.waiting.pop(0) if self.waiting else self.receive(block)
