@@ -1,7 +1,8 @@
 """A level's side probes in one compiled call per work item (`baking.sides`): each
 texel's point on its nearer level and its normal there, the probe origins of each side,
-their rays, Embree called per ray (`embree_kernels.occluded_rays`), the open counts, the
-on-side test and the side rule — with no Python, and so no wait for the GIL, between
+the on-side and box-reach tests (`volumes.reach.may_open_at`), their rays, Embree called
+per ray (`embree_kernels.occluded_rays`), the open counts and the side rule — with no
+Python, and so no wait for the GIL, between
 them. The same numbers as the array code `baking.sides` runs where a scene has no
 compiled calls (`trace.EmbreeCalls`): `sides.open_rays`, `sides.side_rule`,
 `sides.parity`.
@@ -16,15 +17,19 @@ from isolume.baking.embree_kernels import occluded_rays
 from isolume.baking.kernels import path_starts
 from isolume.baking.plan_kernels import landed_normal
 from isolume.volumes.field import JIT, normal_scratch, value_at_world
+from isolume.volumes.reach import may_open_at
 
 
 @numba.njit(**JIT)
 def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points: np.ndarray,
                 normals: np.ndarray, offset: float, sign: float, which: np.ndarray,
                 cube: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
-                level: float, scratch: np.ndarray, first: int, probes: int) -> np.ndarray:
+                level: float, scratch: np.ndarray, first: int, probes: int,
+                reach: tuple) -> np.ndarray:
     """(N,) int64: how many of `probes` rays from each point where `which` (N,) bool meet
-    nothing; 0 elsewhere, and where the probes' origin does not lie on their side.
+    nothing; 0 elsewhere, where the probes' origin does not lie on their side, and where
+    `reach` proves that side closed (`volumes.reach.may_open_at`; ``reach[0]``: False for
+    no such test, then its arrays, direction and frame).
 
     Args:
         calls: the level scene's `trace.EmbreeCalls`; key: the probes' seed key.
@@ -38,6 +43,7 @@ def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points:
         cube: the volume's (Z, Y, X, 1) samples; origin, spacing: (3,) float64, world xyz.
         level: the isovalue in `scratch`'s type, (1,) that of `volumes.value_at`.
     """
+    tested, grid, steps, up, frame = reach
     n = len(ids)
     out = np.zeros(n, np.int64)
     rows = np.empty(n, np.int64)
@@ -50,7 +56,8 @@ def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points:
             if x != x or y != y or z != z:
                 continue
             beyond = value_at_world(cube, origin, spacing, x, y, z, scratch) - level
-            if (beyond < 0) if sign > 0 else (beyond > 0):
+            if ((beyond < 0) if sign > 0 else (beyond > 0)) and (
+                    not tested or may_open_at(grid, steps, up, frame, x, y, z, level)):
                 rows[m] = i
                 m += 1
     if m == 0:
@@ -86,7 +93,7 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
                 at: np.ndarray, upper: np.ndarray, landing: np.ndarray, step: float,
                 field: tuple, w: np.ndarray, offset: float, level: float,
                 scratch: np.ndarray, probes: int, confirm: int, default: bool,
-                clearly_more: float, high: np.ndarray) -> None:
+                clearly_more: float, reach: tuple, high: np.ndarray) -> None:
     """`sides.open_rays` and `sides.side_rule` of the texels at plan positions `at` (N,)
     into ``high[at]``, in one call: each texel's point on its nearer level (its `landing`
     (T, 2, 3) offsets, in steps of `step` world units, of its upper level where `upper`
@@ -102,6 +109,8 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
             the parity).
         offset, level, scratch, probes: as `open_counts`'s; confirm:
             `sides.CONFIRM_PROBES`; clearly_more: `sides.CLEARLY_MORE`.
+        reach: as `open_counts`'s, for the side other than the default one (its probes
+            are not traced where it proves that side closed).
     """
     cube, _, _, origin, spacing = field
     n = len(at)
@@ -119,12 +128,14 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
             normals[r, a] = np.float64(unit[a])
     other_sign = 1.0 if default else -1.0  # the low side's normal is +normals
     other = open_counts(calls, key, picked, points, normals, offset, other_sign,
-                        np.ones(n, np.bool_), cube, origin, spacing, level, scratch, 0, probes)
+                        np.ones(n, np.bool_), cube, origin, spacing, level, scratch, 0, probes,
+                        reach)
+    untested = (False, reach[1], reach[2], reach[3], reach[4])
     mine = open_counts(calls, key, picked, points, normals, offset, -other_sign, other > 0,
-                       cube, origin, spacing, level, scratch, 0, probes)
+                       cube, origin, spacing, level, scratch, 0, probes, untested)
     confirmed = (other > 0) & (mine == 0)
     mine += open_counts(calls, key, picked, points, normals, offset, -other_sign, confirmed,
-                        cube, origin, spacing, level, scratch, probes, confirm)
+                        cube, origin, spacing, level, scratch, probes, confirm, untested)
     shape = lattice[0]
     for r in range(n):
         flat = picked[r]

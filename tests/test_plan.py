@@ -260,7 +260,7 @@ def test_levels_start_where_the_plan_landed_their_texels():
     from isolume.baking.passes import lay_out_level, start_points
     from isolume.baking.plan import landed_points, newton_reach
 
-    vol = make("shells", 32)
+    vol = make("mixing_layer", 32)
     plan, config = _plan(vol, samples=8, bounces=0, iso_range=(0.2, 0.7), max_move=0.5)
     geometry = LatticeGeometry.for_volume(vol, 1.0)
     uses = np.stack([plan.weight < 1, plan.weight > 0], axis=1)

@@ -19,6 +19,7 @@ from isolume.baking import BakeConfig, bake
 from isolume.baking.plan import make_plan
 from isolume.baking.sides import PROBES, side_rule
 from isolume.volumes import Volume, load
+from isolume.volumes.reach import BoxReach
 
 SKY = dict(samples=16, bounces=0, env="constant:1,1,1", seed=3)
 
@@ -167,22 +168,25 @@ def test_compiled_probes_count_what_the_array_code_counts(dtype):
     fixed = (np.asarray(vol.data)[..., None], np.asarray(vol.origin, np.float64),
              np.asarray(vol.spacing, np.float64), scratch.dtype.type(level), scratch)
 
-    def count(sign, which, first=0, probes=PROBES):
+    reaches = {default: BoxReach.of(vol, up=not default) for default in (False, True)}
+
+    def count(sign, which, first=0, probes=PROBES, reach=None):
+        tested = (reach is not None, *(reach or reaches[False]).arrays(vol))
         return open_counts(scene.calls, np.uint32(seed_key(config.seed ^ SALT)),
                            ids.astype(np.int64), points, normals, probe_offset(vol, config),
-                           sign, which, *fixed, first, probes)
+                           sign, which, *fixed, first, probes, tested)
 
     compiled = []
     for default in (False, True):
         other_sign = 1.0 if default else -1.0
-        other = count(other_sign, np.ones(len(points), bool))
+        other = count(other_sign, np.ones(len(points), bool), reach=reaches[default])
         mine = count(-other_sign, other > 0)
         confirmed = (other > 0) & (mine == 0)
         mine = mine + count(-other_sign, confirmed, PROBES, CONFIRM_PROBES)
         rays = np.where(confirmed, PROBES + CONFIRM_PROBES, PROBES)
         compiled.append((other, mine, rays) if default else (mine, other, rays))
     scene.calls = None
-    arrays = [open_rays(scene, vol, config, ids, points, level, default)
+    arrays = [open_rays(scene, vol, config, ids, points, level, default, reaches[default])
               for default in (False, True)]
     for got, want in zip(compiled, arrays, strict=True):
         for side in (0, 1, 2):
