@@ -18,9 +18,9 @@ diagonal corners at most, which 26-neighbours join too.
 
 The flood goes from the faces inwards, best level first, through a bucket queue over the
 volume's values: the values themselves for integer samples spanning at most `EXACT_SPAN`,
-else `LEVELS` levels rounded away from the side asked about (up for the upward reach), so
-that the test errs towards "may leave". One pass over the voxels and their 26 neighbours,
-on one core: 1.2 s for the 256³ foot CT.
+else `LEVELS` levels, each value rounded up for the upward reach and down for the
+downward one, so that the test errs towards "may leave". One pass over the voxels and
+their 26 neighbours, on one core: 1.2 s for the 256³ foot CT.
 """
 
 from __future__ import annotations
