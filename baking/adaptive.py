@@ -34,12 +34,13 @@ from typing import Any
 import numpy as np
 
 from isolume.baking import kernels
+from isolume.baking.density import texel_luminance
 from isolume.baking.lattice import (
     LUMINANCE,
     TRAPPED_PATHS,
     Lattice,
-    lattice_kind,
     path_variance,
+    sky_everywhere,
 )
 from isolume.volumes import cores
 
@@ -146,9 +147,10 @@ def path_spread(luminance: np.ndarray, second: np.ndarray, samples: np.ndarray,
 
 def still_going(spread: np.ndarray, samples: np.ndarray, brightness: float,
                 mean_spread: float, target: float, most: int, dark: np.ndarray,
-                dark_until: int) -> np.ndarray:
+                dark_until: int, step: float = 2.0) -> np.ndarray:
     """(K,) bool: which of K texels with per-path standard deviations `spread` and
-    `samples` go on to the next rung (twice their samples); (K,) `dark`: those whose
+    `samples` go on to the next rung (`step` times their samples: twice on the bake's
+    ladder, four times in the viewer's rounds); (K,) `dark`: those whose
     paths all brought no light, which go on below `dark_until` samples whatever their
     spread.
 
@@ -156,8 +158,8 @@ def still_going(spread: np.ndarray, samples: np.ndarray, brightness: float,
     number of paths that least noise leaves in the group, summed over its texels), scaled
     so that the group's root-mean-square standard error is `target` × its `brightness`
     (`mean_spread`: the group's mean spread): n* = spread · mean_spread / (target ·
-    brightness)². A texel goes on while doubling keeps it within √2 of n*, and below
-    `most`.
+    brightness)². A texel goes on while the next rung keeps it within √`step` of n*, and
+    below `most`.
 
     Texels without light: under a sky that lights every direction, a texel whose paths
     all stayed in a pocket sealed from the sky is trapped, and a display leaves it out
@@ -165,10 +167,8 @@ def still_going(spread: np.ndarray, samples: np.ndarray, brightness: float,
     fewer, it would be drawn black. So there `dark_until` is that count.
     """
     need = spread * mean_spread / (target * brightness) ** 2
-    return (samples < most) & ((samples * SQRT2 < need) | (dark & (samples < dark_until)))
-
-
-SQRT2 = float(np.sqrt(2.0))
+    return (samples < most) & ((samples * float(np.sqrt(step)) < need)
+                               | (dark & (samples < dark_until)))
 
 
 def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) -> np.ndarray:
@@ -188,31 +188,28 @@ def relative_error(values: np.ndarray, second: np.ndarray, samples: np.ndarray) 
                     np.inf)
 
 
-def round_going(lattice: Lattice, ids: np.ndarray, target: int, target_error: float,
-                shape: tuple[int, int, int]) -> np.ndarray:
+def round_going(lattice: Lattice, weights: np.ndarray, ids: np.ndarray, target: int,
+                target_error: float, step: int, shape: tuple[int, int, int]) -> np.ndarray:
     """(N,) bool: which texels of a group (the viewer's lazy bake's visible or surface
     texels, at the (N,) flat `ids` of `lattice`'s (Z, Y, X) `shape` box) a round to
-    `target` paths refines: those below it that have fewer than half the paths their
-    spread needs (`path_spread`, `still_going`'s n*: the group's root-mean-square
-    standard error `target_error` times its light level; half, as a round quadruples
-    the paths), those without paths, and those whose paths all stayed dark, below
-    `TRAPPED_PATHS`."""
+    `target` paths, `step` times the last round's, refines: `still_going`'s rule, as the
+    bake's rounds judge their groups (their brightness the (C,) `weights` of the values,
+    the one their second moments hold: the bake's `tracing.weights`), and those without
+    paths yet."""
     ids = np.asarray(ids, np.int64)
     order = np.argsort(ids, kind="stable")
     sorted_ids = ids[order]
     samples = lattice.samples.reshape(-1)[sorted_ids].astype(np.int64)
-    values = lattice.values.reshape(-1, lattice.values.shape[-1])[sorted_ids]
-    lum = (values[:, :3] @ LUMINANCE if lattice_kind(lattice.meta) == "irradiance"
-           else values[:, 0]).astype(np.float64)
+    luminance = texel_luminance(lattice.values.reshape(-1, len(weights))[sorted_ids],
+                                weights)
     second = lattice.second.reshape(-1)[sorted_ids]
     lit = samples > 0
-    spread = path_spread(lum, second, samples, sorted_ids, shape, np.arange(len(sorted_ids)))
-    brightness = group_brightness(lum[lit])
-    mean_spread = float(np.mean(spread[lit])) if lit.any() else 0.0
-    need = spread * mean_spread / (target_error * brightness) ** 2
-    dark = lit & (second <= 0)
-    going = (samples < target) & ((2 * samples < need) | (dark & (samples < TRAPPED_PATHS))
-                                  | ~lit)
+    spread = path_spread(luminance, second, samples, sorted_ids, shape,
+                         np.arange(len(sorted_ids)))
+    going = ~lit | still_going(
+        spread, samples, group_brightness(luminance[lit]),
+        float(np.mean(spread[lit])) if lit.any() else 0.0, target_error, target,
+        luminance == 0, TRAPPED_PATHS if sky_everywhere(lattice.config) else 0, step)
     out = np.empty(len(ids), bool)
     out[order] = going
     return out

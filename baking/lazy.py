@@ -445,16 +445,16 @@ class LazyScheduler:
             writes into it, the scheduler only reads it.
         max_samples: the last round's target (the bake's `samples`).
         batch_paths: paths per batch.
-        lattice, target_error: the lattice baked into (of the `samples`) and the noise
-            target that judge rounds from `JUDGED_FROM` paths on; no lattice: none is.
+        judged_by, target_error: the `Baker` of the `samples` and the noise target that
+            judge rounds from `JUDGED_FROM` paths on (`adaptive.round_going`)
     """
 
     def __init__(self, plan: Plan, geometry: LatticeGeometry, samples: np.ndarray, *,
                  max_samples: int, batch_paths: int = BATCH_PATHS,
-                 lattice: Lattice | None = None,
+                 judged_by: Baker | None = None,
                  target_error: float = LAZY_TARGET_ERROR) -> None:
         self.plan: Plan = plan
-        self.lattice: Lattice | None = lattice
+        self.judged_by: Baker | None = judged_by
         self.target_error: float = float(target_error)
         self.geometry: LatticeGeometry = geometry
         self.samples: np.ndarray = samples
@@ -511,14 +511,14 @@ class LazyScheduler:
         return None
 
     def _judge(self, stage: Stage) -> None:
-        """Keep the texels of a `stage` to `JUDGED_FROM` paths or more that are still
-        noisy (`adaptive.round_going`), once, as it starts."""
-        if stage.judged or self.lattice is None or stage.target < JUDGED_FROM:
+        """Keep a `stage`'s texels still noisy (`round_going`), once, as it starts."""
+        baker = self.judged_by
+        if stage.judged or baker is None or stage.target < JUDGED_FROM:
             return
         stage.judged = True
         stage.positions = stage.positions[round_going(
-            self.lattice, self.plan.ids[stage.positions], stage.target, self.target_error,
-            self.geometry.shape)]
+            baker.lattice, baker.job.tracing.weights, self.plan.ids[stage.positions],
+            stage.target, self.target_error, TARGET_FACTOR, self.geometry.shape)]
 
     def progress(self) -> Progress:
         """Counts for the current view (cheap: reads the sample counts once)."""

@@ -384,7 +384,7 @@ def _served(volume, config, target_error=None, workers=2):
     from isolume.baking.bake import Baker
 
     baker = Baker(volume, config, workers=workers, scene_cache=64)
-    judged = {} if target_error is None else {"lattice": baker.lattice,
+    judged = {} if target_error is None else {"judged_by": baker,
                                               "target_error": target_error}
     sched = LazyScheduler(baker.plan, baker.geometry, baker.lattice.samples.reshape(-1),
                           max_samples=config.samples, batch_paths=1 << 14, **judged)

@@ -3,6 +3,7 @@ side probes it spares (`baking.sides`)."""
 
 import numpy as np
 import pytest
+from test_sides import _ball
 
 from isolume import volumes
 from isolume.baking import BakeConfig
@@ -64,9 +65,3 @@ def test_no_side_a_probe_leaves_from_is_proven_closed():
         closed += int((~may).sum())
     assert closed >= 400  # the ball's 800 points, less those near nothing
 
-
-def _ball(n: int = 24) -> Volume:
-    """A ball of radius 0.3 n (anti-aliased edge) in the middle of the box."""
-    z, y, x = np.mgrid[:n, :n, :n] - (n - 1) / 2
-    inside = np.clip(0.3 * n - np.sqrt(x * x + y * y + z * z) + 0.5, 0, 1)
-    return Volume(inside.astype(np.float32), name="ball", source="ball")

@@ -507,7 +507,7 @@ class _BakeProcess:
                                        baker.lattice.samples.reshape(-1),
                                        max_samples=self.config.samples,
                                        batch_paths=self.job["batch_paths"],
-                                       lattice=baker.lattice,
+                                       judged_by=baker,
                                        target_error=self.config.target_error
                                        or LAZY_TARGET_ERROR)
 
