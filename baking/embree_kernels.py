@@ -48,9 +48,9 @@ def _set_ray(ray, bits, ox, oy, oz, dx, dy, dz) -> None:
 
 
 @numba.njit(**JIT)
-def _ray_buffer():
+def ray_buffer():
     """An RTCRayHit (at most 96 bytes) on a 16-byte boundary: its float32 words, the same
-    words as uint32, and its address."""
+    words as uint32, and its address (for `occluded_one`, reused from ray to ray)."""
     storage = np.empty(40, np.float32)
     first = (16 - storage.ctypes.data % 16) % 16 // 4
     ray = storage[first:first + 24]
@@ -69,7 +69,7 @@ def intersect_rays(calls: tuple[int, ...], pos: np.ndarray, dirs: np.ndarray
         ``run(..., output=1)``.
     """
     scene, intersect, _ = calls
-    ray, bits, address = _ray_buffer()
+    ray, bits, address = ray_buffer()
     m = pos.shape[1]
     t = np.empty(m, np.float32)
     prim = np.empty(m, np.int32)
@@ -84,16 +84,24 @@ def intersect_rays(calls: tuple[int, ...], pos: np.ndarray, dirs: np.ndarray
     return t, prim, ng
 
 
+@numba.njit(**PART)
+def occluded_one(calls: tuple[int, ...], ray: np.ndarray, bits: np.ndarray, address: int,
+                 ox: float, oy: float, oz: float, dx: float, dy: float, dz: float) -> bool:
+    """Does anything block the float32 ray from (ox, oy, oz) along (dx, dy, dz), distances
+    0 … ∞? `ray`, `bits`, `address`: a `ray_buffer`."""
+    scene, _, occluded = calls
+    _set_ray(ray, bits, ox, oy, oz, dx, dy, dz)
+    _call_embree(occluded, scene, address)
+    return ray[8] < 0  # tfar becomes -inf when something is hit
+
+
 @numba.njit(**JIT)
 def occluded_rays(calls: tuple[int, ...], pos: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """(M,) bool: does anything block the (3, M) float32 rays (distances 0 … ∞)?"""
-    scene, _, occluded = calls
-    ray, bits, address = _ray_buffer()
+    ray, bits, address = ray_buffer()
     m = pos.shape[1]
     blocked = np.empty(m, np.bool_)
     for i in range(m):
-        _set_ray(ray, bits, pos[0, i], pos[1, i], pos[2, i], dirs[0, i], dirs[1, i],
-                 dirs[2, i])
-        _call_embree(occluded, scene, address)
-        blocked[i] = ray[8] < 0  # tfar becomes -inf when something is hit
+        blocked[i] = occluded_one(calls, ray, bits, address, pos[0, i], pos[1, i], pos[2, i],
+                                  dirs[0, i], dirs[1, i], dirs[2, i])
     return blocked

@@ -19,17 +19,20 @@ import pytest
 from graphs import strongly_connected
 
 from isolume import volumes
-from isolume.baking import BakeConfig, bake, plan_kernels, side_kernels
+from isolume.baking import BakeConfig, bake, plan_kernels, side_kernels, sun_kernels
+from isolume.baking.lights import SunLight
+from isolume.baking.shadow_rays import light_factors
+from isolume.baking.trace import Scene
 from isolume.volumes import field
 
 PER_POINT = [
     (field, "_normals"), (field, "_gradients"), (field, "_trilinear"),
     (field, "_grid_trilinear"), (plan_kernels, "gradient_norms"),
     (plan_kernels, "landed_starts"), (plan_kernels, "reach_tests"),
-    (side_kernels, "probe_sides"),
+    (side_kernels, "probe_sides"), (sun_kernels, "sun_factors"),
 ]
-"""The kernels whose loops run per point or texel, with the helpers compiled with them
-(`reach_tests`: `volumes.field.newton_steps`, `volumes.field.along_normals`)."""
+"""The kernels whose loops run per point, texel or pixel, with the helpers compiled with
+them (`reach_tests`: `volumes.field.newton_steps`, `volumes.field.along_normals`)."""
 
 ONCE_PER_ITEM = {
     "calls of _nearest_crossing": "a stalled Newton point's search along 26 lines",
@@ -51,6 +54,10 @@ def baked() -> None:
     volumes.value_at(volume, np.zeros((2, 3)))
     volumes.values_on_grid(volume, np.zeros(2), np.zeros(2), np.zeros(2))
     volumes.values_along_normals(volume, np.zeros((2, 3)), 0.1)
+    plate = Scene(np.array([[-1, -1, 1], [1, -1, 1], [0, 1, 1]], np.float32),
+                  np.array([[0, 1, 2]], np.int32))
+    light_factors(plate, np.zeros((2, 3)), np.tile([[0.0, 0.0, 1.0]], (2, 1)),
+                  (SunLight((0.0, 0.0, 1.0), (1.0, 1.0, 1.0), 0.5),), workers=1)
 
 
 def _functions(ir: str) -> dict[str, str]:

@@ -17,7 +17,14 @@ from isolume.app.render.settings import RenderSettings
 from isolume.baking import BakeConfig
 from isolume.baking.lights import DirectionalLight, PointLight, SunLight
 from isolume.baking.reference import render_reference
-from isolume.baking.shadow_rays import SUN_RAYS, disc_offsets, light_factors, sun_directions
+from isolume.baking.shadow_rays import (
+    SUN_PROBES,
+    SUN_RAYS,
+    disc_offsets,
+    disc_order,
+    light_factors,
+    sun_directions,
+)
 from isolume.baking.trace import Scene
 from isolume.volumes import Volume
 
@@ -69,6 +76,86 @@ def test_a_plate_shades_what_lies_below_it():
     assert f[1] == pytest.approx(1.0, abs=1.0 - cos_r)
     assert f[2].mean() == pytest.approx(0.5, abs=0.01)
     assert f[3].mean() == pytest.approx(1.0 - _segment_share(0.5), abs=0.01)
+
+
+def _probe_rule(scene: Scene, sun: SunLight, starts: np.ndarray, normals: np.ndarray,
+                probes: int) -> np.ndarray:
+    """The probe rule written out on all `SUN_RAYS` rays traced at once: (P,) the mean
+    cosine of the rays that reach the sun, every ray counted as the probes say where they
+    all agree."""
+    order = disc_order(SUN_RAYS, probes)
+    dirs = sun_directions(sun, np.arange(len(starts)))[:, order]
+    cosine = np.maximum(np.einsum("pkc,pc->pk", dirs, normals), 0.0)
+    origins = np.repeat(starts, SUN_RAYS, axis=0).astype(np.float32)
+    reach = ~scene.occluded(origins, dirs.reshape(-1, 3).astype(np.float32)).reshape(
+        dirs.shape[:2])
+    agree = reach[:, :probes].all(axis=1) | ~reach[:, :probes].any(axis=1)
+    reach[agree] = reach[agree, :1]
+    return np.where(reach, cosine, 0.0).mean(axis=1)
+
+
+def test_disc_order_puts_the_probes_around_the_rim():
+    """The probes are the points spread widest: all beyond 3/4 of the radius, each pair
+    more than 60° apart around the centre; the order holds every point once."""
+    order = disc_order()
+    assert sorted(order) == list(range(SUN_RAYS))
+    probes = disc_offsets(SUN_RAYS)[order[:SUN_PROBES]]
+    assert np.hypot(*probes.T).min() > 0.75
+    angle = np.degrees(np.arctan2(probes[:, 1], probes[:, 0]))
+    gaps = np.abs((angle[:, None] - angle[None, :] + 180.0) % 360.0 - 180.0)
+    assert gaps[~np.eye(SUN_PROBES, dtype=bool)].min() > 60.0
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_probed_sun_rays_follow_the_rule_on_grains(compiled):
+    """On the granular ball's surface under a 2° sun, whose grains cut the disc in many
+    places: the factors, from Embree's per-ray calls in one compiled call or from numpy
+    over embreex's batches, are the rule traced out in full (`_probe_rule`) to float32
+    rounding; they differ from tracing every ray only where the probes all agreed, at
+    most 1 % of the points here (0.37 % measured, where 12 % lie in a penumbra)."""
+    from isolume.volumes import isosurface
+
+    volume = _granular()
+    mesh = isosurface(volume, 0.5)
+    scene = Scene(mesh.vertices, mesh.faces)
+    if not compiled:
+        scene.calls = None
+    elif scene.calls is None:
+        pytest.skip("Embree's per-ray calls are not available here")
+    sun = SunLight(direction=(0.5, 0.3, 0.81), irradiance=(1.0, 1.0, 1.0), radius=2.0)
+    normals = mesh.normals.astype(np.float64)
+    starts = mesh.vertices + 0.05 * normals
+    probed = light_factors(scene, starts, normals, (sun,), workers=2)[:, 0]
+    every = light_factors(scene, starts, normals, (sun,), workers=2, probes=SUN_RAYS)[:, 0]
+    assert probed == pytest.approx(_probe_rule(scene, sun, starts, normals, SUN_PROBES),
+                                   abs=1e-6)
+    assert every == pytest.approx(_probe_rule(scene, sun, starts, normals, SUN_RAYS),
+                                  abs=1e-6)
+    differ = np.abs(probed - every) > 1e-6
+    assert 0 < differ.mean() <= 0.01
+    assert np.abs(probed - every).max() <= (SUN_RAYS - SUN_PROBES) / SUN_RAYS
+
+
+def test_probes_miss_a_small_cap_of_the_disc():
+    """Where an occluder's edge covers a cap of the disc smaller than the gaps between the
+    probes, the probes can all reach the sun and the pixel counts it whole: the failure
+    of the rule, measured under a plate's edge over 400 turns of the spiral. Covering a
+    cap of 7 % of the disc (the chord 0.75 radii from the centre), tracing every ray finds
+    it (the mean within 0.01), the probes see it in part of the turns: the mean factor
+    too bright by less than the cap's share (0.017 measured), never more than it in any
+    one pixel beyond the rays' own 1/16."""
+    sun = SunLight(direction=UP, irradiance=(1.0, 1.0, 1.0), radius=5.0)
+    n = 400
+    chord = 0.75
+    x = 1.0 + chord * math.tan(math.radians(5.0))  # the plate hides the disc beyond the chord
+    starts = np.tile([[x, 0.2, 0.0]], (n, 1))
+    normals = np.tile([UP], (n, 1))
+    probed = light_factors(_plate(), starts, normals, (sun,), workers=1)[:, 0]
+    every = light_factors(_plate(), starts, normals, (sun,), workers=1, probes=SUN_RAYS)[:, 0]
+    share = _segment_share(chord)
+    assert every.mean() == pytest.approx(1.0 - share, abs=0.01)
+    assert 0.0 < probed.mean() - every.mean() < share
+    assert (probed - every).max() <= share + 1.0 / SUN_RAYS
 
 
 def test_hard_and_point_lights_are_seen_or_not():
