@@ -535,6 +535,44 @@ def test_sun_on_an_isosurface_matches_ray_cast_shadows(renderer):
     assert abs(got.mean() / want.mean() - 1) < 0.01  # neither darker (acne) nor brighter
 
 
+def test_the_g_buffer_gives_the_traced_sun_the_surface_a_position_pass_gives(renderer):
+    """A frame's own G-buffer stands in for a position pass (a movie frame's traced sun,
+    `SurfaceRenderer.render(..., seen=)`): the same pixels, their points within 1e-5 of
+    the box's diagonal (an eye distance against an interpolated position), and the same
+    picture, traced from either."""
+    from isolume.app.render.traced_light import position_pass, trace_direct_light
+
+    vol = volumes.load("synthetic:engine:64")
+    mesh = volumes.isosurface(vol, 0.3)
+    renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=0.3)
+    renderer.set_bounds(*vol.box)
+    config = BakeConfig(samples=16, bounces=0, env="sky:zenith=0,horizon=0,ground=0,sun=3",
+                        direct_light="pixels")
+    lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 0.25), 3, {"kind": "irradiance"},
+                            config=config)
+    lattice.samples[...] = 1
+    renderer.set_lattice(lattice)
+    camera = Camera(azimuth=200, elevation=35, distance=1.6,
+                    target=tuple(np.mean(vol.box, axis=0)), scale=vol.diagonal)
+    settings = RenderSettings(size=(96, 80), shading="irradiance", auto_exposure=False)
+    scene = Scene(mesh.vertices, mesh.faces)
+
+    def traced(seen):
+        trace_direct_light(renderer, camera, settings, vol, seen, scene, workers=2)
+
+    points, mask = position_pass(renderer, camera, settings)
+    traced((points, mask))
+    passed = renderer.render(camera, settings)
+    found = []
+    own = renderer.render(camera, settings, seen=lambda seen: (found.append(seen), traced(seen)))
+    (g_points, g_mask), = found
+    np.testing.assert_array_equal(g_mask, mask)
+    assert 0.2 < mask.mean() < 0.9
+    assert np.abs(g_points - points).max() < 1e-5 * vol.diagonal
+    np.testing.assert_array_equal(own.mask, passed.mask)
+    assert np.abs(own.linear - passed.linear).max() <= 1e-6 * passed.linear.max()
+
+
 # -- the viewer moves the sun ---------------------------------------------------------------
 def test_viewer_moves_the_sun_with_exact_shadows(display, tmp_path):  # noqa: F811
     """A lattice whose sun is shaded per pixel: turning the light in the viewer moves the

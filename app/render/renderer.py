@@ -24,6 +24,7 @@ sky without its sun (direct block) and the whole turned sky (indirect block).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -67,6 +68,9 @@ if TYPE_CHECKING:
     from isolume.baking.view_texels import HeldLattice
     from isolume.volumes import Volume
 
+SeenHook = Callable[[tuple[np.ndarray, np.ndarray]], None]
+"""Called by `SurfaceRenderer.draw_hdr` with a frame's visible surface: ((N, 3) world points,
+(H, W) mask of their pixels), between its mesh pass and its lights."""
 VERTEX_BYTES = 24
 """Bytes per vertex in the mesh's vertex buffer: position and normal, float32 xyz each."""
 VERTEX_CHUNK = 1 << 20
@@ -485,10 +489,14 @@ class SurfaceRenderer:
         light = self.lattice.light_uniform(self._sh_light(settings))
         prog["u_light"].write(light.tobytes())
 
-    def draw_hdr(self, camera: Camera, settings: RenderSettings) -> Targets:
+    def draw_hdr(self, camera: Camera, settings: RenderSettings,
+                 seen: SeenHook | None = None) -> Targets:
         """Draw the mesh in linear radiance into the HDR target (alpha 1 on the surface):
         local and SH modes in the surface pass; the irradiance lattices and the per-pixel
-        lights from the G-buffer it leaves (`_deferred_pass`)."""
+        lights from the G-buffer it leaves (`_deferred_pass`), after `seen` (if given)
+        was called with the frame's surface as a position pass gives it, read from that
+        G-buffer (`surface_points`): where the per-pixel lights' traced light can be
+        made (`set_traced_light`) without a position pass of its own."""
         prog = self._prepared_program(camera, settings) if self._triangles else None
         targets = self._ensure_targets(settings.size)
         targets.hdr.use()
@@ -500,6 +508,8 @@ class SurfaceRenderer:
             targets.gbuffer(self.ctx, with_hdr=not self._lattice_deferred(settings)).use()
             self.ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self._draw_mesh(prog)
+        if deferred and seen is not None:
+            seen(surface_points(targets, camera))
         if deferred:
             self._deferred_pass(targets, camera, settings)
         return targets
@@ -520,10 +530,12 @@ class SurfaceRenderer:
         vao.render(moderngl.TRIANGLES, vertices=3)
         vao.release()
 
-    def render(self, camera: Camera, settings: RenderSettings) -> Frame:
+    def render(self, camera: Camera, settings: RenderSettings,
+               seen: SeenHook | None = None) -> Frame:
         """Draw one frame off-screen and read it back (rows top to bottom); with
-        `auto_exposure`, exposed by `auto_exposure_scale` of its surface pixels."""
-        targets = self.draw_hdr(camera, settings)
+        `auto_exposure`, exposed by `auto_exposure_scale` of its surface pixels; `seen`:
+        as `draw_hdr`'s."""
+        targets = self.draw_hdr(camera, settings, seen)
         w, h = settings.size
         hdr = np.frombuffer(targets.hdr.read(components=4, dtype="f4"), np.float32)
         hdr = hdr.reshape(h, w, 4)[::-1]
@@ -533,11 +545,24 @@ class SurfaceRenderer:
             # the fog fades to the background divided by the exposure: draw it again
             settings = replace(settings, exposure=settings.exposure * auto,
                                auto_exposure=False)
-            targets, auto = self.draw_hdr(camera, settings), 1.0
+            targets, auto = self.draw_hdr(camera, settings, seen), 1.0
         self.resolve(targets, settings, auto=auto)
         ldr = np.frombuffer(targets.ldr.read(components=3), np.uint8).reshape(h, w, 3)[::-1]
         return Frame(np.ascontiguousarray(hdr[..., :3]), np.ascontiguousarray(ldr), mask,
                      settings.exposure * auto)
+
+
+def surface_points(targets: Targets, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) world points of the surface under a frame's visible pixels and the (H, W)
+    mask of those pixels, rows top to bottom — what `app.render.traced_light.position_pass`
+    gives — from the eye distances of the G-buffer in `targets` (``gbuffer.glsl``: 0
+    where there is no surface) along `camera`'s rays through the pixel centres."""
+    w, h = targets.size
+    g = np.frombuffer(targets.g_surface.read(), np.float32).reshape(h, w, 4)[::-1, :, 0]
+    mask = g > 0
+    origins, dirs = camera.primary_rays(w, h)
+    flat = mask.reshape(-1)
+    return origins[flat] + g[mask][:, None].astype(np.float64) * dirs[flat], mask
 
 
 def default_camera(volume: Volume, view: tuple[float, float, float | None] | None = None) -> Camera:
