@@ -57,6 +57,41 @@ def ray_buffer():
     return ray, ray.view(np.uint32), ray.ctypes.data
 
 
+@numba.njit(**PART)
+def intersect_one(calls: tuple[int, ...], ray: np.ndarray, bits: np.ndarray, address: int,
+                  ox: float, oy: float, oz: float, dx: float, dy: float, dz: float
+                  ) -> tuple[np.float32, np.int32]:
+    """The closest hit of the float32 ray from (ox, oy, oz) along (dx, dy, dz), distances
+    0 … ∞: its distance and triangle id in its piece (-1: no hit); its unnormalised facet
+    normal is left in ``ray[12:15]``. `ray`, `bits`, `address`: a `ray_buffer`."""
+    scene, intersect, _ = calls
+    _set_ray(ray, bits, ox, oy, oz, dx, dy, dz)
+    _call_embree(intersect, scene, address)
+    return ray[8], np.int32(-1) if bits[18] == _INVALID_ID else np.int32(bits[17])
+
+
+@numba.njit(**PART)
+def occluded_before(calls: tuple[int, ...], ray: np.ndarray, bits: np.ndarray, address: int,
+                    ox: float, oy: float, oz: float, dx: float, dy: float, dz: float,
+                    far: float) -> bool:
+    """Does anything block the float32 ray from (ox, oy, oz) along (dx, dy, dz) at a
+    distance 0 … `far`? `ray`, `bits`, `address`: a `ray_buffer`."""
+    scene, _, occluded = calls
+    _set_ray(ray, bits, ox, oy, oz, dx, dy, dz)
+    ray[8] = far
+    _call_embree(occluded, scene, address)
+    return ray[8] < 0  # tfar becomes -inf when something is hit
+
+
+@numba.njit(**PART)
+def occluded_one(calls: tuple[int, ...], ray: np.ndarray, bits: np.ndarray, address: int,
+                 ox: float, oy: float, oz: float, dx: float, dy: float, dz: float) -> bool:
+    """Does anything block the float32 ray from (ox, oy, oz) along (dx, dy, dz), distances
+    0 … ∞? `ray`, `bits`, `address`: a `ray_buffer`."""
+    return occluded_before(calls, ray, bits, address, ox, oy, oz, dx, dy, dz,
+                           np.float32(np.inf))
+
+
 @numba.njit(**JIT)
 def intersect_rays(calls: tuple[int, ...], pos: np.ndarray, dirs: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -68,31 +103,16 @@ def intersect_rays(calls: tuple[int, ...], pos: np.ndarray, dirs: np.ndarray
         hit), ng (M, 3) float32 unnormalised facet normals — as embreex's
         ``run(..., output=1)``.
     """
-    scene, intersect, _ = calls
     ray, bits, address = ray_buffer()
     m = pos.shape[1]
     t = np.empty(m, np.float32)
     prim = np.empty(m, np.int32)
     ng = np.empty((m, 3), np.float32)
     for i in range(m):
-        _set_ray(ray, bits, pos[0, i], pos[1, i], pos[2, i], dirs[0, i], dirs[1, i],
-                 dirs[2, i])
-        _call_embree(intersect, scene, address)
-        t[i] = ray[8]
-        prim[i] = -1 if bits[18] == _INVALID_ID else np.int32(bits[17])
+        t[i], prim[i] = intersect_one(calls, ray, bits, address, pos[0, i], pos[1, i],
+                                      pos[2, i], dirs[0, i], dirs[1, i], dirs[2, i])
         ng[i, 0], ng[i, 1], ng[i, 2] = ray[12], ray[13], ray[14]
     return t, prim, ng
-
-
-@numba.njit(**PART)
-def occluded_one(calls: tuple[int, ...], ray: np.ndarray, bits: np.ndarray, address: int,
-                 ox: float, oy: float, oz: float, dx: float, dy: float, dz: float) -> bool:
-    """Does anything block the float32 ray from (ox, oy, oz) along (dx, dy, dz), distances
-    0 … ∞? `ray`, `bits`, `address`: a `ray_buffer`."""
-    scene, _, occluded = calls
-    _set_ray(ray, bits, ox, oy, oz, dx, dy, dz)
-    _call_embree(occluded, scene, address)
-    return ray[8] < 0  # tfar becomes -inf when something is hit
 
 
 @numba.njit(**JIT)

@@ -136,12 +136,16 @@ def primary_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray, dirs
     """Trace the (N, 3) primary rays `origins`, `dirs` (unit) against `scene` and prepare
     the first path vertex of each hit pixel like the baker prepares a texel's, a block of
     `PRIMARY_BLOCK` rays an item on every core (each ray's answer is its own: the same
-    bits on any number of threads).
+    bits on any number of threads): one compiled call a block where the scene has
+    Embree's per-ray calls (`baking.pixel_kernels.primary_starts`), else numpy over
+    embreex's batches, to the bit.
 
     Args:
         scene: `baking.trace.Scene` of the displayed isosurface.
         smooth: smoothed-gradient normals (the paper's) or plain central differences.
     """
+    if scene.calls is not None:
+        return _compiled_hits(scene, volume, origins, dirs, config, smooth)
     parts = cores.blocks(len(dirs), PRIMARY_BLOCK)
     if len(parts) <= 1:
         return _primary_hits(scene, volume, origins, dirs, config, smooth)
@@ -155,6 +159,32 @@ def primary_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray, dirs
     cores.for_items(block, len(parts), "primary rays")
     return PrimaryHits(*(np.concatenate([getattr(hits, field.name) for hits in found])
                          for field in dataclasses.fields(PrimaryHits)))
+
+
+def _compiled_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray,
+                   dirs: np.ndarray, config: BakeConfig, smooth: bool) -> PrimaryHits:
+    """`primary_hits` in compiled blocks (`baking.pixel_kernels.primary_starts`)."""
+    from isolume.baking.pixel_kernels import primary_starts
+    from isolume.volumes.field import normal_stencil
+
+    n = len(dirs)
+    hit = np.zeros(n, bool)
+    points, starts, normals = (np.empty((n, 3)) for _ in range(3))
+    stencil = normal_stencil(volume, smooth)
+    h = float(np.mean(volume.spacing))
+    calls = tuple(scene.calls)
+    parts = cores.blocks(n, PRIMARY_BLOCK)
+
+    def block(b: int) -> None:
+        part = parts[b]
+        primary_starts(calls, np.ascontiguousarray(origins[part], np.float64),
+                       np.ascontiguousarray(dirs[part], np.float64), stencil,
+                       bool(config.flip_normals), config.offset * h, 1e-3 * h, hit[part],
+                       points[part], starts[part], normals[part])
+
+    cores.for_items(block, len(parts), "primary rays")
+    pixels = np.flatnonzero(hit)
+    return PrimaryHits(pixels, points[pixels], starts[pixels], normals[pixels])
 
 
 def _primary_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,

@@ -22,7 +22,7 @@ spread widest over the disc, go first, and a pixel traces the rest only where th
 disagree: in a penumbra, or where an occluder covers part of the disc between them
 (`SUN_PROBES`: 4 rays a pixel in place of 16, and the pixels that differ from tracing all
 16). With Embree's per-ray calls (`trace.EmbreeCalls`) a block of pixels is one compiled
-call (`baking.sun_kernels`), else numpy over embreex's batches, with the same rule.
+call (`baking.pixel_kernels`), else numpy over embreex's batches, with the same rule.
 A directional light takes one ray, a point light one ray that stops at the light.
 """
 
@@ -36,8 +36,8 @@ import numpy as np
 from isolume import volumes
 from isolume.baking.config import BakeConfig
 from isolume.baking.lights import DirectionalLight, PointLight, SunLight
+from isolume.baking.pixel_kernels import GOLDEN_ANGLE, sun_factors
 from isolume.baking.sampling import orthonormal_basis
-from isolume.baking.sun_kernels import GOLDEN_ANGLE, sun_factors
 from isolume.volumes import cores
 
 if TYPE_CHECKING:  # embreex is imported only when shadow rays are traced
@@ -141,7 +141,7 @@ def _seen_cosine(scene: Scene, light, starts: np.ndarray, normals: np.ndarray,
 def _sun_seen(scene: Scene, sun: SunLight, starts: np.ndarray, normals: np.ndarray,
               pixels: np.ndarray, probes: int) -> np.ndarray:
     """`_seen_cosine` of a sun: the rays of `disc_order`'s first `probes` points, then the
-    others only where those disagree (`baking.sun_kernels.sun_factors` where the scene
+    others only where those disagree (`baking.pixel_kernels.sun_factors` where the scene
     has Embree's per-ray calls, else the same rule in numpy)."""
     order = disc_order(SUN_RAYS, probes)
     if scene.calls is not None:

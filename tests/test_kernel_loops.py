@@ -19,8 +19,9 @@ import pytest
 from graphs import strongly_connected
 
 from isolume import volumes
-from isolume.baking import BakeConfig, bake, plan_kernels, side_kernels, sun_kernels
+from isolume.baking import BakeConfig, bake, pixel_kernels, plan_kernels, side_kernels
 from isolume.baking.lights import SunLight
+from isolume.baking.reference import primary_hits
 from isolume.baking.shadow_rays import light_factors
 from isolume.baking.trace import Scene
 from isolume.volumes import field
@@ -29,7 +30,8 @@ PER_POINT = [
     (field, "_normals"), (field, "_gradients"), (field, "_trilinear"),
     (field, "_grid_trilinear"), (plan_kernels, "gradient_norms"),
     (plan_kernels, "landed_starts"), (plan_kernels, "reach_tests"),
-    (side_kernels, "probe_sides"), (sun_kernels, "sun_factors"),
+    (side_kernels, "probe_sides"), (pixel_kernels, "sun_factors"),
+    (pixel_kernels, "primary_starts"),
 ]
 """The kernels whose loops run per point, texel or pixel, with the helpers compiled with
 them (`reach_tests`: `volumes.field.newton_steps`, `volumes.field.along_normals`)."""
@@ -58,6 +60,10 @@ def baked() -> None:
                   np.array([[0, 1, 2]], np.int32))
     light_factors(plate, np.zeros((2, 3)), np.tile([[0.0, 0.0, 1.0]], (2, 1)),
                   (SunLight((0.0, 0.0, 1.0), (1.0, 1.0, 1.0), 0.5),), workers=1)
+    mesh = volumes.isosurface(volume, 0.3)
+    centre = np.mean(volume.box, axis=0)
+    primary_hits(Scene(mesh.vertices, mesh.faces), volume, np.tile(centre + 2.0, (2, 1)),
+                 np.tile(-np.ones(3) / np.sqrt(3.0), (2, 1)), BakeConfig())
 
 
 def _functions(ir: str) -> dict[str, str]:
