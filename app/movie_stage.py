@@ -344,9 +344,9 @@ class Stage:
         self._show_iso(shot.iso)
         camera = self.scene.camera(shot)
         settings = self.scene.frame_settings(shot, exposure)
-        if self.scene.traced is None and self._triangles:  # the frame's own G-buffer shows
-            return self.renderer.render(  # the surface to its direct light: no position pass
-                camera, settings,
+        if self.scene.traced is None and self._triangles and self.scene.shadows == "traced":
+            return self.renderer.render(  # the frame's own G-buffer shows its direct light
+                camera, settings,  # the surface: no position pass
                 seen=lambda seen: self._trace_direct(shot, camera, settings, lambda: seen))
         seen = functools.cache(lambda: position_pass(self.renderer, camera, settings))
         if self.scene.traced is not None:

@@ -20,9 +20,9 @@ the penumbra's fraction is resolved to 1/`SUN_RAYS` and its banding becomes fine
 Most pixels see all of the disc or none of it, so `SUN_PROBES` of those rays, the ones
 spread widest over the disc, go first, and a pixel traces the rest only where they
 disagree: in a penumbra, or where an occluder covers part of the disc between them
-(`SUN_PROBES`: 4 rays a pixel in place of 16, and the pixels that differ from tracing all
-16). With Embree's per-ray calls (`trace.EmbreeCalls`) a block of pixels is one compiled
-call (`baking.pixel_kernels`), else numpy over embreex's batches, with the same rule.
+(`SUN_PROBES` says what that saves and how many pixels it changes). With Embree's per-ray
+calls (`trace.EmbreeCalls`) a block of pixels is one compiled call
+(`baking.pixel_kernels`), else numpy over embreex's batches, with the same rule.
 A directional light takes one ray, a point light one ray that stops at the light.
 """
 

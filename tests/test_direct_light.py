@@ -499,12 +499,11 @@ def test_too_many_per_pixel_lights_are_refused():
         RenderSettings(direct_lights=("dir:0,0,1:1,1,1",))
 
 
-def test_sun_on_an_isosurface_matches_ray_cast_shadows(renderer):
-    """The sun alone (no sky, no bounces) on the synthetic engine's fins and bores, shaded
-    per pixel, against the reference tracer's shadow rays over the sun's disc at the same
-    pixels (its start points lifted by the bake's offset, as the renderer's lookups)."""
+def _engine_in_the_sun(renderer):
+    """The synthetic engine (64³) at iso 0.3 in `renderer`, with a lattice of no light of
+    its own that leaves the sun to the pixels (no sky, no bounces): (volume, mesh, the
+    lattice's config, a camera on its fins and bores)."""
     from isolume.baking.lattice import volume_identity
-    from isolume.baking.reference import render_reference
 
     vol = volumes.load("synthetic:engine:64")
     mesh = volumes.isosurface(vol, 0.3)
@@ -519,6 +518,16 @@ def test_sun_on_an_isosurface_matches_ray_cast_shadows(renderer):
     renderer.set_lattice(lattice)
     camera = Camera(azimuth=200, elevation=35, distance=1.6,
                     target=tuple(np.mean(vol.box, axis=0)), scale=vol.diagonal)
+    return vol, mesh, config, camera
+
+
+def test_sun_on_an_isosurface_matches_ray_cast_shadows(renderer):
+    """The sun alone (no sky, no bounces) on the synthetic engine's fins and bores, shaded
+    per pixel, against the reference tracer's shadow rays over the sun's disc at the same
+    pixels (its start points lifted by the bake's offset, as the renderer's lookups)."""
+    from isolume.baking.reference import render_reference
+
+    vol, _, config, camera = _engine_in_the_sun(renderer)
     size = (128, 128)
     frame = renderer.render(camera, RenderSettings(size=size, shading="irradiance"))
     ref, _ = render_reference(vol, 0.3, *camera.primary_rays(*size), config, workers=2)
@@ -542,18 +551,7 @@ def test_the_g_buffer_gives_the_traced_sun_the_surface_a_position_pass_gives(ren
     picture, traced from either."""
     from isolume.app.render.traced_light import position_pass, trace_direct_light
 
-    vol = volumes.load("synthetic:engine:64")
-    mesh = volumes.isosurface(vol, 0.3)
-    renderer.set_mesh(mesh.vertices, mesh.normals, mesh.faces, iso=0.3)
-    renderer.set_bounds(*vol.box)
-    config = BakeConfig(samples=16, bounces=0, env="sky:zenith=0,horizon=0,ground=0,sun=3",
-                        direct_light="pixels")
-    lattice = Lattice.empty(LatticeGeometry.for_volume(vol, 0.25), 3, {"kind": "irradiance"},
-                            config=config)
-    lattice.samples[...] = 1
-    renderer.set_lattice(lattice)
-    camera = Camera(azimuth=200, elevation=35, distance=1.6,
-                    target=tuple(np.mean(vol.box, axis=0)), scale=vol.diagonal)
+    vol, mesh, _, camera = _engine_in_the_sun(renderer)
     settings = RenderSettings(size=(96, 80), shading="irradiance", auto_exposure=False)
     scene = Scene(mesh.vertices, mesh.faces)
 
