@@ -17,8 +17,9 @@ outgoing radiance is albedo·E/π of a diffuse surface, E the irradiance there, 
   ``--light`` lights and the sky's sun of a lattice baked with direct light "pixels", the
   default under a sun). The renderer shadow-maps them per pixel; here every vertex traces
   Embree shadow rays from where the renderer looks them up (the lattice's start offset
-  along the normal): one per point or directional light, `SUN_RAYS` spread over the sun's
-  disc, whose unblocked fraction is the soft penumbra the renderer filters from its map.
+  along the normal), as ``render`` traces its pixels' (`baking.shadow_rays.light_factors`):
+  one per point or directional light, 16 over the sun's disc (4 where those 4 agree),
+  whose unblocked fraction is the soft penumbra the renderer filters from its map.
 """
 
 from __future__ import annotations
@@ -39,8 +40,6 @@ if TYPE_CHECKING:
     from isolume.baking.trace import Scene
     from isolume.baking.view_texels import HeldLattice
 
-SUN_RAYS = 32
-"""Shadow rays per vertex over the sun's disc: the penumbra in steps of 1/32 of the sun."""
 VERTICES_PER_REPORT = 1 << 16
 """Vertices whose shadow rays are traced between progress updates."""
 COVERED = 1e-6
@@ -223,61 +222,19 @@ def direct_radiance(scene: Scene, lights: Sequence[PointLight | DirectionalLight
     from tqdm import tqdm
 
     from isolume.baking.lights import SunLight
+    from isolume.baking.shadow_rays import light_factors
 
     origins = np.asarray(points, np.float64) + offset * np.asarray(normals, np.float64)
+    normals = np.asarray(normals, np.float64)
     irradiance = np.zeros((len(points), 3))
     with tqdm(total=len(points) * len(lights), unit="vertex", desc="direct light",
               disable=not progress, dynamic_ncols=True) as bar:
         for light in lights:
             for lo in range(0, len(points), VERTICES_PER_REPORT):
                 part = slice(lo, lo + VERTICES_PER_REPORT)
-                shade = sun_irradiance if isinstance(light, SunLight) else light_irradiance
-                irradiance[part] += shade(scene, light, origins[part], normals[part])
+                seen = light_factors(scene, origins[part], normals[part], (light,))[:, 0]
+                normal = (np.asarray(light.irradiance, np.float64)[None, :]
+                          if isinstance(light, SunLight) else light.towards(origins[part])[2])
+                irradiance[part] += normal * seen[:, None]
                 bar.update(len(origins[part]))
     return np.asarray(albedo, np.float64) * irradiance / np.pi
-
-
-def light_irradiance(scene: Scene, light: PointLight | DirectionalLight, origins: np.ndarray,
-                     normals: np.ndarray) -> np.ndarray:
-    """(N, 3) irradiance of a point or directional light at (N, 3) shadow-ray `origins`
-    with (N, 3) unit `normals`: one shadow ray each (a hard shadow)."""
-    dirs, dist, rgb = light.towards(origins)
-    cos = np.einsum("nc,nc->n", normals, dirs)
-    out = np.zeros((len(origins), 3))
-    lit = np.flatnonzero(cos > 0)
-    if len(lit):
-        blocked = scene.occluded(origins[lit], dirs[lit], dist[lit] * (1 - 1e-5))
-        seen = lit[~blocked]
-        out[seen] = rgb[seen] * cos[seen, None]
-    return out
-
-
-def sun_irradiance(scene: Scene, sun: SunLight, origins: np.ndarray, normals: np.ndarray
-                   ) -> np.ndarray:
-    """(N, 3) irradiance of the sky's sun (`baking.lights.SunLight`) at (N, 3) shadow-ray
-    `origins` with (N, 3) unit `normals`: the disc's irradiance times the mean over
-    `SUN_RAYS` directions spread evenly over it of max(0, n·ω) where ω is unblocked."""
-    dirs = disc_directions(np.asarray(sun.direction, np.float64), sun.radius, SUN_RAYS)
-    seen = np.zeros(len(origins))
-    for d in dirs:
-        cos = normals @ d
-        lit = np.flatnonzero(cos > 0)
-        if len(lit):
-            blocked = scene.occluded(origins[lit], np.broadcast_to(d, (len(lit), 3)))
-            seen[lit[~blocked]] += cos[lit[~blocked]]
-    return np.asarray(sun.irradiance, np.float64)[None, :] * (seen / len(dirs))[:, None]
-
-
-def disc_directions(centre: np.ndarray, radius_deg: float, count: int) -> np.ndarray:
-    """(count, 3) unit directions spread evenly by solid angle over the cone of angular
-    radius `radius_deg` around the unit vector `centre` (3,) (Vogel's spiral on the
-    tangent-plane disc: radius √((k + ½)/count), angle k times the golden angle)."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(centre[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(centre, helper)
-    u /= np.linalg.norm(u)
-    v = np.cross(centre, u)
-    k = np.arange(count)
-    r = np.tan(np.radians(radius_deg)) * np.sqrt((k + 0.5) / count)
-    angle = k * np.pi * (3.0 - np.sqrt(5.0))
-    d = centre + r[:, None] * (np.cos(angle)[:, None] * u + np.sin(angle)[:, None] * v)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
