@@ -48,9 +48,10 @@ SUN_RAYS = 16
 SUN_PROBES = 4
 """Of a pixel's `SUN_RAYS`, those traced first (`disc_order`): where they all reach the
 sun, or are all blocked, so are the others taken to be. The 512² default views, against
-all 16 traced: the engine CT 4.0 rays a pixel, 0.02 % of its pixels differ (by at most
-5 % of their sunlight); the foot CT, whose grains cut the disc in many places, 4.3 rays,
-0.23 % of pixels, at most 30 %, RMS 1 % of the sun's light; 8 probes would leave 0.03 %."""
+all 16 traced: the engine CT 4.0 rays a pixel, 0.02 % of its pixels differ, by at most
+0.05 of the factor (1: the whole disc seen head-on); the foot CT, whose grains cut the
+disc in many places, 4.3 rays, 0.23 % of pixels, by at most 0.30, the RMS over all its
+pixels 1 % of their mean factor; 8 probes would leave 0.03 %."""
 CHUNK_RAYS = 1 << 17
 """Shadow rays one work item traces at most (~0.05 s, ~12 MiB of arrays): a 512²
 picture's sun is dozens of items for the cores to share."""
