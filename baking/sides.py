@@ -15,13 +15,14 @@ back along that ray, sees that side there). The side other than the normals' is 
 only where the volume lets it be open: where none of the corners of the probes' cell
 connects to the box's faces through values beyond the level (`volumes.reach.BoxReach`,
 one flood per bake), it is closed without a ray — the inside of every closed object, and
-the probes that started a hair beyond the level but outside the marching-cubes surface
-that approximates it (8 and 27 of 20 000 points of the tooth CT's levels 150.5 and
-190.5 let 1–5 of 16 rays out) no longer count it open. A texel is lit on its open side;
-where both are open, on the normals' side where it has clearly more open rays, else on
-alternate sides in a 3D checkerboard, so that the side-aware lookup
-(`baking.octahedral`, ``shaders/lattice.glsl``) finds texels facing either way among any
-eight neighbours; where neither is (a closed cavity), on the normals' side.
+where a probe's origin lies a hair beyond the level but outside the marching-cubes
+surface that approximates it, whose rays leave through the gap between the two (8 and 27
+of 20 000 points of the tooth CT's levels 150.5 and 190.5, with 1–5 of 16 rays out). A
+texel is lit on its open side; where both are open, on the normals' side where it has
+clearly more open rays, else on alternate sides in a 3D checkerboard, so that the
+side-aware lookup (`baking.octahedral`, ``shaders/lattice.glsl``) finds texels facing
+either way among any eight neighbours; where neither is (a closed cavity), on the
+normals' side.
 
 The side other than the normals' is lit alone only where the normals' side is closed:
 where it is open too, it is mostly the inside of the material seen through the box's cut
@@ -238,12 +239,12 @@ def open_rays(scene: Scene, volume: volumes.Volume, config: BakeConfig, ids: np.
     def count(sign: float, which: np.ndarray, first: int = 0, probes: int = PROBES,
               tested: BoxReach | None = None) -> np.ndarray:
         out = np.zeros(len(points), np.int64)
-        if tested is not None and which.any():
-            origins = points[which] + sign * offset * normals[which]
+        origins = points[which] + sign * offset * normals[which]
+        if tested is not None and len(origins):
+            open_there = tested.may_open(volume, origins, level)
             which = which.copy()
-            which[which] = tested.may_open(volume, origins, level)
+            which[which], origins = open_there, origins[open_there]
         if which.any():
-            origins = points[which] + sign * offset * normals[which]
             unblocked = unblocked_rays(scene, key, ids[which], origins,
                                        sign * normals[which], first, probes)
             beyond = volumes.value_at(volume, origins) - level

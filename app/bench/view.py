@@ -339,7 +339,8 @@ class PixelTruth:
     def error(self, lattice: Lattice) -> float:
         """RMS over the pixels of the relative difference between the luminance `lattice`
         shows there (`Lattice.sample`, normalized like the shader) and the truth; the
-        truth is floored at 1 % of its median, as `Lattice.relative_error` does."""
+        truth is floored at 1 % of its median (deep shadow judged against the scene's light
+        level, not against ~0)."""
         shown = lattice.sample(self.points, normalized=True, normals=self.normals)[:, :3] \
             * self.albedo / np.pi
         rel = (_luminance(shown) - self.luminance) / self._floored()
@@ -644,8 +645,8 @@ def _reference_figures(args, volume, config, subset, subset_lum, figures) -> Non
     ref = reference_values(volume, config, subset, args.reference_samples, args.workers)
     seconds = time.perf_counter() - t
     rms = []
-    floor = 0.01 * float(np.median(np.abs(ref)))  # as `Lattice.relative_error`: deep
-    for now, lum in subset_lum:  # shadow is judged against the scene's light level, not ~0
+    floor = 0.01 * float(np.median(np.abs(ref)))  # as `PixelTruth.error`: deep shadow is
+    for now, lum in subset_lum:  # judged against the scene's light level, not against ~0
         rel = (lum - ref) / np.maximum(np.abs(ref), floor)
         rms.append(float(np.sqrt(np.mean(rel**2))))
         if rms[-1] <= args.target and "reference_target_s" not in figures:

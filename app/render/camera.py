@@ -86,20 +86,26 @@ class Camera:
         """(4, 4) world → clip transform."""
         return self.projection_matrix(aspect) @ self.view_matrix()
 
-    def primary_rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-        """Rays through pixel centres, row 0 at the top.
+    def primary_rays(self, width: int, height: int, pixels: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Rays through pixel centres, row 0 at the top: of every pixel, or of the (M,)
+        flat indices `pixels` only (the same bits as those rows of every pixel's).
 
         Returns:
-            origins: (H*W, 3) the eye, repeated; directions: (H*W, 3) unit vectors.
+            origins: (M, 3) the eye, repeated; directions: (M, 3) unit vectors (M = H*W
+            for every pixel).
         """
         forward, right, up = self._basis()
         t = np.tan(np.radians(self.fov_y) / 2)
         aspect = width / height
         xs = ((np.arange(width) + 0.5) / width * 2 - 1) * t * aspect
         ys = (1 - (np.arange(height) + 0.5) / height * 2) * t
-        gx, gy = np.meshgrid(xs, ys)
-        d = forward + gx[..., None] * right + gy[..., None] * up
-        d = d.reshape(-1, 3)
+        if pixels is None:
+            gx, gy = (grid.reshape(-1) for grid in np.meshgrid(xs, ys))
+        else:
+            rows, columns = np.divmod(np.asarray(pixels, np.int64), width)
+            gx, gy = xs[columns], ys[rows]
+        d = forward + gx[:, None] * right + gy[:, None] * up
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return np.broadcast_to(self.eye, d.shape).copy(), d
 

@@ -560,9 +560,8 @@ def surface_points(targets: Targets, camera: Camera) -> tuple[np.ndarray, np.nda
     w, h = targets.size
     g = np.frombuffer(targets.g_surface.read(), np.float32).reshape(h, w, 4)[::-1, :, 0]
     mask = g > 0
-    origins, dirs = camera.primary_rays(w, h)
-    flat = mask.reshape(-1)
-    return origins[flat] + g[mask][:, None].astype(np.float64) * dirs[flat], mask
+    origins, dirs = camera.primary_rays(w, h, np.flatnonzero(mask))
+    return origins + g[mask][:, None].astype(np.float64) * dirs, mask
 
 
 def default_camera(volume: Volume, view: tuple[float, float, float | None] | None = None) -> Camera:

@@ -50,9 +50,8 @@ def trace_direct_light(renderer: SurfaceRenderer, camera: Camera, settings: Rend
     if not lights or config is None or scene is None:
         renderer.set_traced_light((), None)
         return
-    origins, dirs = camera.primary_rays(*settings.size)
-    flat = mask.reshape(-1)
-    starts, normals = pixel_starts(scene, volume, origins[flat], dirs[flat], points, config,
+    origins, dirs = camera.primary_rays(*settings.size, np.flatnonzero(mask))
+    starts, normals = pixel_starts(scene, volume, origins, dirs, points, config,
                                    smooth=smooth)
     light = np.zeros((*mask.shape, len(lights)), np.float32)
     light[mask] = light_factors(scene, starts, normals, lights, workers=workers)
