@@ -13,6 +13,7 @@ areas), where render meters the pixels of its view.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
@@ -31,6 +32,7 @@ from isolume.app.options import (
     load_lattice,
     load_volume,
     parse_albedo,
+    parse_exposure,
     view_light,
 )
 
@@ -70,8 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from isolume.app.render.images import check_output_path
 
     out = check_output_path(args.out, SUFFIXES)
-    if not args.exposure > 0:
-        raise CLIError(f"--exposure {args.exposure:g}: expected a positive number")
+    parse_exposure(args.exposure)
     volume = load_volume(args)
     lattice = load_lattice(args.lattice, volume)
     iso = _served_isovalue(args, volume, lattice)
@@ -87,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
     write_mesh(out, mesh, display, light.radiance, extras)
     if light.uncovered:
         print(f"isolume: warning: {light.uncovered:,} of {len(mesh.vertices):,} vertices read "
-              "no computed texel of the lattice and are black", file=sys.stderr)
+              "no lit texel of the lattice (none computed there, or all trapped: sealed from "
+              "the sky on every path) and are black", file=sys.stderr)
     print(f"wrote {out} ({len(mesh.vertices):,} vertices, {len(mesh.faces):,} triangles, "
           f"{volume.name} at iso {iso:.6g}, {light.source}, exposure {exposure:.3g}, "
           f"tone curve {args.tonemap})")
@@ -119,7 +121,8 @@ class VertexLight:
         radiance: (V, 3) linear outgoing radiance (the lighting's irradiance units / sr).
         source: what lit it, for the summary line.
         lighting: the environment and light specs.
-        uncovered: vertices whose lookups read no computed texel (black).
+        uncovered: vertices whose lookups read no texel a display uses
+            (`Lattice.shown`: none computed, or trapped), drawn black.
     """
 
     radiance: np.ndarray
@@ -175,8 +178,12 @@ def _vertex_light(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, lattic
         shading.albedo, env_coeffs=shading.env_coeffs, env_rotation=shading.env_rotation,
         workers=args.workers, progress=True, spread=args.spread)
     each = "each" if args.spread == "even" else "a texel on average"
-    source = (f"global illumination traced with {shading.traced.samples} paths {each}"
-              if lattice is None else f"{lattice.kind} lattice {args.lattice}")
+    if lattice is None:
+        source = f"global illumination traced with {shading.traced.samples} paths {each}"
+    elif isinstance(args.lattice, str | os.PathLike):
+        source = f"{lattice.kind} lattice {args.lattice}"
+    else:  # a Lattice from the Python API names itself
+        source = str(args.lattice)
     if lights:
         source += f" + direct light of {len(lights)} light(s) through shadow rays"
     uncovered = int((coverage(read, np.asarray(mesh.vertices, np.float64)) < COVERED).sum())

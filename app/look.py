@@ -12,9 +12,11 @@ import numpy as np
 from isolume import volumes
 from isolume.app.options import (
     CLIError,
+    check_picture_memory,
     environment_coefficients,
     floats,
     parse_albedo,
+    parse_exposure,
     view_light,
 )
 from isolume.app.state import light_settings
@@ -46,23 +48,28 @@ def shading_look(args: argparse.Namespace, vol: volumes.Volume,
                  size: tuple[int, int], per: str = "view") -> Look:
     """The `Look` of the render options `args` for `vol` and `lattice` (None: none) in a
     `size` (width, height) picture; `CLIError` for options that contradict each other or
-    the lattice. `per` ("view" or "frame") says, in the errors, what is traced without a
-    lattice."""
+    the lattice, a bad ``--exposure``, or a picture whose light takes more memory than is
+    available (`check_picture_memory`). A lattice that records no bake config is shown
+    with the default albedo. `per` ("view" or "frame") says, in the errors, what is traced
+    without a lattice."""
     from isolume.app.render.settings import LATTICE_MODES, RenderSettings
 
     shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
+    config = lattice.config if lattice is not None else None
     if lattice is not None and lattice.kind == "irradiance" and (args.env or args.light):
+        lighting = ("lighting not recorded" if config is None
+                    else config.env or "no environment")
         raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
-                       f"lighting ({lattice.config.env or 'no environment'}); "
-                       "bake again for other light, or leave out --lattice")
+                       f"lighting ({lighting}); bake again for other light, or leave out "
+                       "--lattice")
     traced = view_light(args, vol) if lattice is None and shading == "irradiance" else None
     if args.albedo is not None:
         albedo = parse_albedo(args.albedo)
     else:
-        albedo = lattice.config.albedo if lattice is not None else (0.8, 0.8, 0.8)
+        albedo = config.albedo if config is not None else (0.8, 0.8, 0.8)
     try:
         settings = RenderSettings(
-            size=size, shading=shading, exposure=args.exposure,
+            size=size, shading=shading, exposure=parse_exposure(args.exposure),
             auto_exposure=not args.no_auto_exposure, tonemap=args.tonemap, albedo=albedo,
             env_rotation=floats(args.env_rotation, 2, "--env-rotation"),
             **light_settings(args.light_angles, lattice))
@@ -72,6 +79,8 @@ def shading_look(args: argparse.Namespace, vol: volumes.Volume,
         where = "the view" if per == "view" else "each frame"
         raise CLIError(f"--shading {shading} needs --lattice FILE (make one with isolume "
                        f"bake); without one, irradiance is traced for {where}")
+    check_picture_memory(size, "traced" if traced is not None
+                         else "lattice" if shading in LATTICE_MODES else "local")
     env_coeffs = None
     if shading == "sh" and lattice is not None:
         env_coeffs = environment_coefficients(args.env, lattice, args.sh_window)

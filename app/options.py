@@ -17,6 +17,7 @@ from isolume.volumes.errors import IsolumeError
 
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
+    from isolume.baking.environment import Environment
     from isolume.baking.lattice import Lattice
     from isolume.baking.lighting import Lighting
     from isolume.baking.view_texels import HeldLattice, LatticeOnFile
@@ -48,7 +49,21 @@ def floats(text: str, count: int, what: str) -> tuple[float, ...]:
     return values
 
 
+PIXEL_BYTES = {"local": 110, "lattice": 230, "traced": 510}
+"""Peak memory a pixel of a picture takes, in bytes, by where its light comes from: shading
+computed per pixel alone ("local", e.g. lambert: the least any picture takes), a lattice
+read ("lattice") or global illumination traced for the view ("traced"). Measured as the
+slope of ``render``'s peak resident memory from 1024x1024 to 2048x2048 with the surface
+filling the picture (105, 225 and 505 bytes), PNG or EXR alike; `check_picture_memory`
+weighs them against the memory available."""
+PIXEL_BYTES_WHY = {"local": "at the least", "lattice": "reading a lattice",
+                   "traced": "tracing the view's light"}
+"""What each estimate of `PIXEL_BYTES` is, in `check_picture_memory`'s message."""
+
+
 def parse_size(text: str) -> tuple[int, int]:
+    """(width, height) of ``--size WxH``: each 1 to 16384 pixels, and a picture of the
+    fewest bytes a pixel (`PIXEL_BYTES`) that fits in the memory available."""
     parts = text.lower().split("x")
     try:
         w, h = (int(p) for p in parts)
@@ -56,7 +71,41 @@ def parse_size(text: str) -> tuple[int, int]:
         raise CLIError(f"--size {text!r}: expected WxH, e.g. 512x512") from None
     if not (1 <= w <= 16384 and 1 <= h <= 16384):
         raise CLIError(f"--size {text!r}: width and height must be between 1 and 16384")
+    check_picture_memory((w, h), "local")
     return w, h
+
+
+def check_picture_memory(size: tuple[int, int], light: str) -> None:
+    """`CLIError` when a `size` (width, height) picture whose light comes from `light` (a
+    key of `PIXEL_BYTES`) would take more memory than this machine has available."""
+    from isolume.volumes.io.common import available_memory
+
+    w, h = size
+    need = w * h * PIXEL_BYTES[light]
+    free = available_memory()
+    if free is not None and need > free:
+        raise CLIError(f"--size {w}x{h}: the picture needs about {need / 1e9:.3g} GB of "
+                       f"memory ({PIXEL_BYTES[light]} bytes a pixel {PIXEL_BYTES_WHY[light]}),"
+                       f" more than the {free / 1e9:.3g} GB available; expected a smaller "
+                       "size")
+
+
+def parse_dims(text: str) -> tuple[int, int, int]:
+    """(X, Y, Z) voxels of ``--dims X,Y,Z``: three whole numbers ≥ 1."""
+    try:
+        dims = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        dims = ()
+    if len(dims) != 3 or min(dims) < 1:
+        raise CLIError(f"--dims {text!r}: expected X,Y,Z, three whole numbers of voxels ≥ 1")
+    return dims
+
+
+def parse_exposure(exposure: float) -> float:
+    """``--exposure``: a positive finite linear multiplier."""
+    if not (np.isfinite(exposure) and exposure > 0):
+        raise CLIError(f"--exposure {exposure:g}: expected a positive finite number")
+    return exposure
 
 
 def load_volume(args: argparse.Namespace) -> volumes.Volume:
@@ -68,7 +117,7 @@ def load_volume(args: argparse.Namespace) -> volumes.Volume:
         return args.volume
     options = {}
     if getattr(args, "dims", None):
-        options["dims"] = tuple(int(v) for v in floats(args.dims, 3, "--dims"))
+        options["dims"] = parse_dims(args.dims)
     if getattr(args, "dtype", None):
         options["dtype"] = args.dtype
     if getattr(args, "spacing", None):
@@ -140,8 +189,12 @@ def environment_coefficients(spec: str | None, lattice: Lattice | HeldLattice | 
     try:  # a split transfer (sun per pixel) also takes the sky without its sun
         env = (lighting_of(spec).environment if spec
                else baked or lighting_of("constant:1,1,1").environment)
+        if spec:
+            check_sends_light(spec, env)
         return sh.display_coefficients(env, order, sh.transfer_blocks(lattice),
                                        window=None if window == "none" else window)
+    except CLIError:
+        raise
     except ValueError as exc:
         raise CLIError(f"--env {spec or env.spec}: {exc}") from None
 
@@ -290,7 +343,19 @@ def parse_lighting(env: str | None, lights: list[str] | None, default: str = ""
     from isolume.baking.lighting import lighting_of
 
     env = default if env is None else env
-    return lighting_of("" if env == "none" else env, tuple(lights or ()))
+    lighting = lighting_of("" if env == "none" else env, tuple(lights or ()))
+    if not lighting.lights and lighting.environment is not None:
+        check_sends_light(env, lighting.environment)
+    return lighting
+
+
+def check_sends_light(spec: str, environment: Environment) -> None:
+    """`CLIError` when `environment` (of the ``--env`` `spec`), the scene's only light,
+    sends none: zero radiance in every direction (an all-black map)."""
+    if not np.any(np.asarray(environment.mean_radiance) > 0):
+        raise CLIError(f"nothing lights the scene: --env {spec} sends no light (its radiance "
+                       "is 0 in every direction); give an environment that does and/or "
+                       "--light")
 
 
 def view_light(args: argparse.Namespace, volume: volumes.Volume) -> BakeConfig:
@@ -323,9 +388,22 @@ def bake_config(args: argparse.Namespace) -> BakeConfig:
         albedo=parse_albedo(args.albedo), scale=args.scale,
         iso_range=tuple(args.iso_range) if args.iso_range else None, seed=args.seed,
         flip_normals=args.flip_normals, sides=args.sides, target_error=target,
-        texel_error=texel, max_samples=max(args.max_samples, samples),
+        texel_error=texel, max_samples=max_paths(args.max_samples, samples, target),
         max_levels=args.max_levels, max_move=args.max_move, direct_light=args.direct_light,
     )
+
+
+def max_paths(max_samples: int, samples: int, target: float | None) -> int:
+    """``--max-samples`` `max_samples` as the bake config takes it: as given with a
+    `target` error (the config refuses it below `samples`); without one, where it caps
+    nothing, at least `samples` (its default may be below ``--samples``).
+
+    Raises:
+        CLIError: fewer than one path.
+    """
+    if max_samples < 1:
+        raise CLIError(f"--max-samples {max_samples}: expected at least 1 path a texel")
+    return max_samples if target is not None else max(max_samples, samples)
 
 
 def bake_paths(samples: int | None, target: float | None, texel: float | None,

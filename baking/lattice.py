@@ -40,7 +40,7 @@ from isolume.baking import octahedral
 from isolume.baking.config import BakeConfig
 from isolume.baking.environment import latlong_pixel_directions
 from isolume.baking.errors import BakeError
-from isolume.baking.lattice_file import LatticeFile, write_lattice
+from isolume.baking.lattice_file import LatticeFile, lattice_kind, write_lattice
 
 if TYPE_CHECKING:
     from isolume.volumes.core import Volume
@@ -258,12 +258,6 @@ def drop_trapped(mask: np.ndarray, many: np.ndarray,
         at = np.nonzero(many)
         mask[at] &= light_of(at).any(axis=-1)
     return mask
-
-
-def lattice_kind(meta: dict[str, Any]) -> str:
-    """The kind of lattice a metadata dict describes: "irradiance" (also where it does not
-    say) or "sh"."""
-    return meta.get("kind", "irradiance")
 
 
 def _luminance(values: np.ndarray, kind: str) -> np.ndarray:

@@ -24,7 +24,9 @@ only the texels it shows (`LatticeFile.read_texels`). Files of `DENSE_VERSION` (
 array dense over the box, ``facing`` optional) are still read. A member whose header
 disagrees with ``held`` or ``meta`` is refused before it is read, and a box whose dense
 arrays exceed the memory available before they are made (`LatticeFile.read_dense`); a
-display's read holds a slab of ``held`` at a time, whatever the box.
+display's read holds a slab of ``held`` at a time, whatever the box. Values are judged as
+their slabs are read (`bad_texels`): a NaN or infinite one, or a negative one in an
+irradiance lattice, refuses the file.
 """
 
 from __future__ import annotations
@@ -72,6 +74,27 @@ def _slabs(shape: tuple[int, int, int]) -> Iterator[slice]:
     step = max(1, SLAB_TEXELS // max(1, shape[1] * shape[2]))
     for z0 in range(0, shape[0], step):
         yield slice(z0, min(z0 + step, shape[0]))
+
+
+def lattice_kind(meta: dict[str, Any]) -> str:
+    """The kind of lattice a metadata dict describes: "irradiance" (also where it does not
+    say) or "sh"."""
+    return meta.get("kind", "irradiance")
+
+
+def bad_texels(values: np.ndarray, irradiance: bool) -> int:
+    """How many texels of the (…, C) `values` hold a NaN or infinite value, or with
+    `irradiance` a negative one: a minimum and a maximum where none does (a NaN spreads
+    into both), a count only where one does."""
+    if values.size == 0:
+        return 0
+    lo, hi = values.min(), values.max()
+    if (lo >= 0 if irradiance else lo > -np.inf) and hi < np.inf:
+        return 0
+    bad = ~np.isfinite(values)
+    if irradiance:
+        bad |= values < 0
+    return int(bad.reshape(-1, values.shape[-1]).any(axis=1).sum())
 
 
 def held_mask(arrays: dict[str, np.ndarray]) -> np.ndarray:
@@ -400,7 +423,8 @@ class LatticeFile:
 
         Raises:
             BakeError: a box larger than the memory available (before anything is
-                allocated), a member missing, of another type or shape, or cut short.
+                allocated), a member missing, of another type or shape, or cut short,
+                or values that are not finite (or negative: irradiance; `bad_texels`).
         """
         try:
             with zipfile.ZipFile(self.path) as zf:
@@ -423,9 +447,10 @@ class LatticeFile:
                         if counts is None:
                             for z in _slabs(self.shape):
                                 out[name][z] = rows.read(z.stop - z.start)
-                            continue
-                        for (z, mask), count in zip(slabs, counts, strict=True):
-                            out[name][z][mask] = rows.read(count)
+                        else:
+                            for (z, mask), count in zip(slabs, counts, strict=True):
+                                out[name][z][mask] = rows.read(count)
+                        rows.refuse_bad(self.path)
                 return out
         except BakeError:
             raise
@@ -456,6 +481,7 @@ class LatticeFile:
                     with self._member(zf, name, counts) as rows:
                         out[name] = np.concatenate(
                             [rows.read(count)[chosen] for _, chosen, count in picks])
+                        rows.refuse_bad(self.path)
                 return np.concatenate([p[0] for p in picks]), out
         except BakeError:
             raise
@@ -524,19 +550,30 @@ class LatticeFile:
     def _member(self, zf: zipfile.ZipFile, name: str, counts: list[int] | None) -> _Rows:
         """Member `name`'s rows, its header checked: rows of the held texels (the sum of
         the slabs' `counts`), or of z-layers of the box (`counts` None: a `DENSE_VERSION`
-        file)."""
+        file). The values' rows are judged as they are read (`_Rows.kind`: the lattice's
+        kind)."""
         lead = self.shape if counts is None else (sum(counts),)
         member = zf.open(name + ".npy")
         try:
-            return _Rows(member, name, MEMBERS[name]).check(lead, _tail(name), self.path)
+            rows = _Rows(member, name, MEMBERS[name]).check(lead, _tail(name), self.path)
         except BaseException:
             member.close()
             raise
+        if name == "values":
+            rows.kind = lattice_kind(self.meta)
+        return rows
 
 
 class _Rows:
     """The rows of one .npy member (along its first axis), read in order without loading
-    it whole."""
+    it whole.
+
+    Attributes:
+        kind: for the ``values`` member, the lattice's kind ("irradiance": its rows must
+            be finite and ≥ 0; "sh": finite, SH coefficients may be negative), whose rows
+            are judged as they are read (`bad_texels`); None: rows not judged.
+        judged, bad: texels read and judged, and how many of them are bad (`bad_texels`).
+    """
 
     def __init__(self, member, name: str, dtype) -> None:
         self.member, self.name, self.want = member, name, np.dtype(dtype)
@@ -546,6 +583,8 @@ class _Rows:
         self.shape, self.fortran, self.dtype = read_header(member)
         self.tail: tuple[int, ...] = ()
         self.row = 0
+        self.kind: str | None = None
+        self.judged = self.bad = 0
 
     def check(self, lead: tuple[int, ...], tail: tuple[int | None, ...], path: Path
               ) -> _Rows:
@@ -572,7 +611,28 @@ class _Rows:
         data = self.member.read(count * self.row)
         if len(data) != count * self.row:
             raise EOFError(f"{self.name} ends early")
-        return np.frombuffer(data, self.dtype).reshape(count, *self.shape[1:]).copy()
+        rows = np.frombuffer(data, self.dtype).reshape(count, *self.shape[1:]).copy()
+        if self.kind is not None:
+            self.judged += rows.size // rows.shape[-1]
+            self.bad += bad_texels(rows, self.kind == "irradiance")
+        return rows
+
+    def refuse_bad(self, path: Path) -> None:
+        """Raise BakeError if any row read so far is bad (`kind`).
+
+        Raises:
+            BakeError: naming the file, how many of the texels read are bad, and what
+                was expected.
+        """
+        if not self.bad:
+            return
+        if self.kind == "irradiance":
+            what, expected = "NaN, infinite or negative", "finite irradiance ≥ 0"
+        else:
+            what, expected = "NaN or infinite", "finite SH coefficients"
+        raise BakeError(f"{path}: {self.bad:,} of the {self.judged:,} texels read hold "
+                        f"{what} values, expected {expected}; the file is damaged: bake "
+                        "it again")
 
     def __enter__(self) -> _Rows:
         return self

@@ -48,6 +48,29 @@ def test_render_default_volume_and_iso(tmp_path, capsys):
     assert "engine at iso 0.3" in text
 
 
+def _raw(tmp_path):
+    """A 16³ uint8 raw file whose name gives no dims."""
+    path = tmp_path / "plain.raw"
+    np.zeros(16 ** 3, np.uint8).tofile(path)
+    return str(path)
+
+
+def _file(tmp_path):
+    """A file where an output's folder should be."""
+    path = tmp_path / "notes.txt"
+    path.write_text("notes\n")
+    return path
+
+
+def _black_exr(tmp_path):
+    """A 2:1 map whose every pixel is 0."""
+    from isolume.app.render.images import write_exr
+
+    path = tmp_path / "black.exr"
+    write_exr(path, np.zeros((8, 16, 3), np.float32))
+    return str(path)
+
+
 def _npy(tmp_path, name, data):
     path = tmp_path / name
     np.save(path, data)
@@ -74,6 +97,23 @@ def _npy(tmp_path, name, data):
         (lambda t: ["bake", "synthetic:sphere:16", "--max-levels", "1", "--out",
                     str(t / "l.npz")], "--max-levels 1: expected 2 to 1024 levels"),
         (lambda t: ["view", "--bake-max-levels", "0"], "--bake-max-levels 0"),
+        (lambda t: ["render", "--exposure", "inf", "--out", str(t / "x.png")],
+         "--exposure inf: expected a positive finite number"),
+        (lambda t: ["render", "--exposure", "nan", "--out", str(t / "x.png")],
+         "--exposure nan: expected a positive finite number"),
+        (lambda t: ["bake", "synthetic:sphere:16", "--max-samples", "0", "--out",
+                    str(t / "l.npz")], "--max-samples 0: expected at least 1"),
+        (lambda t: ["bake", "synthetic:sphere:16", "--samples", "16", "--target-error",
+                    "0.1", "--max-samples", "8", "--out", str(t / "l.npz")],
+         "--max-samples 8 is below --samples 16"),
+        (lambda t: ["info", _raw(t), "--dims", "16.7,16,16"],
+         "--dims '16.7,16,16': expected X,Y,Z, three whole numbers"),
+        (lambda t: ["info", _raw(t), "--dims", "0,16,16"], "whole numbers of voxels ≥ 1"),
+        (lambda t: ["bake", "synthetic:sphere:16", "--out", str(_file(t) / "l.npz")],
+         "notes.txt is not a directory"),
+        (lambda t: ["render", "--out", str(_file(t) / "x.png")], "notes.txt is not a directory"),
+        (lambda t: ["render", "synthetic:sphere:16", "--env", _black_exr(t), "--out",
+                    str(t / "x.png")], "nothing lights the scene: --env"),
     ],
 )
 def test_bad_input_gives_one_line_and_status_2(tmp_path, capsys, make_args, expected):
@@ -93,6 +133,73 @@ def test_unwritable_directory(tmp_path, capsys):
         pytest.skip("directory permissions are not enforced for this user")
     status, _, err = _run(capsys, "render", "--out", str(locked / "x.png"))
     assert status == 2 and "not writable" in err
+
+
+def test_a_black_environment_is_light_enough_beside_a_light(tmp_path):
+    """A map that sends no light is refused as the scene's only light, not beside one."""
+    from isolume.app.options import parse_lighting
+
+    lighting = parse_lighting(_black_exr(tmp_path), ["dir:0,0,1:1,1,1"])
+    assert len(lighting.lights) == 1 and not lighting.environment.mean_radiance.any()
+
+
+def test_an_unwritable_timeline_is_refused_before_the_command_runs(tmp_path, capsys):
+    for timeline, expected in ((_file(tmp_path) / "t.json", "notes.txt is not a directory"),
+                               (tmp_path / "gone" / "t.json", "does not exist")):
+        status = main(["render", "synthetic:sphere:16", "--timeline", str(timeline), "--out",
+                       str(tmp_path / "x.png")])
+        err = capsys.readouterr().err
+        assert status == 2 and err.startswith("isolume: error: ") and err.count("\n") == 1, err
+        assert expected in err and not (tmp_path / "x.png").exists()
+
+
+def test_a_picture_larger_than_the_memory_available_is_refused(tmp_path, capsys,
+                                                               monkeypatch):
+    """The estimate (`PIXEL_BYTES`) follows the light: 4096x4096 needs 1.85 GB even
+    shaded locally; 1024x1024 fits shaded locally (0.115 GB), not traced (0.535 GB)."""
+    from isolume.app import options
+    from isolume.volumes.io import common
+
+    monkeypatch.setattr(common, "available_memory", lambda: 500_000_000)
+    status, _, err = _run(capsys, "render", "synthetic:sphere:16", "--size", "4096x4096",
+                          "--out", str(tmp_path / "x.png"))
+    assert status == 2 and err == ("isolume: error: --size 4096x4096: the picture needs "
+                                   "about 1.85 GB of memory (110 bytes a pixel at the "
+                                   "least), more than the 0.5 GB available; expected a "
+                                   "smaller size\n")
+    assert options.parse_size("1024x1024") == (1024, 1024)
+    status, _, err = _run(capsys, "render", "synthetic:sphere:16", "--size", "1024x1024",
+                          "--out", str(tmp_path / "x.png"))
+    assert status == 2 and "0.535 GB of memory (510 bytes a pixel tracing the view's light)" in err
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_a_lattice_that_records_no_bake_config_renders(tmp_path, capsys):
+    """Without a config in its metadata, a lattice is shown with the default albedo, and
+    the refusal of other lighting says its lighting was not recorded."""
+    import json
+    import zipfile
+
+    lattice = tmp_path / "l.npz"
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "1",
+                          "--bounces", "0", "--env", "constant:1,1,1", "--out", str(lattice))
+    assert status == 0, err
+    bare = tmp_path / "bare.npz"
+    with zipfile.ZipFile(lattice) as zin, zipfile.ZipFile(bare, "w") as zout:
+        for name in zin.namelist():
+            if name != "meta.npy":
+                zout.writestr(name, zin.read(name))
+        with zin.open("meta.npy") as member:
+            meta = json.loads(str(np.lib.format.read_array(member)))
+        del meta["config"], meta["config_version"]
+        with zout.open("meta.npy", "w") as member:
+            np.lib.format.write_array(member, np.array(json.dumps(meta)))
+    status, _, err = _run(capsys, "render", "synthetic:sphere:16", "--lattice", str(bare),
+                          "--size", "32x32", "--out", str(tmp_path / "x.png"))
+    assert status == 0, err
+    status, _, err = _run(capsys, "render", "synthetic:sphere:16", "--lattice", str(bare),
+                          "--env", "sky", "--size", "32x32", "--out", str(tmp_path / "x.png"))
+    assert status == 2 and "(lighting not recorded)" in err and err.count("\n") == 1, err
 
 
 def test_no_gl_names_the_alternatives(tmp_path, monkeypatch, capsys):
@@ -459,6 +566,57 @@ def test_an_interrupted_bake_says_what_its_file_keeps(tmp_path, capsys, monkeypa
                               "--bounces", "0", "--out", str(path))
         assert status == 130
         assert says in err, err
+
+
+def test_an_interrupt_out_of_a_library_or_before_any_file_says_so(tmp_path, capsys,
+                                                                  monkeypatch):
+    """A Ctrl-C that comes out of numba's kernel loading as a SystemError is an
+    interrupt (exit 130, one line); another SystemError stays a bug; stopped before any
+    path with no file yet, the bake says nothing was written."""
+    import isolume.baking
+
+    def loading(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("CPUDispatcher returned a result with an exception set")  # noqa: B904
+
+    monkeypatch.setattr(isolume.baking, "bake", loading)
+    path = tmp_path / "new.npz"
+    status, _, err = _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2",
+                          "--out", str(path))
+    assert status == 130 and f"interrupted before any path was traced; {path} not" in err
+
+    def failing(*args, **kwargs):
+        raise SystemError("a bug")
+
+    monkeypatch.setattr(isolume.baking, "bake", failing)
+    with pytest.raises(SystemError, match="a bug"):
+        main(["bake", "synthetic:sphere:16", "--samples", "2", "--out", str(path)])
+
+
+def test_render_warns_of_a_lattice_file_that_is_unfinished(tmp_path, capsys):
+    """`render --lattice` of a file whose bake was cut short draws it, and says how many
+    of the texels the picture reads have no paths yet; a finished file draws silently."""
+    from isolume.baking import Lattice
+
+    path = tmp_path / "l.npz"
+    assert _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2", "--out",
+                str(path))[0] == 0
+    out = ["render", "synthetic:sphere:16", "--lattice", str(path), "--size", "64x64",
+           "--out", str(tmp_path / "p.png")]
+    status, _, err = _run(capsys, *out)
+    assert status == 0 and "unfinished" not in err
+    vol = volumes.load("synthetic:sphere:16")
+    lattice = Lattice.load(path, vol)
+    baked = np.flatnonzero(lattice.samples.reshape(-1))
+    lattice.samples.reshape(-1)[baked[::2]] = 0  # every other texel not traced yet
+    lattice.values.reshape(len(lattice.samples.reshape(-1)), -1)[baked[::2]] = 0
+    lattice.save(path)
+    status, _, err = _run(capsys, *out)
+    found = re.search(r"warning: .*l\.npz is unfinished: ([\d,]+) of the ([\d,]+) texels", err)
+    assert status == 0 and found, err
+    assert 0 < int(found[1].replace(",", "")) < int(found[2].replace(",", ""))
 
 
 def test_the_console_script_freezes_the_heap_before_the_process_exits():

@@ -434,6 +434,31 @@ def test_hdr_orientation_exposure_and_truncation(tmp_path):
         envmod.read_hdr(tmp_path / "c.hdr")
 
 
+@pytest.mark.parametrize(
+    ("old", "new", "fragment"),
+    [
+        (b"FORMAT", b"EXPOSURE=abc\nFORMAT", "EXPOSURE=abc, expected a positive finite"),
+        (b"FORMAT", b"EXPOSURE=0\nFORMAT", "EXPOSURE=0, expected a positive finite"),
+        (b"FORMAT", b"EXPOSURE=-1\nFORMAT", "EXPOSURE=-1, expected a positive finite"),
+        (b"FORMAT", b"EXPOSURE=inf\nFORMAT", "EXPOSURE=inf, expected a positive finite"),
+        (b"FORMAT", b"EXPOSURE=1e300\nEXPOSURE=1e300\nFORMAT", "product of the EXPOSURE"),
+        (b"-Y 2 +X 16", b"-Y 0 +X 0", "resolution '-Y 0 +X 0', expected a height and a width"),
+        (b"-Y 2 +X 16", b"-Y 2 +X 0", "of at least 1 pixel"),
+    ],
+)
+def test_a_bad_hdr_header_is_one_line_naming_the_file_and_value(tmp_path, old, new, fragment):
+    """An exposure that is not a positive finite number (which would divide the pixels
+    into NaN, infinite or negative radiance) and an empty resolution are refused."""
+    envmod.write_hdr(tmp_path / "a.hdr", np.ones((2, 16, 3)))
+    (tmp_path / "b.hdr").write_bytes((tmp_path / "a.hdr").read_bytes().replace(old, new))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no numpy warning on the way
+        with pytest.raises(EnvSpecError) as info:
+            envmod.parse_env(str(tmp_path / "b.hdr"))
+    message = str(info.value)
+    assert "\n" not in message and "b.hdr" in message and fragment in message, message
+
+
 # ----------------------------------------------------------------------------- specs
 def test_parse_env_specs(tmp_path):
     assert np.allclose(envmod.parse_env("constant:0.5").mean_radiance, 0.5)
@@ -506,13 +531,16 @@ def test_bad_specs_raise_one_line_errors(bad_files, tmp_path, spec, fragment):
     assert isinstance(info.value, ValueError)
 
 
-def test_negative_pixels_are_clamped_with_a_warning(tmp_path):
+def test_negative_pixels_are_clamped_with_a_warning(tmp_path, capsys):
     arr = np.ones((8, 16, 3), np.float32)
     arr[1, 2] = -0.01
     _write_exr(tmp_path / "neg.exr", {"RGB": arr})
-    with pytest.warns(RuntimeWarning, match="1 pixels had negative values"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the project's warning line, not a Python warning
         env = envmod.parse_env(str(tmp_path / "neg.exr"))
     assert env.pixels.min() == 0.0
+    assert capsys.readouterr().err == (f"isolume: warning: {tmp_path / 'neg.exr'}: 1 pixels "
+                                       "had negative values, clamped to 0\n")
 
 
 # ----------------------------------------------------------------------------- real probes
@@ -525,10 +553,9 @@ def _probe(name: str) -> Path:
 
 @pytest.mark.shared
 @pytest.mark.parametrize("name", ["openexr_KernerEnvLatLong.exr", "polyhaven_venice_sunset_1k.hdr"])
-def test_real_probes_load(name):
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # these probes have no negative pixels
-        env = envmod.parse_env(str(_probe(name)))
+def test_real_probes_load(name, capsys):
+    env = envmod.parse_env(str(_probe(name)))
+    assert "negative" not in capsys.readouterr().err  # these probes have no negative pixels
     assert env.mapping == "latlong"
     assert np.all(np.isfinite(env.pixels)) and env.pixels.min() >= 0
     assert env.solid_angles.sum() == pytest.approx(4 * math.pi, rel=1e-12)

@@ -148,6 +148,79 @@ def test_a_file_of_dense_arrays_still_loads(tmp_path):
     assert not Lattice.load(tmp_path / "older.npz").facing.any()  # every facing unknown
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, -0.5])
+def test_irradiance_that_is_not_finite_or_negative_is_refused_as_it_is_read(
+        tmp_path, small_slabs, bad):
+    """A texel with a NaN, infinite or negative irradiance in any channel is counted once;
+    the load and a display's read refuse the file in one line naming it."""
+    lattice = _random_lattice()
+    computed = np.argwhere(lattice.samples > 0)
+    lattice.values[tuple(computed[0])] = [bad, 1.0, bad]
+    lattice.values[(*computed[-1], 1)] = bad
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    held = int((lattice.active | (lattice.samples > 0)).sum())
+    for read in (lambda: Lattice.load(path), lambda: LatticeOnFile.open(path).held()):
+        with pytest.raises(BakeError, match=rf"l\.npz: 2 of the {held:,} texels read hold "
+                                            "NaN, infinite or negative values, expected "
+                                            "finite irradiance ≥ 0"):
+            read()
+
+
+def test_sh_coefficients_may_be_negative_but_not_nan(tmp_path):
+    lattice = _random_lattice(channels=27)
+    lattice.meta["kind"] = "sh"
+    lattice.values[lattice.samples > 0] -= 0.5
+    path = tmp_path / "sh.npz"
+    lattice.save(path)
+    _same(Lattice.load(path), lattice)
+    lattice.values[tuple(np.argwhere(lattice.samples > 0)[3])] = np.nan
+    lattice.save(path)
+    with pytest.raises(BakeError, match=r"1 of the \d+ texels read hold NaN or infinite values, "
+                                        "expected finite SH coefficients"):
+        Lattice.load(path)
+
+
+def test_a_display_judges_the_values_it_reads_a_slab_at_a_time(tmp_path, small_slabs,
+                                                                monkeypatch):
+    """A display's read judges each slab of values as it is read (the 3-layer slabs here,
+    which it reads through to the texels it asks for): a texel it does not ask for, in a
+    slab it reads, still refuses the damaged file."""
+    lattice = _random_lattice()
+    lattice.values[tuple(np.argwhere(lattice.samples[:3] > 0)[0])] = np.nan
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    judged = []
+    bad_texels = lattice_file.bad_texels
+    monkeypatch.setattr(lattice_file, "bad_texels",
+                        lambda values, irradiance: judged.append(len(values))
+                        or bad_texels(values, irradiance))
+    with pytest.raises(BakeError, match=r"1 of the \d+ texels read hold NaN"):
+        LatticeOnFile.open(path).held(np.arange(3 * 11 * 13, lattice.samples.size))
+    held = lattice.active | (lattice.samples > 0)
+    assert judged == [int(held[z:z + 3].sum()) for z in range(0, 10, 3)]
+
+
+def test_bad_values_are_counted_in_texels_in_a_file_of_dense_arrays(tmp_path):
+    lattice = _random_lattice()
+    lattice.values[2, 3, 4] = np.nan
+    meta = {"kind": "irradiance", "format_version": lattice_file.DENSE_VERSION,
+            "shape": [10, 11, 13], "box_lo": [0, 0, 0], "box_hi": [1.0, 1.1, 1.3]}
+    arrays = {n: getattr(lattice, n) for n in ("values", "samples", "second", "active")}
+    np.savez_compressed(tmp_path / "old.npz", **arrays, meta=np.array(json.dumps(meta)))
+    with pytest.raises(BakeError, match="1 of the 1,430 texels read hold NaN"):
+        Lattice.load(tmp_path / "old.npz")
+
+
+def test_bad_texels_judges_with_two_reductions_where_all_are_good(monkeypatch):
+    values = np.random.default_rng(3).random((1000, 3)).astype(np.float32) - 0.5
+    assert lattice_file.bad_texels(values, irradiance=False) == 0
+    assert lattice_file.bad_texels(values, irradiance=True) == int((values < 0).any(1).sum())
+    assert lattice_file.bad_texels(np.zeros((0, 3), np.float32), irradiance=True) == 0
+    monkeypatch.setattr(np, "isfinite", None)  # not needed where no value is bad
+    assert lattice_file.bad_texels(np.abs(values), irradiance=True) == 0
+
+
 def _rewritten(path, tmp_path, name: str, array: np.ndarray):
     """A copy of the lattice file `path` with member `name` replaced by `array`."""
     with np.load(path) as z:

@@ -1,5 +1,7 @@
 """Volume conventions (DESIGN §2), validation, synthetic volumes and suggested isovalues."""
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -130,6 +132,99 @@ def test_constant_volume_has_no_suggestion_and_an_empty_surface():
     assert volumes.suggest_isovalues(vol) == ()
     mesh = volumes.isosurface(vol, 7.0)
     assert mesh.empty and "extreme" in mesh.message
+
+
+def _two_values(dtype, low, high) -> np.ndarray:
+    """(4, 4, 4) samples of type `dtype`: `low` in one half, `high` in the other."""
+    data = np.full((4, 4, 4), low, dtype)
+    data[2:] = high
+    return data
+
+
+@pytest.mark.parametrize(("data", "constant"), [
+    (np.full((4, 4, 4), 7, np.uint8), True),
+    (np.full((4, 4, 4), 3.5, np.float32), True),
+    (np.full((4, 4, 4), 3e38, np.float32), True),
+    (np.float32(1e8) + np.arange(64, dtype=np.float32).reshape(4, 4, 4) * 100 / 63, False),
+    (_two_values(np.int32, 2**31 - 2, 2**31 - 1), True),  # both become 2^31 in float32
+])
+def test_info_of_constant_and_narrow_volumes(data, constant, capsys):
+    """The histogram's edges are float64, increasing however narrow the range beside the
+    values' magnitude; a constant volume reaches "none (constant volume)"."""
+    from isolume.volumes.stats import VolumeInfo
+
+    info = VolumeInfo.of(Volume(data, source="v.raw"))
+    assert (np.diff(info.edges) > 0).all() and info.counts.sum() == data.size
+    labels = [line.split("..") for line in info.histogram_lines]
+    assert len({float(lo) for lo, _ in labels}) == len(labels)  # edges told apart
+    assert ("none (constant volume)" in str(info)) == constant
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize("spacing", [(1e300, 1, 1), (1, 1e-300, 1), (1e-30, 1e-30, 1e-30),
+                                     (1, 1, 2e12)])
+def test_spacing_beyond_float32_world_coordinates_is_refused(spacing):
+    with pytest.raises(VolumeError, match=r"v\.raw: spacing .* rescale the units with --spacing"):
+        Volume(np.zeros((4, 4, 4), np.float32), spacing=spacing, source="v.raw")
+
+
+@pytest.mark.parametrize(("origin", "spacing"), [
+    ((1e300, 0, 0), 1.0),
+    ((5e5, 4e6, 0), 1.0),
+    ((5e5, 4e6, 0), 0.01),
+    ((0, 0, -30000), 1.0),
+])
+def test_volume_far_from_the_world_origin_is_refused(origin, spacing):
+    """Beyond 1024 extents from the world origin float32 coordinates lose much of a
+    voxel: the error says how far the volume lies and what to do."""
+    with pytest.raises(VolumeError, match=r"v\.raw: the volume lies .* from the world origin"
+                       r".*times its largest extent .*origin= of isolume\.volumes\.load"):
+        Volume(np.zeros((24, 24, 24), np.float32), spacing=(spacing,) * 3, origin=origin,
+               source="v.raw")
+
+
+def test_volume_near_the_world_origin_is_kept():
+    vol = Volume(np.zeros((24, 24, 24), np.float32), origin=(1e4, 1e4, -1e4))
+    assert vol.origin == (1e4, 1e4, -1e4)
+    Volume(np.zeros((2, 2, 2), np.float32), spacing=(1e-12, 1e-12, 1e-12))
+    Volume(np.zeros((2, 2, 2), np.float32), spacing=(1e12, 1e12, 1e12))
+
+
+@pytest.mark.parametrize(("data", "said"), [
+    (_two_values(np.int32, 16777216, 16777217), "16777217 became 16777216"),
+    (_two_values(np.int32, 2**31 - 2, 2**31 - 1), "2147483646 became 2147483648"),
+    (_two_values(np.uint64, 2**63, 2**63 + 63), "9223372036854775871 became "
+     "9223372036854775808"),
+    (_two_values(np.float64, 1e8, 1e8 + 100), "100000100.0 became 100000096.0"),
+])
+def test_inexact_conversion_to_float32_warns_once(data, said, capsys):
+    vol = Volume(data, source="v.raw")
+    assert vol.data.dtype == np.float32
+    err = capsys.readouterr().err
+    assert err.startswith("isolume: warning: v.raw: ") and err.count("\n") == 1
+    assert str(data.dtype) in err and said in err and "rounded" in err
+
+
+@pytest.mark.parametrize("data", [
+    np.arange(64, dtype=np.int32).reshape(4, 4, 4) * 262144 - 2**24,  # within ±2^24
+    np.arange(64, dtype=np.int64).reshape(4, 4, 4) << 40,  # large, and floats
+    np.arange(64, dtype=np.uint32).reshape(4, 4, 4),
+    np.random.default_rng(2).random((4, 4, 4)),  # float64: rounding ~3e-8 of the range
+    np.arange(64, dtype=np.float16).reshape(4, 4, 4),
+])
+def test_exact_conversion_to_float32_is_silent(data, capsys):
+    vol = Volume(data, source="v.raw")
+    assert vol.data.dtype == np.float32 and capsys.readouterr().err == ""
+    np.testing.assert_allclose(vol.data, data, rtol=2**-24)
+
+
+def test_float64_beyond_float32_is_refused_as_such():
+    data = _two_values(np.float64, -1e300, 1e300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning from the cast
+        with pytest.raises(VolumeError, match=r"v\.raw: value -1e\+300 \(float64\) is beyond "
+                           r"float32's range"):
+            Volume(data, source="v.raw")
 
 
 def _map_coordinates(grid, index_zyx):

@@ -10,7 +10,10 @@ from __future__ import annotations
 import gzip
 import os
 import re
+import signal
 import sys
+import tracemalloc
+import zipfile
 import zlib
 from pathlib import Path
 
@@ -206,6 +209,33 @@ def test_non_positive_spacing_names_file(tmp_path):
     load_error(path, "spacing", "0.0", spacing=(0.0, 1.0, 1.0))
 
 
+def test_raw_sizes_given_are_named_as_given(tmp_path):
+    path = tmp_path / "vol_4x4x4_uint8.raw"
+    path.write_bytes(bytes(64))
+    for options, source in (({"dims": (4, 4, 5)}, "--dims given"),
+                            ({"dtype": "uint16"}, "--dtype given"),
+                            ({"dims": (4, 4, 5), "dtype": "uint8"}, "--dims/--dtype given")):
+        message = load_error(path, "truncated", source, **options)
+        assert "dims/dtype in the file name" not in message
+
+
+@pytest.mark.parametrize("crop", [None, "0:4,0:4,0:2"])
+def test_raw_int32_and_float64_beyond_float32(tmp_path, capsys, crop):
+    """Whole or cropped (read in part), samples that float32 rounds are said once, and
+    values beyond its range refused as such."""
+    data = np.full((4, 4, 4), 16777216, "<i4")
+    data[1::2] = 16777217
+    path = tmp_path / "labels_4x4x4_int32.raw"
+    path.write_bytes(data.tobytes())
+    assert load_file(path, crop=crop).data.dtype == np.float32
+    err = capsys.readouterr().err
+    assert err.startswith(f"isolume: warning: {path}: int32") and err.count("\n") == 1
+    assert "16777217 became 16777216" in err
+    path = tmp_path / "wide_4x4x4_float64.raw"
+    path.write_bytes(np.where(data > 16777216, 1e300, 0.0).astype("<f8").tobytes())
+    load_error(path, "value 1e+300 (float64) is beyond float32's range", crop=crop)
+
+
 # --------------------------------------------------------------------------- files
 
 
@@ -240,6 +270,23 @@ def test_unreadable_file_reported(tmp_path, monkeypatch):
 
     monkeypatch.setattr(vio_common, "open", refuse, raising=False)
     load_error(path, "permission denied")
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+def test_fifo_is_refused_without_waiting_for_a_writer(tmp_path):
+    path = tmp_path / "pipe_2x2x2_uint8.raw"
+    os.mkfifo(path)
+
+    def waited(signum, frame):
+        raise TimeoutError("load_file waited for a writer")
+
+    before = signal.signal(signal.SIGALRM, waited)
+    signal.alarm(5)
+    try:
+        load_error(path, "FIFO", "not a regular file")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, before)
 
 
 def test_options_only_for_raw(tmp_path):
@@ -308,6 +355,45 @@ def test_nrrd_not_3d(tmp_path):
     path = tmp_path / "flat.nrrd"
     nrrd.write(str(path), np.zeros((4, 5), np.uint8), index_order="C")
     load_error(path, "3-D", "dimension 2")
+
+
+NRRD_HEAD = b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\nencoding: raw\n"
+
+
+def test_nrrd_empty_file(tmp_path):
+    pytest.importorskip("nrrd")
+    path = tmp_path / "empty.nrrd"
+    path.write_bytes(b"")
+    load_error(path, "not a valid NRRD file", "empty")
+
+
+def test_nrrd_errors_are_said_once_and_whole(tmp_path, monkeypatch):
+    pytest.importorskip("nrrd")
+    path = tmp_path / "short.nrrd"
+    path.write_bytes(NRRD_HEAD + b"\n" + bytes(10))
+    message = load_error(path, "expected 64 bytes of samples", "ends after 10")
+    assert "not a valid NRRD file" not in message and "VolumeError" not in message
+    monkeypatch.setattr(vio_common, "available_memory", lambda: 10)
+    message = load_error(path, "needs", "--crop", "read without the whole file")
+    assert message.endswith("Zarr)") and message.count(str(path)) == 1
+
+
+@pytest.mark.parametrize("crop", [None, "0:2,0:2,0:2"])
+def test_nrrd_missing_detached_data_file(tmp_path, crop):
+    pytest.importorskip("nrrd")
+    path = tmp_path / "head.nhdr"
+    path.write_bytes(NRRD_HEAD + b"data file: nothere.raw\n\n")
+    load_error(path, "detached data file 'nothere.raw' is missing",
+               str(tmp_path / "nothere.raw"), crop=crop)
+
+
+@pytest.mark.parametrize("row", [b"(nan,0,0)", b"(inf,0,0)", b"(1,nan,0)"])
+def test_nrrd_non_finite_space_directions(tmp_path, row):
+    pytest.importorskip("nrrd")
+    path = tmp_path / "odd.nrrd"
+    path.write_bytes(NRRD_HEAD + b"space: left-posterior-superior\nspace directions: " + row
+                     + b" (0,1,0) (0,0,1)\n\n" + bytes(64))
+    load_error(path, "space directions vector 1", "finite")
 
 
 # --------------------------------------------------------------------------- MetaImage
@@ -411,6 +497,44 @@ def test_mhd_bad_header_values(tmp_path):
     load_error(path, "'this is not a header'", "Key = Value")
 
 
+@pytest.mark.parametrize("compressed", [False, True])
+def test_mhd_data_file_is_not_read_past_dimsize(tmp_path, compressed):
+    """A 64 MiB (sparse) data file behind DimSize 11 7 5 is refused having read at most
+    a chunk of it."""
+    path = tmp_path / "ct.mhd"
+    write_metaimage(path, sample_data(), data_file="ct.raw", compressed=compressed)
+    if compressed:
+        path.write_text(path.read_text().replace("CompressedDataSize", "Comment"))
+    with open(tmp_path / "ct.raw", "wb") as f:
+        f.truncate(64 << 20)
+    said = "corrupt compressed MetaImage data" if compressed else "got 67108864 bytes"
+    tracemalloc.start()
+    try:
+        with pytest.raises(VolumeError, match=re.escape(f"{tmp_path / 'ct.raw'}: ")) as info:
+            load_file(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert said in str(info.value)
+    assert peak < 16 << 20, f"{peak} bytes traced for {info.value}"
+
+
+def test_mha_header_size(tmp_path):
+    data = sample_data()
+    path = tmp_path / "ct.mha"
+    write_metaimage(path, data)
+    header, payload = path.read_bytes().split(b"LOCAL\n")
+    for size, skipped in ((3, b"abc"), (-1, b"leading bytes")):
+        path.write_bytes(header.replace(b"ElementDataFile", f"HeaderSize = {size}\n"
+                                        "ElementDataFile".encode()) + b"LOCAL\n" + skipped
+                         + payload)
+        assert_volume(load_file(path), data)
+    for size in ("-5", "2.5"):
+        path.write_bytes(header.replace(b"ElementDataFile", f"HeaderSize = {size}\n"
+                                        "ElementDataFile".encode()) + b"LOCAL\n" + payload)
+        load_error(path, f"HeaderSize = '{size}'", "at least 0", "-1")
+
+
 # --------------------------------------------------------------------------- NIfTI
 
 
@@ -430,6 +554,41 @@ def test_nifti_corrupt(tmp_path):
     path = tmp_path / "brain.nii"
     path.write_bytes(b"not a nifti file" * 30)
     load_error(path, "NIfTI")
+
+
+def write_nifti(path: Path, dims, datatype: int = 2, samples: bytes = bytes(4096)) -> None:
+    """A NIfTI-1 file (gzip-compressed for ``.gz``) whose header says `dims` and
+    `datatype` whatever the `samples` that follow it."""
+    nib = pytest.importorskip("nibabel")
+    header = nib.Nifti1Header()
+    header.set_data_dtype(np.uint8)
+    header["dim"][: len(dims) + 1] = [len(dims), *dims]
+    header["datatype"] = datatype
+    header["vox_offset"] = 352
+    content = header.binaryblock + bytes(4) + samples
+    path.write_bytes(gzip.compress(content) if path.name.endswith(".gz") else content)
+
+
+@pytest.mark.parametrize(("suffix", "fragments"), [
+    (".nii", ("need 100000000 bytes of samples from offset 352", "holds 4096")),
+    (".nii.gz", ("expected 100000000 decompressed bytes", "ends after 4096")),
+])
+def test_nifti_dims_that_lie_are_refused_before_reading(tmp_path, suffix, fragments):
+    path = tmp_path / f"lie{suffix}"
+    write_nifti(path, (1000, 1000, 100))
+    load_error(path, *fragments, "dims")
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz"])
+def test_nifti_bad_dims_and_datatype(tmp_path, capfd, suffix):
+    path = tmp_path / f"bad{suffix}"
+    write_nifti(path, (30000, 30000, 30000))
+    load_error(path, "dims 30000 30000 30000 uint8 needs", "memory available")
+    write_nifti(path, (-16, 16, 16))
+    load_error(path, "NIfTI dims (-16, 16, 16)", "positive")
+    write_nifti(path, (16, 16, 16), datatype=9999)
+    load_error(path, "9999", "invalid NIfTI header", "datatype")
+    assert "9999" not in capfd.readouterr().err  # said once, by the error
 
 
 # --------------------------------------------------------------------------- NumPy
@@ -470,6 +629,46 @@ def test_npy_corrupt_and_npz_ambiguous(tmp_path):
     npz = tmp_path / "two.npz"
     np.savez(npz, a=sample_data(), b=sample_data())
     load_error(npz, "['a', 'b']", "'data'")
+
+
+def write_npy_header(f, shape, descr: str = "|u1") -> None:
+    """A .npy version 1.0 header that says `shape` and `descr`, whatever follows it."""
+    np.lib.format.write_array_header_1_0(
+        f, {"descr": descr, "fortran_order": False, "shape": shape})
+
+
+@pytest.mark.parametrize("crop", [None, "0:2,0:2,0:2"])
+def test_npy_header_that_lies_about_its_shape(tmp_path, crop):
+    path = tmp_path / "lie.npy"
+    with open(path, "wb") as f:
+        write_npy_header(f, (100000, 100000, 100000))
+        f.write(bytes(4096))
+    load_error(path, "expected 1000000000000000 bytes", "(100000, 100000, 100000)",
+               "holds only 4096", crop=crop)
+
+
+def test_npy_with_bytes_after_its_array(tmp_path):
+    path = tmp_path / "long.npy"
+    np.save(path, sample_data("uint8"))
+    with open(path, "ab") as f:
+        f.write(bytes(10))
+    load_error(path, f"expected {np.prod(SHAPE)} bytes", f"holds {np.prod(SHAPE) + 10}")
+
+
+def test_npz_member_header_that_lies_about_its_shape(tmp_path):
+    path = tmp_path / "lie.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
+        with archive.open("data.npy", "w") as f:
+            write_npy_header(f, (100000, 100000, 100000))
+            f.write(bytes(4096))
+    load_error(path, "[data]", "expected 1000000000000000 bytes", "holds only 4096")
+
+
+def test_npz_that_is_not_a_zip(tmp_path):
+    path = tmp_path / "fake.npz"
+    path.write_bytes(b"PKhello")
+    message = load_error(path, "not a valid .npz archive", "zip")
+    assert "pickle" not in message
 
 
 # --------------------------------------------------------------------------- TIFF

@@ -62,10 +62,24 @@ def multi_otsu(values: np.ndarray, classes: int, bins: int = 256) -> np.ndarray:
 
 
 def histogram(volume: Volume, bins: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """(bins,) counts and (bins + 1,) edges (field units) of the values over their range,
-    from at most `_MAX_SAMPLES` of them (evenly strided)."""
-    lo, hi = volume.value_range
-    return np.histogram(_subsample(volume), bins=bins, range=(lo, max(hi, lo + 1e-12)))
+    """(bins,) counts and (bins + 1,) float64 edges (field units) of the values over
+    their range, from at most `_MAX_SAMPLES` of them (evenly strided).
+
+    The edges are computed in float64: float32 ones coincide where the range is narrow
+    beside the values' magnitude (1e8 + [0, 100]). A constant volume's one value is the
+    middle of a single-width range (`_value_span`)."""
+    lo, hi = _value_span(*volume.value_range)
+    return np.histogram(_subsample(volume).astype(np.float64), bins=bins, range=(lo, hi))
+
+
+def _value_span(lo: float, hi: float) -> tuple[float, float]:
+    """(lo, hi) as histogram limits, float64: as they are where ``hi > lo``; around a
+    constant value, ±0.5, or ±2⁻²⁰ of its magnitude where that is wider (±0.5 is lost in
+    the rounding of values beyond 2⁵²)."""
+    if hi > lo:
+        return float(lo), float(hi)
+    half = max(0.5, abs(lo) * 2.0**-20)
+    return float(lo) - half, float(lo) + half
 
 
 def histogram_lines(volume: Volume, bins: int = 16, width: int = 40) -> list[str]:
@@ -73,10 +87,23 @@ def histogram_lines(volume: Volume, bins: int = 16, width: int = 40) -> list[str
     counts, edges = histogram(volume, bins)
     logc = np.log1p(counts)
     scale = width / logc.max() if logc.max() > 0 else 0
+    digits = _edge_digits(edges)
+    column = max(12, digits + 6)
     return [
-        f"{edges[i]:>12.5g} .. {edges[i + 1]:<12.5g} {'#' * round(logc[i] * scale)}"
+        f"{edges[i]:>{column}.{digits}g} .. {edges[i + 1]:<{column}.{digits}g} "
+        f"{'#' * round(logc[i] * scale)}"
         for i in range(bins)
     ]
+
+
+def _edge_digits(edges: np.ndarray) -> int:
+    """Significant digits that tell the (bins + 1,) increasing `edges` apart: 5, more
+    where the bins are narrow beside the values' magnitude (at most 17, float64's)."""
+    step = float(edges[1] - edges[0])
+    magnitude = float(np.abs(edges).max())
+    if magnitude <= 0 or step <= 0:
+        return 5
+    return int(min(17, max(5, np.ceil(np.log10(magnitude / step)) + 2)))
 
 
 @dataclass(frozen=True)

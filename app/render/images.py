@@ -23,14 +23,29 @@ def check_output_path(path: str | os.PathLike[str],
     """Validate an output path before any work is done.
 
     Raises:
-        OutputError: wrong suffix, missing directory, or a directory that is not writable.
+        OutputError: wrong suffix, or a folder that cannot hold it (`check_output_folder`).
     """
     path = Path(path)
     if path.suffix.lower() not in suffixes:
         expected = " or ".join(suffixes)
         raise OutputError(f"{path}: output must end in {expected}, got {path.suffix!r}")
+    return check_output_folder(path)
+
+
+def check_output_folder(path: str | os.PathLike[str]) -> Path:
+    """`path`, whose folder exists, is a directory and is writable.
+
+    Raises:
+        OutputError: a missing folder, a file where a folder should be (the first path
+            above `path` that exists is not a directory), or a folder that is not
+            writable.
+    """
+    path = Path(path)
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
+        above = next((p for p in (parent, *parent.parents) if p.exists()), None)
+        if above is not None and not above.is_dir():
+            raise OutputError(f"{path}: {above} is not a directory")
         raise OutputError(f"{path}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK):
         raise OutputError(f"{path}: directory {parent} is not writable")

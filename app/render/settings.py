@@ -203,8 +203,9 @@ class RenderSettings:
         w, h = self.size
         if not (1 <= w <= 16384 and 1 <= h <= 16384):
             raise ValueError(f"image size {w}x{h} must be between 1 and 16384 per side")
-        if not self.exposure > 0:
-            raise ValueError(f"exposure must be positive, got {self.exposure:g}")
+        if not (np.isfinite(self.exposure) and self.exposure > 0):
+            raise ValueError(f"exposure must be a positive finite number, got "
+                             f"{self.exposure:g}")
         if not 16 <= self.shadow_resolution <= 16384:
             raise ValueError(f"shadow resolution {self.shadow_resolution} must be between 16 "
                              "and 16384 texels")

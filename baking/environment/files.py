@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -75,16 +76,35 @@ def read_hdr(path: str | Path) -> np.ndarray:
                 "expected FORMAT=32-bit_rle_rgbe"
             )
         if line.startswith(b"EXPOSURE="):
-            exposure *= float(line[9:])
+            exposure *= _exposure(line, path)
+    if not (math.isfinite(exposure) and exposure > 0):
+        raise EnvSpecError(f"{path}: the product of the EXPOSURE values is {exposure:g}, "
+                           "expected a positive finite number")
     end = data.find(b"\n", pos)
     match = _HDR_RES.match(data[pos:end].strip()) if end >= 0 else None
     if match is None:
         raise EnvSpecError(f"{path}: unsupported resolution line, expected '-Y H +X W'")
     h, w = int(match.group(2)), int(match.group(3))
+    if h < 1 or w < 1:
+        raise EnvSpecError(f"{path}: resolution {match.group(0).decode()!r}, expected a "
+                           "height and a width of at least 1 pixel")
     rgbe = _decode_rgbe(data, end + 1, h, w, path)
     if match.group(1) == b"+":
         rgbe = rgbe[::-1]
     return _rgbe_to_float(rgbe) / np.float32(exposure)
+
+
+def _exposure(line: bytes, path: str | Path) -> float:
+    """The value of a header line ``EXPOSURE=V``: a positive finite number (pixel values
+    are divided by it)."""
+    text = line[9:].decode(errors="replace").strip()
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise EnvSpecError(f"{path}: EXPOSURE={text}, expected a positive finite number")
+    return value
 
 
 def _decode_rgbe(data: bytes, pos: int, h: int, w: int, path) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import re
-import warnings
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +52,12 @@ def _guess_mapping(h: int, w: int, hint: str | None, name: str) -> str:
 
 
 def _validated_pixels(px: np.ndarray, name: str) -> np.ndarray:
+    """(H, W, 3) `px` of the map `name` with negative values clamped to 0, said in one
+    ``isolume: warning:`` line on stderr.
+
+    Raises:
+        EnvSpecError: NaN or infinite pixels.
+    """
     bad = ~np.isfinite(px)
     if np.any(bad):
         row, col, _ = np.argwhere(bad)[0]
@@ -61,11 +67,8 @@ def _validated_pixels(px: np.ndarray, name: str) -> np.ndarray:
         )
     if np.any(px < 0):
         count = int((px < 0).any(axis=2).sum())
-        warnings.warn(
-            f"{name}: {count} pixels had negative values, clamped to 0",
-            RuntimeWarning,
-            stacklevel=3,
-        )
+        print(f"isolume: warning: {name}: {count} pixels had negative values, clamped to 0",
+              file=sys.stderr)
         px = np.maximum(px, 0)
     return px
 

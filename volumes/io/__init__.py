@@ -83,6 +83,7 @@ from isolume.volumes.io.zarr_folder import load_zarr, looks_like_zarr
 from isolume.volumes.orientation import Placement, place
 from isolume.volumes.region import (
     Crop,
+    Region,
     check_factor,
     check_sample_type,
     join_placement,
@@ -276,18 +277,30 @@ def _placed(data, spacing, origin, frame, label: str, where: str) -> tuple[Place
 def _read_part(placed: Placement, crop: Crop | None, factor: int, path: Path,
                placement: str) -> Volume:
     """The `crop` / `factor` part of the placed samples (a lazy array: memmap, Zarr),
-    read slab by slab, as a Volume in the same world place."""
+    read slab by slab, as a Volume in the same world place. A crop of numbers of a type
+    `Volume` does not keep (int32, float64, …) is read in that type, for `Volume` to say
+    what float32 rounds of them."""
     where = str(path)
     data = placed.data
     check_sample_type(data.dtype, where)
     z, y, x = data.shape
     region = resolve_region((x, y, z), crop, factor, where)
-    check_fits_in_memory(region.nbytes, where,
+    own = np.dtype(data.dtype)
+    own_type = factor == 1 and own.kind in "iuf" and own.newbyteorder("=") not in STORED_TYPES
+    check_fits_in_memory(region.nbytes // 4 * (4 + own.itemsize * own_type), where,
                          f"reading {' x '.join(map(str, region.shape_xyz))} voxels")
-    return Volume(read_region(data, region), spacing=region.spacing(placed.spacing),
+    samples = _cropped(data, region) if own_type else read_region(data, region)
+    return Volume(samples, spacing=region.spacing(placed.spacing),
                   origin=region.origin(placed.spacing, placed.origin),
                   name=_volume_name(path), source=where,
                   placement=join_placement(placement, region.describe()))
+
+
+def _cropped(data: Any, region: Region) -> np.ndarray:
+    """The (Z', Y', X') samples of a `region` of factor 1 of the lazy `data`, in their
+    own type."""
+    (x0, y0, z0), (nx, ny, nz) = region.start, region.shape_xyz
+    return np.array(data[z0:z0 + nz, y0:y0 + ny, x0:x0 + nx])
 
 
 def _exists(path: Path) -> bool:

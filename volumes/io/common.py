@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import os
 import re
+import stat
 import struct
 import zipfile
 import zlib
@@ -43,6 +44,10 @@ READ_ERRORS = (
 """Low-level failures that mean "this file is not what its name says"; turned into a
 one-line VolumeError by `load_file` as a last resort."""
 
+INFLATE_CHUNK = 1 << 20
+"""Bytes of compressed input read, and of inflated output made, at a time by
+`inflate_at_most`."""
+
 Orientation = tuple[np.ndarray, np.ndarray]
 """((3, 3) columns: the directions of index axes x, y, z in the file's frame, (3,) signs
 that take that frame to LPS)."""
@@ -78,22 +83,30 @@ def optional_module(module: str, path: Path) -> ModuleType:
         ) from None
 
 
+_NOT_REGULAR = (
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+"""Tests of a file's mode, and what they name, for `check_readable`'s message."""
+
+
 def check_readable(path: Path) -> None:
-    """Open the file once so permission problems get a clear message."""
+    """Refuse what is not a regular file (reading a FIFO would wait for a writer, a
+    device never ends), then open the file once so permission problems get a clear
+    message."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
+    if not stat.S_ISREG(mode):
+        kind = next((name for test, name in _NOT_REGULAR if test(mode)), "not a regular file")
+        raise VolumeError(f"{path}: this is {kind}, not a regular file; expected a volume "
+                          "file")
     try:
         with open(path, "rb") as f:
             f.read(1)
-    except PermissionError:
-        raise VolumeError(f"{path}: cannot read the file: permission denied") from None
-    except OSError as exc:
-        raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
-
-
-def read_bytes(path: Path) -> bytes:
-    """Whole file contents, with OS errors as VolumeError."""
-    try:
-        with open(path, "rb") as f:
-            return f.read()
     except PermissionError:
         raise VolumeError(f"{path}: cannot read the file: permission denied") from None
     except OSError as exc:
@@ -190,8 +203,26 @@ def read_bounded(f: BinaryIO, nbytes: int, where: str, compressed: bool) -> np.n
     return buf
 
 
-def inflate_bounded(payload: bytes | memoryview, nbytes: int, wbits: int) -> bytes:
-    """zlib/gzip inflate of `payload` that stops one byte past the `nbytes` expected (a
-    decompression bomb costs no more memory than the samples promised); the caller
-    compares the length with `nbytes`."""
-    return zlib.decompressobj(wbits).decompress(payload, nbytes + 1)
+def inflate_at_most(f: BinaryIO, nbytes: int, wbits: int,
+                    max_input: int | None = None) -> tuple[np.ndarray, int]:
+    """First `nbytes` inflated bytes (zlib/gzip, `wbits`) of the compressed stream `f`
+    as a writable uint8 array (fewer where it ends) and the inflated length counted up
+    to ``nbytes + 1``: the compressed data (at most `max_input` bytes of them) are read
+    a chunk at a time and no further than that, so a decompression bomb, or a file of
+    more data than the header promises, costs no more memory than the samples promised
+    and a chunk. Corrupt data raise ``zlib.error``."""
+    buf = np.empty(nbytes, np.uint8)
+    inflater = zlib.decompressobj(wbits)
+    got, pending, left = 0, b"", max_input
+    while got <= nbytes and not inflater.eof:
+        if not pending:
+            pending = f.read(INFLATE_CHUNK if left is None else min(INFLATE_CHUNK, left))
+            if not pending:
+                break
+            left = None if left is None else left - len(pending)
+        out = inflater.decompress(pending, min(nbytes + 1 - got, INFLATE_CHUNK))
+        pending = inflater.unconsumed_tail
+        kept = min(len(out), nbytes - got)
+        buf[got:got + kept] = np.frombuffer(out, np.uint8, kept)
+        got += len(out)
+    return buf[:min(got, nbytes)], got

@@ -15,10 +15,14 @@ from isolume.volumes.io.common import (
     Loaded,
     byte_count,
     check_fits_in_memory,
-    inflate_bounded,
+    inflate_at_most,
     one_line,
-    read_bytes,
+    read_bounded,
 )
+
+_MAX_HEADER_BYTES = 1 << 20
+"""Bytes of a MetaImage file searched for its header (the ElementDataFile line ends it);
+headers are a few hundred."""
 
 _MET_TYPES = {
     "MET_UCHAR": "u1",
@@ -37,14 +41,16 @@ def load_metaimage(path: Path) -> Loaded:
 
     ``TransformMatrix`` (or ``Rotation`` / ``Orientation``) gives the index axes' directions
     in LPS, one axis per three consecutive numbers as ITK writes it;
-    ``AnatomicalOrientation`` alone is not used.
+    ``AnatomicalOrientation`` alone is not used. The header (within the file's first
+    `_MAX_HEADER_BYTES`) is read first; the samples' size (DimSize × ElementType) is
+    checked against memory and, for uncompressed data, against the data file's size
+    before any sample is read; compressed data are inflated one byte past it at most.
     """
     where = str(path)
-    content = read_bytes(path)
-    fields, data_start = _parse_metaimage_header(content, where)
+    fields, data_start = _parse_metaimage_header(_read_head(path), where)
     dimsize = _meta_numbers(fields, "DimSize", where, required=True)
     ndims = int(_meta_numbers(fields, "NDims", where, count=1)[0]) if "ndims" in fields else 3
-    if ndims != 3 or len(dimsize) != 3 or any(d != int(d) or d <= 0 for d in dimsize):
+    if ndims != 3 or len(dimsize) != 3 or any(not d.is_integer() or d <= 0 for d in dimsize):
         raise VolumeError(
             f"{where}: expected a 3-D MetaImage (NDims = 3, DimSize = three positive "
             f"integers), got NDims = {ndims}, DimSize = {fields['dimsize']!r}"
@@ -64,42 +70,114 @@ def load_metaimage(path: Path) -> Loaded:
                   None)
     frame = None if matrix is None else (np.asarray(matrix, np.float64).reshape(3, 3).T, LPS)
 
+    data_path, offset = _data_source(path, fields, data_start)
+    expected, product = byte_count(dims, dtype)
+    x, y, z = dims
+    size = (f"{product} = {expected} bytes of {fields['elementtype']} for DimSize "
+            f"{x} {y} {z}")
+    header_size = _header_size(fields, where)
+    if compressed:
+        data = _read_compressed(data_path, offset + max(0, header_size), fields, where,
+                                expected, size)
+    else:
+        data = _read_uncompressed(data_path, offset, header_size, expected, size)
+    return data.view(dtype).reshape(z, y, x), spacing, origin, frame
+
+
+def _read_head(path: Path) -> bytes:
+    """The first `_MAX_HEADER_BYTES` of a MetaImage file (its header, and for ``LOCAL``
+    data the first of them)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(_MAX_HEADER_BYTES)
+    except OSError as exc:
+        raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
+
+
+def _data_source(path: Path, fields: dict[str, str], data_start: int) -> tuple[Path, int]:
+    """(the file that holds the samples, where they start in it): `path` itself after
+    its header for ``LOCAL``, else the one ElementDataFile beside it."""
+    where = str(path)
     data_file = fields.get("elementdatafile", "")
     if data_file.upper() == "LOCAL":
-        payload, data_where = memoryview(content)[data_start:], where
-    elif data_file.upper().startswith("LIST") or "%" in data_file:
+        return path, data_start
+    if data_file.upper().startswith("LIST") or "%" in data_file:
         raise VolumeError(
             f"{where}: ElementDataFile = {data_file!r} (a slice list or pattern) is not "
             "supported; expected LOCAL or one data file name"
         )
-    else:
-        data_path = path.parent / data_file
-        if not data_path.is_file():
-            raise VolumeError(
-                f"{where}: ElementDataFile {data_file!r} not found (looked for {data_path})"
-            )
-        payload, data_where = memoryview(read_bytes(data_path)), str(data_path)
-
-    expected, product = byte_count(dims, dtype)
-    check_fits_in_memory(expected, data_where, f"DimSize {' '.join(map(str, dims))}")
-    header_size = 0
-    if "headersize" in fields:
-        header_size = int(_meta_numbers(fields, "HeaderSize", where, count=1)[0])
-    if header_size > 0:
-        payload = payload[header_size:]
-    if compressed:
-        payload = _meta_inflate(payload, fields, data_where, where, expected)
-    elif header_size == -1:  # MetaIO: the data are the last bytes of the file
-        payload = payload[max(0, len(payload) - expected) :]
-    if len(payload) != expected:
-        x, y, z = dims
+    data_path = path.parent / data_file
+    if not data_path.is_file():
         raise VolumeError(
-            f"{data_where}: expected {product} = {expected} bytes of {fields['elementtype']} "
-            f"for DimSize {x} {y} {z}, got {len(payload)} bytes"
+            f"{where}: ElementDataFile {data_file!r} not found (looked for {data_path})"
         )
-    x, y, z = dims
-    data = np.frombuffer(payload, dtype).reshape(z, y, x)
-    return data, spacing, origin, frame
+    return data_path, 0
+
+
+def _header_size(fields: dict[str, str], where: str) -> int:
+    """HeaderSize: bytes to skip before the samples (0 when absent), or -1: the samples
+    are the data file's last bytes (MetaIO's "compute it")."""
+    if "headersize" not in fields:
+        return 0
+    value = _meta_numbers(fields, "HeaderSize", where, count=1)[0]
+    if not value.is_integer() or value < -1:
+        raise VolumeError(
+            f"{where}: MetaImage HeaderSize = {fields['headersize']!r}; expected a whole "
+            "number of bytes to skip, at least 0 (or -1: the data are the file's last bytes)"
+        )
+    return int(value)
+
+
+def _read_uncompressed(data_path: Path, offset: int, header_size: int, expected: int,
+                       size: str) -> np.ndarray:
+    """The `expected` bytes of samples from `offset` (past `header_size` more, or the
+    file's last ones for -1) of `data_path`, whose size is checked first."""
+    data_where = str(data_path)
+    try:
+        with open(data_path, "rb") as f:
+            end, start = f.seek(0, 2), offset + max(0, header_size)
+            if header_size == -1 and end - start >= expected:  # MetaIO: the last bytes
+                start = end - expected
+            if end - start != expected:
+                raise VolumeError(f"{data_where}: expected {size}, got {max(0, end - start)} "
+                                  "bytes")
+            check_fits_in_memory(expected, data_where, size)
+            f.seek(start)
+            return read_bounded(f, expected, data_where, compressed=False)
+    except OSError as exc:
+        raise VolumeError(f"{data_where}: cannot read the file: {one_line(exc)}") from None
+
+
+def _read_compressed(data_path: Path, offset: int, fields: dict[str, str], where: str,
+                     expected: int, size: str) -> np.ndarray:
+    """The `expected` bytes of ``CompressedData = True`` samples from `offset` of
+    `data_path` (at most CompressedDataSize bytes of them), inflated one byte past them
+    at most (`inflate_at_most`)."""
+    data_where = str(data_path)
+    check_fits_in_memory(expected, data_where, size)
+    limit = None
+    if "compresseddatasize" in fields:
+        limit = _meta_numbers(fields, "CompressedDataSize", where, count=1)[0]
+        if not limit.is_integer() or limit < 0:
+            raise VolumeError(f"{where}: MetaImage CompressedDataSize = "
+                              f"{fields['compresseddatasize']!r}; expected a number of bytes")
+        limit = int(limit)
+    try:
+        with open(data_path, "rb") as f:
+            f.seek(offset)
+            buf, count = inflate_at_most(f, expected, zlib.MAX_WBITS | 32, limit)
+    except zlib.error as exc:
+        raise VolumeError(
+            f"{data_where}: corrupt compressed MetaImage data ({one_line(exc)}); "
+            "CompressedData = True expects zlib-deflated samples"
+        ) from None
+    except OSError as exc:
+        raise VolumeError(f"{data_where}: cannot read the file: {one_line(exc)}") from None
+    if count != expected:
+        more = " or more" if count > expected else ""  # inflating stops one byte past
+        raise VolumeError(f"{data_where}: expected {size}, got {count} bytes{more} once "
+                          "inflated")
+    return buf
 
 
 def _parse_metaimage_header(content: bytes, where: str) -> tuple[dict[str, str], int]:
@@ -193,20 +271,3 @@ def _meta_dtype(fields: dict[str, str], where: str) -> np.dtype:
         )
     msb = _meta_bool(fields, ("BinaryDataByteOrderMSB", "ElementByteOrderMSB"), where)
     return np.dtype(_MET_TYPES[name.upper()]).newbyteorder(">" if msb else "<")
-
-
-def _meta_inflate(
-    payload: memoryview, fields: dict[str, str], data_where: str, where: str, expected: int
-) -> bytes:
-    """zlib (or gzip) inflate of ``CompressedData = True`` MetaImage data, stopped one
-    byte past the `expected` bytes (`inflate_bounded`)."""
-    if "compresseddatasize" in fields:
-        size = int(_meta_numbers(fields, "CompressedDataSize", where, count=1)[0])
-        payload = payload[:size]
-    try:
-        return inflate_bounded(payload, expected, zlib.MAX_WBITS | 32)
-    except zlib.error as exc:
-        raise VolumeError(
-            f"{data_where}: corrupt compressed MetaImage data ({one_line(exc)}); "
-            "CompressedData = True expects zlib-deflated samples"
-        ) from None

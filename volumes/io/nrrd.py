@@ -52,9 +52,15 @@ def load_nrrd(path: Path, lazy: bool = False) -> Loaded:
     try:
         with open(path, "rb") as fh:
             header = nrrd.read_header(fh)
+            _check_directions(header, path)
             data = _bounded_data(header, fh, path, lazy)
         if data is None:
             data, header = nrrd.read(str(path), index_order="C")
+    except VolumeError:
+        raise
+    except StopIteration:  # pynrrd's header reader finds no magic line
+        raise VolumeError(f"{path}: not a valid NRRD file: it is empty; expected a "
+                          "header starting with NRRD0001..NRRD0005") from None
     except OSError as exc:
         raise VolumeError(f"{path}: cannot read the NRRD data: {one_line(exc)}") from None
     except (nrrd.NRRDError, *READ_ERRORS) as exc:
@@ -104,6 +110,17 @@ def _nrrd_flips(header: dict) -> np.ndarray:
     return np.asarray(_NRRD_SPACES.get(space, (1, 1, 1)), np.float64)
 
 
+def _check_directions(header: dict, path: Path) -> None:
+    """Refuse ``space directions`` with a vector that is not all finite numbers (pynrrd
+    reads ``none``, the NRRD word for an axis without one, as all NaN: that passes)."""
+    for axis, row in enumerate(header.get("space directions", ())):
+        vector = np.asarray(row, np.float64).reshape(-1)
+        if not np.isnan(vector).all() and not np.isfinite(vector).all():
+            raise VolumeError(
+                f"{path}: space directions vector {axis + 1} = {tuple(vector.tolist())}; "
+                "expected finite numbers (or none)")
+
+
 def _nrrd_directions(header: dict) -> np.ndarray | None:
     """(3, 3) directions of the index axes (columns) in the header's space, from ``space
     directions`` (one row per axis), or None when the header gives none."""
@@ -134,14 +151,19 @@ def _bounded_data(header: dict, fh: BinaryIO, path: Path, lazy: bool) -> np.ndar
     (`_mapped_data`); None where pynrrd must read them (detached data, skips, other
     encodings). Samples read must fit in memory (`check_fits_in_memory`)."""
     sizes = [int(s) for s in np.atleast_1d(header.get("sizes", []))]
+    if sizes and min(sizes) < 1:
+        raise VolumeError(f"{path}: NRRD sizes {' '.join(map(str, sizes))}; expected "
+                          "positive integers (fastest axis first)")
     kind = _TYPES.get(str(header.get("type", "")).strip().lower())
-    if kind is None or not sizes or min(sizes) < 1:
+    if kind is None or not sizes:
         return None  # pynrrd's own message names what is wrong
     dtype = np.dtype(kind).newbyteorder(
         ">" if str(header.get("endian", "little")).lower() == "big" else "<")
     expected = int(np.prod(sizes, dtype=np.int64)) * dtype.itemsize
     encoding = str(header.get("encoding", "raw")).lower()
     detached = _data_file(header)
+    if detached:
+        _check_data_file(path, detached)
     skips = any(k in header for k in ("line skip", "lineskip", "byte skip", "byteskip"))
     if lazy and encoding == "raw" and not skips and detached != "":
         source = (path, fh.tell()) if detached is None else (path.parent / detached, 0)
@@ -166,6 +188,15 @@ def _data_file(header: dict) -> str | None:
         return None
     name = str(name).strip()
     return "" if name.upper().startswith("LIST") or "%" in name or " " in name else name
+
+
+def _check_data_file(path: Path, name: str) -> None:
+    """Refuse a detached data file `name` (beside the header `path`, or absolute) that
+    is not there."""
+    data_path = path.parent / name
+    if not data_path.is_file():
+        raise VolumeError(f"{path}: the detached data file {name!r} is missing (looked "
+                          f"for {data_path}); expected it beside the header")
 
 
 def _mapped_data(file: Path, offset: int, dtype: np.dtype, sizes: list[int],

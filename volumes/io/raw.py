@@ -126,13 +126,13 @@ def load_raw(
     """
     where = str(path)
     from_name = match_raw_name(path.name)
-    how = "given"
-    if from_name is not None:
-        if dims is None:
-            dims = check_dims(from_name[1], where, "in the file name")
-        if dtype is None:
-            dtype = resolve_dtype(from_name[2], where, "in the file name")
-        how = "in the file name"
+    dims_named = dims is None and from_name is not None
+    dtype_named = dtype is None and from_name is not None
+    if dims_named:
+        dims = check_dims(from_name[1], where, "in the file name")
+    if dtype_named:
+        dtype = resolve_dtype(from_name[2], where, "in the file name")
+    how = _sizes_source(dims_named, dtype_named)
     if dims is None or dtype is None:
         raise VolumeError(
             f"{where}: cannot tell the size and type of this raw file: name it "
@@ -153,12 +153,24 @@ def load_raw(
     if actual != expected:
         what = "decompressed bytes" if compressed else "bytes"
         problem = (
-            f"only {actual} {what}: the file is truncated, or the dims/dtype {how} are wrong"
+            f"only {actual} {what}: the file is truncated, or {how} are wrong"
             if actual < expected
-            else f"more {what}: the dims/dtype {how} do not match the file"
+            else f"more {what}: {how} do not match the file"
         )
         raise VolumeError(f"{where}: expected {size}, got {problem}")
     return buf.view(dtype).reshape(z, y, x), None, None, None
+
+
+def _sizes_source(dims_named: bool, dtype_named: bool) -> str:
+    """Where a raw file's dims and dtype came from (its name, or ``--dims``/``--dtype``),
+    as the subject of a message's "... are wrong"."""
+    if dims_named and dtype_named:
+        return "the dims/dtype in the file name"
+    if not dims_named and not dtype_named:
+        return "the --dims/--dtype given"
+    dims = "the dims in the file name" if dims_named else "the --dims given"
+    dtype = "the dtype in the file name" if dtype_named else "the --dtype given"
+    return f"{dims} or {dtype}"
 
 
 def _check_size(path: Path, expected: int, size: str, how: str) -> None:
@@ -169,10 +181,10 @@ def _check_size(path: Path, expected: int, size: str, how: str) -> None:
         raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
     if actual < expected:
         raise VolumeError(f"{path}: expected {size}, got only {actual} bytes: the file is "
-                          f"truncated, or the dims/dtype {how} are wrong")
+                          f"truncated, or {how} are wrong")
     if actual > expected:
-        raise VolumeError(f"{path}: expected {size}, got {actual} bytes: the dims/dtype "
-                          f"{how} do not match the file size")
+        raise VolumeError(f"{path}: expected {size}, got {actual} bytes: {how} do not "
+                          "match the file size")
 
 
 def _read_raw_samples(path: Path, expected: int, compressed: bool) -> tuple[np.ndarray, int]:
