@@ -29,7 +29,7 @@ from isolume.app.options import (
 )
 from isolume.app.state import add_state_argument, apply_state
 from isolume.volumes import cores
-from isolume.volumes.errors import IsolumeError
+from isolume.volumes.errors import IsolumeError, interrupted_by
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "info": cmd_info,
@@ -66,8 +66,8 @@ BUILT_IN = {
     "render": ("render an isosurface off-screen to PNG or EXR",
                "Render an isosurface off-screen to PNG (sRGB) or EXR (linear). Without "
                "--lattice the view's global illumination is traced for the texels the "
-               "picture reads (32 paths a texel on average, placed where the picture's "
-               "noise is)."),
+               "picture reads (28 paths a texel on average, placed where the picture's "
+               "noise is, their first directions stratified)."),
     "bake": ("bake an illumination lattice with Embree path tracing",
              "Bake an illumination lattice for every isovalue (or --iso-range) with Embree "
              "path tracing; Ctrl-C keeps the finished texels."),
@@ -168,6 +168,10 @@ def _run(argv: Sequence[str] | None) -> int:
     command = COMMANDS.get(args.command) or _command_module(args.command).run
     try:
         args = apply_state(args, words[1:])  # --state FILE: the file's defaults
+        if getattr(args, "timeline", None):  # written when the command ends: checked now
+            from isolume.app.render.images import check_output_folder
+
+            check_output_folder(args.timeline)
         cores.use(workers_of(args))
         with cores.recording(getattr(args, "timeline", None), command=words):
             return command(args)
@@ -175,7 +179,9 @@ def _run(argv: Sequence[str] | None) -> int:
         message = " ".join(str(exc).split())
         print(f"isolume: error: {message}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as exc:
+        if not interrupted_by(exc):
+            raise
         print("isolume: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into `head` and the like

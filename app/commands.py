@@ -21,6 +21,7 @@ from isolume.app.options import (
     load_volume,
     parse_size,
 )
+from isolume.volumes.errors import interrupted_by
 
 if TYPE_CHECKING:
     from isolume.app.render.offscreen import Reuse
@@ -74,12 +75,12 @@ def render_picture(args: argparse.Namespace, reuse: Reuse | None = None) -> Rend
     from isolume.app.render.camera import parse_view
     from isolume.app.render.offscreen import render_volume
 
-    vol = load_volume(args)
-    lattice = load_lattice(args.lattice, vol, whole=False)
-    try:
+    try:  # before any work: a size beyond the memory is refused at once
         view, size = parse_view(args.view), parse_size(args.size)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
+    vol = load_volume(args)
+    lattice = load_lattice(args.lattice, vol, whole=False)
     look = shading_look(args, vol, lattice, size)
     iso = isovalue(vol, args.iso)
     check_served(lattice, iso, args.lattice)
@@ -118,6 +119,9 @@ def say_outlook(outlook: BakeOutlook, config: BakeConfig) -> None:
     """Tell, before any path, what a bake of `config` will trace and roughly how long it
     will take (`baking.bake.BakeOutlook`), and how to make it cheaper when that exceeds
     `CHEAPER_AFTER_MINUTES`."""
+    if outlook.resumed:
+        print(f"bake: resuming: {outlook.resumed:,} of the {outlook.texels:,} texels have "
+              "paths in the --out file already", file=sys.stderr, flush=True)
     line = (f"bake: {outlook.texels:,} texels on {outlook.levels} levels, "
             f"{outlook.paths:,} paths to trace")
     minutes = outlook.minutes()
@@ -196,10 +200,15 @@ def cmd_bake(args: argparse.Namespace) -> int:
               "run the same command again to resume (and to compress what a Ctrl-C saved "
               "uncompressed)", file=sys.stderr)
         return 130
-    except KeyboardInterrupt:  # before the tracing: nothing new to save
+    except (KeyboardInterrupt, SystemError) as exc:  # before the tracing: nothing new
+        if not interrupted_by(exc):
+            raise
         if Path(out).exists():
             print(f"isolume: interrupted; {out} keeps the texels of its last save; run the "
                   "same command again to resume", file=sys.stderr)
+        else:
+            print(f"isolume: interrupted before any path was traced; {out} not written",
+                  file=sys.stderr)
         return 130
     plan, stats = lattice.meta["plan"], lattice.meta["stats"]
     total = plan["total_texels"]

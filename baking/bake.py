@@ -65,11 +65,12 @@ from isolume.baking.passes import (
     commit_sums,
     rows_at,
 )
-from isolume.baking.plan import Plan, index_type, make_plan
+from isolume.baking.plan import Plan, as_planned, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
 from isolume.baking.plan_records import HeldRecords, LevelGroups, PlanRecords, spill
 from isolume.baking.saves import CHECKPOINT_S, Checkpoints, through_one_interrupt
 from isolume.volumes import cores
+from isolume.volumes.errors import interrupted_by
 
 
 def tracing_lights(config: BakeConfig) -> TracingLights:
@@ -145,9 +146,13 @@ def _resumable(volume: volumes.Volume, config: BakeConfig, out: Path | None
     if out is None or not out.exists():
         return None
     file, geometry, previous = open_lattice(out, volume)
-    if previous is None or not previous.same_result_as(config):
-        raise BakeError(f"{out}: holds a bake with other settings ({previous}); to resume, "
-                        "repeat them, or write to a new --out file")
+    if previous is None:
+        raise BakeError(f"{out}: records no bake settings; to bake, write to a new --out "
+                        "file")
+    if not previous.same_result_as(config):
+        raise BakeError(f"{out}: holds a bake with other settings ("
+                        f"{'; '.join(previous.differences(config))}); to resume, repeat "
+                        "them, or write to a new --out file")
     problem = other_texels(geometry, volume, config.scale, out)
     if problem:
         raise BakeError(problem)
@@ -258,9 +263,11 @@ class Baker:
             self.geometry: LatticeGeometry = LatticeGeometry.for_volume(volume, config.scale)
             self.lighting: TracingLights = tracing_lights(config)
             self.stats: BakeStats = BakeStats()
-            kept = _kept_levels(resume if packed else lattice)
-            self.backend.begin(volume, config, kept, self.stats)  # beside the plan
-            self.plan: Plan = make_plan(volume, self.geometry, config, kept, progress,
+            source = resume if packed else lattice
+            kept = _kept_levels(source)
+            planned = as_planned(config, source.meta if source is not None else {})
+            self.backend.begin(volume, planned, kept, self.stats)  # beside the plan
+            self.plan: Plan = make_plan(volume, self.geometry, planned, kept, progress,
                                         on_levels=self.backend.levels_known,
                                         scenes=self.backend.plan_scene, traced_only=packed)
             self.groups: LevelGroups = LevelGroups(self.plan.lower)  # every texel's, by lower level
@@ -277,7 +284,7 @@ class Baker:
             self.texels_done: int = int(np.count_nonzero(self.samples_done()))
             self.previous: dict[str, Any] = dict(self.lattice.meta.get("stats", {}))
             self.facings_made: bool = False
-            self.job: BakeJob = BakeJob(volume, config, self.geometry, self.plan,
+            self.job: BakeJob = BakeJob(volume, planned, self.geometry, self.plan,
                                         self.records, self._tracing(), self.stats)
             self.backend.start(self.job)
         except BaseException:
@@ -449,13 +456,15 @@ class BakeOutlook:
     Attributes:
         texels: active texels; levels: isovalue levels; paths: paths still to trace
             (about, with a noise target or a texel error: `_outlook_samples` a texel);
-        threads: local tracing threads (0 on a cluster).
+        threads: local tracing threads (0 on a cluster); resumed: texels that have
+            paths already (from the --out file a bake resumes; 0 for a new bake).
     """
 
     texels: int
     levels: int
     paths: int
     threads: int
+    resumed: int = 0
 
     def minutes(self) -> float | None:
         """Rough wall time in minutes on local threads at `PATHS_PER_THREAD_SECOND` (None
@@ -533,7 +542,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     if outlook is not None:
         threads = 0 if scheduler is not None else (workers or cores.threads())
         expected = int(np.maximum(_outlook_samples(config) - done, 0).sum())
-        outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), expected, threads))
+        outlook(BakeOutlook(len(baker.plan.ids), len(baker.plan.levels), expected, threads,
+                            int(np.count_nonzero(done))))
     del done
     bar = _progress(pending, progress)
     held = baker.lattice
@@ -554,7 +564,9 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
             if out is not None:  # traced: from here on a Ctrl-C lets the save end first
                 hurry = finishing.enter_context(quick_saves(now=False))
                 pressed = finishing.enter_context(through_one_interrupt(note, hurry))
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, SystemError) as exc:
+            if not interrupted_by(exc):  # a Ctrl-C out of numba's kernel loading counts
+                raise
             bar.close()  # its last line stays above what follows
             if out is not None:
                 if progress:
@@ -566,7 +578,9 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
                 if not keep_interrupted:
                     raise BakeInterrupted(_finished(held)) from None
             if not keep_interrupted:
-                raise
+                if isinstance(exc, KeyboardInterrupt):
+                    raise
+                raise KeyboardInterrupt from exc
             held.meta["interrupted"] = True
         finally:
             baker.close()

@@ -281,9 +281,19 @@ class BakeConfig:
         return cls(**d)
 
     def same_result_as(self, other: BakeConfig) -> bool:
-        """True when both configs give the same per-sample estimates (samples may differ)."""
-        def core(c: BakeConfig) -> BakeConfig:
-            return dataclasses.replace(c, samples=1, target_error=None, max_samples=4096,
-                                       texel_error=None)
+        """True when both configs give the same per-sample estimates (samples may differ:
+        a resumed bake keeps its file's levels and move limit, `baking.bake._planned`)."""
+        return not self.differences(other)
 
-        return core(self) == core(other)
+    def differences(self, other: BakeConfig) -> list[str]:
+        """What differs between this config (a file's) and `other` (a command's) beyond the
+        paths asked for: one "--option: X in the file, Y here" per setting, in field
+        order."""
+        def core(c: BakeConfig) -> dict[str, Any]:
+            return dataclasses.asdict(dataclasses.replace(
+                c, samples=1, target_error=None, max_samples=4096, texel_error=None))
+
+        mine, theirs = core(self), core(other)
+        options = {"lights": "light"}  # fields whose option has another name
+        return [f"--{options.get(name, name).replace('_', '-')}: {mine[name]!r} in the file, "
+                f"{theirs[name]!r} here" for name in mine if mine[name] != theirs[name]]

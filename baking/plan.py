@@ -503,6 +503,18 @@ def move_limit(config: BakeConfig) -> float:
     return float(np.clip(scaled, *MOVE_LIMITS))
 
 
+def as_planned(config: BakeConfig, meta: dict[str, Any]) -> BakeConfig:
+    """`config` with the move limit a lattice was planned with (its metadata's
+    ``plan["move_limit_voxels"]``) as `BakeConfig.max_move`: a resumed bake moves its
+    texels onto the kept levels as far as the paths already traced were moved, even where
+    its sample count (which sets the limit, `move_limit`) differs. `config` itself where
+    `meta` records none (a new bake)."""
+    plan = meta.get("plan", {})
+    if "move_limit_voxels" not in plan:
+        return config
+    return replace(config, max_move=float(plan["move_limit_voxels"]))
+
+
 def levels_follow_samples(config: BakeConfig) -> bool:
     """True when `config`'s levels depend on its sample count (the automatic policy): a
     bake resumed with more samples then keeps the levels of its file, and differs from a

@@ -49,6 +49,8 @@ class HeldLattice:
         paths: (K,) uint16 (previews) or uint32 (a file's samples) paths behind each
             estimate (0: none; not shown).
         meta, config: as `baking.Lattice`'s (kind, volume identity; the lighting).
+        unbaked: texels asked for that the file holds without paths yet (an unfinished
+            bake's; `LatticeOnFile.held`), 0 otherwise.
     """
 
     def __init__(self, geometry: LatticeGeometry, texels: np.ndarray, channels: int,
@@ -62,6 +64,7 @@ class HeldLattice:
         self.paths: np.ndarray = np.zeros(len(self.texels), np.uint16)
         self.meta: dict[str, Any] = meta
         self.config: BakeConfig | None = config
+        self.unbaked: int = 0
 
     @classmethod
     def for_texels(cls, volume: Volume, config: BakeConfig, texels: np.ndarray) -> HeldLattice:
@@ -211,4 +214,5 @@ class LatticeOnFile:
         lattice.values = arrays["values"][computed]
         lattice.facing = arrays["facing"][computed]
         lattice.paths = arrays["samples"][computed]
+        lattice.unbaked = int(np.count_nonzero(~computed))
         return lattice

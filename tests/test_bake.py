@@ -440,6 +440,44 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert again.meta["rays_traced"] == whole.meta["rays_traced"]
 
 
+def test_more_paths_for_a_file_keep_its_plan(tmp_path):
+    """A file baked with 8 paths a texel and resumed with 32 (whose own plan would move
+    texels less far onto the levels, `plan.move_limit`) keeps its file's levels and move
+    limit, so every texel's new paths start where its first ones did: the same plan
+    record (levels, limit, texels left unreachable or lit on the high side; with the
+    limit of 32 paths, 294 texels are left unreachable against the file's 253). The
+    outlook counts the texels resumed."""
+    from isolume.baking.bake import BakeOutlook
+    from isolume.baking.plan import move_limit
+
+    config = BakeConfig(samples=8, bounces=1, env="sky:sun=3")
+    vol = make("engine", 32)
+    path = tmp_path / "l.npz"
+    first = bake(vol, config, out=path, workers=2)
+    told: list[BakeOutlook] = []
+    more = bake(vol, dataclasses.replace(config, samples=32), out=path, workers=2,
+                outlook=told.append)
+    keys = ("levels", "move_limit_voxels", "unreachable_texels", "high_side_texels")
+    assert {k: more.meta["plan"][k] for k in keys} == {k: first.meta["plan"][k] for k in keys}
+    assert told[0].resumed == np.count_nonzero(first.samples) > 0
+    assert (more.samples[first.samples > 0] == 32).all()
+    assert first.meta["plan"]["move_limit_voxels"] != pytest.approx(
+        move_limit(dataclasses.replace(config, samples=32)))
+    bake(vol, config, out=tmp_path / "new.npz", workers=2, outlook=told.append)
+    assert told[1].resumed == 0
+
+
+def test_a_file_of_other_settings_is_refused_naming_them(tmp_path):
+    config = BakeConfig(samples=4, bounces=1, env="constant:1,1,1", max_move=0.5)
+    vol = make("shells", 24)
+    path = tmp_path / "l.npz"
+    bake(vol, config, out=path, workers=2)
+    with pytest.raises(BakeError, match=r"--bounces: 1 in the file, 2 here; --seed: 0 in "
+                                        r"the file, 5 here\); to resume, repeat them"):
+        bake(vol, dataclasses.replace(config, bounces=2, seed=5), out=path, workers=2)
+    bake(vol, dataclasses.replace(config, samples=6), out=path, workers=2)  # more paths: on
+
+
 def test_checkpoints_take_at_most_a_share_of_the_bake(monkeypatch, tmp_path):
     """`Checkpoints` saves once `seconds` have passed, then waits 1 / `SAVE_SHARE` times
     as long as a save took when that is longer (a clock the saves move by 10 s)."""
@@ -516,6 +554,44 @@ def test_interrupt_keeps_finished_texels_and_resume_completes(tmp_path, monkeypa
     done = bake(vol, config, out=path, workers=2)
     np.testing.assert_allclose(done.values, whole.values, rtol=2e-6, atol=1e-6)
     assert not _stored(path)
+
+
+def test_a_ctrl_c_out_of_a_kernels_loading_is_an_interrupt_too(tmp_path, monkeypatch):
+    """A Ctrl-C that lands while numba loads a kernel comes out of the call as a
+    SystemError whose context is the KeyboardInterrupt: the bake saves its finished
+    texels and raises `BakeInterrupted` as for any Ctrl-C; another SystemError stays
+    a bug and keeps its traceback."""
+    from isolume.baking.backend import ThreadBackend
+    from isolume.baking.errors import BakeInterrupted
+
+    config = BakeConfig(samples=8, bounces=1, env="constant:1,1,1", max_move=0.5)
+    vol = make("shells", 24)
+    original = ThreadBackend._submit_level
+    calls = {"n": 0}
+
+    def failing(error, during_interrupt):
+        def submit(self, *args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] == 4 and during_interrupt:
+                try:
+                    raise KeyboardInterrupt
+                except KeyboardInterrupt:
+                    raise error  # noqa: B904  (as numba does: the interrupt its context)
+            if calls["n"] == 4:
+                raise error
+            return original(self, *args, **kwargs)
+        return submit
+
+    monkeypatch.setattr(ThreadBackend, "_submit_level", failing(SystemError(
+        "CPUDispatcher returned a result with an exception set"), True))
+    path = tmp_path / "cut.npz"
+    with pytest.raises(BakeInterrupted) as stop:
+        bake(vol, config, out=path, workers=2)
+    assert stop.value.finished == np.count_nonzero(Lattice.load(path, vol).samples) > 0
+    calls["n"] = 0
+    monkeypatch.setattr(ThreadBackend, "_submit_level", failing(SystemError("plain"), False))
+    with pytest.raises(SystemError, match="plain"):
+        bake(vol, config, out=tmp_path / "bug.npz", workers=2)
 
 
 def _stored(path) -> bool:

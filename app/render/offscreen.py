@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -41,6 +42,17 @@ def _read_texels(settings: RenderSettings, geometry, points: np.ndarray) -> np.n
     if mode is not None and mode.lookup == "bspline":
         return None
     return picture_texels(geometry, points)
+
+
+def _warn_unbaked(lattice: HeldLattice, source: object) -> None:
+    """A warning on stderr where texels the picture reads have no paths in the lattice
+    file `source` yet (an unfinished bake: those pixels take their neighbours' light, or
+    local shading where none has any)."""
+    if lattice.unbaked:
+        print(f"isolume: warning: {source} is unfinished: {lattice.unbaked:,} of the "
+              f"{lattice.unbaked + len(lattice.texels):,} texels this picture reads have no "
+              "paths yet (drawn from their neighbours' light, or local shading); run its "
+              "bake again to finish it", file=sys.stderr)
 
 
 class Reuse:
@@ -138,7 +150,9 @@ def render_volume(
         seen, scene = None, None
         if isinstance(lattice, LatticeOnFile):  # read the texels the pixels read
             seen = position_pass(renderer, camera, settings)
+            source = lattice.file.path
             lattice = lattice.held(_read_texels(settings, lattice.geometry, seen[0]))
+            _warn_unbaked(lattice, source)
         elif lattice is None and view_light is not None and len(mesh.faces):
             from isolume.app.render.view_gi import view_lattice
 
