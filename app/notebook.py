@@ -81,7 +81,7 @@ def show(volume: volumes.Volume, *, iso: float | None = None,
     """
     from isolume.app.options import isovalue
 
-    view_class = _view_class()
+    view_class = notebook_view_class()
     iso = isovalue(volume, iso)
     options = view_options(volume, size, lattice, shading=shading, exposure=exposure,
                            no_auto_exposure=no_auto_exposure, no_bake=no_bake,
@@ -97,7 +97,7 @@ def show(volume: volumes.Volume, *, iso: float | None = None,
         raise
 
 
-def _view_class() -> type[NotebookView]:
+def notebook_view_class() -> type[NotebookView]:
     """`app.notebook_view.NotebookView`, or a one-line `IsolumeError` when the notebook
     extras are missing."""
     from isolume.volumes.errors import IsolumeError

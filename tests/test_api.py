@@ -232,6 +232,17 @@ def test_one_identity_per_module_in_the_editable_install():
     assert "refused isolume.app.api: import isolume instead" in out and "True" in out
 
 
+def test_every_public_name_resolves():
+    """Each name of ``isolume.__all__`` (docs/python.md's table) is there when asked for,
+    the widget class included."""
+    code = ("import isolume\n"
+            "print(all(getattr(isolume, n) is not None for n in isolume.__all__))\n"
+            "print(isolume.NotebookView.__name__)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["True", "NotebookView"]
+
+
 def test_nothing_under_app_baking_or_volumes_imports_the_api():
     subpackages = {"app", "baking", "volumes", "shaders"}
     for folder in ("app", "baking", "volumes", "shaders"):

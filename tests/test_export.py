@@ -187,13 +187,13 @@ def test_vertex_colours_agree_with_the_rendered_pixels(tmp_path, capsys, sphere_
     and add the sun's direct light, so what separates them is where they look: the pixel's
     surface point lies up to 0.7 pixel (a fifth of a voxel here) from the vertex, across
     which the light changes by a few per cent where it changes fastest (the sun's
-    terminator, creases, shadow edges: render filters its shadow map, export traces 32 rays
-    over the sun's disc), and render stores irradiance as RGB9E5 (2⁻⁹) and SH transfer as
-    float16. Measured (llvmpipe): median relative difference 0.6 % (irradiance lattice),
-    1.1 % (traced, engine), 0.7 % (SH); 90th percentile 2.3 %, 8.8 %, 3.9 %; means within
-    0.4 %. The bounds leave room for other GL rounding and noise; a light missing, a
-    factor π, or another side's light breaks them. The sRGB bytes: one level apart at the
-    median (rounding of the same curve), 2, 7 and 3 levels at the 90th percentile.
+    terminator, creases, shadow edges), and render stores irradiance as RGB9E5 (2⁻⁹) and
+    SH transfer as float16. Measured (llvmpipe): median relative difference 0.6 %
+    (irradiance lattice), 1.1 % (traced, engine), 0.7 % (SH); 90th percentile 2.3 %,
+    8.8 %, 3.9 %; means within 0.4 %. The bounds leave room for other GL rounding and
+    noise; a light missing, a factor π, or another side's light breaks them. The sRGB
+    bytes: one level apart at the median (rounding of the same curve), 2, 7 and 3 levels
+    at the 90th percentile.
     """
     make = {"irradiance lattice": lambda: _irradiance_case(tmp_path, sphere_lattice),
             "traced": lambda: _traced_case(tmp_path), "sh lattice": lambda: _sh_case(tmp_path)}

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from isolume._calls import render as render
     from isolume._calls import show as show
     from isolume._picture import Picture as Picture
-    from isolume.app.notebook import NotebookView as NotebookView
+    from isolume.app.notebook_view import NotebookView as NotebookView
     from isolume.app.state import SavedView as View
     from isolume.baking.lattice import Lattice as Lattice
     from isolume.volumes.core import Volume as Volume
@@ -69,7 +69,6 @@ _WHERE = {
     "reference": ("isolume._calls", "reference"),
     "show": ("isolume._calls", "show"),
     "Picture": ("isolume._picture", "Picture"),
-    "NotebookView": ("isolume.app.notebook", "NotebookView"),
     "View": ("isolume.app.state", "SavedView"),
     "Lattice": ("isolume.baking.lattice", "Lattice"),
     "Volume": ("isolume.volumes.core", "Volume"),
@@ -84,6 +83,10 @@ def __getattr__(name: str) -> object:
         from importlib.metadata import version
 
         value: object = version("isolume")
+    elif name == "NotebookView":  # the notebook extras may be missing: a one-line error
+        from isolume.app.notebook import notebook_view_class
+
+        value = notebook_view_class()
     elif name in _WHERE:
         module, attribute = _WHERE[name]
         value = getattr(importlib.import_module(module), attribute)
