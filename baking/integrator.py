@@ -315,7 +315,7 @@ def trace_whole_paths(scene: Scene, params: WholePaths,
                       starts: tuple[np.uint32, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                     np.ndarray, np.ndarray],
                       weights: np.ndarray, acc: _PassSums,
-                      stats: RayStats | None = None) -> None:
+                      stats: RayStats | None = None, stratified: bool = False) -> None:
     """`kernels.path_starts`, `trace_paths` and `kernels.accumulate` in one compiled call
     that calls Embree per ray (needs ``scene.calls``).
 
@@ -326,6 +326,7 @@ def trace_whole_paths(scene: Scene, params: WholePaths,
             ``second`` (A,), ``n`` (A,)) the paths add to.
         stats: the seconds added are the call's: Embree's and the arithmetic between
             its calls.
+        stratified: first directions by `kernels.stratify_first_directions`.
     """
     recorder = scene.recorder
     if recorder is None:
@@ -333,7 +334,8 @@ def trace_whole_paths(scene: Scene, params: WholePaths,
     else:
         record = recorder.reserve(2 * (params.bounces + 1) * len(starts[2]))
     start = time.perf_counter()
-    rays = kernels.trace_chunk(tuple(scene.calls), *starts, params.bounces, params.albedo,
+    rays = kernels.trace_chunk(tuple(scene.calls), *starts, stratified, params.bounces,
+                               params.albedo,
                                params.offset, params.escaped_radiance, params.sky,
                                params.first_sky, params.first_sampled, params.use_sky,
                                weights, acc.sum,

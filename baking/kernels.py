@@ -31,10 +31,12 @@ from isolume.baking.embree_kernels import intersect_rays, occluded_rays
 from isolume.baking.sampling_kernels import (
     GOLDEN,
     dimension_key,
+    net_words,
     pcg_hash,
     sincos_turns,
     tangent_frame,
     uniform_f32,
+    word_uniform_f32,
 )
 from isolume.baking.sky_kernels import (
     SKY_PARAMS,
@@ -203,10 +205,43 @@ def _fill_cosine_directions(keys: np.ndarray, dim: int, normals: np.ndarray,
 def _cosine_local(key: np.uint32, k0: np.uint32, k1: np.uint32):
     """The cosine-distributed direction of a key (dimension keys k0, k1) in the frame
     whose z axis is the normal (Malley's method), float32."""
-    u0, u1 = uniform_f32(key, k0), uniform_f32(key, k1)
+    return _cosine_of(uniform_f32(key, k0), uniform_f32(key, k1))
+
+
+@numba.njit(**JIT)
+def _cosine_of(u0: np.float32, u1: np.float32):
+    """The cosine-distributed direction of two float32 uniforms in the frame whose z axis
+    is the normal (Malley's method: radius √u0, angle u1 turns)."""
     r = np.sqrt(u0)
     c, si = sincos_turns(u1)
     return r * c, r * si, np.sqrt(np.float32(1.0) - u0)
+
+
+@numba.njit(**JIT)
+def stratify_first_directions(seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
+                              samples: np.ndarray, normals: np.ndarray, dirs: np.ndarray
+                              ) -> None:
+    """Overwrite the (3, P) first directions `dirs` of `path_starts`' P paths with
+    stratified ones: sample s of a texel takes point s of the (0, 2)-sequence
+    (`net_words`), digitally shifted by two words hashed from the texel's key (its
+    `path_starts` hash with `dimension_key` 0 and 1), as its two uniforms. Each
+    direction alone is cosine-distributed as before (the shift makes each point
+    uniform), while a texel's first 2ᵐ samples cover its hemisphere's 2ᵐ equal-area
+    cells of every shape once each: the visibility of the sky, a step over the
+    hemisphere, is estimated with about half the RMS error of independent samples at
+    32 paths. The other dimensions keep the paths' keys."""
+    k0, k1 = dimension_key(0), dimension_key(1)
+    for i in range(len(pos)):
+        h = pcg_hash(np.uint32(np.uint32(ids[pos[i]]) ^ seed_key))
+        first, second = net_words(samples[i])
+        u0 = word_uniform_f32(np.uint32(first ^ pcg_hash(np.uint32(h ^ k0))))
+        u1 = word_uniform_f32(np.uint32(second ^ pcg_hash(np.uint32(h ^ k1))))
+        lx, ly, lz = _cosine_of(u0, u1)
+        nx, ny, nz = normals[0, i], normals[1, i], normals[2, i]
+        tx, ty, tz, bx, by, bz = tangent_frame(nx, ny, nz)
+        dirs[0, i] = lx * tx + ly * bx + lz * nx
+        dirs[1, i] = lx * ty + ly * by + lz * ny
+        dirs[2, i] = lx * tz + ly * bz + lz * nz
 
 
 @numba.njit(**JIT)
@@ -393,7 +428,8 @@ def _record(record: np.ndarray, recorded: int, kind: float, pos: np.ndarray,
 @numba.njit(**JIT)
 def trace_chunk(calls: tuple[int, ...], seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
                 samples: np.ndarray, texels: np.ndarray, origins: np.ndarray,
-                normals: np.ndarray, bounces: int, albedo: np.ndarray, offset: float,
+                normals: np.ndarray, stratified: bool, bounces: int, albedo: np.ndarray,
+                offset: float,
                 escaped_radiance: np.ndarray, sky: np.ndarray, first_sky: np.ndarray,
                 first_sampled: bool, use_sky: bool, weights: np.ndarray,
                 acc_sum: np.ndarray, acc_second: np.ndarray, acc_n: np.ndarray,
@@ -409,6 +445,7 @@ def trace_chunk(calls: tuple[int, ...], seed_key: np.uint32, ids: np.ndarray, po
         calls: (scene handle, rtcIntersect1 address, rtcOccluded1 address).
         seed_key, ids, pos, samples, texels, origins, normals: as `path_starts` (P paths
             sorted by texel position; (T, 3) float32 start points and unit normals).
+        stratified: first directions by `stratify_first_directions`, else by the keys.
         albedo: (3,) float32; offset: world distance hit points leave the surface by.
         escaped_radiance: (3,) π·L of a constant environment (zero under the sky).
         sky: (SKY_PARAMS,) `sky_params` (any values when not `use_sky`); first_sky: those
@@ -423,6 +460,8 @@ def trace_chunk(calls: tuple[int, ...], seed_key: np.uint32, ids: np.ndarray, po
         rays traced.
     """
     keys, at, n, dirs = path_starts(seed_key, ids, pos, samples, texels, origins, normals)
+    if stratified:
+        stratify_first_directions(seed_key, ids, pos, samples, n, dirs)
     result = np.zeros((len(pos), 3))
     alive = np.arange(len(pos))
     beta = np.ones((3, len(pos)), np.float32)
@@ -604,8 +643,10 @@ def warm_up() -> None:
                                              np.zeros(1), 0.5)
         texel_paths(texels, upper, counts, count, count, np.zeros(1), np.zeros(1), 0.5)
     sky = np.zeros(SKY_PARAMS)
+    stratify_first_directions(np.uint32(0), index, index, index, vec, vec.copy())
     trace_chunk((0, 0, 0), np.uint32(0), index, index[:0], index[:0], index, vec.T.copy(),
-                vec.T.copy(), 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky, True, True,
+                vec.T.copy(), False, 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky,
+                True, True,
                 np.ones(3), np.zeros((1, 3)), np.zeros(1), index.copy(),
                 np.empty((0, RAY_RECORD_ROWS), np.float32))
     _, contrib, useful = sky_light_samples(sky, keys, 0, vec)

@@ -343,6 +343,9 @@ class Tracing:
         weights: (C,) weights of the brightness whose second moment the pass sums keep.
         whole: parameters of `integrator.trace_whole_paths` where it covers the bake's
             lighting, else None (`integrator.whole_paths`).
+        stratified: the paths' first directions stratified over each texel's samples
+            (`kernels.stratify_first_directions`: the traced light of views), else
+            drawn from the paths' keys as every other dimension (bakes).
     """
 
     ids: np.ndarray
@@ -351,6 +354,7 @@ class Tracing:
     seed_key: np.uint32
     weights: np.ndarray
     whole: WholePaths | None
+    stratified: bool = False
 
 
 def trace_chunk(scene: Scene, tracing: Tracing, pos: np.ndarray, samples: np.ndarray,
@@ -365,9 +369,13 @@ def trace_chunk(scene: Scene, tracing: Tracing, pos: np.ndarray, samples: np.nda
               start.normals)
     ray_stats = RayStats()
     if tracing.whole is not None and scene.calls is not None:
-        trace_whole_paths(scene, tracing.whole, starts, tracing.weights, acc, ray_stats)
+        trace_whole_paths(scene, tracing.whole, starts, tracing.weights, acc, ray_stats,
+                          tracing.stratified)
     else:
         keys, origins, normals, dirs = kernels.path_starts(*starts)
+        if tracing.stratified:
+            kernels.stratify_first_directions(tracing.seed_key, tracing.ids, pos, samples,
+                                              normals, dirs)
         estimates = trace_paths(scene, origins.T, normals.T, keys, tracing.lighting,
                                 tracing.settings, ray_stats, dirs.T)
         kernels.accumulate(pos, estimates, tracing.weights, acc.sum, acc.second, acc.n)

@@ -472,11 +472,13 @@ class Previewer:
 def preview_tracing(volume: volumes.Volume, config: BakeConfig) -> Tracing:
     """What the previews trace with (lighting parsed once: an HDR map is read and its
     sampler built here, not at every preview step); `estimate` fills in the texels and
-    their sums. Previews take their own random numbers (`SEED_SALT`)."""
+    their sums. Previews take their own random numbers (`SEED_SALT`), their first
+    directions stratified over each texel's samples (`Tracing.stratified`)."""
     lighting, settings = tracing_lights(config), path_settings(volume, config)
     return Tracing(np.zeros(0, np.int64), lighting, settings,
                    np.uint32(rng.seed_key(config.seed ^ SEED_SALT)),
-                   np.zeros(settings.channels), whole_paths(lighting, settings))
+                   np.zeros(settings.channels), whole_paths(lighting, settings),
+                   stratified=True)
 
 
 def drop_inactive(lattice: Lattice) -> np.ndarray:

@@ -76,6 +76,37 @@ def uniform_f32(key: np.uint32, dim_key: np.uint32) -> np.float32:
 
 
 @numba.njit(**JIT)
+def word_uniform_f32(word: np.uint32) -> np.float32:
+    """A 32-bit word as a float32 uniform in [0, 1), from its top 31 bits as
+    `uniform_f32` converts a hash."""
+    return min(np.float32(np.int32(word >> np.uint32(1))) * np.float32(2.0**-31),
+               np.float32(1.0 - 2.0**-24))
+
+
+@numba.njit(**JIT)
+def net_words(index: int) -> tuple[np.uint32, np.uint32]:
+    """Point `index` (≥ 0) of the (0, 2)-sequence in base 2 as two 32-bit words: the van der
+    Corput radical inverse and Sobol's second coordinate (generator columns c₀ = 2³¹,
+    cₖ = cₖ₋₁ ⊕ cₖ₋₁/2). Every 2ᵐ consecutive points from a multiple of 2ᵐ put one point
+    in each of the 2ᵐ elementary boxes of every shape 2⁻ᵃ × 2⁻⁽ᵐ⁻ᵃ⁾ (a (0, m, 2)-net), and
+    so do their bits XOR-ed with any two fixed words (a random digital shift: then each
+    point alone is uniform)."""
+    first = np.uint32(0)
+    second = np.uint32(0)
+    column = np.uint32(1 << 31)
+    bit = np.uint32(1 << 31)
+    rest = np.uint32(index)
+    while rest:
+        if rest & np.uint32(1):
+            first = np.uint32(first ^ bit)
+            second = np.uint32(second ^ column)
+        rest = np.uint32(rest >> np.uint32(1))
+        bit = np.uint32(bit >> np.uint32(1))
+        column = np.uint32(column ^ (column >> np.uint32(1)))
+    return first, second
+
+
+@numba.njit(**JIT)
 def uniform2(keys: np.ndarray, dim: int) -> np.ndarray:
     """(N, 2) float64 uniforms of dimensions `dim`, `dim + 1` (`baking.rng.uniform2`)."""
     k0, k1 = dimension_key(dim), dimension_key(dim + 1)

@@ -97,14 +97,37 @@ def contact():
     return vol, config, texels, seen, surface_scene(vol, 0.5, 1), share
 
 
-def _light(contact, paths, share, seed=0, workers=2):
-    """(K,) luminance and (K,) paths of the contact scene's texels."""
+def _light(contact, paths, share, seed=0, workers=2, stratified=True):
+    """(K,) luminance and (K,) paths of the contact scene's texels (`stratified`: the
+    previews' first directions, else drawn from the paths' keys as a bake's are)."""
     vol, config, texels, seen, scene, _ = contact
     config = dataclasses.replace(config, seed=seed)
     lattice = HeldLattice.for_texels(vol, config, texels)
+    tracing = dataclasses.replace(preview_tracing(vol, config), stratified=stratified)
     estimate(vol, config, lattice, 0.5, texels, scene, 1, paths=paths,
-             tracing=preview_tracing(vol, config), workers=workers, seen=seen, share=share)
+             tracing=tracing, workers=workers, seen=seen, share=share)
     return lattice.values @ LUMINANCE, lattice.paths.astype(np.int64)
+
+
+def test_stratified_first_directions_lower_the_pictures_error(contact):
+    """The same 32 paths at every texel, their first directions stratified over each
+    texel's samples (the previews' and views' `Tracing.stratified`) or drawn from the
+    paths' keys as a bake's are: the picture's squared error against a 1024-path
+    reference (each texel's weighed by its share of the pixels) measured 0.76–0.82 of the
+    independent paths' over seeds 0–3 — the sky's visibility and the first bounce's hit
+    points are sampled evenly, the sun-lit bounces after them are not. Each sum runs over
+    ~10⁴ texels, so it varies by a few per cent between seeds; 0.9 leaves room. The
+    picture's mean agrees with the reference's within 5 standard errors of its own
+    (estimated from the independent paths' errors): stratifying shifts no light."""
+    share = contact[-1]
+    reference, _ = _light(contact, 1024, None, seed=99, stratified=False)
+    for seed in (0, 1):
+        plain, _ = _light(contact, 32, None, seed, stratified=False)
+        even, _ = _light(contact, 32, None, seed)
+        ratio = (share * (even - reference) ** 2).sum() / (share * (plain - reference) ** 2).sum()
+        assert ratio < 0.9, ratio
+        standard_error = np.sqrt((share**2 * (plain - reference) ** 2).sum())
+        assert abs((share * (even - reference)).sum()) < 5 * standard_error
 
 
 def test_paths_placed_by_noise_halve_the_pictures_squared_error(contact):
