@@ -225,11 +225,12 @@ def stratify_first_directions(seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
     stratified ones: sample s of a texel takes point s of the (0, 2)-sequence
     (`net_words`), digitally shifted by two words hashed from the texel's key (its
     `path_starts` hash with `dimension_key` 0 and 1), as its two uniforms. Each
-    direction alone is cosine-distributed as before (the shift makes each point
-    uniform), while a texel's first 2ᵐ samples cover its hemisphere's 2ᵐ equal-area
-    cells of every shape once each: the visibility of the sky, a step over the
-    hemisphere, is estimated with about half the RMS error of independent samples at
-    32 paths. The other dimensions keep the paths' keys."""
+    direction alone is cosine-distributed as one drawn from the keys (the shift makes
+    each point uniform), while a texel's first 2ᵐ samples leave through each of its
+    hemisphere's 2ᵐ cells of equal cosine-weighted solid angle (the net's boxes, of
+    every shape) once: the visibility of the sky, a step over the hemisphere, is
+    estimated with about half the RMS error of independent samples at 32 paths
+    (docs/accuracy.md). The other dimensions keep the paths' keys."""
     k0, k1 = dimension_key(0), dimension_key(1)
     for i in range(len(pos)):
         h = pcg_hash(np.uint32(np.uint32(ids[pos[i]]) ^ seed_key))
