@@ -43,7 +43,7 @@ from isolume.baking.backend import (
     scene_budget,
 )
 from isolume.baking.config import BakeConfig
-from isolume.baking.density import bake_texels, clear_filled, texel_luminance
+from isolume.baking.density import bake_texels, clear_filled, refilled, texel_luminance
 from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError, BakeInterrupted
 from isolume.baking.integrator import PathSettings, TracingLights, whole_paths
@@ -536,8 +536,9 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
                       packed=True, resume=resume, scene_cache=2 if adaptive else 1,
                       scene_memory=scene_memory,
                       records_dir=out.parent if out is not None else None)
-    clear_filled(baker.lattice, len(baker.plan.ids), config.texel_error is not None)
+    cleared = clear_filled(baker.lattice, len(baker.plan.ids), config.texel_error is not None)
     done = baker.samples_done()
+    done[refilled(baker.lattice, config, cleared, len(baker.plan.ids))] = config.samples
     pending = int(np.maximum(config.samples - done, 0).sum())  # the first round's
     if outlook is not None:
         threads = 0 if scheduler is not None else (workers or cores.threads())

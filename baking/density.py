@@ -439,11 +439,14 @@ class Judgement:
         return cls(fine, [unpacked(f, total) for f in record["fills"]])
 
 
-def clear_filled(lattice: Any, plan_size: int, texel_bake: bool) -> None:
+def clear_filled(lattice: Any, plan_size: int, texel_bake: bool) -> np.ndarray:
     """Take the filled texels of an earlier bake out of `lattice` (over the plan's
     texels, `PlanLattice`): no samples, values nor moments, and drop the record, so a
     bake goes on from traced texels alone; a bake that is not to a texel error
     (`texel_bake` False) drops an unfinished one's judgement too.
+
+    Returns:
+        (F,) int64 plan positions of the texels taken out (none: empty).
 
     Raises:
         ValueError: the record is of another plan (another texel count).
@@ -452,7 +455,7 @@ def clear_filled(lattice: Any, plan_size: int, texel_bake: bool) -> None:
         lattice.meta.pop(JUDGED_KEY, None)
     record = lattice.meta.pop(FILLED_KEY, None)
     if record is None:
-        return
+        return np.zeros(0, np.int64)
     if int(record["count"]) != plan_size:
         raise ValueError(f"the lattice's filled texels are of a plan of {record['count']:,} "
                          f"texels, this one has {plan_size:,}")
@@ -460,6 +463,17 @@ def clear_filled(lattice: Any, plan_size: int, texel_bake: bool) -> None:
     lattice.samples.reshape(-1)[at] = 0
     lattice.values.reshape(plan_size, -1)[at] = 0
     lattice.second.reshape(-1)[at] = 0
+    return at
+
+
+def refilled(lattice: Any, config: Any, cleared: np.ndarray, plan_size: int) -> np.ndarray:
+    """Those of the (F,) plan positions `cleared` (`clear_filled`) that a bake of `config`
+    fills again, tracing none of their paths: all where it goes on with the judgement
+    `lattice` records (`Judgement.resumed`: a finished texel bake run again), else none."""
+    if config.texel_error is None or Judgement.resumed(
+            lattice.meta.get(JUDGED_KEY), config, plan_size) is None:
+        return cleared[:0]
+    return cleared
 
 
 def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:

@@ -485,19 +485,26 @@ def test_filled_texels_are_close_to_traced_ones(sphere_bakes):
 
 
 def test_a_later_bake_clears_the_filled_texels(tmp_path):
-    """The same bake of a finished file changes nothing; a uniform bake of it (at the
-    dark texels' paths, the most any texel has) traces the filled texels afresh — to the
-    bit what a fresh uniform bake gives them — and adds paths to the others (the same
-    means to float rounding: a running mean over two passes)."""
+    """The same bake of a finished file changes nothing, and its outlook says there is
+    nothing to trace (the filled texels are filled again from the same nodes); a uniform
+    bake of it (at the dark texels' paths, the most any texel has) traces the filled
+    texels afresh — to the bit what a fresh uniform bake gives them, its outlook counting
+    their paths — and adds paths to the others (the same means to float rounding: a
+    running mean over two passes)."""
     vol = make("shells", 32)
     path = tmp_path / "t.npz"
     first = bake(vol, CONFIG, out=path, workers=2)
     record = first.meta[FILLED_KEY]
     assert record["filled"] > 0 and record["in_fine_bricks"] > 0
-    again = bake(vol, CONFIG, out=path, workers=2)
+    told = []
+    again = bake(vol, CONFIG, out=path, workers=2, outlook=told.append)
     _same_bits(again, first)
+    assert told[0].paths == 0 and told[0].resumed == told[0].texels
     uniform = dataclasses.replace(CONFIG, texel_error=None, samples=TRAPPED_PATHS)
-    done = bake(vol, uniform, out=path, workers=2)
+    done = bake(vol, uniform, out=path, workers=2, outlook=told.append)
+    traced = first.samples.reshape(-1)[first.samples.reshape(-1) > 0].astype(np.int64)
+    traced[filled_positions(record)] = 0
+    assert told[1].paths == np.maximum(TRAPPED_PATHS - traced, 0).sum()
     fresh = bake(vol, uniform, workers=2)
     assert FILLED_KEY not in done.meta and JUDGED_KEY not in done.meta
     np.testing.assert_array_equal(done.samples, fresh.samples)
