@@ -122,6 +122,8 @@ def load_volume(args: argparse.Namespace) -> volumes.Volume:
         options["dtype"] = args.dtype
     if getattr(args, "spacing", None):
         options["spacing"] = floats(args.spacing, 3, "--spacing")
+    if getattr(args, "origin", None):
+        options["origin"] = floats(args.origin, 3, "--origin")
     if getattr(args, "volume_level", None) is not None:
         options["level"] = args.volume_level
     volume = volumes.load(args.volume, crop=getattr(args, "volume_crop", None),
@@ -208,6 +210,9 @@ def add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
     p.add_argument("--dims", help="X,Y,Z for raw files whose name does not say")
     p.add_argument("--dtype", help="sample type for raw files, e.g. uint8, int16, float32")
     p.add_argument("--spacing", help="voxel size X,Y,Z (overrides the file)")
+    p.add_argument("--origin", help="world position X,Y,Z of the first voxel's centre "
+                   "(overrides the file; e.g. 0,0,0 for a file placed far from the world "
+                   "origin)")
     p.add_argument("--up", metavar="AXIS", default=None,
                    help="the volume's axis that points up: x, y, z, -x, -y or -z (after the "
                    "orientation its header gives; e.g. -z for raw slices that run top "

@@ -78,8 +78,8 @@ class VolumeSource:
     Attributes:
         volume: a file path or ``synthetic:NAME[:SIZE]`` (None: a state file that names
             none).
-        dims, dtype, spacing, up, crop: the load options' text (``--dims X,Y,Z`` ...), or
-            None.
+        dims, dtype, spacing, origin, up, crop: the load options' text (``--dims X,Y,Z``
+            ...), or None.
         downsample, level: ``--downsample N`` and ``--level K``, or None.
     """
 
@@ -87,6 +87,7 @@ class VolumeSource:
     dims: str | None = None
     dtype: str | None = None
     spacing: str | None = None
+    origin: str | None = None
     up: str | None = None
     crop: str | None = None
     downsample: int | None = None
@@ -102,7 +103,8 @@ class VolumeSource:
         if not spec.startswith(SYNTHETIC):
             spec = os.path.abspath(spec)
         parts = {name: getattr(args, dest, None) for name, dest in PART_OPTIONS.items()}
-        return cls(spec, args.dims, args.dtype, args.spacing, args.up, **parts)
+        return cls(spec, args.dims, args.dtype, args.spacing, getattr(args, "origin", None),
+                   args.up, **parts)
 
 
 @dataclass(frozen=True)
@@ -111,8 +113,8 @@ class SavedView(VolumeSource):
     default applies.
 
     Attributes:
-        volume, dims, dtype, spacing, up, crop, downsample, level: the volume (the fields
-            of `VolumeSource`, first in the file).
+        volume, dims, dtype, spacing, origin, up, crop, downsample, level: the volume (the
+            fields of `VolumeSource`, first in the file).
         iso: the isovalue, field units.
         camera: the whole camera (degrees; distance and pan in units of its scale, a world
             length; target in world units).
@@ -207,7 +209,7 @@ class SavedView(VolumeSource):
         a command takes those it has (``env`` is ``bake_env`` in the viewer)."""
         values: dict[str, object] = {
             name: getattr(self, name) for name in
-            ("volume", "dims", "dtype", "spacing", "up", "iso", "size", "shading",
+            ("volume", "dims", "dtype", "spacing", "origin", "up", "iso", "size", "shading",
              "exposure", "tonemap", "albedo", "env", "lattice", "normals", "flip_normals")}
         values |= {dest: getattr(self, name) for name, dest in PART_OPTIONS.items()}
         values["bake_env"] = self.env
@@ -325,7 +327,8 @@ def _albedo(value) -> str:
 
 
 _READERS: dict[str, Callable[[object], object]] = {
-    "volume": _text, "dims": _text, "dtype": _text, "spacing": _text, "up": _text,
+    "volume": _text, "dims": _text, "dtype": _text, "spacing": _text, "origin": _text,
+    "up": _text,
     "crop": _text, "downsample": _whole, "level": _whole,
     "iso": _number, "camera": _camera, "size": _size, "shading": _choice(tuple(SHADING_MODES)),
     "exposure": _positive, "auto_exposure": _flag, "shown_exposure": _positive,

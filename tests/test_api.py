@@ -21,7 +21,8 @@ from isolume.volumes.errors import IsolumeError
 
 ROOT = Path(__file__).resolve().parents[1]
 
-VOLUME_OPTIONS = {"volume", "dims", "dtype", "spacing", "up", "crop", "downsample", "level"}
+VOLUME_OPTIONS = {"volume", "dims", "dtype", "spacing", "origin", "up", "crop", "downsample",
+                  "level"}
 """Options of the volume: keywords of `isolume.load`; the other functions take a Volume."""
 
 EXCEPTIONS = {

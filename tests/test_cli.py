@@ -619,6 +619,23 @@ def test_render_warns_of_a_lattice_file_that_is_unfinished(tmp_path, capsys):
     assert 0 < int(found[1].replace(",", "")) < int(found[2].replace(",", ""))
 
 
+def test_origin_places_a_volume_the_file_places_far_away(tmp_path, capsys):
+    """A file placed farther from the world origin than float32 coordinates serve is
+    refused, naming ``--origin``; with ``--origin 0,0,0`` it loads there, as the Python
+    API's ``origin=`` loads it."""
+    import isolume
+
+    path = tmp_path / "far.npz"
+    np.savez(path, data=np.zeros((16, 16, 16), np.uint8), origin=np.array([5e5, 4e6, 0.0]))
+    status, _, err = _run(capsys, "info", str(path))
+    assert status == 2 and "--origin 0,0,0" in err and err.count("\n") == 1, err
+    status, _, err = _run(capsys, "info", str(path), "--origin", "0,0,0")
+    assert status == 0, err
+    assert isolume.load(path, origin=(1, 2, 3)).origin == (1.0, 2.0, 3.0)
+    status, _, err = _run(capsys, "info", str(path), "--origin", "0,0")
+    assert status == 2 and "--origin" in err
+
+
 def test_the_console_script_freezes_the_heap_before_the_process_exits():
     """Run as the script (no argv), `main` freezes the collector's heap as it returns, so
     that Python's finalization does not collect it again and again (~0.2 s an exit); called

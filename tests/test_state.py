@@ -107,17 +107,18 @@ def test_the_viewer_keeps_the_volume_as_named_and_starts_from_a_state(tmp_path,
 
     monkeypatch.chdir(tmp_path)
     args = build_parser().parse_args(["view", "ct.raw", "--dims", "4,5,6", "--dtype", "uint8",
-                                      "--up=-z", "--crop", ":,:,0:3", "--downsample", "2"])
+                                      "--origin", "1,2,3", "--up=-z", "--crop", ":,:,0:3",
+                                      "--downsample", "2"])
     source = VolumeSource.from_args(args)
-    assert source == VolumeSource(str(tmp_path / "ct.raw"), "4,5,6", "uint8", None, "-z",
-                                  ":,:,0:3", 2, None)
+    assert source == VolumeSource(str(tmp_path / "ct.raw"), "4,5,6", "uint8", None, "1,2,3",
+                                  "-z", ":,:,0:3", 2, None)
     (tmp_path / "ct.raw").write_bytes(bytes(120))
     path = _saved(**asdict(source), env="sky:sun=6,sun_az=10,sun_el=40",
                   light_angles=(10.0, 40.0), auto_exposure=False).save("v.view.json")
     words = ["--state", str(path), "--size", "200x100"]
     args = apply_state(build_parser().parse_args(["view", *words]), words)
-    assert (args.volume, args.volume_crop, args.volume_downsample, args.up) == (
-        str(tmp_path / "ct.raw"), ":,:,0:3", 2, "-z")
+    assert (args.volume, args.volume_crop, args.volume_downsample, args.up, args.origin) == (
+        str(tmp_path / "ct.raw"), ":,:,0:3", 2, "-z", "1,2,3")
     assert args.bake_env == "sky:sun=6,sun_az=10,sun_el=40" and args.no_auto_exposure
     assert args.camera == _saved().camera and args.light_angles == (10.0, 40.0)
     assert args.size == "200x100" and args.iso == 0.45 and args.shading == "lambert"

@@ -213,9 +213,8 @@ def _check_float32_reach(shape_xyz: tuple[int, ...], spacing: tuple[float, float
         f"{where}: the volume lies {farthest:.6g} world units from the world origin, "
         f"{farthest / extent:.3g} times its largest extent {extent:.6g} (at most "
         f"{WORLD_REACH:g}): float32 world coordinates step by {coarse:.3g} there "
-        f"({coarse / step.min():.3g} × the voxel size); give the volume an origin near it, e.g. "
-        "(0, 0, 0): the origin= of isolume.volumes.load or Volume in Python (the command "
-        "line takes the file's origin: change it there)")
+        f"({coarse / step.min():.3g} × the voxel size); give the volume an origin near it: "
+        "--origin 0,0,0 (origin= in Python)")
 
 
 def _as_float32(data: np.ndarray, where: str) -> np.ndarray:

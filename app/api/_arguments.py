@@ -19,7 +19,7 @@ from isolume.app.options import CLIError, choice_error
 class OptionError(CLIError):
     """A keyword argument of the Python API that its command's option would refuse."""
 
-JOINED = ("view", "env_rotation", "spacing", "dims")
+JOINED = ("view", "env_rotation", "spacing", "origin", "dims")
 """Options given as comma-separated numbers (``AZ,EL``, ``X,Y,Z``): a sequence joins."""
 
 

@@ -37,7 +37,7 @@ def load(source: Volume | str | os.PathLike[str] | np.ndarray | None = None, *,
          dims: Sequence[int] | str | None = None, dtype: str | None = None,
          spacing: Numbers | str | None = None, up: str | None = None,
          crop: str | None = None, downsample: int = 1, level: int | None = None,
-         origin: Numbers | None = None, name: str = "array") -> Volume:
+         origin: Numbers | str | None = None, name: str = "array") -> Volume:
     """A volume: a file (raw, NRRD, NIfTI, TIFF, DICOM, Zarr, .npy…), ``synthetic:NAME
     [:SIZE]``, None for the built-in default, or a (Z, Y, X) array.
 
@@ -50,7 +50,8 @@ def load(source: Volume | str | os.PathLike[str] | np.ndarray | None = None, *,
         crop: ``X0:X1,Y0:Y1,Z0:Z1`` voxel ranges to read (end exclusive).
         downsample: means of N×N×N blocks.
         level: level of an OME-Zarr multiscale image.
-        origin: (x, y, z) world position of an array's first sample (default 0).
+        origin: (x, y, z) world position of the first sample (overrides the file's; an
+            array's, default 0).
         name: an array's name in messages and pictures.
 
     Raises:
@@ -68,7 +69,8 @@ def load(source: Volume | str | os.PathLike[str] | np.ndarray | None = None, *,
     else:
         args = namespace("info", {"volume": None if source is None else os.fspath(source),
                                   "dims": dims, "dtype": dtype, "spacing": spacing,
-                                  "crop": crop, "downsample": downsample, "level": level})
+                                  "origin": origin, "crop": crop, "downsample": downsample,
+                                  "level": level})
         return load_volume(args) if up is None else volumes.turn_up(load_volume(args), up)
     return volume if up is None else volumes.turn_up(volume, up)
 
