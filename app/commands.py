@@ -93,6 +93,10 @@ def render_picture(args: argparse.Namespace, reuse: Reuse | None = None) -> Rend
     )
     if mesh.empty:
         print(f"isolume: warning: {mesh.message}", file=sys.stderr)
+    elif not frame.mask.any():
+        print("isolume: warning: the surface covers no pixel of the picture (the camera looks "
+              "away from it, or is too far: --view AZ,EL[,DIST], DIST in the box's "
+              "diagonals)", file=sys.stderr)
     return Rendered(frame, mesh, vol, iso, look.settings, look.traced)
 
 

@@ -636,6 +636,17 @@ def test_origin_places_a_volume_the_file_places_far_away(tmp_path, capsys):
     assert status == 2 and "--origin" in err
 
 
+def test_a_picture_the_surface_covers_no_pixel_of_warns(tmp_path, capsys):
+    """A camera so far that the surface falls between the pixels draws an empty picture:
+    the command says why; a framed view says nothing."""
+    out = ["render", "synthetic:sphere:16", "--size", "32x32", "--shading", "lambert",
+           "--out", str(tmp_path / "p.png")]
+    status, _, err = _run(capsys, *out, "--view", "30,30,1000")
+    assert status == 0 and "covers no pixel of the picture" in err, err
+    status, _, err = _run(capsys, *out)
+    assert status == 0 and "covers no pixel" not in err, err
+
+
 def test_the_console_script_freezes_the_heap_before_the_process_exits():
     """Run as the script (no argv), `main` freezes the collector's heap as it returns, so
     that Python's finalization does not collect it again and again (~0.2 s an exit); called
