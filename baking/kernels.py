@@ -232,11 +232,14 @@ def stratify_first_directions(seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
     estimated with about half the RMS error of independent samples at 32 paths
     (docs/accuracy.md). The other dimensions keep the paths' keys."""
     k0, k1 = dimension_key(0), dimension_key(1)
+    shift0 = shift1 = np.uint32(0)
     for i in range(len(pos)):
-        h = pcg_hash(np.uint32(np.uint32(ids[pos[i]]) ^ seed_key))
+        if i == 0 or pos[i] != pos[i - 1]:  # a texel's paths come together: its shifts once
+            h = pcg_hash(np.uint32(np.uint32(ids[pos[i]]) ^ seed_key))
+            shift0, shift1 = pcg_hash(np.uint32(h ^ k0)), pcg_hash(np.uint32(h ^ k1))
         first, second = net_words(samples[i])
-        u0 = word_uniform_f32(np.uint32(first ^ pcg_hash(np.uint32(h ^ k0))))
-        u1 = word_uniform_f32(np.uint32(second ^ pcg_hash(np.uint32(h ^ k1))))
+        u0 = word_uniform_f32(np.uint32(first ^ shift0))
+        u1 = word_uniform_f32(np.uint32(second ^ shift1))
         lx, ly, lz = _cosine_of(u0, u1)
         nx, ny, nz = normals[0, i], normals[1, i], normals[2, i]
         tx, ty, tz, bx, by, bz = tangent_frame(nx, ny, nz)

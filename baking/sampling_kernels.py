@@ -68,17 +68,17 @@ def uniform31(key: np.uint32, dim_key: np.uint32) -> float:
 
 @numba.njit(**JIT)
 def uniform_f32(key: np.uint32, dim_key: np.uint32) -> np.float32:
-    """`uniform31` in single precision, strictly below 1 (clamped to the largest float32
-    below 1, where rounding would reach 1). Converted to float32 directly: one rounding
-    of the same exact value as through float64."""
-    return min(np.float32(_top31(key, dim_key)) * np.float32(2.0**-31),
-               np.float32(1.0 - 2.0**-24))
+    """`uniform31` in single precision, strictly below 1 (`word_uniform_f32` of the
+    hash)."""
+    return word_uniform_f32(pcg_hash(np.uint32(key ^ dim_key)))
 
 
 @numba.njit(**JIT)
 def word_uniform_f32(word: np.uint32) -> np.float32:
-    """A 32-bit word as a float32 uniform in [0, 1), from its top 31 bits as
-    `uniform_f32` converts a hash."""
+    """A 32-bit word as a float32 uniform in [0, 1): its top 31 bits as a signed integer
+    (which converts in vector lanes), times 2⁻³¹, clamped to the largest float32 below 1
+    where rounding would reach 1. Converted to float32 directly: one rounding of the same
+    exact value as through float64."""
     return min(np.float32(np.int32(word >> np.uint32(1))) * np.float32(2.0**-31),
                np.float32(1.0 - 2.0**-24))
 
