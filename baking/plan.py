@@ -68,9 +68,10 @@ from isolume.baking.plan_kernels import (
     start_lift,
 )
 from isolume.baking.rng import pcg_hash
-from isolume.baking.sides import choose_sides
+from isolume.baking.sides import BoxReachAhead, choose_sides
 from isolume.volumes import cores
 from isolume.volumes.field import normal_stencil
+from isolume.volumes.reach import BoxReach
 
 GOLDEN_FRACTION = 0.6180339887498949
 MAX_REACH = 4.0
@@ -282,6 +283,17 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     `Plan.traced_only`'s plan, letting go of what only replanning reads (the box's mask,
     the texels' values and targets: 128 + 315 MB on a 512³ CT) as soon as the levels
     are bracketed, not after the side probes."""
+    with BoxReachAhead(volume, config) as box_reach:
+        return _planned(volume, geometry, config, levels, progress, on_levels, scenes,
+                        traced_only, box_reach.get)
+
+
+def _planned(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
+             levels: np.ndarray | None, progress: Callable[..., None] | None,
+             on_levels: Callable[[np.ndarray], None] | None,
+             scenes: Callable[[int], object] | None, traced_only: bool,
+             box_reach: Callable[[], BoxReach]) -> Plan:
+    """`make_plan`, whose side probes test against ``box_reach()`` (`choose_sides`)."""
     say = progress or (lambda _stage, _fraction=None: None)
     vmin, vmax = volume.value_range
     if vmax <= vmin:
@@ -352,7 +364,7 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     say(stage)
     cores.stage("seen sides")
     high = lit_sides(volume, config, geometry, ids, landing, reach, levels, lower, weight,
-                     scenes, lambda fraction: say(stage, fraction))
+                     scenes, lambda fraction: say(stage, fraction), box_reach)
     say("reach tests")
     cores.stage("reach tests")
     reaches = _Reaches(volume, config, geometry, ids, reach,
@@ -425,18 +437,19 @@ def lit_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGeome
               ids: np.ndarray, landing: np.ndarray, reach: float, levels: np.ndarray,
               lower: np.ndarray, weight: np.ndarray,
               scenes: Callable[[int], object] | None = None,
-              progress: Callable[[float], None] | None = None) -> np.ndarray:
+              progress: Callable[[float], None] | None = None,
+              box_reach: Callable[[], BoxReach] | None = None) -> np.ndarray:
     """(T,) bool: is each texel lit on the high-value side of its surfaces
     (`baking.sides.choose_sides`, probed where it lands on its nearer level: `landing`
     (T, 2, 3) as `Plan.landing` with its `reach`, set for the levels the texel uses;
-    `scenes` and `progress` as there)?"""
+    `scenes`, `progress` and `box_reach` as there)?"""
     if config.sides == "normals":
         return np.full(len(ids), bool(config.flip_normals))
     upper = weight >= 0.5
     found = np.where(upper, landing[:, 1, 0] != UNLANDED, landing[:, 0, 0] != UNLANDED)
     return choose_sides(volume, config, geometry, ids,
                         NearerLandings(geometry, ids, landing, upper, reach), found, levels,
-                        lower + upper, scenes, progress)
+                        lower + upper, scenes, progress, box_reach)
 
 
 def rounded_landing(points: np.ndarray, centres: np.ndarray, reach: float) -> np.ndarray:

@@ -65,3 +65,89 @@ def test_no_side_a_probe_leaves_from_is_proven_closed():
         closed += int((~may).sum())
     assert closed >= 400  # the ball's 800 points, less those near nothing
 
+
+
+def _reach_by_labels(rank: np.ndarray, levels: int, up: bool) -> np.ndarray:
+    """An independent reach: for each level b, label the 26-connected parts of the voxels
+    at or above b (at or below where not `up`) and keep those touching a face; a voxel's
+    reach is the best b whose part touches one."""
+    from scipy import ndimage
+
+    inner = np.zeros(rank.shape, bool)
+    inner[1:-1, 1:-1, 1:-1] = True
+    out = np.full(rank.shape, -1)
+    for b in (range(levels) if up else range(levels - 1, -1, -1)):
+        labels, _ = ndimage.label(rank >= b if up else rank <= b, np.ones((3, 3, 3)))
+        touching = np.unique(labels[~inner & (labels > 0)])
+        out[np.isin(labels, touching) & (labels > 0)] = b
+    return out
+
+
+@pytest.mark.parametrize("up", [True, False])
+def test_the_flood_is_the_best_level_at_which_each_voxel_connects_to_a_face(up, monkeypatch):
+    """On random volumes of 8 values (smoothed a little, so that parts of all sizes form),
+    the flood's level indices equal those of labelling every level's connected parts,
+    however many voxels each of its runs takes off the queue."""
+    from scipy import ndimage
+
+    from isolume.volumes import reach
+
+    rng = np.random.default_rng(5)
+    for shape in ((9, 11, 13), (2, 7, 6), (9, 5, 2), (12, 12, 12)):
+        noise = ndimage.uniform_filter(rng.random(shape), 2)
+        data = np.digitize(noise, np.quantile(noise, np.linspace(0, 1, 9)[1:-1]))
+        volume = Volume(data.astype(np.uint8), name="noise", source="noise")
+        expected = _reach_by_labels(data, 8, up)
+        for pops in (1, 7, 1 << 22):
+            monkeypatch.setattr(reach, "FLOOD_POPS", pops)
+            got = BoxReach.of(volume, up)
+            np.testing.assert_array_equal(got.reach, expected, f"{shape}, {pops} a run")
+
+
+def test_a_stopped_flood_stops_between_its_runs(monkeypatch):
+    """A flood whose `stop` is set raises `FloodStopped` after its first run; the plan's
+    flood ahead, left before it is asked for, stops its pool thread the same way."""
+    import threading
+
+    from isolume.volumes import reach
+    from isolume.volumes.reach import FloodStopped
+
+    stop = threading.Event()
+    stop.set()
+    monkeypatch.setattr(reach, "FLOOD_POPS", 100)
+    with pytest.raises(FloodStopped):
+        BoxReach.of(_shell_and_slab(np.uint8), True, stop)
+    assert BoxReach.of(_shell_and_slab(np.uint8), True, threading.Event()).reach.shape == (32,) * 3
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_the_flood_begun_ahead_is_the_flood_and_leaving_it_early_stops_it(threads,
+                                                                           monkeypatch):
+    """`BoxReachAhead` gives the flood towards the side other than the normals' (begun on
+    a pool thread with several threads, made when asked for with one); left before it is
+    asked for, its pool thread's flood stops at its next run instead of going on for
+    seconds."""
+    from isolume.baking.sides import BoxReachAhead
+    from isolume.volumes import cores, reach
+
+    volume = _shell_and_slab(np.uint8)
+    cores.use(threads)
+    try:
+        for flip in (False, True):
+            config = BakeConfig(flip_normals=flip)
+            with BoxReachAhead(volume, config) as ahead:
+                got = ahead.get()
+            want = BoxReach.of(volume, up=not flip)
+            assert got.up == want.up
+            np.testing.assert_array_equal(got.reach, want.reach)
+        big = Volume(np.tile(volume.data, (3, 3, 3)), name="shells", source="shells")
+        monkeypatch.setattr(reach, "FLOOD_POPS", 1)  # 96³ voxels one at a time: seconds
+        with BoxReachAhead(big, BakeConfig()) as ahead:
+            pass
+        if threads > 1:
+            assert ahead._future is not None
+            if not ahead._future.cancelled():
+                with pytest.raises(reach.FloodStopped):
+                    ahead._future.result(timeout=60)
+    finally:
+        cores.use(None)

@@ -20,11 +20,14 @@ The flood goes from the faces inwards, best level first, through a bucket queue 
 volume's values: the values themselves for integer samples spanning at most `EXACT_SPAN`,
 else `LEVELS` levels, each value rounded up for the upward reach and down for the
 downward one, so that the test errs towards "may leave". One pass over the voxels and
-their 26 neighbours, on one core: 1.2 s for the 256³ foot CT.
+their 26 neighbours, on one core: 1.2 s for the 256³ foot CT, 10–15 s at 512³, which the
+baker floods on a pool thread beside the plan's first stages
+(`baking.sides.BoxReachAhead`).
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numba
@@ -37,6 +40,13 @@ LEVELS = 4096
 """Levels of the flood for float samples, or integers spanning more than `EXACT_SPAN`."""
 EXACT_SPAN = 1 << 16
 """Integer samples spanning at most this many values flood on the values themselves."""
+FLOOD_POPS = 1 << 22
+"""Voxels a flood takes off its queue between two looks at its `stop` (~0.3 s of a core:
+a flood on a pool thread ends soon after the plan that asked for it is interrupted)."""
+
+
+class FloodStopped(RuntimeError):
+    """A `BoxReach.of` flood stopped before it was done (its `stop` set)."""
 
 
 @dataclass(frozen=True)
@@ -56,12 +66,21 @@ class BoxReach:
     up: bool
 
     @classmethod
-    def of(cls, volume: Volume, up: bool) -> BoxReach:
+    def of(cls, volume: Volume, up: bool, stop: threading.Event | None = None) -> BoxReach:
         """Flood `volume` from its box's faces, through values above a level where `up`,
-        else below it."""
+        else below it, `FLOOD_POPS` voxels at a time; raises `FloodStopped` between two
+        such runs once `stop` is set (the one who asked for it has gone)."""
         levels, rank = _ranked(volume.data, up)
         links = np.int32 if rank.size < np.iinfo(np.int32).max else np.int64
-        return cls(_flood(rank, up, len(levels), np.full(rank.size, -2, links)), levels, up)
+        after = np.full(rank.size, -2, links)
+        head = np.full(len(levels), -1, np.int64)
+        _seed_faces(rank, head, after)
+        out = np.empty(rank.shape, rank.dtype)
+        at = np.zeros(1, np.int64)
+        while not _drain(rank, up, head, after, out, at, FLOOD_POPS):
+            if stop is not None and stop.is_set():
+                raise FloodStopped(f"{volume.name}: the flood from the box's faces was stopped")
+        return cls(out, levels, up)
 
     def arrays(self, volume: Volume) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray]:
         """(`reach`, `levels`, `up`, frame) for `may_open_at` in compiled callers; frame:
@@ -98,29 +117,46 @@ def _ranked(data: np.ndarray, up: bool) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(**JIT)
-def _flood(rank: np.ndarray, up: bool, count: int, after: np.ndarray) -> np.ndarray:
-    """(Z, Y, X) the level index (of `count`) at which each voxel of the (Z, Y, X) level
-    indices `rank` connects to the box's faces through 26-neighbours at or above it
-    (`up`), else at or below it; `after` (N,) all −2: the queue's links. Voxels leave a
-    bucket queue best level first; a neighbour first met from a voxel at level b gets
-    min(b, its own) (max where not `up`), which no later voxel betters, so each voxel is
-    queued once."""
+def _seed_faces(rank: np.ndarray, head: np.ndarray, after: np.ndarray) -> None:
+    """Queue the voxels on the box's faces, each in the bucket of its own level index in
+    the (Z, Y, X) `rank`: `head` (B,) the buckets' first voxels, all −1, and `after`
+    (N,) the queue's links, all −2 (−2: not queued), both updated."""
     nz, ny, nx = rank.shape
     flat = rank.reshape(-1)
-    head = np.full(count, -1, np.int64)  # after[i]: -2 until voxel i is queued
-    for i in range(flat.size):
-        z, rest = divmod(i, ny * nx)
-        y, x = divmod(rest, nx)
-        if z == 0 or z == nz - 1 or y == 0 or y == ny - 1 or x == 0 or x == nx - 1:
-            b = flat[i]
-            after[i], head[b] = head[b], i
-    out = np.empty(flat.size, rank.dtype)
-    for step in range(count):
-        b = count - 1 - step if up else step
+    for z in range(nz):
+        for y in range(ny):
+            inner = 0 < z < nz - 1 and 0 < y < ny - 1
+            step = max(nx - 1, 1) if inner else 1
+            for x in range(0, nx, step):
+                i = (z * ny + y) * nx + x
+                b = flat[i]
+                after[i], head[b] = head[b], i
+
+
+@numba.njit(**JIT)
+def _drain(rank: np.ndarray, up: bool, head: np.ndarray, after: np.ndarray,
+           out: np.ndarray, at: np.ndarray, pops: int) -> bool:
+    """Go on with the flood of the (Z, Y, X) level indices `rank` (`_seed_faces` began
+    it): take at most `pops` voxels off the bucket queue `head`, `after`, best level
+    first from bucket step `at[0]` (updated), into `out` (Z, Y, X) the level index at
+    which each connects to the box's faces through 26-neighbours at or above it (`up`),
+    else at or below it. Returns whether the queue is empty (the flood done). A neighbour
+    first met from a voxel at level b gets min(b, its own) (max where not `up`), which no
+    later voxel betters, so each voxel is queued once, and the result is the same
+    whatever the order within a bucket and however the flood is cut into calls."""
+    nz, ny, nx = rank.shape
+    flat, into = rank.reshape(-1), out.reshape(-1)
+    count = head.size
+    left = pops
+    while at[0] < count:
+        b = count - 1 - at[0] if up else at[0]
         while head[b] >= 0:
+            if left == 0:
+                return False
+            left -= 1
             i = head[b]
             head[b] = after[i]
-            out[i] = b
+            into[i] = b
             z, rest = divmod(i, ny * nx)
             y, x = divmod(rest, nx)
             for k in range(max(z - 1, 0), min(z + 2, nz)):
@@ -130,7 +166,8 @@ def _flood(rank: np.ndarray, up: bool, count: int, after: np.ndarray) -> np.ndar
                         if after[n] == -2:
                             c = min(b, flat[n]) if up else max(b, flat[n])
                             after[n], head[c] = head[c], n
-    return out.reshape(rank.shape)
+        at[0] += 1
+    return True
 
 
 @numba.njit(**JIT)
