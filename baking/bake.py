@@ -64,6 +64,7 @@ from isolume.baking.passes import (
     commit_facing,
     commit_sums,
     rows_at,
+    stratifies,
 )
 from isolume.baking.plan import Plan, as_planned, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
@@ -310,7 +311,7 @@ class Baker:
                                      settings.block if settings.sh_split else 0)
         seed_key = np.uint32(rng.seed_key(self.config.seed))
         return Tracing(self.plan.ids, self.lighting, settings, seed_key, weights,
-                       whole_paths(self.lighting, settings))
+                       whole_paths(self.lighting, settings), stratifies(self.config))
 
     def samples_done(self, positions: np.ndarray | None = None) -> np.ndarray:
         """(N,) paths already averaged into the texels at plan `positions` (all if None)."""

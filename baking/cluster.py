@@ -56,6 +56,7 @@ from isolume.baking.passes import (
     chunk_bounds,
     lay_out_level,
     level_scene,
+    stratifies,
     trace_texels,
 )
 
@@ -301,7 +302,7 @@ def trace_task(job: _Job, level: int, ids: np.ndarray, phase: np.ndarray,
     paths, rays, seconds = 0, 0, 0.0
     if len(layout.texels):
         tracing = Tracing(ids, job.lighting, job.settings, job.seed_key, job.weights,
-                          job.whole)
+                          job.whole, stratifies(job.config))
         for lo, hi in chunk_bounds(layout.counts, 1):  # the local bake's chunk sizes
             sums, n, r, t = trace_texels(scene, tracing, layout, lo, hi, start)
             acc.add(layout.texels[lo:hi], sums)

@@ -32,16 +32,17 @@ DEFAULT_TEXEL_ERROR = 0.02
 """The texel error (`BakeConfig.texel_error`) of an irradiance bake that names no count,
 noise target nor texel error (``isolume bake``'s default), at `TEXEL_SAMPLES`
 ([accuracy.md](../docs/accuracy.md#texels-where-the-light-varies-against-uniform-texels))."""
-TEXEL_SAMPLES = 36
+TEXEL_SAMPLES = 32
 """Paths per traced texel of a bake to a texel error that names no count (the nodes that
 fill get `NODE_PATHS` times as many, and the level plan is sized for at least
 `TEXEL_PLAN_SAMPLES`; below `baking.lattice.TRAPPED_PATHS`, texels dark on all of theirs
-go on to that many). Over the 58 bake cases of ``../shared/data`` the default is within
-each case's reference noise + 0.5 % of the uniform `DEFAULT_SAMPLES` bake at a third of
-its paths (0.333×; the smallest margin 0.01 points), and the cheapest uniform bake as
-accurate (median, p90 and worst error, no black pixels) of those measured, 64 paths a
-texel, traces 1.92× its paths; at 32 paths a texel two cases fall beyond, by up to 0.16
-points."""
+go on to that many; their first directions stratified, `baking.passes.stratifies`).
+Over the 58 bake cases of ``../shared/data`` the default is within each case's reference
+noise + 0.5 % of the uniform `DEFAULT_SAMPLES` bake at 0.297× its paths (the smallest
+margin 0.19 points), and the cheapest uniform bake as accurate (median, p90 and worst
+error, no black pixels) of those measured is that one; at 28 paths a texel the worst case
+is above that of 36 unstratified paths (15.39 against 15.20 %) and the smallest margin
+0.03 points ([accuracy.md](../docs/accuracy.md#the-default-against-the-front))."""
 DEFAULT_BOUNCES = 2
 """Diffuse bounces of every command's light when none is given."""
 DEFAULT_ALBEDO = 0.8

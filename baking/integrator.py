@@ -303,6 +303,11 @@ def _constant_radiance(lighting: TracingLights, settings: PathSettings) -> np.nd
     return np.pi * np.asarray(rgb, np.float64)
 
 
+NO_STRATA = np.zeros(0, np.int64)
+"""The strata of paths whose first directions come from their keys (`trace_whole_paths`,
+`kernels.trace_chunk`)."""
+
+
 class _PassSums(Protocol):
     """The pass sums `trace_whole_paths` adds to (`passes.PassSums`)."""
 
@@ -315,7 +320,8 @@ def trace_whole_paths(scene: Scene, params: WholePaths,
                       starts: tuple[np.uint32, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                     np.ndarray, np.ndarray],
                       weights: np.ndarray, acc: _PassSums,
-                      stats: RayStats | None = None, stratified: bool = False) -> None:
+                      stats: RayStats | None = None, strata: np.ndarray = NO_STRATA
+                      ) -> None:
     """`kernels.path_starts`, `trace_paths` and `kernels.accumulate` in one compiled call
     that calls Embree per ray (needs ``scene.calls``).
 
@@ -326,7 +332,8 @@ def trace_whole_paths(scene: Scene, params: WholePaths,
             ``second`` (A,), ``n`` (A,)) the paths add to.
         stats: the seconds added are the call's: Embree's and the arithmetic between
             its calls.
-        stratified: first directions by `kernels.stratify_first_directions`.
+        strata: (P,) the paths' strata: first directions by
+            `kernels.stratify_first_directions`; or (0,): by the paths' keys.
     """
     recorder = scene.recorder
     if recorder is None:
@@ -334,7 +341,7 @@ def trace_whole_paths(scene: Scene, params: WholePaths,
     else:
         record = recorder.reserve(2 * (params.bounces + 1) * len(starts[2]))
     start = time.perf_counter()
-    rays = kernels.trace_chunk(tuple(scene.calls), *starts, stratified, params.bounces,
+    rays = kernels.trace_chunk(tuple(scene.calls), *starts, strata, params.bounces,
                                params.albedo,
                                params.offset, params.escaped_radiance, params.sky,
                                params.first_sky, params.first_sampled, params.use_sky,

@@ -49,6 +49,10 @@ from isolume.baking.sky_kernels import sky_params as sky_params  # for `baking.b
 from isolume.volumes.field import JIT
 
 DIMS_PER_VERTEX = 4  # 2 for the cosine-sampled direction, 2 for the light sample
+UPPER_KEY = np.uint32(0x0B0E_5EED)
+"""Hashed into a texel's key for the shifts of its stratified first directions on its
+upper level (`stratify_first_directions`): its two levels' paths, of their own ranks,
+take independent shifts of the sequence."""
 
 
 @numba.njit(**JIT)
@@ -151,23 +155,32 @@ def texel_paths(texels: np.ndarray, upper: np.ndarray, counts: np.ndarray,
     ascending; `done`, `remaining`, `phase`, `weight` as there.
 
     Returns:
-        (P,) int64 texel of each path (0 … K − 1: an index into `texels`) and (P,) int64
-        sample indices, P = counts.sum().
+        (P,) int64 texel of each path (0 … K − 1: an index into `texels`), (P,) int64
+        sample indices, P = counts.sum(), and (P,) int64 their strata: 2 r + u, r the
+        sample's rank among its texel's samples on this level (all of them, those done
+        before included), u 1 on the texel's upper level (`stratify_first_directions`).
     """
     total = 0
     for c in counts:
         total += c
     pos = np.empty(total, np.int64)
     samples = np.empty(total, np.int64)
+    strata = np.empty(total, np.int64)
     i = 0
     for k in range(len(texels)):
         p = texels[k]
+        side = 1 if upper[k] else 0
+        rank = 0
+        for s in range(done[p]):
+            rank += on_upper(phase[p], weight[p], s, golden) == upper[k]
         for s in range(done[p], done[p] + remaining[p]):
             if on_upper(phase[p], weight[p], s, golden) == upper[k]:
                 pos[i] = k
                 samples[i] = s
+                strata[i] = 2 * rank + side
+                rank += 1
                 i += 1
-    return pos, samples
+    return pos, samples, strata
 
 
 @numba.njit(**JIT)
@@ -219,12 +232,15 @@ def _cosine_of(u0: np.float32, u1: np.float32):
 
 @numba.njit(**JIT)
 def stratify_first_directions(seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
-                              samples: np.ndarray, normals: np.ndarray, dirs: np.ndarray
+                              strata: np.ndarray, normals: np.ndarray, dirs: np.ndarray
                               ) -> None:
     """Overwrite the (3, P) first directions `dirs` of `path_starts`' P paths with
-    stratified ones: sample s of a texel takes point s of the (0, 2)-sequence
+    stratified ones: a path of stratum 2 r + u (`strata` (P,): r its rank among its
+    texel's paths on one level, u 1 on the texel's upper level, else 0; a view's texels
+    have one level, and r its sample index) takes point r of the (0, 2)-sequence
     (`net_words`), digitally shifted by two words hashed from the texel's key (its
-    `path_starts` hash with `dimension_key` 0 and 1), as its two uniforms. Each
+    `path_starts` hash, hashed once more with `UPPER_KEY` on the upper level, with
+    `dimension_key` 0 and 1), as its two uniforms. Each
     direction alone is cosine-distributed as one drawn from the keys (the shift makes
     each point uniform), while a texel's first 2ᵐ samples leave through each of its
     hemisphere's 2ᵐ cells of equal cosine-weighted solid angle (the net's boxes, of
@@ -234,10 +250,13 @@ def stratify_first_directions(seed_key: np.uint32, ids: np.ndarray, pos: np.ndar
     k0, k1 = dimension_key(0), dimension_key(1)
     shift0 = shift1 = np.uint32(0)
     for i in range(len(pos)):
-        if i == 0 or pos[i] != pos[i - 1]:  # a texel's paths come together: its shifts once
+        # a texel's paths on a level come together: its shifts once
+        if i == 0 or pos[i] != pos[i - 1] or (strata[i] ^ strata[i - 1]) & 1:
             h = pcg_hash(np.uint32(np.uint32(ids[pos[i]]) ^ seed_key))
+            if strata[i] & 1:
+                h = pcg_hash(np.uint32(h ^ UPPER_KEY))
             shift0, shift1 = pcg_hash(np.uint32(h ^ k0)), pcg_hash(np.uint32(h ^ k1))
-        first, second = net_words(samples[i])
+        first, second = net_words(strata[i] >> 1)
         u0 = word_uniform_f32(np.uint32(first ^ shift0))
         u1 = word_uniform_f32(np.uint32(second ^ shift1))
         lx, ly, lz = _cosine_of(u0, u1)
@@ -432,7 +451,7 @@ def _record(record: np.ndarray, recorded: int, kind: float, pos: np.ndarray,
 @numba.njit(**JIT)
 def trace_chunk(calls: tuple[int, ...], seed_key: np.uint32, ids: np.ndarray, pos: np.ndarray,
                 samples: np.ndarray, texels: np.ndarray, origins: np.ndarray,
-                normals: np.ndarray, stratified: bool, bounces: int, albedo: np.ndarray,
+                normals: np.ndarray, strata: np.ndarray, bounces: int, albedo: np.ndarray,
                 offset: float,
                 escaped_radiance: np.ndarray, sky: np.ndarray, first_sky: np.ndarray,
                 first_sampled: bool, use_sky: bool, weights: np.ndarray,
@@ -449,7 +468,8 @@ def trace_chunk(calls: tuple[int, ...], seed_key: np.uint32, ids: np.ndarray, po
         calls: (scene handle, rtcIntersect1 address, rtcOccluded1 address).
         seed_key, ids, pos, samples, texels, origins, normals: as `path_starts` (P paths
             sorted by texel position; (T, 3) float32 start points and unit normals).
-        stratified: first directions by `stratify_first_directions`, else by the keys.
+        strata: (P,) the paths' strata: first directions by `stratify_first_directions`,
+            or (0,): by the keys.
         albedo: (3,) float32; offset: world distance hit points leave the surface by.
         escaped_radiance: (3,) π·L of a constant environment (zero under the sky).
         sky: (SKY_PARAMS,) `sky_params` (any values when not `use_sky`); first_sky: those
@@ -464,8 +484,8 @@ def trace_chunk(calls: tuple[int, ...], seed_key: np.uint32, ids: np.ndarray, po
         rays traced.
     """
     keys, at, n, dirs = path_starts(seed_key, ids, pos, samples, texels, origins, normals)
-    if stratified:
-        stratify_first_directions(seed_key, ids, pos, samples, n, dirs)
+    if len(strata):
+        stratify_first_directions(seed_key, ids, pos, strata, n, dirs)
     result = np.zeros((len(pos), 3))
     alive = np.arange(len(pos))
     beta = np.ones((3, len(pos)), np.float32)
@@ -649,7 +669,7 @@ def warm_up() -> None:
     sky = np.zeros(SKY_PARAMS)
     stratify_first_directions(np.uint32(0), index, index, index, vec, vec.copy())
     trace_chunk((0, 0, 0), np.uint32(0), index, index[:0], index[:0], index, vec.T.copy(),
-                vec.T.copy(), False, 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky,
+                vec.T.copy(), index[:0], 2, np.ones(3, np.float32), 1e-3, np.ones(3), sky, sky,
                 True, True,
                 np.ones(3), np.zeros((1, 3)), np.zeros(1), index.copy(),
                 np.empty((0, RAY_RECORD_ROWS), np.float32))

@@ -28,6 +28,7 @@ from isolume import volumes
 from isolume.baking import kernels, octahedral
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import (
+    NO_STRATA,
     PathSettings,
     TracingLights,
     WholePaths,
@@ -256,10 +257,10 @@ class LevelPaths:
     phase: np.ndarray
     weight: np.ndarray
 
-    def of(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
-        """(P,) texels (0 … hi − lo − 1: of texels lo … hi − 1) and (P,) sample indices of
-        the paths of texels lo … hi − 1, sorted by texel, samples ascending
-        (`kernels.texel_paths`)."""
+    def of(self, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(P,) texels (0 … hi − lo − 1: of texels lo … hi − 1), (P,) sample indices and
+        (P,) strata of the paths of texels lo … hi − 1, sorted by texel, samples
+        ascending (`kernels.texel_paths`)."""
         return kernels.texel_paths(self.texels[lo:hi], self.upper[lo:hi],
                                    self.counts[lo:hi], self.done, self.remaining,
                                    self.phase, self.weight, GOLDEN_FRACTION)
@@ -343,9 +344,11 @@ class Tracing:
         weights: (C,) weights of the brightness whose second moment the pass sums keep.
         whole: parameters of `integrator.trace_whole_paths` where it covers the bake's
             lighting, else None (`integrator.whole_paths`).
-        stratified: the paths' first directions stratified over each texel's samples
-            (`kernels.stratify_first_directions`: the traced light of views), else
-            drawn from the paths' keys as every other dimension (bakes).
+        stratified: the paths' first directions stratified over each texel's samples on
+            a level (`kernels.stratify_first_directions`: the traced light of views, and
+            bakes whose paths or texels follow the noise or the light, `stratifies`),
+            else drawn from the paths' keys as every other dimension (bakes of exactly
+            `BakeConfig.samples` paths at every texel).
     """
 
     ids: np.ndarray
@@ -357,24 +360,39 @@ class Tracing:
     stratified: bool = False
 
 
+def stratifies(config: BakeConfig) -> bool:
+    """Are a bake's first directions stratified (`Tracing.stratified`)? Where its paths
+    follow the noise (`BakeConfig.target_error`) or its texels the light
+    (`BakeConfig.texel_error`, the default): a bake of exactly `BakeConfig.samples`
+    paths at every texel keeps independent directions."""
+    return config.target_error is not None or config.texel_error is not None
+
+
 def trace_chunk(scene: Scene, tracing: Tracing, pos: np.ndarray, samples: np.ndarray,
-                start: PathStarts, acc: PassSums) -> tuple[int, int, float]:
+                start: PathStarts, acc: PassSums, strata: np.ndarray | None = None
+                ) -> tuple[int, int, float]:
     """Trace paths (sorted texel positions `pos` (P,), sample indices (P,)) from their start
-    points and add the per-texel sums to `acc` (positions index it).
+    points and add the per-texel sums to `acc` (positions index it); `strata` (P,), the
+    paths' strata where ``tracing.stratified`` (`kernels.texel_paths`), or None: twice
+    their sample indices (a view's texels, of one level each).
 
     Returns:
         (paths, rays, seconds tracing: inside Embree, or in the compiled call that calls it).
     """
     starts = (tracing.seed_key, tracing.ids, pos, samples, start.texels, start.origins,
               start.normals)
+    if not tracing.stratified:
+        strata = NO_STRATA
+    elif strata is None:
+        strata = 2 * np.asarray(samples, np.int64)
     ray_stats = RayStats()
     if tracing.whole is not None and scene.calls is not None:
         trace_whole_paths(scene, tracing.whole, starts, tracing.weights, acc, ray_stats,
-                          tracing.stratified)
+                          strata)
     else:
         keys, origins, normals, dirs = kernels.path_starts(*starts)
-        if tracing.stratified:
-            kernels.stratify_first_directions(tracing.seed_key, tracing.ids, pos, samples,
+        if len(strata):
+            kernels.stratify_first_directions(tracing.seed_key, tracing.ids, pos, strata,
                                               normals, dirs)
         estimates = trace_paths(scene, origins.T, normals.T, keys, tracing.lighting,
                                 tracing.settings, ray_stats, dirs.T)
@@ -390,10 +408,10 @@ def trace_texels(scene: Scene, tracing: Tracing, paths: LevelPaths, lo: int, hi:
     Returns:
         their sums (hi − lo texels, formed from zero), and `trace_chunk`'s counts.
     """
-    index, samples = paths.of(lo, hi)
+    index, samples, strata = paths.of(lo, hi)
     sums = PassSums(hi - lo, tracing.settings.channels)
     chunk = replace(tracing, ids=tracing.ids[paths.texels[lo:hi]].astype(np.int64, copy=False))
-    return sums, *trace_chunk(scene, chunk, index, samples, start.of(lo, hi), sums)
+    return sums, *trace_chunk(scene, chunk, index, samples, start.of(lo, hi), sums, strata)
 
 
 def level_scene(volume: volumes.Volume, iso: float, config: BakeConfig) -> Scene:

@@ -84,7 +84,7 @@ def test_level_paths_match_the_numpy_expansion():
         below = positions[lower == level - 1]
         texels, goes_up, counts = kernels.level_texels(here, below, done, remaining, phase,
                                                        weight, GOLDEN_FRACTION)
-        index, samples = kernels.texel_paths(texels, goes_up, counts, done, remaining,
+        index, samples, strata = kernels.texel_paths(texels, goes_up, counts, done, remaining,
                                              phase, weight, GOLDEN_FRACTION)
         pos = texels[index]
         want_pos, want_samples = [], []
@@ -100,12 +100,18 @@ def test_level_paths_match_the_numpy_expansion():
         np.testing.assert_array_equal(texels, np.unique(p))
         np.testing.assert_array_equal(counts, np.unique(p, return_counts=True)[1])
         np.testing.assert_array_equal(goes_up, np.isin(texels, below))
+        up = goes_up[index]
+        ranks = [np.count_nonzero((np.mod(phase[q] / 2.0**32 + np.arange(t) * GOLDEN_FRACTION,
+                                          1.0) < weight[q]) == u)
+                 for q, t, u in zip(pos, samples, up, strict=True)]
+        np.testing.assert_array_equal(strata, 2 * np.asarray(ranks, np.int64) + up)
         cut = len(texels) // 3  # a run of texels: the same paths as the whole level's
         start = counts[:cut].sum()
         part = kernels.texel_paths(texels[cut:], goes_up[cut:], counts[cut:], done, remaining,
                                    phase, weight, GOLDEN_FRACTION)
         np.testing.assert_array_equal(texels[cut:][part[0]], pos[start:])
         np.testing.assert_array_equal(part[1], samples[start:])
+        np.testing.assert_array_equal(part[2], strata[start:])
 
 
 def test_chunks_are_whole_texels_of_guided_size():
@@ -194,28 +200,30 @@ def test_net_words_are_a_0_2_sequence(shift):
                 assert len(np.unique(cells)) == 2 ** m, (m, start, a)
 
 
-def _stratified(seed, texels, samples, normals):
-    """`kernels.stratify_first_directions` of paths (texel ids, sample indices) about
-    (N, 3) unit `normals`: (N, 3) float64 directions."""
+def _stratified(seed, texels, samples, normals, upper=0):
+    """`kernels.stratify_first_directions` of paths (texel ids, ranks on a level: sample
+    indices on a view's one level) about (N, 3) unit `normals`, on their texels' upper
+    level where `upper`: (N, 3) float64 directions."""
     pos = np.arange(len(texels))
     dirs = np.zeros((3, len(texels)), np.float32)
+    strata = 2 * np.asarray(samples, np.int64) + upper
     kernels.stratify_first_directions(np.uint32(rng.seed_key(seed)), np.asarray(texels),
-                                      pos, np.asarray(samples),
-                                      np.ascontiguousarray(normals.T), dirs)
+                                      pos, strata, np.ascontiguousarray(normals.T), dirs)
     return dirs.T.astype(np.float64)
 
 
-def test_stratified_directions_are_cosine_distributed_and_stratified(normals):
+@pytest.mark.parametrize("upper", [0, 1])
+def test_stratified_directions_are_cosine_distributed_and_stratified(normals, upper):
     """Over many texels each sample is cosine-distributed about the normal (E[cos θ] = 2/3
-    and E[cos² θ] = 1/2 within 5 standard errors); within a texel, its 16 samples fall one
-    in each of 16 cells of equal cosine-weighted solid angle (4 rings of equal cos²θ
-    share × 4 quarters of azimuth: the net's 4 × 4 boxes), where 16 independent samples
-    fill 11 on average."""
+    and E[cos² θ] = 1/2 within 5 standard errors); within a texel, its 16 samples on a
+    level (its lower, or its upper) fall one in each of 16 cells of equal cosine-weighted
+    solid angle (4 rings of equal cos²θ share × 4 quarters of azimuth: the net's 4 × 4
+    boxes), where 16 independent samples fill 11 on average."""
     texels = np.repeat(np.arange(20000), 16)
     samples = np.tile(np.arange(16), 20000)
     up = np.zeros((len(texels), 3), np.float32)
     up[:, 2] = 1
-    dirs = _stratified(7, texels, samples, up)
+    dirs = _stratified(7, texels, samples, up, upper)
     cos = dirs[:, 2]
     assert cos.min() >= -1e-6
     assert abs(cos.mean() - 2 / 3) < 5 * np.sqrt(1 / 18 / len(cos))
@@ -237,7 +245,8 @@ def test_stratified_directions_are_cosine_distributed_and_stratified(normals):
 
 def test_stratified_directions_depend_on_texel_and_sample_only(normals):
     """The same bits whatever order or chunk the paths come in (a view's picture is the
-    same for any number of threads), and other texels take other shifts."""
+    same for any number of threads), and other texels, and a texel's other level, take
+    other shifts."""
     texels = np.repeat(np.arange(50), 8)
     samples = np.tile(np.arange(8), 50)
     n = np.repeat(normals[:50], 8, axis=0)
@@ -246,6 +255,8 @@ def test_stratified_directions_depend_on_texel_and_sample_only(normals):
     np.testing.assert_array_equal(_stratified(3, texels[order], samples[order], n[order]),
                                   whole[order])
     assert not np.array_equal(whole[:8], _stratified(3, texels[8:16], samples[:8], n[:8]))
+    upper = _stratified(3, texels, samples, n, 1)
+    assert not np.isclose(upper, whole).all(axis=1).any()
 
 
 def _next_vertices_numpy(pos, dirs, t, ng, prim, beta, albedo, offset):
