@@ -9,7 +9,7 @@ the volume as loaded, turned by ``--up`` where asked), two pictures are measured
   illumination (`app.render.offscreen.render_volume` with no lattice, lit by
   `app.options.view_light` from the render command's defaults);
 * **bake**: a bake with ``isolume bake``'s defaults (`app.options.bake_config`: the
-  default sky, a texel error of 0.02 at 36 paths a traced texel, 2 bounces, scale 1),
+  default sky, a texel error of 0.02 at 32 paths a traced texel, 2 bounces, scale 1),
   or with ``--paths N`` (exactly N a texel), ``--target-error E`` or ``--texel-error E``,
   restricted, for time, to the iso range a lazy bake serves for that isovalue
   (`baking.lazy.view_iso_range`: ±3 % of the data range), then the picture drawn with
