@@ -129,10 +129,10 @@ class BoxReachAhead:
     """The flood `choose_sides` tests the side other than the normals' against
     (`BoxReach.of` towards it), begun on a pool thread when the plan begins, so that it
     runs beside the plan's first stages rather than alone before the probes (one core
-    for 1.2 s on the 256³ foot CT, 10–15 s at 512³) — or, with one thread, where the
-    sides are chosen from the normals, or from inside the pool, made when first asked
-    for (`get`). A context: leaving it stops a flood still running (an interrupted plan),
-    within `volumes.reach.FLOOD_POPS` voxels."""
+    for 1.4 s on the 256³ foot CT, 17.6 s on the 512³ one) — or, with one thread, where
+    the sides are chosen from the normals, or from inside the pool, made when first
+    asked for (`get`). A context: leaving it stops a flood still running (an interrupted
+    plan), within `volumes.reach.FLOOD_POPS` voxels."""
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig) -> None:
         self._volume, self._up = volume, not bool(config.flip_normals)

@@ -20,8 +20,8 @@ The flood goes from the faces inwards, best level first, through a bucket queue 
 volume's values: the values themselves for integer samples spanning at most `EXACT_SPAN`,
 else `LEVELS` levels, each value rounded up for the upward reach and down for the
 downward one, so that the test errs towards "may leave". One pass over the voxels and
-their 26 neighbours, on one core: 1.2 s for the 256³ foot CT, 10–15 s at 512³, which the
-baker floods on a pool thread beside the plan's first stages
+their 26 neighbours, on one core: 1.4 s for the 256³ foot CT, 17.6 s for it at 512³,
+which the baker floods on a pool thread beside the plan's first stages
 (`baking.sides.BoxReachAhead`).
 """
 
@@ -79,7 +79,7 @@ class BoxReach:
         at = np.zeros(1, np.int64)
         while not _drain(rank, up, head, after, out, at, FLOOD_POPS):
             if stop is not None and stop.is_set():
-                raise FloodStopped(f"{volume.name}: the flood from the box's faces was stopped")
+                raise FloodStopped(f"{volume.name}: the flood from its box's faces stopped")
         return cls(out, levels, up)
 
     def arrays(self, volume: Volume) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray]:
