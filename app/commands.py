@@ -15,6 +15,7 @@ from isolume.app.look import shading_look
 from isolume.app.options import (
     CLIError,
     bake_config,
+    check_picture_memory,
     check_served,
     isovalue,
     load_lattice,
@@ -79,6 +80,7 @@ def render_picture(args: argparse.Namespace, reuse: Reuse | None = None) -> Rend
         view, size = parse_view(args.view), parse_size(args.size)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
+    check_picture_memory(size, "local")
     vol = load_volume(args)
     lattice = load_lattice(args.lattice, vol, whole=False)
     look = shading_look(args, vol, lattice, size)

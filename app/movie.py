@@ -37,6 +37,7 @@ from isolume.app.options import (
     CLIError,
     add_render_options,
     add_volume_options,
+    check_picture_memory,
     check_served,
     isovalue,
     load_lattice,
@@ -188,6 +189,7 @@ def check_request(args: argparse.Namespace) -> Request:
     if args.save_lattice is not None:
         check_output_path(args.save_lattice, (".npz",))
     size = parse_size(args.size)
+    check_picture_memory(size, "local")
     try:
         view = parse_view(args.view)
     except ValueError as exc:

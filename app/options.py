@@ -62,8 +62,8 @@ PIXEL_BYTES_WHY = {"local": "at the least", "lattice": "reading a lattice",
 
 
 def parse_size(text: str) -> tuple[int, int]:
-    """(width, height) of ``--size WxH``: each 1 to 16384 pixels, and a picture of the
-    fewest bytes a pixel (`PIXEL_BYTES`) that fits in the memory available."""
+    """(width, height) of ``--size WxH``: each 1 to 16384 pixels (the commands that
+    make the picture check that it fits in memory, `check_picture_memory`)."""
     parts = text.lower().split("x")
     try:
         w, h = (int(p) for p in parts)
@@ -71,7 +71,6 @@ def parse_size(text: str) -> tuple[int, int]:
         raise CLIError(f"--size {text!r}: expected WxH, e.g. 512x512") from None
     if not (1 <= w <= 16384 and 1 <= h <= 16384):
         raise CLIError(f"--size {text!r}: width and height must be between 1 and 16384")
-    check_picture_memory((w, h), "local")
     return w, h
 
 

@@ -31,6 +31,7 @@ import numpy as np
 from isolume.app.options import (
     CLIError,
     add_volume_options,
+    check_picture_memory,
     floats,
     isovalue,
     load_volume,
@@ -103,6 +104,7 @@ def _camera(args: argparse.Namespace, volume, iso: float):
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     size = parse_size(args.size)
+    check_picture_memory(size, "local")
     return framed_camera(volume, iso, view, size), size
 
 

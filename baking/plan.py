@@ -285,15 +285,16 @@ def make_plan(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeCon
     are bracketed, not after the side probes."""
     with BoxReachAhead(volume, config) as box_reach:
         return _planned(volume, geometry, config, levels, progress, on_levels, scenes,
-                        traced_only, box_reach.get)
+                        traced_only, box_reach)
 
 
 def _planned(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConfig,
              levels: np.ndarray | None, progress: Callable[..., None] | None,
              on_levels: Callable[[np.ndarray], None] | None,
              scenes: Callable[[int], object] | None, traced_only: bool,
-             box_reach: Callable[[], BoxReach]) -> Plan:
-    """`make_plan`, whose side probes test against ``box_reach()`` (`choose_sides`)."""
+             box_reach: BoxReachAhead) -> Plan:
+    """`make_plan`, whose side probes test against `box_reach`'s flood, begun once the
+    box's grid of texel values is let go (`choose_sides`)."""
     say = progress or (lambda _stage, _fraction=None: None)
     vmin, vmax = volume.value_range
     if vmax <= vmin:
@@ -314,6 +315,7 @@ def _planned(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConf
             "(no lattice cell's values span any of it); nothing to bake"
         )
     del rho  # the box's grid (4 bytes a texel): the rest of the plan is per active texel
+    box_reach.begin()  # its arrays (5–6 bytes a voxel) need not sit beside that grid
     say("gradients")
     cores.stage("gradients")
     grad = _gradients(volume, geometry, ids)
@@ -364,7 +366,7 @@ def _planned(volume: volumes.Volume, geometry: LatticeGeometry, config: BakeConf
     say(stage)
     cores.stage("seen sides")
     high = lit_sides(volume, config, geometry, ids, landing, reach, levels, lower, weight,
-                     scenes, lambda fraction: say(stage, fraction), box_reach)
+                     scenes, lambda fraction: say(stage, fraction), box_reach.get)
     say("reach tests")
     cores.stage("reach tests")
     reaches = _Reaches(volume, config, geometry, ids, reach,

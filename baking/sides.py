@@ -127,8 +127,8 @@ def choose_sides(volume: volumes.Volume, config: BakeConfig, geometry: LatticeGe
 
 class BoxReachAhead:
     """The flood `choose_sides` tests the side other than the normals' against
-    (`BoxReach.of` towards it), begun on a pool thread when the plan begins, so that it
-    runs beside the plan's first stages rather than alone before the probes (one core
+    (`BoxReach.of` towards it), begun on a pool thread early in the plan (`begin`), so
+    that it runs beside the plan's stages rather than alone before the probes (one core
     for 1.4 s on the 256³ foot CT, 17.6 s on the 512³ one) — or, with one thread, where
     the sides are chosen from the normals, or from inside the pool, made when first
     asked for (`get`). A context: leaving it stops a flood still running (an interrupted
@@ -136,12 +136,17 @@ class BoxReachAhead:
 
     def __init__(self, volume: volumes.Volume, config: BakeConfig) -> None:
         self._volume, self._up = volume, not bool(config.flip_normals)
+        self._probed = config.sides == "seen"
         self._stop = threading.Event()
         self._batch = cores.new_batch()
         self._future = None
-        if config.sides == "seen" and cores.threads() > 1 and not cores.in_pool():
+
+    def begin(self) -> None:
+        """Start the flood on a pool thread, where the sides are probed and the pool has
+        a thread to spare for it."""
+        if self._probed and cores.threads() > 1 and not cores.in_pool():
             self._future = cores.pool().submit(cores.beside_call, "box reach", BoxReach.of,
-                                               volume, self._up, self._stop,
+                                               self._volume, self._up, self._stop,
                                                batch=self._batch)
 
     def get(self) -> BoxReach:

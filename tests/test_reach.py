@@ -136,6 +136,7 @@ def test_the_flood_begun_ahead_is_the_flood_and_leaving_it_early_stops_it(thread
         for flip in (False, True):
             config = BakeConfig(flip_normals=flip)
             with BoxReachAhead(volume, config) as ahead:
+                ahead.begin()
                 got = ahead.get()
             want = BoxReach.of(volume, up=not flip)
             assert got.up == want.up
@@ -143,7 +144,7 @@ def test_the_flood_begun_ahead_is_the_flood_and_leaving_it_early_stops_it(thread
         big = Volume(np.tile(volume.data, (3, 3, 3)), name="shells", source="shells")
         monkeypatch.setattr(reach, "FLOOD_POPS", 1)  # 96³ voxels one at a time: seconds
         with BoxReachAhead(big, BakeConfig()) as ahead:
-            pass
+            ahead.begin()
         if threads > 1:
             assert ahead._future is not None
             if not ahead._future.cancelled():

@@ -21,7 +21,7 @@ volume's values: the values themselves for integer samples spanning at most `EXA
 else `LEVELS` levels, each value rounded up for the upward reach and down for the
 downward one, so that the test errs towards "may leave". One pass over the voxels and
 their 26 neighbours, on one core: 1.4 s for the 256³ foot CT, 17.6 s for it at 512³,
-which the baker floods on a pool thread beside the plan's first stages
+which the baker floods on a pool thread beside the plan's Newton steps
 (`baking.sides.BoxReachAhead`).
 """
 

@@ -125,15 +125,14 @@ class Options:
 
 def read_options(args: argparse.Namespace) -> Options:
     """Check the command line; raise `app.options.CLIError` with one-line messages."""
-    from isolume.app.options import CLIError, parse_size
+    from isolume.app.options import CLIError, check_picture_memory, parse_exposure, parse_size
     from isolume.app.render.images import check_output_path
     from isolume.app.render.settings import SHADING_MODES
     from isolume.app.viewer.script import load_script
 
     if args.shading is not None and args.shading not in SHADING_MODES:
         raise CLIError(f"--shading {args.shading!r}: expected one of {', '.join(SHADING_MODES)}")
-    if not args.exposure > 0:
-        raise CLIError(f"--exposure {args.exposure:g}: must be positive")
+    parse_exposure(args.exposure)
     if args.frames is not None and args.frames < 1:
         raise CLIError(f"--frames {args.frames}: expected at least 1")
     if args.bake_samples < 1:
@@ -150,8 +149,10 @@ def read_options(args: argparse.Namespace) -> Options:
     stats = check_output_path(args.stats, (".json",)) if args.stats else None
     lattice = check_output_path(args.lattice, (".npz",)) if args.lattice else None
     script = tuple(load_script(args.script, SHADING_MODES)) if args.script else ()
+    size = parse_size(args.size)
+    check_picture_memory(size, "local")
     return Options(
-        size=parse_size(args.size), shading=args.shading, exposure=args.exposure,
+        size=size, shading=args.shading, exposure=args.exposure,
         auto_exposure=not args.no_auto_exposure,
         frames=args.frames, screenshot=screenshot, script=script, stats=stats,
         bake=not args.no_bake, bake_mode=args.bake_mode, bake_env=args.bake_env,
