@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -20,6 +21,7 @@ from isolume.app import blas  # noqa: F401  (first: before numpy loads its BLAS)
 from isolume.app.allocator import tune_malloc
 from isolume.app.commands import cmd_bake, cmd_info, cmd_render
 from isolume.app.options import (
+    EXIT_INTERRUPTED,
     EXIT_USER_ERROR,
     add_bake_options,
     add_render_options,
@@ -153,11 +155,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``isolume`` console script; returns the exit status. Run as the
     script (`argv` None: the process ends next), it freezes the garbage collector's heap
     as it returns (`gc.freeze`): Python's finalization collects the heap several times, and
-    with numba's objects in it that took ~0.2 s of every command's exit."""
+    with numba's objects in it that took ~0.2 s of every command's exit; and after a
+    Ctrl-C it ends the process without waiting for pool threads (`_leave`)."""
     status = _run(argv)
     if argv is None:
         gc.freeze()
+        if status == EXIT_INTERRUPTED:
+            _leave(status)
     return status
+
+
+def _leave(status: int) -> None:
+    """End the process now with `status`, once the command has stopped and saved what it
+    finished: a pool thread may still be compiling a kernel (the first run on a machine:
+    seconds, which no Ctrl-C cuts), and Python's exit would wait for it. Numba writes its
+    cache files whole (to a temporary name, then renamed), so the cache stays sound."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # closed: a pipe gone, or closed on purpose
+            pass
+    os._exit(status)
 
 
 def _run(argv: Sequence[str] | None) -> int:
@@ -183,7 +201,7 @@ def _run(argv: Sequence[str] | None) -> int:
         if not interrupted_by(exc):
             raise
         print("isolume: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except BrokenPipeError:  # output piped into `head` and the like
         sys.stderr.close()
         return 0

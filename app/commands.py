@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 from isolume import volumes
 from isolume.app.look import shading_look
 from isolume.app.options import (
+    EXIT_INTERRUPTED,
     CLIError,
     bake_config,
     check_picture_memory,
@@ -205,7 +206,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
         print(f"isolume: interrupted; {stop.finished:,} finished texels saved in {out}; "
               "run the same command again to resume (and to compress what a Ctrl-C saved "
               "uncompressed)", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except (KeyboardInterrupt, SystemError) as exc:  # before the tracing: nothing new
         if not interrupted_by(exc):
             raise
@@ -215,7 +216,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
         else:
             print(f"isolume: interrupted before any path was traced; {out} not written",
                   file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     plan, stats = lattice.meta["plan"], lattice.meta["stats"]
     total = plan["total_texels"]
     print(f"wrote {out}: {plan['active_texels']:,} of {total:,} texels active "

@@ -24,6 +24,8 @@ if TYPE_CHECKING:
 
 EXIT_USER_ERROR = 2
 """Exit status of a command that ends on bad input."""
+EXIT_INTERRUPTED = 130
+"""Exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it)."""
 
 
 class CLIError(IsolumeError):

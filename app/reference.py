@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from isolume.app.options import (
+    EXIT_INTERRUPTED,
     CLIError,
     add_volume_options,
     check_picture_memory,
@@ -270,7 +271,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"isolume: interrupted; {sidecar['spp_min']} to {sidecar['spp_max']} samples "
                   f"per pixel saved in {outputs.state}; run the same command again to resume",
                   file=sys.stderr)
-            return 130
+            return EXIT_INTERRUPTED
         added = int((stats.count - done_before).max(initial=0))
     _report(outputs, sidecar, volume, iso, size, tracer.counters, added)
     return 0

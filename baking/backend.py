@@ -216,8 +216,9 @@ class TracingBackend(Protocol):
     def record(self, meta: dict[str, Any]) -> None:
         """Add the backend's own counters to the lattice metadata `meta`."""
 
-    def close(self) -> None:
-        """Stop tracing and let go of threads, processes and connections."""
+    def close(self, wait: bool = True) -> None:
+        """Stop tracing and let go of threads, processes and connections; without `wait`
+        (a Ctrl-C), work still running on a thread is left to end there."""
 
 
 class _Beside(NamedTuple):
@@ -446,10 +447,12 @@ class ThreadBackend:
     def record(self, meta: dict[str, Any]) -> None:
         """Nothing beyond the Baker's own counters."""
 
-    def close(self) -> None:
-        """Stop the worker threads and drop the cached scenes."""
-        self._pool.shutdown(wait=True, cancel_futures=True)
-        self._helper.shutdown(wait=True, cancel_futures=True)
+    def close(self, wait: bool = True) -> None:
+        """Stop the worker threads and drop the cached scenes; without `wait`, a helper
+        still compiling the kernels (the first bake on a machine: seconds) or building a
+        scene ahead is left to end on its thread."""
+        self._pool.shutdown(wait=wait, cancel_futures=True)
+        self._helper.shutdown(wait=wait, cancel_futures=True)
         self._scenes.clear()
         self._kept.clear()
         self._pending.clear()

@@ -288,8 +288,8 @@ class Baker:
             self.job: BakeJob = BakeJob(volume, planned, self.geometry, self.plan,
                                         self.records, self._tracing(), self.stats)
             self.backend.start(self.job)
-        except BaseException:
-            self.close()
+        except BaseException as error:
+            self.close(wait=not interrupted_by(error))
             raise
         self._finish_meta()
 
@@ -415,10 +415,11 @@ class Baker:
         return PassWork(np.array(done, count), np.array(wanted, count), int(lower.min()),
                         int(lower.max()) + 1, self.groups)
 
-    def close(self) -> None:
-        """Close the backend (its threads, its cluster connection, its scenes) and let go
+    def close(self, wait: bool = True) -> None:
+        """Close the backend (its threads, its cluster connection, its scenes; without
+        `wait`, as a Ctrl-C does, work still running on its threads ends there) and let go
         of the plan's records."""
-        self.backend.close()
+        self.backend.close(wait)
         if self.records is not None:
             self.records.close()
 
@@ -555,6 +556,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
             "first, what is left of it uncompressed (Ctrl-C again to stop without it)"
             ) if progress else None
     pressed: list[bool] = []
+    stopped = False
     with ExitStack() as finishing:
         try:
             if adaptive:
@@ -569,6 +571,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
         except (KeyboardInterrupt, SystemError) as exc:
             if not interrupted_by(exc):  # a Ctrl-C out of numba's kernel loading counts
                 raise
+            stopped = True
             bar.close()  # its last line stays above what follows
             if out is not None:
                 if progress:
@@ -585,7 +588,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
                 raise KeyboardInterrupt from exc
             held.meta["interrupted"] = True
         finally:
-            baker.close()
+            baker.close(wait=not stopped)
             bar.close()
         cores.stage("save")
         if out is not None and not held.meta.get("interrupted"):

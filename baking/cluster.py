@@ -529,14 +529,15 @@ class ClusterBackend:
         """What moved: ``meta["cluster"]`` (`ClusterTraffic`)."""
         meta["cluster"] = self.traffic.as_dict()
 
-    def close(self) -> None:
-        """Drop the bake's state on the workers, then the client (and a local cluster)."""
+    def close(self, wait: bool = True) -> None:
+        """Drop the bake's state on the workers, then the client (and a local cluster);
+        without `wait`, the helper loading the kernels is left to end on its thread."""
         self._drop_job()
         if self._own_client:
             self.client.close()
             if self._cluster is not None:
                 self._cluster.close()
-        self._helper.shutdown(wait=True, cancel_futures=True)
+        self._helper.shutdown(wait=wait, cancel_futures=True)
 
     def _drop_job(self) -> None:
         """Forget the scattered job on the workers (a cluster already gone has nothing to

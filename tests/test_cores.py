@@ -318,6 +318,28 @@ def test_ctrl_c_stops_a_bake_within_two_seconds_in_the_plan(tmp_path):
     assert timeline.exists()  # the timeline is written when the command is interrupted
 
 
+def test_ctrl_c_stops_a_bake_within_two_seconds_while_its_kernels_compile(tmp_path):
+    """The first bake on a machine compiles its kernels (an empty numba cache: ~40 s here),
+    on the pool's threads and the helper beside the plan, and no Ctrl-C cuts a kernel's
+    compilation: SIGINT then still ends the command within 2 s with exit status 130 (the
+    threads left compiling, not waited for), and writes no lattice."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    out = tmp_path / "l.npz"
+    proc = subprocess.Popen([sys.executable, "-c", CLI, "bake", "synthetic:engine:72",
+                             "--out", str(out)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(4.0)  # compiling: the plan's kernels, and the tracer's beside them
+    sent = time.perf_counter()
+    proc.send_signal(signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert time.perf_counter() - sent < 2.0, err
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and not out.exists()
+
+
 def test_the_command_line_loads_blas_with_one_thread_and_use_never_grows_it():
     """Importing the command line starts no BLAS thread (one spins ~0.1 s as it starts, on a
     core a ``--workers 1`` command does not hold), and `cores.use` keeps the loaded BLAS at

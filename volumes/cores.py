@@ -47,7 +47,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from isolume.volumes import usage
-from isolume.volumes.errors import IsolumeError
+from isolume.volumes.errors import IsolumeError, interrupted_by
 from isolume.volumes.writing import atomic_write
 
 _T = TypeVar("_T")
@@ -87,6 +87,10 @@ MIN_BLOCK = 1024
 """Fewest elements of a block (the numpy between a block's kernels costs ~0.1 ms)."""
 SAMPLE_S = 0.05
 """Seconds between a timeline's readings of every thread's CPU time."""
+STOP_WAIT_S = 0.5
+"""Seconds a Ctrl-C waits for the items of a `for_items` call still running before it goes
+on: one that is loading or compiling its kernel (the first run on a machine compiles for
+seconds) is left to end on its pool thread; the call's work is abandoned with it."""
 SERIAL_CORES = 1.1
 """A sampled interval counts as serial when the threads' CPU time in it is at most this
 many times its length (at most one core busy, with the noise of a waking thread)."""
@@ -336,19 +340,21 @@ def for_items(work: Callable[[int], None], count: int, kind: str = "",
 
     try:
         items.run(tell if on_done is not None else None)
-    except BaseException:
+    except BaseException as error:
         items.stopped = True
-        _finish_quietly(items)
+        _finish_quietly(items, STOP_WAIT_S if interrupted_by(error) else None)
         raise
     items.finish()
     if on_done is not None and told[0] < count:  # the last items ran on other threads
         on_done(count)
 
 
-def _finish_quietly(items: _Items) -> None:
-    """Wait for the items still running after the caller's error (they are short)."""
+def _finish_quietly(items: _Items, at_most: float | None = None) -> None:
+    """Wait for the items still running after the caller's error (they are short), for at
+    most `at_most` seconds (None: until they end)."""
+    deadline = None if at_most is None else time.monotonic() + at_most
     with items.cond:
-        while items.active:
+        while items.active and (deadline is None or time.monotonic() < deadline):
             items.cond.wait(0.1)
 
 

@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from isolume.app.options import isovalue, load_volume
+    from isolume.app.options import EXIT_INTERRUPTED, isovalue, load_volume
 
     options = read_options(args)
     volume = load_volume(args)
@@ -103,7 +103,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         return viewer.run()
     except KeyboardInterrupt:
-        return 130
+        return EXIT_INTERRUPTED
     finally:
         viewer.close()
 
