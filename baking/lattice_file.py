@@ -185,7 +185,7 @@ def _write_archive(path: str | os.PathLike[str], bits: Callable[[], np.ndarray],
                                           allow_pickle=False)
 
     try:
-        atomic_write(path, write, "lattice", kept=" (a bake resumes from it)")
+        atomic_write(path, write, "lattice", kept=" (a bake resumes from it)", durable=True)
     finally:  # a save that failed or was stopped leaves no mask to be made
         mask.cancel()
 

@@ -3,6 +3,7 @@ and read a slab at a time; a display reads the texels it is asked for."""
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -570,6 +571,38 @@ def test_a_zipfile_without_its_private_sizes_deflates_the_members_itself(tmp_pat
     with zipfile.ZipFile(tmp_path / "whole.npz") as zf:
         assert zf.testzip() is None
     _same(Lattice.load(tmp_path / "whole.npz"), lattice)
+
+
+def test_a_durable_write_syncs_and_removes_what_killed_writes_left(tmp_path, monkeypatch):
+    """`atomic_write(..., durable=True)` (a lattice's save): the file's data and then its
+    folder are flushed (``fsync``) before it returns, and the temporary files that earlier
+    writes of the same path left in processes since gone are removed — not those of a
+    running process, of another path, or of another name pattern."""
+    import subprocess
+    import sys
+
+    from isolume.volumes import writing
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          check=True, capture_output=True, text=True)
+    dead, alive = int(gone.stdout), os.getpid()
+    path = tmp_path / "l.npz"
+    left = [tmp_path / f".l.npz.{dead}.abcd_123.npz", tmp_path / f".l.npz.{alive}.abcd_123.npz",
+            tmp_path / f".m.npz.{dead}.abcd_123.npz", tmp_path / ".l.npz.abcd_123.npz"]
+    for file in left:
+        file.write_bytes(b"partial")
+    synced = []
+    real = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: synced.append(os.readlink(
+        f"/proc/self/fd/{fd}")) or real(fd))
+    writing.atomic_write(path, lambda tmp: Path(tmp).write_text("whole"), durable=True)
+    assert path.read_text() == "whole"
+    assert [file.exists() for file in left] == [False, True, True, True]
+    assert len(synced) == 2 and Path(synced[0]).name.startswith(f".l.npz.{alive}.")
+    assert synced[1] == str(tmp_path)
+    synced.clear()
+    writing.atomic_write(path, lambda tmp: Path(tmp).write_text("again"))  # not durable
+    assert synced == [] and left[1].exists()
 
 
 def test_a_file_written_whole_keeps_permissions_links_and_read_only_files(tmp_path):

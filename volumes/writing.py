@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import stat
 import tempfile
 from collections.abc import Callable
@@ -20,13 +21,18 @@ NEW_FILE_MODE = 0o666 & ~_UMASK
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[str], object],
-                 what: str = "file", kept: str = "") -> None:
-    """Call ``write(tmp)`` on a hidden temporary file beside `path` (a dot, its name, a
-    random part, its suffix), then rename it to `path`: an interrupted or failed write
-    never leaves a broken file, and a file already at `path` stays until the new one
-    replaces it. The new file gets the old one's permissions, or a new file's
-    (`NEW_FILE_MODE`); a symbolic link is written through (its target is replaced); a
-    file that may not be written (read-only) is refused, as writing it in place would be.
+                 what: str = "file", kept: str = "", durable: bool = False) -> None:
+    """Call ``write(tmp)`` on a hidden temporary file beside `path` (a dot, its name, the
+    writing process's id, a random part, its suffix), then rename it to `path`: an
+    interrupted or failed write never leaves a broken file, and a file already at `path`
+    stays until the new one replaces it. The new file gets the old one's permissions, or
+    a new file's (`NEW_FILE_MODE`); a symbolic link is written through (its target is
+    replaced); a file that may not be written (read-only) is refused, as writing it in
+    place would be. With `durable` (the lattice files a bake resumes from), the file's
+    data and then the rename reach the disk before it returns (``fsync``), so that the
+    file survives a power cut, not only a killed process; and the temporary files that
+    earlier writes of `path` left in processes since gone (killed mid-write: a lattice's
+    can take gigabytes) are removed first (`_remove_orphans`).
 
     Raises:
         WriteError: the write failed with an `OSError` (a full disk, a quota, a read-only
@@ -39,15 +45,21 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[str], object],
         mode = stat.S_IMODE(os.stat(target).st_mode) if target.exists() else NEW_FILE_MODE
         if target.exists() and not os.access(target, os.W_OK):
             raise PermissionError(errno.EACCES, os.strerror(errno.EACCES))
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=target.suffix,
-                                   dir=target.parent)
+        if durable:
+            _remove_orphans(target)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.{os.getpid()}.",
+                                   suffix=target.suffix, dir=target.parent)
         os.close(fd)
         os.chmod(tmp, mode)
     except OSError as exc:
         raise _unwritable(path, exc, what, kept) from exc
     try:
         write(tmp)
+        if durable:
+            _sync(tmp)
         os.replace(tmp, target)
+        if durable:
+            _sync_folder(target.parent)
     except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
         if isinstance(exc, OSError):
@@ -61,3 +73,52 @@ def _unwritable(path: Path, exc: OSError, what: str, kept: str) -> WriteError:
             else "nothing was written")
     return WriteError(f"{path}: cannot write the {what}: {exc.strerror or exc}; {left}",
                       subject=path)
+
+
+def _sync(path: str | os.PathLike[str]) -> None:
+    """Flush the file `path` to the disk (``fsync``); a file system that cannot
+    (``EINVAL``: some network and virtual ones) is taken as it is."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno != errno.EINVAL:
+            raise
+    finally:
+        os.close(fd)
+
+
+def _sync_folder(folder: Path) -> None:
+    """Flush the entries of `folder` (a rename in it) to the disk, where its file system
+    lets a folder be opened and flushed: the file is in place either way."""
+    try:
+        _sync(folder)
+    except OSError:
+        pass
+
+
+def _remove_orphans(target: Path) -> None:
+    """Remove the hidden temporary files `atomic_write` left beside `target` in processes
+    that are gone (a SIGKILL or a power cut mid-write): names of its pattern whose process
+    id names no running process. A file whose process lives (another write of `target`
+    under way, or an unrelated process that took the id) is left alone."""
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.(\d+)\.[A-Za-z0-9_]{{8}}"
+                         rf"{re.escape(target.suffix)}")
+    for entry in os.scandir(target.parent):
+        found = pattern.fullmatch(entry.name)
+        if found is not None and entry.is_file(follow_symlinks=False) \
+                and not _running(int(found.group(1))):
+            Path(entry.path).unlink(missing_ok=True)
+
+
+def _running(pid: int) -> bool:
+    """Whether a process `pid` exists (one of another user's counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    except (OverflowError, OSError):  # not a process id
+        return False
+    return True
