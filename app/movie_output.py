@@ -82,16 +82,12 @@ class PngFrames:
         return f"frame_{index:0{self.digits}d}.png"
 
     def write(self, index: int, srgb: np.ndarray, text: dict[str, str]) -> None:
-        """Write frame `index`: (H, W, 3) uint8 sRGB, with `text` as PNG text chunks."""
-        from PIL import Image
-        from PIL.PngImagePlugin import PngInfo
+        """Write frame `index`: (H, W, 3) uint8 sRGB, with `text` as PNG text chunks
+        (deflated on every core: `app.render.png`)."""
+        from isolume.app.render.png import write_png
 
-        info = PngInfo()
-        for key, value in text.items():
-            info.add_text(key, value)
-        image = Image.fromarray(np.ascontiguousarray(srgb, np.uint8), "RGB")
-        atomic_write(self.folder / self.name(index),
-                     lambda tmp: image.save(tmp, pnginfo=info), "movie frame")
+        atomic_write(self.folder / self.name(index), lambda tmp: write_png(tmp, srgb, text),
+                     "movie frame")
 
     def others(self) -> list[str]:
         """Names of the frame files in the folder that are not this movie's."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,11 +52,9 @@ class Picture:
 
     def _repr_png_(self) -> bytes:
         """The PNG of `srgb` (what a notebook shows)."""
-        from PIL import Image
+        from isolume.app.render.png import encode_png
 
-        buffer = io.BytesIO()
-        Image.fromarray(np.ascontiguousarray(self.srgb), "RGB").save(buffer, format="PNG")
-        return buffer.getvalue()
+        return encode_png(self.srgb)
 
     def __repr__(self) -> str:
         return f"Picture({self.summary})"

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from isolume.app.render.png import write_png
 from isolume.volumes.errors import IsolumeError
 from isolume.volumes.writing import atomic_write
 
@@ -50,13 +51,6 @@ def check_output_folder(path: str | os.PathLike[str]) -> Path:
     if not os.access(parent, os.W_OK):
         raise OutputError(f"{path}: directory {parent} is not writable")
     return path
-
-
-def write_png(path: str | os.PathLike[str], srgb: np.ndarray) -> None:
-    """Write an (H, W, 3) uint8 sRGB image."""
-    from PIL import Image
-
-    Image.fromarray(np.ascontiguousarray(srgb, np.uint8), "RGB").save(path)
 
 
 def write_exr(path: str | os.PathLike[str], linear: np.ndarray,

@@ -318,7 +318,7 @@ class ScriptRunner:
         """Read the back buffer for a pending ``window-shot``."""
         if self.pending_window_shot is None:
             return
-        from isolume.app.render.images import write_png
+        from isolume.app.render.png import write_png
 
         write_png(self.pending_window_shot, viewer.window_pixels())
         self.pending_window_shot = None
