@@ -9,7 +9,12 @@ import pytest
 
 from isolume import volumes
 from isolume.app.render.camera import FRAME_FILL, Camera, frame_points
-from isolume.app.render.exposure import EXPOSURE_KEY, auto_exposure_scale
+from isolume.app.render.exposure import (
+    EXPOSURE_KEY,
+    auto_exposure_scale,
+    quantile,
+    weighted_quantile,
+)
 
 
 def _ndc(camera: Camera, aspect: float, points) -> np.ndarray:
@@ -73,6 +78,24 @@ def test_orbiting_keeps_the_target_where_it_was_framed():
         turned = replace(camera, azimuth=az, elevation=el)
         x, y = _ndc(turned, 1.5, [(lo + hi) / 2])[0]
         assert (x, y) == pytest.approx((0.3, 0.0), abs=1e-9)
+
+
+def test_auto_exposure_without_weights_is_the_weighted_one_of_unit_weights():
+    """Without weights the meter partitions instead of sorting (`exposure.quantile`): the
+    same exposure, to the bit, as weights of 1 give through `weighted_quantile` and the
+    weighted average — over sizes whose bright quantile's rank rounds either way, with
+    dark, negative and NaN pixels."""
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 19, 20, 21, 400, 10_001):
+        rgb = rng.lognormal(0, 2, (n, 3)) * (rng.random((n, 1)) > 0.1)
+        rgb[::7, 1] = -1.0
+        rgb[::11, 0] = np.nan
+        mask = rng.random(n) > 0.2
+        values = rgb[:, 1][rgb[:, 1] > 0]
+        for q in (0.0, 0.5, 0.95, 1.0) if len(values) else ():
+            assert quantile(values, q) == weighted_quantile(values, np.ones(len(values)), q)
+        assert auto_exposure_scale(rgb, mask) == auto_exposure_scale(rgb, mask,
+                                                                     weights=np.ones(n))
 
 
 def test_auto_exposure_is_the_key_over_the_log_average():
