@@ -560,21 +560,34 @@ def neighbour_medians(ids: np.ndarray, variance: np.ndarray, nz: int, ny: int, n
 
 
 @numba.njit(**JIT)
-def count_bins(which: np.ndarray, lo: int, hi: int, counts: np.ndarray) -> None:
-    """Into (B,) `counts`: how many of ``which[lo:hi]`` (bin indices < B) fall in each bin."""
+def count_bins(which: np.ndarray, shift: int, lo: int, hi: int, counts: np.ndarray
+               ) -> None:
+    """Into (B,) `counts`: how many of ``which[lo:hi] >> shift`` (bin indices < B) fall in
+    each bin."""
     for i in range(lo, hi):
-        counts[which[i]] += 1
+        counts[which[i] >> shift] += 1
 
 
 @numba.njit(**JIT)
-def scatter_by_bin(which: np.ndarray, values: np.ndarray, lo: int, hi: int,
+def scatter_by_bin(which: np.ndarray, shift: int, values: np.ndarray, lo: int, hi: int,
                    places: np.ndarray, out: np.ndarray) -> None:
-    """Put ``values[lo:hi]`` into `out`, each at its bin's next place (`places`, (B,), moved
-    on as they fill): with each block's places where the blocks before it end in each
-    bin, the blocks together make ``values[np.argsort(which, kind="stable")]``."""
+    """Put ``values[lo:hi]`` into `out`, each at its bin's (``which[i] >> shift``) next
+    place (`places`, (B,), moved on as they fill): with each block's places where the
+    blocks before it end in each bin, the blocks together make
+    ``values[np.argsort(which >> shift, kind="stable")]``."""
     for i in range(lo, hi):
-        b = which[i]
+        b = which[i] >> shift
         out[places[b]] = values[i]
+        places[b] += 1
+
+
+@numba.njit(**JIT)
+def scatter_index_by_bin(which: np.ndarray, shift: int, lo: int, hi: int,
+                         places: np.ndarray, out: np.ndarray) -> None:
+    """`scatter_by_bin` of the indices themselves (values ``arange(len(which))``)."""
+    for i in range(lo, hi):
+        b = which[i] >> shift
+        out[places[b]] = i
         places[b] += 1
 
 

@@ -634,22 +634,30 @@ def _binned_percentile(which: np.ndarray, values: np.ndarray, bins: int, q: floa
     return np.where(counts > 0, out, empty)
 
 
-def grouped_by_bin(which: np.ndarray, values: np.ndarray, bins: int, kind: str = "levels"
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) the `values` grouped by bin (`which`, (N,) ints < `bins`) in their order within
-    each bin (as ``values[np.argsort(which, kind="stable")]``), and the (bins,) counts: a
-    counting sort in blocks on every core (each block's counts, then each block's values
-    put where the blocks before it end in each bin), its work items named `kind`."""
+def grouped_by_bin(which: np.ndarray, values: np.ndarray | None, bins: int,
+                   kind: str = "levels", shift: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) the `values` grouped by bin (``which >> shift``, `which` (N,) ints, bins <
+    `bins`) in their order within each bin (as ``values[np.argsort(which >> shift,
+    kind="stable")]``; `values` None: the indices 0 … N − 1, as int64), and the (bins,)
+    counts: a counting sort in blocks on every core (each block's counts, then each
+    block's values put where the blocks before it end in each bin), its work items named
+    `kind`. Neither the bins nor the indices are made as arrays of N."""
     parts = cores.blocks(len(which), PLAN_BLOCK)
     counts = np.zeros((len(parts), bins), np.int64)
-    cores.for_items(lambda b: kernels.count_bins(which, parts[b].start, parts[b].stop,
-                                                 counts[b]), len(parts), kind)
+    cores.for_items(lambda b: kernels.count_bins(which, shift, parts[b].start,
+                                                 parts[b].stop, counts[b]), len(parts), kind)
     totals = counts.sum(axis=0)
     places = np.cumsum(counts, axis=0) - counts + (np.cumsum(totals) - totals)
-    ranked = np.empty(len(values), values.dtype)
-    cores.for_items(lambda b: kernels.scatter_by_bin(which, values, parts[b].start,
-                                                     parts[b].stop, places[b], ranked),
-                    len(parts), kind)
+    ranked = np.empty(len(which), np.int64 if values is None else values.dtype)
+
+    def scatter(b: int) -> None:
+        lo, hi = parts[b].start, parts[b].stop
+        if values is None:
+            kernels.scatter_index_by_bin(which, shift, lo, hi, places[b], ranked)
+        else:
+            kernels.scatter_by_bin(which, shift, values, lo, hi, places[b], ranked)
+
+    cores.for_items(scatter, len(parts), kind)
     return ranked, totals
 
 

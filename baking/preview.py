@@ -278,8 +278,8 @@ def nearest_points(geometry: LatticeGeometry, points: np.ndarray
                      len(coords), 8, "nearest points")
     texels = int(np.prod(shape))
     bits = max(0, (texels - 1).bit_length() - NEAREST_BINS.bit_length() + 1)
-    entries, counts = grouped_by_bin(read >> bits, np.arange(corners),
-                                     ((texels - 1) >> bits) + 1, "nearest points")
+    entries, counts = grouped_by_bin(read, None, ((texels - 1) >> bits) + 1,
+                                     "nearest points", shift=bits)
     starts = np.concatenate([[0], np.cumsum(counts)])
     bounds = [int(np.searchsorted(starts, lo)) for lo, _ in cores.item_bounds(corners, 1)]
     bounds = sorted({*bounds, len(counts)})

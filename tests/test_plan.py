@@ -198,7 +198,8 @@ def test_binned_percentiles_equal_numpy_per_bin():
 def test_values_grouped_by_bin_in_blocks_are_a_stable_sort(threads):
     """The counting sort of the level choice, in blocks on several threads, is
     ``values[argsort(which, stable)]`` to the bit, with numpy's bin counts — ties, empty
-    bins, one bin holding most values and blocks of 1024 included."""
+    bins, one bin holding most values and blocks of 1024 included; and, as the nearest
+    points group corners, the indices grouped by the top bits of their keys."""
     from isolume.baking.plan import grouped_by_bin
     from isolume.volumes import cores
 
@@ -213,6 +214,14 @@ def test_values_grouped_by_bin_in_blocks_are_a_stable_sort(threads):
         cores.use(None)
     np.testing.assert_array_equal(ranked, values[np.argsort(which, kind="stable")])
     np.testing.assert_array_equal(counts, np.bincount(which, minlength=512))
+    ids = gen.integers(0, 1 << 20, 90_000)  # texel ids, binned by their top bits, indices
+    cores.use(threads)
+    try:
+        order, counts = grouped_by_bin(ids, None, 1 << 7, shift=13)
+    finally:
+        cores.use(None)
+    np.testing.assert_array_equal(order, np.argsort(ids >> 13, kind="stable"))
+    np.testing.assert_array_equal(counts, np.bincount(ids >> 13, minlength=1 << 7))
 
 
 def test_bake_command_records_levels_and_takes_max_move(tmp_path, capsys):
