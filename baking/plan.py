@@ -50,7 +50,7 @@ import numba
 import numpy as np
 
 from isolume import volumes
-from isolume.baking import kernels
+from isolume.baking import bin_kernels, kernels
 from isolume.baking.config import BakeConfig
 from isolume.baking.environment import ConstantEnvironment
 from isolume.baking.errors import BakeError
@@ -644,8 +644,9 @@ def grouped_by_bin(which: np.ndarray, values: np.ndarray | None, bins: int,
     `kind`. Neither the bins nor the indices are made as arrays of N."""
     parts = cores.blocks(len(which), PLAN_BLOCK)
     counts = np.zeros((len(parts), bins), np.int64)
-    cores.for_items(lambda b: kernels.count_bins(which, shift, parts[b].start,
-                                                 parts[b].stop, counts[b]), len(parts), kind)
+    cores.for_items(lambda b: bin_kernels.count_bins(which, shift, parts[b].start,
+                                                     parts[b].stop, counts[b]),
+                    len(parts), kind)
     totals = counts.sum(axis=0)
     places = np.cumsum(counts, axis=0) - counts + (np.cumsum(totals) - totals)
     ranked = np.empty(len(which), np.int64 if values is None else values.dtype)
@@ -653,9 +654,9 @@ def grouped_by_bin(which: np.ndarray, values: np.ndarray | None, bins: int,
     def scatter(b: int) -> None:
         lo, hi = parts[b].start, parts[b].stop
         if values is None:
-            kernels.scatter_index_by_bin(which, shift, lo, hi, places[b], ranked)
+            bin_kernels.scatter_index_by_bin(which, shift, lo, hi, places[b], ranked)
         else:
-            kernels.scatter_by_bin(which, shift, values, lo, hi, places[b], ranked)
+            bin_kernels.scatter_by_bin(which, shift, values, lo, hi, places[b], ranked)
 
     cores.for_items(scatter, len(parts), kind)
     return ranked, totals

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from isolume import volumes
-from isolume.baking import kernels, octahedral, rng
+from isolume.baking import bin_kernels, kernels, octahedral, rng
 from isolume.baking.bake import path_settings, tracing_lights
 from isolume.baking.config import BakeConfig
 from isolume.baking.integrator import whole_paths
@@ -260,11 +260,11 @@ def nearest_points(geometry: LatticeGeometry, points: np.ndarray
     read, and (T,) the index of the point nearest each (world distance to its centre; the
     first such point on ties).
 
-    On every core: each point's 8 corners and their distances (`kernels.corner_reads`),
-    the corners grouped into bins of consecutive texel ids by a counting sort
-    (`plan.grouped_by_bin`), and each bin's texels and their nearest points found in it
-    (`kernels.nearest_in_bins`) — what a sort of all corners by texel and distance gives,
-    without the sort."""
+    On every core: each point's 8 corners and their distances
+    (`bin_kernels.corner_reads`), the corners grouped into bins of consecutive texel ids
+    by a counting sort (`plan.grouped_by_bin`), each bin's texels and their nearest points
+    found in it (`bin_kernels.nearest_in_bins`), and packed (`bin_kernels.gather_bins`) —
+    what a sort of all corners by texel and distance gives, without the sort."""
     if len(points) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     coords = np.ascontiguousarray(geometry.to_texel_coords(points))  # (M, 3) z, y, x
@@ -273,8 +273,8 @@ def nearest_points(geometry: LatticeGeometry, points: np.ndarray
     scale = 2.0 * float((size**2).sum()) + 1e-30
     corners = 8 * len(coords)
     read, close = np.empty(corners, np.int64), np.empty(corners, np.float64)
-    cores.for_ranges(lambda lo, hi: kernels.corner_reads(coords, shape, size, scale, lo, hi,
-                                                         read, close),
+    cores.for_ranges(lambda lo, hi: bin_kernels.corner_reads(coords, shape, size, scale,
+                                                             lo, hi, read, close),
                      len(coords), 8, "nearest points")
     texels = int(np.prod(shape))
     bits = max(0, (texels - 1).bit_length() - NEAREST_BINS.bit_length() + 1)
@@ -283,13 +283,19 @@ def nearest_points(geometry: LatticeGeometry, points: np.ndarray
     starts = np.concatenate([[0], np.cumsum(counts)])
     bounds = [int(np.searchsorted(starts, lo)) for lo, _ in cores.item_bounds(corners, 1)]
     bounds = sorted({*bounds, len(counts)})
-    texel, point = np.full(corners, -1, np.int64), np.empty(corners, np.int64)
-    cores.for_items(lambda i: kernels.nearest_in_bins(read, close, entries, starts,
-                                                      bounds[i], bounds[i + 1], bits,
-                                                      texel, point),
+    texel, point = entries, np.empty(corners, np.int64)  # texels over the entries read
+    held = np.empty(len(counts), np.int64)
+    cores.for_items(lambda i: bin_kernels.nearest_in_bins(read, close, entries, starts,
+                                                          bounds[i], bounds[i + 1], bits,
+                                                          texel, point, held),
                     len(bounds) - 1, "nearest points")
-    found = texel >= 0
-    return texel[found], point[found]
+    places = np.concatenate([[0], np.cumsum(held)])
+    texels, nearest = np.empty(places[-1], np.int64), np.empty(places[-1], np.int64)
+    cores.for_items(lambda i: bin_kernels.gather_bins(texel, point, starts, held, places,
+                                                      bounds[i], bounds[i + 1], texels,
+                                                      nearest),
+                    len(bounds) - 1, "nearest points")
+    return texels, nearest
 
 
 def seen_starts(flat: np.ndarray, seen: SeenSurface) -> np.ndarray:

@@ -157,34 +157,45 @@ def primary_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray, dirs
         found[b] = dataclasses.replace(hits, pixels=hits.pixels + part.start)
 
     cores.for_items(block, len(parts), "primary rays")
-    return PrimaryHits(*(np.concatenate([getattr(hits, field.name) for hits in found])
+    return _joined(found)
+
+
+def _joined(blocks: list[PrimaryHits | None]) -> PrimaryHits:
+    """The `PrimaryHits` of consecutive blocks of rays, in their order."""
+    return PrimaryHits(*(np.concatenate([getattr(hits, field.name) for hits in blocks])
                          for field in dataclasses.fields(PrimaryHits)))
 
 
 def _compiled_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray,
                    dirs: np.ndarray, config: BakeConfig, smooth: bool) -> PrimaryHits:
-    """`primary_hits` in compiled blocks (`baking.pixel_kernels.primary_starts`)."""
+    """`primary_hits` in compiled blocks (`baking.pixel_kernels.primary_starts`), each
+    block's hits kept by its own item: no (N, 3) arrays of every ray, no pass over them
+    on one core."""
     from isolume.baking.pixel_kernels import primary_starts
     from isolume.volumes.field import normal_stencil
 
-    n = len(dirs)
-    hit = np.zeros(n, bool)
-    points, starts, normals = (np.empty((n, 3)) for _ in range(3))
     stencil = normal_stencil(volume, smooth)
     h = float(np.mean(volume.spacing))
     calls = tuple(scene.calls)
-    parts = cores.blocks(n, PRIMARY_BLOCK)
+    parts = cores.blocks(len(dirs), PRIMARY_BLOCK)
+    if not parts:
+        return PrimaryHits(np.zeros(0, np.int64), *(np.zeros((0, 3)) for _ in range(3)))
+    found: list[PrimaryHits | None] = [None] * len(parts)
 
     def block(b: int) -> None:
         part = parts[b]
+        count = part.stop - part.start
+        hit = np.zeros(count, bool)
+        points, starts, normals = (np.empty((count, 3)) for _ in range(3))
         primary_starts(calls, np.ascontiguousarray(origins[part], np.float64),
                        np.ascontiguousarray(dirs[part], np.float64), stencil,
-                       bool(config.flip_normals), config.offset * h, 1e-3 * h, hit[part],
-                       points[part], starts[part], normals[part])
+                       bool(config.flip_normals), config.offset * h, 1e-3 * h, hit,
+                       points, starts, normals)
+        kept = np.flatnonzero(hit)
+        found[b] = PrimaryHits(kept + part.start, points[kept], starts[kept], normals[kept])
 
     cores.for_items(block, len(parts), "primary rays")
-    pixels = np.flatnonzero(hit)
-    return PrimaryHits(pixels, points[pixels], starts[pixels], normals[pixels])
+    return _joined(found)
 
 
 def _primary_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray, dirs: np.ndarray,
