@@ -41,6 +41,7 @@ from isolume.baking.config import BakeConfig
 from isolume.baking.environment import latlong_pixel_directions
 from isolume.baking.errors import BakeError
 from isolume.baking.lattice_file import LatticeFile, lattice_kind, write_lattice
+from isolume.volumes import cores
 
 if TYPE_CHECKING:
     from isolume.volumes.core import Volume
@@ -121,11 +122,26 @@ class LatticeGeometry:
 
     def to_texel_coords(self, points: np.ndarray) -> np.ndarray:
         """(N, 3) world xyz → (N, 3) continuous texel coordinates (z, y, x); centres are
-        at integers."""
+        at integers. Many points (a picture's: millions) in blocks on every core."""
+        points = np.asarray(points)
+        if len(points) <= COORD_BLOCK:
+            return self._texel_coords(points)
+        out = np.empty((len(points), 3))
+
+        def block(part: slice) -> None:
+            out[part] = self._texel_coords(points[part])
+
+        cores.for_blocks(block, len(points), COORD_BLOCK, "texel coordinates")
+        return out
+
+    def _texel_coords(self, points: np.ndarray) -> np.ndarray:
+        """`to_texel_coords` on the calling thread (a view, z, y, x reversed)."""
         f = (np.asarray(points, np.float64) - np.array(self.lo)) / self.texel_size - 0.5
         return f[:, ::-1]
 
 
+COORD_BLOCK = 1 << 16
+"""Points `LatticeGeometry.to_texel_coords` converts in one work item."""
 BRICK = 8
 """Texels per side of a brick: the renderer's atlas keeps a lattice in bricks
 (`app.render.bricks`), and a bake to a texel error judges it by them (`baking.density`)."""

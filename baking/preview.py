@@ -238,11 +238,8 @@ def seen_surface(scene: Scene, volume: volumes.Volume, config: BakeConfig,
     `points` a picture shows (its position pass), traced against `scene` and started as
     `isolume reference` starts its pixels (`reference.primary_hits`), with the nearest
     point of each texel of `geometry` they read (`nearest_points`)."""
-    points = np.asarray(points, np.float64)
-    dirs = points - np.asarray(eye, np.float64)[None, :]
-    length = np.linalg.norm(dirs, axis=1)
-    usable = np.isfinite(length) & (length > 0)  # (Embree needs finite, non-zero rays)
-    dirs = dirs[usable] / length[usable, None]
+    dirs, usable = _eye_directions(np.asarray(points), np.asarray(eye, np.float64))
+    dirs = dirs[usable]  # (Embree needs finite, non-zero rays)
     origins = np.broadcast_to(np.asarray(eye, np.float64), dirs.shape)
     hits = primary_hits(scene, volume, origins, dirs, config,
                         smooth=config.normals == "smooth")
@@ -250,6 +247,24 @@ def seen_surface(scene: Scene, volume: volumes.Volume, config: BakeConfig,
     return SeenSurface(hits.points, hits.origins, hits.normals, texels, nearest)
 
 
+def _eye_directions(points: np.ndarray, eye: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) unit directions from (3,) `eye` to (N, 3) `points`, and (N,) whether each
+    is usable (finite, of non-zero length), in blocks on every core."""
+    dirs, usable = np.empty((len(points), 3)), np.empty(len(points), bool)
+
+    def block(part: slice) -> None:
+        towards = np.asarray(points[part], np.float64) - eye[None, :]
+        length = np.linalg.norm(towards, axis=1)
+        usable[part] = np.isfinite(length) & (length > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dirs[part] = towards / length[:, None]
+
+    cores.for_blocks(block, len(points), EYE_BLOCK, "primary rays")
+    return dirs, usable
+
+
+EYE_BLOCK = 1 << 16
+"""Points `_eye_directions` takes in one work item."""
 NEAREST_BINS = 1024
 """Most bins of consecutive texel ids `nearest_points` groups the corners it reads into."""
 
