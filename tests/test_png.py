@@ -64,6 +64,24 @@ def test_the_file_is_the_same_for_any_thread_count_and_cut_into_bands():
     assert np.array_equal(np.asarray(_read(files[0])), picture)
 
 
+def test_a_long_stream_is_cut_into_several_idat_chunks(monkeypatch):
+    """The zlib stream goes into IDAT chunks of at most `IDAT_BYTES` (PNG's chunks hold
+    less than 2³¹ bytes), which a reader joins."""
+    monkeypatch.setattr(png, "IDAT_BYTES", 1000)
+    picture = np.random.default_rng(7).integers(0, 256, (60, 50, 3), dtype=np.uint8)
+    data = png.encode_png(picture)
+    kinds, sizes, at = [], [], len(png.SIGNATURE)
+    while at < len(data):  # the file's chunks: length, type, data, CRC
+        length = int.from_bytes(data[at:at + 4], "big")
+        kinds.append(data[at + 4:at + 8])
+        sizes.append(length)
+        at += 12 + length
+    idat = [size for kind, size in zip(kinds, sizes, strict=True) if kind == b"IDAT"]
+    assert kinds[0] == b"IHDR" and kinds[-1] == b"IEND" and len(idat) >= 8
+    assert set(idat[:-1]) == {1000} and 0 < idat[-1] <= 1000
+    assert np.array_equal(np.asarray(_read(data)), picture)
+
+
 def test_the_up_filter_and_the_stream_are_png_s():
     """The IDAT data is one zlib stream whose bytes are each row's filter byte (2, Up)
     and the row less the row above, modulo 256 (the first row less zeros)."""

@@ -22,6 +22,8 @@ BAND_BYTES = 1 << 18
 a 4K one 95."""
 LEVEL = 6
 """zlib's compression level (Pillow's and zlib's default)."""
+IDAT_BYTES = 1 << 30
+"""Most bytes of the zlib stream one IDAT chunk holds (PNG allows 2³¹ − 1 a chunk)."""
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _UP = 2  # PNG filter type: each byte less the byte above it
 
@@ -41,8 +43,10 @@ def encode_png(srgb: np.ndarray, text: dict[str, str] | None = None) -> bytes:
     header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)  # 8-bit RGB
     chunks = [_chunk(b"IHDR", header)]
     chunks += [_text_chunk(key, value) for key, value in (text or {}).items()]
-    chunks += [_chunk(b"IDAT", _deflated_rows(pixels.reshape(height, width * 3))),
-               _chunk(b"IEND", b"")]
+    stream = memoryview(_deflated_rows(pixels.reshape(height, width * 3)))
+    chunks += [_chunk(b"IDAT", stream[lo:lo + IDAT_BYTES])
+               for lo in range(0, len(stream), IDAT_BYTES)]
+    chunks.append(_chunk(b"IEND", b""))
     return SIGNATURE + b"".join(chunks)
 
 
@@ -97,10 +101,10 @@ def _band(rows: np.ndarray, lo: int, hi: int, last: bool) -> tuple[bytes, bytes]
     return data, deflate.compress(data) + deflate.flush(end)
 
 
-def _chunk(kind: bytes, data: bytes) -> bytes:
+def _chunk(kind: bytes, data: bytes | memoryview) -> bytes:
     """A PNG chunk: length, type, data, CRC-32 of the type and data."""
-    return (struct.pack(">I", len(data)) + kind + data
-            + struct.pack(">I", zlib.crc32(data, zlib.crc32(kind))))
+    return b"".join((struct.pack(">I", len(data)), kind, data,
+                     struct.pack(">I", zlib.crc32(data, zlib.crc32(kind)))))
 
 
 def _text_chunk(key: str, value: str) -> bytes:
