@@ -641,7 +641,8 @@ def grouped_by_bin(which: np.ndarray, values: np.ndarray | None, bins: int,
     kind="stable")]``; `values` None: the indices 0 … N − 1, as int64), and the (bins,)
     counts: a counting sort in blocks on every core (each block's counts, then each
     block's values put where the blocks before it end in each bin), its work items named
-    `kind`. Neither the bins nor the indices are made as arrays of N."""
+    `kind`. The kernels take each element's bin (and its index) as they go: the memory
+    is the (N,) result and the blocks' counts."""
     parts = cores.blocks(len(which), PLAN_BLOCK)
     counts = np.zeros((len(parts), bins), np.int64)
     cores.for_items(lambda b: bin_kernels.count_bins(which, shift, parts[b].start,

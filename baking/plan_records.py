@@ -154,12 +154,14 @@ class SpilledRecords:
         counts = np.bincount(plan.lower, minlength=len(plan.levels))
         self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         where = directory if directory is not None else tempfile.gettempdir()
+        self._writing = threading.Condition()
+        self._writers = 0
         try:
             self._file = tempfile.TemporaryFile(dir=where)
             try:
                 self._write(plan, len(counts))
             except BaseException:
-                self._file.close()
+                self.close()
                 raise
         except OSError as error:
             raise BakeError(f"{where}: cannot keep the plan's texel records "
@@ -185,11 +187,22 @@ class SpilledRecords:
 
     def _pwrite(self, records: np.ndarray, row: int) -> None:
         """The (B,) `records` into the file from `row` on, written from their memory (safe
-        beside another thread's writes)."""
-        view, offset = memoryview(records.view(np.uint8)), row * RECORD.itemsize
-        while len(view):
-            written = os.pwrite(self._file.fileno(), view, offset)
-            view, offset = view[written:], offset + written
+        beside another thread's writes); refused once the file is closed (a write that a
+        Ctrl-C left running must not reach a file opened since under the same number)."""
+        with self._writing:
+            if self._file.closed:
+                raise BakeError("the plan's temporary file is closed")
+            self._writers += 1
+            fd = self._file.fileno()
+        try:
+            view, offset = memoryview(records.view(np.uint8)), row * RECORD.itemsize
+            while len(view):
+                written = os.pwrite(fd, view, offset)
+                view, offset = view[written:], offset + written
+        finally:
+            with self._writing:
+                self._writers -= 1
+                self._writing.notify_all()
 
 
     def of(self, positions: np.ndarray) -> TexelRecords:
@@ -209,7 +222,11 @@ class SpilledRecords:
                             *(np.ascontiguousarray(records[name]) for name in RECORD.names))
 
     def close(self) -> None:
-        self._file.close()
+        """Close the file once no write is under way."""
+        with self._writing:
+            while self._writers:
+                self._writing.wait()
+            self._file.close()
 
     def _read(self, rows: np.ndarray) -> np.ndarray:
         """(N,) records at file `rows` (in any order), read `READ_ROWS` at a time; a run of

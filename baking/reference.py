@@ -168,9 +168,9 @@ def _joined(blocks: list[PrimaryHits | None]) -> PrimaryHits:
 
 def _compiled_hits(scene: Scene, volume: volumes.Volume, origins: np.ndarray,
                    dirs: np.ndarray, config: BakeConfig, smooth: bool) -> PrimaryHits:
-    """`primary_hits` in compiled blocks (`baking.pixel_kernels.primary_starts`), each
-    block's hits kept by its own item: no (N, 3) arrays of every ray, no pass over them
-    on one core."""
+    """`primary_hits` in compiled blocks (`baking.pixel_kernels.primary_starts`): each
+    block's item keeps the hits of its rays, and the blocks' hits are joined in order at
+    the end (`_joined`)."""
     from isolume.baking.pixel_kernels import primary_starts
     from isolume.volumes.field import normal_stencil
 

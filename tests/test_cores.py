@@ -124,6 +124,38 @@ def test_an_error_in_an_item_stops_the_call_and_reaches_the_caller(three_threads
     assert len(started) < 10_000
 
 
+@pytest.mark.parametrize("error", [KeyboardInterrupt, ValueError])
+def test_ctrl_c_waits_at_most_stop_wait_s_for_an_item_still_running(three_threads, error):
+    """A Ctrl-C in the caller leaves an item still running after `cores.STOP_WAIT_S` (one
+    compiling its kernel) to end on its pool thread, and raises; any other error waits for
+    the running items to end."""
+    helper_busy, release = threading.Event(), threading.Event()
+    caller = threading.current_thread()
+
+    def work(i: int) -> None:
+        if threading.current_thread() is caller:
+            assert helper_busy.wait(5)
+            raise error("stop")
+        helper_busy.set()
+        release.wait(5)
+
+    hold = cores.STOP_WAIT_S + 1.0
+    timer = threading.Timer(hold, release.set)
+    timer.start()
+    began = time.perf_counter()
+    try:
+        with pytest.raises(error, match="stop"):
+            cores.for_items(work, 2)
+        took = time.perf_counter() - began
+    finally:
+        release.set()
+        timer.cancel()
+    if error is KeyboardInterrupt:
+        assert cores.STOP_WAIT_S - 0.05 <= took < cores.STOP_WAIT_S + 0.5
+    else:
+        assert took >= hold - 0.05
+
+
 @pytest.mark.parametrize("count,cost", [(10, 1), (5000, 1), (1_000_000, 1), (300, 10_000)])
 def test_ranges_cover_the_work_in_small_items(count, cost):
     """`item_bounds` cuts [0, count) exactly, into pieces of at least `MIN_COST` work, and

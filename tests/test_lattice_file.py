@@ -575,9 +575,9 @@ def test_a_zipfile_without_its_private_sizes_deflates_the_members_itself(tmp_pat
 
 def test_a_durable_write_syncs_and_removes_what_killed_writes_left(tmp_path, monkeypatch):
     """`atomic_write(..., durable=True)` (a lattice's save): the file's data and then its
-    folder are flushed (``fsync``) before it returns, and the temporary files that earlier
-    writes of the same path left in processes since gone are removed — not those of a
-    running process, of another path, or of another name pattern."""
+    folder are flushed before it returns, and the temporary files that earlier writes of
+    the same path left in this machine's processes since gone are removed — not those of
+    a running process, of another machine, of another path, or of another name pattern."""
     import subprocess
     import sys
 
@@ -585,24 +585,53 @@ def test_a_durable_write_syncs_and_removes_what_killed_writes_left(tmp_path, mon
 
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                           check=True, capture_output=True, text=True)
-    dead, alive = int(gone.stdout), os.getpid()
+    dead, alive, host = int(gone.stdout), os.getpid(), writing.HOST
     path = tmp_path / "l.npz"
-    left = [tmp_path / f".l.npz.{dead}.abcd_123.npz", tmp_path / f".l.npz.{alive}.abcd_123.npz",
-            tmp_path / f".m.npz.{dead}.abcd_123.npz", tmp_path / ".l.npz.abcd_123.npz"]
+    left = [tmp_path / f".l.npz.{host}-{dead}.abcd_123.npz",
+            tmp_path / f".l.npz.{host}-{alive}.abcd_123.npz",
+            tmp_path / f".l.npz.{host}x-{dead}.abcd_123.npz",
+            tmp_path / f".m.npz.{host}-{dead}.abcd_123.npz", tmp_path / ".l.npz.abcd_123.npz"]
     for file in left:
         file.write_bytes(b"partial")
     synced = []
-    real = os.fsync
-    monkeypatch.setattr(os, "fsync", lambda fd: synced.append(os.readlink(
-        f"/proc/self/fd/{fd}")) or real(fd))
+    monkeypatch.setattr(writing, "_flush", lambda fd: synced.append(os.readlink(
+        f"/proc/self/fd/{fd}")) or os.fsync(fd))
     writing.atomic_write(path, lambda tmp: Path(tmp).write_text("whole"), durable=True)
     assert path.read_text() == "whole"
-    assert [file.exists() for file in left] == [False, True, True, True]
-    assert len(synced) == 2 and Path(synced[0]).name.startswith(f".l.npz.{alive}.")
+    assert [file.exists() for file in left] == [False, True, True, True, True]
+    assert len(synced) == 2 and Path(synced[0]).name.startswith(f".l.npz.{host}-{alive}.")
     assert synced[1] == str(tmp_path)
     synced.clear()
     writing.atomic_write(path, lambda tmp: Path(tmp).write_text("again"))  # not durable
     assert synced == [] and left[1].exists()
+
+
+def test_a_durable_write_is_not_stopped_by_leftovers_it_may_not_remove(tmp_path,
+                                                                        monkeypatch):
+    """A leftover this process may not remove (another user's, in a shared folder with the
+    sticky bit) or a folder it may not list leaves the save to go on: the cleanup is best
+    effort, the write is not."""
+    import subprocess
+    import sys
+
+    from isolume.volumes import writing
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          check=True, capture_output=True, text=True)
+    leftover = tmp_path / f".l.npz.{writing.HOST}-{int(gone.stdout)}.abcd_123.npz"
+    leftover.write_bytes(b"partial")
+    path = tmp_path / "l.npz"
+
+    def refused(*args, **kwargs):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(Path, "unlink", refused)
+    writing.atomic_write(path, lambda tmp: open(tmp, "w").write("whole"), durable=True)
+    assert path.read_text() == "whole" and leftover.exists()
+    monkeypatch.undo()
+    monkeypatch.setattr(os, "scandir", refused)
+    writing.atomic_write(path, lambda tmp: open(tmp, "w").write("again"), durable=True)
+    assert path.read_text() == "again"
 
 
 def test_a_file_written_whole_keeps_permissions_links_and_read_only_files(tmp_path):

@@ -110,3 +110,35 @@ def test_the_viewer_shows_a_file_of_other_texels_as_it_is(tmp_path, monkeypatch)
     light.start(LatticeOnFile.open(path, vol), 0.5)
     assert not started and len(shown) == 1 and light.static_lattice is shown[0]
     assert state.message.startswith(f"{path}: a lattice of 10×20×20 texels")
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_many_points_convert_in_blocks_to_the_same_bits(threads):
+    """`to_texel_coords` of more points than `COORD_BLOCK` (in blocks on the pool) and
+    `preview._eye_directions` (in `EYE_BLOCK`s) give, on 1 and 3 threads, the bits of the
+    same arithmetic on all the points at once — NaN and the eye itself included."""
+    from isolume.baking import preview
+    from isolume.volumes import cores
+
+    geometry = LatticeGeometry.for_volume(_box((10, 20, 20), (1.0, 1.0, 2.0)), 1.0)
+    lo, size = np.array(geometry.lo), geometry.texel_size
+    rng = np.random.default_rng(4)
+    eye = np.array([3.0, -40.0, 7.5])
+    cores.use(threads)
+    try:
+        for count in (lattice_module.COORD_BLOCK, lattice_module.COORD_BLOCK + 1,
+                      3 * lattice_module.COORD_BLOCK + 17):
+            points = rng.uniform(-12, 12, (count, 3)).astype(np.float32)
+            points[[0, count // 2]] = np.nan
+            points[-1] = eye
+            got = geometry.to_texel_coords(points)
+            want = ((points.astype(np.float64) - lo) / size - 0.5)[:, ::-1]
+            np.testing.assert_array_equal(got, want)
+            towards = points.astype(np.float64) - eye
+            length = np.linalg.norm(towards, axis=1)
+            dirs, usable = preview._eye_directions(points, eye)
+            np.testing.assert_array_equal(usable, np.isfinite(length) & (length > 0))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                np.testing.assert_array_equal(dirs, towards / length[:, None])
+    finally:
+        cores.use(None)

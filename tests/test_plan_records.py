@@ -47,6 +47,45 @@ def test_spilled_records_read_back_what_the_plan_holds(monkeypatch, tmp_path):
         spilled.close()
 
 
+def test_a_write_left_running_never_reaches_a_file_opened_after_close(monkeypatch, tmp_path):
+    """`close` waits for a write under way (one a Ctrl-C left running on a pool thread:
+    `cores.STOP_WAIT_S`), and a write that starts after it is refused: neither reaches a
+    file that reuses the closed file's number."""
+    import os
+    import threading
+    import time
+
+    plan = _plan()
+    spilled = SpilledRecords(plan, tmp_path)
+    record = np.zeros(1, plan_records.RECORD)
+    entered, release = threading.Event(), threading.Event()
+    real = os.pwrite
+
+    def slow_pwrite(fd, data, offset):
+        entered.set()
+        release.wait(5)
+        return real(fd, data, offset)
+
+    monkeypatch.setattr(os, "pwrite", slow_pwrite)
+    writer = threading.Thread(target=spilled._pwrite, args=(record, 0))
+    writer.start()
+    assert entered.wait(5)
+    closer = threading.Thread(target=spilled.close)
+    closer.start()
+    time.sleep(0.2)
+    assert closer.is_alive() and not spilled._file.closed  # waits for the write
+    release.set()
+    writer.join(5)
+    closer.join(5)
+    assert spilled._file.closed
+    monkeypatch.setattr(os, "pwrite", real)
+    with open(tmp_path / "other", "wb") as other:  # may take the closed file's number
+        with pytest.raises(BakeError, match="closed"):
+            spilled._pwrite(record, 0)
+        assert other.tell() == 0
+    assert (tmp_path / "other").stat().st_size == 0
+
+
 def test_a_bake_reads_its_plan_records_a_batch_at_a_time(monkeypatch, tmp_path):
     """`bake()` keeps the plan's records in a file beside its output (its plan holds none
     of their arrays) and reads those of at most one batch of texels at a time (batches

@@ -33,11 +33,12 @@ def _shaded(height: int, width: int) -> np.ndarray:
     return np.clip(255 * colour, 0, 255).astype(np.uint8)
 
 
-@pytest.mark.parametrize("shape", [(1, 1), (7, 5), (1, 1024), (1024, 1), (300, 257)])
+@pytest.mark.parametrize("shape", [(1, 1), (7, 5), (1, 1024), (1024, 1), (300, 257),
+                                   (900, 300), (5, 90_000)])
 def test_pictures_read_back_exactly_with_their_text(shape):
-    """Any size (one pixel, one row, one column, rows of odd byte counts, more than one
-    band) reads back as written, with Latin-1 text as ``tEXt`` and other text as
-    ``iTXt``."""
+    """Any size (one pixel, one row, one column, rows of odd byte counts, several bands,
+    rows longer than a band and than the window that primes the next) reads back as
+    written, with Latin-1 text as ``tEXt`` and other text as ``iTXt``."""
     picture = np.random.default_rng(shape[0]).integers(0, 256, (*shape, 3), dtype=np.uint8)
     text = {"isolume": "lit, ρ = 0.5", "Software": "isolume héllo"}
     data = png.encode_png(picture, text)
@@ -107,7 +108,38 @@ def test_a_rendered_picture_is_no_larger_than_pillow_makes_it():
     assert ours <= 1.05 * len(buffer.getvalue())
 
 
+def test_bands_adler_32_combine_as_zlib_s_of_the_joined_bytes():
+    """`adler32_combine` of two strings' Adler-32 is that of the strings joined: empty
+    ones, one byte, lengths past the modulus (65521), bytes of 255."""
+    rng = np.random.default_rng(5)
+    for first_length, second_length in [(0, 0), (0, 5), (5, 0), (1, 1), (70_000, 131_042),
+                                        (65_521, 65_521), (3, 200_000)]:
+        first = rng.integers(0, 256, first_length, dtype=np.uint8).tobytes()
+        second = bytes([255]) * second_length if first_length == 3 else \
+            rng.integers(0, 256, second_length, dtype=np.uint8).tobytes()
+        joined = png.adler32_combine(zlib.adler32(first), zlib.adler32(second),
+                                     len(second))
+        assert joined == zlib.adler32(first + second)
+
+
+def test_a_band_is_primed_with_the_window_before_it():
+    """Rows that step by the same random bytes (under the Up filter: one random row again
+    and again, 30 001 bytes, 8 rows a band) deflate to about four rows (matches of 258
+    bytes): each band's first row matches the band before's last, which primes its
+    deflate (what a reader's window holds there); unprimed, each of the 50 bands would
+    hold a row of literals. The file reads back."""
+    step = np.random.default_rng(9).integers(0, 256, (1, 10_000, 3), dtype=np.uint8)
+    picture = (np.arange(400, dtype=np.uint8)[:, None, None] * step).astype(np.uint8)
+    assert len(png.band_rows(400, 30_001)) == 50
+    data = png.encode_png(picture)
+    assert len(data) < 5 * 30_001  # 0.12 MB; unprimed 1.6 MB
+    assert np.array_equal(np.asarray(_read(data)), picture)
+
+
 def test_bad_pictures_and_keywords_are_refused():
+    for wrong in (np.zeros((4, 4, 3), np.uint16), np.zeros((4, 4, 3)), [[[0, 0, 0]]]):
+        with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8, got"):
+            png.encode_png(wrong)
     with pytest.raises(ValueError, match=r"\(H, W, 3\) with H, W ≥ 1, got \(4, 4\)"):
         png.encode_png(np.zeros((4, 4), np.uint8))
     with pytest.raises(ValueError, match=r"\(0, 4, 3\)"):

@@ -320,9 +320,11 @@ def for_items(work: Callable[[int], None], count: int, kind: str = "",
     time to whichever is free (see the module docstring), on at most `workers` threads
     (None: `threads()`); `on_done(done)` is called on the calling thread after each of
     its items and once all are done (progress: rising, ending at `count`). Returns when
-    every item is done; an error in any item (or Ctrl-C in the caller) stops the handing
-    out, waits for the items running and is raised. `kind` names the items in a
-    timeline."""
+    every item is done; an error in any item stops the handing out, waits for the items
+    running and is raised. A Ctrl-C in the caller waits for them `STOP_WAIT_S` at most:
+    an item still running then (one compiling its kernel) ends on its pool thread, its
+    work abandoned, so a caller that lets go of what its items use after an interrupt
+    (a file they write) keeps them from it. `kind` names the items in a timeline."""
     if count <= 0:
         return
     items = _Items(work, count, kind)

@@ -332,7 +332,10 @@ def reference(volume: Volume | str | os.PathLike[str], out: PathText, *,
         The EXR written.
     """
     values = _options(locals()) | {"volume": _volume(volume)}
-    if _run_command("isolume.app.reference", namespace("reference", values)) == 130:
+    from isolume.app.options import EXIT_INTERRUPTED  # after locals(): not an option
+
+    if _run_command("isolume.app.reference", namespace("reference", values)) \
+            == EXIT_INTERRUPTED:
         warnings.warn(f"reference interrupted; the finished passes are saved in {out}",
                       stacklevel=2)
     return Path(out)
