@@ -30,7 +30,7 @@ from isolume.app.options import (
     description_of,
 )
 from isolume.app.state import add_state_argument, apply_state
-from isolume.volumes import cores
+from isolume.volumes import cores, interrupts
 from isolume.volumes.errors import IsolumeError, interrupted_by
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
@@ -156,7 +156,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     script (`argv` None: the process ends next), it freezes the garbage collector's heap
     as it returns (`gc.freeze`): Python's finalization collects the heap several times, and
     with numba's objects in it that took ~0.2 s of every command's exit; and after a
-    Ctrl-C it ends the process without waiting for pool threads (`_leave`)."""
+    Ctrl-C it ends the process without waiting for pool threads (`_leave`); a Ctrl-C that
+    comes while C code calls back into Python is raised after the callback
+    (`volumes.interrupts`)."""
+    if argv is None:
+        interrupts.install()
     status = _run(argv)
     if argv is None:
         gc.freeze()

@@ -22,6 +22,7 @@ from isolume.app.options import (
     load_lattice,
     load_volume,
     parse_size,
+    shown_under,
 )
 from isolume.volumes.errors import interrupted_by
 
@@ -83,7 +84,7 @@ def render_picture(args: argparse.Namespace, reuse: Reuse | None = None) -> Rend
         raise CLIError(str(exc)) from None
     check_picture_memory(size, "local")
     vol = load_volume(args)
-    lattice = load_lattice(args.lattice, vol, whole=False)
+    lattice = shown_under(load_lattice(args.lattice, vol, whole=False), args.env)
     look = shading_look(args, vol, lattice, size)
     iso = isovalue(vol, args.iso)
     check_served(lattice, iso, args.lattice)
@@ -197,7 +198,7 @@ def scene_memory_bytes(gigabytes: float | None) -> float | None:
 
 def cmd_bake(args: argparse.Namespace) -> int:
     """Bake an illumination lattice (resumes when --out holds a compatible one)."""
-    from isolume.baking.errors import BakeInterrupted
+    from isolume.baking.errors import BakeInterrupted, SaveAbandoned
 
     out = args.out
     try:
@@ -206,6 +207,13 @@ def cmd_bake(args: argparse.Namespace) -> int:
         print(f"isolume: interrupted; {stop.finished:,} finished texels saved in {out}; "
               "run the same command again to resume (and to compress what a Ctrl-C saved "
               "uncompressed)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except SaveAbandoned as stop:
+        kept = (f"{out} keeps the texels of its last save" if Path(out).exists()
+                else f"{out} not written")
+        print(f"isolume: interrupted again while saving: the {stop.finished:,} finished "
+              f"texels were not saved; {kept}; run the same command again to bake them",
+              file=sys.stderr)
         return EXIT_INTERRUPTED
     except (KeyboardInterrupt, SystemError) as exc:  # before the tracing: nothing new
         if not interrupted_by(exc):

@@ -62,6 +62,7 @@ def shading_look(args: argparse.Namespace, vol: volumes.Volume,
         raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
                        f"lighting ({lighting}); bake again for other light, or leave out "
                        "--lattice")
+    _check_lattice_options(args, lattice, shading)
     traced = view_light(args, vol) if lattice is None and shading == "irradiance" else None
     if args.albedo is not None:
         albedo = parse_albedo(args.albedo)
@@ -85,3 +86,27 @@ def shading_look(args: argparse.Namespace, vol: volumes.Volume,
     if shading == "sh" and lattice is not None:
         env_coeffs = environment_coefficients(args.env, lattice, args.sh_window)
     return Look(settings, traced, env_coeffs)
+
+
+def _check_lattice_options(args: argparse.Namespace,
+                           lattice: Lattice | HeldLattice | LatticeOnFile | None,
+                           shading: str) -> None:
+    """`CLIError` (one line) for options a lattice would leave unused: ``--shading sh``
+    with an irradiance lattice, ``--light`` with an SH one (its transfer holds no point
+    or directional light), ``--env-rotation`` with an irradiance one (its light is baked
+    in place)."""
+    if lattice is None:
+        return
+    if shading == "sh" and lattice.kind != "sh":
+        raise CLIError(f"--shading sh needs an SH lattice (isolume bake --mode sh); "
+                       f"{args.lattice} holds {lattice.kind}")
+    if lattice.kind == "sh" and args.light:
+        raise CLIError(f"--light: {args.lattice} is an SH lattice, whose transfer holds the "
+                       "environment's light only; bake the lights into an irradiance "
+                       "lattice (isolume bake --light), or leave out --lattice")
+    if lattice.kind == "irradiance" and floats(args.env_rotation, 2, "--env-rotation") \
+            != (0.0, 0.0):
+        raise CLIError(f"--env-rotation {args.env_rotation}: {args.lattice} holds irradiance "
+                       "baked under its own lighting, which cannot turn; turn the light "
+                       "with an SH lattice (isolume bake --mode sh), or leave out --lattice")
+

@@ -43,6 +43,7 @@ from isolume.app.options import (
     load_lattice,
     load_volume,
     parse_size,
+    shown_under,
 )
 from isolume.app.state import add_state_argument
 
@@ -308,7 +309,7 @@ def run(args: argparse.Namespace) -> int:
     """Render the movie; returns the exit status."""
     request = check_request(args)
     vol = load_volume(args)
-    lattice = load_lattice(args.lattice, vol)
+    lattice = shown_under(load_lattice(args.lattice, vol), args.env)
     look = shading_look(args, vol, lattice, request.size, per="frame")
     iso = isovalue(vol, args.iso)
     iso_range = sweep_range(args, vol, lattice, iso) if request.kind == "iso" else None

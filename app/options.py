@@ -165,7 +165,37 @@ def load_lattice(path: str | os.PathLike[str] | Lattice | None, volume: volumes.
         return path
 
     opened = LatticeOnFile.open(path, volume)
-    return opened.held() if whole else opened
+    return opened.held(fill=True) if whole else opened
+
+
+def shown_under(lattice: Lattice | HeldLattice | LatticeOnFile | None, spec: str | None
+                ) -> Lattice | HeldLattice | LatticeOnFile | None:
+    """`lattice` as a picture shows it under the environment `spec` (``--env``; None: the
+    baked one). An SH lattice that leaves its sun to the pixels (baked with direct light
+    "pixels": its transfer split, `environment_coefficients`) takes the sun of `spec` for
+    its pixels, as its transfer takes the sky of `spec`: the same lattice with `spec` as
+    its config's environment (its arrays shared). Any other lattice is returned as it is
+    (an irradiance lattice holds its lighting: ``--env`` is refused with it)."""
+    import copy
+    import dataclasses
+
+    from isolume.app.render.lights import lattice_direct_lights
+    from isolume.baking.view_texels import HeldLattice
+
+    if spec is None or lattice is None or lattice.kind != "sh" \
+            or not lattice_direct_lights(lattice):
+        return lattice
+    try:
+        config = dataclasses.replace(lattice.config, env=spec)
+    except (ValueError, IsolumeError):
+        raise CLIError(f"--env {spec}: this SH lattice draws its sky's sun per pixel (baked "
+                       "with --direct-light pixels): show it under a procedural sky with a sun "
+                       "(sky:sun=S,sun_az=A,sun_el=E)") from None
+    if isinstance(lattice, HeldLattice):
+        shown = copy.copy(lattice)
+        shown.config = config
+        return shown
+    return dataclasses.replace(lattice, config=config)
 
 
 def check_served(lattice: Lattice | HeldLattice | LatticeOnFile | None, iso: float,

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -69,7 +68,12 @@ from isolume.baking.passes import (
 from isolume.baking.plan import Plan, as_planned, index_type, make_plan
 from isolume.baking.plan_lattice import PlanLattice
 from isolume.baking.plan_records import HeldRecords, LevelGroups, PlanRecords, spill
-from isolume.baking.saves import CHECKPOINT_S, Checkpoints, through_one_interrupt
+from isolume.baking.saves import (
+    CHECKPOINT_S,
+    Checkpoints,
+    save_interrupted,
+    through_one_interrupt,
+)
 from isolume.volumes import cores
 from isolume.volumes.errors import interrupted_by
 
@@ -518,7 +522,8 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
     Returns:
         The lattice (also written to `out`; on Ctrl-C the finished texels are saved,
         quickly (`lattice_file.quick_saves`), before `errors.BakeInterrupted` (a
-        KeyboardInterrupt that counts them) propagates, or before they are returned; a
+        KeyboardInterrupt that counts them) propagates, or before they are returned (a
+        second Ctrl-C stops that save: `errors.SaveAbandoned`, `out` as it was); a
         Ctrl-C while the finished bake is saved lets that save end first, a second
         abandons it, leaving `out` as it was: `baking.saves.through_one_interrupt`).
     """
@@ -574,12 +579,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
             stopped = True
             bar.close()  # its last line stays above what follows
             if out is not None:
-                if progress:
-                    print(f"isolume: interrupted; saving the finished texels to {out}, "
-                          "uncompressed (Ctrl-C again to stop without them)",
-                          file=sys.stderr, flush=True)
-                with quick_saves(now=True):
-                    held.save(out)
+                save_interrupted(held, out, progress)
                 if not keep_interrupted:
                     raise BakeInterrupted(_finished(held)) from None
             if not keep_interrupted:

@@ -17,3 +17,13 @@ class BakeInterrupted(KeyboardInterrupt):
     def __init__(self, finished: int) -> None:
         super().__init__(finished)
         self.finished = finished
+
+
+class SaveAbandoned(KeyboardInterrupt):
+    """A second Ctrl-C that stopped the save of an interrupted bake's `finished` texels
+    (`baking.bake.bake`): the file keeps what it held before (its last save, or nothing),
+    the texels traced since are given up."""
+
+    def __init__(self, finished: int) -> None:
+        super().__init__(finished)
+        self.finished = finished

@@ -333,6 +333,22 @@ def _oldest(pending: deque[_Piece], runs: list[bool], batch: int) -> bytes:
     return pending.popleft().deflated.result()
 
 
+def _not_a_lattice(path: Path) -> str:
+    """Why `path`, not a zip archive, is no lattice: a truncated one (it starts as a zip
+    archive, a local file header, but has no end: a copy cut short, a full disk) or
+    something else."""
+    try:
+        with open(path, "rb") as f:
+            start = f.read(4)
+    except OSError:
+        start = b""
+    if start == b"PK\x03\x04":
+        return (f"{path}: a truncated or damaged lattice file: it starts as the .npz "
+                "archive isolume bake writes, but its end is missing (a copy cut short, a "
+                "full disk); delete it, or give another file")
+    return f"{path}: not a lattice file: expected the .npz archive that isolume bake writes"
+
+
 class _Passing:
     """A zipfile compressor that passes bytes already deflated through."""
 
@@ -397,8 +413,7 @@ class LatticeFile:
         if not path.is_file():
             raise BakeError(f"{path}: lattice file not found")
         if not zipfile.is_zipfile(path):
-            raise BakeError(f"{path}: not a lattice file: expected the .npz archive that "
-                            "isolume bake writes")
+            raise BakeError(_not_a_lattice(path))
         try:
             with zipfile.ZipFile(path) as zf, zf.open("meta.npy") as member:
                 meta = json.loads(str(np.lib.format.read_array(member, allow_pickle=False)))

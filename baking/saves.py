@@ -17,12 +17,17 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from isolume.volumes import cores
+from isolume.baking.errors import SaveAbandoned
+from isolume.baking.lattice_file import quick_saves
+from isolume.volumes import cores, interrupts
 from isolume.volumes.errors import WriteError
 
 
 class Saved(Protocol):
-    """What `Checkpoints` saves: a lattice (`baking.Lattice`, `baking.PlanLattice`)."""
+    """What `Checkpoints` saves: a lattice (`baking.Lattice`, `baking.PlanLattice`), its
+    `samples` the paths of each texel (0: not computed)."""
+
+    samples: np.ndarray
 
     def save(self, path: Path) -> None: ...
 
@@ -70,19 +75,22 @@ def through_one_interrupt(note: str | None, on_press: Callable[[], None] | None 
     the hurry of `baking.lattice_file.quick_saves`), a second raises KeyboardInterrupt at
     once. So the final save of a finished bake is not lost to a Ctrl-C that arrives while
     it writes (seconds for a large lattice, the bar at 100 %).
-    Only on the main thread with Python's own SIGINT handler installed (a signal handler is
-    the main thread's); under another handler — an application's, or an outer
+    Only on the main thread with Python's own SIGINT handler installed, or the command
+    line's (`volumes.interrupts`; a signal handler is the main thread's, restored after);
+    under another handler — an application's, or an outer
     `through_one_interrupt`'s, which then records the press — the body runs as that one
     has it."""
     pressed: list[bool] = []
+    before = signal.getsignal(signal.SIGINT)
     if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+            or not interrupts.raises_keyboard_interrupt(before)):
         yield pressed
         return
 
-    def deferred(_signum: int, _frame: Any) -> None:
+    def deferred(signum: int, frame: Any) -> None:
         if pressed:
-            raise KeyboardInterrupt
+            interrupts.on_interrupt(signum, frame)  # KeyboardInterrupt, after a callback
+            return
         pressed.append(True)
         if on_press is not None:
             on_press()
@@ -93,4 +101,19 @@ def through_one_interrupt(note: str | None, on_press: Callable[[], None] | None 
     try:
         yield pressed
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, before)
+
+
+def save_interrupted(lattice: Saved, out: Path, progress: bool) -> None:
+    """Save the finished texels of a bake a Ctrl-C stopped to `out`, quickly (what is not
+    deflated yet stored: `lattice_file.quick_saves`), saying so on stderr with
+    `progress`. A second Ctrl-C stops the save: `errors.SaveAbandoned`, `out` as it was."""
+    if progress:
+        print(f"isolume: interrupted; saving the finished texels to {out}, uncompressed "
+              "(Ctrl-C again to stop without them)", file=sys.stderr, flush=True)
+    try:
+        with quick_saves(now=True):
+            lattice.save(out)
+    except KeyboardInterrupt:
+        raise SaveAbandoned(int(np.count_nonzero(lattice.samples))) from None
+

@@ -203,9 +203,11 @@ class LatticeOnFile:
     def kind(self) -> str:
         return lattice_kind(self.meta)
 
-    def held(self, texels: np.ndarray | None = None) -> HeldLattice:
+    def held(self, texels: np.ndarray | None = None, fill: bool = False) -> HeldLattice:
         """The computed texels among (K,) sorted flat ids `texels` (None: all), read from
-        the file a slab at a time: their means, facings and samples (as `paths`)."""
+        the file a slab at a time: their means, facings and samples (as `paths`); with
+        `fill` (a display of an unfinished file), its texels among them without paths
+        yet too, from their neighbours (`_fill_unbaked`)."""
         ids, arrays = self.file.read_texels(None if texels is None
                                             else np.asarray(texels, np.int64))
         computed = arrays["samples"] > 0
@@ -215,4 +217,45 @@ class LatticeOnFile:
         lattice.facing = arrays["facing"][computed]
         lattice.paths = arrays["samples"][computed]
         lattice.unbaked = int(np.count_nonzero(~computed))
+        if fill and lattice.unbaked:
+            self._fill_unbaked(lattice, ids[~computed])
         return lattice
+
+    def _fill_unbaked(self, lattice: HeldLattice, unbaked: np.ndarray) -> None:
+        """Add to `lattice` the (U,) sorted flat ids `unbaked` (held by the file without
+        paths yet: an unfinished bake's) that have computed texels among their 26
+        neighbours, each the mix of those weighted as trilinear interpolation over a
+        lattice of twice the spacing weighs them (½ a step along each axis they differ
+        in), with the facing of the heaviest — so the half lattice that a default bake
+        traces first shows as that lattice, not as dots of light on unlit texels; their
+        paths 1 (shown). Reads the neighbours from the file."""
+        shape = self.geometry.shape
+        at = np.stack(np.unravel_index(unbaked, shape), axis=1)  # (U, 3) z, y, x
+        steps = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)]) - 1  # (26, 3)
+        near = at[:, None, :] + steps[None]  # (U, 26, 3)
+        inside = ((near >= 0) & (near < np.array(shape))).all(axis=2)
+        flat = np.where(inside, np.ravel_multi_index(
+            tuple(np.clip(near, 0, np.array(shape) - 1).transpose(2, 0, 1)), shape), -1)
+        wanted = np.unique(flat[inside])
+        ids, arrays = self.file.read_texels(wanted)
+        done = arrays["samples"] > 0
+        ids = ids[done]
+        rows = np.minimum(np.searchsorted(ids, flat), max(len(ids) - 1, 0))
+        found = inside & (ids[rows] == flat) if len(ids) else np.zeros(flat.shape, bool)
+        weight = np.where(found, 0.5 ** np.abs(steps).sum(axis=1)[None], 0.0)  # (U, 26)
+        total = weight.sum(axis=1)
+        filled = total > 0
+        if not filled.any():
+            return
+        values = arrays["values"][done]
+        mixed = np.einsum("un,unc->uc", weight[filled], values[rows[filled]])
+        mixed /= total[filled, None]
+        heaviest = rows[filled, np.argmax(weight[filled], axis=1)]
+        order = np.argsort(np.concatenate([lattice.texels, unbaked[filled]]), kind="stable")
+        lattice.texels = np.concatenate([lattice.texels, unbaked[filled]])[order]
+        lattice.values = np.concatenate([lattice.values,
+                                         mixed.astype(lattice.values.dtype)])[order]
+        lattice.facing = np.concatenate([lattice.facing,
+                                         arrays["facing"][done][heaviest]])[order]
+        lattice.paths = np.concatenate([lattice.paths, np.ones(
+            int(filled.sum()), lattice.paths.dtype)])[order]

@@ -695,6 +695,10 @@ def test_lattice_file_refuses_another_volume(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(BakeError, match=r"junk\.npz: not a lattice file"):
         Lattice.load(tmp_path / "junk.npz")
+    whole = path.read_bytes()
+    (tmp_path / "cut.npz").write_bytes(whole[:len(whole) // 2])  # a copy cut short
+    with pytest.raises(BakeError, match=r"cut\.npz: a truncated or damaged lattice file"):
+        Lattice.load(tmp_path / "cut.npz")
 
 
 def test_lattice_metadata(tmp_path):

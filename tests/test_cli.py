@@ -662,3 +662,113 @@ def test_the_console_script_freezes_the_heap_before_the_process_exits():
     before = gc.get_freeze_count()
     assert main(["info", "synthetic:sphere:16"]) == 0
     assert gc.get_freeze_count() == before
+
+
+def test_a_ctrl_c_inside_a_callback_from_c_is_sent_again_after_it(monkeypatch):
+    """The console script's SIGINT handler (`volumes.interrupts.on_interrupt`) raises
+    KeyboardInterrupt, except in a frame under llvmlite's object-cache callbacks (numba
+    taking a kernel's code as it compiles: there Python would print the KeyboardInterrupt
+    and go on) or a ``__del__``: it sends the signal again `RESEND_S` later instead."""
+    import os
+    import signal
+    import threading
+
+    from isolume.volumes import interrupts
+
+    sent = []
+    done = threading.Event()
+    monkeypatch.setattr(os, "kill", lambda pid, sig: sent.append((pid, sig)) or done.set())
+    here: dict = {}
+    exec(compile("import sys\ndef _raw_object_cache_notify(data):\n"
+                 "    return sys._getframe()\n",
+                 "/site-packages/llvmlite/binding/executionengine.py", "exec"), here)
+
+    def nested() -> object:  # a frame called from inside the callback
+        return sys._getframe()
+
+    class Finalised:
+        def __del__(self):
+            here["del"] = nested()
+
+    Finalised()
+    for frame in (here["_raw_object_cache_notify"](b""), here["del"]):
+        done.clear()
+        assert interrupts.on_interrupt(signal.SIGINT, frame) is None
+        assert done.wait(2) and sent[-1] == (os.getpid(), signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        interrupts.on_interrupt(signal.SIGINT, sys._getframe())
+    assert len(sent) == 2
+
+
+def test_options_a_lattice_would_leave_unused_are_refused_in_one_line(tmp_path, capsys):
+    """``--shading sh`` with an irradiance lattice, ``--env-rotation`` with one (its light
+    cannot turn) and ``--light`` with an SH lattice: one line each, status 2 — not a
+    traceback, not an option silently left out of the picture."""
+    volume = "synthetic:sphere:16"
+    irradiance, transfer = tmp_path / "e.npz", tmp_path / "sh.npz"
+    for out, extra in [(irradiance, []), (transfer, ["--mode", "sh", "--sh-order", "2"])]:
+        assert main(["bake", volume, "--samples", "2", "--out", str(out), *extra]) == 0
+    render = ["render", volume, "--size", "16x16", "--out", str(tmp_path / "x.png")]
+    for extra, expected in [
+            (["--lattice", str(irradiance), "--shading", "sh"], "needs an SH lattice"),
+            (["--lattice", str(irradiance), "--env-rotation", "90,0"], "cannot turn"),
+            (["--lattice", str(transfer), "--light", "dir:0,0,1:1,1,1"], "SH lattice")]:
+        capsys.readouterr()
+        assert main([*render, *extra]) == 2, extra
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and expected in err[0], err
+
+
+def test_the_final_save_goes_through_one_ctrl_c_under_the_command_line_s_handler():
+    """`baking.saves.through_one_interrupt` defers one Ctrl-C under the console script's
+    SIGINT handler as under Python's own (a finished bake's save is not lost to it), a
+    second raises, and the handler before is back afterwards."""
+    import os
+    import signal
+    import time
+
+    from isolume.baking.saves import through_one_interrupt
+    from isolume.volumes import interrupts
+
+    previous = signal.signal(signal.SIGINT, interrupts.on_interrupt)
+    try:
+        with through_one_interrupt(None) as pressed:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            assert pressed == [True]
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.5)
+        assert signal.getsignal(signal.SIGINT) is interrupts.on_interrupt
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def test_a_second_ctrl_c_while_an_interrupted_bake_saves_says_what_was_lost(tmp_path, capsys,
+                                                                           monkeypatch):
+    """Ctrl-C again while the finished texels of an interrupted bake are saved: the save
+    stops (`errors.SaveAbandoned`, with the count) and the command says the texels were
+    not saved and what the file holds — not that no path was traced."""
+    from isolume.app import commands
+    from isolume.baking.errors import SaveAbandoned
+    from isolume.baking.saves import save_interrupted
+
+    class Cut:
+        samples = np.array([0, 3, 5, 0])
+
+        def save(self, path):
+            raise KeyboardInterrupt
+
+    with pytest.raises(SaveAbandoned) as stop:
+        save_interrupted(Cut(), tmp_path / "l.npz", progress=False)
+    assert stop.value.finished == 2
+
+    def abandoned(args):
+        raise SaveAbandoned(1234)
+
+    monkeypatch.setattr(commands, "bake_lattice", abandoned)
+    out = tmp_path / "l.npz"
+    assert main(["bake", "synthetic:sphere:16", "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert "1,234 finished texels were not saved" in err and f"{out} not written" in err
+    assert "before any path" not in err

@@ -313,3 +313,32 @@ def test_cli_bakes_and_renders_a_split_sh_lattice(tmp_path, capsys):
     assert main([*render, "--env", "constant:1,1,1", "--out", str(tmp_path / "b.png")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "procedural sky with a sun" in err[0], err
+
+
+def test_a_split_sh_lattice_under_another_sky_takes_its_sun_per_pixel(tmp_path, capsys):
+    """A split SH lattice (its sun per pixel) shown under ``--env`` with the sun turned by
+    90° draws the picture that ``--env-rotation 90,0`` of its own sky draws — the same
+    pixels: the transfer takes the new sky and the pixels take its sun. (The sun left as
+    baked, the pictures would differ where the sun falls.)"""
+    from PIL import Image
+
+    from isolume.app.cli import main
+
+    lattice = tmp_path / "split.npz"
+    assert main(["bake", "synthetic:engine:24", "--mode", "sh", "--sh-order", "3",
+                 "--samples", "4", "--env", "sky:sun=3,sun_az=0,sun_el=40",
+                 "--direct-light", "pixels", "--out", str(lattice), "--workers", "2"]) == 0
+    render = ["render", "synthetic:engine:24", "--lattice", str(lattice), "--size", "48x48",
+              "--gl", "osmesa", "--no-auto-exposure", "--exposure", "0.3"]
+    pictures = {}
+    for name, extra in [("baked", []), ("turned", ["--env-rotation", "90,0"]),
+                        ("other sky", ["--env", "sky:sun=3,sun_az=90,sun_el=40"])]:
+        out = tmp_path / f"{name}.png"
+        assert main([*render, *extra, "--out", str(out)]) == 0
+        pictures[name] = np.asarray(Image.open(out)).astype(int)
+    assert np.array_equal(pictures["other sky"], pictures["turned"])
+    assert np.abs(pictures["turned"] - pictures["baked"]).mean() > 2
+    capsys.readouterr()
+    assert main([*render, "--env", "sky:sun=0", "--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "procedural sky with a sun" in err[0], err

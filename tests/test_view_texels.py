@@ -79,3 +79,52 @@ def test_a_view_lattice_does_not_hash_its_volume():
     assert identity["spacing"] == list(volume.spacing) and "hash" not in volume._cache
     with pytest.raises(BakeError, match="hash None"):
         check_identity(held.meta, volume)
+
+
+def test_an_unfinished_files_texels_without_paths_show_their_neighbours_mix(tmp_path):
+    """A file whose texels at odd indices have no paths yet (the half lattice a default
+    bake traces first, then cut off) shows each of them, in `LatticeOnFile.held`, as the
+    trilinear mix of the half lattice around it — computed here on the dense arrays — with
+    the facing of its heaviest neighbour and one path, and counts them as unbaked."""
+    from isolume.baking import BakeConfig, bake
+    from isolume.baking.view_texels import LatticeOnFile
+    from isolume.volumes.synthetic import make
+
+    volume = make("sphere", 16)
+    lattice = bake(volume, BakeConfig(samples=2, bounces=0), workers=1)
+    z, y, x = np.indices(lattice.samples.shape)
+    node = (z % 2 == 0) & (y % 2 == 0) & (x % 2 == 0)
+    baked = lattice.samples > 0
+    lattice.samples[~node] = 0
+    path = tmp_path / "cut.npz"
+    lattice.save(path)
+    opened = LatticeOnFile.open(path, volume)
+    assert len(opened.held().texels) == np.count_nonzero(node & baked)  # computed only
+    held = opened.held(fill=True)
+    assert held.unbaked == np.count_nonzero(baked & ~node)
+
+    done = (lattice.samples > 0).astype(np.float64)
+    sums = np.zeros((*done.shape, 3))
+    weights = np.zeros(done.shape)
+    padded_done = np.pad(done, 1)
+    padded_values = np.pad(lattice.values.astype(np.float64), ((1, 1),) * 3 + ((0, 0),))
+    shape = done.shape
+    for step in np.ndindex(3, 3, 3):
+        if step == (1, 1, 1):
+            continue
+        w = 0.5 ** np.abs(np.array(step) - 1).sum()
+        window = tuple(slice(s, s + n) for s, n in zip(step, shape, strict=True))
+        weights += w * padded_done[window]
+        sums += w * (padded_done[window][..., None] * padded_values[window])
+    want = baked & ~node & (weights > 0)
+    flat = np.flatnonzero(want)
+    rows = np.searchsorted(held.texels, flat)
+    assert np.array_equal(held.texels[rows], flat)
+    np.testing.assert_allclose(held.values[rows], (sums[want] / weights[want][:, None]),
+                               rtol=1e-5)
+    assert (held.paths[rows] == 1).all()
+    assert len(held.texels) == np.count_nonzero(node & baked) + len(flat)
+    x_odd = want & (z % 2 == 0) & (y % 2 == 0) & (x % 2 == 1) & np.roll(baked, 1, axis=2)
+    assert x_odd.any()
+    at = np.searchsorted(held.texels, np.flatnonzero(x_odd))  # heaviest: the node at x − 1
+    np.testing.assert_array_equal(held.facing[at], np.roll(lattice.facing, 1, axis=2)[x_odd])

@@ -151,7 +151,8 @@ def render_volume(
         if isinstance(lattice, LatticeOnFile):  # read the texels the pixels read
             seen = position_pass(renderer, camera, settings)
             source = lattice.file.path
-            lattice = lattice.held(_read_texels(settings, lattice.geometry, seen[0]))
+            lattice = lattice.held(_read_texels(settings, lattice.geometry, seen[0]),
+                                  fill=True)
             _warn_unbaked(lattice, source)
         elif lattice is None and view_light is not None and len(mesh.faces):
             from isolume.app.render.view_gi import view_lattice

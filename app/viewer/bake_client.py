@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import sys
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -225,7 +226,8 @@ class _BakeProcess:
 
         self.job, self.inbox, self.outbox = job, inbox, outbox
         self.shared = SharedLattice.attach(job["lattice"])
-        self.volume = volumes.Volume(**job["volume"])
+        _, fields = inbox.get()  # the volume: the first message (`BakeLink`)
+        self.volume = volumes.Volume(**fields)
         self.config = _config(job["config"])  # the light and range baked now
         self.parent = multiprocessing.parent_process()
         self.workers = job["workers"] or cores.threads()
@@ -573,11 +575,8 @@ class BakeLink:
 
         ctx = multiprocessing.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
-        job = {
+        job = {  # small: the process's arguments go through a pipe its start waits on
             "lattice": shared.describe(),
-            "volume": {"data": volume.data, "spacing": volume.spacing, "origin": volume.origin,
-                       "name": volume.name, "source": volume.source,
-                       "suggested_iso": volume.suggested_iso},
             "config": config.to_dict(), "workers": workers, "iso": float(iso),
             "batch_paths": batch_paths or BATCH_PATHS, "started": time.time(),
             "follow_iso": follow_iso,
@@ -586,6 +585,13 @@ class BakeLink:
         self.process = ctx.Process(target=_bake_main, args=(job, self.inbox, self.outbox),
                                    name="isolume-bake", daemon=True)
         self.process.start()
+        # the volume's samples go by the queue, whose thread writes them: the start writes
+        # its arguments itself and, with the child gone before reading them (a script
+        # without a main guard, which the child imports again), would wait for ever
+        self.inbox.put(("volume", {
+            "data": volume.data, "spacing": volume.spacing, "origin": volume.origin,
+            "name": volume.name, "source": volume.source,
+            "suggested_iso": volume.suggested_iso}))
         self.ready: dict[str, Any] | None = None
         self.ready_config: BakeConfig | None = None  # the config of the last "ready"
         self.progress: Progress | None = None
@@ -661,7 +667,7 @@ class BakeLink:
             elif kind == "error":
                 self.error = message[1]
         if self.error is None and self.ready is None and not self.process.is_alive():
-            self.error = f"the bake process ended (exit code {self.process.exitcode})"
+            self.error = _ended(self.process.exitcode)
         return texels
 
     def _turn_event(self, direction, stage: str) -> None:
@@ -783,3 +789,16 @@ class BakeLink:
         self.poll()
         stop_process(self.process, self.inbox, self.outbox, self.poll,
                      timeout if self.ready is not None else 0.0)
+
+
+def _ended(exitcode: int | None) -> str:
+    """What the viewer says of a bake process that ended with `exitcode` before its plan
+    was ready; from a script (a ``__main__`` with a file), how the usual cause is
+    mended: the process starts by importing the script again, and a top level that is
+    not under a main guard runs again there and cannot start processes."""
+    said = f"the bake process ended (exit code {exitcode})"
+    if exitcode and getattr(sys.modules.get("__main__"), "__file__", None):
+        said += ("; a script that shows a view keeps its top level under "
+                 "`if __name__ == \"__main__\":` (the bake process imports it again)")
+    return said
+

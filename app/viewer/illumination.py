@@ -93,7 +93,7 @@ class Illumination:
             other = other_texels(lattice.geometry, self.volume, config.scale, lattice.file.path)
             if not self.options.bake or _complete(lattice, config.samples) or other:
                 self.state.message = other or self.state.message
-                self.static_file, self.static_lattice = lattice, lattice.held()
+                self.static_file, self.static_lattice = lattice, lattice.held(fill=True)
                 self._show(self.static_lattice)
                 return
         if not self.options.bake:
