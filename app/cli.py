@@ -14,7 +14,9 @@ from __future__ import annotations
 import argparse
 import gc
 import os
+import re
 import sys
+import threading
 from collections.abc import Callable, Sequence
 
 from isolume.app import blas  # noqa: F401  (first: before numpy loads its BLAS)
@@ -133,13 +135,20 @@ def command_named(words: Sequence[str]) -> str | None:
     return None
 
 
+NEGATIVE = re.compile(r"-\.?\d")
+"""The start of a value that begins with a minus sign: ``-30,20``, ``-1x5``, ``-.5``."""
+
+
 def _join_negative_axes(argv: Sequence[str]) -> list[str]:
-    """``--up -z`` as ``--up=-z``: argparse would take ``-z`` for an option."""
+    """``--up -z`` as ``--up=-z``, and an option's value that starts with a minus sign
+    (``--view -30,20``) as ``--view=-30,20``: argparse takes such words for options
+    (all but plain negative numbers) and says the option lacks its argument."""
     out, rest = [], list(argv)
     while rest:
         word = rest.pop(0)
-        if word == "--up" and rest and rest[0] in ("-x", "-y", "-z"):
-            word = f"--up={rest.pop(0)}"
+        if word.startswith("--") and "=" not in word and rest and (
+                NEGATIVE.match(rest[0]) or (word == "--up" and rest[0] in ("-x", "-y", "-z"))):
+            word = f"{word}={rest.pop(0)}"
         out.append(word)
     return out
 
@@ -169,6 +178,48 @@ def main(argv: Sequence[str] | None = None) -> int:
     return status
 
 
+FIRST_COMPILE = ("isolume: compiling the kernels for this machine (the first run only, or "
+                 "after an upgrade: up to a minute on two cores; later runs load them in "
+                 "about a second)")
+"""What the command line says once, as numba starts compiling a kernel it found no cached
+code for (a first run takes 5–10 times a later one's wall time)."""
+
+
+_LISTENING: list = []
+"""The listener `_say_first_compile` registered (one a process: the Python API runs
+commands in the caller's process again and again)."""
+
+
+def _say_first_compile() -> None:
+    """Say `FIRST_COMPILE` on stderr once a process, at the first kernel numba compiles
+    (not at the cached ones it loads: its ``numba:compile`` event)."""
+    from numba.core import event
+
+    if not _LISTENING:
+        _LISTENING.append(_first_compile_listener())
+        event.register("numba:compile", _LISTENING[0])
+
+
+def _first_compile_listener() -> object:
+    """A numba event listener that prints `FIRST_COMPILE` at its first event."""
+    from numba.core import event
+
+    class Once(event.Listener):
+        def __init__(self) -> None:
+            self.lock, self.said = threading.Lock(), False
+
+        def on_start(self, _event: object) -> None:
+            with self.lock:
+                said, self.said = self.said, True
+            if not said:
+                print(FIRST_COMPILE, file=sys.stderr, flush=True)
+
+        def on_end(self, _event: object) -> None:
+            return None
+
+    return Once()
+
+
 def _leave(status: int) -> None:
     """End the process now with `status`, once the command has stopped and saved what it
     finished: a pool thread may still be compiling a kernel (the first run on a machine:
@@ -195,6 +246,8 @@ def _run(argv: Sequence[str] | None) -> int:
 
             check_output_folder(args.timeline)
         cores.use(workers_of(args))
+        if args.command != "info":  # the commands that run compiled kernels
+            _say_first_compile()
         with cores.recording(getattr(args, "timeline", None), command=words):
             return command(args)
     except IsolumeError as exc:

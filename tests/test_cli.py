@@ -307,6 +307,27 @@ def test_up_turns_the_volume(capsys):
     assert status == 2 and "--up 'w'" in err
 
 
+def test_values_that_start_with_a_minus_sign_are_an_options_values(tmp_path, capsys):
+    """``--view -30,20`` (a negative azimuth) renders as ``--view=-30,20`` does, where
+    argparse took ``-30,20`` for an option; ``--size -5x10`` is refused by the size's own
+    check, in one line; a NaN isovalue is called not finite."""
+    from isolume.app.cli import _join_negative_axes
+
+    assert _join_negative_axes(["render", "--view", "-30,20", "--iso", "-.5", "--up", "-z",
+                                "--exposure", "2"]) == ["render", "--view=-30,20",
+                                                        "--iso=-.5", "--up=-z",
+                                                        "--exposure", "2"]
+    render = ["render", "synthetic:sphere:16", "--size", "24x24", "--gl", "osmesa"]
+    for view in (["--view", "-30,20"], ["--view=-30,20"]):
+        assert main([*render, *view, "--out", str(tmp_path / f"{len(view)}.png")]) == 0
+    assert (tmp_path / "1.png").read_bytes() == (tmp_path / "2.png").read_bytes()
+    capsys.readouterr()
+    for wrong, said in ((["--size", "-5x10"], "--size"), (["--iso", "nan"], "finite")):
+        assert main([*render, *wrong, "--out", str(tmp_path / "x.png")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and said in err[0], err
+
+
 def test_default_render_agrees_with_the_reference(tmp_path, capsys):
     """The default picture (GI traced for the view under the default sky and sun, the sun
     added per pixel) against ``isolume reference`` with the same arguments, on a part with
@@ -772,3 +793,32 @@ def test_a_second_ctrl_c_while_an_interrupted_bake_saves_says_what_was_lost(tmp_
     err = capsys.readouterr().err
     assert "1,234 finished texels were not saved" in err and f"{out} not written" in err
     assert "before any path" not in err
+
+
+def test_the_first_kernel_compiled_is_said_once(capsys):
+    """A command says once, on stderr, that it compiles the kernels when numba compiles
+    one it found no cached code for (a first run is 5–10 times slower); loading cached
+    kernels says nothing; commands run again in one process register no second listener."""
+    import numba
+    from numba.core import event
+
+    from isolume.app import cli
+
+    cli._say_first_compile()
+    cli._say_first_compile()
+    assert len(cli._LISTENING) == 1
+    registered = list(cli._LISTENING)
+    for listener in registered:  # what earlier commands of this process registered
+        event.unregister("numba:compile", listener)
+    listener = cli._first_compile_listener()
+    event.register("numba:compile", listener)
+    try:
+        for k in range(2):
+            namespace: dict = {}
+            exec(f"def f(x):\n    return x * {k + 2} + 1\n", namespace)
+            assert numba.njit(cache=False)(namespace["f"])(3) == 3 * (k + 2) + 1
+    finally:
+        event.unregister("numba:compile", listener)
+        for listener in registered:
+            event.register("numba:compile", listener)
+    assert capsys.readouterr().err.count(cli.FIRST_COMPILE) == 1

@@ -156,12 +156,15 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
 
 def test_wait_gi_ends_when_the_first_preview_is_on_screen(display, tmp_path):
     """``wait-gi`` waits for the lazy bake's first preview pass (the plan's texels come
-    later), and the screenshot after it shows its light: it differs from the one taken as
-    the surface arrived. ``--timeline`` records the session's stages, the bake process's
-    CPU time among them."""
+    later) to be on screen, and the screenshot after it shows its light: it differs from
+    the one taken as the surface arrived, and no face is left unlit against the one taken
+    once the bake is done (a wait that ended on the first texels received left 40 % of
+    the surface below half its light). ``--timeline`` records the session's stages, the
+    bake process's CPU time among them."""
     (tmp_path / "s.txt").write_text("wait-mesh\nscreenshot local.png\nwait-gi 120\nframes 1\n"
-                                    "screenshot gi.png\nquit\n")
-    run = _view(["synthetic:engine:48", "--size", "160x120", "--script", "s.txt",
+                                    "screenshot gi.png\nwait-bake 1 120\nframes 3\n"
+                                    "screenshot done.png\nquit\n")
+    run = _view(["synthetic:engine", "--size", "320x240", "--script", "s.txt",
                  "--stats", "stats.json", "--timeline", "t.json"], display, tmp_path)
     assert run.returncode == 0, run.stderr
     stages = json.loads((tmp_path / "t.json").read_text())["stages"]
@@ -173,12 +176,17 @@ def test_wait_gi_ends_when_the_first_preview_is_on_screen(display, tmp_path):
 
     said = [line for line in run.stderr.splitlines() if line.startswith("script line")]
     assert [line.split(" done")[0] for line in said] == ["script line 1: wait-mesh",
-                                                         "script line 3: wait-gi"]
+                                                         "script line 3: wait-gi",
+                                                         "script line 6: wait-bake"]
     assert 0 < first_gi(run.stderr) < 120  # seconds after the start, as bench scale reads
     local, mask = _surface(tmp_path / "local.exr")
     gi, gi_mask = _surface(tmp_path / "gi.exr")
     both = mask & gi_mask
     assert both.mean() > 0.05 and np.abs(gi[both] - local[both]).mean() > 0.01
+    done, done_mask = _surface(tmp_path / "done.exr")  # the view's texels all traced
+    lit = both & done_mask & (done.sum(axis=-1) > 0)
+    ratio = gi[lit].sum(axis=-1) / done[lit].sum(axis=-1)  # the light on screen at wait-gi
+    assert np.mean(ratio < 0.5) < 0.05, np.mean(ratio < 0.5)  # no face left unlit
 
 
 def test_frames_keep_coming_while_the_full_surface_is_extracted(display, tmp_path):
@@ -466,3 +474,38 @@ def test_interactive_quality_backs_off_then_recovers():
     small = Quality()
     small.adapt(5 * INTERACTIVE_MS, full_triangles=1000)
     assert not small.coarse and small.scale < 1.0  # a small mesh gains nothing from it
+
+
+def test_bricks_show_their_first_light_before_their_refinements():
+    """`TexelUploader.upload` writes the bricks never uploaded (their first light) within
+    `first_budget_s` before those uploaded already (the light refined) within `budget_s`;
+    a `watch` clears as its bricks are written, though they are marked again meanwhile."""
+    from types import SimpleNamespace
+
+    from isolume.app.viewer.draw import TexelUploader
+
+    class Textures:
+        def __init__(self):
+            self.lattice = SimpleNamespace(geometry=SimpleNamespace(shape=(32, 32, 32)))
+            self.written = []
+
+        def write_bricks(self, batch):
+            self.written.extend(map(tuple, batch))
+
+    def flat(z, y, x):  # a texel of brick (z, y, x)
+        return np.array([np.ravel_multi_index((8 * z + 1, 8 * y + 2, 8 * x + 3), (32, 32, 32))])
+
+    textures = Textures()
+    uploader = TexelUploader(textures)
+    uploader.mark(flat(0, 0, 0))
+    assert uploader.upload(None) == 1 and uploader.pending == 0
+    uploader.mark(flat(0, 0, 0))  # refined
+    uploader.mark(flat(3, 2, 1))  # first light
+    watched = uploader.watch()
+    textures.written.clear()
+    assert uploader.upload(budget_s=0.0, first_budget_s=10.0) == 1  # no time for the rest
+    assert textures.written == [(3, 2, 1)] and uploader.dirty[0, 0, 0]
+    assert watched[0, 0, 0] and not watched[3, 2, 1]
+    uploader.mark(flat(0, 0, 0))
+    uploader.upload(None)
+    assert not watched.any() and uploader.pending == 0

@@ -51,7 +51,10 @@ def check_isovalue(volume: Volume, iso: float) -> float:
     """Return `iso` as float, or raise VolumeError when it lies outside the data range."""
     lo, hi = volume.value_range
     iso = float(iso)
-    if not np.isfinite(iso) or iso < lo or iso > hi:
+    if not np.isfinite(iso):
+        raise VolumeError(f"{volume.source or volume.name}: isovalue {iso:g}: expected a "
+                          f"finite number within the data range [{lo:g}, {hi:g}]")
+    if iso < lo or iso > hi:
         raise VolumeError(
             f"{volume.source or volume.name}: isovalue {iso:g} is outside the data range "
             f"[{lo:g}, {hi:g}]"

@@ -743,10 +743,12 @@ class BakeLink:
         return lattice
 
     def gi_received(self, iso: float) -> bool:
-        """Whether light for `iso` has arrived: a preview pass of it, or estimates of the
-        texels near its surface."""
+        """Whether light for `iso` has arrived: a preview pass of it, or estimates of
+        every visible texel of its surface (some texels near it are not enough: the
+        rest of the view would still be dark)."""
+        p = self.progress
         return (any(done["iso"] == iso for _, done in self.previews)
-                or bool(self.near_fraction(iso)))
+                or (p is not None and p.iso == iso and p.visible_fraction >= 1.0))
 
     def near_fraction(self, iso: float) -> float | None:
         """Fraction of the texels near the surface at `iso` that have an estimate (None:

@@ -33,9 +33,18 @@ if TYPE_CHECKING:
     from isolume.baking.view_texels import HeldLattice
 
 UPLOAD_BUDGET_S = 0.006
-"""Seconds per frame spent re-uploading texels (the rest waits for the next frame)."""
+"""Seconds per frame spent re-uploading texels while the user moves the camera or light
+(the rest waits for the next frame)."""
+UPLOAD_FIRST_S = 0.05
+"""The same for bricks that show their first light while the view rests: where frames take
+50–100 ms (Mesa's llvmpipe), 6 ms a frame took 30–50 s to show the first light of a 256³
+scan that had arrived in 5; the light refined goes up at `UPLOAD_BUDGET_S` (more would
+take the processor from the bake, which runs at the lowest priority)."""
 UPLOAD_BATCH = 16
 """Bricks re-uploaded between two looks at the clock."""
+FIRST_BATCH = 256
+"""The same for bricks that show their first light: a brick's upload writes the bricks
+whose aprons copy it too, which neighbours in one batch share."""
 INTERACTIVE_MS = 33.0
 """Frame time aimed at while the camera or light moves (≈ 30 fps)."""
 RENDER_SCALES = (1.0, 0.75, 0.5, 0.35)
@@ -78,13 +87,16 @@ def frame_size(window: Window) -> tuple[int, int]:
 
 class TexelUploader:
     """Tracks which bricks (`app.render.bricks.BRICK`³ texels) hold newly committed texels
-    and re-uploads them (`LatticeTextures.write_bricks`) within a time budget."""
+    and re-uploads them (`LatticeTextures.write_bricks`) within a time budget, the bricks
+    that show their first light before those that refine it."""
 
     def __init__(self, textures: LatticeTextures) -> None:
         self.textures: LatticeTextures = textures
         self.shape: tuple[int, ...] = tuple(textures.lattice.geometry.shape)
         self.dirty: np.ndarray = np.zeros(brick_grid(self.shape), bool)
+        self.shown: np.ndarray = np.zeros(self.dirty.shape, bool)  # uploaded once since
         self.uploaded: int = 0
+        self._watches: list[np.ndarray] = []
 
     def mark(self, flat_ids: np.ndarray) -> None:
         """Note (N,) flat texel ids whose values changed."""
@@ -98,20 +110,42 @@ class TexelUploader:
         """Bricks waiting for upload."""
         return int(self.dirty.sum())
 
-    def upload(self, budget_s: float | None = UPLOAD_BUDGET_S) -> int:
-        """Upload dirty bricks, `UPLOAD_BATCH` at a time, until `budget_s` seconds are
-        spent (None: all); returns how many were uploaded."""
+    def watch(self) -> np.ndarray:
+        """A mask of the bricks waiting for upload now, which each upload clears as it
+        uploads them (whatever was marked since): all False once every texel marked so
+        far is in GL, though a lazy bake keeps marking more."""
+        watched = self.dirty.copy()
+        self._watches.append(watched)
+        return watched
+
+    def upload(self, budget_s: float | None = UPLOAD_BUDGET_S,
+               first_budget_s: float | None = None) -> int:
+        """Upload dirty bricks: those never uploaded (the first light there), `FIRST_BATCH`
+        at a time, until `first_budget_s` seconds are spent (None: `budget_s`), then the
+        others, `UPLOAD_BATCH` at a time, until `budget_s` (None: all); one batch at least;
+        returns how many were uploaded."""
         t0, n = time.perf_counter(), 0
         dirty = np.argwhere(self.dirty)
-        for lo in range(0, len(dirty), UPLOAD_BATCH):
-            batch = dirty[lo:lo + UPLOAD_BATCH]
-            self.textures.write_bricks(batch)
-            self.dirty[tuple(batch.T)] = False
-            n += len(batch)
-            if budget_s is not None and time.perf_counter() - t0 > budget_s:
-                break
+        fresh = ~self.shown[tuple(dirty.T)]
+        for part, budget, batch in ((dirty[fresh], first_budget_s or budget_s, FIRST_BATCH),
+                                    (dirty[~fresh], budget_s, UPLOAD_BATCH)):
+            for lo in range(0, len(part), batch):
+                if n and budget is not None and time.perf_counter() - t0 > budget:
+                    break  # (one batch at least a call)
+                n += self._write(part[lo:lo + batch])
         self.uploaded += n
         return n
+
+    def _write(self, batch: np.ndarray) -> int:
+        """Upload the (B, 3) bricks `batch`; returns B."""
+        self.textures.write_bricks(batch)
+        at = tuple(batch.T)
+        self.dirty[at] = False
+        self.shown[at] = True
+        for watched in self._watches:
+            watched[at] = False
+        self._watches = [w for w in self._watches if w.any()]
+        return len(batch)
 
 
 def check_textures(textures: LatticeTextures) -> dict[str, Any]:
@@ -307,12 +341,13 @@ class Drawing:
         if self.uploader is not None:
             self.uploader.mark(flat_ids)
 
-    def upload_texels(self, budget_s: float | None = UPLOAD_BUDGET_S) -> bool:
-        """Re-upload changed texels for `budget_s` seconds (None: all); True when some
-        were."""
+    def upload_texels(self, budget_s: float | None = UPLOAD_BUDGET_S,
+                      first_budget_s: float | None = None) -> bool:
+        """Re-upload changed texels for `budget_s` seconds (None: all), the bricks never
+        uploaded for `first_budget_s` (`TexelUploader.upload`); True when some were."""
         if self.uploader is None or not self.uploader.pending:
             return False
-        self.uploader.upload(budget_s)
+        self.uploader.upload(budget_s, first_budget_s)
         return True
 
     def check_lattice(self) -> dict[str, Any]:

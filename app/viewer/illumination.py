@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 from isolume import volumes
 from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta, range_warning
 from isolume.app.viewer.command import Options
-from isolume.app.viewer.draw import Drawing
+from isolume.app.viewer.draw import UPLOAD_BUDGET_S, UPLOAD_FIRST_S, Drawing
 from isolume.app.viewer.state import ViewerError, ViewerState
 
 if TYPE_CHECKING:
@@ -76,6 +76,7 @@ class Illumination:
         self._view_sent: tuple | None = None
         self._view_seen: tuple | None = None
         self._view_since = 0.0
+        self._gi_upload: tuple | None = None  # (iso, uploader, bricks watched: `gi_shown`)
 
     # -- starting ------------------------------------------------------------------------
     def start(self, lattice: LatticeOnFile | None, iso: float) -> None:
@@ -126,15 +127,19 @@ class Illumination:
 
     # -- every turn of the loop ----------------------------------------------------------
     def receive(self) -> None:
-        """Upload the texels the bake committed (within the drawing's budget); note its
-        error as the status message."""
+        """Upload the texels the bake committed (for `UPLOAD_BUDGET_S` a turn, the bricks'
+        first light for `UPLOAD_FIRST_S` while the view rests); note its error as the
+        status message."""
         if self.bake is None:
             return
         for ids in self.bake.poll():
             self.drawing.mark_texels(ids)
         if self.bake.error:
             self.state.message = f"lazy bake stopped: {self.bake.error}"
-        if self.drawing.upload_texels() and self.state.view.shading in lattice_modes():
+        resting = not self.state.interacting(time.perf_counter())
+        first = UPLOAD_FIRST_S if resting else UPLOAD_BUDGET_S
+        if self.drawing.upload_texels(UPLOAD_BUDGET_S, first) \
+                and self.state.view.shading in lattice_modes():
             self.state.lattice_changed = True  # shown by the loop, at a pace
 
     def update_view(self, surface_stage: str | None, size: tuple[int, int]) -> None:
@@ -212,11 +217,19 @@ class Illumination:
     # -- questions -----------------------------------------------------------------------
     def gi_shown(self) -> bool:
         """Whether global illumination of the displayed isovalue is on screen: a lattice
-        shown without a lazy bake, or the lazy bake's first preview pass of that isovalue,
-        or estimates of the texels near its surface, received."""
+        shown without a lazy bake, or the lazy bake's first preview pass of that isovalue
+        (or estimates of every visible texel) received, and the texels received by then
+        uploaded to GL (they go up a few bricks a frame, `TexelUploader.watch`)."""
         if self.bake is None:
             return self.drawing.renderer.lattice is not None
-        return self.bake.gi_received(self.state.view.iso)
+        iso, uploader = self.state.view.iso, self.drawing.uploader
+        if not self.bake.gi_received(iso):
+            return False
+        if uploader is None:
+            return True
+        if self._gi_upload is None or self._gi_upload[:2] != (iso, uploader):
+            self._gi_upload = (iso, uploader, uploader.watch())  # what came by now
+        return not self._gi_upload[2].any()
 
     def bake_progress(self) -> tuple[float | None, str | None]:
         """(fraction of the texels near the displayed surface with an estimate, None

@@ -186,5 +186,7 @@ def parse_env(spec: str) -> Environment:
         )
     try:
         return image(path, mapping=mapping, scale=scale)
-    except EnvSpecError as exc:
-        raise EnvSpecError(f"{spec!r}: {exc}") from None
+    except EnvSpecError as exc:  # named by the spec, the file's name said once
+        said = str(exc)
+        said = said[len(path) + 2:] if said.startswith(f"{path}: ") else said
+        raise EnvSpecError(f"{spec!r}: {said}") from None
