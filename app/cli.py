@@ -141,16 +141,27 @@ NEGATIVE = re.compile(r"-\.?\d")
 
 def _join_negative_axes(argv: Sequence[str]) -> list[str]:
     """``--up -z`` as ``--up=-z``, and an option's value that starts with a minus sign
-    (``--view -30,20``) as ``--view=-30,20``: argparse takes such words for options
-    (all but plain negative numbers) and says the option lacks its argument."""
+    but is no plain number (``--view -30,20``) as ``--view=-30,20``: argparse takes such
+    words for options and says the option lacks its argument. Plain negative numbers are
+    left to argparse (``--iso-range -5 10``: two values)."""
     out, rest = [], list(argv)
     while rest:
         word = rest.pop(0)
-        if word.startswith("--") and "=" not in word and rest and (
-                NEGATIVE.match(rest[0]) or (word == "--up" and rest[0] in ("-x", "-y", "-z"))):
+        if len(word) > 2 and word.startswith("--") and "=" not in word and rest and (
+                (NEGATIVE.match(rest[0]) and not _number(rest[0]))
+                or (word == "--up" and rest[0] in ("-x", "-y", "-z"))):
             word = f"{word}={rest.pop(0)}"
         out.append(word)
     return out
+
+
+def _number(word: str) -> bool:
+    """Whether `word` reads as one number (argparse takes ``-5`` and ``-.5`` as values)."""
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
 
 
 def workers_of(args: argparse.Namespace) -> int | None:
@@ -246,7 +257,7 @@ def _run(argv: Sequence[str] | None) -> int:
 
             check_output_folder(args.timeline)
         cores.use(workers_of(args))
-        if args.command != "info":  # the commands that run compiled kernels
+        if argv is None and args.command != "info":  # the console script's kernels
             _say_first_compile()
         with cores.recording(getattr(args, "timeline", None), command=words):
             return command(args)

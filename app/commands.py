@@ -208,11 +208,11 @@ def cmd_bake(args: argparse.Namespace) -> int:
               "run the same command again to resume (and to compress what a Ctrl-C saved "
               "uncompressed)", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except SaveAbandoned as stop:
+    except SaveAbandoned:
         kept = (f"{out} keeps the texels of its last save" if Path(out).exists()
                 else f"{out} not written")
-        print(f"isolume: interrupted again while saving: the {stop.finished:,} finished "
-              f"texels were not saved; {kept}; run the same command again to bake them",
+        print(f"isolume: interrupted again while saving: the texels finished since the "
+              f"last save were not saved; {kept}; run the same command again to bake them",
               file=sys.stderr)
         return EXIT_INTERRUPTED
     except (KeyboardInterrupt, SystemError) as exc:  # before the tracing: nothing new

@@ -94,7 +94,8 @@ def _check_lattice_options(args: argparse.Namespace,
     """`CLIError` (one line) for options a lattice would leave unused: ``--shading sh``
     with an irradiance lattice, ``--light`` with an SH one (its transfer holds no point
     or directional light), ``--env-rotation`` with an irradiance one (its light is baked
-    in place)."""
+    in place; a saved view's turned light, ``--state``, sets it for the sun drawn per
+    pixel, and is not refused)."""
     if lattice is None:
         return
     if shading == "sh" and lattice.kind != "sh":
@@ -104,8 +105,8 @@ def _check_lattice_options(args: argparse.Namespace,
         raise CLIError(f"--light: {args.lattice} is an SH lattice, whose transfer holds the "
                        "environment's light only; bake the lights into an irradiance "
                        "lattice (isolume bake --light), or leave out --lattice")
-    if lattice.kind == "irradiance" and floats(args.env_rotation, 2, "--env-rotation") \
-            != (0.0, 0.0):
+    turned = floats(args.env_rotation, 2, "--env-rotation") != (0.0, 0.0)
+    if lattice.kind == "irradiance" and turned and not getattr(args, "state", None):
         raise CLIError(f"--env-rotation {args.env_rotation}: {args.lattice} holds irradiance "
                        "baked under its own lighting, which cannot turn; turn the light "
                        "with an SH lattice (isolume bake --mode sh), or leave out --lattice")

@@ -185,6 +185,9 @@ def shown_under(lattice: Lattice | HeldLattice | LatticeOnFile | None, spec: str
     if spec is None or lattice is None or lattice.kind != "sh" \
             or not lattice_direct_lights(lattice):
         return lattice
+    from isolume.baking.lighting import lighting_of
+
+    lighting_of(spec)  # a spec that does not parse says why itself
     try:
         config = dataclasses.replace(lattice.config, env=spec)
     except (ValueError, IsolumeError):

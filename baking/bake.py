@@ -72,6 +72,7 @@ from isolume.baking.saves import (
     CHECKPOINT_S,
     Checkpoints,
     save_interrupted,
+    save_through,
     through_one_interrupt,
 )
 from isolume.volumes import cores
@@ -593,7 +594,7 @@ def bake(volume: volumes.Volume, config: BakeConfig, *, out: str | os.PathLike[s
         cores.stage("save")
         if out is not None and not held.meta.get("interrupted"):
             with cores.timed_item("save"):  # deflated in pieces on the pool (`lattice_file`)
-                held.save(out)
+                save_through(held, out)
     if pressed and not keep_interrupted:
         raise BakeInterrupted(_finished(held))
     del baker  # its plan goes before the lattice is made dense

@@ -20,9 +20,9 @@ class BakeInterrupted(KeyboardInterrupt):
 
 
 class SaveAbandoned(KeyboardInterrupt):
-    """A second Ctrl-C that stopped the save of an interrupted bake's `finished` texels
-    (`baking.bake.bake`): the file keeps what it held before (its last save, or nothing),
-    the texels traced since are given up."""
+    """A second Ctrl-C that stopped the save of a bake's `finished` texels (interrupted,
+    or done: `baking.bake.bake`): the file keeps what it held before (its last save, or
+    nothing), the texels traced since are given up."""
 
     def __init__(self, finished: int) -> None:
         super().__init__(finished)

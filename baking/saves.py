@@ -117,3 +117,13 @@ def save_interrupted(lattice: Saved, out: Path, progress: bool) -> None:
     except KeyboardInterrupt:
         raise SaveAbandoned(int(np.count_nonzero(lattice.samples))) from None
 
+
+def save_through(lattice: Saved, out: Path) -> None:
+    """The final save of a finished bake to `out` (inside `through_one_interrupt`: a first
+    Ctrl-C lets it end); a second Ctrl-C stops it: `errors.SaveAbandoned`, `out` as it
+    was."""
+    try:
+        lattice.save(out)
+    except KeyboardInterrupt:
+        raise SaveAbandoned(int(np.count_nonzero(lattice.samples))) from None
+

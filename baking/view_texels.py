@@ -38,6 +38,10 @@ if TYPE_CHECKING:
     from isolume.volumes.core import Volume
 
 
+FILL_BLOCK = 1 << 17
+"""Texels without paths `LatticeOnFile` fills from their neighbours at a time."""
+
+
 class HeldLattice:
     """Estimates at (K,) texels of a lattice's geometry, nothing elsewhere.
 
@@ -51,6 +55,8 @@ class HeldLattice:
         meta, config: as `baking.Lattice`'s (kind, volume identity; the lighting).
         unbaked: texels asked for that the file holds without paths yet (an unfinished
             bake's; `LatticeOnFile.held`), 0 otherwise.
+        filled: how many of those are held, mixed from their neighbours
+            (`LatticeOnFile.held` with `fill`).
     """
 
     def __init__(self, geometry: LatticeGeometry, texels: np.ndarray, channels: int,
@@ -65,6 +71,7 @@ class HeldLattice:
         self.meta: dict[str, Any] = meta
         self.config: BakeConfig | None = config
         self.unbaked: int = 0
+        self.filled: int = 0
 
     @classmethod
     def for_texels(cls, volume: Volume, config: BakeConfig, texels: np.ndarray) -> HeldLattice:
@@ -228,7 +235,26 @@ class LatticeOnFile:
         lattice of twice the spacing weighs them (½ a step along each axis they differ
         in), with the facing of the heaviest — so the half lattice that a default bake
         traces first shows as that lattice, not as dots of light on unlit texels; their
-        paths 1 (shown). Reads the neighbours from the file."""
+        paths 1 (shown). Reads the neighbours from the file, `FILL_BLOCK` texels at a
+        time (about 2 KB of work arrays a texel)."""
+        parts = [self._mixed(unbaked[lo:lo + FILL_BLOCK])
+                 for lo in range(0, len(unbaked), FILL_BLOCK)]
+        ids = np.concatenate([part[0] for part in parts])
+        if not len(ids):
+            return
+        order = np.argsort(np.concatenate([lattice.texels, ids]), kind="stable")
+        lattice.texels = np.concatenate([lattice.texels, ids])[order]
+        lattice.values = np.concatenate(
+            [lattice.values, *(part[1].astype(lattice.values.dtype) for part in parts)]
+        )[order]
+        lattice.facing = np.concatenate([lattice.facing, *(part[2] for part in parts)])[order]
+        lattice.paths = np.concatenate([lattice.paths,
+                                        np.ones(len(ids), lattice.paths.dtype)])[order]
+        lattice.filled = len(ids)
+
+    def _mixed(self, unbaked: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(F,) ids of the (U,) sorted flat `unbaked` with computed neighbours, (F, C)
+        their mixes and (F, 2) facings (`_fill_unbaked`)."""
         shape = self.geometry.shape
         at = np.stack(np.unravel_index(unbaked, shape), axis=1)  # (U, 3) z, y, x
         steps = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)]) - 1  # (26, 3)
@@ -236,8 +262,8 @@ class LatticeOnFile:
         inside = ((near >= 0) & (near < np.array(shape))).all(axis=2)
         flat = np.where(inside, np.ravel_multi_index(
             tuple(np.clip(near, 0, np.array(shape) - 1).transpose(2, 0, 1)), shape), -1)
-        wanted = np.unique(flat[inside])
-        ids, arrays = self.file.read_texels(wanted)
+        del near
+        ids, arrays = self.file.read_texels(np.unique(flat[inside]))
         done = arrays["samples"] > 0
         ids = ids[done]
         rows = np.minimum(np.searchsorted(ids, flat), max(len(ids) - 1, 0))
@@ -245,17 +271,8 @@ class LatticeOnFile:
         weight = np.where(found, 0.5 ** np.abs(steps).sum(axis=1)[None], 0.0)  # (U, 26)
         total = weight.sum(axis=1)
         filled = total > 0
-        if not filled.any():
-            return
         values = arrays["values"][done]
         mixed = np.einsum("un,unc->uc", weight[filled], values[rows[filled]])
         mixed /= total[filled, None]
         heaviest = rows[filled, np.argmax(weight[filled], axis=1)]
-        order = np.argsort(np.concatenate([lattice.texels, unbaked[filled]]), kind="stable")
-        lattice.texels = np.concatenate([lattice.texels, unbaked[filled]])[order]
-        lattice.values = np.concatenate([lattice.values,
-                                         mixed.astype(lattice.values.dtype)])[order]
-        lattice.facing = np.concatenate([lattice.facing,
-                                         arrays["facing"][done][heaviest]])[order]
-        lattice.paths = np.concatenate([lattice.paths, np.ones(
-            int(filled.sum()), lattice.paths.dtype)])[order]
+        return unbaked[filled], mixed, arrays["facing"][done][heaviest]

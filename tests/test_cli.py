@@ -309,14 +309,17 @@ def test_up_turns_the_volume(capsys):
 
 def test_values_that_start_with_a_minus_sign_are_an_options_values(tmp_path, capsys):
     """``--view -30,20`` (a negative azimuth) renders as ``--view=-30,20`` does, where
-    argparse took ``-30,20`` for an option; ``--size -5x10`` is refused by the size's own
-    check, in one line; a NaN isovalue is called not finite."""
+    argparse took ``-30,20`` for an option; plain negative numbers stay argparse's
+    (``--iso-range -5 10``); ``--size -5x10`` is refused by the size's own check, in one
+    line; a NaN isovalue is called not finite."""
     from isolume.app.cli import _join_negative_axes
 
     assert _join_negative_axes(["render", "--view", "-30,20", "--iso", "-.5", "--up", "-z",
                                 "--exposure", "2"]) == ["render", "--view=-30,20",
-                                                        "--iso=-.5", "--up=-z",
+                                                        "--iso", "-.5", "--up=-z",
                                                         "--exposure", "2"]
+    for plain in (["bake", "--iso-range", "-5", "10"], ["render", "--", "-5,3"]):
+        assert _join_negative_axes(plain) == plain  # numbers argparse reads, and "--"
     render = ["render", "synthetic:sphere:16", "--size", "24x24", "--gl", "osmesa"]
     for view in (["--view", "-30,20"], ["--view=-30,20"]):
         assert main([*render, *view, "--out", str(tmp_path / f"{len(view)}.png")]) == 0
@@ -791,7 +794,7 @@ def test_a_second_ctrl_c_while_an_interrupted_bake_saves_says_what_was_lost(tmp_
     out = tmp_path / "l.npz"
     assert main(["bake", "synthetic:sphere:16", "--out", str(out)]) == 130
     err = capsys.readouterr().err
-    assert "1,234 finished texels were not saved" in err and f"{out} not written" in err
+    assert "finished since the last save were not saved" in err and f"{out} not written" in err
     assert "before any path" not in err
 
 

@@ -81,7 +81,8 @@ def test_a_view_lattice_does_not_hash_its_volume():
         check_identity(held.meta, volume)
 
 
-def test_an_unfinished_files_texels_without_paths_show_their_neighbours_mix(tmp_path):
+def test_an_unfinished_files_texels_without_paths_show_their_neighbours_mix(tmp_path,
+                                                                         monkeypatch):
     """A file whose texels at odd indices have no paths yet (the half lattice a default
     bake traces first, then cut off) shows each of them, in `LatticeOnFile.held`, as the
     trilinear mix of the half lattice around it — computed here on the dense arrays — with
@@ -102,6 +103,12 @@ def test_an_unfinished_files_texels_without_paths_show_their_neighbours_mix(tmp_
     assert len(opened.held().texels) == np.count_nonzero(node & baked)  # computed only
     held = opened.held(fill=True)
     assert held.unbaked == np.count_nonzero(baked & ~node)
+    from isolume.baking import view_texels
+
+    monkeypatch.setattr(view_texels, "FILL_BLOCK", 7)  # in blocks: the same texels
+    in_blocks = opened.held(fill=True)
+    for name in ("texels", "values", "facing", "paths"):
+        np.testing.assert_array_equal(getattr(in_blocks, name), getattr(held, name))
 
     done = (lattice.samples > 0).astype(np.float64)
     sums = np.zeros((*done.shape, 3))
@@ -123,7 +130,8 @@ def test_an_unfinished_files_texels_without_paths_show_their_neighbours_mix(tmp_
     np.testing.assert_allclose(held.values[rows], (sums[want] / weights[want][:, None]),
                                rtol=1e-5)
     assert (held.paths[rows] == 1).all()
-    assert len(held.texels) == np.count_nonzero(node & baked) + len(flat)
+    assert len(held.texels) == np.count_nonzero(node & baked) + len(flat) == \
+        np.count_nonzero(node & baked) + held.filled
     x_odd = want & (z % 2 == 0) & (y % 2 == 0) & (x % 2 == 1) & np.roll(baked, 1, axis=2)
     assert x_odd.any()
     at = np.searchsorted(held.texels, np.flatnonzero(x_odd))  # heaviest: the node at x − 1

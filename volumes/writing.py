@@ -24,9 +24,9 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)  # read once, as the module loads: setting it is not thread-safe
 NEW_FILE_MODE = 0o666 & ~_UMASK
 """The permissions a new file gets (as `open` gives it: 0o666 less the umask)."""
-HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64]
+HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:24]
 """This machine's name as a temporary file's name carries it (letters, digits and
-hyphens): on a folder several machines share, a process id means something only on the
+hyphens, 24 at most): on a folder several machines share, a process id means something only on the
 machine that wrote the file."""
 
 

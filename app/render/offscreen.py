@@ -49,10 +49,11 @@ def _warn_unbaked(lattice: HeldLattice, source: object) -> None:
     file `source` yet (an unfinished bake: those pixels take their neighbours' light, or
     local shading where none has any)."""
     if lattice.unbaked:
+        read = lattice.unbaked + len(lattice.texels) - lattice.filled
         print(f"isolume: warning: {source} is unfinished: {lattice.unbaked:,} of the "
-              f"{lattice.unbaked + len(lattice.texels):,} texels this picture reads have no "
-              "paths yet (drawn from their neighbours' light, or local shading); run its "
-              "bake again to finish it", file=sys.stderr)
+              f"{read:,} texels this picture reads have no paths yet (drawn from their "
+              "neighbours' light, or local shading); run its bake again to finish it",
+              file=sys.stderr)
 
 
 class Reuse:

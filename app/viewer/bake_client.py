@@ -226,10 +226,9 @@ class _BakeProcess:
 
         self.job, self.inbox, self.outbox = job, inbox, outbox
         self.shared = SharedLattice.attach(job["lattice"])
-        _, fields = inbox.get()  # the volume: the first message (`BakeLink`)
-        self.volume = volumes.Volume(**fields)
-        self.config = _config(job["config"])  # the light and range baked now
         self.parent = multiprocessing.parent_process()
+        self.volume = volumes.Volume(**self._first(inbox))
+        self.config = _config(job["config"])  # the light and range baked now
         self.workers = job["workers"] or cores.threads()
         self.previewer = Previewer(self.volume, self.config, self.shared.lattice,
                                    self.workers)
@@ -240,6 +239,18 @@ class _BakeProcess:
         self.scheduler = None  # of the loop running now
         self.relit_previews = 0
 
+
+    def _first(self, inbox) -> dict:
+        """The volume's fields, the first message `BakeLink` sends; RuntimeError when the
+        viewer's process ends before sending them."""
+        import queue
+
+        while True:
+            try:
+                return inbox.get(timeout=1.0)[1]
+            except queue.Empty:
+                if self.parent is not None and not self.parent.is_alive():
+                    raise RuntimeError("the viewer ended before it sent the volume") from None
     def receive(self, block: bool):
         """The next message (waiting for one if `block`); None when none is waiting and
         not `block`; "stop" when the viewer is gone."""
@@ -575,6 +586,7 @@ class BakeLink:
 
         ctx = multiprocessing.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
+        self.inbox.cancel_join_thread()  # a process gone unread leaves no exit waiting
         job = {  # small: the process's arguments go through a pipe its start waits on
             "lattice": shared.describe(),
             "config": config.to_dict(), "workers": workers, "iso": float(iso),

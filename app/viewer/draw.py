@@ -36,10 +36,10 @@ UPLOAD_BUDGET_S = 0.006
 """Seconds per frame spent re-uploading texels while the user moves the camera or light
 (the rest waits for the next frame)."""
 UPLOAD_FIRST_S = 0.05
-"""The same for bricks that show their first light while the view rests: where frames take
-50–100 ms (Mesa's llvmpipe), 6 ms a frame took 30–50 s to show the first light of a 256³
-scan that had arrived in 5; the light refined goes up at `UPLOAD_BUDGET_S` (more would
-take the processor from the bake, which runs at the lowest priority)."""
+"""The same for bricks that show their first light while the view rests (frames of Mesa's
+llvmpipe take 50–1000 ms: a first preview of thousands of bricks goes up in seconds); the
+light refined goes up at `UPLOAD_BUDGET_S` (more would take the processor from the bake,
+which runs at the lowest priority)."""
 UPLOAD_BATCH = 16
 """Bricks re-uploaded between two looks at the clock."""
 FIRST_BATCH = 256
@@ -120,15 +120,17 @@ class TexelUploader:
 
     def upload(self, budget_s: float | None = UPLOAD_BUDGET_S,
                first_budget_s: float | None = None) -> int:
-        """Upload dirty bricks: those never uploaded (the first light there), `FIRST_BATCH`
-        at a time, until `first_budget_s` seconds are spent (None: `budget_s`), then the
-        others, `UPLOAD_BATCH` at a time, until `budget_s` (None: all); one batch at least;
-        returns how many were uploaded."""
+        """Upload dirty bricks, `UPLOAD_BATCH` at a time, until `budget_s` seconds are spent
+        (None: all), one batch at least; with `first_budget_s`, those never uploaded (the
+        first light there) first, `FIRST_BATCH` at a time, until `first_budget_s`. Returns
+        how many were uploaded."""
         t0, n = time.perf_counter(), 0
         dirty = np.argwhere(self.dirty)
         fresh = ~self.shown[tuple(dirty.T)]
-        for part, budget, batch in ((dirty[fresh], first_budget_s or budget_s, FIRST_BATCH),
-                                    (dirty[~fresh], budget_s, UPLOAD_BATCH)):
+        first = (budget_s, UPLOAD_BATCH) if first_budget_s is None \
+            else (first_budget_s, FIRST_BATCH)
+        for part, budget, batch in ((dirty[fresh], *first), (dirty[~fresh], budget_s,
+                                                               UPLOAD_BATCH)):
             for lo in range(0, len(part), batch):
                 if n and budget is not None and time.perf_counter() - t0 > budget:
                     break  # (one batch at least a call)

@@ -137,7 +137,7 @@ class Illumination:
         if self.bake.error:
             self.state.message = f"lazy bake stopped: {self.bake.error}"
         resting = not self.state.interacting(time.perf_counter())
-        first = UPLOAD_FIRST_S if resting else UPLOAD_BUDGET_S
+        first = UPLOAD_FIRST_S if resting else None
         if self.drawing.upload_texels(UPLOAD_BUDGET_S, first) \
                 and self.state.view.shading in lattice_modes():
             self.state.lattice_changed = True  # shown by the loop, at a pace
