@@ -15,6 +15,8 @@ redraws at the new size.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import io
 import threading
 import time
 from pathlib import Path
@@ -72,7 +74,8 @@ class NotebookView(RemoteFrameBuffer):
         from isolume.app.notebook_controls import Controls
 
         w, h = options.size
-        super().__init__(css_width=f"{w}px", css_height=f"{h}px", resizable=True)
+        with _outside_a_kernel_quiet():  # jupyter_rfb displays an output widget: a script
+            super().__init__(css_width=f"{w}px", css_height=f"{h}px", resizable=True)
         self.size: tuple[int, int] = (w, h)
         self.scene: NotebookScene | None = None
         self.controls = self.panel = None
@@ -318,3 +321,17 @@ def home_loop() -> tuple[asyncio.AbstractEventLoop, int] | None:
         return asyncio.get_running_loop(), threading.get_ident()
     except RuntimeError:
         return None
+
+
+def _outside_a_kernel_quiet() -> contextlib.AbstractContextManager:
+    """Standard output held back outside an IPython kernel (a script, a test), where the
+    output widget jupyter_rfb displays would print as its repr; as it is in a kernel."""
+    try:
+        from IPython import get_ipython
+    except ImportError:
+        return contextlib.redirect_stdout(io.StringIO())
+    shell = get_ipython()
+    if shell is not None and getattr(shell, "kernel", None) is not None:
+        return contextlib.nullcontext()
+    return contextlib.redirect_stdout(io.StringIO())
+

@@ -327,3 +327,14 @@ def test_in_a_kernel_the_event_loop_refines_the_view(tmp_path):
     assert widget["model_id"] == model_id  # the panel: picture and controls
     assert error == "None" and float(fraction) >= 0.5
     assert closed[-1]["text"].split() == ["False", "True"]
+
+
+def test_a_view_made_outside_a_kernel_prints_nothing(engine, capsys):
+    """A script's view (no IPython kernel) prints nothing on standard output: jupyter_rfb's
+    output widget, displayed as the view is made, would print its repr there."""
+    capsys.readouterr()
+    v = show(engine, size=SIZE, no_bake=True)
+    try:
+        assert capsys.readouterr().out == ""
+    finally:
+        v.close()
