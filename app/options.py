@@ -180,13 +180,12 @@ def shown_under(lattice: Lattice | HeldLattice | LatticeOnFile | None, spec: str
     import dataclasses
 
     from isolume.app.render.lights import lattice_direct_lights
+    from isolume.baking.lighting import lighting_of
     from isolume.baking.view_texels import HeldLattice
 
     if spec is None or lattice is None or lattice.kind != "sh" \
             or not lattice_direct_lights(lattice):
         return lattice
-    from isolume.baking.lighting import lighting_of
-
     lighting_of(spec)  # a spec that does not parse says why itself
     try:
         config = dataclasses.replace(lattice.config, env=spec)

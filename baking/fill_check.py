@@ -236,7 +236,7 @@ def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray
         def judge(part: slice, filled: np.ndarray = filled, residual: np.ndarray = residual,
                   out: np.ndarray = out) -> None:
             at = filled[part]
-            near = _neighbours(coords[at], ids, shape)
+            near = neighbours_of(coords[at], ids, shape)
             safe = np.maximum(near, 0)
             ok = ((near >= 0) & ~np.isnan(residual[safe])
                   & (node_sides(near, facing, facing[at]) >= floor))
@@ -251,7 +251,7 @@ def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray
     return np.sort(np.concatenate(stray)) if stray else np.zeros(0, np.int64)
 
 
-def _neighbours(at: np.ndarray, ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+def neighbours_of(at: np.ndarray, ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
     """(N, 26) plan positions of the neighbours of the texels at (N, 3) z, y, x `at`
     (−1: outside the lattice or not in the plan), from the plan's sorted flat `ids`, in
     one compiled pass without the GIL (`_neighbour_rows`)."""

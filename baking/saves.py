@@ -111,11 +111,8 @@ def save_interrupted(lattice: Saved, out: Path, progress: bool) -> None:
     if progress:
         print(f"isolume: interrupted; saving the finished texels to {out}, uncompressed "
               "(Ctrl-C again to stop without them)", file=sys.stderr, flush=True)
-    try:
-        with quick_saves(now=True):
-            lattice.save(out)
-    except KeyboardInterrupt:
-        raise SaveAbandoned(int(np.count_nonzero(lattice.samples))) from None
+    with quick_saves(now=True):
+        save_through(lattice, out)
 
 
 def save_through(lattice: Saved, out: Path) -> None:

@@ -254,25 +254,21 @@ class LatticeOnFile:
 
     def _mixed(self, unbaked: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(F,) ids of the (U,) sorted flat `unbaked` with computed neighbours, (F, C)
-        their mixes and (F, 2) facings (`_fill_unbaked`)."""
-        shape = self.geometry.shape
-        at = np.stack(np.unravel_index(unbaked, shape), axis=1)  # (U, 3) z, y, x
-        steps = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)]) - 1  # (26, 3)
-        near = at[:, None, :] + steps[None]  # (U, 26, 3)
-        inside = ((near >= 0) & (near < np.array(shape))).all(axis=2)
-        flat = np.where(inside, np.ravel_multi_index(
-            tuple(np.clip(near, 0, np.array(shape) - 1).transpose(2, 0, 1)), shape), -1)
-        del near
-        ids, arrays = self.file.read_texels(np.unique(flat[inside]))
+        their mixes and (F, 2) facings (`_fill_unbaked`); the neighbours found among the
+        file's computed texels by `fill_check.neighbours_of`."""
+        from isolume.baking.fill_check import OFFSETS, neighbours_of
+
+        box = np.array(self.geometry.shape)
+        at = np.stack(np.unravel_index(unbaked, tuple(box)), axis=1)  # (U, 3) z, y, x
+        near = np.clip(at[:, None, :] + OFFSETS[None], 0, box - 1).reshape(-1, 3)
+        ids, arrays = self.file.read_texels(np.unique(np.ravel_multi_index(near.T, box)))
         done = arrays["samples"] > 0
-        ids = ids[done]
-        rows = np.minimum(np.searchsorted(ids, flat), max(len(ids) - 1, 0))
-        found = inside & (ids[rows] == flat) if len(ids) else np.zeros(flat.shape, bool)
-        weight = np.where(found, 0.5 ** np.abs(steps).sum(axis=1)[None], 0.0)  # (U, 26)
+        rows = neighbours_of(at, ids[done], tuple(box))  # (U, 26), -1: none computed
+        weight = np.where(rows >= 0, 0.5 ** np.abs(OFFSETS).sum(axis=1)[None], 0.0)
         total = weight.sum(axis=1)
         filled = total > 0
-        values = arrays["values"][done]
-        mixed = np.einsum("un,unc->uc", weight[filled], values[rows[filled]])
+        rows, weight = np.maximum(rows[filled], 0), weight[filled]
+        mixed = np.einsum("un,unc->uc", weight, arrays["values"][done][rows])
         mixed /= total[filled, None]
-        heaviest = rows[filled, np.argmax(weight[filled], axis=1)]
+        heaviest = rows[np.arange(len(rows)), np.argmax(weight, axis=1)]
         return unbaked[filled], mixed, arrays["facing"][done][heaviest]

@@ -79,7 +79,7 @@ def test_the_blockwise_helpers_give_what_one_call_over_every_texel_gives(monkeyp
 
 
 def test_a_texels_neighbours_are_found_in_the_plan():
-    """`fill_check._neighbours` (compiled binary search) names, per texel and per step of
+    """`fill_check.neighbours_of` (compiled binary search) names, per texel and per step of
     `OFFSETS`, the plan position of that neighbour, and −1 outside the box or the plan —
     checked against a dictionary of the plan's texels, the box's faces and corners
     included."""
@@ -92,7 +92,7 @@ def test_a_texels_neighbours_are_found_in_the_plan():
     where = {tuple(c): k for k, c in enumerate(coords.tolist())}
     expected = [[where.get(tuple(int(v) for v in c + step), -1) for step in fill_check.OFFSETS]
                 for c in at]
-    np.testing.assert_array_equal(fill_check._neighbours(at, ids, SHAPE), expected)
+    np.testing.assert_array_equal(fill_check.neighbours_of(at, ids, SHAPE), expected)
 
 
 def test_pair_surpluses_are_each_nodes_brightness_less_its_pairs_mean():

@@ -127,10 +127,9 @@ class TexelUploader:
         t0, n = time.perf_counter(), 0
         dirty = np.argwhere(self.dirty)
         fresh = ~self.shown[tuple(dirty.T)]
-        first = (budget_s, UPLOAD_BATCH) if first_budget_s is None \
-            else (first_budget_s, FIRST_BATCH)
-        for part, budget, batch in ((dirty[fresh], *first), (dirty[~fresh], budget_s,
-                                                               UPLOAD_BATCH)):
+        first_light = ((dirty[fresh], budget_s, UPLOAD_BATCH) if first_budget_s is None
+                       else (dirty[fresh], first_budget_s, FIRST_BATCH))
+        for part, budget, batch in (first_light, (dirty[~fresh], budget_s, UPLOAD_BATCH)):
             for lo in range(0, len(part), batch):
                 if n and budget is not None and time.perf_counter() - t0 > budget:
                     break  # (one batch at least a call)
