@@ -13,10 +13,12 @@ lattice is the same bits whichever holds them.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import threading
 from collections import OrderedDict
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
@@ -154,8 +156,8 @@ class SpilledRecords:
         counts = np.bincount(plan.lower, minlength=len(plan.levels))
         self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         where = directory if directory is not None else tempfile.gettempdir()
-        self._writing = threading.Condition()
-        self._writers = 0
+        self._using = threading.Condition()
+        self._users = 0
         try:
             self._file = tempfile.TemporaryFile(dir=where)
             try:
@@ -185,24 +187,31 @@ class SpilledRecords:
 
         cores.for_items(run, len(runs), "records")
 
-    def _pwrite(self, records: np.ndarray, row: int) -> None:
-        """The (B,) `records` into the file from `row` on, written from their memory (safe
-        beside another thread's writes); refused once the file is closed (a write that a
-        Ctrl-C left running must not reach a file opened since under the same number)."""
-        with self._writing:
+    @contextlib.contextmanager
+    def _descriptor(self) -> Iterator[int]:
+        """The file's descriptor, kept open while the caller uses it; refused once the
+        file is closed (a read or write that a Ctrl-C left running must not reach a file
+        opened since under the same number)."""
+        with self._using:
             if self._file.closed:
                 raise BakeError("the plan's temporary file is closed")
-            self._writers += 1
+            self._users += 1
             fd = self._file.fileno()
         try:
-            view, offset = memoryview(records.view(np.uint8)), row * RECORD.itemsize
+            yield fd
+        finally:
+            with self._using:
+                self._users -= 1
+                self._using.notify_all()
+
+    def _pwrite(self, records: np.ndarray, row: int) -> None:
+        """The (B,) `records` into the file from `row` on, written from their memory (safe
+        beside another thread's writes)."""
+        view, offset = memoryview(records.view(np.uint8)), row * RECORD.itemsize
+        with self._descriptor() as fd:
             while len(view):
                 written = os.pwrite(fd, view, offset)
                 view, offset = view[written:], offset + written
-        finally:
-            with self._writing:
-                self._writers -= 1
-                self._writing.notify_all()
 
 
     def of(self, positions: np.ndarray) -> TexelRecords:
@@ -222,10 +231,10 @@ class SpilledRecords:
                             *(np.ascontiguousarray(records[name]) for name in RECORD.names))
 
     def close(self) -> None:
-        """Close the file once no write is under way."""
-        with self._writing:
-            while self._writers:
-                self._writing.wait()
+        """Close the file once no read or write is under way."""
+        with self._using:
+            while self._users:
+                self._using.wait()
             self._file.close()
 
     def _read(self, rows: np.ndarray) -> np.ndarray:
@@ -251,11 +260,12 @@ class SpilledRecords:
         """Fill the (B,) `records` with the file's from `row` on, read into their memory
         (safe beside another thread's reads)."""
         view, offset = memoryview(records.view(np.uint8)), row * RECORD.itemsize
-        while len(view):
-            read = os.preadv(self._file.fileno(), [view], offset)
-            if not read:
-                raise BakeError(f"the plan's temporary file ended {len(view)} bytes early")
-            view, offset = view[read:], offset + read
+        with self._descriptor() as fd:
+            while len(view):
+                read = os.preadv(fd, [view], offset)
+                if not read:
+                    raise BakeError(f"the plan's temporary file ended {len(view)} bytes early")
+                view, offset = view[read:], offset + read
 
 
 def spill(plan: Plan, directory: str | os.PathLike[str] | Path | None = None,

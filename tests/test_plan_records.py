@@ -47,10 +47,12 @@ def test_spilled_records_read_back_what_the_plan_holds(monkeypatch, tmp_path):
         spilled.close()
 
 
-def test_a_write_left_running_never_reaches_a_file_opened_after_close(monkeypatch, tmp_path):
-    """`close` waits for a write under way (one a Ctrl-C left running on a pool thread:
-    `cores.STOP_WAIT_S`), and a write that starts after it is refused: neither reaches a
-    file that reuses the closed file's number."""
+@pytest.mark.parametrize("call", ["pwrite", "preadv"])
+def test_a_write_or_read_left_running_never_reaches_a_file_opened_after_close(
+        call, monkeypatch, tmp_path):
+    """`close` waits for a write or read under way (one a Ctrl-C left running on a pool
+    thread: `cores.STOP_WAIT_S`), and one that starts after it is refused: neither reaches
+    a file that reuses the closed file's number."""
     import os
     import threading
     import time
@@ -58,32 +60,37 @@ def test_a_write_left_running_never_reaches_a_file_opened_after_close(monkeypatc
     plan = _plan()
     spilled = SpilledRecords(plan, tmp_path)
     record = np.zeros(1, plan_records.RECORD)
+    use = spilled._pwrite if call == "pwrite" else spilled._pread_into
     entered, release = threading.Event(), threading.Event()
-    real = os.pwrite
+    real = getattr(os, call)
 
-    def slow_pwrite(fd, data, offset):
+    def slow(fd, data, offset):
         entered.set()
         release.wait(5)
         return real(fd, data, offset)
 
-    monkeypatch.setattr(os, "pwrite", slow_pwrite)
-    writer = threading.Thread(target=spilled._pwrite, args=(record, 0))
-    writer.start()
+    monkeypatch.setattr(os, call, slow)
+    user = threading.Thread(target=use, args=(record, 0))
+    user.start()
     assert entered.wait(5)
     closer = threading.Thread(target=spilled.close)
     closer.start()
     time.sleep(0.2)
-    assert closer.is_alive() and not spilled._file.closed  # waits for the write
+    assert closer.is_alive() and not spilled._file.closed  # waits for the write or read
     release.set()
-    writer.join(5)
+    user.join(5)
     closer.join(5)
     assert spilled._file.closed
-    monkeypatch.setattr(os, "pwrite", real)
-    with open(tmp_path / "other", "wb") as other:  # may take the closed file's number
+    monkeypatch.setattr(os, call, real)
+    record[:] = np.zeros(1, plan_records.RECORD)
+    with open(tmp_path / "other", "w+b") as other:  # may take the closed file's number
+        other.write(b"x" * 4 * record.itemsize)
+        other.seek(0)
         with pytest.raises(BakeError, match="closed"):
-            spilled._pwrite(record, 0)
+            use(record, 0)
         assert other.tell() == 0
-    assert (tmp_path / "other").stat().st_size == 0
+    assert (tmp_path / "other").stat().st_size == 4 * record.itemsize
+    assert not record.view(np.uint8).any()  # nothing read from the other file either
 
 
 def test_a_bake_reads_its_plan_records_a_batch_at_a_time(monkeypatch, tmp_path):

@@ -346,6 +346,32 @@ def test_uploaded_regions_equal_the_lattice(gl):
     assert gl.error == "GL_NO_ERROR"
 
 
+def test_a_brick_written_with_its_neighbours_apron_is_not_written_again(gl):
+    """A texel on a brick's low face is also in the apron of the brick below, which
+    `write_bricks` writes whole beside it: that brick is then up to date and counts as
+    shown, so its own changes, marked before, wait for no second upload."""
+    from isolume.app.render.lattice_gl import LatticeTextures
+    from isolume.app.viewer.draw import TexelUploader, check_textures
+    from isolume.baking.lattice import Lattice, LatticeGeometry
+
+    geometry = LatticeGeometry((20, 12, 12), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    lattice = Lattice.empty(geometry, 3, {"kind": "irradiance"})
+    textures = LatticeTextures(gl, lattice)
+    uploader = TexelUploader(textures)
+    lower, upper = (np.ravel_multi_index(at, geometry.shape) for at in ((3, 3, 3), (8, 3, 3)))
+    for flat in (lower, upper):
+        lattice.values.reshape(-1, 3)[flat] = 1.0
+        lattice.samples.reshape(-1)[flat] = 16
+    uploader.mark(np.array([lower, upper]))
+    assert uploader.pending == 2
+    uploader._write(np.array([[1, 0, 0]]))  # the upper brick: the lower one's apron too
+    assert uploader.pending == 0 and uploader.shown[0, 0, 0] and uploader.shown[1, 0, 0]
+    result = check_textures(textures)
+    assert result["texels"] == 2 and result["max_rel_error"] <= RGB9E5_RELATIVE
+    assert result["missing_bricks"] == 0
+    textures.release()
+
+
 # -- controls ------------------------------------------------------------------------------
 def test_camera_and_light_controls():
     from isolume.app.render.camera import Camera
@@ -491,6 +517,7 @@ def test_bricks_show_their_first_light_before_their_refinements():
 
         def write_bricks(self, batch):
             self.written.extend(map(tuple, batch))
+            return np.zeros((0, 3), np.int64)
 
     def flat(z, y, x):  # a texel of brick (z, y, x)
         return np.array([np.ravel_multi_index((8 * z + 1, 8 * y + 2, 8 * x + 3), (32, 32, 32))])

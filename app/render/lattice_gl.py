@@ -277,12 +277,17 @@ class LatticeTextures:
         corners = self.layout.corners(self.slot.reshape(-1)).astype(np.uint16)
         self.indirection.write(corners.tobytes(), alignment=1)
 
-    def write_bricks(self, bricks: np.ndarray) -> int:
+    def write_bricks(self, bricks: np.ndarray) -> np.ndarray:
         """Re-upload (N, 3) z, y, x bricks whose texels changed (a lazy bake), with the
         bricks whose aprons copy them; bricks that come to need a slot get one (all slots
-        taken: the atlases are made again, larger). Returns the bricks written."""
+        taken: the atlases are made again, larger, from the lattice as it is now).
+
+        Returns:
+            (M, 3) the bricks whose whole blocks in GL are now the lattice's (every brick
+            with a slot when the atlases were made again).
+        """
         if not len(bricks):
-            return 0
+            return np.zeros((0, 3), np.int64)
         grid = np.array(cell_bricks(self.shape))
         near = (np.asarray(bricks, np.int64)[:, None, :] - _LOWER[None]).reshape(-1, 3)
         near = np.unique(near[(near >= 0).all(axis=1) & (near < grid).all(axis=1)], axis=0)
@@ -292,7 +297,7 @@ class LatticeTextures:
         if self.used + len(fresh) > self.layout.capacity:
             self._build((self.slot > 0) | _marked(fresh, self.slot.shape),
                         at_least=2 * self.layout.capacity)
-            return len(near)
+            return np.argwhere(self.slot > 0)
         if len(fresh):
             self.slot[tuple(fresh.T)] = np.arange(self.used, self.used + len(fresh))
             self.owner[self.used:self.used + len(fresh)] = fresh
@@ -306,7 +311,7 @@ class LatticeTextures:
                 tex.write(np.ascontiguousarray(block).tobytes(),
                           viewport=(*(int(v) for v in corner), STORED, STORED, STORED),
                           alignment=1)
-        return len(near)
+        return near
 
     def read_blocks(self) -> tuple[np.ndarray, list[np.ndarray]]:
         """What the atlases hold: ((M, 3) z, y, x bricks with a slot, one (M, 9, 9, 9, C)

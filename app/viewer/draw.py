@@ -138,9 +138,10 @@ class TexelUploader:
         return n
 
     def _write(self, batch: np.ndarray) -> int:
-        """Upload the (B, 3) bricks `batch`; returns B."""
-        self.textures.write_bricks(batch)
-        at = tuple(batch.T)
+        """Upload the (B, 3) bricks `batch`, and with them the bricks whose aprons copy
+        their texels (written whole: those are up to date too); returns B."""
+        written = self.textures.write_bricks(batch)
+        at = tuple(np.concatenate([batch, written]).astype(np.int64).T)
         self.dirty[at] = False
         self.shown[at] = True
         for watched in self._watches:
