@@ -346,29 +346,39 @@ def test_uploaded_regions_equal_the_lattice(gl):
     assert gl.error == "GL_NO_ERROR"
 
 
-def test_a_brick_written_with_its_neighbours_apron_is_not_written_again(gl):
+def test_bricks_written_as_neighbours_show_their_light_and_keep_their_aprons(gl):
     """A texel on a brick's low face is also in the apron of the brick below, which
-    `write_bricks` writes whole beside it: that brick is then up to date and counts as
-    shown, so its own changes, marked before, wait for no second upload."""
+    `write_bricks` writes whole beside it. A brick written so has shown its first light
+    (it is not first in line again), but stays marked when it was: its own low face is
+    in the apron of the brick below it, which only its own upload rewrites — a frame whose
+    budget ends after the first light leaves no stale apron behind."""
     from isolume.app.render.lattice_gl import LatticeTextures
     from isolume.app.viewer.draw import TexelUploader, check_textures
     from isolume.baking.lattice import Lattice, LatticeGeometry
 
-    geometry = LatticeGeometry((20, 12, 12), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    geometry = LatticeGeometry((28, 12, 12), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))  # 4 bricks in z
     lattice = Lattice.empty(geometry, 3, {"kind": "irradiance"})
+
+    def light(z: int, value: float) -> np.ndarray:
+        flat = np.ravel_multi_index((z, 3, 3), geometry.shape)
+        lattice.values.reshape(-1, 3)[flat] = value
+        lattice.samples.reshape(-1)[flat] = 16
+        return np.array([flat])
+
     textures = LatticeTextures(gl, lattice)
     uploader = TexelUploader(textures)
-    lower, upper = (np.ravel_multi_index(at, geometry.shape) for at in ((3, 3, 3), (8, 3, 3)))
-    for flat in (lower, upper):
-        lattice.values.reshape(-1, 3)[flat] = 1.0
-        lattice.samples.reshape(-1)[flat] = 16
-    uploader.mark(np.array([lower, upper]))
-    assert uploader.pending == 2
-    uploader._write(np.array([[1, 0, 0]]))  # the upper brick: the lower one's apron too
-    assert uploader.pending == 0 and uploader.shown[0, 0, 0] and uploader.shown[1, 0, 0]
+    uploader.mark(np.concatenate([light(3, 1.0), light(10, 1.0)]))  # bricks 0 and 1
+    uploader.upload(None)
+    uploader.mark(np.concatenate([light(8, 3.0), light(12, 2.0)]))  # brick 1, refined
+    uploader.mark(light(16, 2.0))  # brick 2: its first light, and brick 1's apron
+    assert not uploader.shown[2, 0, 0]
+    uploader.upload(budget_s=0.0, first_budget_s=10.0)  # no time left for the refinement
+    assert uploader.shown[2, 0, 0] and uploader.dirty[1, 0, 0] and uploader.pending == 1
+    while uploader.pending:
+        uploader.upload(budget_s=None)
     result = check_textures(textures)
-    assert result["texels"] == 2 and result["max_rel_error"] <= RGB9E5_RELATIVE
-    assert result["missing_bricks"] == 0
+    assert result["texels"] == 5 and result["max_rel_error"] <= RGB9E5_RELATIVE
+    assert result["missing_bricks"] == 0 and result["valid_mismatch"] == 0
     textures.release()
 
 

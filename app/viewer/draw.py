@@ -138,10 +138,13 @@ class TexelUploader:
         return n
 
     def _write(self, batch: np.ndarray) -> int:
-        """Upload the (B, 3) bricks `batch`, and with them the bricks whose aprons copy
-        their texels (written whole: those are up to date too); returns B."""
+        """Upload the (B, 3) bricks `batch`; returns B. The bricks whose aprons copy their
+        texels go up whole with them (`LatticeTextures.write_bricks`): those have shown
+        their light since, but stay marked if they were, for their own texels are in the
+        aprons of the bricks below them too."""
         written = self.textures.write_bricks(batch)
-        at = tuple(np.concatenate([batch, written]).astype(np.int64).T)
+        self.shown[tuple(np.asarray(written, np.int64).T)] = True
+        at = tuple(batch.T)
         self.dirty[at] = False
         self.shown[at] = True
         for watched in self._watches:
