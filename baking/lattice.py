@@ -519,13 +519,50 @@ def open_lattice(path: str | os.PathLike[str], volume: Volume | None = None
     meta = file.meta
     config = _config_from(meta.pop("config", None), meta.pop("config_version", CONFIG_VERSION),
                           file.path)
-    try:
-        geometry = LatticeGeometry(file.shape, tuple(meta["box_lo"]), tuple(meta["box_hi"]))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise BakeError(f"{path}: not a readable isolume lattice ({exc})") from None
+    lo, hi = (_corner(meta, key, file.path) for key in ("box_lo", "box_hi"))
+    if not all(a < b for a, b in zip(lo, hi, strict=True)):
+        raise BakeError(f"{path}: lattice box from {lo} to {hi}: expected each coordinate of "
+                        "box_hi above box_lo's")
+    _check_channels(file, config)
     if volume is not None:
         check_identity(meta, volume, path)
-    return file, geometry, config
+    return file, LatticeGeometry(file.shape, lo, hi), config
+
+
+def _corner(meta: dict[str, Any], key: str, path: Path) -> tuple[float, float, float]:
+    """The box corner `key` of a file's `meta`: x, y, z world coordinates.
+
+    Raises:
+        BakeError: missing, or not three finite numbers.
+    """
+    corner = meta.get(key)
+    if not (isinstance(corner, list) and len(corner) == 3
+            and all(type(c) in (int, float) and np.isfinite(c) for c in corner)):
+        raise BakeError(f"{path}: lattice {key} {corner!r}: expected three finite numbers")
+    return tuple(float(c) for c in corner)
+
+
+def _check_channels(file: LatticeFile, config: BakeConfig | None) -> None:
+    """Refuse a file whose values per texel do not fit its kind: 3 (RGB irradiance), or
+    n² transfer coefficients (×3 coloured) per block of an SH lattice of order n (two
+    blocks where the bake left the sun to the pixels: `baking.sh.transfer_blocks`).
+
+    Raises:
+        BakeError: naming the file, the kind, the values it holds and those expected.
+    """
+    kind = lattice_kind(file.meta)
+    if kind == "irradiance":
+        expected: tuple[int, ...] = (3,)
+    else:
+        order = file.meta.get("sh_order")
+        if type(order) is not int or order < 1:
+            raise BakeError(f"{file.path}: SH order {order!r}: expected a whole number ≥ 1")
+        blocks = 2 if config is not None and config.direct_light == "pixels" else 1
+        expected = (blocks * order**2, 3 * blocks * order**2)
+    channels = file.channels()
+    if channels not in expected:
+        raise BakeError(f"{file.path}: a lattice of kind {kind} with {channels} values a "
+                        f"texel: expected {' or '.join(map(str, expected))}")
 
 
 def other_texels(geometry: LatticeGeometry, volume: Volume, scale: float,
@@ -568,10 +605,18 @@ def _config_from(d: dict | None, version: int, path: Path) -> BakeConfig | None:
     """
     if d is None:
         return None
+    if type(version) is not int:
+        raise BakeError(f"{path}: bake config version {version!r}: expected a whole number")
     if version > CONFIG_VERSION:
         raise BakeError(f"{path}: bake config version {version}, this isolume reads up to "
                         f"{CONFIG_VERSION}")
-    return BakeConfig.from_dict(d)
+    if not isinstance(d, dict):
+        raise BakeError(f"{path}: bake config {d!r:.60}: expected a mapping of settings")
+    try:
+        return BakeConfig.from_dict(d)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise BakeError(f"{path}: a bake config this isolume cannot read ({exc}); the file "
+                        "is damaged, or written by another version of isolume") from None
 
 
 def volume_identity(volume: Volume, hashed: bool = True) -> dict[str, Any]:

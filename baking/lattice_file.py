@@ -24,9 +24,13 @@ only the texels it shows (`LatticeFile.read_texels`). Files of `DENSE_VERSION` (
 array dense over the box, ``facing`` optional) are still read. A member whose header
 disagrees with ``held`` or ``meta`` is refused before it is read, and a box whose dense
 arrays exceed the memory available before they are made (`LatticeFile.read_dense`); a
-display's read holds a slab of ``held`` at a time, whatever the box. Values are judged as
-their slabs are read (`bad_texels`): a NaN or infinite one, or a negative one in an
-irradiance lattice, refuses the file.
+display's read holds a slab of ``held`` at a time, whatever the box. Values and second
+moments are judged as their slabs are read (`bad_texels`): a NaN or infinite one, or a
+negative one in an irradiance lattice or a second moment, refuses the file, as does a
+member that goes on past the rows its header counts.
+
+Length: one format both ways: the writer and the reader share its members, slabs and
+checks.
 """
 
 from __future__ import annotations
@@ -76,23 +80,34 @@ def _slabs(shape: tuple[int, int, int]) -> Iterator[slice]:
         yield slice(z0, min(z0 + step, shape[0]))
 
 
+KINDS = ("irradiance", "sh")
+"""The kinds of lattice a file may hold."""
+
+
 def lattice_kind(meta: dict[str, Any]) -> str:
     """The kind of lattice a metadata dict describes: "irradiance" (also where it does not
     say) or "sh"."""
     return meta.get("kind", "irradiance")
 
 
-def bad_texels(values: np.ndarray, irradiance: bool) -> int:
+def _flat_slabs(size: int) -> Iterator[slice]:
+    """Slices of the flat texel ids 0 … `size` − 1, `SLAB_TEXELS` each (a display's read
+    holds one slab's mask, however wide the box's layers)."""
+    for lo in range(0, size, SLAB_TEXELS):
+        yield slice(lo, min(lo + SLAB_TEXELS, size))
+
+
+def bad_texels(values: np.ndarray, nonnegative: bool) -> int:
     """How many texels of the (…, C) `values` hold a NaN or infinite value, or with
-    `irradiance` a negative one: a minimum and a maximum where none does (a NaN spreads
+    `nonnegative` a negative one: a minimum and a maximum where none does (a NaN spreads
     into both), a count only where one does."""
     if values.size == 0:
         return 0
     lo, hi = values.min(), values.max()
-    if (lo >= 0 if irradiance else lo > -np.inf) and hi < np.inf:
+    if (lo >= 0 if nonnegative else lo > -np.inf) and hi < np.inf:
         return 0
     bad = ~np.isfinite(values)
-    if irradiance:
+    if nonnegative:
         bad |= values < 0
     return int(bad.reshape(-1, values.shape[-1]).any(axis=1).sum())
 
@@ -417,15 +432,19 @@ class LatticeFile:
         try:
             with zipfile.ZipFile(path) as zf, zf.open("meta.npy") as member:
                 meta = json.loads(str(np.lib.format.read_array(member, allow_pickle=False)))
-            shape = tuple(int(n) for n in meta["shape"])
+            shape = tuple(meta["shape"])
         except (*_READ_ERRORS, TypeError) as exc:
             raise BakeError(f"{path}: not a readable isolume lattice ({exc})") from None
         version = meta.get("format_version")
         if version not in (FORMAT_VERSION, DENSE_VERSION):
             raise BakeError(f"{path}: lattice format version {version}, this isolume reads "
                             f"{DENSE_VERSION} and {FORMAT_VERSION}")
-        if len(shape) != 3 or min(shape) < 1:
-            raise BakeError(f"{path}: lattice shape {meta['shape']}: expected three sizes ≥ 1")
+        if len(shape) != 3 or not all(type(n) is int and n >= 1 for n in shape):
+            raise BakeError(f"{path}: lattice shape {meta['shape']}: expected three whole "
+                            "numbers ≥ 1")
+        if lattice_kind(meta) not in KINDS:
+            raise BakeError(f"{path}: lattice kind {lattice_kind(meta)!r}: expected one of "
+                            f"{', '.join(KINDS)}")
         return cls(path, meta, shape, int(version))
 
     def read_dense(self, out: dict[str, np.ndarray] | None = None
@@ -463,9 +482,10 @@ class LatticeFile:
                             for z in _slabs(self.shape):
                                 out[name][z] = rows.read(z.stop - z.start)
                         else:
-                            for (z, mask), count in zip(slabs, counts, strict=True):
-                                out[name][z][mask] = rows.read(count)
-                        rows.refuse_bad(self.path)
+                            flat = _flat_view(out[name], rows.tail)
+                            for (part, mask), count in zip(slabs, counts, strict=True):
+                                flat[part][mask] = rows.read(count)
+                        rows.finish(self.path)
                 return out
         except BakeError:
             raise
@@ -496,7 +516,7 @@ class LatticeFile:
                     with self._member(zf, name, counts) as rows:
                         out[name] = np.concatenate(
                             [rows.read(count)[chosen] for _, chosen, count in picks])
-                        rows.refuse_bad(self.path)
+                        rows.finish(self.path)
                 return np.concatenate([p[0] for p in picks]), out
         except BakeError:
             raise
@@ -514,12 +534,29 @@ class LatticeFile:
             np.asarray(texels, np.int64)[held[np.asarray(texels, np.int64)]]
         return ids, {n: dense[n].reshape(len(held), *dense[n].shape[3:])[ids] for n in names}
 
+    def channels(self) -> int:
+        """Values per texel, as the values' header says (1 where it gives none).
+
+        Raises:
+            BakeError: no readable values member.
+        """
+        try:
+            with zipfile.ZipFile(self.path) as zf:
+                return self._channels(zf)
+        except _READ_ERRORS as exc:
+            raise BakeError(f"{self.path}: not a readable isolume lattice ({exc})") from None
+
+    @staticmethod
+    def _channels(zf: zipfile.ZipFile) -> int:
+        """`channels` of the open archive `zf`."""
+        with zf.open("values.npy") as member:
+            shape = _Rows(member, "values", np.float32).shape
+        return int(shape[-1]) if len(shape) in (2, 4) else 1
+
     def _check_fits(self, zf: zipfile.ZipFile) -> None:
         """Refuse a box whose dense arrays (C values per texel, as the values' header
         says) exceed the memory this machine has available."""
-        with zf.open("values.npy") as member:
-            shape = _Rows(member, "values", np.float32).shape
-        channels = int(shape[-1]) if len(shape) in (2, 4) else 1
+        channels = self._channels(zf)
         per_texel = sum(np.dtype(dtype).itemsize * math.prod(t or channels for t in _tail(n))
                         for n, dtype in MEMBERS.items())
         need = int(np.prod(self.shape, dtype=np.int64)) * per_texel
@@ -534,39 +571,46 @@ class LatticeFile:
                ) -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
         """Per slab of the held texels, first to last: (flat ids of the texels read,
         their rows among the slab's held texels, the slab's held count)."""
-        layer = self.shape[1] * self.shape[2]
-        for z, mask in self._held_slabs(zf):
+        for part, mask in self._held_slabs(zf):
             local = np.flatnonzero(mask)
             if texels is None:
-                yield local + z.start * layer, np.arange(len(local)), len(local)
+                yield local + part.start, np.arange(len(local)), len(local)
                 continue
-            lo, hi = np.searchsorted(texels, [z.start * layer, z.stop * layer])
-            want = np.asarray(texels[lo:hi], np.int64) - z.start * layer
+            lo, hi = np.searchsorted(texels, [part.start, part.stop])
+            want = np.asarray(texels[lo:hi], np.int64) - part.start
             rows = np.minimum(np.searchsorted(local, want), max(len(local) - 1, 0))
             hit = local[rows] == want if len(local) else np.zeros(len(want), bool)
-            yield want[hit] + z.start * layer, rows[hit], len(local)
+            yield want[hit] + part.start, rows[hit], len(local)
 
     def _held_slabs(self, zf: zipfile.ZipFile) -> Iterator[tuple[slice, np.ndarray]]:
-        """(z slice, (dz, Y, X) bool mask of the held texels) per slab, the packed bits
-        read as they are needed."""
-        layer = self.shape[1] * self.shape[2]
-        nbytes = -(-int(np.prod(self.shape, dtype=np.int64)) // 8)
+        """(slice of flat texel ids, (n,) bool mask of the held texels among them) per
+        slab (`_flat_slabs`), the packed bits read as they are needed.
+
+        Raises:
+            BakeError: ``held`` longer than the box, or with bits set past its last texel.
+        """
+        size = math.prod(self.shape)
+        nbytes = -(-size // 8)
         with zf.open("held.npy") as member:
             rows = _Rows(member, "held", np.uint8).check((nbytes,), (), self.path)
             bits = np.zeros(0, np.uint8)
-            for z in _slabs(self.shape):
-                need = (z.stop - z.start) * layer
+            for part in _flat_slabs(size):
+                need = part.stop - part.start
                 fresh = rows.read(min(-(-(need - len(bits)) // 8), nbytes))
                 nbytes -= len(fresh)
                 bits = np.concatenate([bits, np.unpackbits(fresh)])
-                yield z, bits[:need].astype(bool).reshape(-1, *self.shape[1:])
+                yield part, bits[:need].astype(bool)
                 bits = bits[need:]
+            rows.finish(self.path)
+            if bits.any():
+                raise BakeError(f"{self.path}: held marks texels past the last of the box's "
+                                f"{size:,}; the file is damaged: bake it again")
 
     def _member(self, zf: zipfile.ZipFile, name: str, counts: list[int] | None) -> _Rows:
         """Member `name`'s rows, its header checked: rows of the held texels (the sum of
         the slabs' `counts`), or of z-layers of the box (`counts` None: a `DENSE_VERSION`
-        file). The values' rows are judged as they are read (`_Rows.kind`: the lattice's
-        kind)."""
+        file). The values' rows are judged as they are read (`_Rows.nonnegative`: by the
+        lattice's kind), and the second moments'."""
         lead = self.shape if counts is None else (sum(counts),)
         member = zf.open(name + ".npy")
         try:
@@ -575,8 +619,24 @@ class LatticeFile:
             member.close()
             raise
         if name == "values":
-            rows.kind = lattice_kind(self.meta)
+            rows.nonnegative = lattice_kind(self.meta) == "irradiance"
+            rows.expected = ("finite irradiance ≥ 0" if rows.nonnegative
+                             else "finite SH coefficients")
+        elif name == "second":
+            rows.nonnegative, rows.expected = True, "finite second moments ≥ 0"
         return rows
+
+
+def _flat_view(array: np.ndarray, tail: tuple[int, ...]) -> np.ndarray:
+    """(Z·Y·X, *`tail`) view of a C-ordered (Z, Y, X, *`tail`) `array` (a write into it
+    reaches `array`).
+
+    Raises:
+        ValueError: `array` is not C-ordered (a reshape would copy it).
+    """
+    if not array.flags.c_contiguous:
+        raise ValueError("a lattice file is read into C-ordered arrays only")
+    return array.reshape(-1, *tail)
 
 
 class _Rows:
@@ -584,9 +644,10 @@ class _Rows:
     it whole.
 
     Attributes:
-        kind: for the ``values`` member, the lattice's kind ("irradiance": its rows must
-            be finite and ≥ 0; "sh": finite, SH coefficients may be negative), whose rows
-            are judged as they are read (`bad_texels`); None: rows not judged.
+        nonnegative: rows judged as they are read (`bad_texels`): finite and ≥ 0 (True:
+            irradiance, second moments), finite (False: SH coefficients, which may be
+            negative), or not judged (None).
+        expected: what a judged row holds, in words (for `finish`'s message).
         judged, bad: texels read and judged, and how many of them are bad (`bad_texels`).
     """
 
@@ -598,7 +659,8 @@ class _Rows:
         self.shape, self.fortran, self.dtype = read_header(member)
         self.tail: tuple[int, ...] = ()
         self.row = 0
-        self.kind: str | None = None
+        self.nonnegative: bool | None = None
+        self.expected = ""
         self.judged = self.bad = 0
 
     def check(self, lead: tuple[int, ...], tail: tuple[int | None, ...], path: Path
@@ -627,27 +689,29 @@ class _Rows:
         if len(data) != count * self.row:
             raise EOFError(f"{self.name} ends early")
         rows = np.frombuffer(data, self.dtype).reshape(count, *self.shape[1:]).copy()
-        if self.kind is not None:
-            self.judged += rows.size // rows.shape[-1]
-            self.bad += bad_texels(rows, self.kind == "irradiance")
+        if self.nonnegative is not None:
+            per_texel = rows.reshape(-1, math.prod(self.tail))
+            self.judged += len(per_texel)
+            self.bad += bad_texels(per_texel, self.nonnegative)
         return rows
 
-    def refuse_bad(self, path: Path) -> None:
-        """Raise BakeError if any row read so far is bad (`kind`).
+    def finish(self, path: Path) -> None:
+        """Raise BakeError if any row read so far is bad (`nonnegative`), or if the
+        member goes on past the rows its header counts (read after all of them).
 
         Raises:
-            BakeError: naming the file, how many of the texels read are bad, and what
-                was expected.
+            BakeError: naming the file and the member, how many of the texels read are
+                bad or that bytes follow the rows, and what was expected.
         """
-        if not self.bad:
-            return
-        if self.kind == "irradiance":
-            what, expected = "NaN, infinite or negative", "finite irradiance ≥ 0"
-        else:
-            what, expected = "NaN or infinite", "finite SH coefficients"
-        raise BakeError(f"{path}: {self.bad:,} of the {self.judged:,} texels read hold "
-                        f"{what} values, expected {expected}; the file is damaged: bake "
-                        "it again")
+        if self.bad:
+            what = "NaN, infinite or negative" if self.nonnegative else "NaN or infinite"
+            noun = "values" if self.name == "values" else "second moments"
+            raise BakeError(f"{path}: {self.bad:,} of the {self.judged:,} texels read hold "
+                            f"{what} {noun}, expected {self.expected}; the file is "
+                            "damaged: bake it again")
+        if self.member.read(1):
+            raise BakeError(f"{path}: {self.name}.npy goes on past the {self.shape} array "
+                            "its header gives; the file is damaged: bake it again")
 
     def __enter__(self) -> _Rows:
         return self

@@ -1,8 +1,10 @@
 """`baking.lattice_file`: a lattice file holds its active or computed texels only, written
 and read a slab at a time; a display reads the texels it is asked for."""
 
+import io
 import json
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -23,10 +25,12 @@ def small_slabs(monkeypatch):
 
 def _random_lattice(channels: int = 3, seed: int = 0, config=None) -> Lattice:
     """A (10, 11, 13) lattice: 30 % of texels active, 70 % of those computed, one computed
-    texel outside the active set (a lazy bake's previews can leave those), random arrays."""
+    texel outside the active set (a lazy bake's previews can leave those), random arrays;
+    irradiance (3 `channels`) or coloured SH transfer of order 3 (27)."""
     rng = np.random.default_rng(seed)
     geometry = LatticeGeometry((10, 11, 13), (0.0, 0.0, 0.0), (1.0, 1.1, 1.3))
-    lattice = Lattice.empty(geometry, channels, {"kind": "irradiance"}, config=config)
+    meta = {"kind": "irradiance"} if channels == 3 else {"kind": "sh", "sh_order": 3}
+    lattice = Lattice.empty(geometry, channels, meta, config=config)
     lattice.active[...] = rng.random(geometry.shape) < 0.3
     computed = lattice.active & (rng.random(geometry.shape) < 0.7)
     computed[9, 10, 12] = True
@@ -87,6 +91,34 @@ def test_a_display_reads_the_computed_texels_it_asks_for(tmp_path, small_slabs):
         np.testing.assert_array_equal(held.values, lattice.values.reshape(-1, 3)[want])
         np.testing.assert_array_equal(held.facing, lattice.facing.reshape(-1, 2)[want])
         np.testing.assert_array_equal(held.paths, lattice.samples.ravel()[want])
+
+
+@pytest.mark.parametrize("slab", [100, 7])
+def test_a_read_holds_a_slab_of_the_mask_however_wide_the_layers(tmp_path, monkeypatch,
+                                                                  slab):
+    """Slabs of `SLAB_TEXELS` flat texels, smaller than a layer of the box (11 × 13 = 143
+    texels) and crossing bytes of ``held``: no mask read is longer than a slab, and the
+    texels read, dense or at ids, are the lattice's."""
+    lattice = _random_lattice()
+    path = tmp_path / "l.npz"
+    lattice.save(path)
+    monkeypatch.setattr(lattice_file, "SLAB_TEXELS", slab)
+    masks = []
+    held_slabs = lattice_file.LatticeFile._held_slabs
+
+    def recorded(self, zf):
+        for part, mask in held_slabs(self, zf):
+            masks.append(len(mask))
+            yield part, mask
+
+    monkeypatch.setattr(lattice_file.LatticeFile, "_held_slabs", recorded)
+    _same(Lattice.load(path), lattice)
+    computed = (lattice.samples > 0).ravel()
+    asked = np.arange(3, lattice.samples.size, 5)
+    read = LatticeOnFile.open(path).held(asked)
+    np.testing.assert_array_equal(read.texels, asked[computed[asked]])
+    np.testing.assert_array_equal(read.values, lattice.values.reshape(-1, 3)[read.texels])
+    assert max(masks) == slab and sum(masks) == 2 * lattice.samples.size
 
 
 def test_the_texels_read_show_what_the_whole_lattice_shows(tmp_path, small_slabs):
@@ -170,7 +202,6 @@ def test_irradiance_that_is_not_finite_or_negative_is_refused_as_it_is_read(
 
 def test_sh_coefficients_may_be_negative_but_not_nan(tmp_path):
     lattice = _random_lattice(channels=27)
-    lattice.meta["kind"] = "sh"
     lattice.values[lattice.samples > 0] -= 0.5
     path = tmp_path / "sh.npz"
     lattice.save(path)
@@ -194,8 +225,8 @@ def test_a_display_judges_the_values_it_reads_a_slab_at_a_time(tmp_path, small_s
     judged = []
     bad_texels = lattice_file.bad_texels
     monkeypatch.setattr(lattice_file, "bad_texels",
-                        lambda values, irradiance: judged.append(len(values))
-                        or bad_texels(values, irradiance))
+                        lambda values, nonnegative: judged.append(len(values))
+                        or bad_texels(values, nonnegative))
     with pytest.raises(BakeError, match=r"1 of the \d+ texels read hold NaN"):
         LatticeOnFile.open(path).held(np.arange(3 * 11 * 13, lattice.samples.size))
     held = lattice.active | (lattice.samples > 0)
@@ -215,21 +246,35 @@ def test_bad_values_are_counted_in_texels_in_a_file_of_dense_arrays(tmp_path):
 
 def test_bad_texels_judges_with_two_reductions_where_all_are_good(monkeypatch):
     values = np.random.default_rng(3).random((1000, 3)).astype(np.float32) - 0.5
-    assert lattice_file.bad_texels(values, irradiance=False) == 0
-    assert lattice_file.bad_texels(values, irradiance=True) == int((values < 0).any(1).sum())
-    assert lattice_file.bad_texels(np.zeros((0, 3), np.float32), irradiance=True) == 0
+    assert lattice_file.bad_texels(values, nonnegative=False) == 0
+    assert lattice_file.bad_texels(values, nonnegative=True) == int((values < 0).any(1).sum())
+    assert lattice_file.bad_texels(np.zeros((0, 3), np.float32), nonnegative=True) == 0
     monkeypatch.setattr(np, "isfinite", None)  # not needed where no value is bad
-    assert lattice_file.bad_texels(np.abs(values), irradiance=True) == 0
+    assert lattice_file.bad_texels(np.abs(values), nonnegative=True) == 0
 
 
-def _rewritten(path, tmp_path, name: str, array: np.ndarray):
-    """A copy of the lattice file `path` with member `name` replaced by `array`."""
+def _rewritten(path, tmp_path, name: str, array: np.ndarray | bytes):
+    """A copy of the lattice file `path` with member `name` replaced by `array` (or by
+    the bytes of a .npy file)."""
     with np.load(path) as z:
         members = {k: z[k] for k in z.files}
-    members[name] = array
     out = tmp_path / f"bad_{name}.npz"
+    if isinstance(array, bytes):
+        with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as zf:
+            for key, member in members.items():
+                if key != name:
+                    with zf.open(f"{key}.npy", "w") as f:
+                        np.lib.format.write_array(f, member)
+            zf.writestr(f"{name}.npy", array)
+        return out
+    members[name] = array
     np.savez_compressed(out, **members)
     return out
+
+
+def _meta(meta: dict, **changes) -> np.ndarray:
+    """The meta member of a file with `changes` made to its `meta`."""
+    return np.array(json.dumps(dict(meta, **changes)))
 
 
 def test_a_file_that_disagrees_with_itself_is_refused_in_one_line(tmp_path):
@@ -252,10 +297,44 @@ def test_a_file_that_disagrees_with_itself_is_refused_in_one_line(tmp_path):
                             r"a lattice of \(100000, 100000, 100000\) texels needs 2\.3e\+07 "
                             r"GB dense, more than the"),
     }
+    second = np.load(path)["second"].copy()
+    second[[0, 1]] = np.nan, -5.0
+    held = np.load(path)["held"].copy()
+    held[-1] |= 0x01  # 1430 texels: the last byte's two last bits pad it
+    bad.update({
+        "box_lo of two numbers": ("meta", _meta(meta, box_lo=[0.0, 0.0]),
+                                  r"lattice box_lo \[0\.0, 0\.0\]: expected three finite "
+                                  "numbers"),
+        "box_lo of words": ("meta", _meta(meta, box_lo=["a", "b", "c"]), "box_lo"),
+        "box_lo NaN": ("meta", _meta(meta, box_lo=[float("nan"), 0, 0]), "box_lo"),
+        "box_hi below box_lo": ("meta", _meta(meta, box_hi=[-1.0, 1.1, 1.3]),
+                                r"expected each coordinate of box_hi above box_lo's"),
+        "a shape of fractions": ("meta", _meta(meta, shape=[10.9, 11, 13]),
+                                 r"lattice shape \[10\.9, 11, 13\]: expected three whole"),
+        "an unknown kind": ("meta", _meta(meta, kind="bogus"),
+                            "lattice kind 'bogus': expected one of irradiance, sh"),
+        "five channels of irradiance": ("values", np.ones((len(values), 5), np.float32),
+                                        "kind irradiance with 5 values a texel: expected 3$"),
+        "a config of another isolume": ("meta", _meta(meta, config={"nonsense": 1}),
+                                        "a bake config this isolume cannot read"),
+        "a config version of words": ("meta", _meta(meta, config={}, config_version="x"),
+                                      "bake config version 'x': expected a whole number"),
+        "a config that is a list": ("meta", _meta(meta, config=[1, 2]),
+                                    "expected a mapping of settings"),
+        "second moments NaN and negative": (
+            "second", second, r"2 of the \d+ texels read hold NaN, infinite or negative "
+                              "second moments, expected finite second moments ≥ 0"),
+        "a held bit past the box": ("held", held, "held marks texels past the last of the "
+                                                  "box's 1,430"),
+    })
     for case, (name, array, message) in bad.items():
         with pytest.raises(BakeError, match=message) as caught:
             Lattice.load(_rewritten(path, tmp_path, name, array))
         assert "\n" not in str(caught.value), case
+    header = io.BytesIO()
+    np.lib.format.write_array(header, values)
+    with pytest.raises(BakeError, match=r"values\.npy goes on past the \(\d+, 3\) array"):
+        Lattice.load(_rewritten(path, tmp_path, "values", header.getvalue() + bytes(64)))
     lying = _rewritten(path, tmp_path, "meta",
                        np.array(json.dumps(dict(meta, shape=[10**5] * 3))))
     with pytest.raises(BakeError, match=r"bad_meta\.npz: held of shape \(\d+,\) and type uint8 "
