@@ -581,19 +581,42 @@ def other_texels(geometry: LatticeGeometry, volume: Volume, scale: float,
 
 def check_identity(meta: dict[str, Any], volume: Volume,
                    path: str | os.PathLike[str] = "lattice") -> None:
-    """Raise BakeError unless the lattice of metadata `meta` was baked for `volume`."""
+    """Raise BakeError unless the lattice of metadata `meta` was baked for `volume`: its
+    samples, shape and spacing (`Volume.data_hash`) and its place (the origin)."""
     want = meta.get("volume", {})
     if want.get("hash") != volume.data_hash():
         shape = list(volume.data.shape)
-        same_file = want.get("source") and want.get("source") == volume.source
-        hint = ("the same file, placed otherwise: load it with the --up (and --dims, "
-                "--dtype, --crop, --downsample, --level) the bake was given"
-                if same_file else "bake it for this volume")
         raise BakeError(
             f"{path}: baked for volume {want.get('name')!r} of shape {want.get('shape')} "
             f"(hash {str(want.get('hash'))[:12]}), not for {volume.name!r} of shape "
-            f"{shape} (hash {volume.data_hash()[:12]}); {hint}"
+            f"{shape} (hash {volume.data_hash()[:12]}); {_identity_hint(want, volume)}"
         )
+    origin = want.get("origin")
+    if origin is not None and not np.allclose(origin, volume.origin, rtol=0.0,
+                                              atol=1e-9 * max(1.0, *np.abs(origin))):
+        raise BakeError(f"{path}: baked for {want.get('name')!r} with its first sample at "
+                        f"{_xyz(origin)}, here at {_xyz(volume.origin)}: the light would "
+                        "be looked up a shift away; load it with the --origin (and --up) "
+                        "the bake was given")
+
+
+def _identity_hint(want: dict[str, Any], volume: Volume) -> str:
+    """What to do about a volume whose hash differs from the bake's volume `want`
+    (`volume_identity`): the loading option that differs where the metadata shows it."""
+    spacing = want.get("spacing")
+    if want.get("shape") == list(volume.data.shape) and spacing is not None \
+            and not np.allclose(spacing, volume.spacing, rtol=1e-12, atol=0.0):
+        return (f"its voxels are {_xyz(spacing)} apart, here {_xyz(volume.spacing)}: load "
+                "it with the --spacing the bake was given")
+    if want.get("source") and want.get("source") == volume.source:
+        return ("the same file, placed otherwise: load it with the --up (and --dims, "
+                "--dtype, --crop, --downsample, --level) the bake was given")
+    return "bake it for this volume"
+
+
+def _xyz(values: npt.ArrayLike) -> str:
+    """x, y, z as the options write them."""
+    return ",".join(f"{float(v):g}" for v in np.asarray(values).reshape(-1))
 
 
 def _config_from(d: dict | None, version: int, path: Path) -> BakeConfig | None:

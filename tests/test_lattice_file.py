@@ -358,6 +358,26 @@ def test_a_bake_is_checked_against_its_volume_before_its_texels_are_read(tmp_pat
         Lattice.load(broken, make("sphere", 16))
 
 
+def test_a_lattice_is_refused_for_its_volume_placed_or_spaced_otherwise(tmp_path):
+    """The same samples at another origin (the light would be looked up a shift away) or
+    with other spacing are refused, each naming the option that differs."""
+    from dataclasses import replace
+
+    vol = make("sphere", 16)
+    path = tmp_path / "s.npz"
+    bake(vol, BakeConfig(samples=2, bounces=0), out=path)
+    Lattice.load(path, vol)
+    with pytest.raises(BakeError, match=r"first sample at -0.5,-0.5,-0.5, here at 100,0,0: .* the "
+                                        r"--origin \(and --up\) the bake was given$"):
+        Lattice.load(path, replace(vol, origin=(100.0, 0.0, 0.0)))
+    spaced = replace(vol, spacing=(1.0, 1.0, 3.0))
+    for read in (lambda: Lattice.load(path, spaced), lambda: LatticeOnFile.open(path, spaced)):
+        with pytest.raises(BakeError, match=r"voxels are 0.0666667,0.0666667,0.0666667 apart, "
+                                            r"here 1,1,3: load it with the --spacing the "
+                                            r"bake was given$"):
+            read()
+
+
 def test_a_box_larger_than_memory_is_refused_before_it_is_made(tmp_path, monkeypatch):
     """Read dense, the (10, 11, 13) box of 3 channels needs 1430 × 23 bytes; with less
     memory available the load names both figures, and a display still reads its texels."""

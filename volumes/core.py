@@ -79,7 +79,8 @@ class Volume:
     source: str = ""
     suggested_iso: tuple[float, ...] = ()
     placement: str = ""
-    _cache: dict[str, object] = field(default_factory=dict, repr=False, compare=False)
+    _cache: dict[str, object] = field(default_factory=dict, init=False, repr=False,
+                                      compare=False)  # a replaced volume starts afresh
 
     def __post_init__(self) -> None:
         where = self.source or self.name
