@@ -65,7 +65,7 @@ class Rendered:
     def summary(self) -> str:
         """One line: size, volume, isovalue, triangles, shading, lighting, exposure."""
         settings, traced = self.settings, self.traced
-        lighting = f", lighting {traced.env or 'no environment'}" if traced is not None else ""
+        lighting = f", lighting {traced.lighting_text}" if traced is not None else ""
         return (f"{settings.size[0]}x{settings.size[1]}, {self.volume.name} at iso "
                 f"{self.iso:.6g}, {len(self.mesh.faces):,} triangles, shading "
                 f"{settings.shading}{lighting}, exposure {self.frame.exposure:.3g}")

@@ -194,9 +194,7 @@ def _vertex_light(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, lattic
 def _lighting_text(lattice) -> str:
     """The lattice's environment and light specs, one line."""
     config = lattice.config
-    if config is None:
-        return "lighting not recorded"
-    return " ".join([config.env or "no environment", *config.lights])
+    return "lighting not recorded" if config is None else config.lighting_text
 
 
 def _display_colours(args: argparse.Namespace, mesh: volumes.Mesh, radiance: np.ndarray

@@ -57,8 +57,7 @@ def shading_look(args: argparse.Namespace, vol: volumes.Volume,
     shading = args.shading or (lattice.kind if lattice is not None else "irradiance")
     config = lattice.config if lattice is not None else None
     if lattice is not None and lattice.kind == "irradiance" and (args.env or args.light):
-        lighting = ("lighting not recorded" if config is None
-                    else config.env or "no environment")
+        lighting = "lighting not recorded" if config is None else config.lighting_text
         raise CLIError(f"--env/--light: {args.lattice} holds irradiance baked under its own "
                        f"lighting ({lighting}); bake again for other light, or leave out "
                        "--lattice")

@@ -219,6 +219,12 @@ class BakeConfig:
         when the config is made (once per process for the same specs: `lighting_of`)."""
         return self._lighting
 
+    @property
+    def lighting_text(self) -> str:
+        """The environment and the lights as given, one line ("sky:… + dir:…"; "no
+        environment" where `env` is empty)."""
+        return " + ".join([self.env or "no environment", *self.lights])
+
     def __getstate__(self) -> dict[str, Any]:
         """The fields alone: a config crosses to another process as its specs, and its
         lighting is parsed there (`__setstate__`)."""

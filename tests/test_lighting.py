@@ -47,6 +47,16 @@ def test_the_specs_of_a_lighting_read_back_as_the_same_lighting(env, lights):
         assert a == b  # the light specs keep every digit
 
 
+def test_a_configs_lighting_reads_as_one_line_of_its_specs():
+    """What a command's summary line and its refusals say a lighting is: the environment
+    and every light, in their order."""
+    assert BakeConfig(env="sky:sun=6", lights=("dir:0,0,1:1,1,1", "point:1,2,3:4,4,4")
+                      ).lighting_text == "sky:sun=6 + dir:0,0,1:1,1,1 + point:1,2,3:4,4,4"
+    assert BakeConfig(env="", lights=("dir:0,0,1:1,1,1",)).lighting_text == \
+        "no environment + dir:0,0,1:1,1,1"
+    assert BakeConfig(env="constant:1,1,1").lighting_text == "constant:1,1,1"
+
+
 def test_a_lighting_is_parsed_once_per_process():
     assert lighting_of("sky:sun=4") is lighting_of("sky:sun=4")
     config = BakeConfig(env="sky:sun=4", samples=3)
