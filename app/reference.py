@@ -110,12 +110,14 @@ def _camera(args: argparse.Namespace, volume, iso: float):
 
 
 def _config(args: argparse.Namespace):
-    """The `BakeConfig` of the lighting and the integrator (samples = --spp)."""
+    """The `BakeConfig` of the lighting and the integrator (samples = --spp, however
+    many: a bake's cap on them applies to its noise target, which a reference has not)."""
     from isolume.baking.config import BakeConfig
 
     return BakeConfig.lit_by(
         parse_lighting(args.env, args.light),
-        mode="irradiance", samples=args.spp, bounces=args.bounces,
+        mode="irradiance", samples=args.spp, max_samples=max(args.spp, BakeConfig.max_samples),
+        bounces=args.bounces,
         albedo=parse_albedo(args.albedo), seed=args.seed, flip_normals=args.flip_normals,
     )
 

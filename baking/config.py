@@ -296,9 +296,11 @@ class BakeConfig:
         """What differs between this config (a file's) and `other` (a command's) beyond the
         paths asked for: one "--option: X in the file, Y here" per setting, in field
         order."""
-        def core(c: BakeConfig) -> dict[str, Any]:
+        def core(c: BakeConfig) -> dict[str, Any]:  # an irradiance bake has no SH order
             return dataclasses.asdict(dataclasses.replace(
-                c, samples=1, target_error=None, max_samples=4096, texel_error=None))
+                c, samples=1, target_error=None, max_samples=BakeConfig.max_samples,
+                texel_error=None, sh_order=c.sh_order if c.mode == "sh" else
+                BakeConfig.sh_order))
 
         mine, theirs = core(self), core(other)
         options = {"lights": "light"}  # fields whose option has another name

@@ -286,8 +286,9 @@ def background(lighting: TracingLights, dirs: np.ndarray) -> np.ndarray:
 
 def _identity_config(config: BakeConfig) -> dict[str, Any]:
     """The configuration a state file is resumed for: every field that changes the
-    picture (not ``samples``, nor ``direct_light``, which a reference ignores)."""
-    d = dataclasses.replace(config, samples=1).to_dict()
+    picture (not ``samples`` and the cap on them, nor ``direct_light``, which a
+    reference ignores)."""
+    d = dataclasses.replace(config, samples=1, max_samples=BakeConfig.max_samples).to_dict()
     del d["direct_light"]
     return d
 

@@ -476,6 +476,9 @@ def test_a_file_of_other_settings_is_refused_naming_them(tmp_path):
                                         r"the file, 5 here\); to resume, repeat them"):
         bake(vol, dataclasses.replace(config, bounces=2, seed=5), out=path, workers=2)
     bake(vol, dataclasses.replace(config, samples=6), out=path, workers=2)  # more paths: on
+    # an irradiance bake has no SH order: another one (a command's --sh-order) is no other
+    # setting
+    bake(vol, dataclasses.replace(config, samples=7, sh_order=3), out=path, workers=2)
 
 
 def test_checkpoints_take_at_most_a_share_of_the_bake(monkeypatch, tmp_path):

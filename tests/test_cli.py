@@ -135,6 +135,36 @@ def test_unwritable_directory(tmp_path, capsys):
     assert status == 2 and "not writable" in err
 
 
+def test_a_folder_that_refuses_new_files_is_found_before_the_work(tmp_path, capsys,
+                                                                   monkeypatch):
+    """A folder that takes no new file — a read-only mount, or one that refuses a root
+    user, whose permission bits say nothing — is found by making a file there before any
+    work; a folder for a command's outputs that cannot be made says why in one line."""
+    import errno
+    import tempfile
+
+    made = tempfile.TemporaryFile
+
+    def read_only_here(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir) == tmp_path:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return made(*args, dir=dir, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(tempfile, "TemporaryFile", read_only_here)
+        for command in (["render", "synthetic:sphere:16", "--out", str(tmp_path / "x.png")],
+                        ["bake", "synthetic:sphere:16", "--out", str(tmp_path / "x.npz")]):
+            status, _, err = _run(capsys, *command)
+            assert status == 2 and err.count("\n") == 1, err
+            assert f"directory {tmp_path} is not writable (Read-only file system)" in err
+    blocker = tmp_path / "a file"
+    blocker.write_text("")
+    status, _, err = _run(capsys, "chart", "synthetic:sphere:16", "--out",
+                          str(blocker / "charts"))
+    assert status == 2 and err.count("\n") == 1, err
+    assert "cannot make the folder (Not a directory)" in err
+
+
 def test_a_black_environment_is_light_enough_beside_a_light(tmp_path):
     """A map that sends no light is refused as the scene's only light, not beside one."""
     from isolume.app.options import parse_lighting

@@ -284,6 +284,12 @@ def test_cli_writes_exr_sidecar_and_resumes(tmp_path, capsys):
     np.testing.assert_allclose(resumed["stderr"], fresh["stderr"], rtol=1e-5)
     side = json.loads(out.with_suffix(".json").read_text())
     assert side["spp_min"] == 16 and side["runs"] == 2
+    # as many samples as asked, beyond a bake's cap on a texel's paths, added to those
+    small, many = ("--size", "8x6", "--view", "30,20"), tmp_path / "many.exr"
+    assert _run(capsys, *COMMON, *small, "--spp", "4", "--out", str(many))[0] == 0
+    status, text, err = _run(capsys, *COMMON, *small, "--spp", "4100", "--out", str(many))
+    assert status == 0 and "4100 spp" in text, err
+    assert json.loads(many.with_suffix(".json").read_text())["runs"] == 2
     # the same --out with another camera is refused, and says what to do
     status, _, err = _run(capsys, *COMMON, "--spp", "16", "--view", "0,0",
                           "--out", str(out))

@@ -52,6 +52,7 @@ from isolume.app.bench.replay import (
     split_hints,
 )
 from isolume.app.bench.stalls import stall_line, tracing_stalls
+from isolume.app.render.images import output_folder
 from isolume.volumes import cores
 
 HELP = ("parallel efficiency of bake and render per stage against threads, and their "
@@ -622,8 +623,7 @@ def run(args: argparse.Namespace) -> int:
                   "skipped")
         else:
             dask = f"local:{max(counts)}"
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
     before = os.getloadavg()
     paths = f"{args.samples} paths/texel" if args.samples else "the commands' own paths"
     print(f"bench cores: {args.volume}, {paths}, threads "

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from isolume.app.bench.accuracy_metrics import BLACK_LIMIT, RATIO_BAND, share, spread
+from isolume.app.render.images import output_folder
 from isolume.volumes.errors import IsolumeError
 
 HELP = "the bake's error against paths, time and bytes over several bench accuracy sweeps"
@@ -284,7 +285,7 @@ def run(args: argparse.Namespace) -> int:
     except FrontError as exc:
         raise CLIError(str(exc)) from None
     out = Path(args.out).expanduser()
-    out.parent.mkdir(parents=True, exist_ok=True)
+    output_folder(out.parent)
     for line in table(record) + comparison_lines(record):
         print(line)
     if record["left_out"]:

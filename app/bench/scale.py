@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from isolume.app.render.images import output_folder
 from isolume.volumes.writing import atomic_write
 
 HELP = ("peak memory and wall time of info, render, bake, render --lattice and the viewer "
@@ -493,7 +494,7 @@ def run(args: argparse.Namespace) -> int:
     work.mkdir(parents=True, exist_ok=True)
     display, server = _display() if "view" in args.commands else (None, None)
     plan = Plan(args.sizes, args.sources, args.commands, args.real, args.samples, args.size,
-                cap, args.time_cap, work, Path(args.out), display)
+                cap, args.time_cap, work, output_folder(args.out), display)
     try:
         sweep(plan)
     finally:

@@ -191,10 +191,9 @@ def _make_run(args, volume, iso: float, plan: Plan, out: Path) -> Run:
 
 def run(args: argparse.Namespace) -> int:
     """Make the charts; returns the exit status."""
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise CLIError(f"--out {out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    from isolume.app.render.images import output_folder
+
+    out = output_folder(args.out)
     plan = _plan(args)
     volume, notes = _prepare_volume(args)
     iso = isovalue(volume, args.iso)

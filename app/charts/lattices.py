@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from isolume.app.charts.progress import say
+from isolume.app.render.images import output_folder
 
 if TYPE_CHECKING:
     from isolume.baking.config import BakeConfig
@@ -67,7 +68,7 @@ class LatticeStore:
     def __init__(self, volume: Volume, folder: Path, workers: int | None) -> None:
         self.volume, self.folder, self.workers = volume, folder, workers
         self._memory: dict = {}
-        folder.mkdir(parents=True, exist_ok=True)
+        output_folder(folder, "--cache")
 
     def _stem(self, config) -> str:
         core = dataclasses.replace(config, samples=1).to_dict()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -48,9 +49,41 @@ def check_output_folder(path: str | os.PathLike[str]) -> Path:
         if above is not None and not above.is_dir():
             raise OutputError(f"{path}: {above} is not a directory")
         raise OutputError(f"{path}: directory {parent} does not exist")
-    if not os.access(parent, os.W_OK):
-        raise OutputError(f"{path}: directory {parent} is not writable")
+    why = _unwritable(parent)
+    if why is not None:
+        raise OutputError(f"{path}: directory {parent} is not writable ({why})")
     return path
+
+
+def output_folder(path: str | os.PathLike[str], what: str = "--out") -> Path:
+    """The folder `path`, made where missing (its parents too), that can take new files.
+
+    Raises:
+        OutputError: naming `what` (the option), the folder and the system's reason.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{what} {path}: exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{what} {path}: cannot make the folder "
+                          f"({exc.strerror or exc})") from None
+    why = _unwritable(path)
+    if why is not None:
+        raise OutputError(f"{what} {path}: the folder is not writable ({why})")
+    return path
+
+
+def _unwritable(folder: Path) -> str | None:
+    """Why `folder` cannot take a new file (the system's reason), or None: a temporary
+    file is made there and removed, which also finds read-only mounts and what a root
+    user is refused, where permission bits alone do not."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return None
+    except OSError as exc:
+        return exc.strerror or str(exc)
 
 
 def write_exr(path: str | os.PathLike[str], linear: np.ndarray,
