@@ -7,10 +7,12 @@ shows up as a failure.
 
 from __future__ import annotations
 
+import bz2
 import gzip
 import os
 import re
 import signal
+import struct
 import sys
 import tracemalloc
 import zipfile
@@ -50,14 +52,28 @@ def assert_volume(vol, expected, spacing=SPACING, origin=ORIGIN, name=None) -> N
         assert vol.name == name
 
 
-def load_error(path, *fragments, **options) -> str:
-    """load_file(path) must raise a one-line VolumeError naming the file and fragments."""
-    with pytest.raises(VolumeError, match=re.escape(str(path))) as info:
+def load_error(path, *fragments, named=None, **options) -> str:
+    """load_file(path) must raise a one-line VolumeError naming the file (or `named`) and
+    fragments."""
+    with pytest.raises(VolumeError, match=re.escape(str(named or path))) as info:
         load_file(path, **options)
     message = str(info.value)
     assert "\n" not in message
     for fragment in fragments:
         assert fragment in message, f"{fragment!r} not in {message!r}"
+    return message
+
+
+def refused_cheaply(path, *fragments, named=None, **options) -> str:
+    """`load_error` (the message naming `named`, else `path`), the peak of memory traced
+    while loading below 8 MiB."""
+    tracemalloc.start()
+    try:
+        message = load_error(path, *fragments, named=named, **options)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 << 20, f"{peak} bytes traced for {message}"
     return message
 
 
@@ -396,6 +412,90 @@ def test_nrrd_non_finite_space_directions(tmp_path, row):
     load_error(path, "space directions vector 1", "finite")
 
 
+NRRD_2X2X2 = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 2 2\n"
+"""A header of 2*2*2 uint8 samples, its encoding and the rest to follow."""
+
+
+@pytest.mark.parametrize("case", ["bzip2", "gzip detached", "raw detached"])
+def test_nrrd_data_that_hold_more_than_the_header_are_refused_unread(tmp_path, case):
+    """32 MiB of data behind a header of 8 bytes of samples: refused having read (and
+    decompressed) at most a chunk of them."""
+    pytest.importorskip("nrrd")
+    path = tmp_path / "bomb.nhdr"
+    where = tmp_path / "bomb.data"
+    if case == "bzip2":
+        where = path
+        path.write_bytes(f"{NRRD_2X2X2}encoding: bzip2\n\n".encode()
+                         + bz2.compress(bytes(32 << 20)))
+    elif case == "gzip detached":
+        where.write_bytes(gzip.compress(bytes(32 << 20), 1))
+        path.write_text(f"{NRRD_2X2X2}encoding: gzip\ndata file: bomb.data\n\n")
+    else:
+        with open(where, "wb") as f:
+            f.truncate(32 << 20)
+        path.write_text(f"{NRRD_2X2X2}encoding: raw\ndata file: bomb.data\n\n")
+    refused_cheaply(path, "expected 8 ", "bytes of samples", "holds more", named=where)
+
+
+@pytest.mark.parametrize("detached", [False, True])
+@pytest.mark.parametrize("encoding", ["raw", "gzip", "bzip2"])
+def test_nrrd_encodings_attached_and_detached_read_as_pynrrd_writes_them(tmp_path, encoding,
+                                                                        detached):
+    nrrd = pytest.importorskip("nrrd")
+    data = sample_data("uint16")
+    for endian in ("little", "big"):
+        path = tmp_path / f"v_{endian}.{'nhdr' if detached else 'nrrd'}"
+        nrrd.write(str(path), data, {"encoding": encoding, "endian": endian},
+                   index_order="C", detached_header=detached)
+        np.testing.assert_array_equal(load_file(path).data, data.astype(np.float32))
+
+
+@pytest.mark.parametrize(("fields", "payload"), [
+    ("encoding: raw\nline skip: 2\n", b"abc\n" + b"x" * 3000 + b"\n" + bytes(range(8))),
+    ("encoding: raw\nbyte skip: 3\n", b"abc" + bytes(range(8))),
+    ("encoding: raw\nbyte skip: -1\n", b"leading" + bytes(range(8))),
+    ("encoding: gzip\nbyte skip: 3\n", gzip.compress(b"abc" + bytes(range(8)))),
+    ("encoding: bzip2\nbyte skip: 3\n", bz2.compress(b"abc" + bytes(range(8)))),
+    ("encoding: bzip2\n", bz2.compress(bytes(range(3))) + bz2.compress(bytes(range(3, 8)))),
+], ids=["line skip", "raw byte skip", "raw byte skip -1", "gzip byte skip", "bzip2 byte skip",
+        "two bzip2 streams"])
+def test_nrrd_skips_and_concatenated_streams(tmp_path, fields, payload):
+    """Line skips count lines of the file, byte skips bytes of the decompressed data
+    (-1: the raw samples are the file's last bytes); bzip2 streams may follow one another."""
+    pytest.importorskip("nrrd")
+    path = tmp_path / "skips.nrrd"
+    path.write_bytes(f"{NRRD_2X2X2}{fields}\n".encode() + payload)
+    np.testing.assert_array_equal(load_file(path).data.ravel(), np.arange(8))
+
+
+@pytest.mark.parametrize(("fields", "payload", "fragments"), [
+    ("encoding: bzip2\n", bz2.compress(bytes(8))[:-5], ("ended before the end-of-stream",)),
+    ("encoding: bzip2\n", b"not bzip2 at all", ("Invalid data stream",)),
+    ("encoding: bzip2\n", bz2.compress(bytes(5)), ("expected 8 decompressed", "after 5")),
+    ("encoding: bzip2\nbyte skip: -1\n", bz2.compress(bytes(8)),
+     ("byte skip -1 with bzip2", "only with raw encoding")),
+    ("encoding: raw\nline skip: -2\n", bytes(8), ("line skip -2", "at least 0")),
+], ids=["bzip2 cut short", "not bzip2", "bzip2 of fewer samples",
+        "bzip2 byte skip -1", "negative line skip"])
+def test_nrrd_bad_bzip2_data_and_skips(tmp_path, fields, payload, fragments):
+    pytest.importorskip("nrrd")
+    path = tmp_path / "bad.nrrd"
+    path.write_bytes(f"{NRRD_2X2X2}{fields}\n".encode() + payload)
+    load_error(path, *fragments)
+
+
+@pytest.mark.parametrize("crop", [None, "0:2,0:2,0:2"])
+def test_nrrd_sizes_beyond_int64_are_named_whole(tmp_path, crop):
+    """7 * 2**62 * 8 samples: 0 in int64 arithmetic."""
+    pytest.importorskip("nrrd")
+    path = tmp_path / "huge.nrrd"
+    path.write_bytes(f"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 7 {2**62} 8\n"
+                     "encoding: raw\n\n".encode() + bytes(8))
+    said = ((f"expected {7 * 2**62 * 8} bytes", "holds only 8") if crop else
+            (f"sizes 7 {2**62} 8 uchar needs", "memory available"))
+    load_error(path, *said, crop=crop)
+
+
 # --------------------------------------------------------------------------- MetaImage
 
 
@@ -535,6 +635,27 @@ def test_mha_header_size(tmp_path):
         load_error(path, f"HeaderSize = '{size}'", "at least 0", "-1")
 
 
+@pytest.mark.parametrize("value", ["inf", "3.7", "nan"])
+def test_mha_ndims_must_be_three(tmp_path, value):
+    path = tmp_path / "ct.mha"
+    write_metaimage(path, sample_data())
+    path.write_bytes(path.read_bytes().replace(b"NDims = 3", f"NDims = {value}".encode()))
+    load_error(path, f"NDims = {value}", "expected a 3-D MetaImage (NDims = 3")
+
+
+@pytest.mark.parametrize("size_field", [True, False])
+def test_mha_compressed_data_followed_by_more_bytes(tmp_path, size_field):
+    path = tmp_path / "ct.mha"
+    write_metaimage(path, sample_data(), compressed=True)
+    if not size_field:
+        path.write_bytes(path.read_bytes().replace(b"CompressedDataSize", b"Comment"))
+    stream = len(zlib.compress(sample_data().astype("<i2").tobytes()))
+    with open(path, "ab") as f:
+        f.write(b"JUNK" * 1000)
+    load_error(path, "expected the compressed samples to end the file",
+               f"4000 bytes follow their {stream}-byte stream")
+
+
 # --------------------------------------------------------------------------- NIfTI
 
 
@@ -589,6 +710,28 @@ def test_nifti_bad_dims_and_datatype(tmp_path, capfd, suffix):
     write_nifti(path, (16, 16, 16), datatype=9999)
     load_error(path, "9999", "invalid NIfTI header", "datatype")
     assert "9999" not in capfd.readouterr().err  # said once, by the error
+
+
+def test_nifti_bytes_after_the_samples_are_refused(tmp_path):
+    """Extensions between the header and vox_offset are read past; bytes after the
+    samples, in the file or in the gzip stream, are refused."""
+    nib = pytest.importorskip("nibabel")
+    data = sample_data("int16")
+    image = nib.Nifti1Image(data.transpose(2, 1, 0), np.eye(4))
+    image.header.extensions.append(nib.nifti1.Nifti1Extension("comment", b"x" * 500))
+    plain, packed = tmp_path / "brain.nii", tmp_path / "brain.nii.gz"
+    nib.save(image, str(plain))
+    packed.write_bytes(gzip.compress(plain.read_bytes()))
+    for path in (plain, packed):
+        np.testing.assert_array_equal(load_file(path, orientation=False).data, data)
+    offset = int(nib.load(str(plain)).dataobj.offset)
+    assert offset > 352 + 500
+    with open(plain, "ab") as f:
+        f.write(bytes(4096))
+    packed.write_bytes(gzip.compress(plain.read_bytes()))
+    load_error(plain, f"need {data.nbytes} bytes of samples from offset {offset} to the end",
+               f"holds {data.nbytes + 4096}", "bytes follow the samples")
+    load_error(packed, f"expected {data.nbytes} decompressed bytes", "holds more")
 
 
 # --------------------------------------------------------------------------- NumPy
@@ -728,6 +871,91 @@ def test_tiff_folder_mismatched_slice(tmp_path):
     with pytest.raises(VolumeError, match=re.escape(str(folder / "s2.tif"))) as info:
         load_file(folder)
     assert "(7, 12)" in str(info.value) and "(7, 11)" in str(info.value)
+
+
+def lying_tiff(path: Path, side: int, compression: str | None = None,
+               pages: int = 3) -> None:
+    """A stack of `pages` 4 x 4 uint8 pages whose every ImageWidth and ImageLength tag
+    says `side`."""
+    tifffile = pytest.importorskip("tifffile")
+    with tifffile.TiffWriter(path) as tw:
+        for page in np.zeros((pages, 4, 4), np.uint8):
+            tw.write(page, compression=compression)
+    content, patched = bytearray(path.read_bytes()), 0
+    for tag in (256, 257):
+        entry = struct.pack("<HHI", tag, 4, 1)  # tag, LONG, one value
+        i = 0
+        while (i := content.find(entry, i)) >= 0:
+            content[i + 8:i + 12] = struct.pack("<I", side)
+            patched, i = patched + 1, i + 12
+    assert patched == 2 * pages
+    path.write_bytes(bytes(content))
+
+
+@pytest.mark.parametrize("compression", [None, "zlib"])
+def test_tiff_whose_size_tags_lie_is_refused_before_decoding(tmp_path, monkeypatch,
+                                                             compression):
+    path = tmp_path / "lie.tif"
+    lying_tiff(path, 30000, compression)
+    monkeypatch.setattr(vio_common, "available_memory", lambda: 1 << 40)
+    refused_cheaply(path, "TIFF shape (3, 30000, 30000) uint8 needs 2700000000 bytes",
+                    "the file holds data for at most", "size tags are wrong")
+    monkeypatch.setattr(vio_common, "available_memory", lambda: 1 << 30)
+    refused_cheaply(path, "TIFF shape (3, 30000, 30000) uint8 needs 2.7 GB",
+                    "memory available")
+
+
+@pytest.mark.parametrize("options", [{"truncate": True}, {"imagej": True, "truncate": True},
+                                     {"compression": "zlib", "tile": (16, 16)}])
+def test_tiff_stacks_whose_first_page_describes_the_data_load(tmp_path, options):
+    """One IFD for a contiguous stack, tiles: the size check counts what tifffile reads."""
+    tifffile = pytest.importorskip("tifffile")
+    data = sample_data("uint16")
+    path = tmp_path / "stack.tif"
+    tifffile.imwrite(path, data, **options)
+    np.testing.assert_array_equal(load_file(path).data, data)
+
+
+def test_tiff_contiguous_stack_cut_short_is_refused(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    data = sample_data("uint16")
+    path = tmp_path / "stack.tif"
+    tifffile.imwrite(path, data, truncate=True)  # one IFD, then the samples
+    with open(path, "r+b") as f:
+        f.truncate(f.seek(0, 2) - 100)
+    load_error(path, f"TIFF shape (5, 7, 11) uint16 needs {data.nbytes} bytes",
+               "holds data for at most", "truncated")
+
+
+def test_tiff_that_runs_out_of_memory_says_so_in_one_line(tmp_path, monkeypatch):
+    tifffile = pytest.importorskip("tifffile")
+    path = tmp_path / "stack.tif"
+    tifffile.imwrite(path, sample_data("uint16"))
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(tifffile.TiffPageSeries, "asarray", out_of_memory)
+    load_error(path, "TIFF shape (5, 7, 11) uint16", "not enough memory")
+
+
+def test_tiff_folder_slices_whose_size_tags_lie(tmp_path, monkeypatch):
+    tifffile = pytest.importorskip("tifffile")
+    folder = tmp_path / "slices"
+    folder.mkdir()
+    tifffile.imwrite(folder / "s1.tif", np.zeros((4, 4), np.uint8))
+    lying_tiff(folder / "s2.tif", 30000, pages=1)
+    with pytest.raises(VolumeError, match=re.escape(f"{folder / 's2.tif'}: slice shape "
+                                                    "(30000, 30000) differs")):
+        load_file(folder)
+    (folder / "s1.tif").unlink()
+    monkeypatch.setattr(vio_common, "available_memory", lambda: 1 << 40)
+    with pytest.raises(VolumeError, match=re.escape(str(folder / "s2.tif"))) as info:
+        load_file(folder)
+    assert "the file holds data for at most 16" in str(info.value)
+    monkeypatch.setattr(vio_common, "available_memory", lambda: 1 << 30)
+    with pytest.raises(VolumeError, match=r"needs 1\.8 GB of samples"):
+        load_file(folder)
 
 
 # --------------------------------------------------------------------------- folders, DICOM

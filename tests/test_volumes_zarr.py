@@ -261,6 +261,18 @@ def test_bad_transformations_and_levels_of_plain_arrays(tmp_path):
     assert "--level 1: a plain Zarr array has one level (0)" in _error(plain, level=1)
 
 
+@pytest.mark.parametrize("fmt", [2, 3])
+def test_a_dataset_path_naming_a_group_is_refused(tmp_path, fmt):
+    path = tmp_path / "image.zarr"
+    group = zarr.open_group(str(path), mode="w", zarr_format=fmt)
+    _member(group, "0", _samples((4, 4, 4)))
+    group.create_group("1")
+    group.attrs["multiscales"] = [{"version": "0.4", "axes": [{"name": n} for n in "zyx"],
+                                   "datasets": [{"path": "0"}, {"path": "1"}]}]
+    message = _error(path)
+    assert "OME-Zarr level 1: dataset path '1' names a group, not an array" in message
+
+
 def test_missing_zarr_names_the_extra(tmp_path, monkeypatch):
     path = tmp_path / "plain.zarr"
     _array(str(path), _samples((4, 4, 4)), 3)

@@ -204,25 +204,28 @@ def read_bounded(f: BinaryIO, nbytes: int, where: str, compressed: bool) -> np.n
 
 
 def inflate_at_most(f: BinaryIO, nbytes: int, wbits: int,
-                    max_input: int | None = None) -> tuple[np.ndarray, int]:
+                    max_input: int | None = None) -> tuple[np.ndarray, int, int]:
     """First `nbytes` inflated bytes (zlib/gzip, `wbits`) of the compressed stream `f`
-    as a writable uint8 array (fewer where it ends) and the inflated length counted up
-    to ``nbytes + 1``: the compressed data (at most `max_input` bytes of them) are read
-    a chunk at a time and no further than that, so a decompression bomb, or a file of
-    more data than the header promises, costs no more memory than the samples promised
-    and a chunk. Corrupt data raise ``zlib.error``."""
+    as a writable uint8 array (fewer where it ends), the inflated length counted up to
+    ``nbytes + 1``, and the bytes of `f` the stream took up to its end (or as far as it
+    was read): the compressed data (at most `max_input` bytes of them) are read a chunk
+    at a time and no further than that, so a decompression bomb, or a file of more data
+    than the header promises, costs no more memory than the samples promised and a
+    chunk. Corrupt data raise ``zlib.error``."""
     buf = np.empty(nbytes, np.uint8)
     inflater = zlib.decompressobj(wbits)
-    got, pending, left = 0, b"", max_input
+    got, pending, left, taken = 0, b"", max_input, 0
     while got <= nbytes and not inflater.eof:
         if not pending:
             pending = f.read(INFLATE_CHUNK if left is None else min(INFLATE_CHUNK, left))
             if not pending:
                 break
             left = None if left is None else left - len(pending)
+            taken += len(pending)
         out = inflater.decompress(pending, min(nbytes + 1 - got, INFLATE_CHUNK))
         pending = inflater.unconsumed_tail
         kept = min(len(out), nbytes - got)
         buf[got:got + kept] = np.frombuffer(out, np.uint8, kept)
         got += len(out)
-    return buf[:min(got, nbytes)], got
+    used = taken - len(pending) - len(inflater.unused_data)
+    return buf[:min(got, nbytes)], got, used

@@ -49,11 +49,12 @@ def load_metaimage(path: Path) -> Loaded:
     where = str(path)
     fields, data_start = _parse_metaimage_header(_read_head(path), where)
     dimsize = _meta_numbers(fields, "DimSize", where, required=True)
-    ndims = int(_meta_numbers(fields, "NDims", where, count=1)[0]) if "ndims" in fields else 3
+    ndims = _meta_numbers(fields, "NDims", where, count=1)[0] if "ndims" in fields else 3
     if ndims != 3 or len(dimsize) != 3 or any(not d.is_integer() or d <= 0 for d in dimsize):
         raise VolumeError(
             f"{where}: expected a 3-D MetaImage (NDims = 3, DimSize = three positive "
-            f"integers), got NDims = {ndims}, DimSize = {fields['dimsize']!r}"
+            f"integers), got NDims = {fields.get('ndims', '3')}, DimSize = "
+            f"{fields['dimsize']!r}"
         )
     dims = (int(dimsize[0]), int(dimsize[1]), int(dimsize[2]))
     channels = fields.get("elementnumberofchannels", "1")
@@ -152,7 +153,7 @@ def _read_compressed(data_path: Path, offset: int, fields: dict[str, str], where
                      expected: int, size: str) -> np.ndarray:
     """The `expected` bytes of ``CompressedData = True`` samples from `offset` of
     `data_path` (at most CompressedDataSize bytes of them), inflated one byte past them
-    at most (`inflate_at_most`)."""
+    at most (`inflate_at_most`); their stream must end the file."""
     data_where = str(data_path)
     check_fits_in_memory(expected, data_where, size)
     limit = None
@@ -164,8 +165,9 @@ def _read_compressed(data_path: Path, offset: int, fields: dict[str, str], where
         limit = int(limit)
     try:
         with open(data_path, "rb") as f:
+            held = f.seek(0, 2) - offset
             f.seek(offset)
-            buf, count = inflate_at_most(f, expected, zlib.MAX_WBITS | 32, limit)
+            buf, count, used = inflate_at_most(f, expected, zlib.MAX_WBITS | 32, limit)
     except zlib.error as exc:
         raise VolumeError(
             f"{data_where}: corrupt compressed MetaImage data ({one_line(exc)}); "
@@ -177,6 +179,10 @@ def _read_compressed(data_path: Path, offset: int, fields: dict[str, str], where
         more = " or more" if count > expected else ""  # inflating stops one byte past
         raise VolumeError(f"{data_where}: expected {size}, got {count} bytes{more} once "
                           "inflated")
+    if used < held:
+        raise VolumeError(f"{data_where}: expected the compressed samples to end the file, "
+                          f"{held - used} bytes follow their {used}-byte stream: the header's "
+                          "DimSize or ElementType are wrong, or the data are not one stream")
     return buf
 
 

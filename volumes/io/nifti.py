@@ -33,7 +33,8 @@ def load_nifti(path: Path) -> Loaded:
     voxels to RAS millimetres: its translation is the origin and its columns the axes'
     directions, both turned into LPS. The header's dims and datatype are checked (and an
     uncompressed file's size against them) before any sample is read; the samples are
-    read, or inflated, at most one byte past the size they promise.
+    read, or inflated, at most one byte past the size they promise, and data that hold
+    fewer or more bytes after vox_offset are refused.
     """
     nib = optional_module("nibabel", path)
     img = _open_header(nib, path)
@@ -101,8 +102,9 @@ def _checked_shape(shape: tuple[int, ...], path: Path) -> tuple[int, int, int]:
 
 def _read_samples(path: Path, nbytes: int, offset: int) -> np.ndarray:
     """The `nbytes` bytes of samples from `offset` (in the inflated stream of a ``.gz``
-    file) as a writable uint8 array; an uncompressed file's size is compared with them
-    before anything is read, a compressed one is inflated one byte past them at most."""
+    file) to the end of the data as a writable uint8 array; an uncompressed file's size
+    is compared with them before anything is read, a compressed one is inflated one byte
+    past them at most; data that hold fewer or more bytes are refused."""
     compressed = path.name.lower().endswith(".gz")
     try:
         with open(path, "rb") as plain:
@@ -119,19 +121,25 @@ def _read_samples(path: Path, nbytes: int, offset: int) -> np.ndarray:
                           "gzip-compressed NIfTI file") from None
     except OSError as exc:
         raise VolumeError(f"{path}: cannot read the file: {one_line(exc)}") from None
+    what = "decompressed bytes" if compressed else "bytes"
     if count < nbytes:
-        what = "decompressed bytes" if compressed else "bytes"
         raise VolumeError(f"{path}: expected {nbytes} {what} of samples from offset "
                           f"{offset}, the data ends after {count}: truncated, or the "
+                          "header's dims or datatype are wrong")
+    if count > nbytes:
+        raise VolumeError(f"{path}: expected {nbytes} {what} of samples from offset "
+                          f"{offset} to the end of the data, the data holds more: the "
                           "header's dims or datatype are wrong")
     return buf
 
 
 def _check_file_size(path: Path, size: int, nbytes: int, offset: int) -> None:
-    """Refuse an uncompressed file of `size` bytes too short for `nbytes` of samples
-    from `offset` (the header's vox_offset)."""
-    if size < offset + nbytes:
+    """Refuse an uncompressed file of `size` bytes that does not end with `nbytes` of
+    samples from `offset` (the header's vox_offset): too short for them, or longer."""
+    if size != offset + nbytes:
+        problem = "truncated" if size < offset + nbytes else "bytes follow the samples"
         raise VolumeError(
             f"{path}: the header's dims and datatype need {nbytes} bytes of samples from "
-            f"offset {offset}, the file holds {max(0, size - offset)}: truncated, or the "
-            "header's dims, datatype or vox_offset are wrong")
+            f"offset {offset} to the end of the file, the file holds "
+            f"{max(0, size - offset)}: {problem}, or the header's dims, datatype or "
+            "vox_offset are wrong")

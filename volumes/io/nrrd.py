@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import bz2
 import gzip
+import math
 from pathlib import Path
 from typing import BinaryIO
 
@@ -11,6 +13,7 @@ import numpy as np
 
 from isolume.volumes.core import VolumeError
 from isolume.volumes.io.common import (
+    INFLATE_CHUNK,
     READ_ERRORS,
     Loaded,
     check_fits_in_memory,
@@ -42,9 +45,10 @@ def load_nrrd(path: Path, lazy: bool = False) -> Loaded:
     """NRRD / NHDR -> (Z, Y, X); spacing from space directions or spacings.
 
     The header (pynrrd) says how many bytes the samples take; a header that needs more
-    memory than the machine has is refused before any sample is read, and attached raw
-    or gzip data are read (and inflated) at most one byte past that size; other
-    encodings and detached data are read by pynrrd once the size is checked. With
+    memory than the machine has is refused before any sample is read, and raw, gzip or
+    bzip2 data (attached, or in one detached data file) are read (and decompressed) at
+    most one byte past that size: data that hold fewer or more bytes are refused. Text
+    encodings and lists of data files are read by pynrrd once the size is checked. With
     `lazy`, raw data (attached, or one detached data file) without skips is mapped
     instead (a read-only numpy memmap: nothing is read until sliced).
     """
@@ -146,10 +150,11 @@ def _nrrd_origin(header: dict) -> np.ndarray | None:
 
 
 def _bounded_data(header: dict, fh: BinaryIO, path: Path, lazy: bool) -> np.ndarray | None:
-    """(Z, Y, X) samples of attached raw or gzip data read after the header in `fh`, at
-    most one byte past the size the header gives, or with `lazy` raw data mapped
-    (`_mapped_data`); None where pynrrd must read them (detached data, skips, other
-    encodings). Samples read must fit in memory (`check_fits_in_memory`)."""
+    """(Z, Y, X) samples of raw, gzip or bzip2 data, attached (read after the header in
+    `fh`) or in one detached data file, read and decompressed at most one byte past the
+    size the header gives (`_read_encoded`), or with `lazy` raw data without skips
+    mapped (`_mapped_data`); None where pynrrd must read them (text encodings, a list
+    or pattern of data files). Samples read must fit in memory (`check_fits_in_memory`)."""
     sizes = [int(s) for s in np.atleast_1d(header.get("sizes", []))]
     if sizes and min(sizes) < 1:
         raise VolumeError(f"{path}: NRRD sizes {' '.join(map(str, sizes))}; expected "
@@ -159,8 +164,8 @@ def _bounded_data(header: dict, fh: BinaryIO, path: Path, lazy: bool) -> np.ndar
         return None  # pynrrd's own message names what is wrong
     dtype = np.dtype(kind).newbyteorder(
         ">" if str(header.get("endian", "little")).lower() == "big" else "<")
-    expected = int(np.prod(sizes, dtype=np.int64)) * dtype.itemsize
-    encoding = str(header.get("encoding", "raw")).lower()
+    expected = math.prod(sizes) * dtype.itemsize
+    encoding = _ENCODINGS.get(str(header.get("encoding", "raw")).lower())
     detached = _data_file(header)
     if detached:
         _check_data_file(path, detached)
@@ -170,14 +175,74 @@ def _bounded_data(header: dict, fh: BinaryIO, path: Path, lazy: bool) -> np.ndar
         return _mapped_data(*source, dtype, sizes, expected)
     check_fits_in_memory(expected, str(path), f"sizes {' '.join(map(str, sizes))} "
                          f"{header.get('type')}")
-    if detached is not None or skips or encoding not in ("raw", "gzip", "gz"):
+    if detached == "" or encoding is None:
         return None
-    if encoding == "raw":
-        buf = read_bounded(fh, expected, str(path), compressed=False)
+    line_skip, byte_skip = _skips(header, path, encoding)
+    if detached is None:
+        buf = _read_encoded(fh, str(path), encoding, expected, line_skip, byte_skip)
     else:
-        with gzip.GzipFile(fileobj=fh) as stream:
-            buf = read_bounded(stream, expected, str(path), compressed=True)
+        with open(path.parent / detached, "rb") as data:
+            buf = _read_encoded(data, str(path.parent / detached), encoding, expected,
+                                line_skip, byte_skip)
     return buf.view(dtype).reshape(sizes[::-1])
+
+
+_ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2"}
+"""NRRD encodings read here (`_read_encoded`) -> their canonical names."""
+
+
+def _skips(header: dict, path: Path, encoding: str) -> tuple[int, int]:
+    """(line skip, byte skip) of the header: lines at least 0; bytes at least 0, or -1
+    (the samples are the last bytes of the file) for raw data only."""
+    line_skip = _skip_field(header, ("line skip", "lineskip"))
+    byte_skip = _skip_field(header, ("byte skip", "byteskip"))
+    lowest = -1 if encoding == "raw" else 0
+    if line_skip < 0 or byte_skip < lowest:
+        raise VolumeError(f"{path}: NRRD line skip {line_skip}, byte skip {byte_skip} with "
+                          f"{encoding} encoding; expected numbers at least 0 (a byte skip "
+                          "of -1 only with raw encoding)")
+    return line_skip, byte_skip
+
+
+def _skip_field(header: dict, keys: tuple[str, str]) -> int:
+    """The integer of the first of `keys` in the header (0 when absent)."""
+    return int(next((header[key] for key in keys if key in header), 0))
+
+
+def _read_encoded(f: BinaryIO, where: str, encoding: str, expected: int, line_skip: int,
+                  byte_skip: int) -> np.ndarray:
+    """Exactly `expected` bytes of samples from `f` (positioned where the data start) as
+    a writable uint8 array: `line_skip` lines of the file skipped first, then
+    `byte_skip` bytes (of the decompressed stream for gzip and bzip2; -1: the raw
+    samples are the file's last `expected` bytes). Data that hold fewer or more bytes
+    are refused, having been read and decompressed one byte past `expected` at most
+    (after the last bzip2 stream, bytes that are not bzip2 are left, as Python's `bz2`
+    leaves them)."""
+    _skip_lines(f, line_skip)
+    if encoding == "raw":
+        if byte_skip == -1:
+            start, end = f.tell(), f.seek(0, 2)
+            f.seek(max(start, end - expected))
+        else:
+            f.seek(byte_skip, 1)
+        return read_bounded(f, expected, where, compressed=False)
+    stream = gzip.GzipFile(fileobj=f) if encoding == "gzip" else bz2.BZ2File(f)
+    with stream:
+        _skip_bytes(stream, byte_skip)
+        return read_bounded(stream, expected, where, compressed=True)
+
+
+def _skip_lines(f: BinaryIO, count: int) -> None:
+    """Read `count` lines of `f` (a chunk at a time: a long line costs no more)."""
+    for _ in range(count):
+        while (line := f.readline(INFLATE_CHUNK)) and not line.endswith(b"\n"):
+            pass
+
+
+def _skip_bytes(stream: BinaryIO, count: int) -> None:
+    """Read and drop `count` bytes of `stream` (fewer where it ends), a chunk at a time."""
+    while count > 0 and (dropped := len(stream.read(min(count, INFLATE_CHUNK)))):
+        count -= dropped
 
 
 def _data_file(header: dict) -> str | None:

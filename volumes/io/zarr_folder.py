@@ -102,7 +102,7 @@ def load_zarr(path: Path, level: int | None) -> tuple[Loaded, str]:
         volume = ZarrVolume(node, _plain_space(node.shape, where), where)
         return (volume, None, None, None), "Zarr array"
     image = _first_image(dict(node.attrs), node, where)
-    return _load_image(node, image, level, where)
+    return _load_image(node, image, level, zarr.Array, where)
 
 
 def _plain_space(shape: tuple[int, ...], where: str) -> tuple[int, int, int]:
@@ -131,8 +131,10 @@ def _first_image(attrs: dict, group: Any, where: str) -> dict:
                       f"image{hint}")
 
 
-def _load_image(group: Any, image: dict, level: int | None, where: str) -> tuple[Loaded, str]:
-    """The `level` of an OME-Zarr `image` (a ``multiscales`` entry) in `group`."""
+def _load_image(group: Any, image: dict, level: int | None, array_type: type,
+                where: str) -> tuple[Loaded, str]:
+    """The `level` of an OME-Zarr `image` (a ``multiscales`` entry) in `group`, whose
+    datasets must be arrays (instances of `array_type`: zarr's ``Array``)."""
     datasets = image.get("datasets")
     if not isinstance(datasets, list) or not datasets:
         raise VolumeError(f"{where}: OME-Zarr multiscales lists no datasets")
@@ -140,7 +142,8 @@ def _load_image(group: Any, image: dict, level: int | None, where: str) -> tuple
     if not 0 <= k < len(datasets):
         raise VolumeError(f"{where}: --level {level}: this OME-Zarr image has "
                           f"{len(datasets)} level(s), 0 to {len(datasets) - 1}")
-    arrays = [_dataset_array(group, d, i, where) for i, d in enumerate(datasets)]
+    arrays = [_dataset_array(group, d, i, array_type, where)
+              for i, d in enumerate(datasets)]
     array = arrays[k]
     axes = _axes(image, len(array.shape), where)
     space = _space_axes(axes, where)
@@ -152,14 +155,21 @@ def _load_image(group: Any, image: dict, level: int | None, where: str) -> tuple
     return (volume, spacing, origin, None), _describe(k, arrays, axes, space)
 
 
-def _dataset_array(group: Any, dataset: Any, index: int, where: str) -> Any:
-    """The zarr array of one ``datasets`` entry (its metadata only)."""
+def _dataset_array(group: Any, dataset: Any, index: int, array_type: type,
+                   where: str) -> Any:
+    """The zarr array of one ``datasets`` entry (its metadata only): the node its path
+    names in `group`, which must be an `array_type`."""
     name = dataset.get("path") if isinstance(dataset, dict) else None
     try:
-        return group[str(name)]
+        node = group[str(name)]
     except (KeyError, FileNotFoundError):
         raise VolumeError(f"{where}: OME-Zarr level {index}: dataset path {name!r} not "
                           "found in the group") from None
+    if not isinstance(node, array_type):
+        raise VolumeError(f"{where}: OME-Zarr level {index}: dataset path {name!r} names a "
+                          f"{type(node).__name__.lower()}, not an array; expected the path "
+                          "of the level's array")
+    return node
 
 
 def _axes(image: dict, ndim: int, where: str) -> list[dict]:
