@@ -458,7 +458,12 @@ class Lattice:
             normals: (N, 3) unit normals at the points, turned to the eye: the side-aware
                 lookup (`sided_mix`, with the facings `displayed_facing`), as the shader
                 does it for a lattice with known facings.
+
+        Raises:
+            BakeError: points or normals that are not (N, 3) arrays of numbers.
         """
+        points_xyz = _points(points_xyz, "points")
+        normals = None if normals is None else _points(normals, "normals", len(points_xyz))
         if normalized:
             return shown_lookup(self, points_xyz, normals)
         coords = self.geometry.to_texel_coords(points_xyz)
@@ -493,6 +498,24 @@ class Lattice:
     def check_volume(self, volume: Volume, path: str | os.PathLike[str] = "lattice") -> None:
         """Raise BakeError unless this lattice was baked for `volume`."""
         check_identity(self.meta, volume, path)
+
+
+def _points(values: npt.ArrayLike, what: str, count: int | None = None) -> np.ndarray:
+    """`values` as an (N, 3) float64 array (N = `count` where given).
+
+    Raises:
+        BakeError: naming `what`, the shape given and the shape expected.
+    """
+    try:
+        array = np.asarray(values, np.float64)
+    except (TypeError, ValueError):
+        raise BakeError(f"Lattice.sample: {what} {type(values).__name__}: expected an "
+                        "(N, 3) array of x, y, z") from None
+    if array.ndim != 2 or array.shape[1] != 3 or count not in (None, len(array)):
+        rows = "N" if count is None else str(count)
+        raise BakeError(f"Lattice.sample: {what} of shape {array.shape}: expected "
+                        f"({rows}, 3), x, y, z")
+    return array
 
 
 def file_meta(meta: dict[str, Any], geometry: LatticeGeometry, config: BakeConfig | None

@@ -138,6 +138,83 @@ def test_errors_are_the_commands_one_line_messages(tmp_path):
         isolume.load(tmp_path / "nope.raw")
 
 
+BAD_VALUES = [
+    ("render", {"iso": "abc"}, "iso='abc': invalid float value"),
+    ("render", {"samples": 2.5}, "samples=2.5: invalid int value"),
+    ("render", {"exposure": [1]}, "exposure=[1]: invalid float value"),
+    ("render", {"no_auto_exposure": "yes"}, "no_auto_exposure='yes': expected True or False"),
+    ("render", {"env": 5}, "env=5: expected a str"),
+    ("render", {"light": 5}, "light=5: expected a spec or a list of specs"),
+    ("render", {"light": ["dir:0,0,1:1,1,1", 5]}, "light=['dir:0,0,1:1,1,1', 5]: expected "
+     "a spec or a list of specs"),
+    ("render", {"lattice": 5}, "lattice=5: expected a Lattice or a path"),
+    ("render", {"size": 512}, "size=512: expected a str or a sequence of numbers"),
+    ("render", {"volume": None}, "volume=None: expected a file path, a "
+     "'synthetic:NAME[:SIZE]' spec, a (Z, Y, X) numpy array or a Volume"),
+    ("bake", {"samples": "many"}, "samples='many': invalid int value"),
+    ("bake", {"iso_range": (70, "x")}, "iso_range=(70, 'x'): invalid float value"),
+    ("bake", {"iso_range": "70,110"}, "iso_range='70,110': expected 2 values"),
+    ("bake", {"max_samples": True}, "max_samples=True: invalid int value"),
+    ("export", {"out": "x.ply", "bounces": "two"}, "bounces='two': invalid int value"),
+    ("export", {"out": 5}, "out=5: expected a str"),
+    ("movie", {"out": "m.mp4", "frames": "x"}, "frames='x': invalid int value"),
+    ("movie", {"out": "m.mp4", "fps": "fast"}, "fps='fast': invalid float value"),
+    ("reference", {"out": "r.exr", "spp": "x"}, "spp='x': invalid int value"),
+    ("reference", {"out": "r.exr", "seed": 1.5}, "seed=1.5: invalid int value"),
+    ("show", {"bake_samples": "x"}, "bake_samples='x': invalid int value"),
+    ("load", {"source": [[[1, 2], [3, 4]], [[5, 6], [7, 8]]]},
+     "source=[[[1, 2], [3, 4]], [[5, 6], [7, 8]]]: expected a file path, a "
+     "'synthetic:NAME[:SIZE]' spec, a (Z, Y, X) numpy array or a Volume"),
+    ("load", {"source": None}, "source=None: expected a file path"),
+    ("load", {"source": "synthetic:sphere:16", "downsample": "x"},
+     "downsample='x': invalid int value"),
+    ("load", {"source": np.zeros((4, 4, 4), np.float32), "downsample": "x"},
+     "downsample='x': invalid int value"),
+    ("load", {"source": "synthetic:sphere:16", "level": 1.5}, "level=1.5: invalid int value"),
+]
+"""(function, keywords, the start of its message): values the command's parser refuses,
+given to the functions (the volume, where the function takes one: a sphere)."""
+
+
+@pytest.mark.parametrize(("function", "keywords", "message"), BAD_VALUES,
+                         ids=[f"{f}-{m.split('=')[0]}" for f, _, m in BAD_VALUES])
+def test_a_bad_value_is_an_isolume_error_naming_the_keyword(function, keywords, message,
+                                                            tmp_path):
+    """As ``isolume render --iso abc`` refuses its value in one line, so does
+    ``isolume.render(v, iso="abc")``: an IsolumeError naming the keyword and the value,
+    before any work (no ValueError, TypeError or silent default)."""
+    arguments = dict(keywords)
+    if function != "load":
+        arguments.setdefault("volume", isolume.load("synthetic:sphere:16"))
+    if isinstance(arguments.get("out"), str):
+        arguments["out"] = tmp_path / arguments["out"]
+    with pytest.raises(IsolumeError) as raised:
+        getattr(isolume, function)(**arguments)
+    text = str(raised.value)
+    assert text.startswith(message) and "\n" not in text, text
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_value_is_shown_on_one_short_line():
+    volume = isolume.load("synthetic:sphere:16")
+    with pytest.raises(IsolumeError, match=r"^iso=array\(\[\[1\., .*\.\.\.: invalid float "
+                       r"value$") as raised:
+        isolume.render(volume, iso=np.ones((30, 30)))
+    assert len(str(raised.value)) < 120
+
+
+def test_values_are_converted_as_their_options_parsers_convert_text():
+    from isolume._arguments import namespace
+
+    args = namespace("bake", {"samples": np.int64(8), "iso_range": (70, "110.5"),
+                              "scale": "2", "flip_normals": True})
+    assert args.samples == 8 and type(args.samples) is int
+    assert args.iso_range == [70.0, 110.5] and args.scale == 2.0 and args.flip_normals
+    args = namespace("render", {"iso": 90, "size": (256.0, 128), "light": "dir:0,0,1:1,1,1"})
+    assert args.iso == 90.0 and args.size == "256x128" and args.light == ["dir:0,0,1:1,1,1"]
+    assert namespace("render", {"iso": np.float32(0.3)}).iso == float(np.float32(0.3))
+
+
 def test_load_takes_arrays_files_and_parts(tmp_path):
     z, y, x = np.mgrid[-1:1:20j, -1:1:24j, -1:1:28j]
     field = (x * x + y * y + z * z).astype(np.float32)

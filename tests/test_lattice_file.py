@@ -758,3 +758,17 @@ def test_a_file_written_whole_keeps_permissions_links_and_read_only_files(tmp_pa
         with pytest.raises(WriteError, match="Permission denied; the file there is left"):
             atomic_write(path, write("four"))
         assert path.read_text() == "three"
+
+
+def test_sample_refuses_points_that_are_not_xyz_rows_in_one_line():
+    """`Lattice.sample` of anything but (N, 3) points (and normals, one a point) names
+    what it was given and what it takes."""
+    lattice = _random_lattice()
+    assert lattice.sample([[0.5, 0.5, 0.5]]).shape == (1, 3)
+    for points, normals, message in (
+            (np.zeros((2, 2)), None, r"points of shape \(2, 2\): expected \(N, 3\)"),
+            (np.zeros(3), None, r"points of shape \(3,\): expected \(N, 3\)"),
+            ("abc", None, r"points str: expected an \(N, 3\) array"),
+            (np.zeros((2, 3)), np.ones((3, 3)), r"normals of shape \(3, 3\): expected \(2, 3\)")):
+        with pytest.raises(BakeError, match=message):
+            lattice.sample(points, normals=normals)

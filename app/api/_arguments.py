@@ -2,14 +2,18 @@
 
 Each public function passes its keyword arguments (named as the command's options:
 ``--env-rotation`` is ``env_rotation``) to `namespace`, which starts from the command's
-own parser defaults and stores each value as that option's parser would have, so that
-the command's checks, messages and work follow unchanged.
+own parser defaults and stores each value as that option's parser would have (converted
+by the option's ``type``, checked against its choices), so that the command's checks,
+messages and work follow unchanged, and a value its parser would refuse is refused in one
+line naming the keyword (`OptionError`).
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import importlib
+import numbers
 import os
 from collections.abc import Mapping, Sequence
 
@@ -21,6 +25,17 @@ class OptionError(CLIError):
 
 JOINED = ("view", "env_rotation", "spacing", "origin", "dims")
 """Options given as comma-separated numbers (``AZ,EL``, ``X,Y,Z``): a sequence joins."""
+
+OBJECTS = {"volume": ("isolume.volumes.core", "Volume"),
+           "lattice": ("isolume.baking.lattice", "Lattice")}
+"""Keywords that take an object as well as their option's text: {keyword: (module, class)}."""
+
+NUMBERS = {int: (numbers.Integral,), float: (numbers.Real,)}
+"""The numbers an option of each ``type`` takes as they are (exactly: a float32 stays its
+value); anything else is converted from its text, as the command line's would be."""
+
+SHOWN = 80
+"""The most characters of a value that a message shows."""
 
 
 def python_name(action: argparse.Action) -> str:
@@ -64,8 +79,7 @@ def option_value(name: str, value: object) -> object:
     if isinstance(value, os.PathLike):
         return os.fspath(value)
     if name == "size" and isinstance(value, Sequence):
-        width, height = value
-        return f"{int(width)}x{int(height)}"
+        return "x".join(_number(v) for v in value)
     if name in (*JOINED, "albedo") and isinstance(value, Sequence):
         return ",".join(_number(v) for v in value)
     if name == "albedo" and isinstance(value, (int, float)):
@@ -73,6 +87,66 @@ def option_value(name: str, value: object) -> object:
     if name in ("light", "iso_range") and isinstance(value, Sequence):
         return list(value)
     return value
+
+
+def shown(value: object) -> str:
+    """`value`'s repr on one line, cut to `SHOWN` characters, for a message."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= SHOWN else f"{text[:SHOWN - 3]}..."
+
+
+def _is_object(name: str, value: object) -> bool:
+    """Whether `value` is the object keyword `name` takes besides text (`OBJECTS`)."""
+    if name not in OBJECTS:
+        return False
+    module, attribute = OBJECTS[name]
+    return isinstance(value, getattr(importlib.import_module(module), attribute))
+
+
+def _forms(name: str) -> str:
+    """What the keyword `name` takes where its option takes text."""
+    if name in (*JOINED, "size", "albedo"):
+        return "a str or a sequence of numbers"
+    if name in OBJECTS:
+        return f"a {OBJECTS[name][1]} or a path"
+    return "a spec or a list of specs" if name == "light" else "a str"
+
+
+def _converted(action: argparse.Action, name: str, given: object, item: object) -> object:
+    """`item` (`given`, or one of its values) converted as the parser of the option
+    `action` converts its text: by its ``type`` (int, float: a number, `NUMBERS`, or its
+    text), else kept as text; `OptionError` naming keyword `name` and `given` where the
+    parser would refuse it."""
+    if action.type is None:
+        if isinstance(item, str) or _is_object(name, item):
+            return item
+        raise OptionError(f"{name}={shown(given)}: expected {_forms(name)}")
+    if isinstance(item, bool) or not isinstance(item, (str, *NUMBERS.get(action.type, ()))):
+        item = str(item)  # what the command line would have: 2.5 is no int, True no number
+    try:
+        return action.type(item)
+    except (TypeError, ValueError):
+        kind = getattr(action.type, "__name__", "option")
+        raise OptionError(f"{name}={shown(given)}: invalid {kind} value") from None
+
+
+def converted(action: argparse.Action, name: str, given: object, value: object) -> object:
+    """The value keyword `name` stores for option `action`, given `given` (`value` as
+    `option_value` makes it): a flag's bool, each of a fixed number of values, each of
+    the specs of an appended option, or the one value, converted (`_converted`)."""
+    if given is None:
+        return value
+    if action.nargs == 0:
+        if not isinstance(given, bool):
+            raise OptionError(f"{name}={shown(given)}: expected True or False")
+        return given
+    if isinstance(action.nargs, int) or isinstance(action, argparse._AppendAction):
+        count = action.nargs if isinstance(action.nargs, int) else None
+        if not isinstance(value, list) or count not in (None, len(value)):
+            expected = f"{count} values" if count else _forms(name)
+            raise OptionError(f"{name}={shown(given)}: expected {expected}")
+        return [_converted(action, name, given, item) for item in value]
+    return _converted(action, name, given, value)
 
 
 def check_choice(action: argparse.Action, name: str, value: object) -> None:
@@ -94,8 +168,10 @@ def namespace(command: str, values: Mapping[str, object]) -> argparse.Namespace:
     actions = option_actions(command)
     for name, value in values.items():
         action = actions.get(name)
-        if action is not None:
-            check_choice(action, name, value)
-        stored[action.dest if action is not None else name] = option_value(name, value)
+        if action is None:
+            stored[name] = option_value(name, value)
+            continue
+        check_choice(action, name, value)
+        stored[action.dest] = converted(action, name, value, option_value(name, value))
     stored.pop("state_parser", None)
     return argparse.Namespace(command=command, **stored)

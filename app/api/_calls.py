@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from isolume._arguments import namespace
+from isolume._arguments import OptionError, namespace, shown
 from isolume.baking.config import DEFAULT_ENV
 
 if TYPE_CHECKING:
@@ -33,13 +33,13 @@ PathText = str | os.PathLike[str]
 Numbers = Sequence[float]
 
 
-def load(source: Volume | str | os.PathLike[str] | np.ndarray | None = None, *,
+def load(source: Volume | str | os.PathLike[str] | np.ndarray, *,
          dims: Sequence[int] | str | None = None, dtype: str | None = None,
          spacing: Numbers | str | None = None, up: str | None = None,
          crop: str | None = None, downsample: int = 1, level: int | None = None,
          origin: Numbers | str | None = None, name: str = "array") -> Volume:
     """A volume: a file (raw, NRRD, NIfTI, TIFF, DICOM, Zarr, .npy…), ``synthetic:NAME
-    [:SIZE]``, None for the built-in default, or a (Z, Y, X) array.
+    [:SIZE]``, a (Z, Y, X) numpy array, or a `Volume` (its part, turned as asked).
 
     Args:
         dims: X,Y,Z samples of a raw file whose name does not say.
@@ -55,24 +55,35 @@ def load(source: Volume | str | os.PathLike[str] | np.ndarray | None = None, *,
         name: an array's name in messages and pictures.
 
     Raises:
-        IsolumeError: a bad file or value (one line naming it).
+        IsolumeError: a bad file, source or value (one line naming it).
     """
     from isolume import volumes
     from isolume.app.options import load_volume
 
-    if isinstance(source, volumes.Volume):
-        volume = volumes.crop_downsample(source, crop, downsample)
-    elif isinstance(source, np.ndarray):
-        volume = volumes.Volume(source, spacing=_triple(spacing, "spacing", 1.0),
+    text = _source(source, "source")
+    args = namespace("info", {"volume": text if isinstance(text, str) else None, "dims": dims,
+                              "dtype": dtype, "spacing": spacing, "origin": origin, "up": up,
+                              "crop": crop, "downsample": downsample, "level": level})
+    if isinstance(source, np.ndarray):
+        source = volumes.Volume(source, spacing=_triple(spacing, "spacing", 1.0),
                                 origin=_triple(origin, "origin", 0.0), name=name, source=name)
-        volume = volumes.crop_downsample(volume, crop, downsample)
-    else:
-        args = namespace("info", {"volume": None if source is None else os.fspath(source),
-                                  "dims": dims, "dtype": dtype, "spacing": spacing,
-                                  "origin": origin, "crop": crop, "downsample": downsample,
-                                  "level": level})
-        return load_volume(args) if up is None else volumes.turn_up(load_volume(args), up)
+    if not isinstance(source, volumes.Volume):
+        return load_volume(args)  # the file or spec, its part, turned by args.up
+    volume = volumes.crop_downsample(source, args.volume_crop, args.volume_downsample)
     return volume if up is None else volumes.turn_up(volume, up)
+
+
+def _source(source: object, keyword: str) -> str | np.ndarray | Volume:
+    """`source`, given as keyword `keyword`, as the volume option stores it: a path's
+    text, a spec, an array or a `Volume` as it is; `OptionError` for anything else."""
+    from isolume import volumes
+
+    if isinstance(source, (str, os.PathLike)):
+        return os.fspath(source)
+    if isinstance(source, (np.ndarray, volumes.Volume)):
+        return source
+    raise OptionError(f"{keyword}={shown(source)}: expected a file path, a "
+                      "'synthetic:NAME[:SIZE]' spec, a (Z, Y, X) numpy array or a Volume")
 
 
 def info(volume: Volume | str | os.PathLike[str]) -> VolumeInfo:
@@ -104,10 +115,13 @@ def _options(call: dict[str, object], *leave: str) -> dict[str, object]:
     return {name: value for name, value in call.items() if name not in NOT_OPTIONS + leave}
 
 
-def _volume(volume: Volume | str | os.PathLike[str]) -> Volume:
+def _volume(volume: Volume | str | os.PathLike[str] | np.ndarray) -> Volume:
+    """The `Volume` of a function's `volume`: as it is, or what `load` makes of it."""
     from isolume import volumes
 
-    return volume if isinstance(volume, volumes.Volume) else load(volume)
+    if isinstance(volume, volumes.Volume):
+        return volume
+    return load(_source(volume, "volume"))
 
 
 class _Session:
@@ -356,13 +370,10 @@ def show(volume: Volume | str | os.PathLike[str], *, iso: float | None = None,
     refining the global illumination (`isolume.app.notebook`). `gl`: EGL, else OSMesa
     ("auto"); where neither exists (macOS) an `IsolumeError` says to use ``isolume
     view``."""
+    given = _options(locals())
     from isolume.app.notebook import show as notebook_show
     from isolume.app.options import parse_size
 
-    return notebook_show(_volume(volume), iso=iso, lattice=lattice, shading=shading,
-                         size=parse_size(size) if isinstance(size, str) else size,
-                         exposure=exposure, no_auto_exposure=no_auto_exposure,
-                         no_bake=no_bake, bake_mode=bake_mode, bake_env=bake_env,
-                         bake_samples=bake_samples, bake_workers=bake_workers,
-                         bake_max_levels=bake_max_levels, normals=normals,
-                         flip_normals=flip_normals, gl=gl)
+    args = vars(namespace("view", given))  # each keyword converted and checked
+    args["size"] = parse_size(args["size"])
+    return notebook_show(_volume(volume), **{name: args[name] for name in given})
