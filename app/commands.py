@@ -36,9 +36,14 @@ if TYPE_CHECKING:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    """Print dimensions, spacing, value range, histogram and suggested isovalues."""
+    """Print dimensions, spacing, value range, histogram and suggested isovalues; of a
+    lattice file, what it holds (`app.lattice_info`)."""
+    from isolume.app.lattice_info import describe_lattice, is_lattice_file
     from isolume.volumes.stats import VolumeInfo
 
+    if isinstance(args.volume, str) and is_lattice_file(args.volume):
+        print(describe_lattice(args.volume))
+        return 0
     print(VolumeInfo.of(load_volume(args)))
     return 0
 

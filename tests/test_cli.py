@@ -27,6 +27,29 @@ def test_info_lists_range_and_suggestions(capsys):
     assert "48 x 30 x 25" in out and "suggested isovalues: 0.3, 0.8" in out
 
 
+def test_info_of_a_lattice_file_says_what_it_holds(tmp_path, capsys):
+    """`info` of a lattice file describes the lattice — its volume, light, paths and
+    whether its bake has finished — where a volume's reader named its arrays."""
+    from isolume.baking import Lattice
+
+    path = tmp_path / "l.npz"
+    assert _run(capsys, "bake", "synthetic:sphere:16", "--samples", "2", "--bounces", "0",
+                "--light", "dir:0,0,1:1,1,1", "--out", str(path))[0] == 0
+    status, out, err = _run(capsys, "info", str(path))
+    assert status == 0, err
+    assert out.startswith("l.npz: irradiance lattice\ntexels     16 × 16 × 16")
+    assert "volume     'sphere' of shape [16, 16, 16]" in out
+    assert "lighting   sky:sun=6,sun_az=-150,sun_el=40 + dir:0,0,1:1,1,1" in out
+    assert "--samples 2 --bounces 0" in out and "finished   yes" in out
+    lattice = Lattice.load(path)
+    computed = np.flatnonzero(lattice.samples.reshape(-1))[:7]
+    lattice.samples.reshape(-1)[computed] = 0  # as a bake stopped before them leaves them
+    lattice.save(path)
+    active = int(np.count_nonzero(lattice.active))
+    status, out, _ = _run(capsys, "info", str(path))
+    assert status == 0 and f"finished   no: 7 of {active:,} active texels have no paths" in out
+
+
 def test_render_png_and_exr(tmp_path, capsys):
     png, exr = tmp_path / "a.png", tmp_path / "a.exr"
     for out in (png, exr):

@@ -1188,3 +1188,11 @@ def test_orientation_can_be_left_out(tmp_path):
     path.write_bytes(path.read_bytes().replace(
         b"NDims = 3\n", b"NDims = 3\nTransformMatrix = 0 -1 0 0 0 1 -1 0 0\n"))
     assert_volume(load_file(path, orientation=False), data)
+
+
+def test_a_lattice_file_given_as_a_volume_says_what_it_is(tmp_path):
+    """An .npz of a lattice's members is named as a lattice, to give with --lattice."""
+    path = tmp_path / "l.npz"
+    np.savez(path, values=np.zeros((1, 3), np.float32), samples=np.ones(1, np.uint32),
+             held=np.ones(1, np.uint8), meta=np.array("{}"))
+    load_error(path, "an illumination lattice", "give it with --lattice")

@@ -56,6 +56,10 @@ def load_npy(path: Path, lazy: bool = False) -> Loaded:
     return _bool_as_uint8(arr), None, None, None
 
 
+LATTICE_MEMBERS = ("values", "samples", "held", "meta")
+"""Arrays that every illumination lattice file holds (`isolume.baking.lattice_file`)."""
+
+
 def load_npz(path: Path) -> Loaded:
     """``.npz``: array ``data`` (or the only array) (Z, Y, X); optional ``spacing``, ``origin``."""
     _check_magic(path, b"PK", "a .npz (zip) archive")
@@ -82,6 +86,10 @@ def _volume_key(path: Path, keys: list[str]) -> str:
         return "data"
     if len(candidates) == 1:
         return candidates[0]
+    if set(LATTICE_MEMBERS) <= set(keys):
+        raise VolumeError(f"{path}: an illumination lattice (the .npz isolume bake writes), "
+                          "not a volume: give it with --lattice, beside the volume it was "
+                          "baked for")
     raise VolumeError(
         f"{path}: cannot tell which array is the volume among {keys}; "
         "expected an array named 'data' or a single array"
