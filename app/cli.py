@@ -12,6 +12,7 @@ movie, view) gives a command the defaults of a view saved in the viewer
 from __future__ import annotations
 
 import argparse
+import difflib
 import gc
 import os
 import re
@@ -231,6 +232,22 @@ def _first_compile_listener() -> object:
     return Once()
 
 
+def _parsed(words: list[str]) -> argparse.Namespace:
+    """The options of command line `words`; words the command does not know are refused
+    by its own parser (its usage, not the top level's), naming the option meant where
+    one is spelled alike (`--isovalue`: `--iso`)."""
+    args, unknown = build_parser(command_named(words)).parse_known_args(words)
+    if unknown:
+        parser = command_parser(args.command)
+        options = [s for action in parser._actions for s in action.option_strings]
+        meant = [close[0] for word in unknown if word.startswith("-")
+                 for close in [difflib.get_close_matches(word.split("=")[0], options, 1)]
+                 if close]
+        hint = f" (did you mean {', '.join(dict.fromkeys(meant))}?)" if meant else ""
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
+    return args
+
+
 def _leave(status: int) -> None:
     """End the process now with `status`, once the command has stopped and saved what it
     finished: a pool thread may still be compiling a kernel (the first run on a machine:
@@ -248,7 +265,7 @@ def _run(argv: Sequence[str] | None) -> int:
     """The command `argv` names (None: the process's arguments); its exit status."""
     tune_malloc()
     words = _join_negative_axes(sys.argv[1:] if argv is None else argv)
-    args = build_parser(command_named(words)).parse_args(words)
+    args = _parsed(words)
     command = COMMANDS.get(args.command) or _command_module(args.command).run
     try:
         args = apply_state(args, words[1:])  # --state FILE: the file's defaults

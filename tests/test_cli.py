@@ -50,6 +50,24 @@ def test_info_of_a_lattice_file_says_what_it_holds(tmp_path, capsys):
     assert status == 0 and f"finished   no: 7 of {active:,} active texels have no paths" in out
 
 
+def test_an_unknown_option_is_refused_by_its_command_naming_the_one_meant(capsys):
+    """A misspelled option is refused with the command's usage, not the top level's, and
+    the option spelled alike is named."""
+    for argv, message in (
+            (["render", "synthetic:sphere:16", "--isovalue", "100"],
+             "isolume render: error: unrecognized arguments: --isovalue 100 (did you mean "
+             "--iso?)"),
+            (["bake", "synthetic:sphere:16", "--out", "x.npz", "--sampls", "3", "--bouncs=2"],
+             "(did you mean --samples, --bounces?)"),
+            (["render", "synthetic:sphere:16", "extra"],
+             "isolume render: error: unrecognized arguments: extra\n")):
+        with pytest.raises(SystemExit) as exited:
+            main(argv)
+        err = capsys.readouterr().err
+        assert exited.value.code == 2 and message in err, err
+        assert err.startswith("usage: isolume " + argv[0])
+
+
 def test_render_png_and_exr(tmp_path, capsys):
     png, exr = tmp_path / "a.png", tmp_path / "a.exr"
     for out in (png, exr):
