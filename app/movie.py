@@ -271,24 +271,45 @@ def movie_exposure(args: argparse.Namespace, stage: Stage, shots: list[Shot]
 
 def write_frames(request: Request, stage: Stage, shots: list[Shot], exposure: float,
                  comment: str) -> None:
-    """Draw every shot at `exposure` and write it, a progress bar on stderr."""
+    """Draw every shot at `exposure` and write it, a progress bar on stderr; a Ctrl-C
+    closes the output with the frames written so far and says how many (an MP4 of none
+    is removed)."""
     from tqdm import tqdm
 
     from isolume.app.movie_output import Mp4Frames, PngFrames
 
     writer = (PngFrames(request.out, request.frames) if request.folder
               else Mp4Frames(request.out, request.size, request.fps, request.crf, comment))
-    with writer, tqdm(total=len(shots), unit="frame", desc=request.kind, file=sys.stderr,
-                      dynamic_ncols=True) as bar:
-        for shot in shots:
-            frame = stage.draw(shot, exposure)
-            writer.write(shot.index, frame.srgb, frame_text(
-                request.kind, shot, stage.scene.camera(shot), exposure, stage.scene.settings))
-            bar.update()
+    written = 0
+    try:
+        with writer, tqdm(total=len(shots), unit="frame", desc=request.kind,
+                          file=sys.stderr, dynamic_ncols=True) as bar:
+            for shot in shots:
+                frame = stage.draw(shot, exposure)
+                writer.write(shot.index, frame.srgb, frame_text(
+                    request.kind, shot, stage.scene.camera(shot), exposure,
+                    stage.scene.settings))
+                written += 1
+                bar.update()
+    except KeyboardInterrupt:
+        _say_stopped(request, written, len(shots))
+        raise
     others = writer.others() if request.folder else []
     if others:
         print(f"isolume: warning: {request.out} also holds {len(others)} other frame_*.png "
               "files (not of this movie)", file=sys.stderr)
+
+
+def _say_stopped(request: Request, written: int, frames: int) -> None:
+    """Say on stderr what a movie stopped after `written` of its `frames` left in its
+    output; an MP4 of no frame is removed."""
+    if written == 0 and not request.folder:
+        request.out.unlink(missing_ok=True)
+        print(f"isolume: stopped before the first frame; {request.out} was not kept",
+              file=sys.stderr)
+    else:
+        print(f"isolume: stopped after {written} of {frames} frames; {request.out} holds "
+              "them", file=sys.stderr)
 
 
 def movie_camera(volume: volumes.Volume, request: Request, iso: float,

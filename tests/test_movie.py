@@ -310,6 +310,33 @@ def test_mp4_holds_every_frame(tmp_path, capsys):
     assert np.abs(decoded.astype(int) - png).mean() < 4  # yuv420p: colour per 2×2 block
 
 
+@pytest.mark.parametrize("stop_at", [3, 0])
+def test_a_stopped_movie_keeps_its_frames_and_says_so(tmp_path, capsys, monkeypatch, stop_at):
+    """A Ctrl-C while the frames are drawn closes the MP4 with the frames written (a
+    playable file of those) and says how many; an MP4 of none is not kept."""
+    import imageio_ffmpeg
+
+    from isolume.app.movie_output import Mp4Frames
+
+    written = Mp4Frames.write
+
+    def write(frames, index, srgb, text):
+        if index == stop_at:
+            raise KeyboardInterrupt
+        written(frames, index, srgb, text)
+
+    monkeypatch.setattr(Mp4Frames, "write", write)
+    out = tmp_path / "stopped.mp4"
+    assert main(["movie", "synthetic:engine:32", "--size", "64x48", "--frames", "8",
+                 "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    if stop_at:
+        assert "stopped after 3 of 8 frames; " in err and f"{out} holds them" in err
+        assert imageio_ffmpeg.count_frames_and_secs(str(out))[0] == 3
+    else:
+        assert "stopped before the first frame" in err and not out.exists()
+
+
 # -- one-line errors ------------------------------------------------------------------------
 def _a_file(folder: Path) -> Path:
     """A file `folder`/taken, written."""
