@@ -1196,3 +1196,19 @@ def test_a_lattice_file_given_as_a_volume_says_what_it_is(tmp_path):
     np.savez(path, values=np.zeros((1, 3), np.float32), samples=np.ones(1, np.uint32),
              held=np.ones(1, np.uint8), meta=np.array("{}"))
     load_error(path, "an illumination lattice", "give it with --lattice")
+
+
+@pytest.mark.parametrize(("cut", "fragment"), [
+    (lambda data: data[:40], "its gzip data are damaged or cut short"),
+    (lambda data: b"not gzip" * 100, "its gzip data are damaged or cut short"),
+    (lambda data: gzip.compress(gzip.decompress(data)[:100]), "its gzip data end after 100 "
+                                                               "bytes, before the 348")])
+def test_a_nifti_gz_without_a_header_says_its_gzip_data_are_short(tmp_path, cut, fragment):
+    """A .nii.gz whose gzip data give no header names that, not nibabel's guess about
+    the file's type."""
+    nib = pytest.importorskip("nibabel")
+    whole = tmp_path / "whole.nii.gz"
+    nib.save(nib.Nifti1Image(np.zeros((4, 4, 4), np.float32), np.eye(4)), str(whole))
+    path = tmp_path / "cut.nii.gz"
+    path.write_bytes(cut(whole.read_bytes()))
+    load_error(path, "not a readable NIfTI file", fragment)

@@ -65,7 +65,24 @@ def _open_header(nib: ModuleType, path: Path) -> Any:
                           "header nibabel reads (e.g. datatype 2 uint8, 4 int16, 16 "
                           "float32)") from None
     except (nib.filebasedimages.ImageFileError, *READ_ERRORS) as exc:
-        raise VolumeError(f"{path}: not a readable NIfTI file: {one_line(exc)}") from None
+        raise VolumeError(f"{path}: not a readable NIfTI file: "
+                          f"{_gzip_problem(path) or one_line(exc)}") from None
+
+
+def _gzip_problem(path: Path) -> str | None:
+    """Why the gzip data of a ``.gz`` file give no NIfTI header (348 bytes): cut short,
+    or not gzip; None where they give one (or the file is no ``.gz``)."""
+    if not path.name.lower().endswith(".gz"):
+        return None
+    try:
+        with gzip.open(path, "rb") as stream:
+            head = stream.read(348)
+    except (OSError, EOFError, zlib.error) as exc:
+        return f"its gzip data are damaged or cut short ({one_line(exc)})"
+    if len(head) < 348:
+        return (f"its gzip data end after {len(head)} bytes, before the 348 of a NIfTI "
+                "header")
+    return None
 
 
 @contextmanager
