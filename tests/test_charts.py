@@ -12,9 +12,11 @@ Two small end-to-end runs (OSMesa, as CI renders):
   visible and falls with samples; the reference rule must be met or its cap stated.
 """
 
+import dataclasses
 import itertools
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -161,6 +163,46 @@ def test_lattice_error_falls_with_samples_where_there_is_occlusion(tmp_path):
     assert ref["noise"] > 0 and ref["smallest_error"] > 0
     assert ref["holds"] == (ref["noise"] <= tracing.NOISE_RATIO * ref["smallest_error"])
     assert ref["holds"] or (ref["capped"] and ref["spp_needed"] > ref["spp"])
+
+
+def test_no_bake_time_holds_the_first_bakes_one_off_costs(tmp_path, monkeypatch):
+    """The first bake of a process pays one-off costs (kernels loaded, the first Embree
+    scene), simulated as a pause in the first `Baker.run`: the store's untimed warm-up
+    takes it, so no lattice's time holds it. Under noisy light with the automatic level
+    policy each count is a fresh bake (resumed_from 0); noise-free light resumes the next
+    lower count and sums the chain. Lattices are cached with their warm times, and a
+    cached one timed without the warm-up is baked again."""
+    from isolume.app.charts.lattices import WARM_MARK, LatticeStore
+    from isolume.baking.bake import Baker
+    from isolume.baking.config import BakeConfig
+    from isolume.volumes.synthetic import make
+
+    one_off, baker_run = 1.0, Baker.run
+
+    def run_paying_once(self, *args, **kwargs):
+        if not hasattr(run_paying_once, "paid"):
+            run_paying_once.paid = True
+            time.sleep(one_off)
+        return baker_run(self, *args, **kwargs)
+
+    monkeypatch.setattr(Baker, "run", run_paying_once)
+    volume = make("sphere", 16)
+    store = LatticeStore(volume, tmp_path, workers=1)
+    noisy = BakeConfig(samples=4, bounces=1, env="constant:1")
+    lit = BakeConfig(samples=4, bounces=0, env="", lights=("dir:0,0,1:2,2,2",))
+    chains = [[store.get(dataclasses.replace(c, samples=n)) for n in (4, 16)]
+              for c in (noisy, lit)]
+    assert all(b.seconds < one_off and not b.cached for chain in chains for b in chain)
+    assert [b.summary()["resumed_from"] for b in chains[0]] == [0, 0]
+    assert [b.summary()["resumed_from"] for b in chains[1]] == [0, 4]
+    assert chains[1][1].seconds > chains[1][0].seconds
+    again = LatticeStore(volume, tmp_path, workers=1)
+    cached = again.get(dataclasses.replace(noisy, samples=16))
+    assert cached.cached and cached.seconds == chains[0][1].seconds
+    stale = chains[0][0].lattice
+    del stale.meta[WARM_MARK]
+    stale.save(again._path(stale.config))
+    assert not again.get(stale.config).cached
 
 
 # -- helpers ----------------------------------------------------------------------------

@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 from isolume.app.charts.builders import CHART_BUILDERS
-from isolume.app.charts.lattices import LatticeStore
+from isolume.app.charts.lattices import BAKE_TIME, LatticeStore
 from isolume.app.charts.lighting import local_lighting
 from isolume.app.charts.metrics import image_entries
 from isolume.app.charts.model import Chart, Plan, Run
@@ -160,8 +160,7 @@ def _settings(args, volume, iso: float, plan: Plan, notes: list[str], run: Run) 
         "cpu_count": cores.available(), "load_average_1min_at_end": os.getloadavg()[0],
         "error_metric": "sqrt(mean((img - ref)^2)) / mean(ref) over the RGB values of the "
                         "pixels both images mark as surface (linear radiance)",
-        "bake_time": "wall time of the bake; a lattice of N paths/texel resumes the one of "
-                     "the next lower count, and its time is the sum over that chain",
+        "bake_time": BAKE_TIME,
         **run.facts,
     }
 

@@ -1,9 +1,12 @@
 """Lattices of ``isolume chart``: baked on demand and cached (`LatticeStore`), and what
 their GL textures cost and how much of the displayed surface they cover.
 
-A lattice of N paths per texel is made by resuming the one of the next lower count
-(samples are deterministic per texel and index, so it equals a fresh bake), and its time
-is the sum of the wall times of that chain.
+A lattice whose levels do not follow its samples is made by resuming the one of the next
+lower count (samples are deterministic per texel and index, so it equals a fresh bake), and
+its time is the sum of the wall times of that chain. One whose levels follow its samples
+(the automatic level policy under noisy light, `baking.plan.levels_follow_samples`) is
+baked afresh: a resumed bake would keep the lower count's levels. Before its first bake a
+store pays the process's one-off costs in an untimed warm-up (`LatticeStore.warm_up`).
 """
 
 from __future__ import annotations
@@ -27,6 +30,19 @@ if TYPE_CHECKING:
     from isolume.baking.lattice import Lattice
     from isolume.volumes import Volume
     from isolume.volumes.mesh import Mesh
+
+BAKE_TIME = ("wall time of the bake, after an untimed warm-up bake that keeps the process's "
+             "one-off costs (loading the kernels, the first scenes, the volume's caches) off "
+             "every point; a lattice whose levels follow its samples (the automatic level "
+             "policy under noisy light: resumed_from 0) is a fresh bake timed end to end, any "
+             "other resumes the one of the next lower count (resumed_from: its samples) and "
+             "its time is the sum over that chain")
+"""What `Baked.seconds` measures, as the JSON of every chart says."""
+WARM_TEXELS = 4096
+"""Most texels the warm-up bake traces (one path each)."""
+WARM_MARK = "chart_after_warm_up"
+"""Lattice metadata key of a chart lattice timed after the warm-up; a cached lattice
+without it was timed with the one-off costs and is baked again."""
 
 
 @dataclass
@@ -58,7 +74,8 @@ class LatticeStore:
     """Bakes lattices on demand and keeps them (in memory and in ``folder``).
 
     A lattice of N paths per texel resumes the one with the most samples below N and the
-    same other settings; its `Baked.seconds` adds the wall times of the chain.
+    same other settings unless its levels follow its samples; its `Baked.seconds` adds the
+    wall times of the chain. The first bake is preceded by `warm_up`.
     """
 
     volume: Volume
@@ -68,6 +85,7 @@ class LatticeStore:
     def __init__(self, volume: Volume, folder: Path, workers: int | None) -> None:
         self.volume, self.folder, self.workers = volume, folder, workers
         self._memory: dict = {}
+        self._warm = False
         output_folder(folder, "--cache")
 
     def _stem(self, config) -> str:
@@ -80,8 +98,8 @@ class LatticeStore:
         return self.folder / f"{self._stem(config)}_s{config.samples}.npz"
 
     def _load(self, config) -> Baked | None:
-        """The cached lattice of exactly `config` and of the texels a bake places now
-        (`baking.lattice.other_texels`), or None."""
+        """The cached lattice of exactly `config`, of the texels a bake places now
+        (`baking.lattice.other_texels`) and timed after a warm-up (`WARM_MARK`), or None."""
         from isolume.baking.errors import BakeError
         from isolume.baking.lattice import Lattice, other_texels
 
@@ -94,8 +112,8 @@ class LatticeStore:
             lattice = Lattice.load(path, self.volume)
         except BakeError:
             return None
-        if lattice.config != config or other_texels(lattice.geometry, self.volume,
-                                                     config.scale):
+        if (not lattice.meta.get(WARM_MARK) or lattice.config != config
+                or other_texels(lattice.geometry, self.volume, config.scale)):
             return None
         baked = Baked(lattice, float(lattice.meta["chart_seconds"]), True)
         self._memory[config] = baked
@@ -124,9 +142,28 @@ class LatticeStore:
             self._memory[config] = baked
         return baked
 
+    def warm_up(self, config: BakeConfig) -> None:
+        """Pay the process's one-off costs of baking, once per store and untimed, so that
+        no bake's time holds them: load the kernels (`baking.kernels.warm_up`) and trace
+        one path for up to `WARM_TEXELS` texels of `config`'s settings (the first Embree
+        scenes, the volume's caches)."""
+        from isolume.baking import kernels
+        from isolume.baking.bake import Baker
+
+        if self._warm:
+            return
+        kernels.warm_up()
+        baker = Baker(self.volume, dataclasses.replace(config, samples=1), workers=self.workers)
+        try:
+            baker.run(np.arange(min(len(baker.plan.ids), WARM_TEXELS)))
+        finally:
+            baker.close()
+        self._warm = True
+
     def _bake(self, config, start: Baked | None) -> Baked:
         from isolume.baking.bake import Baker
 
+        self.warm_up(config)
         lattice = None
         if start is not None:
             lattice = copy.deepcopy(start.lattice)
@@ -141,6 +178,7 @@ class LatticeStore:
         lattice = baker.lattice
         lattice.meta["chart_seconds"] = seconds
         lattice.meta["chart_resumed_from"] = start.lattice.config.samples if start else 0
+        lattice.meta[WARM_MARK] = True
         lattice.save(self._path(config))
         order = f" order {config.sh_order}" if config.mode == "sh" else ""
         say(f"baked {config.mode}{order} x{config.scale:g} {config.normals} offset "

@@ -4,8 +4,11 @@ A lattice's texels are lit on a few isovalue *levels* (`baking.plan`): more leve
 texels less far onto them (less bias) but cost a marching-cubes mesh and an Embree scene
 each. The automatic policy (the default, ``max_move`` None) loosens the level spacing as
 the Monte Carlo noise grows (few paths per texel) and caps the level count at a fraction
-of the tracing cost; the fixed policies keep one move limit whatever the samples. Each
-point is a fresh bake (a resumed one keeps its file's levels), timed end to end.
+of the tracing cost; the fixed policies keep one move limit whatever the samples. A point
+of the automatic policy is a fresh bake timed end to end (a resumed one would keep its
+file's levels); a fixed policy's resumes its next lower count, and its time is the sum
+over that chain (`app.charts.lattices`). No point's time holds the process's one-off costs
+(`LatticeStore.warm_up`).
 """
 
 from __future__ import annotations
@@ -24,19 +27,6 @@ POLICIES = (("auto", None), ("0.25 voxel", 0.25), ("0.5 voxel", 0.5), ("1 voxel"
 def chart_levels(run: Run) -> Chart:
     """Chart 5: error against bake time of irradiance lattices at chart 1's sample
     counts, one series per level policy (`POLICIES`)."""
-    import dataclasses
-
-    import numpy as np
-
-    from isolume.baking import kernels
-    from isolume.baking.bake import Baker
-
-    kernels.warm_up()
-    warm = Baker(run.volume, dataclasses.replace(run.config, samples=1), workers=run.workers)
-    try:
-        warm.run(np.arange(min(len(warm.plan.ids), 4096)))
-    finally:
-        warm.close()
     series = {}
     for label, max_move in POLICIES:
         points = []
@@ -76,7 +66,8 @@ def plot_levels(record: dict[str, Any], path: Path) -> None:
     ax.set_xscale("log")
     ax.set_yscale("log")
     plain_log_ticks(ax)
-    ax.set_xlabel("bake wall time, s (fresh bake: plan, level scenes, tracing)")
+    ax.set_xlabel("bake wall time, s (plan, level scenes, tracing; fixed limits: the resumed "
+                  "chain's sum)")
     ax.set_ylabel("relative RMSE against path tracing")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
