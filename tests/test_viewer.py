@@ -189,6 +189,26 @@ def test_wait_gi_ends_when_the_first_preview_is_on_screen(display, tmp_path):
     assert np.mean(ratio < 0.5) < 0.05, np.mean(ratio < 0.5)  # no face left unlit
 
 
+def test_wait_gi_lights_what_the_screenshot_sees_beside_the_panel(display, tmp_path):
+    """With the panel shown the window's camera stands aside to frame the surface beside
+    it, and a screenshot's (framed in the whole window, `ViewerState.whole_window`) sees
+    faces the window's does not: on the torus, part of the hole's inner wall. ``wait-gi``
+    returns once they have their first light too: no pixel of the screenshot after it is
+    below a quarter of its light once the bake is done (the window's visible texels alone
+    left 71 of its 89 k surface pixels so, the inner wall's)."""
+    (tmp_path / "s.txt").write_text("wait-gi 120\nscreenshot gi.png\nwait-bake 1 120\n"
+                                    "frames 3\nscreenshot done.png\nquit\n")
+    run = _view(["synthetic:torus", "--size", "480x360", "--script", "s.txt"],
+                display, tmp_path)
+    assert run.returncode == 0, run.stderr
+    gi, gi_mask = _surface(tmp_path / "gi.exr")
+    done, done_mask = _surface(tmp_path / "done.exr")
+    lit = gi_mask & done_mask & (done.sum(axis=-1) > 0)
+    assert lit.mean() > 0.3
+    ratio = gi[lit].sum(axis=-1) / done[lit].sum(axis=-1)
+    assert np.sum(ratio < 0.25) <= 5, np.sum(ratio < 0.25)  # none left unlit
+
+
 def test_frames_keep_coming_while_the_full_surface_is_extracted(display, tmp_path):
     """A 256³ volume (its full surface takes a few tenths of a second): the isovalue change
     shows a preview first, and frames are drawn until the full-resolution surface replaces

@@ -3,8 +3,9 @@
 `Illumination` decides, from ``--lattice`` and ``--no-bake``, whether a lattice from a file
 is shown as is or baked further, or a new one is baked lazily (`app.viewer.bake_client`:
 a separate process writing into a `SharedLattice`); it tells that bake what is on screen
-once the view settles, brings the texels it commits to the GPU (`app.viewer.draw.Drawing`),
-and answers what the panel, scripts and ``--stats`` ask about it.
+and what a screenshot of it shows once the view settles, brings the texels it commits to
+the GPU (`app.viewer.draw.Drawing`), and answers what the panel, scripts and ``--stats``
+ask about it.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ import json
 import time
 from dataclasses import asdict
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from isolume import volumes
 from isolume.app.viewer.bake_client import BakeLink, SharedLattice, lattice_meta, range_warning
@@ -143,7 +146,8 @@ class Illumination:
             self.state.lattice_changed = True  # shown by the loop, at a pace
 
     def update_view(self, surface_stage: str | None, size: tuple[int, int]) -> None:
-        """Tell the bake process what is on screen once the view has settled.
+        """Tell the bake process what is on screen, and what a screenshot of it shows
+        (`_shown_points`), once the view has settled.
 
         Args:
             surface_stage: the stage ("coarse", "full") of the surface on screen when it
@@ -166,11 +170,25 @@ class Illumination:
             return
         from isolume.baking.lazy import View, visible_cells
 
-        points = self.drawing.visible_points(state.camera, state.view, size)
+        points = self._shown_points(size)
         cells = visible_cells(self.shared.lattice.geometry, points)
         self.bake.send_view(View(state.view.iso, tuple(float(v) for v in state.camera.eye),
                                  cells, key[3], points.astype("float32")))
         self._view_sent = key
+
+    def _shown_points(self, size: tuple[int, int]) -> np.ndarray:
+        """(N, 3) world positions of the surface under the window's pixels (those under
+        the panel included) and under a screenshot's (`ViewerState.whole_window`, whose
+        eye stands beside the window's while the panel keeps the picture aside: it sees
+        faces turned from the window's eye).
+
+        Args:
+            size: (W, H) pixels of the frame.
+        """
+        state, whole = self.state, self.state.whole_window()
+        cameras = [state.camera] if whole == state.camera else [state.camera, whole]
+        return np.concatenate([self.drawing.visible_points(camera, state.view, size)
+                               for camera in cameras])
 
     def _bake_turned_file(self) -> None:
         """A complete lattice from a file whose sun (or light) the user turned: start a
