@@ -481,7 +481,7 @@ class ClusterBackend:
             self._warm.result()
         self._drop_job()
         t = job.tracing
-        shared = _Job(uuid.uuid4().hex, fingerprint(), replace(job.volume, _cache={}),
+        shared = _Job(uuid.uuid4().hex, fingerprint(), replace(job.volume),  # no caches
                       job.config, job.geometry, np.asarray(job.plan.levels, np.float64),
                       t.lighting, t.settings, t.seed_key, t.weights, t.whole)
         self.token = shared.token
