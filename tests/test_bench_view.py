@@ -1,5 +1,8 @@
-"""The picture-error measure of ``isolume bench lazy`` (`app.bench.view.PixelTruth`) and the
-data folder of the view benchmarks (`app.bench.view.default_volume`)."""
+"""The picture-error measure of ``isolume bench lazy`` (`app.bench.view.PixelTruth`), the
+data folder of the view benchmarks (`app.bench.view.default_volume`) and ``bench bake``'s
+replay."""
+
+import json
 
 import numpy as np
 import pytest
@@ -83,3 +86,18 @@ def test_the_data_folder_comes_from_the_option_the_variable_or_the_current_folde
     monkeypatch.delenv(DATA_ENV)
     monkeypatch.chdir(clone)
     assert default_volume(None) == str(DEFAULT_DATA / ENGINE)
+
+
+def test_bench_bake_replays_every_ray_it_timed(tmp_path, capsys):
+    """`isolume bench bake` bakes twice and replays the second bake's rays on bare Embree,
+    level by level, once none of a level's chunks still runs (the steps of a level are
+    traced one beside the next): it replays as many rays as the timed bake traced, and
+    prints the rates."""
+    from isolume.app.cli import main
+
+    out = tmp_path / "bake.json"
+    assert main(["bench", "bake", "synthetic:sphere:24", "--samples", "8", "--json",
+                 str(out)]) == 0
+    assert "bare embree" in capsys.readouterr().out
+    figures = json.loads(out.read_text())
+    assert figures["rays"] > 0

@@ -144,14 +144,15 @@ def bench_bake(args: argparse.Namespace) -> int:
 
 
 def _bare_rate(vol, config, workers: int) -> dict:
-    """The bake of `config` again, every ray it traces on a level scene recorded and, as soon
-    as the level is done, traced again on that scene straight through embreex on `workers`
-    threads. Recording costs the baker time and memory (28 bytes a ray), so this bake is
-    not the one timed.
+    """The bake of `config` again, every ray it traces on a level scene recorded (each
+    level's apart) and, as soon as no chunk of that level is running, traced again on its
+    scene straight through embreex on `workers` threads. Recording costs the baker time
+    and memory (28 bytes a ray), so this bake is not the one timed.
 
     Returns:
         rays and seconds of the replays ("rays", "seconds").
     """
+    from collections import Counter
     from concurrent.futures import ThreadPoolExecutor
 
     from isolume.baking.bake import Baker
@@ -160,26 +161,36 @@ def _bare_rate(vol, config, workers: int) -> dict:
     baker = Baker(vol, config, workers=workers)
     bare = {"rays": 0, "seconds": 0.0}
     backend = baker.backend
-    original_scene, original_collect = backend._scene, backend._collect
-    recorder = RayRecorder()
+    original_scene, original_submit, original_collect = (
+        backend._scene, backend._submit_level, backend._collect)
+    recorded: dict[int, tuple[object, RayRecorder]] = {}  # level -> (scene, its recorder)
+    running: Counter[int] = Counter()  # chunks queued and not yet collected, per level
 
     def recording_scene(level):
         scene = original_scene(level)
         if not scene.empty:
-            scene.recorder = recorder
+            scene.recorder = recorded.setdefault(level, (scene, RayRecorder()))[1]
         return scene
 
-    def collect_then_replay(jobs, level, bar):
-        original_collect(jobs, level, bar)
-        scene = backend._scenes.get(level)
-        batches = recorder.batches()
-        if scene is not None and batches:
-            rays, seconds = replay(scene, batches, pool)
-            bare["rays"] += rays
-            bare["seconds"] += seconds
-        recorder.clear()
+    def counted_submit(lay, sums, batch):
+        chunks = original_submit(lay, sums, batch)
+        running[lay.step.level] += len(chunks)
+        return chunks
 
-    backend._scene, backend._collect = recording_scene, collect_then_replay
+    def collect_then_replay(chunks, level, report):
+        original_collect(chunks, level, report)
+        running[level] -= len(chunks)
+        if running[level] == 0 and level in recorded:  # none of its rays still coming
+            scene, recorder = recorded[level]
+            batches = recorder.batches()
+            if batches:
+                rays, seconds = replay(scene, batches, pool)
+                bare["rays"] += rays
+                bare["seconds"] += seconds
+            recorder.clear()
+
+    backend._scene, backend._submit_level, backend._collect = (
+        recording_scene, counted_submit, collect_then_replay)
     with ThreadPoolExecutor(max_workers=workers) as pool:
         baker.run()
     baker.close()
