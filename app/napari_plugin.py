@@ -256,13 +256,16 @@ class IsolumeWidget(QWidget):
     # -- what the controls set -------------------------------------------------------------
     def set_layer(self, layer: napari.layers.Image) -> None:
         """Light the Image `layer` (a new lighting process for its volume) at its first
-        suggested isovalue.
+        suggested isovalue, in a Surface layer of its own (the one of the layer lit
+        before is removed: it would no longer follow the controls).
 
         Raises:
             NapariLayerError: a layer the plugin cannot light (`layer_volume`).
         """
         volume = layer_volume(layer)
         self.stop()
+        if self.surface is not None and self.surface in self.viewer.layers:
+            self.viewer.layers.remove(self.surface)  # the last layer's light: it stops here
         self.layer, self.volume, self.surface = layer, volume, None
         self._surface = self._mesh = None  # the new process sends its surfaces anew
         self.controls.layer.setCurrentText(layer.name)

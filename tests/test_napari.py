@@ -359,6 +359,17 @@ def test_light_environment_and_exposure_controls(lit, qtbot):
     assert "\n" not in widget.controls.status.text()
 
 
+def test_choosing_another_layer_leaves_one_surface(lit):
+    """Lighting another Image layer, or the same one again, removes the Surface layer the
+    widget lit before (it would stay behind, no longer following the controls)."""
+    viewer, sphere, widget = lit(volumes.load("synthetic:sphere:16"))
+    torus = viewer.add_image(volumes.load("synthetic:torus:16").data, name="torus")
+    for layer in (sphere, torus, sphere, sphere):
+        widget.set_layer(layer)
+        surfaces = [x.name for x in viewer.layers if x.name.endswith("isosurface")]
+        assert surfaces == [f"{layer.name} isosurface"], surfaces
+
+
 def test_the_saved_view_renders_from_naparis_camera(lit, qtbot, tmp_path):
     """"save view" writes a state file ``isolume render --state`` draws: napari's view
     direction as the camera's (looking down −x of napari's world, isolume's −z...), the
