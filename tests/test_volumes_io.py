@@ -859,7 +859,9 @@ def test_tiff_folder_natural_order(tmp_path):
     for number, page in zip([1, 2, 3, 9, 10], data, strict=True):
         tifffile.imwrite(folder / f"slice{number}.tif", page)
     (folder / "notes.txt").write_text("not a slice")
-    assert_volume(load_file(folder, spacing=SPACING, origin=ORIGIN), data, name="slices")
+    loaded = load_file(folder, spacing=SPACING, origin=ORIGIN)
+    assert_volume(loaded, data, name="slices")
+    assert loaded.placement.startswith("as stored: the TIFF input gives no orientation")
 
 
 def test_tiff_folder_mismatched_slice(tmp_path):

@@ -205,7 +205,7 @@ def load_file(
     spacing, origin = checked_geometry(_pick(spacing, spacing0, (1.0, 1.0, 1.0)),
                                        _pick(origin, origin0, (0.0, 0.0, 0.0)), where)
     placed, placement = _placed(data, spacing, origin, frame if orientation else None,
-                                _placement_label(kind, frame, orientation), where)
+                                _placement_label(kind, frame, orientation, path), where)
     placement = join_placement(placement, note)
     if lazy or not isinstance(placed.data, np.ndarray):
         return _read_part(placed, crop, factor, path, placement)
@@ -253,14 +253,21 @@ def _read(kind: str, path: Path, dims_xyz, raw_dtype, byteorder: str, lazy: bool
     return (loader(path, lazy=True) if loader else _LOADERS[kind](path)), ""
 
 
-def _placement_label(kind: str, frame, orientation: bool) -> str:
+def _placement_label(kind: str, frame, orientation: bool, path: Path) -> str:
     """How the samples are placed in the world, for `isolume info`."""
-    label = _FORMAT_LABELS[kind] if kind != "folder" else "DICOM"
+    label = _FORMAT_LABELS[kind] if kind != "folder" else _folder_label(path)
     if frame is None:
         return f"as stored: the {label} input gives no orientation (--up AXIS turns it)"
     if not orientation:
         return "left out (orientation=False)"
     return f"{label} orientation, in LPS"
+
+
+def _folder_label(path: Path) -> str:
+    """What a folder volume was read as: TIFF slices where it holds any (`_load_folder`
+    reads those first), else a DICOM series."""
+    return "TIFF" if any(p.suffix.lower() in TIFF_SUFFIXES for p in path.iterdir()) \
+        else "DICOM"
 
 
 def _placed(data, spacing, origin, frame, label: str, where: str) -> tuple[Placement, str]:
