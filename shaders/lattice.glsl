@@ -34,21 +34,32 @@ uniform vec3 u_atlas_size;       // texels of the atlases, x y z
 uniform vec3 u_box_lo;
 uniform vec3 u_box_size;
 
+uniform vec3 u_unbaked_sky;       // where no texel has light: the lattice's environment's
+uniform vec3 u_unbaked_ground;    // irradiance for normals facing +z and -z (sun per pixel out)
+
 const vec3 UNBAKED_TINT = vec3(0.8, 0.85, 1.0);
+
+vec3 unbaked_irradiance(vec3 n) {
+#if SHADING == 7
+    return hemisphere_irradiance(n);  // ambient occlusion scales the local modes' ambient
+#else
+    return mix(u_unbaked_ground, u_unbaked_sky, 0.5 + 0.5 * n.z);
+#endif
+}
 
 vec3 lattice_coord(vec3 world) {
     return (world - u_box_lo) / u_box_size;
 }
 
 // Baked radiance where the lattice is computed (w: weight of computed texels in the
-// lookup); elsewhere hemisphere-ambient Lambert with a cool tint shows through, so unbaked
-// regions are visible but still readable.
+// lookup); elsewhere Lambert under the hemisphere of the lattice's own environment, with a
+// cool tint, shows through: unbaked regions are told apart but lit as brightly.
 vec3 lattice_blend(float w, vec3 baked, vec3 n, vec3 albedo) {
 #if DIRECT
     // the sun and the lights are added per pixel on top (direct.glsl): no key light here
-    vec3 fallback = UNBAKED_TINT * albedo * hemisphere_irradiance(n) / PI;
+    vec3 fallback = UNBAKED_TINT * albedo * unbaked_irradiance(n) / PI;
 #else
-    vec3 fallback = UNBAKED_TINT * albedo * (hemisphere_irradiance(n) + 0.5 * u_key_irradiance
+    vec3 fallback = UNBAKED_TINT * albedo * (unbaked_irradiance(n) + 0.5 * u_key_irradiance
                     * max(dot(n, u_key_dir), 0.0)) / PI;
 #endif
     return mix(fallback, baked, smoothstep(0.0, 0.25, w));

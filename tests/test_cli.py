@@ -68,6 +68,35 @@ def test_an_unknown_option_is_refused_by_its_command_naming_the_one_meant(capsys
         assert err.startswith("usage: isolume " + argv[0])
 
 
+def test_texels_without_light_show_the_lattices_own_sky_tinted(tmp_path, capsys):
+    """Where no texel has light yet, the lattice modes shade the surface under the
+    hemisphere of the lattice's own environment, tinted (`UNBAKED_TINT`), with half the
+    key light: under a constant white sky a sphere's baked radiance is albedo · 1
+    everywhere, and its unbaked half's the tint times that, a little more on the key
+    light's side (the local modes' dim ambient stood in before, a third of it)."""
+    from isolume.baking import Lattice
+
+    path, exr = tmp_path / "l.npz", tmp_path / "half.exr"
+    assert _run(capsys, "bake", "synthetic:sphere:24", "--env", "constant:1,1,1",
+                "--bounces", "0", "--samples", "4", "--out", str(path))[0] == 0
+    lattice = Lattice.load(path)
+    half = np.indices(lattice.samples.shape)[2] >= lattice.samples.shape[2] // 2
+    lattice.samples[half] = 0
+    lattice.save(path)
+    status, _, err = _run(capsys, "render", "synthetic:sphere:24", "--lattice", str(path),
+                          "--no-auto-exposure", "--exposure", "1", "--size", "64x64",
+                          "--view", "0,0", "--out", str(exr))
+    assert status == 0, err
+    rgb = read_exr(exr)["RGB"]
+    surface = rgb.max(axis=-1) > 0
+    left, right = surface.copy(), surface.copy()
+    left[:, 24:], right[:, :40] = False, False  # the baked half, the unbaked one (x: right)
+    baked, unbaked = np.median(rgb[left], axis=0), np.median(rgb[right], axis=0)
+    np.testing.assert_allclose(baked, 0.8, rtol=0.02)
+    tint = np.array([0.8, 0.85, 1.0])  # and half the key light, which lights one side more
+    assert np.all(unbaked / baked >= 0.98 * tint) and np.all(unbaked / baked <= 1.2 * tint)
+
+
 def test_render_png_and_exr(tmp_path, capsys):
     png, exr = tmp_path / "a.png", tmp_path / "a.exr"
     for out in (png, exr):

@@ -48,6 +48,33 @@ def lattice_direct_lights(lattice: Lattice | HeldLattice | LatticeOnFile | None
     return config.lighting.pixel_lights()
 
 
+UNBAKED_ORDER = 3
+"""SH bands of the environment whose irradiance stands in where no texel has light yet
+(`unbaked_hemisphere`): irradiance is a smooth function of the normal, three bands hold
+all but a few percent of it."""
+
+
+def unbaked_hemisphere(lattice: Lattice | HeldLattice | LatticeOnFile | None
+                       ) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
+    """((3,), (3,)) RGB irradiance that an open surface facing +z and one facing −z get
+    from the lattice's environment — without the sky's sun where the renderer adds it per
+    pixel (`lattice_direct_lights`) — by its `UNBAKED_ORDER`-band SH projection: the
+    hemisphere ambient the lattice modes show where no texel has light yet, at the light
+    level of the texels that have; None where the lattice records no environment."""
+    from isolume.baking.sh import basis, irradiance_coefficients, project_environment
+
+    config = lattice.config if lattice is not None else None
+    env = config.lighting.environment if config is not None else None
+    if env is None:
+        return None
+    if lattice_direct_lights(lattice) and hasattr(env, "without_sun"):
+        env = env.without_sun()
+    e = irradiance_coefficients(project_environment(env, UNBAKED_ORDER))
+    up, down = np.maximum(basis(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]),
+                                UNBAKED_ORDER) @ e, 0.0)
+    return tuple(float(v) for v in up), tuple(float(v) for v in down)
+
+
 def lattice_start_offset(lattice: Lattice | HeldLattice | LatticeOnFile | None) -> float:
     """World distance by which the baker lifted a lattice's start points off the surface
     (its ``offset`` in voxels × the volume's mean spacing): per-pixel direct light is

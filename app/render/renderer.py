@@ -43,6 +43,7 @@ from isolume.app.render.lights import (
     lattice_start_offset,
     occlusion_sky,
     rotated_lights,
+    unbaked_hemisphere,
 )
 from isolume.app.render.passes import GBUFFER_UNIT, Targets, pixel_rays
 from isolume.app.render.settings import (
@@ -103,6 +104,7 @@ class SurfaceRenderer:
         self._targets: Targets | None = None
         self._lattice_lights: tuple[DirectLight, ...] = ()
         self._direct_offset = 0.0
+        self._unbaked: tuple[tuple[float, ...], tuple[float, ...]] | None = None
         self._traced: TracedLight | None = None
         self.lattice: LatticeTextures | None = None
         self._env_coeffs: np.ndarray | None = None
@@ -183,6 +185,7 @@ class SurfaceRenderer:
             self.lattice = None
         self._lattice_lights = lattice_direct_lights(lattice)
         self._direct_offset = lattice_start_offset(lattice)
+        self._unbaked = unbaked_hemisphere(lattice)
         if lattice is not None:
             self.lattice = LatticeTextures(self.ctx, lattice, texel_isovalues)
 
@@ -437,6 +440,9 @@ class SurfaceRenderer:
             "u_head_irradiance": s.head_irradiance,
             "u_sky_irradiance": s.sky_irradiance,
             "u_ground_irradiance": s.ground_irradiance,
+            # where no texel has light yet: the lattice's own sky, else the local modes'
+            "u_unbaked_sky": self._unbaked[0] if self._unbaked else s.sky_irradiance,
+            "u_unbaked_ground": self._unbaked[1] if self._unbaked else s.ground_irradiance,
             "u_shininess": s.shininess,
             "u_specular": s.specular,
             "u_fog_density": s.fog_density / (2 * radius),
