@@ -17,6 +17,8 @@ from isolume import volumes
 from isolume.app.render.images import read_exr
 
 ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data" / "volumes"
+"""``<clone>/../shared/data/volumes``: real volumes, present on developer machines."""
 RGB9E5_RELATIVE = 2.0**-9
 """RGB9_E5 keeps 9 mantissa bits of the largest channel: rounding error ≤ 2⁻⁹ of it."""
 
@@ -146,6 +148,9 @@ def test_scripted_session_changes_what_it_should(display, tmp_path):
 
     saved = Lattice.load(tmp_path / "lazy.npz", volumes.load("synthetic:engine:48"))
     assert (saved.samples > 0).sum() == check["computed"] > 0
+    traced = saved.meta["stats"]  # its own bake's: the paths it holds, their rays
+    assert traced["paths"] == saved.samples.sum() and traced["rays_traced"] >= traced["paths"]
+    assert saved.meta["rays_traced"] == traced["rays_traced"] and traced["bake_seconds"] > 0
     assert saved.active.sum() > check["texels"]  # the plan's active texels, for resuming
     again = _view(["synthetic:engine:48", "--lattice", "lazy.npz", "--no-bake",
                    "--size", "320x240", "--frames", "1", "--screenshot", "again.png"],
@@ -241,6 +246,192 @@ def test_bad_script_fails_before_a_window_opens(tmp_path, monkeypatch, capsys):
     (tmp_path / "s.txt").write_text("iso 0.5\nmode toon\n")
     assert main(["view", "synthetic:sphere:16", "--script", str(tmp_path / "s.txt")]) == 2
     assert "s.txt:2: unknown shading mode 'toon'" in capsys.readouterr().err
+
+
+# -- a complete lattice file: its saves, its modes, its panel --------------------------------
+SUN = "sky:sun=6,sun_az=-150,sun_el=40"
+BAKED_RANGE = (0.25, 0.35)
+
+
+@pytest.fixture(scope="module")
+def lattice_file(tmp_path_factory):
+    """A complete lattice of synthetic:engine:48 (8 paths a texel, iso range `BAKED_RANGE`,
+    the sun shaded per pixel) and its stats."""
+    from isolume.baking.bake import bake
+    from isolume.baking.config import BakeConfig
+
+    path = tmp_path_factory.mktemp("lattice") / "light.npz"
+    config = BakeConfig(samples=8, bounces=1, env=SUN, iso_range=BAKED_RANGE)
+    lattice = bake(volumes.load("synthetic:engine:48"), config, out=path, workers=2)
+    return path, dict(lattice.meta["stats"])
+
+
+def _copy_in(lattice_file, tmp_path) -> Path:
+    """The lattice file copied into the test's folder (the viewer writes beside it)."""
+    path = tmp_path / lattice_file[0].name
+    shutil.copyfile(lattice_file[0], path)
+    return path
+
+
+def _said(stdout: str, start: str) -> list[str]:
+    """The lines of `stdout` from the first that starts with `start` on."""
+    lines = stdout.splitlines()
+    firsts = [i for i, line in enumerate(lines) if line.startswith(start)]
+    assert firsts, stdout
+    return lines[firsts[0]:]
+
+
+TURNED_SESSION = """
+wait-mesh
+light 60 40
+sleep 0.5
+save-lattice pending.npz
+wait-light 1 120
+save-lattice early.npz
+wait-bake 1 120
+save-lattice
+quit
+"""
+
+
+def _turned_session(volume: str, iso: float, tmp_path, display) -> list[list[str]]:
+    """Run `TURNED_SESSION` on light.npz (in `tmp_path`) shown at `iso`; the stdout lines
+    from the save of early.npz on, and from that of light-relit.npz on. The save as the
+    turn's bake starts writes nothing (the lattice baked is still the file's) and says
+    so."""
+    (tmp_path / "s.txt").write_text(TURNED_SESSION)
+    run = _view([volume, "--iso", str(iso), "--lattice", "light.npz", "--size", "320x240",
+                 "--script", "s.txt"], display, tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("isolume: nothing saved") and not (
+        tmp_path / "pending.npz").exists(), run.stdout
+    return [_said(run.stdout, f"isolume: saved {name}")
+            for name in ("early.npz", "light-relit.npz")]
+
+
+def test_a_turned_files_saves_count_their_own_bake(display, tmp_path, lattice_file):
+    """A complete file whose sun is turned: the saves say they hold the re-bake for the
+    turned light, the file keeping its own; after ``wait-bake 1`` the one beside the file
+    comes without a warning. Each saved lattice's stats count its own bake (the paths it
+    holds, the rays since the turn), not the file's."""
+    from isolume.baking.lattice import Lattice
+
+    _copy_in(lattice_file, tmp_path)
+    early, late = _turned_session("synthetic:engine:48", 0.3, tmp_path, display)
+    assert "re-baked for the turned light" in early[0] and "light.npz keeps" in early[0]
+    assert len(late) == 1  # no warning once the texels near the surface have samples
+    vol = volumes.load("synthetic:engine:48")
+    file_stats = lattice_file[1]
+    for name in ("early.npz", "light-relit.npz"):
+        saved = Lattice.load(tmp_path / name, vol)
+        traced = saved.meta["stats"]
+        assert traced["paths"] == saved.samples.sum() < file_stats["paths"], name
+        assert traced["rays_traced"] != file_stats["rays_traced"], name
+    assert traced["paths"] > 0 and traced["rays_traced"] >= traced["paths"]
+
+
+def test_a_save_right_after_wait_light_warns_that_previews_are_not_saved(display, tmp_path):
+    """The tooth CT's complete file, its sun turned: ``wait-light`` ends once the previews
+    show the turned light (the re-bake's own rounds come after them), so the save right
+    after it holds few of the re-bake's texels or none: it says so, and names
+    ``wait-bake``, one line (it said "0 texels computed" and nothing more)."""
+    from isolume.baking.bake import bake
+    from isolume.baking.config import BakeConfig
+    tooth = SHARED / "tooth_zfp_103x94x161_uint8.raw.gz"
+    if not tooth.exists():
+        pytest.skip(f"{tooth} not present (../shared/data is optional)")
+    tooth = str(tooth)
+    bake(volumes.load(tooth), BakeConfig(samples=16, env=SUN, iso_range=(100, 130)),
+         out=tmp_path / "light.npz", workers=2)
+    early, late = _turned_session(tooth, 115, tmp_path, display)
+    assert early[1].startswith("isolume: warning: ") and "wait-bake" in early[1], early
+    assert "previews" in early[1] and early[2] == late[0]
+
+
+FILE_SESSION = """
+wait-mesh
+frames 3
+window-shot panel.png
+save-lattice
+save-lattice copy.npz
+mode vicinity
+quit
+"""
+
+
+def test_a_file_shown_as_it_is_wraps_its_warning_and_says_why_nothing_is_saved(
+        display, tmp_path, lattice_file):
+    """A complete file shown outside its baked range: the panel's range warning wraps to
+    the panel's width (unwrapped, it widened the panel past the window's edge); a save
+    without a name writes nothing and says why on stdout, one line; ``save-lattice
+    FILE`` writes a copy; ``mode vicinity`` is refused for the reason `render` gives (a
+    constant sky, no bounces), not the lattice's kind, which is right."""
+    path = _copy_in(lattice_file, tmp_path)
+    (tmp_path / "s.txt").write_text(FILE_SESSION)
+    width = 560
+    run = _view(["synthetic:engine:48", "--iso", "0.6", "--lattice", "light.npz",
+                 "--size", f"{width}x420", "--script", "s.txt"], display, tmp_path)
+    assert run.returncode == 2, run.stderr
+    window = _png(tmp_path / "panel.png")
+    title = window[19]  # the panel's title bar, blue, as wide as the panel
+    blue = np.flatnonzero(title[:, 2] - title[:, 0] > 50)
+    assert len(blue) > 100 and blue.max() < width - 40, blue.max()
+    (nothing, copied) = _said(run.stdout, "isolume: nothing saved")
+    assert "light.npz" in nothing and "save-lattice OTHER.npz" in nothing
+    assert copied.startswith("isolume: saved copy.npz")
+    assert (tmp_path / "copy.npz").read_bytes() == path.read_bytes()
+    assert "--env constant:1,1,1 --bounces 0" in run.stderr
+    assert "irradiance modes need" not in run.stderr
+
+
+def test_the_light_note_says_whether_a_turned_light_is_re_baked(gl):
+    """The panel's note under the light controls: a file's bounced light "is re-baked once
+    the light rests" when the viewer bakes it for a turned light (baking on), else it
+    "stays as baked"."""
+    from types import SimpleNamespace
+
+    from isolume.app.viewer.draw import Drawing, ViewState
+    from isolume.app.viewer.illumination import Illumination
+    from isolume.baking.config import BakeConfig
+    from isolume.baking.lattice import LatticeGeometry
+    from isolume.baking.lazy import new_lattice
+
+    vol = volumes.load("synthetic:sphere:16")
+    config = BakeConfig(env=SUN)
+    drawing = Drawing(gl, vol)
+    try:
+        assert drawing.show_lattice(new_lattice(vol, config)) is None
+        notes = {}
+        for bake in (True, False):
+            state = SimpleNamespace(view=ViewState(0.5, "irradiance", 1.0))
+            illumination = Illumination(vol, drawing, state, SimpleNamespace(bake=bake))
+            illumination.static_lattice = SimpleNamespace(config=config)
+            illumination.static_file = SimpleNamespace(
+                geometry=LatticeGeometry.for_volume(vol, config.scale))
+            notes[bake] = illumination.light_note()
+    finally:
+        drawing.release()
+    assert notes[True].endswith("their bounced light is re-baked once the light rests.")
+    assert notes[False].endswith("their bounced light stays as baked.")
+
+
+def test_a_mode_of_another_lattice_kind_names_the_bake_that_makes_it():
+    """A mode that reads another kind of lattice than the one shown: the renderer's reason,
+    and the lazy bake's option that makes that kind."""
+    from types import SimpleNamespace
+
+    from isolume.app.render.settings import RenderError
+    from isolume.app.viewer.actions import check_mode
+    from isolume.app.viewer.state import ViewerError
+
+    def refuse(mode):
+        raise RenderError(f"shading {mode!r} needs an sh lattice, this one holds irradiance")
+
+    drawing = SimpleNamespace(modes=("lambert", "sh"), usable_modes=lambda: ("lambert",),
+                              renderer=SimpleNamespace(lattice=SimpleNamespace(
+                                  kind="irradiance"), check_mode=refuse))
+    with pytest.raises(ViewerError, match=r"needs an sh lattice, .*--bake-mode sh\)$"):
+        check_mode(drawing, "sh")
 
 
 # -- surfaces off the render thread -------------------------------------------------------

@@ -40,7 +40,8 @@ EXPOSURE_RANGE = (1e-3, 1e3)
 
 def check_mode(drawing: Drawing, mode: str) -> None:
     """Raise `ViewerError` (one line, saying what is missing) unless `drawing` can draw
-    the shading `mode` now."""
+    the shading `mode` now: the reason is the renderer's (`SurfaceRenderer.check_mode`:
+    the lattice's kind, the sky and bounces an occlusion lattice is baked with, ...)."""
     modes = drawing.modes
     if mode not in modes:
         raise ViewerError(f"unknown shading mode {mode!r}; expected one of "
@@ -51,9 +52,20 @@ def check_mode(drawing: Drawing, mode: str) -> None:
     if lattice is None:
         raise ViewerError(f"shading {mode!r} needs a lattice: pass --lattice FILE, or "
                           "leave out --no-bake to bake one lazily")
-    raise ViewerError(f"shading {mode!r} cannot be drawn from the {lattice.kind}"
-                      " lattice shown (irradiance modes need an irradiance lattice, sh an "
-                      "SH one: --bake-mode)")
+    try:
+        drawing.renderer.check_mode(mode)
+    except ValueError as exc:
+        raise ViewerError(f"shading {mode!r} cannot be drawn from the {lattice.kind} "
+                          f"lattice shown: {exc}{_kind_hint(mode, lattice.kind)}") from None
+
+
+def _kind_hint(mode: str, kind: str) -> str:
+    """How the lazy bake makes the kind of lattice `mode` reads when the one shown is of
+    another `kind` ("" when it is of that kind: its bake settings are what differ)."""
+    from isolume.app.render.settings import LATTICE_MODES
+
+    want = "sh" if LATTICE_MODES[mode].lattice == "sh" else "irradiance"
+    return "" if want == kind else f" (a lazy bake makes one with --bake-mode {want})"
 
 
 class Actions:

@@ -185,6 +185,67 @@ def lattice_meta(volume: volumes.Volume, config: BakeConfig) -> dict[str, Any]:
     return dict(new_lattice(volume, config).meta, config=config.to_dict())
 
 
+TRACED = ("rays_traced", "trace_seconds", "scene_seconds", "bake_seconds")
+"""What `Traced` counts: the metadata's "stats" of a bake (`baking.bake`), but its paths."""
+
+
+class Traced:
+    """The rays and seconds the lazy bake spent on the lattice it bakes now, for that
+    lattice's metadata: counted as the Baker's counters grow (`baking.backend.BakeStats`,
+    one Baker's since its plan, turns of the light included) and as `serve`'s seconds in
+    batches do (one loop's), and counted from zero again for a turned light's lattice.
+
+    Attributes:
+        totals: the counts of `TRACED` so far.
+    """
+
+    def __init__(self, previous: dict[str, Any]) -> None:
+        """`previous`: the lattice's "stats" before this bake (a file's), or {}."""
+        self.totals: dict[str, float] = {k: previous.get(k, 0) for k in TRACED}
+        self._baker: Any = None  # the Baker whose counters `_seen` holds
+        self._seen: dict[str, float] = dict.fromkeys(TRACED, 0)
+
+    def new_loop(self, baker: Any) -> None:
+        """A `serve` loop of `baker` starts (its seconds from zero; a new Baker's
+        counters too)."""
+        if baker is not self._baker:
+            self._baker, self._seen = baker, dict.fromkeys(TRACED, 0)
+        self._seen["bake_seconds"] = 0.0
+
+    def count(self, serve_seconds: float | None = None) -> None:
+        """Add what the Baker of the loop and the loop (`serve_seconds` in batches so far;
+        None: as at the last count, within a batch) did since the last count."""
+        if serve_seconds is None:
+            serve_seconds = self._seen["bake_seconds"]
+        now = _counters(self._baker, serve_seconds)
+        for key in TRACED:
+            self.totals[key] += now[key] - self._seen[key]
+        self._seen = now
+
+    def restart(self) -> None:
+        """A turned light's lattice: nothing traced into it yet (what the Baker did so far
+        was for the light before)."""
+        self.totals = dict.fromkeys(TRACED, 0)
+        if self._baker is not None:
+            self._seen = _counters(self._baker, 0.0)
+
+
+def _counters(baker: Any, serve_seconds: float) -> dict[str, float]:
+    """The `TRACED` counts of `baker` (a `baking.bake.Baker`) and a loop's seconds."""
+    stats = baker.stats
+    return {"rays_traced": int(stats.rays), "trace_seconds": float(stats.trace_seconds),
+            "scene_seconds": float(stats.scene_seconds), "bake_seconds": float(serve_seconds)}
+
+
+def traced_meta(lattice: Lattice, traced: dict[str, float]) -> dict[str, Any]:
+    """The metadata that says what was traced into `lattice` (`Traced.totals`, its paths
+    the samples it holds), as `baking.bake` records a bake's: "stats" and its rays and
+    trace seconds beside it."""
+    stats = {"paths": int(lattice.samples.sum(dtype=np.int64)), **traced}
+    return {"stats": stats, "rays_traced": int(traced["rays_traced"]),
+            "trace_seconds": float(traced["trace_seconds"])}
+
+
 def _bake_main(job: dict, inbox, outbox) -> None:
     """Entry point of the bake process: previews for the first view, the plan (while the
     previews go on and later views get theirs), then `baking.lazy.serve` until stopped."""
@@ -238,7 +299,7 @@ class _BakeProcess:
         self.relight = None  # the `baking.lazy.Relight` of the last turn, if any
         self.scheduler = None  # of the loop running now
         self.relit_previews = 0
-
+        self.traced = Traced(self.shared.lattice.meta.get("stats", {}))
 
     def _first(self, inbox) -> dict:
         """The volume's fields, the first message `BakeLink` sends; RuntimeError when the
@@ -294,8 +355,10 @@ class _BakeProcess:
         self.previewer.only_active = only_active
         self.light, self.lit = self.relight.direction, None
         self.relit_previews = 0  # paths of the largest preview pass done under it
+        self.traced.restart()
         self.outbox.put(("relight", {"direction": [float(v) for v in self.light],
                                      "config": self.config.to_dict()}))
+        self.outbox.put(("traced", dict(self.traced.totals)))
 
     def first_light(self, view) -> None:
         """The first preview pass of `view` (a few paths per visible texel, traced on its
@@ -346,13 +409,22 @@ class _BakeProcess:
             self.outbox.put(("texels", flat))
 
     def _send(self, message: tuple) -> None:
-        """`serve`'s messages to the viewer (texels through `_texels`)."""
+        """`serve`'s messages to the viewer (texels through `_texels`), each commit and
+        report followed by what was traced into the lattice so far (`_report_traced`)."""
         if message[0] == "texels":
             self._texels(message[1])
+            self._report_traced()
             return
         self.outbox.put(message)
         if message[0] == "progress":
+            self._report_traced(message[2]["seconds"])
             self._relit_status()
+
+    def _report_traced(self, serve_seconds: float | None = None) -> None:
+        """Count what the bake traced since the last count (`Traced.count`) and tell the
+        viewer the totals, as ``("traced", dict)``."""
+        self.traced.count(serve_seconds)
+        self.outbox.put(("traced", dict(self.traced.totals)))
 
     def _relit_status(self) -> None:
         """How far the view is on screen under the turned light, as ``("relit", dict)``."""
@@ -516,6 +588,7 @@ class _BakeProcess:
 
         if self.relight is not None and baker.lattice is not self.relight.fresh:
             baker.relight(self.config, self.relight.fresh)
+        self.traced.new_loop(baker)
         self.scheduler = LazyScheduler(baker.plan, baker.geometry,
                                        baker.lattice.samples.reshape(-1),
                                        max_samples=self.config.samples,
@@ -624,6 +697,7 @@ class BakeLink:
         self.turns = []  # per turned light: direction, seconds to each stage
         self.relit: dict[str, Any] | None = None  # the last turned light's progress on screen
         self.relit_config: BakeConfig | None = None  # the config it is baked with
+        self.traced: dict[str, float] | None = None  # `Traced.totals` of the lattice baked
 
     def send_view(self, view: View) -> None:
         from isolume.baking.lazy import same_direction
@@ -670,9 +744,12 @@ class BakeLink:
                 self.warm = message[1]
             elif kind == "preview":
                 self.previews.append((time.perf_counter() - self.started, message[1]))
-            elif kind == "relight":  # the bake goes on under a turned light
+            elif kind == "relight":  # the bake goes on under a turned light, in a new lattice
                 self.relit_config, self.relit = _config(message[1]["config"]), None
+                self.progress = None  # the old light's: its "progress" comes next
                 self._turn_event(message[1]["direction"], "started_s")
+            elif kind == "traced":
+                self.traced = message[1]
             elif kind == "relit":
                 self.relit = message[1]
                 self._turn_progress(message[1])
@@ -744,7 +821,9 @@ class BakeLink:
 
     def snapshot(self, shared: SharedLattice) -> Lattice:
         """A copy of `shared` to save, with the bake's metadata: after a turn, only the
-        texels baked under the turned light, with its config (a file holds one light)."""
+        texels baked under the turned light, with its config (a file holds one light);
+        its "stats" what was traced into it (`traced_meta`: the paths it holds, the rays
+        and seconds of its own bake, since the turn)."""
         relit = self.relit_config is not None
         lattice = shared.snapshot(relit=relit)
         if self.ready is not None:
@@ -752,7 +831,18 @@ class BakeLink:
             lattice.config = self.ready_config
         if relit:
             lattice.config = self.relit_config
+        if self.traced is not None:
+            lattice.meta.update(traced_meta(lattice, self.traced))
         return lattice
+
+    def on_light(self, direction: Sequence[float] | np.ndarray) -> bool:
+        """Whether the bake works under the light turned to `direction` (3,) now: the light
+        of its last turn, or the one baked when never turned (or none can turn)."""
+        from isolume.baking.lazy import same_direction, turned_light
+
+        baking = (self.light_baked if self.relit_config is None
+                  else turned_light(self.relit_config))
+        return baking is None or same_direction(baking, direction)
 
     def gi_received(self, iso: float) -> bool:
         """Whether light for `iso` has arrived: a preview pass of it, or estimates of

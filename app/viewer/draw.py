@@ -404,10 +404,10 @@ class Drawing:
         shown = first_distant_light(moved) if moved is not None else baked
         turn = math.degrees(math.acos(float(np.clip(
             np.dot(shown.direction, baked.direction), -1.0, 1.0))))
-        after = ("re-baked once the light rests" if rebakes else "stays as baked")
+        after = ("is re-baked once the light rests" if rebakes else "stays as baked")
         if turn < 0.5:
             return ("The sun and lights are shaded per pixel (exact shadows); turning the "
-                    f"light moves them, their bounced light is {after}.")
+                    f"light moves them, their bounced light {after}.")
         until = "re-baked (once the light rests)" if rebakes else "the lattice is baked again"
         return (f"Light turned {turn:.0f}° from the bake: its direct light and shadows are "
                 f"exact, its bounced light is stale until {until}.")

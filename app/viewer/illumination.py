@@ -195,19 +195,11 @@ class Illumination:
         lazy bake with the file's config, which re-bakes the bounced light for the turned
         light around the view. Its result is saved only on request, beside the file
         (`app.viewer.saving.Saver.save_lattice`): the file keeps its whole bake."""
-        from isolume.baking.lattice import other_texels
-        from isolume.baking.lazy import same_direction, turned_light
-
         turned = self.drawing.turned_light(self.state.view)
-        if not self.options.bake or self.state.drag is not None or turned is None:
-            return
-        config = self.static_lattice.config
-        if other_texels(self.static_file.geometry, self.volume, config.scale):
-            return  # shown as it is (`start` said why)
-        if same_direction(turned[1], turned_light(config)):
+        if self.state.drag is not None or not self._file_turned(turned):
             return
         self.relit_file = True
-        self._start_bake(self.static_file, config, self.state.view.iso)
+        self._start_bake(self.static_file, self.static_lattice.config, self.state.view.iso)
 
     # -- pausing -------------------------------------------------------------------------
     def pause(self, paused: bool) -> None:
@@ -250,16 +242,41 @@ class Illumination:
         return not self._gi_upload[2].any()
 
     def bake_progress(self) -> tuple[float | None, str | None]:
-        """(fraction of the texels near the displayed surface with an estimate, None
-        before the bake reports on this isovalue; the bake's error or None).
+        """(fraction of the texels near the displayed surface with samples of their own in
+        the lattice baked — a turned light's after a turn, what `save_lattice` writes —,
+        None before the bake reports on this isovalue under the light as turned now; the
+        bake's error or None).
 
         Raises:
-            ViewerError: no lazy bake runs.
+            ViewerError: no lazy bake runs, nor will one for a turned light.
         """
+        turned = self.drawing.turned_light(self.state.view)
+        if self.bake is None and self._file_turned(turned):
+            return None, None  # its bake starts once the light rests turned
         if self.bake is None:
             raise ViewerError("no lazy bake is running (--no-bake, or the lattice is "
                               "complete)")
+        if turned is not None and not self.bake.on_light(turned[1]):
+            return None, self.bake.error  # not (yet) baking under the light as turned
         return self.bake.near_fraction(self.state.view.iso), self.bake.error
+
+    def _file_turned(self, turned: tuple[str, tuple[float, ...]] | None) -> bool:
+        """Whether a complete lattice file is shown, to be re-baked (`_rebakes_file`) for
+        the light `turned` (`Drawing.turned_light`) away from the one it was baked with."""
+        from isolume.baking.lazy import same_direction, turned_light
+
+        return (turned is not None and self._rebakes_file()
+                and not same_direction(turned[1], turned_light(self.static_lattice.config)))
+
+    def _rebakes_file(self) -> bool:
+        """Whether a lattice file shown as is gets a lazy bake of its turned light
+        (`_bake_turned_file`): baking is on and its texels are those a bake places."""
+        from isolume.baking.lattice import other_texels
+
+        if self.static_lattice is None or not self.options.bake:
+            return False
+        return not other_texels(self.static_file.geometry, self.volume,
+                                self.static_lattice.config.scale)
 
     def relit_progress(self) -> tuple[float | None, str | None]:
         """(share of the visible texels showing the bounced light of the light as turned
@@ -302,7 +319,7 @@ class Illumination:
             return "The light controls rotate the environment (SH transfer)."
         if self.drawing.light_note(view) is not None:  # sun/lights per pixel
             return self._relit_line() or self.drawing.light_note(
-                view, rebakes=self.bake is not None)
+                view, rebakes=self.bake is not None or self._rebakes_file())
         if view.shading in lattice_modes():
             return ("The light is baked into the lattice (fixed); rotating it moves "
                     "only the fallback light of texels not computed yet.")
@@ -331,6 +348,12 @@ class Illumination:
     def paused(self) -> bool:
         """A lazy bake runs and is paused."""
         return bool(self.bake and self.bake.paused)
+
+    def relight_pending(self) -> bool:
+        """A lattice file's lazy bake for a turned light is started, and the bake process
+        has not begun on that light yet: the lattice in shared memory is still the
+        file's."""
+        return self.relit_file and self.bake is not None and self.bake.relit_config is None
 
     def snapshot(self) -> Lattice | None:
         """A `baking.lattice.Lattice` copy of the lattice being baked, to save (None: no

@@ -268,8 +268,8 @@ def _bake_section(imgui, model: PanelModel, actions: list[Action]) -> None:
         imgui.progress_bar(visible, size, f"visible {visible:.0%}")
         imgui.progress_bar(surface, size, f"surface {surface:.0%}")
     for line in model.bake_lines:
-        if line:
-            imgui.text(line)
+        if line:  # wrapped to the panel's width: a long warning stays inside the window
+            imgui.text_wrapped(line)
     if model.can_bake:
         changed, paused = imgui.checkbox("pause baking", model.bake_paused)
         if changed:

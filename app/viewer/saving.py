@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -25,8 +26,9 @@ if TYPE_CHECKING:
 
 
 class Saver:
-    """Writes the view, the window, the lattice and saved views; every file written is
-    announced on stdout and in the status message.
+    """Writes the view, the window, the lattice and saved views; every file written, and
+    every lattice save that writes nothing (why), is announced on stdout and in the status
+    message.
 
     Attributes:
         options: the viewer's options (the volume as named, for saved views).
@@ -78,21 +80,67 @@ class Saver:
         w, h = self.window.framebuffer_size
         return np.frombuffer(self.window.read_back(), np.uint8).reshape(h, w, 3)[::-1]
 
-    def save_lattice(self, path: str | os.PathLike[str] | None = None) -> Path | None:
-        """Write the lattice being shown/baked to `path` (default: --lattice, else
+    def save_lattice(self, path: str | os.PathLike[str] | None = None,
+                     on_exit: bool = False) -> Path | None:
+        """Write the lattice being baked to `path` (default: --lattice, else
         isolume-NAME.npz; a file's lattice re-baked for a turned light: beside it, with
-        ``-relit``); None when no lazy bake started."""
+        ``-relit``): the texels with samples of their own, not the previews on screen.
+        Unless `on_exit`, a warning follows while the bake has not given every texel near
+        the surface samples (`_unfinished`). A lattice file shown as it is
+        (`_save_file`): copied to another `path`, else nothing is written; nor while its
+        bake for a turned light has not begun on it. Returns the file written, or None."""
+        if self.illumination.relight_pending():
+            self._announce("nothing saved yet: the bake for the turned light is starting "
+                           "(in a script, wait-bake FRACTION waits for its texels)")
+            return None
         lattice = self.illumination.snapshot()
         if lattice is None:
-            self.state.message = "no lazily baked lattice to save"
-            return None
+            return self._save_file(path)
         default = self.lattice_path or Path(f"isolume-{self.volume.name}.npz")
-        if self.illumination.relit_file:  # not over the file's whole bake
+        relit = self.illumination.relit_file
+        if relit:  # not over the file's whole bake
             default = default.with_name(f"{default.stem}-relit.npz")
         path = Path(path or default)
         lattice.save(path)
         done = int((lattice.samples > 0).sum())
-        self._announce(f"saved {path} ({done:,} texels computed)")
+        what = (f"the bounced light re-baked for the turned light, {done:,} texels computed; "
+                f"{self.lattice_path} keeps its whole bake" if relit
+                else f"{done:,} texels computed")
+        self._announce(f"saved {path} ({what})")
+        warning = None if on_exit else self._unfinished()
+        if warning is not None:
+            self._warn(warning)
+        return path
+
+    def _unfinished(self) -> str | None:
+        """A warning while the lazy bake has not given every texel near the displayed
+        surface samples of its own under the light as turned (the previews that put light
+        on screen first are never saved), saying how a script waits for them; None once
+        it has."""
+        fraction, _ = self.illumination.bake_progress()
+        if fraction is not None and fraction >= 1.0:
+            return None
+        share = "none" if not fraction else f"only {fraction:.0%}"
+        return (f"{share} of the texels near the surface have samples of their own yet: "
+                "the saved lattice holds those, not the previews on screen (in a script, "
+                "wait-bake FRACTION waits for them before save-lattice)")
+
+    def _save_file(self, path: str | os.PathLike[str] | None) -> Path | None:
+        """`save_lattice` of a lattice file shown as it is (no lazy bake started): a copy
+        of it at `path` when another file is named; else nothing is written, and the
+        line on stdout says why. Returns the copy, or None."""
+        source = self.lattice_path if self.illumination.static_lattice is not None else None
+        if source is None:
+            self._announce("nothing saved: no lattice is shown nor baked (--no-bake)")
+            return None
+        if path is None or Path(path).resolve() == source.resolve():
+            self._announce(f"nothing saved: the lattice shown is {source} as it is on disk "
+                           "(the viewer has baked nothing into it); save-lattice OTHER.npz "
+                           "writes a copy")
+            return None
+        path = Path(path)
+        atomic_write(path, lambda tmp: shutil.copyfile(source, tmp), "lattice")
+        self._announce(f"saved {path} (a copy of {source}, shown as it is)")
         return path
 
     def save_view(self, path: str | os.PathLike[str] | None = None) -> Path:
@@ -152,6 +200,11 @@ class Saver:
     def _announce(self, message: str) -> None:
         self.state.message = message
         print(f"isolume: {message}")
+
+    def _warn(self, message: str) -> None:
+        """`message` as a warning on stdout, and under the status message."""
+        self.state.message += f"\nwarning: {message}"
+        print(f"isolume: warning: {message}")
 
 
 def write_json(path: Path, figures: dict[str, Any]) -> None:

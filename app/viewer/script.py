@@ -15,15 +15,19 @@ distances are in units of the volume's diagonal, times are seconds::
     wait-mesh [TIMEOUT]      # until the full-resolution surface is on screen
     wait-gi [TIMEOUT]        # until global illumination of the isovalue is on screen (the
                              # lazy bake's first preview pass, or a lattice's texels)
-    wait-bake 0.5 [TIMEOUT]  # until 50 % of the texels near the surface have an estimate
+    wait-bake 0.5 [TIMEOUT]  # until 50 % of the texels near the surface have samples of
+                             # their own (after a turn: under the turned light): what
+                             # save-lattice writes
     wait-light 1 [TIMEOUT]   # until 100 % of the visible texels show the bounced light
-                             # of the sun (or light) as turned (a lazy bake re-bakes it)
+                             # of the sun (or light) as turned (a lazy bake re-bakes it;
+                             # its previews count, and are not saved: see wait-bake)
     frames 5                 # render 5 frames
     sleep 0.5                # keep rendering for 0.5 s
     screenshot out.png       # out.png (sRGB) and out.exr (linear radiance)
     window-shot ui.png       # the whole window, UI included (PNG)
     save-view [FILE]         # what is on screen as a state file (isolume render --state)
-    save-lattice [FILE]      # write the lattice (default: --lattice FILE)
+    save-lattice [FILE]      # write the lattice being baked (default: --lattice FILE; a
+                             # file shown as it is: a copy to FILE)
     check-lattice            # compare the GL textures with the lattice (tests)
     quit
 

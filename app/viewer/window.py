@@ -400,7 +400,7 @@ class Viewer:
                 self.saver.screenshot(options.screenshot)
             if (options.lattice_path is not None and self.illumination.shared is not None
                     and not self.illumination.relit_file):
-                self.saver.save_lattice(options.lattice_path)
+                self.saver.save_lattice(options.lattice_path, on_exit=True)
             if options.stats is not None:
                 write_json(options.stats, self.figures())
         finally:
