@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from isolume import volumes
 from isolume.app.look import shading_look
 from isolume.app.options import (
@@ -201,6 +203,17 @@ def scene_memory_bytes(gigabytes: float | None) -> float | None:
     return gigabytes * 1e9
 
 
+def _held_paths(lattice) -> int:
+    """The paths traced into a baked `lattice`'s texels: its samples, less the `samples`
+    a texel filled from the half lattice is given without a path traced
+    (`baking.density.fill`); the same for a bake interrupted and resumed as for one run."""
+    held = int(lattice.samples.sum(dtype=np.int64))
+    filled = lattice.meta.get("filled")
+    if filled is not None and lattice.config is not None:
+        held -= int(filled["filled"]) * lattice.config.samples
+    return held
+
+
 def cmd_bake(args: argparse.Namespace) -> int:
     """Bake an illumination lattice (resumes when --out holds a compatible one)."""
     from isolume.baking.errors import BakeInterrupted, SaveAbandoned
@@ -236,15 +249,19 @@ def cmd_bake(args: argparse.Namespace) -> int:
           f"({plan['active_texels'] / total:.1%}), {len(plan['levels'])} levels, "
           f"{stats['rays_traced']:,} rays in {stats['bake_seconds']:.1f} s "
           f"({stats['rays_traced'] / max(stats['bake_seconds'], 1e-9) / 1e6:.2f} Mrays/s)")
+    held = _held_paths(lattice)
+    per_texel = f"{held / max(plan['active_texels'], 1):.1f}"
+    runs = (f" ({stats['paths']:,} traced over its runs: an interruption loses the paths "
+            "of texels not yet saved)" if stats["paths"] != held else "")
     if lattice.config is not None and lattice.config.target_error is not None:
-        print(f"noise target {lattice.config.target_error:g}: {stats['paths']:,} paths, "
-              f"{stats['paths'] / max(plan['active_texels'], 1):.1f} a texel on average")
+        print(f"noise target {lattice.config.target_error:g}: {held:,} paths, {per_texel} a "
+              f"texel on average{runs}")
     if "filled" in lattice.meta:
         filled = lattice.meta["filled"]
         print(f"texel error {filled['texel_error']:g}: {filled['fine_bricks']:,} of "
               f"{filled['bricks']:,} bricks traced whole, {filled['filled']:,} of "
-              f"{filled['count']:,} texels filled from the half lattice, "
-              f"{stats['paths'] / max(plan['active_texels'], 1):.1f} paths a texel on average")
+              f"{filled['count']:,} texels filled from the half lattice, {per_texel} paths a "
+              f"texel on average{runs}")
     if args.scheduler:
         moved = lattice.meta["cluster"]
         print(f"cluster: {moved['tasks']:,} tasks, {moved['bytes_sent'] / 1e6:.1f} MB sent and "

@@ -97,6 +97,23 @@ def test_texels_without_light_show_the_lattices_own_sky_tinted(tmp_path, capsys)
     assert np.all(unbaked / baked >= 0.98 * tint) and np.all(unbaked / baked <= 1.2 * tint)
 
 
+def test_a_bakes_paths_a_texel_are_those_its_lattice_holds():
+    """The bake's summary counts the paths traced into the lattice — its samples less the
+    samples a filled texel is given without a path — so a bake interrupted and resumed
+    says what one run says; the paths its runs traced (an interruption loses some) are
+    said beside them."""
+    from types import SimpleNamespace
+
+    from isolume.app.commands import _held_paths
+    from isolume.baking.config import BakeConfig
+
+    samples = np.array([[32, 64, 32], [0, 32, 40]], np.uint32)
+    config = BakeConfig(samples=32, texel_error=0.02)
+    lattice = SimpleNamespace(samples=samples, config=config, meta={"filled": {"filled": 2}})
+    assert _held_paths(lattice) == 200 - 2 * 32
+    assert _held_paths(SimpleNamespace(samples=samples, config=config, meta={})) == 200
+
+
 def test_render_png_and_exr(tmp_path, capsys):
     png, exr = tmp_path / "a.png", tmp_path / "a.exr"
     for out in (png, exr):
