@@ -10,18 +10,19 @@ from pathlib import Path
 
 import numpy as np
 
-from isolume.baking.lattice import open_lattice
+from isolume.baking.lattice import open_lattice, xyz_text
+from isolume.volumes.io.arrays import LATTICE_MEMBERS
 
 
 def is_lattice_file(path: str | os.PathLike[str]) -> bool:
-    """Whether `path` is a zip archive holding a lattice's ``meta`` and ``held`` members
-    (what `isolume bake` writes), whatever its other members say."""
+    """Whether `path` is a zip archive holding the members every lattice file holds
+    (`volumes.io.arrays.LATTICE_MEMBERS`, what the volume reader refuses as a lattice)."""
     try:
         with zipfile.ZipFile(path) as archive:
             names = set(archive.namelist())
     except (OSError, zipfile.BadZipFile):
         return False
-    return {"meta.npy", "held.npy"} <= names
+    return {f"{name}.npy" for name in LATTICE_MEMBERS} <= names
 
 
 def describe_lattice(path: str | os.PathLike[str]) -> str:
@@ -44,10 +45,10 @@ def describe_lattice(path: str | os.PathLike[str]) -> str:
              + (f" of SH order {meta['sh_order']}" if meta.get("kind") == "sh" else ""),
              f"texels     {x} × {y} × {z} (x × y × z), {len(texels):,} held, {active:,} "
              "active",
-             f"box        {_xyz(geometry.lo)} to {_xyz(geometry.hi)}",
+             f"box        {xyz_text(geometry.lo)} to {xyz_text(geometry.hi)}",
              f"volume     {volume.get('name')!r} of shape {volume.get('shape')} (z, y, x), "
-             f"spacing {_xyz(volume.get('spacing', ()))}, origin "
-             f"{_xyz(volume.get('origin', ()))}"]
+             f"spacing {xyz_text(volume.get('spacing', ()))}, origin "
+             f"{xyz_text(volume.get('origin', ()))}"]
     if volume.get("source"):
         lines.append(f"baked from {volume['source']}")
     if config is not None:
@@ -76,10 +77,4 @@ def _settings(config) -> str:
     if config.direct_light is not None:
         parts.append(f"--direct-light {config.direct_light}")
     return " ".join(parts)
-
-
-def _xyz(values) -> str:
-    """Numbers joined by commas ("?" where none are recorded)."""
-    values = list(values)
-    return ",".join(f"{float(v):g}" for v in values) if values else "?"
 

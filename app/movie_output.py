@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from isolume.app.render.images import OutputError, check_output_path
+from isolume.app.render.images import OutputError, check_output_path, unwritable
 from isolume.volumes.writing import atomic_write
 
 FRAME_PATTERN = re.compile(r"frame_\d+\.png")
@@ -39,8 +39,9 @@ def check_movie_output(text: str, size: tuple[int, int]) -> Path:
         parent = path if path.is_dir() else path.parent
         if not parent.is_dir():
             raise OutputError(f"--out {text}: folder {parent} does not exist")
-        if not os.access(parent, os.W_OK):
-            raise OutputError(f"--out {text}: folder {parent} is not writable")
+        why = unwritable(parent)
+        if why is not None:
+            raise OutputError(f"--out {text}: folder {parent} is not writable ({why})")
         return path
     if path.suffix.lower() != ".mp4":
         raise OutputError(f"--out {text}: expected FILE.mp4 or a folder for PNG frames "

@@ -582,7 +582,7 @@ def _check_channels(file: LatticeFile, config: BakeConfig | None) -> None:
             raise BakeError(f"{file.path}: SH order {order!r}: expected a whole number ≥ 1")
         blocks = 2 if config is not None and config.direct_light == "pixels" else 1
         expected = (blocks * order**2, 3 * blocks * order**2)
-    channels = file.channels()
+    channels = file.channels
     if channels not in expected:
         raise BakeError(f"{file.path}: a lattice of kind {kind} with {channels} values a "
                         f"texel: expected {' or '.join(map(str, expected))}")
@@ -618,7 +618,7 @@ def check_identity(meta: dict[str, Any], volume: Volume,
     if origin is not None and not np.allclose(origin, volume.origin, rtol=0.0,
                                               atol=1e-9 * max(1.0, *np.abs(origin))):
         raise BakeError(f"{path}: baked for {want.get('name')!r} with its first sample at "
-                        f"{_xyz(origin)}, here at {_xyz(volume.origin)}: the light would "
+                        f"{xyz_text(origin)}, here at {xyz_text(volume.origin)}: the light would "
                         "be looked up a shift away; load it with the --origin (and --up) "
                         "the bake was given")
 
@@ -629,7 +629,7 @@ def _identity_hint(want: dict[str, Any], volume: Volume) -> str:
     spacing = want.get("spacing")
     if want.get("shape") == list(volume.data.shape) and spacing is not None \
             and not np.allclose(spacing, volume.spacing, rtol=1e-12, atol=0.0):
-        return (f"its voxels are {_xyz(spacing)} apart, here {_xyz(volume.spacing)}: load "
+        return (f"its voxels are {xyz_text(spacing)} apart, here {xyz_text(volume.spacing)}: load "
                 "it with the --spacing the bake was given")
     if want.get("source") and want.get("source") == volume.source:
         return ("the same file, placed otherwise: load it with the --up (and --dims, "
@@ -637,9 +637,10 @@ def _identity_hint(want: dict[str, Any], volume: Volume) -> str:
     return "bake it for this volume"
 
 
-def _xyz(values: npt.ArrayLike) -> str:
-    """x, y, z as the options write them."""
-    return ",".join(f"{float(v):g}" for v in np.asarray(values).reshape(-1))
+def xyz_text(values: npt.ArrayLike) -> str:
+    """x, y, z as the options write them ("?" where none are recorded)."""
+    flat = np.asarray(values, np.float64).reshape(-1)
+    return ",".join(f"{v:g}" for v in flat) if len(flat) else "?"
 
 
 def _config_from(d: dict | None, version: int, path: Path) -> BakeConfig | None:

@@ -410,12 +410,14 @@ class LatticeFile:
             version still in it under ``config`` and ``config_version``).
         shape: (Z, Y, X) texels of the lattice's box.
         version: its format version (`FORMAT_VERSION` or `DENSE_VERSION`).
+        channels: values per texel, as the values' header says (1 where it gives none).
     """
 
     path: Path
     meta: dict[str, Any]
     shape: tuple[int, int, int]
     version: int
+    channels: int
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> LatticeFile:
@@ -430,9 +432,14 @@ class LatticeFile:
         if not zipfile.is_zipfile(path):
             raise BakeError(_not_a_lattice(path))
         try:
-            with zipfile.ZipFile(path) as zf, zf.open("meta.npy") as member:
-                meta = json.loads(str(np.lib.format.read_array(member, allow_pickle=False)))
+            with zipfile.ZipFile(path) as zf:
+                with zf.open("meta.npy") as member:
+                    meta = json.loads(str(np.lib.format.read_array(member,
+                                                                   allow_pickle=False)))
+                with zf.open("values.npy") as member:
+                    values = _Rows(member, "values", np.float32).shape
             shape = tuple(meta["shape"])
+            channels = int(values[-1]) if len(values) in (2, 4) else 1
         except (*_READ_ERRORS, TypeError) as exc:
             raise BakeError(f"{path}: not a readable isolume lattice ({exc})") from None
         version = meta.get("format_version")
@@ -445,7 +452,7 @@ class LatticeFile:
         if lattice_kind(meta) not in KINDS:
             raise BakeError(f"{path}: lattice kind {lattice_kind(meta)!r}: expected one of "
                             f"{', '.join(KINDS)}")
-        return cls(path, meta, shape, int(version))
+        return cls(path, meta, shape, int(version), channels)
 
     def read_dense(self, out: dict[str, np.ndarray] | None = None
                    ) -> dict[str, np.ndarray | None]:
@@ -463,7 +470,7 @@ class LatticeFile:
         try:
             with zipfile.ZipFile(self.path) as zf:
                 if out is None:
-                    self._check_fits(zf)
+                    self._check_fits()
                 slabs = None if self.version == DENSE_VERSION else list(self._held_slabs(zf))
                 counts = None if slabs is None else [int(m.sum()) for _, m in slabs]
                 out = dict(out or {})
@@ -534,29 +541,10 @@ class LatticeFile:
             np.asarray(texels, np.int64)[held[np.asarray(texels, np.int64)]]
         return ids, {n: dense[n].reshape(len(held), *dense[n].shape[3:])[ids] for n in names}
 
-    def channels(self) -> int:
-        """Values per texel, as the values' header says (1 where it gives none).
-
-        Raises:
-            BakeError: no readable values member.
-        """
-        try:
-            with zipfile.ZipFile(self.path) as zf:
-                return self._channels(zf)
-        except _READ_ERRORS as exc:
-            raise BakeError(f"{self.path}: not a readable isolume lattice ({exc})") from None
-
-    @staticmethod
-    def _channels(zf: zipfile.ZipFile) -> int:
-        """`channels` of the open archive `zf`."""
-        with zf.open("values.npy") as member:
-            shape = _Rows(member, "values", np.float32).shape
-        return int(shape[-1]) if len(shape) in (2, 4) else 1
-
-    def _check_fits(self, zf: zipfile.ZipFile) -> None:
+    def _check_fits(self) -> None:
         """Refuse a box whose dense arrays (C values per texel, as the values' header
         says) exceed the memory this machine has available."""
-        channels = self._channels(zf)
+        channels = self.channels
         per_texel = sum(np.dtype(dtype).itemsize * math.prod(t or channels for t in _tail(n))
                         for n, dtype in MEMBERS.items())
         need = int(np.prod(self.shape, dtype=np.int64)) * per_texel

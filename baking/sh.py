@@ -377,6 +377,15 @@ def irradiance_coefficients(l_coeffs: np.ndarray, order: int | None = None) -> n
     return c[: order * order] * a.reshape((-1,) + (1,) * (c.ndim - 1))
 
 
+def hemisphere_irradiance(env: Environment, order: int) -> np.ndarray:
+    """(2, 3) RGB irradiance E(n) ≥ 0 that `env` gives normals facing +z and −z, from its
+    `order`-band projection (`irradiance_coefficients`): the hemisphere ambient that
+    stands for an environment in local shading."""
+    coeffs = irradiance_coefficients(project_environment(env, order))
+    return np.maximum(basis(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]), order) @ coeffs,
+                      0.0)
+
+
 class _BakedLattice(Protocol):
     """What `transfer_blocks` reads of a lattice (`baking.lattice.Lattice`, a
     `baking.view_texels.HeldLattice`)."""

@@ -214,30 +214,37 @@ class LatticeOnFile:
         """The computed texels among (K,) sorted flat ids `texels` (None: all), read from
         the file a slab at a time: their means, facings and samples (as `paths`); with
         `fill` (a display of an unfinished file), its texels among them without paths
-        yet too, from their neighbours (`_fill_unbaked`)."""
-        ids, arrays = self.file.read_texels(None if texels is None
-                                            else np.asarray(texels, np.int64))
-        computed = arrays["samples"] > 0
+        yet too, from their neighbours (`_fill_unbaked`), read in the same pass."""
+        asked = None if texels is None else np.asarray(texels, np.int64)
+        read = asked if asked is None or not fill else _with_neighbours(asked,
+                                                                         self.geometry.shape)
+        ids, arrays = self.file.read_texels(read)
+        done = arrays["samples"] > 0
+        keep = np.ones(len(ids), bool) if read is asked else np.isin(ids, asked)
+        computed = done & keep
         lattice = HeldLattice(self.geometry, ids[computed], arrays["values"].shape[1],
                               self.meta, self.config)
         lattice.values = arrays["values"][computed]
         lattice.facing = arrays["facing"][computed]
         lattice.paths = arrays["samples"][computed]
-        lattice.unbaked = int(np.count_nonzero(~computed))
+        lattice.unbaked = int(np.count_nonzero(~done & keep))
         if fill and lattice.unbaked:
-            self._fill_unbaked(lattice, ids[~computed])
+            self._fill_unbaked(lattice, ids[~done & keep],
+                               (ids[done], arrays["values"][done], arrays["facing"][done]))
         return lattice
 
-    def _fill_unbaked(self, lattice: HeldLattice, unbaked: np.ndarray) -> None:
+    def _fill_unbaked(self, lattice: HeldLattice, unbaked: np.ndarray,
+                      near: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
         """Add to `lattice` the (U,) sorted flat ids `unbaked` (held by the file without
         paths yet: an unfinished bake's) that have computed texels among their 26
         neighbours, each the mix of those weighted as trilinear interpolation over a
         lattice of twice the spacing weighs them (½ a step along each axis they differ
         in), with the facing of the heaviest — so the half lattice that a default bake
         traces first shows as that lattice, not as dots of light on unlit texels; their
-        paths 1 (shown). Reads the neighbours from the file, `FILL_BLOCK` texels at a
-        time (about 2 KB of work arrays a texel)."""
-        parts = [self._mixed(unbaked[lo:lo + FILL_BLOCK])
+        paths 1 (shown). `near`: the (N,) sorted flat ids, (N, C) values and (N, 2)
+        facings of the computed texels read with them, their neighbours among them;
+        `FILL_BLOCK` texels at a time (about 2 KB of work arrays a texel)."""
+        parts = [self._mixed(unbaked[lo:lo + FILL_BLOCK], *near)
                  for lo in range(0, len(unbaked), FILL_BLOCK)]
         ids = np.concatenate([part[0] for part in parts])
         if not len(ids):
@@ -252,23 +259,32 @@ class LatticeOnFile:
                                         np.ones(len(ids), lattice.paths.dtype)])[order]
         lattice.filled = len(ids)
 
-    def _mixed(self, unbaked: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _mixed(self, unbaked: np.ndarray, ids: np.ndarray, values: np.ndarray,
+               facing: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(F,) ids of the (U,) sorted flat `unbaked` with computed neighbours, (F, C)
         their mixes and (F, 2) facings (`_fill_unbaked`); the neighbours found among the
-        file's computed texels by `fill_check.neighbours_of`."""
+        computed texels' sorted `ids` (`values`, `facing`) by `fill_check.neighbours_of`."""
         from isolume.baking.fill_check import OFFSETS, neighbours_of
 
-        box = np.array(self.geometry.shape)
-        at = np.stack(np.unravel_index(unbaked, tuple(box)), axis=1)  # (U, 3) z, y, x
-        near = np.clip(at[:, None, :] + OFFSETS[None], 0, box - 1).reshape(-1, 3)
-        ids, arrays = self.file.read_texels(np.unique(np.ravel_multi_index(near.T, box)))
-        done = arrays["samples"] > 0
-        rows = neighbours_of(at, ids[done], tuple(box))  # (U, 26), -1: none computed
+        box = tuple(self.geometry.shape)
+        at = np.stack(np.unravel_index(unbaked, box), axis=1)  # (U, 3) z, y, x
+        rows = neighbours_of(at, ids, box)  # (U, 26), -1: none computed
         weight = np.where(rows >= 0, 0.5 ** np.abs(OFFSETS).sum(axis=1)[None], 0.0)
         total = weight.sum(axis=1)
         filled = total > 0
         rows, weight = np.maximum(rows[filled], 0), weight[filled]
-        mixed = np.einsum("un,unc->uc", weight, arrays["values"][done][rows])
-        mixed /= total[filled, None]
+        mixed = np.einsum("un,unc->uc", weight, values[rows]) / total[filled, None]
         heaviest = rows[np.arange(len(rows)), np.argmax(weight, axis=1)]
-        return unbaked[filled], mixed, arrays["facing"][done][heaviest]
+        return unbaked[filled], mixed, facing[heaviest]
+
+
+def _with_neighbours(texels: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """The (K,) sorted flat ids `texels` of a (Z, Y, X) box and their 26 neighbours,
+    sorted and unique (what `LatticeOnFile.held` reads to fill its unbaked texels)."""
+    from isolume.baking.fill_check import OFFSETS
+
+    box = np.array(shape)
+    at = np.stack(np.unravel_index(texels, shape), axis=1)
+    steps = np.concatenate([np.zeros((1, 3), OFFSETS.dtype), OFFSETS])
+    near = np.clip(at[:, None, :] + steps[None], 0, box - 1).reshape(-1, 3)
+    return np.unique(np.ravel_multi_index(near.T, shape))

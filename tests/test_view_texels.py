@@ -109,6 +109,12 @@ def test_an_unfinished_files_texels_without_paths_show_their_neighbours_mix(tmp_
     in_blocks = opened.held(fill=True)
     for name in ("texels", "values", "facing", "paths"):
         np.testing.assert_array_equal(getattr(in_blocks, name), getattr(held, name))
+    asked = np.flatnonzero(baked.reshape(-1))[::3]  # a picture's texels: their neighbours
+    part = opened.held(asked, fill=True)            # are read in the same pass
+    kept = np.isin(held.texels, asked)
+    np.testing.assert_array_equal(part.texels, held.texels[kept])
+    for name in ("values", "facing", "paths"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(held, name)[kept])
 
     done = (lattice.samples > 0).astype(np.float64)
     sums = np.zeros((*done.shape, 3))

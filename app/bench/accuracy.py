@@ -55,6 +55,7 @@ from isolume.app.bench.accuracy_reference import (
     Truth,
     settle_reference,
 )
+from isolume.app.render.images import output_folder
 from isolume.volumes.errors import IsolumeError
 
 if TYPE_CHECKING:
@@ -224,17 +225,12 @@ def reference_cache(text: str | None) -> Path | None:
     """
     import os
 
-    from isolume.app.options import CLIError
 
     if text is not None and text.lower() == "none":
         return None
     base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     folder = base / "isolume" / "references" if text is None else Path(text).expanduser()
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CLIError(f"--cache {folder}: cannot make the folder ({exc.strerror})") from None
-    return folder
+    return output_folder(folder, "--cache")
 
 
 def parse_up_rules(values: list[str] | None) -> tuple[tuple[str, str], ...]:
@@ -642,11 +638,7 @@ def run(args: argparse.Namespace) -> int:
     specs = [s for s in every if selected(s, args.only)]
     if not specs:
         raise CLIError(f"--only {args.only}: matches none of the {len(every)} volumes")
-    out = Path(args.out).expanduser()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CLIError(f"--out {out}: cannot make the folder ({exc.strerror})") from None
+    out = output_folder(Path(args.out).expanduser())
     report = Report(out, _settings_record(sweep, specs))
     report.say(table_header())
     try:

@@ -407,8 +407,7 @@ def sweep(plan: Plan) -> None:
 
 
 def write_outputs(plan: Plan, fits: list[dict[str, Any]]) -> None:
-    """scale.json, table.txt and scale.png in `plan.out`."""
-    plan.out.mkdir(parents=True, exist_ok=True)
+    """scale.json, table.txt and scale.png in `plan.out` (made by `output_folder`)."""
     settings = {k: v for k, v in asdict(plan).items() if k not in ("runs", "work", "out")}
     (plan.out / "scale.json").write_text(json.dumps(
         {"settings": settings, "runs": [asdict(r) for r in plan.runs], "exponents": fits},

@@ -51,8 +51,7 @@ def local_lighting(env_spec: str) -> LocalLighting:
     if isinstance(env, SkyEnvironment) and max(env.sun) > 0:
         key_dir, key = np.asarray(env.sun_direction), np.asarray(env.sun)
         ambient = dataclasses.replace(env, sun=(0.0, 0.0, 0.0))
-    coeffs = sh.irradiance_coefficients(sh.project_environment(ambient, AMBIENT_ORDER))
-    up_down = sh.basis(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]), AMBIENT_ORDER) @ coeffs
+    up_down = sh.hemisphere_irradiance(ambient, AMBIENT_ORDER)
 
     def triple(v, floor: float | None = 0.0) -> tuple[float, float, float]:
         return tuple(float(c) for c in (v if floor is None else np.maximum(v, floor)))

@@ -49,7 +49,7 @@ def check_output_folder(path: str | os.PathLike[str]) -> Path:
         if above is not None and not above.is_dir():
             raise OutputError(f"{path}: {above} is not a directory")
         raise OutputError(f"{path}: directory {parent} does not exist")
-    why = _unwritable(parent)
+    why = unwritable(parent)
     if why is not None:
         raise OutputError(f"{path}: directory {parent} is not writable ({why})")
     return path
@@ -69,13 +69,13 @@ def output_folder(path: str | os.PathLike[str], what: str = "--out") -> Path:
     except OSError as exc:
         raise OutputError(f"{what} {path}: cannot make the folder "
                           f"({exc.strerror or exc})") from None
-    why = _unwritable(path)
+    why = unwritable(path)
     if why is not None:
         raise OutputError(f"{what} {path}: the folder is not writable ({why})")
     return path
 
 
-def _unwritable(folder: Path) -> str | None:
+def unwritable(folder: Path) -> str | None:
     """Why `folder` cannot take a new file (the system's reason), or None: a temporary
     file is made there and removed, which also finds read-only mounts and what a root
     user is refused, where permission bits alone do not."""

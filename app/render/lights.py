@@ -11,6 +11,7 @@ its light comes from its bake config (`baking.lattice.Lattice.config`).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING
@@ -60,18 +61,26 @@ def unbaked_hemisphere(lattice: Lattice | HeldLattice | LatticeOnFile | None
     from the lattice's environment — without the sky's sun where the renderer adds it per
     pixel (`lattice_direct_lights`) — by its `UNBAKED_ORDER`-band SH projection: the
     hemisphere ambient the lattice modes show where no texel has light yet, at the light
-    level of the texels that have; None where the lattice records no environment."""
-    from isolume.baking.sh import basis, irradiance_coefficients, project_environment
-
+    level of the texels that have; None where the lattice records no environment. Once a
+    process per environment (a movie sets its lattice for every frame)."""
     config = lattice.config if lattice is not None else None
-    env = config.lighting.environment if config is not None else None
-    if env is None:
+    if config is None or config.lighting.environment is None:
         return None
-    if lattice_direct_lights(lattice) and hasattr(env, "without_sun"):
+    return _hemisphere_of(config.env, bool(lattice_direct_lights(lattice)))
+
+
+@functools.lru_cache(maxsize=8)
+def _hemisphere_of(env_spec: str, sun_per_pixel: bool
+                   ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """`unbaked_hemisphere` of the environment `env_spec`, without its sun where the sun
+    is drawn per pixel."""
+    from isolume.baking.lighting import lighting_of
+    from isolume.baking.sh import hemisphere_irradiance
+
+    env = lighting_of(env_spec).environment
+    if sun_per_pixel and hasattr(env, "without_sun"):
         env = env.without_sun()
-    e = irradiance_coefficients(project_environment(env, UNBAKED_ORDER))
-    up, down = np.maximum(basis(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]),
-                                UNBAKED_ORDER) @ e, 0.0)
+    up, down = hemisphere_irradiance(env, UNBAKED_ORDER)
     return tuple(float(v) for v in up), tuple(float(v) for v in down)
 
 
