@@ -24,7 +24,6 @@ from isolume.app.options import (
     load_lattice,
     load_volume,
     parse_size,
-    shown_under,
 )
 from isolume.volumes.errors import interrupted_by
 
@@ -91,7 +90,7 @@ def render_picture(args: argparse.Namespace, reuse: Reuse | None = None) -> Rend
         raise CLIError(str(exc)) from None
     check_picture_memory(size, "local")
     vol = load_volume(args)
-    lattice = shown_under(load_lattice(args.lattice, vol, whole=False), args.env)
+    lattice = load_lattice(args.lattice, vol, args.env, whole=False)
     look = shading_look(args, vol, lattice, size)
     iso = isovalue(vol, args.iso)
     check_served(lattice, iso, args.lattice)

@@ -33,7 +33,6 @@ from isolume.app.options import (
     load_volume,
     parse_albedo,
     parse_exposure,
-    shown_under,
     view_light,
 )
 
@@ -75,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_output_path(args.out, SUFFIXES)
     parse_exposure(args.exposure)
     volume = load_volume(args)
-    lattice = shown_under(load_lattice(args.lattice, volume), args.env)
+    lattice = load_lattice(args.lattice, volume, args.env)
     iso = _served_isovalue(args, volume, lattice)
     shading = _shading(args, volume, lattice)
     mesh = volumes.isosurface(volume, iso, normals=args.normals, flip_normals=args.flip_normals)

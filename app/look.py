@@ -90,16 +90,22 @@ def shading_look(args: argparse.Namespace, vol: volumes.Volume,
 def _check_lattice_options(args: argparse.Namespace,
                            lattice: Lattice | HeldLattice | LatticeOnFile | None,
                            shading: str) -> None:
-    """`CLIError` (one line) for options a lattice would leave unused: ``--shading sh``
-    with an irradiance lattice, ``--light`` with an SH one (its transfer holds no point
+    """`CLIError` (one line) for options a lattice would leave unused: a ``--shading``
+    that reads the other kind of lattice (``sh`` with an irradiance one, the irradiance
+    modes with an SH one), ``--light`` with an SH one (its transfer holds no point
     or directional light), ``--env-rotation`` with an irradiance one (its light is baked
     in place; a saved view's turned light, ``--state``, sets it for the sun drawn per
     pixel, and is not refused)."""
+    from isolume.app.render.settings import SHADING_MODES
+
     if lattice is None:
         return
-    if shading == "sh" and lattice.kind != "sh":
-        raise CLIError(f"--shading sh needs an SH lattice (isolume bake --mode sh); "
-                       f"{args.lattice} holds {lattice.kind}")
+    mode = SHADING_MODES.get(shading)  # an unknown one: RenderSettings says so
+    want = mode.lattice_kind if mode is not None else None
+    if want is not None and lattice.kind != want:
+        made = "isolume bake --mode sh" if want == "sh" else "isolume bake, without --mode sh"
+        raise CLIError(f"--shading {shading} needs an {'SH' if want == 'sh' else want} "
+                       f"lattice ({made}); {args.lattice} holds {lattice.kind}")
     if lattice.kind == "sh" and args.light:
         raise CLIError(f"--light: {args.lattice} is an SH lattice, whose transfer holds the "
                        "environment's light only; bake the lights into an irradiance "

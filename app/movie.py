@@ -43,7 +43,6 @@ from isolume.app.options import (
     load_lattice,
     load_volume,
     parse_size,
-    shown_under,
 )
 from isolume.app.state import add_state_argument
 
@@ -330,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
     """Render the movie; returns the exit status."""
     request = check_request(args)
     vol = load_volume(args)
-    lattice = shown_under(load_lattice(args.lattice, vol), args.env)
+    lattice = load_lattice(args.lattice, vol, args.env)
     look = shading_look(args, vol, lattice, request.size, per="frame")
     iso = isovalue(vol, args.iso)
     iso_range = sweep_range(args, vol, lattice, iso) if request.kind == "iso" else None

@@ -148,13 +148,14 @@ def isovalue(volume: volumes.Volume, iso: float | None) -> float:
 
 
 def load_lattice(path: str | os.PathLike[str] | Lattice | None, volume: volumes.Volume,
-                 whole: bool = True) -> Lattice | HeldLattice | LatticeOnFile | None:
-    """The lattice at `path` checked against `volume`, or None: with `whole`, its computed
-    texels (a `baking.view_texels.HeldLattice`: memory follows them, not the box); else
-    the file opened, no texel read (a `baking.view_texels.LatticeOnFile`: a picture reads
-    the texels its pixels need, `app.render.offscreen.render_volume`). A lattice in
-    memory (a `baking.Lattice`, the Python API's) is checked against `volume` and
-    returned as it is."""
+                 env: str | None, whole: bool = True
+                 ) -> Lattice | HeldLattice | LatticeOnFile | None:
+    """The lattice at `path` checked against `volume` and shown under the environment
+    `env` (``--env``, `_shown_under`), or None: with `whole`, its computed texels (a
+    `baking.view_texels.HeldLattice`: memory follows them, not the box); else the file
+    opened, no texel read (a `baking.view_texels.LatticeOnFile`: a picture reads the
+    texels its pixels need, `app.render.offscreen.render_volume`). A lattice in memory (a
+    `baking.Lattice`, the Python API's) is checked against `volume` and not copied."""
     if path is None:
         return None
     from isolume.baking.lattice import Lattice, check_identity
@@ -162,13 +163,13 @@ def load_lattice(path: str | os.PathLike[str] | Lattice | None, volume: volumes.
 
     if isinstance(path, Lattice):
         check_identity(path.meta, volume, "the lattice given")
-        return path
+        return _shown_under(path, env)
 
     opened = LatticeOnFile.open(path, volume)
-    return opened.held(fill=True) if whole else opened
+    return _shown_under(opened.held(fill=True) if whole else opened, env)
 
 
-def shown_under(lattice: Lattice | HeldLattice | LatticeOnFile | None, spec: str | None
+def _shown_under(lattice: Lattice | HeldLattice | LatticeOnFile | None, spec: str | None
                 ) -> Lattice | HeldLattice | LatticeOnFile | None:
     """`lattice` as a picture shows it under the environment `spec` (``--env``; None: the
     baked one). An SH lattice that leaves its sun to the pixels (baked with direct light

@@ -843,16 +843,23 @@ def test_a_ctrl_c_inside_a_callback_from_c_is_sent_again_after_it(monkeypatch):
 
 
 def test_options_a_lattice_would_leave_unused_are_refused_in_one_line(tmp_path, capsys):
-    """``--shading sh`` with an irradiance lattice, ``--env-rotation`` with one (its light
-    cannot turn) and ``--light`` with an SH lattice: one line each, status 2 — not a
-    traceback, not an option silently left out of the picture."""
+    """``--shading sh`` with an irradiance lattice and an irradiance mode with an SH one
+    (each saying how the other kind is baked), ``--env-rotation`` with an irradiance
+    lattice (its light cannot turn) and ``--light`` with an SH lattice: one line each,
+    status 2, naming the file — not a traceback, not an option silently left out of the
+    picture."""
     volume = "synthetic:sphere:16"
     irradiance, transfer = tmp_path / "e.npz", tmp_path / "sh.npz"
     for out, extra in [(irradiance, []), (transfer, ["--mode", "sh", "--sh-order", "2"])]:
         assert main(["bake", volume, "--samples", "2", "--out", str(out), *extra]) == 0
     render = ["render", volume, "--size", "16x16", "--out", str(tmp_path / "x.png")]
     for extra, expected in [
-            (["--lattice", str(irradiance), "--shading", "sh"], "needs an SH lattice"),
+            (["--lattice", str(irradiance), "--shading", "sh"],
+             f"needs an SH lattice (isolume bake --mode sh); {irradiance} holds irradiance"),
+            (["--lattice", str(transfer), "--shading", "irradiance_closest"],
+             f"needs an irradiance lattice (isolume bake, without --mode sh); {transfer} "
+             "holds sh"),
+            (["--lattice", str(transfer), "--shading", "ao"], "needs an irradiance lattice"),
             (["--lattice", str(irradiance), "--env-rotation", "90,0"], "cannot turn"),
             (["--lattice", str(transfer), "--light", "dir:0,0,1:1,1,1"], "SH lattice")]:
         capsys.readouterr()

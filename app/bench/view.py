@@ -159,17 +159,17 @@ def _time_mode(renderer, ctx, camera, settings, frames: int) -> tuple[list, list
 
 
 def _jobs(preview: bool) -> list[tuple[str, str, str | None, tuple | None]]:
-    """(label, mode, lattice needed: None, "irr" or "sh", per-pixel lights) to time, grouped
-    by the lattice they need (one upload per group and round)."""
+    """(label, mode, kind of lattice needed: None, "irradiance" or "sh", per-pixel
+    lights) to time, grouped by the lattice they need (one upload per group and
+    round)."""
     from isolume.app.render.settings import SHADING_MODES
 
     jobs = []
     for mode, spec in SHADING_MODES.items():
         if preview and mode not in ("phong_hemi", "irradiance"):
             continue
-        needs = "sh" if spec.lattice == "sh" else spec.lattice and "irr"
-        jobs += [(label, mode, needs, direct) for label, direct in _variants(mode)]
-    order = {None: 0, "irr": 1, "sh": 2}
+        jobs += [(label, mode, spec.lattice_kind, direct) for label, direct in _variants(mode)]
+    order = {None: 0, "irradiance": 1, "sh": 2}
     return sorted(jobs, key=lambda job: order[job[2]])
 
 
@@ -217,7 +217,7 @@ def frame_times(volume: Volume, iso: float, size: tuple[int, int], frames: int =
                             env[0] = np.sqrt(4 * np.pi)  # a white sky
                             renderer.set_environment(env)
                         else:
-                            renderer.set_lattice(irr if needs == "irr" else None, rho)
+                            renderer.set_lattice(irr if needs == "irradiance" else None, rho)
                         shown = needs
                     settings = RenderSettings(size=size, shading=mode, direct_lights=direct)
                     wall, cpu = _time_mode(renderer, gl.ctx, camera, settings, per_round)

@@ -285,7 +285,7 @@ class SurfaceRenderer:
             return
         if self.lattice is None:
             raise RenderError(f"shading {shading!r} needs a lattice (--lattice FILE)")
-        want = "sh" if mode.lattice == "sh" else "irradiance"
+        want = mode.lattice_kind
         if self.lattice.kind != want:
             raise RenderError(f"shading {shading!r} needs an {want} lattice, this one holds "
                               f"{self.lattice.kind}")

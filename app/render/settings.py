@@ -61,6 +61,15 @@ class ShadingMode:
     shadow: bool = False
     fog: bool = False
 
+    @property
+    def lattice_kind(self) -> str | None:
+        """The kind of lattice the mode reads ("irradiance" or "sh", a `Lattice.kind`;
+        None: none): an occlusion lattice is an irradiance one baked under a constant sky
+        with no bounces and no lights."""
+        if self.lattice is None:
+            return None
+        return "sh" if self.lattice == "sh" else "irradiance"
+
     def defines(self) -> tuple[tuple[str, int], ...]:
         """(name, value) shader defines of this mode."""
         return (("SHADING", self.shading), ("SHADOW", int(self.shadow)),

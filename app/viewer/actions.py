@@ -64,7 +64,7 @@ def _kind_hint(mode: str, kind: str) -> str:
     another `kind` ("" when it is of that kind: its bake settings are what differ)."""
     from isolume.app.render.settings import LATTICE_MODES
 
-    want = "sh" if LATTICE_MODES[mode].lattice == "sh" else "irradiance"
+    want = LATTICE_MODES[mode].lattice_kind
     return "" if want == kind else f" (a lazy bake makes one with --bake-mode {want})"
 
 
