@@ -243,10 +243,11 @@ def add_volume_options(p: argparse.ArgumentParser, optional: bool) -> None:
     )
     p.add_argument("--dims", help="X,Y,Z for raw files whose name does not say")
     p.add_argument("--dtype", help="sample type for raw files, e.g. uint8, int16, float32")
-    p.add_argument("--spacing", help="voxel size X,Y,Z (overrides the file)")
+    p.add_argument("--spacing", help="voxel size X,Y,Z (overrides the file's, or a "
+                   "synthetic volume's)")
     p.add_argument("--origin", help="world position X,Y,Z of the first voxel's centre "
-                   "(overrides the file; e.g. 0,0,0 for a file placed far from the world "
-                   "origin)")
+                   "(overrides the file's or a synthetic volume's; e.g. 0,0,0 for a file "
+                   "placed far from the world origin)")
     p.add_argument("--up", metavar="AXIS", default=None,
                    help="the volume's axis that points up: x, y, z, -x, -y or -z (after the "
                    "orientation its header gives; e.g. -z for raw slices that run top "

@@ -348,5 +348,25 @@ def test_crop_counts_before_up_and_works_on_synthetic_volumes(capsys):
     got = load_volume(args)
     np.testing.assert_array_equal(got.data, volumes.turn_up(plain, "x").data)
     assert got.shape_xyz == (11, 15, 18)
-    with pytest.raises(VolumeError, match="--level 0 only applies to OME-Zarr"):
+    with pytest.raises(VolumeError, match="--level 0 gives the level of an OME-Zarr"):
         volumes.load("synthetic:sphere:16", level=0)
+
+
+def test_a_synthetic_volume_takes_spacing_and_origin_and_refuses_file_options(capsys):
+    """``--spacing`` and ``--origin`` place a synthetic volume as they place a file's (then
+    ``--crop`` counts from there); ``--dims``, ``--dtype`` and ``--level`` describe files
+    and are refused in one line, not left out silently."""
+    plain = volumes.load("synthetic:torus:24")
+    placed = volumes.load("synthetic:torus:24", spacing=(2.0, 1.0, 0.5), origin=(10, -4, 3))
+    np.testing.assert_array_equal(placed.data, plain.data)
+    assert placed.spacing == (2.0, 1.0, 0.5) and placed.origin == (10.0, -4.0, 3.0)
+    assert placed.data_hash() != plain.data_hash()  # the hash covers the spacing
+    status, out, err = _run(capsys, "info", "synthetic:torus:24", "--origin", "10,-4,3",
+                            "--crop", "2:24,:,:")
+    assert status == 0, err
+    assert f"origin     {10 + 2 * plain.spacing[0]:g}, -4, 3" in out, out
+    for argv, fragment in [(["--dims", "3,3,3"], "--dims 3,3,3 gives a raw file's size"),
+                           (["--dtype", "uint8"], "--dtype uint8 gives a raw file's sample"),
+                           (["--spacing", "0,1,1"], "spacing must be positive")]:
+        status, _, err = _run(capsys, "info", "synthetic:torus:24", *argv)
+        assert status == 2 and fragment in err and err.count("\n") == 1, (argv, err)

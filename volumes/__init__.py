@@ -13,6 +13,7 @@ Public API::
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import TYPE_CHECKING, Any
 
@@ -96,20 +97,46 @@ def load(spec: str | os.PathLike[str] | None = None, *, crop: str | None = None,
         crop: ``X0:X1,Y0:Y1,Z0:Z1`` voxel index ranges along x, y, z (end exclusive,
             see `CROP_SYNTAX`); None for the whole volume.
         downsample: N ≥ 1: means of N³-voxel blocks, spacing × N (`volumes.region`).
-        **options: for files, ``dims``, ``dtype``, ``spacing``, ``origin``, ``level``
-            (see `volumes.io.load_file`).
+        **options: ``spacing``, ``origin`` ((3,) x, y, z, world units: they override the
+            file's or the synthetic volume's own); for files, also ``dims``, ``dtype``,
+            ``level`` (see `volumes.io.load_file`).
 
     Files read lazily where their format allows (raw, NRRD raw, ``.npy``, Zarr): only the
-    part is read. A synthetic volume is built whole, then cut.
+    part is read. A synthetic volume is built whole, placed, then cut.
     """
     spec = DEFAULT if spec is None else spec
     if isinstance(spec, str) and spec.startswith("synthetic:"):
-        from isolume.volumes.synthetic import parse
-
-        if options.get("level") is not None:
-            raise VolumeError(f"{spec}: --level {options['level']} only applies to OME-Zarr "
-                              "multiscale images")
-        return crop_downsample(parse(spec), crop, downsample)
+        return crop_downsample(_synthetic(spec, **options), crop, downsample)
     from isolume.volumes.io import load_file
 
     return load_file(spec, crop=crop, downsample=downsample, **options)
+
+
+FILE_OPTIONS = {"dims": ("--dims", "a raw file's size"),
+                "dtype": ("--dtype", "a raw file's sample type"),
+                "level": ("--level", "the level of an OME-Zarr multiscale image")}
+"""`load`'s options that describe a file: the command-line option that gives each, and
+what it gives."""
+
+
+def _synthetic(spec: str, spacing: Any = None, origin: Any = None, **options: Any) -> Volume:
+    """The synthetic volume `spec` (``synthetic:NAME[:SIZE]``) at the `spacing` and
+    `origin` asked ((3,) x, y, z, world units; None: its own).
+
+    Raises:
+        VolumeError: for an option of `FILE_OPTIONS` (or one `load` does not know): a
+            generated volume has no file for it to describe.
+    """
+    from isolume.volumes.synthetic import parse
+
+    for name, value in options.items():
+        if value is not None:
+            option, what = FILE_OPTIONS.get(name, (name, "no option of a synthetic volume"))
+            text = ",".join(map(str, value)) if isinstance(value, tuple) else value
+            raise VolumeError(f"{spec}: {option} {text} gives {what}; a synthetic volume is "
+                              "generated (its size: synthetic:NAME:SIZE)")
+    volume = parse(spec)
+    if spacing is None and origin is None:
+        return volume
+    return dataclasses.replace(volume, spacing=volume.spacing if spacing is None else spacing,
+                               origin=volume.origin if origin is None else origin)
