@@ -195,15 +195,15 @@ def test_wait_gi_ends_when_the_first_preview_is_on_screen(display, tmp_path):
 
 
 def test_wait_gi_lights_what_the_screenshot_sees_beside_the_panel(display, tmp_path):
-    """With the panel shown the window's camera stands aside to frame the surface beside
-    it, and a screenshot's (framed in the whole window, `ViewerState.whole_window`) sees
-    faces the window's does not: on the torus, part of the hole's inner wall. ``wait-gi``
-    returns once they have their first light too: no pixel of the screenshot after it is
-    below a quarter of its light once the bake is done (the window's visible texels alone
-    left 71 of its 89 k surface pixels so, the inner wall's)."""
+    """With the panel shown open (a window wide enough for it) the window's camera stands
+    aside to frame the surface beside it, and a screenshot's (framed in the whole window,
+    `ViewerState.whole_window`) sees faces the window's does not: on the torus, part of
+    the hole's inner wall. ``wait-gi`` returns once they have their first light too: no
+    pixel of the screenshot after it is below a quarter of its light once the bake is done
+    (the window's visible texels alone leave the inner wall's pixels so)."""
     (tmp_path / "s.txt").write_text("wait-gi 120\nscreenshot gi.png\nwait-bake 1 120\n"
                                     "frames 3\nscreenshot done.png\nquit\n")
-    run = _view(["synthetic:torus", "--size", "480x360", "--script", "s.txt"],
+    run = _view(["synthetic:torus", "--size", "900x400", "--script", "s.txt"],
                 display, tmp_path)
     assert run.returncode == 0, run.stderr
     gi, gi_mask = _surface(tmp_path / "gi.exr")
@@ -227,6 +227,22 @@ def test_frames_keep_coming_while_the_full_surface_is_extracted(display, tmp_pat
     assert change["coarse_s"] < change["full_s"]
     assert change["frames"] >= 3, change
     assert change["max_gap_ms"] < 1000 * change["full_s"], change
+
+
+def test_a_small_window_folds_the_panel_and_shows_the_surface_whole(display, tmp_path):
+    """At 640×480 the open panel would cover 54 % of the window: it starts folded to its
+    title bar, and the window frames the surface in the whole window, as its screenshots
+    do — the two pictures differ only under the bar, under 3 % of the window."""
+    (tmp_path / "s.txt").write_text("wait-mesh\nframes 2\nscreenshot shot.png\n"
+                                    "window-shot window.png\nquit\n")
+    run = _view(["synthetic:engine:48", "--no-bake", "--size", "640x480", "--script",
+                 "s.txt"], display, tmp_path)
+    assert run.returncode == 0, run.stderr
+    window, shot = _png(tmp_path / "window.png"), _png(tmp_path / "shot.png")
+    assert _surface(tmp_path / "shot.exr")[1].mean() > 0.1
+    rows, cols = np.nonzero(np.abs(window - shot).max(axis=-1) > 8)
+    hidden = (np.ptp(rows) + 1) * (np.ptp(cols) + 1) / (640 * 480)  # the panel's box
+    assert rows.max() < 40 and hidden < 0.03, (rows.max(), cols.max(), hidden)
 
 
 def test_no_display_names_the_off_screen_alternative(monkeypatch, capsys):
@@ -362,20 +378,21 @@ quit
 def test_a_file_shown_as_it_is_wraps_its_warning_and_says_why_nothing_is_saved(
         display, tmp_path, lattice_file):
     """A complete file shown outside its baked range: the panel's range warning wraps to
-    the panel's width (unwrapped, it widened the panel past the window's edge); a save
+    the panel's width (unwrapped, it widened the panel past the middle of the window,
+    where the surface is framed beside it); a save
     without a name writes nothing and says why on stdout, one line; ``save-lattice
     FILE`` writes a copy; ``mode vicinity`` is refused for the reason `render` gives (a
     constant sky, no bounces), not the lattice's kind, which is right."""
     path = _copy_in(lattice_file, tmp_path)
     (tmp_path / "s.txt").write_text(FILE_SESSION)
-    width = 560
+    width = 900  # the panel shows open: wide enough for the surface beside it
     run = _view(["synthetic:engine:48", "--iso", "0.6", "--lattice", "light.npz",
                  "--size", f"{width}x420", "--script", "s.txt"], display, tmp_path)
     assert run.returncode == 2, run.stderr
     window = _png(tmp_path / "panel.png")
     title = window[19]  # the panel's title bar, blue, as wide as the panel
     blue = np.flatnonzero(title[:, 2] - title[:, 0] > 50)
-    assert len(blue) > 100 and blue.max() < width - 40, blue.max()
+    assert len(blue) > 100 and blue.max() < width / 2, blue.max()
     (nothing, copied) = _said(run.stdout, "isolume: nothing saved")
     assert "light.npz" in nothing and "save-lattice OTHER.npz" in nothing
     assert copied.startswith("isolume: saved copy.npz")
@@ -621,6 +638,63 @@ def test_camera_and_light_controls():
     assert drag_target(0, True, False) == "pan" and drag_target(2, False, False) == "pan"
     assert drag_target(0, False, True) == "light" and drag_target(1, False, False) == "light"
     assert drag_target(5, False, False) is None
+
+
+def _panel_rects(size, frames, presses=()):
+    """The panel's (x, y, width, height) in each of `frames` Dear ImGui frames of a window
+    of `size` (W, H) window units, laid out without a window or GL; the C key goes down in
+    the frames numbered in `presses` and up in the next."""
+    imgui = pytest.importorskip("imgui_bundle").imgui
+    from isolume.app.viewer.panel import PanelModel, draw_panel
+
+    model = PanelModel(
+        title="engine  128x80x65", iso=0.3, iso_range=(0.0, 1.0),
+        mesh_status="full resolution: 110,818 triangles, 55,560 vertices",
+        modes=("phong_hemi", "irradiance"), enabled=("phong_hemi", "irradiance"),
+        mode="irradiance", exposure=1.0, light=None, auto_exposure=0.23,
+        light_note="The sun and lights are shaded per pixel (exact shadows); turning the "
+                   "light moves them, their bounced light is re-baked once the light rests.",
+        bake_lines=("planning the bake (gradients)... 4 s",
+                    "preview: 4 paths/texel on this surface"),
+        can_bake=True, can_save=True, frame_ms=30.0, size=size)
+    context = imgui.create_context()
+    io = imgui.get_io()
+    io.set_ini_filename(None)
+    io.backend_flags |= imgui.BackendFlags_.renderer_has_textures  # no font texture needed
+    rects = []
+    try:
+        for frame in range(frames):
+            io.display_size, io.delta_time = imgui.ImVec2(*size), 1 / 60
+            if frame in presses or frame - 1 in presses:
+                io.add_key_event(imgui.Key.c, frame in presses)
+            imgui.new_frame()
+            actions = draw_panel(imgui, model)
+            imgui.render()
+            rects += [a.value for a in actions if a.name == "panel_rect"]
+    finally:
+        imgui.destroy_context(context)
+    return rects
+
+
+def test_the_panel_takes_a_small_share_of_a_small_window():
+    """Open, the panel is 419×394 window units: 54 % of a 640×480 window, past its middle.
+    There it shows folded to a one-line title bar from its first visible frame (Dear ImGui
+    lays it out hidden in the first), under 2 % of the window; C opens it and folds it
+    again. In the default 1024×768 window it shows open (21 %), beside the surface."""
+    def share(rect, size):
+        return rect[2] * rect[3] / (size[0] * size[1])
+
+    small = (640, 480)
+    rects = _panel_rects(small, 12, presses=(4, 8))
+    assert max(share(r, small) for r in rects[1:4]) < 0.02, rects
+    assert rects[1][3] < 25 and rects[1][2] > 150  # a title bar wide enough for its hint
+    assert 0.4 < share(rects[7], small) < 0.6  # opened by C
+    assert share(rects[-1], small) < 0.02  # folded again
+    large = (1024, 768)
+    rects = _panel_rects(large, 4)
+    assert all(0.15 < share(r, large) < 0.3 for r in rects[2:]), rects
+    x, _, width, _ = rects[-1]
+    assert x + width + 10 <= 0.5 * large[0]
 
 
 def test_keys_map_to_actions():

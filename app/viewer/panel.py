@@ -185,17 +185,40 @@ KEYS_HELP = (
     "ctrl/right-drag: light   L: light on camera",
     "left/right or [ ]: isovalue (shift: x10)   1-9: mode",
     "+/-: exposure   F12/P: screenshot   V: save view   S: save lattice",
-    "B: pause bake   H: hide panel   Esc/Q: quit",
+    "B: pause bake   C: fold panel   H: hide panel   Esc/Q: quit",
 )
+
+PANEL_ID = "###isolume"
+"""Dear ImGui's name for the panel window: its title changes (`_title`), its identity not."""
+PANEL_GAP = 10.0
+"""Window units between the panel and the window's top-left corner, and between the panel
+and the part of the window the surface is framed in beside it (`room_beside`)."""
+MAX_PANEL_WIDTH = 0.5
+"""Fraction of the window's width the open panel (and `PANEL_GAP`) may take at the start;
+a wider one starts folded to its title bar (`_fold`), the surface framed in the whole
+window."""
+FOLD_HINT = "C: show the controls"
+"""What the folded panel's title bar says after the name."""
+
+
+def room_beside(right: float, window_width: float) -> float:
+    """Left edge of the part of the window beside a panel whose right edge is at `right`
+    (window units), as a fraction of `window_width` (window units): (right + gap) / width."""
+    return (right + PANEL_GAP) / max(window_width, 1.0)
 
 
 def draw_panel(imgui: ModuleType, model: PanelModel) -> list[Action]:
-    """Draw the control panel for `model`; return what the user changed this frame."""
+    """Draw the control panel for `model` (folded to its title bar where the window is too
+    narrow for it, `_fold`); return what the user changed this frame, and where the panel
+    is (its "panel_rect", window units)."""
     actions: list[Action] = []
-    imgui.set_next_window_pos(imgui.ImVec2(10, 10), imgui.Cond_.once)
+    imgui.set_next_window_pos(imgui.ImVec2(PANEL_GAP, PANEL_GAP), imgui.Cond_.once)
     imgui.set_next_window_bg_alpha(0.85)
     flags = imgui.WindowFlags_.always_auto_resize | imgui.WindowFlags_.no_saved_settings
-    visible, _ = imgui.begin("isolume", None, flags)
+    folded = _fold(imgui)
+    if folded:  # the title bar only as wide as its hint
+        imgui.set_next_window_size(imgui.ImVec2(_folded_width(imgui), 0))
+    visible, _ = imgui.begin(_title(folded), None, flags)
     pos, size = imgui.get_window_pos(), imgui.get_window_size()
     actions.append(Action("panel_rect", (pos.x, pos.y, size.x, size.y)))
     if visible:
@@ -205,6 +228,48 @@ def draw_panel(imgui: ModuleType, model: PanelModel) -> list[Action]:
         _status_section(imgui, model, actions)
     imgui.end()
     return actions
+
+
+def _fold(imgui) -> bool:
+    """Fold or open the panel (called before its `begin`); return whether it is folded
+    this frame.
+
+    Dear ImGui lays a new panel out hidden in its first frame; before the next, where it
+    first shows, it is folded if open it would take more than `MAX_PANEL_WIDTH` of the
+    window's width (a small window: the surface stays in sight, the title bar names the
+    key that opens it). Later the C key folds or opens it, as the arrow on its title bar
+    does (the panel's own key: Tab is Dear ImGui's, to step through its fields).
+    """
+    panel = imgui.internal.find_window_by_name(PANEL_ID)
+    if panel is None:  # not laid out yet
+        return False
+    if panel.hidden:
+        width = imgui.get_io().display_size.x
+        folded = room_beside(_open_right_edge(panel), width) > MAX_PANEL_WIDTH
+    elif imgui.is_key_pressed(imgui.Key.c, False) and not imgui.get_io().want_text_input:
+        folded = not panel.collapsed
+    else:  # as it is, or as the arrow clicked in the last frame leaves it
+        return panel.collapsed != panel.want_collapse_toggle
+    imgui.set_next_window_collapsed(folded, imgui.Cond_.always)
+    return folded
+
+
+def _open_right_edge(panel) -> float:
+    """Right edge (window units) of the open `panel` (a Dear ImGui window) as the content it
+    laid out last asks: what its automatic size will be."""
+    return panel.dc.cursor_max_pos.x + panel.window_padding.x
+
+
+def _title(folded: bool) -> str:
+    """The panel's title: its name, and `FOLD_HINT` while it is folded."""
+    return f"isolume   {FOLD_HINT}{PANEL_ID}" if folded else f"isolume{PANEL_ID}"
+
+
+def _folded_width(imgui) -> float:
+    """Width (window units) of the folded panel's title bar: its arrow, title and padding."""
+    style = imgui.get_style()
+    text = imgui.calc_text_size(_title(True), hide_text_after_double_hash=True).x
+    return text + imgui.get_font_size() + 2 * (style.item_inner_spacing.x + style.frame_padding.x)
 
 
 def _width(imgui) -> float:
@@ -366,6 +431,12 @@ class ImGuiLayer:
     def wants_keyboard(self) -> bool:
         """True while a text field has the focus."""
         return bool(self.imgui.get_io().want_capture_keyboard)
+
+    @property
+    def panel_folded(self) -> bool:
+        """True while the panel is folded to its title bar (`draw_panel`)."""
+        panel = self.imgui.internal.find_window_by_name(PANEL_ID)
+        return panel is not None and bool(panel.collapsed)
 
     # frames
     def new_frame(self, window_size: tuple[int, int], framebuffer_size: tuple[int, int],

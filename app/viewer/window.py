@@ -324,10 +324,12 @@ class Viewer:
 
     def _frame_first_surface(self) -> None:
         """Aim the camera at the first surface (its vertices), in the part of the window
-        the panel leaves free (once the panel has its size), or move a saved view's camera
-        (framed in the whole window) there; that view becomes the one `R` returns to. A
-        camera the user (or a script) has moved already stays where it is."""
+        the panel leaves free (once the panel has its size; the whole window while it is
+        folded to its title bar), or move a saved view's camera (framed in the whole
+        window) there; that view becomes the one `R` returns to. A camera the user (or a
+        script) has moved already stays where it is."""
         from isolume.app.render.camera import frame_points
+        from isolume.app.viewer.panel import MAX_PANEL_WIDTH, room_beside
         from isolume.volumes.mesh import LEVEL_POINTS
 
         state, shown = self.state, self.input.ui_shown
@@ -337,9 +339,9 @@ class Viewer:
         mesh = meshes[0]
         w, h = self.window.window_size
         left = 0.0
-        if shown and state.panel_rect is not None:
+        if shown and state.panel_rect is not None and not self.ui.panel_folded:
             x, _, width, _ = state.panel_rect
-            left = min(max((x + width + 10) / max(w, 1), 0.0), 0.5)  # at most half
+            left = min(max(room_beside(x + width, w), 0.0), MAX_PANEL_WIDTH)
         points = mesh.vertices[::-(-len(mesh.vertices) // LEVEL_POINTS)]
         beside = frame_points(state.home, points, w / max(h, 1), (left, 1.0))
         whole = frame_points(state.home, points, w / max(h, 1))
