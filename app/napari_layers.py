@@ -130,14 +130,43 @@ def world_to_volume(layer: napari.layers.Image, volume: volumes.Volume,
     return volume.index_to_world(index[None, -3:])[0]
 
 
+def orthographic_distance(local: np.ndarray, half: float, fov: float) -> float:
+    """Distance (world units) from the centre of an orthographic view `2 * half` world
+    units high of a perspective camera, `fov` degrees high, looking the same way, that
+    shows the points at `local` as large as the orthographic view does: none farther from
+    the picture's middle, the farthest as far.
+
+    At d0 = `half` / tan(`fov` / 2) the two match only in the plane through the centre: a
+    point `near` world units in front of it (towards the eye), `across` from the line of
+    sight, lands at across · d0 / (d - near) at distance d, larger than in the
+    orthographic view (a cube filling napari's view by about 1.3×). It lands no farther
+    than the farthest point's reach R there for d ≥ near + d0 · across / R: the distance
+    is the largest of these (d0 without points).
+
+    Args:
+        local: (N, 3) the points from the view's centre along its right, up and back
+            (towards the eye) directions, world units.
+    """
+    plain = half / np.tan(np.radians(fov) / 2)
+    if len(local) == 0:
+        return float(plain)
+    across = np.hypot(local[:, 0], local[:, 1])
+    reach = across.max()
+    share = across / reach if reach > 0 else np.ones_like(across)
+    return float((local[:, 2] + plain * share).max())
+
+
 def saved_camera(layer: napari.layers.Image, volume: volumes.Volume,
-                 camera: napari.components.Camera, canvas_height: int) -> Camera:
+                 camera: napari.components.Camera, canvas: tuple[int, int],
+                 points: np.ndarray) -> Camera:
     """The `app.render.camera.Camera` of napari's 3-D `camera` (its centre, view
-    direction, zoom and perspective) in `volume`'s world, for a picture `canvas_height`
-    pixels high: looking along the same direction at the same centre, the height the
-    canvas shows at the centre filling the picture's height (napari's orthographic
-    camera becomes a `DEFAULT_FOV` perspective one at that distance). isolume's camera
-    keeps +z up: a view rolled about its direction in napari is saved unrolled.
+    direction, zoom and perspective) in `volume`'s world, for a picture of napari's
+    (height, width) `canvas` pixels: looking along the same direction at the same
+    centre. napari's perspective camera keeps its field of view and distance; its
+    orthographic camera becomes a `DEFAULT_FOV` perspective one that shows the (N, 3)
+    world `points` (the surface's) on the canvas as large as napari does
+    (`orthographic_distance`). isolume's camera keeps +z up: a view rolled about its
+    direction in napari is saved unrolled.
 
     Args:
         layer: the Image layer lit (its transform maps napari's world to the volume's).
@@ -149,10 +178,18 @@ def saved_camera(layer: napari.layers.Image, volume: volumes.Volume,
     target = world_to_volume(layer, volume, centre)
     ahead = world_to_volume(layer, volume, centre + np.asarray(camera.view_direction))
     forward = (ahead - target) / np.linalg.norm(ahead - target)
-    half = 0.5 * canvas_height / camera.zoom  # world units from the centre to the top
-    top = world_to_volume(layer, volume, centre + half * np.asarray(camera.up_direction))
+    height, width = canvas
+    top = centre + 0.5 * height / camera.zoom * np.asarray(camera.up_direction)
+    up = world_to_volume(layer, volume, top) - target
+    half = float(np.linalg.norm(up))  # world units from the centre to the top
+    up = up - (up @ forward) * forward
+    up /= np.linalg.norm(up)
+    local = (np.asarray(points, np.float64) - target) @ np.stack(
+        [np.cross(forward, up), up, -forward], axis=1)
+    shown = (np.abs(local[:, 0]) <= half * width / height) & (np.abs(local[:, 1]) <= half)
     fov = float(camera.perspective) or DEFAULT_FOV
-    distance = float(np.linalg.norm(top - target)) / np.tan(np.radians(fov) / 2)
+    distance = (half / np.tan(np.radians(fov) / 2) if camera.perspective
+                else orthographic_distance(local[shown], half, fov))
     scale = volume.diagonal or 1.0
     azimuth = float(np.degrees(np.arctan2(-forward[0], forward[1])))
     elevation = float(np.degrees(np.arcsin(np.clip(-forward[2], -1.0, 1.0))))

@@ -460,7 +460,8 @@ class IsolumeWidget(QWidget):
         height, width = self.canvas_size()
         scene = getattr(self.viewer, "scene", None)  # napari ≥ 0.9; before: viewer.camera
         camera = scene.camera if scene is not None else self.viewer.camera
-        camera = saved_camera(self.layer, self.volume, camera, height)
+        camera = saved_camera(self.layer, self.volume, camera, (height, width),
+                              volumes.level_points(self.volume, self.iso))
         SavedView(volume=str(volume_file), iso=self.iso, camera=camera,
                   size=f"{width}x{height}", shading="irradiance",
                   exposure=self.controls.exposure.value(), auto_exposure=True,

@@ -405,6 +405,58 @@ def test_the_saved_view_renders_from_naparis_camera(lit, qtbot, tmp_path):
     assert shown.shape == (72, 96) and shown[30:42, 40:56].mean() > 20
 
 
+def _napari_offsets(camera, points: np.ndarray) -> np.ndarray:
+    """(N, 2) pixel offsets from the canvas's middle of the (N, 3) napari world `points`
+    (z, y, x) under napari's orthographic `camera`: along its right and up directions,
+    `camera.zoom` pixels a world unit."""
+    view, up = np.asarray(camera.view_direction), np.asarray(camera.up_direction)
+    return camera.zoom * (points - np.asarray(camera.center)) @ np.stack(
+        [np.cross(view, up), up], axis=1)
+
+
+def _saved_offsets(camera, points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N, 2) pixel offsets from the picture's middle of the (N, 3) world `points`
+    (x, y, z) in a `width` × `height` picture of the saved `camera`."""
+    clip = np.c_[points, np.ones(len(points))] @ camera.view_proj(width / height).T
+    return clip[:, :2] / clip[:, 3:] * (width / 2, height / 2)
+
+
+def test_the_saved_view_shows_the_surface_as_large_as_napari(lit, qtbot, tmp_path):
+    """A view saved from napari's orthographic camera (which a perspective one matches
+    at one depth only) draws the surface napari shows no larger and no smaller, from
+    above (napari's own 3-D view), below, the side and zoomed in: of the surface's points
+    on napari's canvas, the farthest from the middle lands as far from it (within
+    0.5 %). From napari's perspective camera, the distance is napari's: the canvas
+    height seen at the centre fills the field of view."""
+    from isolume.app.state import load_state
+
+    viewer, _, widget = lit(volumes.load("synthetic:engine:40"))
+    widget.set_isovalue(0.3)
+    widget.stop()  # no light needed
+    viewer.reset_view()
+    qtbot.wait(50)
+    camera = _camera(viewer)
+    points = volumes.level_points(widget.volume, 0.3)
+    fitted = camera.zoom
+    for view, up, zoom in (((-1, 0, 0), (0, -1, 0), 1.0), ((1, 0, 0), (0, -1, 0), 1.0),
+                           ((0, 0, 1), (-1, 0, 0), 1.0), ((-1, 0, 0), (0, -1, 0), 3.0)):
+        camera.set_view_direction(view, up_direction=up)
+        camera.zoom = fitted * zoom
+        saved = load_state(widget.save_view(tmp_path / "engine.view.json"))
+        width, height = (int(v) for v in saved.size.split("x"))
+        shown = _napari_offsets(camera, points[:, ::-1])
+        on = (np.abs(shown) <= (width / 2, height / 2)).all(axis=1)
+        drawn = _saved_offsets(saved.camera, points[on], width, height)
+        assert np.hypot(*drawn.T).max() == pytest.approx(np.hypot(*shown[on].T).max(),
+                                                         rel=0.005), (view, zoom)
+    camera.perspective = 30.0
+    saved = load_state(widget.save_view(tmp_path / "engine.view.json"))
+    height = int(saved.size.split("x")[1])
+    assert saved.camera.fov_y == 30.0
+    assert saved.camera.distance * saved.camera.scale == pytest.approx(
+        0.5 * height / camera.zoom / np.tan(np.radians(15.0)), rel=1e-6)
+
+
 def test_the_lighting_process_exits_cleanly_with_results_unread():
     """Closed while results it sent are still unread, the lighting process is not left
     blocked on its queue until it is terminated: it exits by itself (code 0)."""
