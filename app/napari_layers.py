@@ -130,30 +130,43 @@ def world_to_volume(layer: napari.layers.Image, volume: volumes.Volume,
     return volume.index_to_world(index[None, -3:])[0]
 
 
-def orthographic_distance(local: np.ndarray, half: float, fov: float) -> float:
-    """Distance (world units) from the centre of an orthographic view `2 * half` world
-    units high of a perspective camera, `fov` degrees high, looking the same way, that
-    shows the points at `local` as large as the orthographic view does: none farther from
-    the picture's middle, the farthest as far.
+def orthographic_distance(local: np.ndarray, plain: float) -> float:
+    """Distance (world units) from the centre of an orthographic view of a perspective
+    camera looking the same way that shows the points at `local` as large as the
+    orthographic view does: none farther from the picture's middle, the one that lands
+    farthest as far.
 
-    At d0 = `half` / tan(`fov` / 2) the two match only in the plane through the centre: a
-    point `near` world units in front of it (towards the eye), `across` from the line of
-    sight, lands at across · d0 / (d - near) at distance d, larger than in the
-    orthographic view (a cube filling napari's view by about 1.3×). It lands no farther
-    than the farthest point's reach R there for d ≥ near + d0 · across / R: the distance
-    is the largest of these (d0 without points).
+    At `plain` (half the view's height / tan(half the field of view)) the two match only
+    in the plane through the centre: a point `near` world units in front of it (towards
+    the eye), `across` from the line of sight, lands at across · plain / (d - near) at
+    distance d, larger than in the orthographic view (a cube filling napari's view by
+    about 1.3×). It lands no farther than the farthest point's reach R there for
+    d ≥ near + plain · across / R: the distance is the largest of these (`plain` without
+    points).
 
     Args:
         local: (N, 3) the points from the view's centre along its right, up and back
             (towards the eye) directions, world units.
     """
-    plain = half / np.tan(np.radians(fov) / 2)
     if len(local) == 0:
         return float(plain)
     across = np.hypot(local[:, 0], local[:, 1])
     reach = across.max()
     share = across / reach if reach > 0 else np.ones_like(across)
     return float((local[:, 2] + plain * share).max())
+
+
+def _shown_points(points: np.ndarray, target: np.ndarray, forward: np.ndarray,
+                  up: np.ndarray, half: float, aspect: float) -> np.ndarray:
+    """(K, 3) the world `points` (N, 3) that a view centred on `target`, looking along
+    the unit `forward`, `up` (world, not yet square to `forward`) above it and `half`
+    world units from the centre to the top of a picture `aspect` (width / height) wide,
+    shows: each along the view's right, up and back (towards the eye) directions."""
+    up = up - (up @ forward) * forward
+    up = up / np.linalg.norm(up)
+    local = (np.asarray(points, np.float64) - target) @ np.stack(
+        [np.cross(forward, up), up, -forward], axis=1)
+    return local[(np.abs(local[:, 0]) <= half * aspect) & (np.abs(local[:, 1]) <= half)]
 
 
 def saved_camera(layer: napari.layers.Image, volume: volumes.Volume,
@@ -182,14 +195,11 @@ def saved_camera(layer: napari.layers.Image, volume: volumes.Volume,
     top = centre + 0.5 * height / camera.zoom * np.asarray(camera.up_direction)
     up = world_to_volume(layer, volume, top) - target
     half = float(np.linalg.norm(up))  # world units from the centre to the top
-    up = up - (up @ forward) * forward
-    up /= np.linalg.norm(up)
-    local = (np.asarray(points, np.float64) - target) @ np.stack(
-        [np.cross(forward, up), up, -forward], axis=1)
-    shown = (np.abs(local[:, 0]) <= half * width / height) & (np.abs(local[:, 1]) <= half)
     fov = float(camera.perspective) or DEFAULT_FOV
-    distance = (half / np.tan(np.radians(fov) / 2) if camera.perspective
-                else orthographic_distance(local[shown], half, fov))
+    distance = half / np.tan(np.radians(fov) / 2)  # a perspective camera's own
+    if not camera.perspective:
+        shown = _shown_points(points, target, forward, up, half, width / height)
+        distance = orthographic_distance(shown, distance)
     scale = volume.diagonal or 1.0
     azimuth = float(np.degrees(np.arctan2(-forward[0], forward[1])))
     elevation = float(np.degrees(np.arcsin(np.clip(-forward[2], -1.0, 1.0))))

@@ -119,19 +119,22 @@ FILE_OPTIONS = {"dims": ("--dims", "a raw file's size"),
 what it gives."""
 
 
-def _synthetic(spec: str, spacing: Any = None, origin: Any = None, **options: Any) -> Volume:
+def _synthetic(spec: str, spacing: Any = None, origin: Any = None, **given: Any) -> Volume:
     """The synthetic volume `spec` (``synthetic:NAME[:SIZE]``) at the `spacing` and
     `origin` asked ((3,) x, y, z, world units; None: its own).
 
     Raises:
-        VolumeError: for an option of `FILE_OPTIONS` (or one `load` does not know): a
-            generated volume has no file for it to describe.
+        VolumeError: for an option of `FILE_OPTIONS` given: a generated volume has no file
+            for it to describe.
+        TypeError: for an option `load` does not know, as `volumes.io.load_file` does.
     """
     from isolume.volumes.synthetic import parse
 
-    for name, value in options.items():
+    for name, value in given.items():
+        if name not in FILE_OPTIONS:
+            raise TypeError(f"load() got an unexpected keyword argument {name!r}")
         if value is not None:
-            option, what = FILE_OPTIONS.get(name, (name, "no option of a synthetic volume"))
+            option, what = FILE_OPTIONS[name]
             text = ",".join(map(str, value)) if isinstance(value, tuple) else value
             raise VolumeError(f"{spec}: {option} {text} gives {what}; a synthetic volume is "
                               "generated (its size: synthetic:NAME:SIZE)")
