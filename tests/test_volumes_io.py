@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import bz2
 import gzip
+import io
+import lzma
 import os
 import re
 import signal
@@ -875,23 +877,59 @@ def test_tiff_folder_mismatched_slice(tmp_path):
     assert "(7, 12)" in str(info.value) and "(7, 11)" in str(info.value)
 
 
-def lying_tiff(path: Path, side: int, compression: str | None = None,
+def lying_tiff(path: Path, side: int, compression: str | int | None = None,
                pages: int = 3) -> None:
-    """A stack of `pages` 4 x 4 uint8 pages whose every ImageWidth and ImageLength tag
-    says `side`."""
+    """A stack of `pages` 4 x 4 uint8 pages of zeros whose every ImageWidth and
+    ImageLength tag says `side`: compressed by tifffile (a codec's name), or (a TIFF
+    Compression code) each page one strip of `encoded_zeros`, under that code."""
     tifffile = pytest.importorskip("tifffile")
     with tifffile.TiffWriter(path) as tw:
         for page in np.zeros((pages, 4, 4), np.uint8):
-            tw.write(page, compression=compression)
-    content, patched = bytearray(path.read_bytes()), 0
-    for tag in (256, 257):
-        entry = struct.pack("<HHI", tag, 4, 1)  # tag, LONG, one value
-        i = 0
-        while (i := content.find(entry, i)) >= 0:
-            content[i + 8:i + 12] = struct.pack("<I", side)
-            patched, i = patched + 1, i + 12
-    assert patched == 2 * pages
+            if isinstance(compression, int):  # written as zlib, the code patched below
+                tw.write(iter([encoded_zeros(compression)]), shape=(4, 4), dtype=np.uint8,
+                         compression="zlib")
+            else:
+                tw.write(page, compression=compression)
+    content = bytearray(path.read_bytes())
+    assert patch_tags(content, 256, 4, "<I", side) == pages  # ImageWidth, LONG
+    assert patch_tags(content, 257, 4, "<I", side) == pages  # ImageLength, LONG
+    if isinstance(compression, int):
+        assert patch_tags(content, 259, 3, "<H", compression) == pages  # Compression, SHORT
     path.write_bytes(bytes(content))
+
+
+def patch_tags(content: bytearray, tag: int, kind: int, fmt: str, value: int) -> int:
+    """Set every one-value `tag` entry of TIFF type `kind` in a little-endian TIFF's
+    `content` to `value` (packed with `fmt`); how many were set."""
+    entry, patched, i = struct.pack("<HHI", tag, kind, 1), 0, 0
+    while (i := content.find(entry, i)) >= 0:
+        packed = struct.pack(fmt, value)
+        content[i + 8:i + 8 + len(packed)] = packed
+        patched, i = patched + 1, i + 12
+    return patched
+
+
+def encoded_zeros(code: int) -> bytes:
+    """16 zero bytes (a 4 x 4 uint8 page) encoded for TIFF Compression `code` without
+    imagecodecs: LZW (5: ClearCode, 16 literal zeros, EndOfInformation, 9-bit codes),
+    JPEG (6, 7: Pillow's baseline JPEG), LZMA (34925: xz), zstd (34926, 50000: one frame
+    of one 4-byte RLE block); for any other code the 16 bytes as they are."""
+    if code == 5:
+        bits = "".join(f"{c:09b}" for c in [256, *[0] * 16, 257])
+        bits += "0" * (-len(bits) % 8)
+        return int(bits, 2).to_bytes(len(bits) // 8, "big")
+    if code in (6, 7):
+        from PIL import Image
+
+        jpeg = io.BytesIO()
+        Image.fromarray(np.zeros((4, 4), np.uint8)).save(jpeg, "JPEG")
+        return jpeg.getvalue()
+    if code == 34925:
+        return lzma.compress(bytes(16))
+    if code in (34926, 50000):
+        rle_block = ((16 << 3) | (1 << 1) | 1).to_bytes(3, "little") + b"\0"  # last, RLE, 16
+        return bytes.fromhex("28b52ffd") + bytes([0x20, 16]) + rle_block  # magic, size 16
+    return bytes(16)
 
 
 @pytest.mark.parametrize("compression", [None, "zlib"])
@@ -905,6 +943,76 @@ def test_tiff_whose_size_tags_lie_is_refused_before_decoding(tmp_path, monkeypat
     monkeypatch.setattr(vio_common, "available_memory", lambda: 1 << 30)
     refused_cheaply(path, "TIFF shape (3, 30000, 30000) uint8 needs 2.7 GB",
                     "memory available")
+
+
+@pytest.mark.parametrize(("code", "bound"), [
+    (5, 3 * 21 * 3641),  # LZW: 21 bytes a page, 8/9 of a 4096-byte code a byte
+    (6, 3 * 4 * 4), (7, 3 * 4 * 4),  # JPEG: 4 x 4 x 1 samples in each page's frame header
+    (34925, 3 * 68 * 273 * 376),  # LZMA: 376 decisions of 273 bytes a byte
+    (34926, 3 * 10 * 32768), (50000, 3 * 10 * 32768)])  # zstd: 128 KiB per 4-byte block
+def test_tiff_codecs_whose_size_tags_lie_are_refused_before_decoding(tmp_path, monkeypatch,
+                                                                     code, bound):
+    """LZW, JPEG, LZMA and zstd data are bounded by their format, so a lie is refused
+    however much memory there is, before any is decoded (no imagecodecs needed)."""
+    path = tmp_path / "lie.tif"
+    lying_tiff(path, 30000, code)
+    monkeypatch.setattr(vio_common, "available_memory", lambda: 1 << 40)
+    refused_cheaply(path, "TIFF shape (3, 30000, 30000) uint8 needs 2700000000 bytes",
+                    f"the file holds data for at most {bound}:", "size tags are wrong")
+
+
+def test_tiff_codec_without_a_known_bound_reads_64_bytes_per_stored_byte(tmp_path,
+                                                                          monkeypatch):
+    """LERC (34887) has no bound here: a size past 64 bytes per stored byte is refused
+    naming it; a smaller one is checked against memory only."""
+    path = tmp_path / "lerc.tif"
+    lying_tiff(path, 30000, 34887)
+    monkeypatch.setattr(vio_common, "available_memory", lambda: 1 << 40)
+    refused_cheaply(path, "TIFF shape (3, 30000, 30000) uint8 needs 2700000000 bytes",
+                    "Compression 34887 has no known bound", f"{3 * 16 * 64} here",
+                    "size tags are wrong")
+    lying_tiff(path, 8, 34887)  # 192 bytes of samples, within 64 per stored byte
+    monkeypatch.setattr(vio_common, "available_memory", lambda: 100)
+    refused_cheaply(path, "TIFF shape (3, 8, 8) uint8 needs 1.92e-07 GB", "memory available")
+
+
+@pytest.mark.parametrize("error", [ModuleNotFoundError("No module named 'compression'"),
+                                   RuntimeError("ZstdError: ZSTD_decompress returned -20")])
+@pytest.mark.parametrize("folder", [False, True])
+def test_tiff_whose_codec_fails_is_refused_naming_it(tmp_path, monkeypatch, error, folder):
+    """A codec's module missing, or its decoder rejecting the data, is refused naming the
+    file, the codec's error and imagecodecs, for a stack and for a folder's slice."""
+    tifffile = pytest.importorskip("tifffile")
+
+    def failing_decoder(data, *args, **kwargs):
+        raise error
+
+    monkeypatch.setitem(tifffile.TIFF.DECOMPRESSORS._codecs, 50000, failing_decoder)
+    path = tmp_path / "zstd.tif"
+    lying_tiff(path, 4, 50000, pages=1)
+    if folder:
+        (tmp_path / "other.txt").write_text("not a slice")
+        path = tmp_path
+    load_error(path, "zstd.tif: TIFF ", "could not be decoded", str(error),
+               "pip install imagecodecs", named=tmp_path / "zstd.tif")
+
+
+@pytest.mark.parametrize("options", [
+    {"compression": "lzma"},
+    {"compression": "lzw"},
+    {"compression": "zstd"},
+    {"compression": "packbits"},
+    {"compression": "jpeg", "compressionargs": {"lossless": True}},
+    {"compression": "jpeg", "compressionargs": {"lossless": True}, "tile": (16, 16)}])
+def test_tiff_stacks_of_each_codec_load_as_written(tmp_path, options):
+    """Honest files pass the size check of their codec; all but LZMA need imagecodecs."""
+    tifffile = pytest.importorskip("tifffile")
+    if options["compression"] != "lzma":
+        pytest.importorskip("imagecodecs")
+    data = sample_data("uint8")
+    path = tmp_path / "stack.tif"
+    tifffile.imwrite(path, data, **options)
+    np.testing.assert_array_equal(load_file(path).data, data)
 
 
 @pytest.mark.parametrize("options", [{"truncate": True}, {"imagej": True, "truncate": True},
@@ -1043,6 +1151,20 @@ def test_dicom_series_round_trip(tmp_path):
     (folder / "notes.txt").write_text("not DICOM")
     vol = load_file(folder)
     assert_volume(vol, data * 2.0 - 100.0, name="series")
+
+
+def test_dicom_folder_beside_tiff_names_that_are_no_slices_is_placed_as_dicom(tmp_path):
+    """A hidden file or a folder named *.tif is no TIFF slice to the folder loader, nor to
+    the placement's label."""
+    data = sample_data("int16")
+    folder = tmp_path / "series"
+    folder.mkdir()
+    write_dicom_series(folder, data)
+    (folder / "._IM000.tif").write_bytes(b"macOS resource fork")
+    (folder / "thumbs.tif").mkdir()
+    vol = load_file(folder)
+    assert_volume(vol, data * 2.0 - 100.0, name="series")
+    assert "DICOM orientation" in vol.placement and "TIFF" not in vol.placement
 
 
 def test_dicom_series_instance_number_fallback(tmp_path):

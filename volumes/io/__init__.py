@@ -264,10 +264,9 @@ def _placement_label(kind: str, frame, orientation: bool, path: Path) -> str:
 
 
 def _folder_label(path: Path) -> str:
-    """What a folder volume was read as: TIFF slices where it holds any (`_load_folder`
-    reads those first), else a DICOM series."""
-    return "TIFF" if any(p.suffix.lower() in TIFF_SUFFIXES for p in path.iterdir()) \
-        else "DICOM"
+    """What a folder volume was read as: TIFF slices where `_load_folder` found any
+    (`_tiff_slices`), else a DICOM series."""
+    return "TIFF" if _tiff_slices(_folder_files(path)) else "DICOM"
 
 
 def _placed(data, spacing, origin, frame, label: str, where: str) -> tuple[Placement, str]:
@@ -353,15 +352,27 @@ def _pick(override: Any, from_file: Any, default: tuple[float, float, float]) ->
 # --------------------------------------------------------------------------- folders
 
 
-def _load_folder(path: Path) -> Loaded:
-    """A folder of TIFF slices, else a DICOM series."""
+def _folder_files(path: Path) -> list[Path]:
+    """The visible regular files of the folder `path`, sorted by name."""
     try:
-        files = sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
+        return sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
     except PermissionError:
         raise VolumeError(f"{path}: cannot list the folder: permission denied") from None
-    tiffs = [p for p in files if p.suffix.lower() in TIFF_SUFFIXES]
+
+
+def _tiff_slices(files: list[Path]) -> list[Path]:
+    """The TIFF slices among a folder's `files` (*.tif, *.tiff), in natural name order
+    (the slices' z order)."""
+    return sorted((p for p in files if p.suffix.lower() in TIFF_SUFFIXES),
+                  key=lambda p: natural_key(p.name))
+
+
+def _load_folder(path: Path) -> Loaded:
+    """A folder of TIFF slices, else a DICOM series."""
+    files = _folder_files(path)
+    tiffs = _tiff_slices(files)
     if tiffs:
-        return load_tiff_folder(path, sorted(tiffs, key=lambda p: natural_key(p.name)))
+        return load_tiff_folder(path, tiffs)
     try:
         items = read_dicom_series(path, files)
     except VolumeError:
