@@ -4,6 +4,7 @@ import dataclasses
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -891,6 +892,89 @@ def test_the_final_save_goes_through_one_ctrl_c_under_the_command_line_s_handler
         assert signal.getsignal(signal.SIGINT) is interrupts.on_interrupt
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def test_sigterm_stops_a_background_bake_as_a_ctrl_c_and_keeps_its_texels(tmp_path):
+    """A bake run as a shell's background job (SIGINT ignored) and stopped by SIGTERM (a
+    batch system's time limit, a `kill`) saves its finished texels as a Ctrl-C does."""
+    import signal
+
+    out = tmp_path / "l.npz"
+    bake = [sys.executable, "-c", CLI, "bake", "synthetic:engine:64", "--samples", "2048",
+            "--out", str(out)]
+    proc = subprocess.Popen(bake, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        seen = []
+        for line in proc.stderr:
+            seen.append(line)
+            if "paths to trace" in line:
+                break
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        _, rest = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    err = "".join(seen) + rest
+    assert proc.returncode == 130, err
+    assert "finished texels saved in" in err, err
+    info = _info(out)
+    assert re.search(r"finished\s+no:", info), info
+
+
+def _info(lattice: Path) -> str:
+    """What ``isolume info LATTICE`` prints, run as a subprocess."""
+    return subprocess.run([sys.executable, "-c", CLI, "info", str(lattice)], check=True,
+                          capture_output=True, text=True).stdout
+
+
+def test_sigterm_is_a_ctrl_c_inside_the_final_save_of_a_background_bake():
+    """With SIGINT ignored and SIGTERM the command line's (`interrupts.on_terminate`), the
+    final save still goes through one SIGTERM and a second raises KeyboardInterrupt; a
+    process forked under that handler ends on SIGTERM by default."""
+    import os
+    import signal
+
+    from isolume.baking.saves import through_one_interrupt
+    from isolume.volumes import interrupts
+
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN), \
+        signal.signal(signal.SIGTERM, interrupts.on_terminate)
+    try:
+        with through_one_interrupt(None) as pressed:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+            assert pressed == [True]
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.5)
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before[0])
+        signal.signal(signal.SIGTERM, before[1])
+    child = subprocess.run([sys.executable, "-c", FORKED_SIGTERM], capture_output=True,
+                           text=True, timeout=30)
+    assert child.stdout.split() == ["on_terminate", str(-signal.SIGTERM)], child.stderr
+
+
+CLI = "import sys; from isolume.app.cli import main; sys.exit(main())"
+"""``isolume ARGS`` as the console script runs it: ``python -c CLI ARGS``."""
+
+FORKED_SIGTERM = """
+import os, signal, time
+from isolume.volumes import interrupts
+interrupts.install()
+print(signal.getsignal(signal.SIGTERM).__name__, flush=True)
+pid = os.fork()
+if pid == 0:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    time.sleep(30)
+    os._exit(0)
+time.sleep(0.2)
+os.kill(pid, signal.SIGTERM)
+_, status = os.waitpid(pid, 0)
+print(-os.WTERMSIG(status) if os.WIFSIGNALED(status) else os.WEXITSTATUS(status))
+"""
 
 
 def test_a_second_ctrl_c_while_an_interrupted_bake_saves_says_what_was_lost(tmp_path, capsys,

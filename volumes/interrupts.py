@@ -5,7 +5,12 @@ thread), a finaliser or a weak reference's callback — where Python prints the
 KeyboardInterrupt and goes on, so that the command ignores the Ctrl-C or fails later
 (numba's "no compiled object yet") — it sends the signal again `RESEND_S` later, once the
 callback has returned. A Ctrl-C at a random moment of twelve kernels compiled on the main
-thread: with Python's handler 16 of 60 were ignored, with this one none of 60."""
+thread: with Python's handler 16 of 60 were ignored, with this one none of 60.
+
+SIGTERM and SIGHUP stop a command as a Ctrl-C does (`on_terminate`): a batch system's
+time limit (SLURM sends SIGTERM, then SIGKILL 30 s later by default), a `kill`, a closed
+terminal — a bake keeps its finished texels, the viewer closes its bake process and its
+shared memory."""
 
 from __future__ import annotations
 
@@ -23,12 +28,46 @@ llvmlite's, with which numba takes a kernel's machine code as it compiles (the f
 on a machine); interrupted, the kernel has no code and numba fails with RuntimeError."""
 
 
+TERMINATING = (signal.SIGTERM, signal.SIGHUP)
+"""Signals that stop a command as a Ctrl-C does (`on_terminate`)."""
+
+
 def install() -> None:
-    """Make `on_interrupt` SIGINT's handler where Python's own is (on the main thread;
-    another handler, an application's, is left as it is)."""
-    if threading.current_thread() is threading.main_thread() \
-            and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+    """On the main thread, make `on_interrupt` SIGINT's handler where Python's own is,
+    and `on_terminate` the handler of each `TERMINATING` signal that has its default
+    action (another handler, an application's, or a signal ignored, as SIGHUP under
+    nohup, is left as it is). A process forked after this starts with their default
+    actions."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, on_interrupt)
+    for signum in TERMINATING:
+        if signal.getsignal(signum) is signal.SIG_DFL:
+            signal.signal(signum, on_terminate)
+    os.register_at_fork(after_in_child=_default_termination)
+
+
+def on_terminate(signum: int, frame: FrameType | None) -> None:
+    """A `TERMINATING` signal's handler: what a Ctrl-C does now — SIGINT's current
+    handler (`on_interrupt`; while a finished bake saves, the save's, which lets it end
+    first), or `on_interrupt` where SIGINT is ignored (a shell's background job)."""
+    handler = signal.getsignal(signal.SIGINT)
+    (handler if callable(handler) else on_interrupt)(signal.SIGINT, frame)
+
+
+def terminates_as_interrupt() -> bool:
+    """Whether SIGTERM's handler is `on_terminate` (the command line's)."""
+    return signal.getsignal(signal.SIGTERM) is on_terminate
+
+
+def _default_termination() -> None:
+    """Give a forked child the default action of each `TERMINATING` signal the parent
+    handles with `on_terminate` (the child's SIGINT may be ignored, and a pool's or the
+    viewer's bake process must end on the SIGTERM that stops it)."""
+    for signum in TERMINATING:
+        if signal.getsignal(signum) is on_terminate:
+            signal.signal(signum, signal.SIG_DFL)
 
 
 def raises_keyboard_interrupt(handler: object) -> bool:
