@@ -64,6 +64,9 @@ MIN_TARGET_SAMPLES = 4
 SCALES = (0.05, 8.0)
 """Smallest and largest lattice scale, texels per voxel."""
 
+MAX_SEED = (1 << 32) - 1
+"""Largest seed: the tracer's random numbers (`baking.rng`) take a 32-bit seed."""
+
 
 @dataclass(frozen=True)
 class BakeConfig:
@@ -146,6 +149,8 @@ class BakeConfig:
             raise BakeError(f"--sh-order {self.sh_order}: expected 1 to 10 bands")
         if self.samples < 1:
             raise BakeError(f"--samples {self.samples}: expected at least 1")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise BakeError(f"--seed {self.seed}: expected a whole number from 0 to {MAX_SEED}")
         if not 0 <= self.bounces <= 16:
             raise BakeError(f"--bounces {self.bounces}: expected 0 to 16")
         albedo = tuple(float(a) for a in np.broadcast_to(self.albedo, 3))

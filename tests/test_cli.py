@@ -843,6 +843,22 @@ def test_a_ctrl_c_inside_a_callback_from_c_is_sent_again_after_it(monkeypatch):
     assert len(sent) == 2
 
 
+def test_a_seed_outside_32_bits_is_refused_not_aliased(tmp_path, capsys):
+    """The tracer's random numbers take a 32-bit seed: a seed outside 0 .. 2³² - 1 is
+    refused in one line before any work (seed 2³² would bake seed 0's lattice)."""
+    commands = [["bake", "synthetic:sphere:16", "--out", str(tmp_path / "l.npz")],
+                ["render", "synthetic:sphere:16", "--out", str(tmp_path / "p.png")],
+                ["reference", "synthetic:sphere:16", "--out", str(tmp_path / "r.exr")]]
+    for command in commands:
+        for seed in ("-1", "4294967296"):
+            capsys.readouterr()
+            assert main([*command, "--seed", seed]) == 2, command
+            err = capsys.readouterr().err.strip().splitlines()
+            assert err == [f"isolume: error: --seed {seed}: expected a whole number from 0 "
+                           "to 4294967295"], err
+    assert not list(tmp_path.iterdir())
+
+
 def test_options_a_lattice_would_leave_unused_are_refused_in_one_line(tmp_path, capsys):
     """``--shading sh`` with an irradiance lattice and an irradiance mode with an SH one
     (each saying how the other kind is baked), ``--env-rotation`` with an irradiance
