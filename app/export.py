@@ -185,7 +185,8 @@ def _vertex_light(volume: volumes.Volume, iso: float, mesh: volumes.Mesh, lattic
     else:  # a Lattice from the Python API names itself
         source = str(args.lattice)
     if lights:
-        source += f" + direct light of {len(lights)} light(s) through shadow rays"
+        plural = "" if len(lights) == 1 else "s"
+        source += f" + direct light of {len(lights)} light{plural} through shadow rays"
     uncovered = int((coverage(read, np.asarray(mesh.vertices, np.float64)) < COVERED).sum())
     return VertexLight(radiance, source, _lighting_text(read), uncovered)
 
