@@ -107,9 +107,42 @@ def test_render_with_a_baked_lattice_equals_the_command(tmp_path):
     command = _png(tmp_path / "c.png")
     assert np.array_equal(from_file.srgb, command)
     assert np.array_equal(in_memory.srgb, command)
-    with pytest.raises(IsolumeError, match=r"^--env/--light: the irradiance lattice of "
+    with pytest.raises(IsolumeError, match=r"^env/light: the irradiance lattice of "
                        r"'engine' \(\d+×\d+×\d+ texels\) holds irradiance baked"):
         isolume.render(volume, lattice=lattice, env="constant:1,1,1")
+
+
+@pytest.mark.parametrize(("function", "keywords", "message"), [
+    ("bake", {"seed": 1 << 32}, "seed=4294967296: expected a whole number from 0 to"),
+    ("bake", {"iso_range": (0.7, 0.2)}, "iso_range=(0.7, 0.2): expected LO < HI"),
+    ("bake", {"texel_error": 0.02, "target_error": 0.05},
+     "texel_error with target_error: a bake takes one of them"),
+    ("render", {"view": "1,2,3,4"}, "view='1,2,3,4': expected AZ,EL[,DIST]"),
+    ("load", {"downsample": 0}, "downsample=0: expected an integer factor"),
+])
+def test_errors_of_the_command_s_own_checks_name_the_keywords(function, keywords, message):
+    """A value the command's code refuses after parsing (``isolume bake --seed …`` says
+    ``--seed 4294967296: …``) is named as the function's keyword, as the values its
+    parser refuses are."""
+    source = "synthetic:sphere:16"
+    with pytest.raises(IsolumeError) as raised:
+        getattr(isolume, function)(source if function == "load" else isolume.load(source),
+                                   **keywords)
+    text = str(raised.value)
+    assert text.startswith(message) and "--" not in text, text
+
+
+def test_keyword_message_rewrites_only_the_command_s_options():
+    from isolume._arguments import keyword_message
+
+    assert keyword_message("bake", "--samples 5 with --target-error: expected at least 8") \
+        == "samples 5 with target_error: expected at least 8"
+    assert keyword_message("bake", "--max-samples 10 is below --samples 20") \
+        == "max_samples 10 is below samples 20"
+    assert keyword_message("render", "x.raw: pass --spacing X,Y,Z or --no-such") \
+        == "x.raw: pass spacing X,Y,Z or --no-such"
+    assert keyword_message("render", "--size '1x2x3': expected WxH") \
+        == "size='1x2x3': expected WxH"
 
 
 def test_a_second_render_keeps_the_context_and_the_surface():
@@ -128,7 +161,7 @@ def test_a_second_render_keeps_the_context_and_the_surface():
 
 def test_errors_are_the_commands_one_line_messages(tmp_path):
     volume = isolume.load("synthetic:sphere:16")
-    with pytest.raises(IsolumeError, match=r"--size '0x5': width and height"):
+    with pytest.raises(IsolumeError, match=r"^size='0x5': width and height"):
         isolume.render(volume, size=(0, 5))
     with pytest.raises(IsolumeError, match=r"tonemap='sepia': expected one of"):
         isolume.render(volume, tonemap="sepia")

@@ -15,6 +15,7 @@ import functools
 import importlib
 import numbers
 import os
+import re
 from collections.abc import Mapping, Sequence
 
 from isolume.app.options import CLIError, choice_error
@@ -64,6 +65,20 @@ def option_actions(command: str) -> dict[str, argparse.Action]:
             continue  # an alias such as --turntable for --kind turntable
         actions[name] = action
     return actions
+
+
+def keyword_message(command: str, message: str) -> str:
+    """`message` of an error that command `command`'s code raised, its options named as
+    the Python API's keywords: a leading ``--name VALUE: …`` as ``name=VALUE: …`` (the
+    form of `OptionError`), every other ``--name`` of the command's as ``name``."""
+    keywords = {option: python_name(action) for action in _parser(command)._actions
+                for option in action.option_strings if option.startswith("--")}
+    head, colon, rest = message.partition(": ")
+    option, _, value = head.partition(" ")
+    if colon and option in keywords and value and "--" not in value and " with " not in value:
+        message = f"{keywords[option]}={value}: {rest}"
+    return re.sub(r"(?<![\w-])--[a-z][a-z0-9-]*",
+                  lambda m: keywords.get(m.group(0), m.group(0)), message)
 
 
 def _number(value: float) -> str:

@@ -8,18 +8,20 @@ Each function turns its keyword arguments into the command's parsed options
 from __future__ import annotations
 
 import atexit
+import functools
 import os
 import threading
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, ParamSpec, TypeVar
 
 import numpy as np
 
-from isolume._arguments import OptionError, namespace, shown
+from isolume._arguments import OptionError, keyword_message, namespace, shown
 from isolume.baking.config import DEFAULT_ENV
+from isolume.volumes.errors import IsolumeError
 
 if TYPE_CHECKING:
     from isolume._picture import Picture
@@ -33,6 +35,27 @@ PathText = str | os.PathLike[str]
 Numbers = Sequence[float]
 
 
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def _keywords_named(command: str) -> Callable[[Callable[P, R]], Callable[P, R]]:
+    """Decorator: an `IsolumeError` out of the function names the options of `command`
+    as the function's keywords (`_arguments.keyword_message`: ``size='0x5': …`` where
+    the command says ``--size '0x5': …``)."""
+    def decorate(function: Callable[P, R]) -> Callable[P, R]:
+        @functools.wraps(function)
+        def call(*args: P.args, **kwargs: P.kwargs) -> R:
+            try:
+                return function(*args, **kwargs)
+            except IsolumeError as exc:
+                exc.args = (keyword_message(command, str(exc)), *exc.args[1:])
+                raise
+        return call
+    return decorate
+
+
+@_keywords_named("render")
 def load(source: Volume | str | os.PathLike[str] | np.ndarray, *,
          dims: Sequence[int] | str | None = None, dtype: str | None = None,
          spacing: Numbers | str | None = None, up: str | None = None,
@@ -86,6 +109,7 @@ def _source(source: object, keyword: str) -> str | np.ndarray | Volume:
                       "'synthetic:NAME[:SIZE]' spec, a (Z, Y, X) numpy array or a Volume")
 
 
+@_keywords_named("info")
 def info(volume: Volume | str | os.PathLike[str]) -> VolumeInfo:
     """What ``isolume info`` says of `volume` (a `Volume`, or what `load` takes): dims,
     spacing, placement, value range, histogram (``counts``, ``edges``) and suggested
@@ -173,6 +197,7 @@ def _with_state(args, state: SavedView | PathText | None, given: dict):
     return args
 
 
+@_keywords_named("render")
 def render(volume: Volume | str | os.PathLike[str], *, iso: float | None = None,
            lattice: Lattice | PathText | None = None, env: str | None = None,
            light: str | Sequence[str] | None = None, samples: int | None = None,
@@ -228,6 +253,7 @@ def _changed(command: str, given: dict) -> dict:
             if getattr(reference, name, None) != getattr(defaults, name, None)}
 
 
+@_keywords_named("bake")
 def bake(volume: Volume | str | os.PathLike[str], *, out: PathText | None = None,
          mode: Literal["irradiance", "sh"] = "irradiance", sh_order: int = 5,
          samples: int | None = None, target_error: float | None = None,
@@ -272,6 +298,7 @@ def _run_command(module: str, args) -> int:
         return importlib.import_module(module).run(args)
 
 
+@_keywords_named("export")
 def export(volume: Volume | str | os.PathLike[str], out: PathText, *,
            iso: float | None = None, lattice: Lattice | PathText | None = None,
            env: str | None = None, light: str | Sequence[str] | None = None,
@@ -294,6 +321,7 @@ def export(volume: Volume | str | os.PathLike[str], out: PathText, *,
     return Path(out)
 
 
+@_keywords_named("movie")
 def movie(volume: Volume | str | os.PathLike[str], out: PathText, *,
           kind: Literal["turntable", "light", "iso"] = "turntable",
           sweep: str | None = None, frames: int = 72, fps: float = 24.0,
@@ -330,6 +358,7 @@ def movie(volume: Volume | str | os.PathLike[str], out: PathText, *,
     return Path(out)
 
 
+@_keywords_named("reference")
 def reference(volume: Volume | str | os.PathLike[str], out: PathText, *,
               iso: float | None = None, spp: int = 64,
               size: tuple[int, int] | str = (512, 512), view: Numbers | str = (30, 30),
@@ -355,6 +384,7 @@ def reference(volume: Volume | str | os.PathLike[str], out: PathText, *,
     return Path(out)
 
 
+@_keywords_named("view")
 def show(volume: Volume | str | os.PathLike[str], *, iso: float | None = None,
          lattice: Lattice | PathText | None = None, shading: str | None = None,
          size: tuple[int, int] | str = (640, 480), exposure: float = 1.0,
