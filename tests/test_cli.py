@@ -938,6 +938,35 @@ def test_sigterm_stops_a_background_bake_as_a_ctrl_c_and_keeps_its_texels(tmp_pa
     assert re.search(r"finished\s+no:", info), info
 
 
+def test_a_hangup_saves_the_finished_texels_though_the_terminal_is_gone(tmp_path):
+    """A bake in a terminal that closes (SIGHUP; every write to it then fails with EIO)
+    saves its finished texels as a Ctrl-C does: the messages after the hangup must not
+    stop the save with an OSError."""
+    import os
+    import pty
+    import signal
+
+    out = tmp_path / "l.npz"
+    master, terminal = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-c", CLI, "bake", "synthetic:engine:64",
+                             "--samples", "2048", "--out", str(out)],
+                            stdin=terminal, stdout=terminal, stderr=terminal,
+                            start_new_session=True)
+    os.close(terminal)
+    try:
+        seen = b""
+        while b"paths to trace" not in seen:
+            seen += os.read(master, 65536)
+        time.sleep(1.0)
+        os.close(master)  # the terminal goes away
+        proc.send_signal(signal.SIGHUP)
+        assert proc.wait(timeout=60) == 130
+    finally:
+        proc.kill()
+    info = _info(out)
+    assert re.search(r"finished\s+no:", info), info
+
+
 def _info(lattice: Path) -> str:
     """What ``isolume info LATTICE`` prints, run as a subprocess."""
     return subprocess.run([sys.executable, "-c", CLI, "info", str(lattice)], check=True,

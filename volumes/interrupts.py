@@ -31,6 +31,10 @@ on a machine); interrupted, the kernel has no code and numba fails with RuntimeE
 TERMINATING = (signal.SIGTERM, signal.SIGHUP)
 """Signals that stop a command as a Ctrl-C does (`on_terminate`)."""
 
+_TERMINALS: dict[int, int | None] = {}
+"""{descriptor: device number} of standard output and error where they were a terminal
+when `install` ran."""
+
 
 def install() -> None:
     """On the main thread, make `on_interrupt` SIGINT's handler where Python's own is,
@@ -40,6 +44,7 @@ def install() -> None:
     actions."""
     if threading.current_thread() is not threading.main_thread():
         return
+    _TERMINALS.update({fd: _device(fd) for fd in (1, 2) if os.isatty(fd)})
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, on_interrupt)
     for signum in TERMINATING:
@@ -51,9 +56,34 @@ def install() -> None:
 def on_terminate(signum: int, frame: FrameType | None) -> None:
     """A `TERMINATING` signal's handler: what a Ctrl-C does now — SIGINT's current
     handler (`on_interrupt`; while a finished bake saves, the save's, which lets it end
-    first), or `on_interrupt` where SIGINT is ignored (a shell's background job)."""
+    first), or `on_interrupt` where SIGINT is ignored (a shell's background job); after
+    a hangup, with the terminal left first (`_leave_terminal`)."""
+    if signum == signal.SIGHUP:
+        _leave_terminal()
     handler = signal.getsignal(signal.SIGINT)
     (handler if callable(handler) else on_interrupt)(signal.SIGINT, frame)
+
+
+def _leave_terminal() -> None:
+    """Point standard output and error, where they were a terminal when the handlers were
+    installed (`_TERMINALS`), at the null device: after a hangup the terminal refuses
+    writes (EIO; and `os.isatty` says False), and a message or a progress bar would stop
+    the save of a bake's finished texels with an OSError."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd, device in _TERMINALS.items():
+            if _device(fd) == device:
+                os.dup2(null, fd)
+    finally:
+        os.close(null)
+
+
+def _device(fd: int) -> int | None:
+    """The device number of what the descriptor `fd` refers to; None where it is closed."""
+    try:
+        return os.fstat(fd).st_rdev
+    except OSError:
+        return None
 
 
 def terminates_as_interrupt() -> bool:
