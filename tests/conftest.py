@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import os
 import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -80,6 +81,29 @@ def ctrl_c_during_save(monkeypatch):
         monkeypatch.setattr(PlanLattice, "save", pressed)
 
     return arm
+
+
+@pytest.fixture
+def stopped_after():
+    """``stopped_after(proc, marker, signum, wait=0.0)``: read the text stderr of the
+    process `proc` up to a line holding `marker`, wait `wait` seconds, send it `signum`,
+    and return (its exit status, all its stderr); it is killed whatever happens."""
+
+    def stop(proc, marker: str, signum: int, wait: float = 0.0) -> tuple[int, str]:
+        seen: list[str] = []
+        try:
+            for line in proc.stderr:
+                seen.append(line)
+                if marker in line:
+                    break
+            time.sleep(wait)
+            proc.send_signal(signum)
+            _, rest = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+        return proc.returncode, "".join(seen) + rest
+
+    return stop
 
 
 @pytest.fixture

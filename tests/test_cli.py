@@ -885,32 +885,38 @@ def test_options_a_lattice_would_leave_unused_are_refused_in_one_line(tmp_path, 
         assert len(err) == 1 and expected in err[0], err
 
 
-def test_the_final_save_goes_through_one_ctrl_c_under_the_command_line_s_handler():
+@pytest.mark.parametrize("sent", ["SIGINT", "SIGTERM"])
+def test_the_final_save_goes_through_one_interrupt_under_the_command_line_s_handlers(sent):
     """`baking.saves.through_one_interrupt` defers one Ctrl-C under the console script's
-    SIGINT handler as under Python's own (a finished bake's save is not lost to it), a
-    second raises, and the handler before is back afterwards."""
+    SIGINT handler as under Python's own (a finished bake's save is not lost to it), and
+    one SIGTERM where SIGINT is ignored (a background job) and SIGTERM is the command
+    line's (`interrupts.on_terminate`); a second raises, and the handlers before are
+    back afterwards."""
     import os
     import signal
-    import time
 
     from isolume.baking.saves import through_one_interrupt
     from isolume.volumes import interrupts
 
-    previous = signal.signal(signal.SIGINT, interrupts.on_interrupt)
+    handlers = {signal.SIGINT: interrupts.on_interrupt} if sent == "SIGINT" else \
+        {signal.SIGINT: signal.SIG_IGN, signal.SIGTERM: interrupts.on_terminate}
+    before = {signum: signal.signal(signum, handler) for signum, handler in handlers.items()}
     try:
         with through_one_interrupt(None) as pressed:
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), getattr(signal, sent))
             time.sleep(0.05)
             assert pressed == [True]
             with pytest.raises(KeyboardInterrupt):
-                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), getattr(signal, sent))
                 time.sleep(0.5)
-        assert signal.getsignal(signal.SIGINT) is interrupts.on_interrupt
+        assert all(signal.getsignal(s) is h for s, h in handlers.items())
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
 
 
-def test_sigterm_stops_a_background_bake_as_a_ctrl_c_and_keeps_its_texels(tmp_path):
+def test_sigterm_stops_a_background_bake_as_a_ctrl_c_and_keeps_its_texels(tmp_path,
+                                                                            stopped_after):
     """A bake run as a shell's background job (SIGINT ignored) and stopped by SIGTERM (a
     batch system's time limit, a `kill`) saves its finished texels as a Ctrl-C does."""
     import signal
@@ -920,19 +926,8 @@ def test_sigterm_stops_a_background_bake_as_a_ctrl_c_and_keeps_its_texels(tmp_pa
             "--out", str(out)]
     proc = subprocess.Popen(bake, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    try:
-        seen = []
-        for line in proc.stderr:
-            seen.append(line)
-            if "paths to trace" in line:
-                break
-        time.sleep(1.0)
-        proc.send_signal(signal.SIGTERM)
-        _, rest = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-    err = "".join(seen) + rest
-    assert proc.returncode == 130, err
+    status, err = stopped_after(proc, "paths to trace", signal.SIGTERM, wait=1.0)
+    assert status == 130, err
     assert "finished texels saved in" in err, err
     info = _info(out)
     assert re.search(r"finished\s+no:", info), info
@@ -973,30 +968,11 @@ def _info(lattice: Path) -> str:
                           capture_output=True, text=True).stdout
 
 
-def test_sigterm_is_a_ctrl_c_inside_the_final_save_of_a_background_bake():
-    """With SIGINT ignored and SIGTERM the command line's (`interrupts.on_terminate`), the
-    final save still goes through one SIGTERM and a second raises KeyboardInterrupt; a
-    process forked under that handler ends on SIGTERM by default."""
-    import os
+def test_a_process_forked_under_the_command_line_s_handlers_ends_on_sigterm():
+    """A child forked after `interrupts.install` (a pool's, the viewer's bake process)
+    takes SIGTERM's default action, though its SIGINT is ignored."""
     import signal
 
-    from isolume.baking.saves import through_one_interrupt
-    from isolume.volumes import interrupts
-
-    before = signal.signal(signal.SIGINT, signal.SIG_IGN), \
-        signal.signal(signal.SIGTERM, interrupts.on_terminate)
-    try:
-        with through_one_interrupt(None) as pressed:
-            os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(0.05)
-            assert pressed == [True]
-            with pytest.raises(KeyboardInterrupt):
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(0.5)
-        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
-    finally:
-        signal.signal(signal.SIGINT, before[0])
-        signal.signal(signal.SIGTERM, before[1])
     child = subprocess.run([sys.executable, "-c", FORKED_SIGTERM], capture_output=True,
                            text=True, timeout=30)
     assert child.stdout.split() == ["on_terminate", str(-signal.SIGTERM)], child.stderr

@@ -110,7 +110,7 @@ quit
 """
 
 
-def test_sigterm_closes_the_viewer_as_quit_does(display, tmp_path):
+def test_sigterm_closes_the_viewer_as_quit_does(display, tmp_path, stopped_after):
     """SIGTERM (a `kill`, a closed session) while the lazy bake runs: the viewer saves its
     lattice, stops its bake process and frees their shared memory (no resource-tracker
     warning of leaked objects), with the exit status of a Ctrl-C."""
@@ -119,18 +119,8 @@ def test_sigterm_closes_the_viewer_as_quit_does(display, tmp_path):
                               "s.txt", "--lattice", "lazy.npz"], display)
     proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
-    try:
-        seen = []
-        for line in proc.stderr:
-            seen.append(line)
-            if "wait-bake done" in line:
-                break
-        proc.send_signal(signal.SIGTERM)
-        _, rest = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-    err = "".join(seen) + rest
-    assert proc.returncode == 130, err
+    status, err = stopped_after(proc, "wait-bake done", signal.SIGTERM)
+    assert status == 130, err
     assert "leaked" not in err and (tmp_path / "lazy.npz").exists(), err
 
 
