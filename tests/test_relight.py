@@ -461,8 +461,18 @@ def test_a_complete_lattice_file_is_re_baked_for_a_turned_sun(display, tmp_path)
     assert (relit.samples > 0).sum() > 1000
     before, after = (read_exr(tmp_path / f"{n}.exr")["RGB"] for n in ("before", "after"))
     mask = before.max(axis=-1) > 0
-    assert mask.mean() > 0.05 and (mask == (after.max(axis=-1) > 0)).all()
+    changed = mask != (after.max(axis=-1) > 0)  # black in one picture only
+    assert mask.mean() > 0.05 and changed.sum() <= 0.001 * mask.sum(), changed.sum()
+    assert not (changed & ~_beside_background(mask)).any()  # at most a speck on the outline
     assert np.abs(after[mask] - before[mask]).mean() > 0.02 * before[mask].mean()
+
+
+def _beside_background(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels of the (H, W) `mask` with a pixel outside it among their
+    4 neighbours, and those outside it."""
+    outside = np.pad(~mask, 1, constant_values=True)
+    return (outside[1:-1, 1:-1] | outside[:-2, 1:-1] | outside[2:, 1:-1]
+            | outside[1:-1, :-2] | outside[1:-1, 2:])
 
 
 def test_a_turned_light_carries_over_when_the_bake_plans_again():
