@@ -213,24 +213,33 @@ class Relight:
     def publish(self, flat: np.ndarray) -> np.ndarray:
         """Put the new estimates of the texels `flat` (K,) on screen where they rest on
         enough paths (`needed`), or were published before; returns the (J,) flat ids
-        copied (to be re-uploaded)."""
+        copied (to be re-uploaded). The display (another process) may read them meanwhile
+        (`Lattice.displayed`: the mean whose count is the larger): every count is lowered
+        to the smaller of its two estimates' before the means are copied and set after,
+        so that no count ever vouches for a mean half replaced (an old 8-path texel
+        replaced by a 64-path preview read black between the two)."""
         flat = np.unique(np.asarray(flat, np.int64))
         if len(flat) == 0:
             return flat
         ready = self.published[flat] | (_paths_behind(self.fresh, flat) >= self.needed(flat))
         out = flat[ready]
         fresh, shown = self.fresh, self.shown
+        counts = [(shown.samples.reshape(-1), fresh.samples.reshape(-1))]
+        if shown.preview is not None:
+            counts.append((shown.preview_paths.reshape(-1), fresh.preview_paths.reshape(-1)))
+        for now, new in counts:  # lowered first: no count vouches for a mean being replaced
+            now[out] = np.minimum(now[out], new[out])
         channels = shown.values.shape[-1]
         shown.values.reshape(-1, channels)[out] = fresh.values.reshape(-1, channels)[out]
         shown.second.reshape(-1)[out] = fresh.second.reshape(-1)[out]
         shown.facing.reshape(-1, 2)[out] = fresh.facing.reshape(-1, 2)[out]
-        if shown.preview is not None:  # values and facings before the path counts
+        if shown.preview is not None:
             shown.preview.reshape(-1, channels)[out] = fresh.preview.reshape(-1, channels)[out]
             if fresh.preview_facing is not None:
                 shown.ensure_preview_facing().reshape(-1, 2)[out] = \
                     fresh.preview_facing.reshape(-1, 2)[out]
-            shown.preview_paths.reshape(-1)[out] = fresh.preview_paths.reshape(-1)[out]
-        shown.samples.reshape(-1)[out] = fresh.samples.reshape(-1)[out]
+        for now, new in reversed(counts):  # raised last: the means they vouch for are in
+            now[out] = new[out]
         self.published[out] = True
         return out
 

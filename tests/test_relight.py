@@ -295,6 +295,53 @@ def test_a_new_estimate_replaces_one_that_rested_on_fewer_paths_sooner():
     np.testing.assert_array_equal(shown.samples[0, 0], [1, 4, 64, 4])
 
 
+class _Watched(np.ndarray):
+    """An array that calls `after_write` (when set) after every item assignment, to
+    itself or to a view of it."""
+
+    after_write = None
+
+    def __setitem__(self, key, value):
+        super().__setitem__(key, value)
+        if _Watched.after_write is not None:
+            _Watched.after_write()
+
+
+def test_a_display_reading_while_a_texel_is_published_never_sees_it_black():
+    """`Relight.publish` replaces a texel that shows its old light's own 8-path mean by a
+    new estimate that rests on a 64-path preview alone (no samples of its own yet): after
+    every array write, what a display reads (`Lattice.displayed`) is the old light's or
+    the new light's value, or nothing (the display's fallback) — never 0 with a count
+    vouching for it."""
+    from isolume.baking.lattice import LatticeGeometry
+
+    geometry = LatticeGeometry((1, 1, 2), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    shown = _lattice_of(geometry)
+    for name in ("values", "samples", "preview", "preview_paths", "second", "facing"):
+        setattr(shown, name, getattr(shown, name).view(_Watched))
+    shown.samples[0, 0] = (8, 64)
+    shown.values[0, 0] = 1.0
+    relight = Relight(shown, BakeConfig(env=SUN))
+    relight.fresh.preview_paths[0, 0] = (64, 0)
+    relight.fresh.preview[0, 0] = 2.0
+    relight.fresh.samples[0, 0] = (0, RELIGHT_PATHS)
+    relight.fresh.values[0, 0, 1] = 3.0
+    seen = []
+
+    def read() -> None:
+        values = shown.displayed()[0, 0, :, 0]
+        counts = np.maximum(shown.samples[0, 0], shown.preview_paths[0, 0])
+        seen.append(tuple(values))
+        assert ((counts == 0) | (values > 0)).all(), (values, counts)
+
+    _Watched.after_write = read
+    try:
+        np.testing.assert_array_equal(relight.publish(np.arange(2)), [0, 1])
+    finally:
+        _Watched.after_write = None
+    assert seen[-1] == (2.0, 3.0) and {v[0] for v in seen} <= {0.0, 1.0, 2.0}
+
+
 def _lattice_of(geometry):
     lattice = Lattice.empty(geometry, 3, {"kind": "irradiance"})
     lattice.preview = np.zeros_like(lattice.values)
