@@ -342,6 +342,89 @@ def test_a_display_reading_while_a_texel_is_published_never_sees_it_black():
     assert seen[-1] == (2.0, 3.0) and {v[0] for v in seen} <= {0.0, 1.0, 2.0}
 
 
+class _Racing(np.ndarray):
+    """An array that runs `_Racing.writer` (when set) once, right after the
+    `_Racing.at`-th read of a region of any `_Racing` array: another process writing
+    the lattice in the middle of a display's reads."""
+
+    writer = None
+    at = 0
+    reads = 0
+
+    def __getitem__(self, key):
+        item = super().__getitem__(key)
+        _Racing.reads += 1
+        if _Racing.writer is not None and _Racing.reads == _Racing.at:
+            write, _Racing.writer = _Racing.writer, None
+            write()
+        return item
+
+
+@pytest.mark.parametrize("step", ["first own samples", "first preview"])
+def test_a_display_read_while_a_texel_is_written_shows_it_whole_or_not_at_all(step):
+    """`Lattice.display` (what an upload reads) while the bake process commits a texel —
+    its means, then its count — between any two of the display's reads: the texel is
+    shown with the mean its count vouches for (before or after the commit), or not shown
+    with no light; never shown black, nor hidden with light (too bright in the shader,
+    which divides by the shown neighbours' weight)."""
+    from isolume.baking.lattice import LatticeGeometry
+
+    geometry = LatticeGeometry((1, 1, 1), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    for at in range(1, 40):
+        lattice = _lattice_of(geometry)
+        for name in ("values", "samples", "preview", "preview_paths", "facing"):
+            setattr(lattice, name, getattr(lattice, name).view(_Racing))
+        if step == "first own samples":  # a previewed texel gets its first 16 samples
+            lattice.preview_paths[...] = 4
+            lattice.preview[...] = 2.0
+            mean, count, valid = lattice.values, lattice.samples, {2.0, 5.0}
+        else:  # a texel without light gets its first preview
+            mean, count, valid = lattice.preview, lattice.preview_paths, {5.0}
+
+        def commit(mean=mean, count=count):
+            mean[...] = 5.0
+            count[...] = 16
+
+        _Racing.writer, _Racing.at, _Racing.reads = commit, at, 0
+        try:
+            shown, _, values = lattice.display()
+        finally:
+            _Racing.writer = None
+        value = float(values.reshape(-1)[0])
+        assert (value in valid) if shown.all() else value == 0.0, (at, shown, value)
+
+
+@pytest.mark.parametrize("relit", [False, True])
+def test_a_save_while_a_texel_is_committed_holds_it_whole_or_not_at_all(relit):
+    """`SharedLattice.snapshot` (what the viewer saves while the bake goes on) taken while
+    the bake process re-commits a texel — its mean, then its count — between any two of
+    the snapshot's reads: the file holds the texel's old pair (8 paths, 1.0) or its new
+    one (16, 5.0), or leaves it out; never a count with another estimate's mean."""
+    from isolume.app.viewer.bake_client import SharedLattice
+    from isolume.baking.lattice import LatticeGeometry
+
+    geometry = LatticeGeometry((1, 1, 1), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    for at in range(1, 40):
+        lattice = _lattice_of(geometry)
+        for name in ("values", "samples", "second", "facing"):
+            setattr(lattice, name, getattr(lattice, name).view(_Racing))
+        lattice.samples[...], lattice.values[...] = 8, 1.0
+        shared = SharedLattice(lattice, [], owner=False,
+                               relit=np.ones(geometry.shape, bool).view(_Racing))
+
+        def commit(lattice=lattice):
+            lattice.values[...] = 5.0
+            lattice.samples[...] = 16
+
+        _Racing.writer, _Racing.at, _Racing.reads = commit, at, 0
+        try:
+            saved = shared.snapshot(relit=relit)
+        finally:
+            _Racing.writer = None
+        pair = (int(saved.samples.reshape(-1)[0]), float(saved.values.reshape(-1)[0]))
+        assert pair in {(8, 1.0), (16, 5.0), (0, 0.0)}, (at, pair)
+
+
 def _lattice_of(geometry):
     lattice = Lattice.empty(geometry, 3, {"kind": "irradiance"})
     lattice.preview = np.zeros_like(lattice.values)

@@ -136,15 +136,23 @@ class SharedLattice:
 
     def snapshot(self, relit: bool = False) -> Lattice:
         """A private copy of the lattice (for saving while the bake goes on); `relit`:
-        only the texels baked under the turned light (`relit`), the others as not
-        computed (a lattice file holds one light)."""
+        only the texels baked under the turned light (`relit`, read first: the bake
+        marks a texel there after its counts), the others as not computed (a lattice
+        file holds one light). A texel whose count moved while it was copied (the bake
+        process committed it meanwhile) is left out as not computed, rather than saved
+        with a count that does not vouch for its mean."""
         lat = self.lattice
+        published = self.relit.copy() if relit else None
         samples = lat.samples.copy()
-        if relit:
-            samples[~self.relit] = 0
         values = np.where(samples[..., None] > 0, lat.values, 0).astype(np.float32)
+        second = lat.second.copy()
         facing = np.where(samples[..., None] > 0, lat.facing, 0).astype(np.uint8)
-        return Lattice(lat.geometry, values, samples, lat.second.copy(), lat.active.copy(),
+        samples[lat.samples != samples] = 0
+        if published is not None:
+            samples[~published] = 0
+        left_out = samples == 0
+        values[left_out], second[left_out], facing[left_out] = 0, 0, 0
+        return Lattice(lat.geometry, values, samples, second, lat.active.copy(),
                        json.loads(json.dumps(lat.meta)), config=lat.config, facing=facing)
 
     def close(self) -> None:
