@@ -367,59 +367,53 @@ class Lattice:
         return self.samples > 0
 
     def shown(self, region: tuple[Any, ...] = (...,)) -> np.ndarray:
-        """Bool mask of the texels a display uses in `region` (a tuple of slices of
-        (Z, Y, X)): those computed or holding a preview, except the trapped (`TRAPPED_PATHS`)."""
+        """Bool mask of the texels a display uses in `region` (slices of (Z, Y, X)): those
+        computed or holding a preview, except the trapped (`TRAPPED_PATHS`)."""
         return self._shown(region, *self._counts(region))
 
     def previewed(self, region: tuple[Any, ...] = (...,)) -> np.ndarray:
         """Bool mask of the texels in `region` whose preview is shown: it rests on more
         paths than the texel's own samples."""
-        return self._previewed(*self._counts(region))
+        samples, previews = self._counts(region)
+        return np.zeros(samples.shape, bool) if previews is None else previews > samples
 
     def displayed(self, region: tuple[Any, ...] = (...,)) -> np.ndarray:
         """(…, C) float32 values a display shows in `region`: the preview where
         `previewed`, else the texel's own mean (0 where neither exists)."""
-        return self._displayed(region, *self._counts(region))
+        return self._picked(region, self.values, self.preview, np.float32,
+                            *self._counts(region))
 
     def displayed_facing(self, region: tuple[Any, ...] = (...,)) -> np.ndarray:
         """(…, 2) uint8 facing codes a display uses in `region`, as `displayed` picks the
         values: the preview's where `previewed`, else the texel's own where computed,
         else unknown."""
-        return self._displayed_facing(region, *self._counts(region))
+        return self._picked(region, self.facing, self.preview_facing, np.uint8,
+                            *self._counts(region))
 
     def display(self, region: tuple[Any, ...] = (...,)
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """`shown`, `displayed_facing` and `displayed` of `region` (what an upload of a
-        region reads), consistent while another process writes the lattice (the viewer's
-        bake process, which sends the texels it wrote afterwards): the counts are read once
-        and every choice made from that copy; a texel whose counts moved by the time its
-        means and facings were read is not shown (its values 0), rather than shown with a
-        mean its count does not vouch for (black, or too bright)."""
+        """`shown`, `displayed_facing` and `displayed` of `region` (what an upload reads),
+        whole while another process writes them (the bake's, which then sends the texels
+        it wrote): every choice is made from one copy of the counts, and a texel whose
+        counts moved meanwhile is left out (values 0) rather than shown with a mean its
+        count does not vouch for (black), or hidden with light (too bright)."""
         counts = self._counts(region, copy=True)
         shown = self._shown(region, *counts)
-        facing = self._displayed_facing(region, *counts)
-        values = self._displayed(region, *counts)
-        moved = np.zeros(shown.shape, bool)
-        for before, now in zip(counts, self._counts(region), strict=True):
-            if before is not None:
-                moved |= before != now
+        facing = self._picked(region, self.facing, self.preview_facing, np.uint8, *counts)
+        values = self._picked(region, self.values, self.preview, np.float32, *counts)
+        again = self._counts(region)
+        moved = (counts[0] != again[0]) | (False if counts[1] is None else counts[1] != again[1])
         shown &= ~moved
-        values[~shown] = 0
-        facing[moved] = 0
+        values[~shown], facing[moved] = 0, 0
         return shown, facing, values
 
     def _counts(self, region: tuple[Any, ...], copy: bool = False
                 ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(samples, preview_paths or None) in `region`; `copy`: copies, what one reading
-        of the counts sees (else views, where slices make them)."""
+        """(samples, preview_paths or None) in `region`: copies (one reading of the counts)
+        with `copy`, else views where slices make them."""
         take = np.array if copy else np.asarray
         previews = None if self.preview_paths is None else take(self.preview_paths[region])
         return take(self.samples[region]), previews
-
-    @staticmethod
-    def _previewed(samples: np.ndarray, previews: np.ndarray | None) -> np.ndarray:
-        """Where the preview is shown, by the counts `samples` and `previews` (`_counts`)."""
-        return np.zeros(samples.shape, bool) if previews is None else previews > samples
 
     def _shown(self, region: tuple[Any, ...], samples: np.ndarray,
                previews: np.ndarray | None) -> np.ndarray:
@@ -432,34 +426,24 @@ class Lattice:
         many = samples >= TRAPPED_PATHS
         if previews is not None:
             many |= previews >= TRAPPED_PATHS
-        previewed = self._previewed(samples, previews)
 
         def light_of(at: tuple) -> np.ndarray:  # what `displayed` shows there
             light = self.values[region][at]
             if previews is None:
                 return light
-            return np.where(previewed[at][:, None], self.preview[region][at], light)
+            return np.where((previews[at] > samples[at])[:, None], self.preview[region][at],
+                            light)
 
         return drop_trapped(mask, many, light_of)
 
-    def _displayed(self, region: tuple[Any, ...], samples: np.ndarray,
-                   previews: np.ndarray | None) -> np.ndarray:
-        """`displayed` of `region` by the counts `samples` and `previews` (`_counts`)."""
-        own = np.where(samples[..., None] > 0, self.values[region], 0)
-        if self.preview is None:
-            return own.astype(np.float32)
-        return np.where(self._previewed(samples, previews)[..., None], self.preview[region],
-                        own).astype(np.float32)
-
-    def _displayed_facing(self, region: tuple[Any, ...], samples: np.ndarray,
-                          previews: np.ndarray | None) -> np.ndarray:
-        """`displayed_facing` of `region` by the counts `samples` and `previews`
-        (`_counts`)."""
-        own = np.where((samples > 0)[..., None], self.facing[region], 0)
-        if self.preview_facing is None:
-            return own.astype(np.uint8)
-        return np.where(self._previewed(samples, previews)[..., None],
-                        self.preview_facing[region], own).astype(np.uint8)
+    def _picked(self, region: tuple[Any, ...], own: np.ndarray, preview: np.ndarray | None,
+                dtype: type, samples: np.ndarray, previews: np.ndarray | None) -> np.ndarray:
+        """(…, C) `dtype` in `region`: `preview` (or None) where the counts `samples` and
+        `previews` (`_counts`) show it, else `own` where computed, else 0."""
+        picked = np.where((samples > 0)[..., None], own[region], 0)
+        if preview is not None and previews is not None:
+            picked = np.where((previews > samples)[..., None], preview[region], picked)
+        return picked.astype(dtype)
 
     def ensure_preview_facing(self) -> np.ndarray:
         """`preview_facing`, made (all unknown) if it is None."""
