@@ -75,17 +75,16 @@ def through_one_interrupt(note: str | None, on_press: Callable[[], None] | None 
     the hurry of `baking.lattice_file.quick_saves`), a second raises KeyboardInterrupt at
     once. So the final save of a finished bake is not lost to a Ctrl-C that arrives while
     it writes (seconds for a large lattice, the bar at 100 %).
-    Only on the main thread with Python's own SIGINT handler installed, or the command
-    line's (`volumes.interrupts`; a signal handler is the main thread's, restored after),
-    or with SIGINT ignored (a shell's background job) where the command line makes
-    SIGTERM a Ctrl-C (`interrupts.terminates_as_interrupt`); under another handler — an
-    application's, or an outer `through_one_interrupt`'s, which then records the press —
-    the body runs as that one has it."""
+    Only on the main thread where a stop raises KeyboardInterrupt
+    (`interrupts.raises_keyboard_interrupt`: Python's own SIGINT handler, the command
+    line's, or the command line's SIGTERM where SIGINT is ignored; a signal handler is the
+    main thread's, restored after); under another handler — an application's, or an
+    outer `through_one_interrupt`'s, which then records the press — the body runs as that
+    one has it."""
     pressed: list[bool] = []
     before = signal.getsignal(signal.SIGINT)
     if (threading.current_thread() is not threading.main_thread()
-            or not (interrupts.raises_keyboard_interrupt(before)
-                    or (before is signal.SIG_IGN and interrupts.terminates_as_interrupt()))):
+            or not interrupts.raises_keyboard_interrupt(before)):
         yield pressed
         return
 

@@ -86,11 +86,6 @@ def _device(fd: int) -> int | None:
         return None
 
 
-def terminates_as_interrupt() -> bool:
-    """Whether SIGTERM's handler is `on_terminate` (the command line's)."""
-    return signal.getsignal(signal.SIGTERM) is on_terminate
-
-
 def _default_termination() -> None:
     """Give a forked child the default action of each `TERMINATING` signal the parent
     handles with `on_terminate` (the child's SIGINT may be ignored, and a pool's or the
@@ -101,9 +96,11 @@ def _default_termination() -> None:
 
 
 def raises_keyboard_interrupt(handler: object) -> bool:
-    """Whether the SIGINT `handler` is Python's own or `on_interrupt`: one that raises
-    KeyboardInterrupt."""
-    return handler is signal.default_int_handler or handler is on_interrupt
+    """Whether a stop raises KeyboardInterrupt under the SIGINT `handler`: Python's own or
+    `on_interrupt` (a Ctrl-C), or SIGINT ignored (a shell's background job) while SIGTERM
+    is `on_terminate`'s, which then calls `on_interrupt`."""
+    return handler is signal.default_int_handler or handler is on_interrupt or (
+        handler is signal.SIG_IGN and signal.getsignal(signal.SIGTERM) is on_terminate)
 
 
 def on_interrupt(signum: int, frame: FrameType | None) -> None:

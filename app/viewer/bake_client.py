@@ -144,9 +144,7 @@ class SharedLattice:
         lat = self.lattice
         published = self.relit.copy() if relit else None
         samples = lat.samples.copy()
-        values = np.where(samples[..., None] > 0, lat.values, 0).astype(np.float32)
-        second = lat.second.copy()
-        facing = np.where(samples[..., None] > 0, lat.facing, 0).astype(np.uint8)
+        values, second, facing = lat.values.copy(), lat.second.copy(), lat.facing.copy()
         samples[lat.samples != samples] = 0
         if published is not None:
             samples[~published] = 0
