@@ -205,7 +205,7 @@ def scene_memory_bytes(gigabytes: float | None) -> float | None:
 def _held_paths(lattice) -> int:
     """The paths traced into a baked `lattice`'s texels: its samples, less the `samples`
     a texel filled from the half lattice is given without a path traced
-    (`baking.density.fill`); the same for a bake interrupted and resumed as for one run."""
+    (`baking.fills.fill`); the same for a bake interrupted and resumed as for one run."""
     held = int(lattice.samples.sum(dtype=np.int64))
     filled = lattice.meta.get("filled")
     if filled is not None and lattice.config is not None:

@@ -37,8 +37,9 @@ there. A bake to a texel error (`bake_texels`):
    texels (their light is spread over the filled texels around them); traces the texels
    to be filled whose traced neighbours contradict the fill (*stray*:
    `baking.fill_check.stray_fills`, `trace_strays`); and fills the rest (*filled*
-   texels) with the side-aware mix of their nodes (`baking.lattice.sided_mix`, what the
-   shader does with the half lattice), their facings from the plan as a traced texel's.
+   texels) with the side-aware mix of their nodes (`baking.fills.fill`: `sided_mix`, what
+   the shader does with the half lattice), their facings from the plan as a traced
+   texel's.
 
 Under a sky from every direction, a traced texel whose paths all stayed dark — a node
 before the judgement, any other once step 3 is traced — goes on to
@@ -51,44 +52,46 @@ construction (a filled brick is the half lattice's trilinear field, sampled at i
 texels). Decisions are made from finished node values alone and per texel, so the same
 seed gives the same lattice for any worker count or backend; the decisions are kept in
 the lattice's metadata (`JUDGED_KEY`, `Judgement`), so that a resumed bake makes the same
-ones. The filled texels are recorded there too (`FILLED_KEY`); a later bake of the same
-file first clears them (`clear_filled`), so that a resumed, a finer or a uniform bake never
-takes a filled texel for a traced one.
+ones. The filled texels are recorded there too, with what makes their fill again
+(`FILLED_KEY`, `baking.fills.Recipe`: a file leaves their light out and its reader mixes
+it again from the nodes); a later bake of the same file first clears them
+(`clear_filled`), so that a resumed, a finer or a uniform bake never takes a filled texel
+for a traced one.
 """
 
 from __future__ import annotations
 
-import base64
-import zlib
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from isolume.baking.config import NODE_PATHS
-from isolume.baking.density_kernels import corner_nodes, node_pair_surpluses, weighted_sums
-from isolume.baking.fill_check import (
-    SURE,
-    NodeLight,
-    drift_error,
-    node_mix,
-    node_sides,
-    shown_weights,
-    stray_fills,
+from isolume.baking.density_kernels import node_pair_surpluses
+from isolume.baking.fill_check import SURE, NodeLight, drift_error, node_sides, stray_fills
+from isolume.baking.fills import (
+    FILLED_KEY,
+    Nodes,
+    Recipe,
+    fill,
+    filled_positions,
+    packed,
+    shown_texels,
+    texel_coords,
+    texel_luminance,
+    unpacked,
 )
 from isolume.baking.lattice import (
     BRICK,
-    FACING_POWER,
     TRAPPED_PATHS,
     brick_grid,
     path_variance,
     sky_everywhere,
 )
 from isolume.baking.passes import commit_facing
+from isolume.baking.sided import FACING_POWER
 from isolume.volumes import cores
 
-FILLED_KEY = "filled"
-"""The lattice metadata's record of the texels a bake filled (`clear_filled`)."""
 JUDGED_KEY = "texel_judgement"
 """The lattice metadata's record of a bake's decisions (`Judgement`)."""
 SIDE_FLOOR = 0.5
@@ -105,22 +108,11 @@ ONE_SIDED_FLOOR = 0.8
 at most half of its trilinear weight (the others missing or not shown: the texel lies
 past the half lattice's edge, and the fill extrapolates from one side of it)."""
 BLOCK = 1 << 16
-"""Texels one item of the judging and filling passes takes, at most."""
+"""Texels one item of the judging passes takes, at most."""
 DIRECTIONS = np.array([d for d in np.ndindex(3, 3, 3)
                        if np.ravel_multi_index(d, (3, 3, 3)) > 13], np.int64) - 1
 """(13, 3) z, y, x steps of the half lattice to the neighbours of a node on one side
 (the other 13 of its 26 are their opposites): the axes, the face and the body diagonals."""
-
-
-def texel_coords(ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
-    """(T, 3) z, y, x of (T,) flat lattice `ids` of a (Z, Y, X) box: int16 where every
-    side is shorter than 32 768 texels (6 bytes a texel, held through a bake), else
-    int32."""
-    kind = np.int16 if max(shape) <= np.iinfo(np.int16).max else np.int32
-    out = np.empty((len(ids), 3), kind)
-    for axis, index in enumerate(np.unravel_index(ids, shape)):
-        out[:, axis] = index
-    return out
 
 
 def brick_of(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
@@ -143,23 +135,6 @@ def texel_bricks(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
     return bricks
 
 
-def texel_luminance(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(T,) ``values @ weights`` of (T, C) texel `values`, in the type numpy's product
-    gives, a block at a time on every core: each texel's sum over its channels in order
-    (`density_kernels.weighted_sums`), so its bits depend on its values alone — not on
-    the blocks, the rows around it or the CPU's vector width, as a BLAS product's may."""
-    values = np.ascontiguousarray(values)
-    weights = np.asarray(weights)
-    luminance = np.empty(len(values), np.result_type(values.dtype, weights.dtype))
-    weights = weights.astype(luminance.dtype)
-
-    def part(block: slice) -> None:
-        weighted_sums(values[block], weights, luminance[block])
-
-    cores.for_blocks(part, len(values), BLOCK, "texels")
-    return luminance
-
-
 def mixing_mask(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray:
     """(T,) bool over the plan's (T, 3) texels `coords`: the `nodes` with a weight in the
     trilinear mix of a texel at plan positions (N,) `at` (`Nodes.corners`), marked a
@@ -172,47 +147,6 @@ def mixing_mask(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray:
 
     cores.for_blocks(mark, len(at), BLOCK, "texels")
     return used
-
-
-class Nodes:
-    """A half lattice of nodes: texels whose z, y and x are all ≡ `offset` (mod 2), as a
-    dense (⌈(Z − offset)/2⌉, …) int32 map `rows` from a node's half index to its plan
-    position (−1: none there), and their (N,) sorted plan `positions`.
-
-    Args:
-        coords: (T, 3) z, y, x of the plan's texels (`texel_coords`).
-        shape: (Z, Y, X) texels of the lattice.
-        offset: 0 (the even nodes) or 1 (the odd ones).
-        positions: the plan positions of the nodes (default: every texel of the plan
-            on the half lattice).
-    """
-
-    def __init__(self, coords: np.ndarray, shape: tuple[int, int, int], offset: int = 0,
-                 positions: np.ndarray | None = None) -> None:
-        self.shape: np.ndarray = np.array(shape, np.int64)
-        self.coords: np.ndarray = coords
-        self.offset: int = offset
-        self.positions: np.ndarray = (
-            np.flatnonzero(((coords & 1) == offset).all(axis=1)) if positions is None
-            else np.asarray(positions, np.int64))
-        self.rows: np.ndarray = np.full(tuple(-(-(self.shape - offset) // 2)), -1, np.int32)
-        half = self.half(self.positions)
-        self.rows[half[:, 0], half[:, 1], half[:, 2]] = self.positions
-
-    def half(self, positions: np.ndarray) -> np.ndarray:
-        """(N, 3) int64 half indices of the nodes at plan `positions`."""
-        return (self.coords[positions].astype(np.int64) - self.offset) // 2
-
-    def corners(self, coords: np.ndarray, stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
-        """The nodes of the trilinear mix at `stride` texels' spacing (2 or 4) of (N, 3)
-        texel `coords`: (N, 8) int64 plan positions (−1 where no node, or a weight of 0)
-        and (N, 8) float64 trilinear weights (0 there), in corner order x + 2 y + 4 z
-        (x, y, z: 0 or 1, the step along each axis)."""
-        rows = np.empty((len(coords), 8), np.int64)
-        weights = np.empty((len(coords), 8))
-        corner_nodes(self.rows, np.asarray(coords), self.offset, stride, self.shape,
-                     rows, weights)
-        return rows, weights
 
 
 def light_level(luminance: np.ndarray) -> float:
@@ -295,15 +229,6 @@ def fine_bricks(lattices: list[Nodes], bricks: np.ndarray, light: NodeLight,
     return every & (rough | (sums[3] == 0)), every, edges
 
 
-def shown_texels(luminance: np.ndarray, samples: np.ndarray, trapped_at: int) -> np.ndarray:
-    """(T,) bool: the texels a display shows: traced, and not trapped (dark on at least
-    `trapped_at` paths, 0: never; `baking.lattice.TRAPPED_PATHS`)."""
-    shown = samples > 0
-    if trapped_at:
-        shown &= ~((luminance == 0) & (samples >= trapped_at))
-    return shown
-
-
 def facing_away(nodes: Nodes, at: np.ndarray, coords: np.ndarray, facing: np.ndarray,
                 light: NodeLight | None = None) -> np.ndarray:
     """(N,) bool: the texels at plan positions (N,) `at` that the half lattice `nodes`
@@ -368,44 +293,6 @@ def side_share(weights: np.ndarray, sides: np.ndarray) -> np.ndarray:
     plain = weights.sum(axis=1)
     sided = (weights * sides).sum(axis=1)
     return np.divide(sided, plain, out=np.zeros_like(plain), where=plain > 0)
-
-
-def fill(lattice: Any, nodes: Nodes, coords: np.ndarray, filled: np.ndarray,
-         shown: np.ndarray, samples: int) -> None:
-    """Write the half lattice's mix into `lattice`'s rows (plan positions) `filled`: values
-    and second moments, side-aware (`node_mix`) from the (T,) bool `shown` `nodes` around
-    each (`shown_texels`); `samples` paths each (`BakeConfig.samples`, as a traced texel:
-    its noise is at most theirs)."""
-    values = lattice.values.reshape(len(coords), -1)
-    second = lattice.second.reshape(-1)
-    count = lattice.samples.reshape(-1)
-    facing = lattice.facing.reshape(-1, 2)
-
-    def mix(part: slice) -> None:
-        at = filled[part]
-        rows, w = nodes.corners(coords[at])
-        w = shown_weights(rows, w, shown)
-        values[at] = node_mix(rows, w, facing, facing[at], values)
-        second[at] = node_mix(rows, w, facing, facing[at], second[:, None])[:, 0]
-        count[at] = samples
-
-    cores.for_blocks(mix, len(filled), BLOCK, "texels")
-
-
-def packed(mask: np.ndarray) -> str:
-    """A (K,) bool `mask` as text: `numpy.packbits`, zlib-deflated, base64."""
-    return base64.b64encode(zlib.compress(np.packbits(mask).tobytes(), 6)).decode()
-
-
-def unpacked(text: str, total: int) -> np.ndarray:
-    """(K,) sorted positions among `total` of `packed` text."""
-    bits = np.frombuffer(zlib.decompress(base64.b64decode(text)), np.uint8)
-    return np.flatnonzero(np.unpackbits(bits, count=total))
-
-
-def filled_positions(record: dict[str, Any]) -> np.ndarray:
-    """(F,) plan positions of the texels a bake filled (its ``meta[FILLED_KEY]``)."""
-    return unpacked(record["bits"], int(record["count"]))
 
 
 @dataclass
@@ -536,7 +423,8 @@ def bake_texels(baker: Any, bar: Any, checkpoint: Any) -> None:
                          trapped_at)
     filled = mask_of(total, *fills)
     record.update(trapped=int(np.count_nonzero((samples > 0) & ~shown)), stray=len(stray),
-                  filled=int(filled.sum()), bits=packed(filled))
+                  filled=int(filled.sum()), bits=packed(filled),
+                  **Recipe.record(odd.positions, fills[1], weights, trapped_at, total))
     for half, part in zip((even, odd), fills, strict=True):
         fill(lattice, half, coords, part, shown, config.samples)
     lattice.meta[FILLED_KEY] = record

@@ -1,8 +1,8 @@
-"""The compiled kernels of a bake to a texel error (`baking.density`): a half lattice's
-nodes around texels (`corner_nodes`) and at a half index (`node_at`), the surpluses of
-node pairs that judge a brick (`node_pair_surpluses`) and texel luminance summed in a
-fixed order (`weighted_sums`) — each a block of texels per call, without the GIL, with the
-array code's bits.
+"""The compiled kernels of a bake to a texel error (`baking.density`, `baking.fills`): a
+half lattice's nodes around texels (`corner_nodes`) and at a half index (`node_at`), the
+surpluses of node pairs that judge a brick (`node_pair_surpluses`) and texel luminance
+summed in a fixed order (`weighted_sums`) — each a block of texels per call, without the
+GIL, with the array code's bits.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from isolume.volumes.field import JIT
 @numba.njit(**JIT)
 def corner_nodes(node_rows: np.ndarray, coords: np.ndarray, offset: int, stride: int,
                  shape: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> None:
-    """`density.Nodes.corners` into (N, 8) `rows` and `weights`, from a half lattice's
-    `node_rows` map (`density.Nodes.rows`) at `offset`; `shape`: (3,) the lattice's texels."""
+    """`fills.Nodes.corners` into (N, 8) `rows` and `weights`, from a half lattice's
+    `node_rows` map (`fills.Nodes.rows`) at `offset`; `shape`: (3,) the lattice's texels."""
     half = np.empty(3, np.int64)
     for n in range(len(coords)):
         for k in range(8):
@@ -45,7 +45,7 @@ def node_pair_surpluses(node_rows: np.ndarray, half: np.ndarray, at: np.ndarray,
                         surplus: np.ndarray, noise: np.ndarray) -> None:
     """`density.pair_surpluses` into (N, K) `surplus` and `noise` (set where a pair is found), for
     the nodes at plan positions (N,) `at` and (N, 3) half indices `half`, along (K, 3)
-    `directions`, from a half lattice's `node_rows` map (`density.Nodes.rows`)."""
+    `directions`, from a half lattice's `node_rows` map (`fills.Nodes.rows`)."""
     pair = np.empty(2, np.int64)
     for i in range(len(at)):
         cx, cy = facing[at[i], 0], facing[at[i], 1]
@@ -70,7 +70,7 @@ def node_pair_surpluses(node_rows: np.ndarray, half: np.ndarray, at: np.ndarray,
 @numba.njit(**JIT)
 def node_at(node_rows: np.ndarray, z: int, y: int, x: int) -> int:
     """The plan position of the node at half index (z, y, x) of a half lattice's
-    `node_rows` map (`density.Nodes.rows`); −1 where none is, or outside the map."""
+    `node_rows` map (`fills.Nodes.rows`); −1 where none is, or outside the map."""
     shape = node_rows.shape
     if 0 <= z < shape[0] and 0 <= y < shape[1] and 0 <= x < shape[2]:
         return node_rows[z, y, x]

@@ -24,7 +24,7 @@ import numpy as np
 
 from isolume.baking import octahedral
 from isolume.baking.density_kernels import node_at
-from isolume.baking.lattice import FACING_POWER, sided_mix
+from isolume.baking.sided import FACING_POWER, sided_mix
 from isolume.volumes import cores
 from isolume.volumes.field import JIT
 
@@ -47,7 +47,7 @@ OFFSETS = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], np.int64)
 @dataclass
 class NodeLight:
     """The traced light a fill is judged by: (T,) `luminance`, (T,) `error` variances of
-    the texels' means, (T,) bool `shown` (`baking.density.shown_texels`), the error a fill
+    the texels' means, (T,) bool `shown` (`baking.fills.shown_texels`), the error a fill
     may make (`allowed`: the tolerance times the scene's light level) and (T,) bool the
     nodes on an edge of the light (`baking.density.fine_bricks`; None: not judged), each
     over the plan's texels."""
@@ -172,7 +172,7 @@ def _to_shares(weights: np.ndarray) -> None:
 
 
 def node_sides(rows: np.ndarray, facing: np.ndarray, own_facing: np.ndarray) -> np.ndarray:
-    """(N, K) side weights (`baking.lattice.side_weights`, compiled:
+    """(N, K) side weights (`baking.sided.side_weights`, compiled:
     `octahedral.side_rows`) of the texels at (N, K) plan positions `rows` (8 nodes, or 26
     neighbours; their (T, 2) `facing`) for texels facing (N, 2) `own_facing` (1 where it
     is unknown)."""
@@ -196,7 +196,7 @@ def residuals(nodes: Any, coords: np.ndarray, at: np.ndarray, facing: np.ndarray
     weight).
 
     Args:
-        nodes: a half lattice (`baking.density.Nodes`); coords: (T, 3) the plan's
+        nodes: a half lattice (`baking.fills.Nodes`); coords: (T, 3) the plan's
             texels' z, y, x; facing: (T, 2) octahedral facings; shown: (T,) bool, what a
             display shows.
     """
@@ -213,7 +213,7 @@ def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray
     (see the module's docs).
 
     Args:
-        lattices: the half lattices (`baking.density.Nodes`), in the order of `fills`.
+        lattices: the half lattices (`baking.fills.Nodes`), in the order of `fills`.
         coords: (T, 3) z, y, x of the plan's texels, whose (T,) sorted flat lattice `ids`
             in a (Z, Y, X) `shape`; witness: (T,) bool, the traced texels that are not
             nodes.

@@ -11,6 +11,12 @@ An ``.npz`` archive (zip, deflated) of format version `FORMAT_VERSION`:
 - ``meta``: JSON (format version, box shape and corners, kind, volume identity, statistics,
   bake config).
 
+The texels a bake to a texel error filled from its half lattices hold zeros in ``values``
+and ``second`` where the fill makes their light again to the bit (`_leaving_out`, about
+40 % of a default bake's file); the filled record in ``meta`` says which
+(`baking.fills.LEFT_OUT`) and how, and every read here makes it again from the nodes around
+them (`baking.fills.Recipe.mix`; a read of a few texels reads their nodes too).
+
 So a file's size follows the active texels, not the lattice's box. A member is deflated in
 pieces on every core (`_write_deflated`: one standard deflate stream, the same bytes on
 any number of threads outside a hurried quick save, one stream of pieces across the
@@ -52,6 +58,16 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from isolume.baking.errors import BakeError
+from isolume.baking.fills import (
+    FILLED_KEY,
+    LEFT_OUT,
+    Recipe,
+    bits_of,
+    corner_ids,
+    kept_fills,
+    marked,
+    packed,
+)
 from isolume.volumes import cores
 from isolume.volumes.io.common import available_memory
 from isolume.volumes.writing import atomic_write
@@ -125,13 +141,20 @@ def write_lattice(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
     atomically (a temporary file in the same folder, then renamed): an interrupted write
     never leaves a broken file."""
     held = held_mask(arrays)
+    count = int(np.count_nonzero(held))
 
     def rows(name: str) -> Iterator[np.ndarray]:
         for z in _slabs(held.shape):
             yield arrays[name][z][held[z]]
 
-    _write_archive(path, lambda: np.packbits(held.reshape(-1)), int(np.count_nonzero(held)),
-                   {n: arrays[n].shape[3:] for n in MEMBERS}, rows, meta)
+    def held_rows() -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        ids = np.flatnonzero(held)
+        return ids, {n: arrays[n].reshape(held.size, *arrays[n].shape[3:])[ids]
+                     for n in _MIXED}
+
+    meta, left = _leaving_out(meta, held.shape, count, held_rows)
+    _write_archive(path, lambda: np.packbits(held.reshape(-1)), count,
+                   {n: arrays[n].shape[3:] for n in MEMBERS}, _zeroed(rows, left), meta)
 
 
 def write_rows(path: str | os.PathLike[str], shape: tuple[int, int, int], ids: np.ndarray,
@@ -146,8 +169,57 @@ def write_rows(path: str | os.PathLike[str], shape: tuple[int, int, int], ids: n
         for lo in range(0, len(ids), SLAB_TEXELS):
             yield arrays[name][lo:lo + SLAB_TEXELS]
 
+    meta, left = _leaving_out(meta, shape, len(ids), lambda: (ids, arrays))
     _write_archive(path, lambda: packed_ids(ids, math.prod(shape)), len(ids),
-                   {n: arrays[n].shape[1:] for n in MEMBERS}, rows, meta)
+                   {n: arrays[n].shape[1:] for n in MEMBERS}, _zeroed(rows, left), meta)
+
+
+_MIXED = ("values", "samples", "facing", "second")
+"""The members a fill is made from and of (`baking.fills.Recipe.mix`)."""
+_LEFT = ("values", "second")
+"""The members whose rows of filled texels a file may leave out (`_leaving_out`)."""
+
+
+def _leaving_out(meta: dict[str, Any], shape: tuple[int, int, int], count: int,
+                 held_rows: Callable[[], tuple[np.ndarray, dict[str, np.ndarray]]]
+                 ) -> tuple[dict[str, Any], np.ndarray]:
+    """`meta` as a file of the `count` held texels of a (Z, Y, X) `shape` box holds it,
+    and the (F,) sorted rows of its filled texels whose light it leaves out: those whose
+    values and second moments their fill makes to the bit (`baking.fills.kept_fills`,
+    from ``held_rows()``: the (N,) flat ids and their `_MIXED` rows), named in the filled
+    record (`LEFT_OUT`: true where they are all its filled texels, else their mask);
+    none where the meta holds no fill's recipe for them."""
+    recipe = Recipe.of(meta.get(FILLED_KEY), count)
+    left = np.zeros(0, np.int64)
+    if recipe is not None:
+        left = kept_fills(recipe, shape, *held_rows())
+    if not len(left):
+        return meta, left
+    if len(left) == int(meta[FILLED_KEY]["filled"]):
+        named: bool | str = True  # every filled texel
+    else:
+        mask = np.zeros(count, bool)
+        mask[left] = True
+        named = packed(mask)
+    return dict(meta, **{FILLED_KEY: dict(meta[FILLED_KEY], **{LEFT_OUT: named})}), left
+
+
+def _zeroed(rows: Callable[[str], Iterator[np.ndarray]], left: np.ndarray
+            ) -> Callable[[str], Iterator[np.ndarray]]:
+    """`rows` with the (F,) sorted held rows `left` of the `_LEFT` members zero (copied
+    chunks: the arrays written are not changed)."""
+
+    def zeroed(name: str) -> Iterator[np.ndarray]:
+        start = 0
+        for chunk in rows(name):
+            lo, hi = np.searchsorted(left, [start, start + len(chunk)])
+            if name in _LEFT and hi > lo:
+                chunk = np.array(chunk)
+                chunk[left[lo:hi] - start] = 0
+            start += len(chunk)
+            yield chunk
+
+    return zeroed
 
 
 def packed_ids(ids: np.ndarray, size: int) -> np.ndarray:
@@ -411,6 +483,10 @@ class LatticeFile:
         shape: (Z, Y, X) texels of the lattice's box.
         version: its format version (`FORMAT_VERSION` or `DENSE_VERSION`).
         channels: values per texel, as the values' header says (1 where it gives none).
+        left_out: the `LEFT_OUT` entry of its filled record (taken out of `meta`): the
+            filled texels whose values and second moments it leaves out, which its reads
+            make again (`baking.fills`): True (all of them) or their packed mask; None
+            where it leaves none out.
     """
 
     path: Path
@@ -418,6 +494,7 @@ class LatticeFile:
     shape: tuple[int, int, int]
     version: int
     channels: int
+    left_out: bool | str | None = None
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> LatticeFile:
@@ -452,7 +529,13 @@ class LatticeFile:
         if lattice_kind(meta) not in KINDS:
             raise BakeError(f"{path}: lattice kind {lattice_kind(meta)!r}: expected one of "
                             f"{', '.join(KINDS)}")
-        return cls(path, meta, shape, int(version), channels)
+        record = meta.get(FILLED_KEY)
+        left_out = None
+        if isinstance(record, dict) and LEFT_OUT in record:
+            record = dict(record)
+            left_out = record.pop(LEFT_OUT)
+            meta[FILLED_KEY] = record
+        return cls(path, meta, shape, int(version), channels, left_out)
 
     def read_dense(self, out: dict[str, np.ndarray] | None = None
                    ) -> dict[str, np.ndarray | None]:
@@ -493,6 +576,8 @@ class LatticeFile:
                             for (part, mask), count in zip(slabs, counts, strict=True):
                                 flat[part][mask] = rows.read(count)
                         rows.finish(self.path)
+                if self.left_out is not None:
+                    self._refill_dense(out, sum(counts))
                 return out
         except BakeError:
             raise
@@ -517,18 +602,98 @@ class LatticeFile:
         try:
             with zipfile.ZipFile(self.path) as zf:
                 picks = list(self._picks(zf, texels))
-                counts = [count for _, _, count in picks]
-                out = {}
-                for name in names:
-                    with self._member(zf, name, counts) as rows:
-                        out[name] = np.concatenate(
-                            [rows.read(count)[chosen] for _, chosen, count in picks])
-                        rows.finish(self.path)
-                return np.concatenate([p[0] for p in picks]), out
+                if self.left_out is None or not set(names) & set(_LEFT):
+                    return self._read_picks(zf, picks, names)
+                recipe = self._recipe(sum(count for _, _, count in picks))
+                if texels is not None:  # the nodes of the texels left out too
+                    picks = list(self._picks(zf, self._with_nodes(recipe, picks)))
+                ids, out = self._read_picks(zf, picks, tuple(dict.fromkeys((*names, *_MIXED))))
+                self._refill(recipe, ids, None if texels is None else self._positions(picks),
+                             out)
+                asked = (slice(None) if texels is None
+                         else np.isin(ids, texels, assume_unique=True))
+                return ids[asked], {n: out[n][asked] for n in names}
         except BakeError:
             raise
         except _READ_ERRORS as exc:
             raise BakeError(f"{self.path}: not a readable isolume lattice ({exc})") from None
+
+    def _read_picks(self, zf: zipfile.ZipFile, picks: list[tuple[np.ndarray, np.ndarray, int]],
+                    names: tuple[str, ...]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The members `names` at the texels `picks` chooses (`_picks`): their (M,) flat
+        ids and {name: (M, …) rows}."""
+        counts = [count for _, _, count in picks]
+        out = {}
+        for name in names:
+            with self._member(zf, name, counts) as rows:
+                out[name] = np.concatenate(
+                    [rows.read(count)[chosen] for _, chosen, count in picks])
+                rows.finish(self.path)
+        return np.concatenate([p[0] for p in picks]), out
+
+    def _recipe(self, held: int) -> Recipe:
+        """The recipe of the fills the file leaves out, of its `held` texels.
+
+        Raises:
+            BakeError: a filled record that does not hold one for them.
+        """
+        try:
+            recipe = Recipe.of(self.meta.get(FILLED_KEY), held)
+        except (KeyError, TypeError, ValueError, zlib.error) as exc:
+            raise BakeError(f"{self.path}: its filled texels' record is unreadable ({exc}); "
+                            "the file is damaged: bake it again") from None
+        if recipe is None:
+            raise BakeError(f"{self.path}: it leaves its filled texels out, and its filled "
+                            f"record is not of its {held:,} texels; the file is damaged: "
+                            "bake it again")
+        return recipe
+
+    @staticmethod
+    def _positions(picks: list[tuple[np.ndarray, np.ndarray, int]]) -> np.ndarray:
+        """(M,) the positions among the held texels of the texels `picks` chooses."""
+        firsts = np.cumsum([0] + [count for _, _, count in picks[:-1]])
+        return np.concatenate([chosen + first for (_, chosen, _), first
+                               in zip(picks, firsts, strict=True)]).astype(np.int64)
+
+    def _with_nodes(self, recipe: Recipe, picks: list[tuple[np.ndarray, np.ndarray, int]]
+                    ) -> np.ndarray:
+        """The sorted flat ids of the texels `picks` chooses and of the places of the
+        nodes of those of them the file leaves out (`baking.fills.corner_ids`)."""
+        ids = np.concatenate([p[0] for p in picks])
+        positions = self._positions(picks)
+        gone = marked(self._gone(recipe), positions)
+        return np.union1d(ids, corner_ids(ids[gone], self.shape,
+                                          recipe.odd_filled(positions[gone])))
+
+    def _gone(self, recipe: Recipe) -> np.ndarray:
+        """The packed bits of the held texels the file leaves out."""
+        return recipe.filled if self.left_out is True else bits_of(self.left_out)
+
+    def _refill(self, recipe: Recipe, ids: np.ndarray, positions: np.ndarray | None,
+                rows: dict[str, np.ndarray]) -> None:
+        """Make again, in (M, …) `rows` of the texels at sorted flat `ids` (held
+        `positions`; None: all held texels in order), the values and second moments
+        (where `rows` holds them) of those the file leaves out, from their nodes'."""
+        gone = self._gone(recipe)
+        which = np.flatnonzero(np.unpackbits(gone, count=len(ids)) if positions is None
+                               else marked(gone, positions))
+
+        def take(at: np.ndarray, values: np.ndarray, second: np.ndarray | None) -> None:
+            rows["values"][at] = values
+            if "second" in rows:
+                rows["second"][at] = second
+
+        recipe.mix(self.shape, ids, positions, rows, which, take)
+
+    def _refill_dense(self, arrays: dict[str, np.ndarray], held: int) -> None:
+        """`_refill` the dense (Z, Y, X, …) `arrays` of `read_dense`, of `held` texels."""
+        recipe = self._recipe(held)
+        ids = np.flatnonzero(held_mask(arrays))
+        flat = {n: _flat_view(arrays[n], arrays[n].shape[3:]) for n in _MIXED}
+        rows = {n: flat[n][ids] for n in _MIXED}
+        self._refill(recipe, ids, None, rows)
+        for name in _LEFT:
+            flat[name][ids] = rows[name]
 
     def _dense_texels(self, texels: np.ndarray | None, names: tuple[str, ...]
                       ) -> tuple[np.ndarray, dict[str, np.ndarray]]:

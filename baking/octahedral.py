@@ -110,7 +110,7 @@ def side_rows(rows: np.ndarray, codes: np.ndarray, normals: np.ndarray,
     """(N, K) max(0, n·m)^`power` for the directions m of the (T, 2) `codes` at (N, K)
     rows `rows` (−1 read as row 0) and the points' (N, 3) unit `normals` n; 1 where a
     code is `UNKNOWN`. In one compiled pass without the GIL (`_side_rows`): for the
-    square, the bits of `baking.lattice.side_weights` (the dot product summed in numpy's
+    square, the bits of `baking.sided.side_weights` (the dot product summed in numpy's
     `einsum` order); other powers through `pow`, to within rounding."""
     out = np.empty(rows.shape)
     _side_rows(np.ascontiguousarray(rows), np.ascontiguousarray(codes),

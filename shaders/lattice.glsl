@@ -14,7 +14,7 @@
 // unknown), so a face of a thin wall, or the other side of a sheet, does not show light
 // gathered on the opposite face; where these weights sum to less than FACING_BLEND of the
 // plain ones, the lookup blends into the plain mix (smoothstep from 0: no texel facing
-// the point's way leaves the plain mix; baking.lattice.sided_mix is the same on the CPU).
+// the point's way leaves the plain mix; baking.sided.sided_mix is the same on the CPU).
 // Needs gbuffer.glsl (from_octahedral) included before it.
 #ifndef FACING
 #define FACING 0

@@ -6,32 +6,36 @@ paths where the light is smooth."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
 
-from isolume.baking import BakeConfig, bake, octahedral
+from isolume.baking import BakeConfig, Lattice, bake, octahedral
+from isolume.baking.config import NODE_PATHS
 from isolume.baking.density import (
-    BRICK,
-    FILLED_KEY,
     JUDGED_KEY,
-    NODE_PATHS,
-    Nodes,
     brick_of,
-    fill,
-    filled_positions,
     fine_bricks,
     light_level,
     mixing_mask,
     noise_free_rms,
     split_texels,
     texel_bricks,
-    texel_coords,
-    texel_luminance,
 )
 from isolume.baking.errors import BakeError
 from isolume.baking.fill_check import DRIFT, SURE, NodeLight, drift_error, stray_fills
-from isolume.baking.lattice import TRAPPED_PATHS, brick_grid, side_weights, trilinear_corners
+from isolume.baking.fills import (
+    FILLED_KEY,
+    Nodes,
+    fill,
+    filled_positions,
+    texel_coords,
+    texel_luminance,
+)
+from isolume.baking.lattice import BRICK, TRAPPED_PATHS, brick_grid, trilinear_corners
+from isolume.baking.lattice_file import LatticeFile
+from isolume.baking.sided import side_weights
 from isolume.volumes.synthetic import make
 
 SHAPE = (20, 18, 17)
@@ -466,6 +470,64 @@ def test_no_texel_is_left_dark_on_fewer_paths_than_tell_it_trapped(sphere_bakes)
     assert not ((count > 0) & (count < TRAPPED_PATHS) & ~lit).any()
     shown = one.shown().reshape(-1)
     assert not (shown & ~lit).any()
+
+
+def test_a_file_leaves_the_filled_texels_light_out_and_its_reads_make_it_again(
+        sphere_bakes, tmp_path):
+    """A texel bake's file holds zeros for its filled texels' values and second moments,
+    and every read gives their fill to the bit: the whole lattice (`Lattice.load`), every
+    held texel, and any few texels, whose nodes the read finds itself."""
+    vol, one, _ = sphere_bakes
+    path = tmp_path / "t.npz"
+    one.save(path)
+    record = one.meta[FILLED_KEY]
+    held = np.flatnonzero((one.samples > 0) | one.active)
+    filled = held[filled_positions(record)]
+    raw = np.load(path)
+    assert not raw["values"][filled_positions(record)].any()
+    assert not raw["second"][filled_positions(record)].any()
+    assert raw["values"].any(axis=1).sum() > len(held) - len(filled) - record["trapped"] - 1
+    back = Lattice.load(path, vol)
+    _same_bits(back, one)
+    assert back.meta[FILLED_KEY] == record
+    file = LatticeFile.open(path)
+    values, second = one.values.reshape(-1, 3), one.second.reshape(-1)
+    ids, rows = file.read_texels(None, ("values", "second"))
+    np.testing.assert_array_equal(ids, held)
+    np.testing.assert_array_equal(rows["values"], values[held])
+    for count in (1, 7, 300):
+        asked = np.sort(RNG.choice(filled, count, replace=False))
+        ids, rows = file.read_texels(asked, ("values", "second"))
+        np.testing.assert_array_equal(ids, asked)
+        np.testing.assert_array_equal(rows["values"], values[asked])
+        np.testing.assert_array_equal(rows["second"], second[asked])
+        assert set(rows) == {"values", "second"}
+
+
+def test_a_filled_texel_whose_light_changed_is_written_as_it_is(sphere_bakes, tmp_path):
+    """More paths, a relight: a filled texel that is no longer its fill is kept in the file
+    (the others are still left out), and a file whose filled record does not fit its
+    texels is refused by name."""
+    vol, one, _ = sphere_bakes
+    changed = dataclasses.replace(one, values=one.values.copy())
+    held = np.flatnonzero((one.samples > 0) | one.active)
+    filled = held[filled_positions(one.meta[FILLED_KEY])]
+    lit = filled[one.values.reshape(-1, 3)[filled].any(axis=1)]
+    changed.values.reshape(-1, 3)[lit[0]] *= 2
+    path = tmp_path / "t.npz"
+    changed.save(path)
+    raw = np.load(path)
+    row = np.searchsorted(held, lit[0])
+    np.testing.assert_array_equal(raw["values"][row], changed.values.reshape(-1, 3)[lit[0]])
+    assert not raw["values"][np.searchsorted(held, lit[1:])].any()
+    _same_bits(Lattice.load(path, vol), changed)
+    meta = json.loads(str(raw["meta"]))
+    meta[FILLED_KEY]["count"] += 1
+    damaged = tmp_path / "damaged.npz"
+    np.savez(damaged, **{n: raw[n] for n in raw.files if n != "meta"},
+             meta=np.array(json.dumps(meta)))
+    with pytest.raises(BakeError, match=r"damaged\.npz.*filled record is not of its"):
+        Lattice.load(damaged, vol)
 
 
 def test_filled_texels_are_close_to_traced_ones(sphere_bakes, monkeypatch):

@@ -17,13 +17,8 @@ from isolume import volumes
 from isolume.app.render.camera import Camera
 from isolume.app.render.settings import RenderSettings
 from isolume.baking import BakeConfig, Lattice, bake, octahedral
-from isolume.baking.lattice import (
-    SIDE_BLEND,
-    LatticeGeometry,
-    side_weights,
-    trilinear,
-    trilinear_corners,
-)
+from isolume.baking.lattice import LatticeGeometry, trilinear, trilinear_corners
+from isolume.baking.sided import SIDE_BLEND, side_weights
 from isolume.volumes import Volume
 
 SIZE = 20

@@ -18,8 +18,8 @@ import pytest
 
 import isolume
 from isolume.baking import BakeConfig, bake, octahedral
-from isolume.baking.density import BRICK, FILLED_KEY, filled_positions
-from isolume.baking.lattice import LUMINANCE
+from isolume.baking.fills import FILLED_KEY, filled_positions
+from isolume.baking.lattice import BRICK, LUMINANCE
 from isolume.baking.plan import move_limit
 from isolume.volumes.synthetic import make
 

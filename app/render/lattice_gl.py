@@ -45,8 +45,9 @@ from isolume.app.render.bricks import (
 from isolume.app.render.glcontext import read_rgb9e5, rgb9e5_texture
 from isolume.app.render.settings import RenderError
 from isolume.baking import octahedral
-from isolume.baking.lattice import FACING_POWER, SIDE_BLEND, Lattice
+from isolume.baking.lattice import Lattice
 from isolume.baking.sh import transfer_blocks
+from isolume.baking.sided import FACING_POWER, SIDE_BLEND
 from isolume.volumes import cores
 
 ATLAS_WAVE = 4
@@ -367,7 +368,7 @@ class LatticeTextures:
 
     def facing_defines(self) -> tuple[tuple[str, object], ...]:
         """Shader defines of the side-aware lookup: FACING (1 once a texel's facing is
-        known), its power and blend (`baking.lattice.FACING_POWER`, `SIDE_BLEND`)."""
+        known), its power and blend (`baking.sided.FACING_POWER`, `SIDE_BLEND`)."""
         return (("FACING", int(self.facing_known)), ("FACING_POWER", FACING_POWER),
                 ("FACING_BLEND", SIDE_BLEND))
 

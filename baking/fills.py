@@ -1,0 +1,312 @@
+"""The fill of a bake to a texel error (`baking.density`): its half lattices of nodes,
+what a display shows of them, and their side-aware mix written into the filled texels —
+the same mix that a file's reader makes of the filled texels it leaves out.
+
+A filled texel's values and second moments are the side-aware mix of the shown nodes of
+its half lattice around it (`fill`): a function of the nodes' light and the facings, which
+a file holds. So a file leaves them out where that mix gives them to the bit (`Recipe`:
+~half of a default bake's texels, zeros in ``values`` and ``second``, which deflate to
+almost nothing), its filled record names them (`LEFT_OUT`), and its reader makes them
+again (`Recipe.mix`) from the nodes around them — the whole file's, or those around the
+texels a display reads. A texel whose light changed after its fill (more paths, a
+relight) is written as it is. The record holds what the mix needs: which texels were
+filled and by which half lattice, the odd nodes, and the brightness weights and trapped
+count by which a node is shown (`shown_texels`).
+"""
+
+from __future__ import annotations
+
+import base64
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from isolume.baking.density_kernels import corner_nodes, weighted_sums
+from isolume.baking.fill_check import node_mix, shown_weights
+from isolume.volumes import cores
+
+FILLED_KEY = "filled"
+"""The lattice metadata's record of the texels a bake filled (`Recipe`,
+`baking.density.clear_filled`)."""
+LEFT_OUT = "left_out"
+"""The filled record's mask (`packed`) of the filled texels whose light a file leaves
+out, over the texels it holds (a file's record only: its reader makes them and drops it)."""
+BLOCK = 1 << 16
+"""Texels one item of a fill takes, at most."""
+
+
+def texel_coords(ids: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """(T, 3) z, y, x of (T,) flat lattice `ids` of a (Z, Y, X) box: int16 where every
+    side is shorter than 32 768 texels (6 bytes a texel, held through a bake), else
+    int32."""
+    kind = np.int16 if max(shape) <= np.iinfo(np.int16).max else np.int32
+    out = np.empty((len(ids), 3), kind)
+    for axis, index in enumerate(np.unravel_index(ids, shape)):
+        out[:, axis] = index
+    return out
+
+
+def texel_luminance(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(T,) ``values @ weights`` of (T, C) texel `values`, in the type numpy's product
+    gives, a block at a time on every core: each texel's sum over its channels in order
+    (`density_kernels.weighted_sums`), so its bits depend on its values alone — not on
+    the blocks, the rows around it or the CPU's vector width, as a BLAS product's may."""
+    values = np.ascontiguousarray(values)
+    weights = np.asarray(weights)
+    luminance = np.empty(len(values), np.result_type(values.dtype, weights.dtype))
+    weights = weights.astype(luminance.dtype)
+
+    def part(block: slice) -> None:
+        weighted_sums(values[block], weights, luminance[block])
+
+    cores.for_blocks(part, len(values), BLOCK, "texels")
+    return luminance
+
+
+def shown_texels(luminance: np.ndarray, samples: np.ndarray, trapped_at: int) -> np.ndarray:
+    """(T,) bool: the texels a display shows: traced, and not trapped (dark on at least
+    `trapped_at` paths, 0: never; `baking.lattice.TRAPPED_PATHS`)."""
+    shown = samples > 0
+    if trapped_at:
+        shown &= ~((luminance == 0) & (samples >= trapped_at))
+    return shown
+
+
+class Nodes:
+    """A half lattice of nodes: texels whose z, y and x are all ≡ `offset` (mod 2), as a
+    dense (⌈(Z − offset)/2⌉, …) int32 map `rows` from a node's half index to its plan
+    position (−1: none there), and their (N,) sorted plan `positions`.
+
+    Args:
+        coords: (T, 3) z, y, x of the plan's texels (`texel_coords`).
+        shape: (Z, Y, X) texels of the lattice.
+        offset: 0 (the even nodes) or 1 (the odd ones).
+        positions: the plan positions of the nodes (default: every texel of the plan
+            on the half lattice).
+    """
+
+    def __init__(self, coords: np.ndarray, shape: tuple[int, int, int], offset: int = 0,
+                 positions: np.ndarray | None = None) -> None:
+        self.shape: np.ndarray = np.array(shape, np.int64)
+        self.coords: np.ndarray = coords
+        self.offset: int = offset
+        self.positions: np.ndarray = (
+            np.flatnonzero(((coords & 1) == offset).all(axis=1)) if positions is None
+            else np.asarray(positions, np.int64))
+        self.rows: np.ndarray = np.full(tuple(-(-(self.shape - offset) // 2)), -1, np.int32)
+        half = self.half(self.positions)
+        self.rows[half[:, 0], half[:, 1], half[:, 2]] = self.positions
+
+    def half(self, positions: np.ndarray) -> np.ndarray:
+        """(N, 3) int64 half indices of the nodes at plan `positions`."""
+        return (self.coords[positions].astype(np.int64) - self.offset) // 2
+
+    def corners(self, coords: np.ndarray, stride: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """The nodes of the trilinear mix at `stride` texels' spacing (2 or 4) of (N, 3)
+        texel `coords`: (N, 8) int64 plan positions (−1 where no node, or a weight of 0)
+        and (N, 8) float64 trilinear weights (0 there), in corner order x + 2 y + 4 z
+        (x, y, z: 0 or 1, the step along each axis)."""
+        rows = np.empty((len(coords), 8), np.int64)
+        weights = np.empty((len(coords), 8))
+        corner_nodes(self.rows, np.asarray(coords), self.offset, stride, self.shape,
+                     rows, weights)
+        return rows, weights
+
+
+def node_light(nodes: Nodes, coords: np.ndarray, at: np.ndarray, shown: np.ndarray,
+               facing: np.ndarray, values: np.ndarray, second: np.ndarray | None
+               ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The fill of the texels at plan positions (N,) `at`: the side-aware mix
+    (`node_mix`) of the (T,) bool `shown` `nodes` around each, of their (T, C) `values`
+    and (T,) `second` moments (None: not mixed), with the plan's (T, 3) `coords` and (T, 2)
+    `facing`. Returns (N, C) and (N,) float64 (or None)."""
+    rows, w = nodes.corners(coords[at])
+    w = shown_weights(rows, w, shown)
+    mixed = node_mix(rows, w, facing, facing[at], values)
+    if second is None:
+        return mixed, None
+    return mixed, node_mix(rows, w, facing, facing[at], second[:, None])[:, 0]
+
+
+def fill(lattice: Any, nodes: Nodes, coords: np.ndarray, filled: np.ndarray,
+         shown: np.ndarray, samples: int) -> None:
+    """Write the half lattice's mix into `lattice`'s rows (plan positions) `filled`: values
+    and second moments, side-aware (`node_light`) from the (T,) bool `shown` `nodes`
+    around each (`shown_texels`); `samples` paths each (`BakeConfig.samples`, as a traced
+    texel: its noise is at most theirs)."""
+    values = lattice.values.reshape(len(coords), -1)
+    second = lattice.second.reshape(-1)
+    facing = lattice.facing.reshape(-1, 2)
+
+    def mix(part: slice) -> None:
+        at = filled[part]
+        values[at], second[at] = node_light(nodes, coords, at, shown, facing, values, second)
+
+    cores.for_blocks(mix, len(filled), BLOCK, "texels")
+    lattice.samples.reshape(-1)[filled] = samples
+
+
+def packed(mask: np.ndarray) -> str:
+    """A (K,) bool `mask` as text: `numpy.packbits`, zlib-deflated, base64."""
+    return base64.b64encode(zlib.compress(np.packbits(mask).tobytes(), 6)).decode()
+
+
+def bits_of(text: str) -> np.ndarray:
+    """The packed bits of `packed` text, as bytes."""
+    return np.frombuffer(zlib.decompress(base64.b64decode(text)), np.uint8)
+
+
+def unpacked(text: str, total: int) -> np.ndarray:
+    """(K,) sorted positions among `total` of `packed` text."""
+    return np.flatnonzero(np.unpackbits(bits_of(text), count=total))
+
+
+def filled_positions(record: dict[str, Any]) -> np.ndarray:
+    """(F,) plan positions of the texels a bake filled (its ``meta[FILLED_KEY]``)."""
+    return unpacked(record["bits"], int(record["count"]))
+
+
+def marked(bits: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(N,) bool: the bits at (N,) `positions` of packed `bits` (`numpy.packbits` order)."""
+    positions = np.asarray(positions, np.int64)
+    return ((bits[positions >> 3] >> (7 - (positions & 7)).astype(np.uint8)) & 1).astype(bool)
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """How the filled texels of a bake to a texel error are made from its nodes (the
+    filled record of its lattice's metadata, over its `count` plan texels): the packed
+    bits of the `filled` texels, of those filled by the `odd_fills` half lattice (the
+    others: by the even one) and of the `odd` nodes; the (C,) brightness `weights` and
+    `trapped_at` count by which a node is shown (`shown_texels`)."""
+
+    count: int
+    filled: np.ndarray
+    odd_fills: np.ndarray
+    odd: np.ndarray
+    weights: np.ndarray
+    trapped_at: int
+
+    @staticmethod
+    def record(odd: np.ndarray, odd_fills: np.ndarray, weights: np.ndarray,
+               trapped_at: int, total: int) -> dict[str, Any]:
+        """The filled record's entries of the recipe, JSON-ready: the plan positions of
+        the (sorted) `odd` nodes and `odd_fills`, over `total` plan texels."""
+        return {"odd": packed(_mask(total, odd)), "odd_fills": packed(_mask(total, odd_fills)),
+                "weights": [float(w) for w in weights], "trapped_at": int(trapped_at)}
+
+    @classmethod
+    def of(cls, record: dict[str, Any] | None, count: int) -> Recipe | None:
+        """The recipe in a filled `record` of a lattice of `count` (held or plan) texels;
+        None where there is none (no record, one made before recipes were kept, or one of
+        another count of texels: not the lattice the fill was made in)."""
+        if not record or "odd" not in record or int(record["count"]) != count:
+            return None
+        return cls(count, bits_of(record["bits"]), bits_of(record["odd_fills"]),
+                   bits_of(record["odd"]), np.asarray(record["weights"], np.float64),
+                   int(record["trapped_at"]))
+
+    def filled_at(self, positions: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of the plan `positions` are filled texels."""
+        return marked(self.filled, positions)
+
+    def odd_filled(self, positions: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of the plan `positions` the odd half lattice fills."""
+        return marked(self.odd_fills, positions)
+
+    def mix(self, shape: tuple[int, int, int], ids: np.ndarray, positions: np.ndarray | None,
+            arrays: dict[str, np.ndarray], which: np.ndarray,
+            take: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None]) -> None:
+        """The fill of the filled texels at rows (K,) `which` of the (M,) texels at sorted
+        flat `ids` of a (Z, Y, X) `shape` box, of plan `positions` (M,; None: the rows
+        are the plan's texels, in order), whose rows
+        ``values`` (M, C), ``samples`` (M,), ``facing`` (M, 2) and ``second`` (M,; absent:
+        not mixed) `arrays` hold, as `fill` made it: `take(rows, values, second)` is
+        called a block of rows at a time, on any thread, with the (B,) rows of `which`
+        and their (B, C) and (B,) float64 mixes. The M texels hold every node of the
+        mixes (a box around them, or the whole lattice): the half lattices are built over
+        their bounding box, so a few texels read cost no map of the whole box."""
+        if len(which) == 0:
+            return
+        local = texel_coords(ids, shape)
+        low = (local.min(axis=0) // 2) * 2
+        if low.any():
+            local -= low
+        box = tuple(int(n) + 1 for n in local.max(axis=0))
+        shown = self._shown(arrays)
+        if positions is None:
+            odd_fill = self.odd_filled(which)
+            odd = np.unpackbits(self.odd, count=len(ids)).astype(bool)
+        else:
+            odd_fill = self.odd_filled(positions[which])
+            odd = marked(self.odd, positions)
+        odd = np.flatnonzero(((local & 1) == 1).all(axis=1) & odd)
+        second = arrays.get("second")
+        for nodes, part in ((Nodes(local, box), which[~odd_fill]),
+                            (Nodes(local, box, 1, odd), which[odd_fill])):
+            def block(rows: slice, nodes: Nodes = nodes, part: np.ndarray = part) -> None:
+                values, moments = node_light(nodes, local, part[rows], shown,
+                                             arrays["facing"], arrays["values"], second)
+                take(part[rows], values, moments)
+
+            cores.for_blocks(block, len(part), BLOCK, "texels")
+
+    def _shown(self, arrays: dict[str, np.ndarray]) -> np.ndarray:
+        """(M,) bool `shown_texels` of the rows of `arrays`, a block at a time."""
+        values, samples = arrays["values"], arrays["samples"]
+        shown = np.empty(len(samples), bool)
+        weights = self.weights.astype(np.result_type(values.dtype, self.weights.dtype))
+
+        def part(block: slice) -> None:
+            luminance = np.empty(block.stop - block.start, weights.dtype)
+            weighted_sums(np.ascontiguousarray(values[block]), weights, luminance)
+            shown[block] = shown_texels(luminance, samples[block], self.trapped_at)
+
+        cores.for_blocks(part, len(samples), BLOCK, "texels")
+        return shown
+
+
+def corner_ids(ids: np.ndarray, shape: tuple[int, int, int], odd: np.ndarray) -> np.ndarray:
+    """Sorted unique flat ids of the places of the nodes that may mix into the N texels at
+    flat `ids` of a (Z, Y, X) `shape` box (`Nodes.corners`): the corners, inside the box,
+    of the half lattice's cell around each — the odd half lattice's where (N,) bool `odd`,
+    else the even one's."""
+    coords = texel_coords(ids, shape).astype(np.int64)
+    low = coords - (coords - np.asarray(odd, np.int64)[:, None]) % 2
+    found = []
+    for step in np.ndindex(2, 2, 2):
+        at = low + 2 * np.array(step)
+        inside = ((at >= 0) & (at < np.array(shape))).all(axis=1)
+        found.append(np.ravel_multi_index(tuple(at[inside].T), shape))
+    return np.unique(np.concatenate(found))
+
+
+def _mask(total: int, positions: np.ndarray) -> np.ndarray:
+    """(`total`,) bool: True at the sorted `positions`."""
+    mask = np.zeros(total, bool)
+    mask[positions] = True
+    return mask
+
+
+def kept_fills(recipe: Recipe, shape: tuple[int, int, int], ids: np.ndarray,
+               arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """(F,) int64 sorted rows among the (N,) held texels at flat `ids` (the recipe's plan
+    texels) whose values and second moments in `arrays` (``values``, ``samples``,
+    ``facing``, ``second``: (N, …) rows) are their fill to the bit (`Recipe.mix`): those
+    a file may leave out."""
+    filled = np.flatnonzero(np.unpackbits(recipe.filled, count=len(ids)))
+    same = np.zeros(len(filled), bool)
+
+    def compare(rows: np.ndarray, values: np.ndarray, second: np.ndarray | None) -> None:
+        stored_v = arrays["values"][rows]
+        stored_s = arrays["second"][rows]
+        same[np.searchsorted(filled, rows)] = ((values.astype(stored_v.dtype).view(np.uint32)
+                              == stored_v.view(np.uint32)).all(axis=1)
+                             & (second.astype(stored_s.dtype).view(np.uint32)
+                                == stored_s.view(np.uint32)))
+
+    recipe.mix(shape, ids, None, arrays, filled, compare)
+    return filled[same]
