@@ -270,18 +270,19 @@ class Recipe:
 
 
 def corner_ids(ids: np.ndarray, shape: tuple[int, int, int], odd: np.ndarray) -> np.ndarray:
-    """Sorted unique flat ids of the places of the nodes that may mix into the N texels at
-    flat `ids` of a (Z, Y, X) `shape` box (`Nodes.corners`): the corners, inside the box,
-    of the half lattice's cell around each — the odd half lattice's where (N,) bool `odd`,
-    else the even one's."""
-    coords = texel_coords(ids, shape).astype(np.int64)
-    low = coords - (coords - np.asarray(odd, np.int64)[:, None]) % 2
+    """Flat ids (unsorted, repeated where cells share a corner) of the places of the
+    nodes that may mix into the N texels at flat `ids` of a (Z, Y, X) `shape` box
+    (`Nodes.corners`): the corners, inside the box, of the half lattice's cell around
+    each — the odd half lattice's where (N,) bool `odd`, else the even one's."""
+    low = texel_coords(ids, shape).astype(np.int64)
+    low -= (low - np.asarray(odd, np.int64)[:, None]) & 1
+    ok = (low >= 0, low + 2 < np.array(shape))  # per axis: the step 0 corner, the step 1
+    base = (low[:, 0] * shape[1] + low[:, 1]) * shape[2] + low[:, 2]
     found = []
-    for step in np.ndindex(2, 2, 2):
-        at = low + 2 * np.array(step)
-        inside = ((at >= 0) & (at < np.array(shape))).all(axis=1)
-        found.append(np.ravel_multi_index(tuple(at[inside].T), shape))
-    return np.unique(np.concatenate(found))
+    for z, y, x in np.ndindex(2, 2, 2):
+        inside = ok[z][:, 0] & ok[y][:, 1] & ok[x][:, 2]
+        found.append(base[inside] + 2 * ((z * shape[1] + y) * shape[2] + x))
+    return np.concatenate(found)
 
 
 def _mask(total: int, positions: np.ndarray) -> np.ndarray:

@@ -686,14 +686,25 @@ class LatticeFile:
         recipe.mix(self.shape, ids, positions, rows, which, take)
 
     def _refill_dense(self, arrays: dict[str, np.ndarray], held: int) -> None:
-        """`_refill` the dense (Z, Y, X, …) `arrays` of `read_dense`, of `held` texels."""
+        """`_refill` the dense (Z, Y, X, …) `arrays` of `read_dense`, of `held` texels:
+        the rows of the texels left out and of their nodes are copied out, mixed and
+        written back (the others are not copied)."""
         recipe = self._recipe(held)
-        ids = np.flatnonzero(held_mask(arrays))
+        held_here = held_mask(arrays).reshape(-1)
+        ids = np.flatnonzero(held_here)
+        gone = np.flatnonzero(np.unpackbits(self._gone(recipe), count=len(ids)))
+        wanted = np.zeros(held_here.shape, bool)
+        wanted[ids[gone]] = True
+        wanted[corner_ids(ids[gone], self.shape, recipe.odd_filled(gone))] = True
+        near = np.flatnonzero(wanted & held_here)  # corners outside the plan hold no node
+        del wanted, held_here
+        positions = np.searchsorted(ids, near)
+        del ids
         flat = {n: _flat_view(arrays[n], arrays[n].shape[3:]) for n in _MIXED}
-        rows = {n: flat[n][ids] for n in _MIXED}
-        self._refill(recipe, ids, None, rows)
+        rows = {n: flat[n][near] for n in _MIXED}
+        self._refill(recipe, near, positions, rows)
         for name in _LEFT:
-            flat[name][ids] = rows[name]
+            flat[name][near] = rows[name]
 
     def _dense_texels(self, texels: np.ndarray | None, names: tuple[str, ...]
                       ) -> tuple[np.ndarray, dict[str, np.ndarray]]:

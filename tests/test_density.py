@@ -28,6 +28,7 @@ from isolume.baking.fill_check import DRIFT, SURE, NodeLight, drift_error, stray
 from isolume.baking.fills import (
     FILLED_KEY,
     Nodes,
+    corner_ids,
     fill,
     filled_positions,
     texel_coords,
@@ -502,6 +503,29 @@ def test_a_file_leaves_the_filled_texels_light_out_and_its_reads_make_it_again(
         np.testing.assert_array_equal(rows["values"], values[asked])
         np.testing.assert_array_equal(rows["second"], second[asked])
         assert set(rows) == {"values", "second"}
+
+
+def test_the_corner_ids_are_the_places_of_every_node_a_texel_can_mix():
+    """`corner_ids` gives, for texels of either half lattice, the places in the box of
+    the corners of the half lattice's cell around each: every node `Nodes.corners` mixes
+    into them is among them."""
+    ids = np.sort(RNG.choice(np.prod(SHAPE), 300, replace=False))
+    odd = RNG.random(300) < 0.5
+    got = corner_ids(ids, SHAPE, odd)
+    _, everywhere = _all_texels()
+    cells = set()
+    for texel, offset in zip(texel_coords(ids, SHAPE).astype(int), odd.astype(int),
+                             strict=True):
+        low = texel - (texel - offset) % 2
+        for step in np.ndindex(2, 2, 2):
+            at = low + 2 * np.array(step)
+            if ((at >= 0) & (at < SHAPE)).all():
+                cells.add(int(np.ravel_multi_index(tuple(at), SHAPE)))
+    assert set(got.tolist()) == cells
+    for offset in (0, 1):
+        nodes = Nodes(everywhere, SHAPE, offset)
+        rows, _ = nodes.corners(texel_coords(ids[odd == offset], SHAPE))
+        assert set(rows[rows >= 0].tolist()) <= cells  # the plan is every texel: row = id
 
 
 def test_a_filled_texel_whose_light_changed_is_written_as_it_is(sphere_bakes, tmp_path):
