@@ -116,7 +116,47 @@ class Nodes:
         return rows, weights
 
 
-def node_light(nodes: Nodes, coords: np.ndarray, at: np.ndarray, shown: np.ndarray,
+class SparseNodes:
+    """A half lattice of nodes as `Nodes` gives them (`corners`, the same rows and weights),
+    found by their flat ids (a binary search) instead of a map of the box: for a read of
+    a few texels spread over a large box.
+
+    Args:
+        ids: (M,) sorted flat ids of the texels at hand (their rows: the plan positions
+            the corners give); shape: (Z, Y, X) texels of the lattice; offset: 0 (the
+            even nodes) or 1 (the odd ones); positions: the rows of the nodes, sorted.
+    """
+
+    def __init__(self, ids: np.ndarray, shape: tuple[int, int, int], offset: int,
+                 positions: np.ndarray) -> None:
+        self.node_ids: np.ndarray = np.asarray(ids, np.int64)[positions]
+        self.positions: np.ndarray = np.asarray(positions, np.int64)
+        self.shape: np.ndarray = np.array(shape, np.int64)
+        self.offset: int = offset
+
+    def corners(self, coords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`Nodes.corners` at two texels' spacing of (N, 3) texel `coords`."""
+        c = np.asarray(coords, np.int64) - self.offset
+        low = c - c % 2
+        frac = (c - low) / 2
+        rows = np.full((len(c), 8), -1, np.int64)
+        weights = np.zeros((len(c), 8))
+        for k in range(8):
+            step = np.array([(k >> 2) & 1, (k >> 1) & 1, k & 1])
+            weight = np.ones(len(c))
+            for axis in range(3):
+                weight *= frac[:, axis] if step[axis] else 1.0 - frac[:, axis]
+            at = low + 2 * step + self.offset
+            inside = ((at >= self.offset) & (at < self.shape)).all(axis=1) & (weight > 0)
+            flat = (at[:, 0] * self.shape[1] + at[:, 1]) * self.shape[2] + at[:, 2]
+            found = np.minimum(np.searchsorted(self.node_ids, flat), len(self.node_ids) - 1)
+            hit = inside & (self.node_ids[found] == flat) if len(self.node_ids) else inside & False
+            rows[hit, k] = self.positions[found[hit]]
+            weights[hit, k] = weight[hit]
+        return rows, weights
+
+
+def node_light(nodes: Nodes | SparseNodes, coords: np.ndarray, at: np.ndarray, shown: np.ndarray,
                facing: np.ndarray, values: np.ndarray, second: np.ndarray | None
                ) -> tuple[np.ndarray, np.ndarray | None]:
     """The fill of the texels at plan positions (N,) `at`: the side-aware mix
@@ -205,9 +245,19 @@ class Recipe:
         another count of texels: not the lattice the fill was made in)."""
         if not record or "odd" not in record or int(record["count"]) != count:
             return None
-        return cls(count, bits_of(record["bits"]), bits_of(record["odd_fills"]),
-                   bits_of(record["odd"]), np.asarray(record["weights"], np.float64),
+        masks = [bits_of(record[key]) for key in ("bits", "odd_fills", "odd")]
+        if any(len(mask) != -(-count // 8) for mask in masks):
+            raise ValueError(f"a mask of its filled record is not of {count:,} texels")
+        return cls(count, *masks, np.asarray(record["weights"], np.float64),
                    int(record["trapped_at"]))
+
+    def fits(self, coords: np.ndarray) -> bool:
+        """Whether the recipe can be of a lattice whose plan texels are at (N, 3) `coords`:
+        no filled texel is a node (all-even coordinates, or an odd node) — a lattice
+        whose texels moved after its bake, the same count of them held, is not."""
+        filled = np.unpackbits(self.filled, count=len(coords)).astype(bool)
+        odd = np.unpackbits(self.odd, count=len(coords)).astype(bool)
+        return not (filled & (((coords & 1) == 0).all(axis=1) | odd)).any()
 
     def filled_at(self, positions: np.ndarray) -> np.ndarray:
         """(N,) bool: which of the plan `positions` are filled texels."""
@@ -227,15 +277,12 @@ class Recipe:
         not mixed) `arrays` hold, as `fill` made it: `take(rows, values, second)` is
         called a block of rows at a time, on any thread, with the (B,) rows of `which`
         and their (B, C) and (B,) float64 mixes. The M texels hold every node of the
-        mixes (a box around them, or the whole lattice): the half lattices are built over
-        their bounding box, so a few texels read cost no map of the whole box."""
+        mixes (those around the texels read, or the whole lattice): the half lattices of
+        a whole lattice are maps over its box (`Nodes`), those of a read of some texels
+        are searched (`SparseNodes`), so a few texels read cost no map of the box."""
         if len(which) == 0:
             return
-        local = texel_coords(ids, shape)
-        low = (local.min(axis=0) // 2) * 2
-        if low.any():
-            local -= low
-        box = tuple(int(n) + 1 for n in local.max(axis=0))
+        coords = texel_coords(ids, shape)
         shown = self._shown(arrays)
         if positions is None:
             odd_fill = self.odd_filled(which)
@@ -243,16 +290,21 @@ class Recipe:
         else:
             odd_fill = self.odd_filled(positions[which])
             odd = marked(self.odd, positions)
-        odd = np.flatnonzero(((local & 1) == 1).all(axis=1) & odd)
+        halves = ((np.flatnonzero(((coords & 1) == 0).all(axis=1)), which[~odd_fill]),
+                  (np.flatnonzero(((coords & 1) == 1).all(axis=1) & odd), which[odd_fill]))
         second = arrays.get("second")
-        for nodes, part in ((Nodes(local, box), which[~odd_fill]),
-                            (Nodes(local, box, 1, odd), which[odd_fill])):
-            def block(rows: slice, nodes: Nodes = nodes, part: np.ndarray = part) -> None:
-                values, moments = node_light(nodes, local, part[rows], shown,
+        for offset, (nodes_at, part) in enumerate(halves):
+            nodes = (Nodes(coords, shape, offset, nodes_at) if positions is None
+                     else SparseNodes(ids, shape, offset, nodes_at))
+
+            def block(rows: slice, nodes: Nodes | SparseNodes = nodes,
+                      part: np.ndarray = part) -> None:
+                values, moments = node_light(nodes, coords, part[rows], shown,
                                              arrays["facing"], arrays["values"], second)
                 take(part[rows], values, moments)
 
             cores.for_blocks(block, len(part), BLOCK, "texels")
+            del nodes
 
     def _shown(self, arrays: dict[str, np.ndarray]) -> np.ndarray:
         """(M,) bool `shown_texels` of the rows of `arrays`, a block at a time."""
@@ -297,7 +349,10 @@ def kept_fills(recipe: Recipe, shape: tuple[int, int, int], ids: np.ndarray,
     """(F,) int64 sorted rows among the (N,) held texels at flat `ids` (the recipe's plan
     texels) whose values and second moments in `arrays` (``values``, ``samples``,
     ``facing``, ``second``: (N, …) rows) are their fill to the bit (`Recipe.mix`): those
-    a file may leave out."""
+    a file may leave out: none where the recipe does not fit them (`Recipe.fits`), so
+    that no texel left out is the node of another."""
+    if not recipe.fits(texel_coords(ids, shape)):
+        return np.zeros(0, np.int64)
     filled = np.flatnonzero(np.unpackbits(recipe.filled, count=len(ids)))
     same = np.zeros(len(filled), bool)
 

@@ -189,7 +189,10 @@ def _leaving_out(meta: dict[str, Any], shape: tuple[int, int, int], count: int,
     from ``held_rows()``: the (N,) flat ids and their `_MIXED` rows), named in the filled
     record (`LEFT_OUT`: true where they are all its filled texels, else their mask);
     none where the meta holds no fill's recipe for them."""
-    recipe = Recipe.of(meta.get(FILLED_KEY), count)
+    try:
+        recipe = Recipe.of(meta.get(FILLED_KEY), count)
+    except (KeyError, TypeError, ValueError, zlib.error):  # a record it cannot use: all kept
+        recipe = None
     left = np.zeros(0, np.int64)
     if recipe is not None:
         left = kept_fills(recipe, shape, *held_rows())
@@ -639,6 +642,8 @@ class LatticeFile:
         """
         try:
             recipe = Recipe.of(self.meta.get(FILLED_KEY), held)
+            gone = recipe is not None and (self.left_out is True or len(
+                bits_of(self.left_out)) == len(recipe.filled))
         except (KeyError, TypeError, ValueError, zlib.error) as exc:
             raise BakeError(f"{self.path}: its filled texels' record is unreadable ({exc}); "
                             "the file is damaged: bake it again") from None
@@ -646,6 +651,10 @@ class LatticeFile:
             raise BakeError(f"{self.path}: it leaves its filled texels out, and its filled "
                             f"record is not of its {held:,} texels; the file is damaged: "
                             "bake it again")
+        if len(recipe.weights) != self.channels or not gone:
+            raise BakeError(f"{self.path}: its filled record's brightness weights or list "
+                            f"of texels left out are not of its {self.channels} channels and "
+                            f"{held:,} texels; the file is damaged: bake it again")
         return recipe
 
     @staticmethod

@@ -28,9 +28,11 @@ from isolume.baking.fill_check import DRIFT, SURE, NodeLight, drift_error, stray
 from isolume.baking.fills import (
     FILLED_KEY,
     Nodes,
+    SparseNodes,
     corner_ids,
     fill,
     filled_positions,
+    packed,
     texel_coords,
     texel_luminance,
 )
@@ -545,13 +547,55 @@ def test_a_filled_texel_whose_light_changed_is_written_as_it_is(sphere_bakes, tm
     np.testing.assert_array_equal(raw["values"][row], changed.values.reshape(-1, 3)[lit[0]])
     assert not raw["values"][np.searchsorted(held, lit[1:])].any()
     _same_bits(Lattice.load(path, vol), changed)
-    meta = json.loads(str(raw["meta"]))
-    meta[FILLED_KEY]["count"] += 1
-    damaged = tmp_path / "damaged.npz"
-    np.savez(damaged, **{n: raw[n] for n in raw.files if n != "meta"},
-             meta=np.array(json.dumps(meta)))
-    with pytest.raises(BakeError, match=r"damaged\.npz.*filled record is not of its"):
-        Lattice.load(damaged, vol)
+    damages = {"count": lambda r: r.update(count=r["count"] + 1),
+               "odd_fills": lambda r: r.update(odd_fills=packed(np.ones(8, bool))),
+               "left_out": lambda r: r.update(left_out="AAAA"),
+               "weights": lambda r: r.update(weights=[])}
+    for name, damage in damages.items():
+        meta = json.loads(str(raw["meta"]))
+        damage(meta[FILLED_KEY])
+        damaged = tmp_path / f"damaged_{name}.npz"
+        np.savez(damaged, **{n: raw[n] for n in raw.files if n != "meta"},
+                 meta=np.array(json.dumps(meta)))
+        for read in (lambda f: Lattice.load(f, vol),
+                     lambda f: LatticeFile.open(f).read_texels(lit[:3])):
+            with pytest.raises(BakeError, match=rf"damaged_{name}\.npz: .*damaged: bake it"):
+                read(damaged)
+
+
+def test_a_lattice_whose_texels_moved_keeps_every_texel_in_its_file(sphere_bakes, tmp_path):
+    """One texel dropped and another made active after the bake (the same count held):
+    the filled record no longer names this lattice's texels, and nothing is left out."""
+    vol, one, _ = sphere_bakes
+    moved = dataclasses.replace(one, active=one.active.copy(), samples=one.samples.copy())
+    held = (moved.active | (moved.samples > 0)).reshape(-1)
+    first, extra = np.flatnonzero(held)[0], np.flatnonzero(~held)[-1]
+    moved.samples.reshape(-1)[first] = 0
+    moved.active.reshape(-1)[first] = False
+    moved.active.reshape(-1)[extra] = True
+    path = tmp_path / "moved.npz"
+    moved.save(path)
+    assert "left_out" not in json.loads(str(np.load(path)["meta"]))[FILLED_KEY]
+    back = Lattice.load(path, vol)
+    kept = moved.active | (moved.samples > 0)
+    np.testing.assert_array_equal(back.active, moved.active)
+    for name in ("values", "second", "samples", "facing"):
+        np.testing.assert_array_equal(getattr(back, name)[kept], getattr(moved, name)[kept])
+
+
+def test_the_sparse_half_lattices_find_the_nodes_the_maps_find():
+    """`SparseNodes.corners` (a read of a few texels) gives `Nodes.corners`' rows and
+    weights to the bit, for both half lattices of a plan with holes."""
+    ids = np.sort(RNG.choice(np.prod(SHAPE), np.prod(SHAPE) // 2, replace=False))
+    coords = texel_coords(ids, SHAPE)
+    for offset in (0, 1):
+        on = np.flatnonzero(((coords & 1) == offset).all(axis=1))
+        nodes = on[RNG.random(len(on)) < 0.7]
+        dense = Nodes(coords, SHAPE, offset, nodes)
+        sparse = SparseNodes(ids, SHAPE, offset, nodes)
+        at = texel_coords(np.arange(np.prod(SHAPE)), SHAPE)
+        for got, want in zip(sparse.corners(at), dense.corners(at), strict=True):
+            np.testing.assert_array_equal(got, want)
 
 
 def test_filled_texels_are_close_to_traced_ones(sphere_bakes, monkeypatch):
