@@ -259,10 +259,6 @@ class Recipe:
         odd = np.unpackbits(self.odd, count=len(coords)).astype(bool)
         return not (filled & (((coords & 1) == 0).all(axis=1) | odd)).any()
 
-    def filled_at(self, positions: np.ndarray) -> np.ndarray:
-        """(N,) bool: which of the plan `positions` are filled texels."""
-        return marked(self.filled, positions)
-
     def odd_filled(self, positions: np.ndarray) -> np.ndarray:
         """(N,) bool: which of the plan `positions` the odd half lattice fills."""
         return marked(self.odd_fills, positions)
@@ -277,9 +273,10 @@ class Recipe:
         not mixed) `arrays` hold, as `fill` made it: `take(rows, values, second)` is
         called a block of rows at a time, on any thread, with the (B,) rows of `which`
         and their (B, C) and (B,) float64 mixes. The M texels hold every node of the
-        mixes (those around the texels read, or the whole lattice): the half lattices of
-        a whole lattice are maps over its box (`Nodes`), those of a read of some texels
-        are searched (`SparseNodes`), so a few texels read cost no map of the box."""
+        mixes (those around the texels read, or the whole lattice): where the M texels
+        are a sixteenth of the box or more, the half lattices are maps over the box
+        (`Nodes`, half a byte a texel of the box), else they are searched
+        (`SparseNodes`), so a few texels read cost no map of the box."""
         if len(which) == 0:
             return
         coords = texel_coords(ids, shape)
@@ -292,19 +289,11 @@ class Recipe:
             odd = marked(self.odd, positions)
         halves = ((np.flatnonzero(((coords & 1) == 0).all(axis=1)), which[~odd_fill]),
                   (np.flatnonzero(((coords & 1) == 1).all(axis=1) & odd), which[odd_fill]))
-        second = arrays.get("second")
+        mapped = np.prod(shape) <= 16 * len(ids)
         for offset, (nodes_at, part) in enumerate(halves):
-            nodes = (Nodes(coords, shape, offset, nodes_at) if positions is None
+            nodes = (Nodes(coords, shape, offset, nodes_at) if mapped
                      else SparseNodes(ids, shape, offset, nodes_at))
-
-            def block(rows: slice, nodes: Nodes | SparseNodes = nodes,
-                      part: np.ndarray = part) -> None:
-                values, moments = node_light(nodes, coords, part[rows], shown,
-                                             arrays["facing"], arrays["values"], second)
-                take(part[rows], values, moments)
-
-            cores.for_blocks(block, len(part), BLOCK, "texels")
-            del nodes
+            _mix_half(nodes, coords, part, shown, arrays, take)
 
     def _shown(self, arrays: dict[str, np.ndarray]) -> np.ndarray:
         """(M,) bool `shown_texels` of the rows of `arrays`, a block at a time."""
@@ -335,6 +324,19 @@ def corner_ids(ids: np.ndarray, shape: tuple[int, int, int], odd: np.ndarray) ->
         inside = ok[z][:, 0] & ok[y][:, 1] & ok[x][:, 2]
         found.append(base[inside] + 2 * ((z * shape[1] + y) * shape[2] + x))
     return np.concatenate(found)
+
+
+def _mix_half(nodes: Nodes | SparseNodes, coords: np.ndarray, part: np.ndarray,
+              shown: np.ndarray, arrays: dict[str, np.ndarray],
+              take: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None]) -> None:
+    """`Recipe.mix` of the texels at rows `part` that one half lattice, `nodes`, fills."""
+
+    def block(rows: slice) -> None:
+        values, moments = node_light(nodes, coords, part[rows], shown, arrays["facing"],
+                                     arrays["values"], arrays.get("second"))
+        take(part[rows], values, moments)
+
+    cores.for_blocks(block, len(part), BLOCK, "texels")
 
 
 def _mask(total: int, positions: np.ndarray) -> np.ndarray:

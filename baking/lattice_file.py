@@ -25,7 +25,8 @@ a Ctrl-C waits for (`quick_saves`) stores the pieces it has not deflated yet: th
 format, about twice the bytes, 2.5–4.5× sooner (storing is ~17× faster a thread than
 deflating; the disk's writes are what is left).
 Members are written and read in slabs of z-layers (`SLAB_TEXELS`): neither writing a
-lattice nor reading part of one makes a copy of its held texels, and a display can read
+lattice nor reading part of one makes a copy of its held texels (but for the rows its
+fills are checked and made from), and a display can read
 only the texels it shows (`LatticeFile.read_texels`). Files of `DENSE_VERSION` (every
 array dense over the box, ``facing`` optional) are still read. A member whose header
 disagrees with ``held`` or ``meta`` is refused before it is read, and a box whose dense
@@ -188,9 +189,15 @@ def _leaving_out(meta: dict[str, Any], shape: tuple[int, int, int], count: int,
     values and second moments their fill makes to the bit (`baking.fills.kept_fills`,
     from ``held_rows()``: the (N,) flat ids and their `_MIXED` rows), named in the filled
     record (`LEFT_OUT`: true where they are all its filled texels, else their mask);
-    none where the meta holds no fill's recipe for them."""
+    none where the meta holds no fill's recipe for them, or in a hurried save
+    (`quick_saves`: the check would double its time). A `LEFT_OUT` the meta brings (a
+    file's) is dropped first."""
+    record = meta.get(FILLED_KEY)
+    if isinstance(record, dict) and LEFT_OUT in record:  # a file's, not this lattice's
+        record = {k: v for k, v in record.items() if k != LEFT_OUT}
+        meta = dict(meta, **{FILLED_KEY: record})
     try:
-        recipe = Recipe.of(meta.get(FILLED_KEY), count)
+        recipe = None if _Storing.now else Recipe.of(record, count)
     except (KeyError, TypeError, ValueError, zlib.error):  # a record it cannot use: all kept
         recipe = None
     left = np.zeros(0, np.int64)
@@ -580,7 +587,7 @@ class LatticeFile:
                                 flat[part][mask] = rows.read(count)
                         rows.finish(self.path)
                 if self.left_out is not None:
-                    self._refill_dense(out, sum(counts))
+                    self._refill_dense(out, slabs)
                 return out
         except BakeError:
             raise
@@ -694,21 +701,23 @@ class LatticeFile:
 
         recipe.mix(self.shape, ids, positions, rows, which, take)
 
-    def _refill_dense(self, arrays: dict[str, np.ndarray], held: int) -> None:
-        """`_refill` the dense (Z, Y, X, …) `arrays` of `read_dense`, of `held` texels:
-        the rows of the texels left out and of their nodes are copied out, mixed and
-        written back (the others are not copied)."""
-        recipe = self._recipe(held)
-        held_here = held_mask(arrays).reshape(-1)
-        ids = np.flatnonzero(held_here)
+    def _refill_dense(self, arrays: dict[str, np.ndarray],
+                      slabs: list[tuple[slice, np.ndarray]]) -> None:
+        """`_refill` the dense (Z, Y, X, …) `arrays` of `read_dense`, whose held texels
+        `slabs` marks (`_held_slabs`: no page of the arrays is read to find them): the
+        rows of the texels left out and of their nodes are copied out, mixed and written
+        back (the others are not copied)."""
+        ids = np.concatenate([np.flatnonzero(mask) + part.start for part, mask in slabs])
+        recipe = self._recipe(len(ids))
         gone = np.flatnonzero(np.unpackbits(self._gone(recipe), count=len(ids)))
-        wanted = np.zeros(held_here.shape, bool)
-        wanted[ids[gone]] = True
-        wanted[corner_ids(ids[gone], self.shape, recipe.odd_filled(gone))] = True
-        near = np.flatnonzero(wanted & held_here)  # corners outside the plan hold no node
-        del wanted, held_here
-        positions = np.searchsorted(ids, near)
-        del ids
+        places = np.concatenate([ids[gone], corner_ids(ids[gone], self.shape,
+                                                       recipe.odd_filled(gone))])
+        at = np.minimum(np.searchsorted(ids, places), max(len(ids) - 1, 0))
+        wanted = np.zeros(len(ids), bool)
+        wanted[at[ids[at] == places]] = True  # corners outside the plan hold no node
+        positions = np.flatnonzero(wanted)
+        near = ids[positions]
+        del ids, places, at, wanted
         flat = {n: _flat_view(arrays[n], arrays[n].shape[3:]) for n in _MIXED}
         rows = {n: flat[n][near] for n in _MIXED}
         self._refill(recipe, near, positions, rows)

@@ -583,6 +583,28 @@ def test_a_lattice_whose_texels_moved_keeps_every_texel_in_its_file(sphere_bakes
         np.testing.assert_array_equal(getattr(back, name)[kept], getattr(moved, name)[kept])
 
 
+def test_a_file_s_list_of_texels_left_out_is_not_taken_for_the_lattice_s(sphere_bakes,
+                                                                         tmp_path):
+    """A filled record that says which texels a file left out (read with `numpy.load`,
+    say) is not trusted by the writer: texels whose light changed are kept, and a hurried
+    save (`quick_saves`) keeps every texel."""
+    from isolume.baking.lattice_file import quick_saves
+
+    vol, one, _ = sphere_bakes
+    record = dict(one.meta[FILLED_KEY], left_out=True)
+    changed = dataclasses.replace(one, values=one.values.copy(),
+                                  meta=dict(one.meta, **{FILLED_KEY: record}))
+    held = np.flatnonzero((one.samples > 0) | one.active)
+    changed.values.reshape(-1, 3)[held[filled_positions(record)]] += np.float32(0.01)
+    changed.save(tmp_path / "stale.npz")
+    _same_bits(Lattice.load(tmp_path / "stale.npz", vol), changed)
+    with quick_saves(True):
+        one.save(tmp_path / "hurried.npz")
+    assert "left_out" not in json.loads(str(np.load(tmp_path / "hurried.npz")["meta"]))[
+        FILLED_KEY]
+    _same_bits(Lattice.load(tmp_path / "hurried.npz", vol), one)
+
+
 def test_the_sparse_half_lattices_find_the_nodes_the_maps_find():
     """`SparseNodes.corners` (a read of a few texels) gives `Nodes.corners`' rows and
     weights to the bit, for both half lattices of a plan with holes."""
