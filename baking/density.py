@@ -75,6 +75,7 @@ from isolume.baking.fills import (
     Recipe,
     fill,
     filled_positions,
+    mask_of,
     packed,
     shown_texels,
     texel_coords,
@@ -489,14 +490,6 @@ def make_facings(baker: Any) -> None:
         commit_facing(baker.lattice, baker.volume, baker.config, baker.plan, baker.records,
                       baker.groups.of(level), None)
     baker.facings_made = True
-
-
-def mask_of(total: int, *positions: np.ndarray) -> np.ndarray:
-    """(`total`,) bool: True at every one of the plan `positions` arrays."""
-    mask = np.zeros(total, bool)
-    for at in positions:
-        mask[at] = True
-    return mask
 
 
 def judge(baker: Any, lattices: list[Nodes], coords: np.ndarray, bricks: np.ndarray,

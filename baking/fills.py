@@ -235,7 +235,7 @@ class Recipe:
                trapped_at: int, total: int) -> dict[str, Any]:
         """The filled record's entries of the recipe, JSON-ready: the plan positions of
         the (sorted) `odd` nodes and `odd_fills`, over `total` plan texels."""
-        return {"odd": packed(_mask(total, odd)), "odd_fills": packed(_mask(total, odd_fills)),
+        return {"odd": packed(mask_of(total, odd)), "odd_fills": packed(mask_of(total, odd_fills)),
                 "weights": [float(w) for w in weights], "trapped_at": int(trapped_at)}
 
     @classmethod
@@ -339,10 +339,11 @@ def _mix_half(nodes: Nodes | SparseNodes, coords: np.ndarray, part: np.ndarray,
     cores.for_blocks(block, len(part), BLOCK, "texels")
 
 
-def _mask(total: int, positions: np.ndarray) -> np.ndarray:
-    """(`total`,) bool: True at the sorted `positions`."""
+def mask_of(total: int, *positions: np.ndarray) -> np.ndarray:
+    """(`total`,) bool: True at every one of the plan `positions` arrays."""
     mask = np.zeros(total, bool)
-    mask[positions] = True
+    for at in positions:
+        mask[at] = True
     return mask
 
 

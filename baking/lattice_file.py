@@ -12,8 +12,8 @@ An ``.npz`` archive (zip, deflated) of format version `FORMAT_VERSION`:
   bake config).
 
 The texels a bake to a texel error filled from its half lattices hold zeros in ``values``
-and ``second`` where the fill makes their light again to the bit (`_leaving_out`, about
-40 % of a default bake's file); the filled record in ``meta`` says which
+and ``second`` where the fill makes their light again to the bit (`_leaving_out`: 40 %
+of the tooth CT's default file); the filled record in ``meta`` says which
 (`baking.fills.LEFT_OUT`) and how, and every read here makes it again from the nodes around
 them (`baking.fills.Recipe.mix`; a read of a few texels reads their nodes too).
 
@@ -586,7 +586,7 @@ class LatticeFile:
                             for (part, mask), count in zip(slabs, counts, strict=True):
                                 flat[part][mask] = rows.read(count)
                         rows.finish(self.path)
-                if self.left_out is not None:
+                if self.left_out is not None and slabs is not None:
                     self._refill_dense(out, slabs)
                 return out
         except BakeError:
