@@ -265,7 +265,8 @@ class Recipe:
 
     def mix(self, shape: tuple[int, int, int], ids: np.ndarray, positions: np.ndarray | None,
             arrays: dict[str, np.ndarray], which: np.ndarray,
-            take: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None]) -> None:
+            take: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None],
+            coords: np.ndarray | None = None) -> None:
         """The fill of the filled texels at rows (K,) `which` of the (M,) texels at sorted
         flat `ids` of a (Z, Y, X) `shape` box, of plan `positions` (M,; None: the rows
         are the plan's texels, in order), whose rows
@@ -276,10 +277,11 @@ class Recipe:
         mixes (those around the texels read, or the whole lattice): where the M texels
         are a sixteenth of the box or more, the half lattices are maps over the box
         (`Nodes`, half a byte a texel of the box), else they are searched
-        (`SparseNodes`), so a few texels read cost no map of the box."""
+        (`SparseNodes`), so a few texels read cost no map of the box. `coords`: the
+        texels' `texel_coords`, where the caller has them."""
         if len(which) == 0:
             return
-        coords = texel_coords(ids, shape)
+        coords = texel_coords(ids, shape) if coords is None else coords
         shown = self._shown(arrays)
         if positions is None:
             odd_fill = self.odd_filled(which)
@@ -354,7 +356,8 @@ def kept_fills(recipe: Recipe, shape: tuple[int, int, int], ids: np.ndarray,
     ``facing``, ``second``: (N, …) rows) are their fill to the bit (`Recipe.mix`): those
     a file may leave out: none where the recipe does not fit them (`Recipe.fits`), so
     that no texel left out is the node of another."""
-    if not recipe.fits(texel_coords(ids, shape)):
+    coords = texel_coords(ids, shape)
+    if not recipe.fits(coords):
         return np.zeros(0, np.int64)
     filled = np.flatnonzero(np.unpackbits(recipe.filled, count=len(ids)))
     same = np.zeros(len(filled), bool)
@@ -367,5 +370,5 @@ def kept_fills(recipe: Recipe, shape: tuple[int, int, int], ids: np.ndarray,
                              & (second.astype(stored_s.dtype).view(np.uint32)
                                 == stored_s.view(np.uint32)))
 
-    recipe.mix(shape, ids, None, arrays, filled, compare)
+    recipe.mix(shape, ids, None, arrays, filled, compare, coords)
     return filled[same]

@@ -616,7 +616,10 @@ class LatticeFile:
                     return self._read_picks(zf, picks, names)
                 recipe = self._recipe(sum(count for _, _, count in picks))
                 if texels is not None:  # the nodes of the texels left out too
-                    picks = list(self._picks(zf, self._with_nodes(recipe, picks)))
+                    more = self._with_nodes(recipe, picks)
+                    if more is None:
+                        return self._read_picks(zf, picks, names)
+                    picks = list(self._picks(zf, more))
                 ids, out = self._read_picks(zf, picks, tuple(dict.fromkeys((*names, *_MIXED))))
                 self._refill(recipe, ids, None if texels is None else self._positions(picks),
                              out)
@@ -672,12 +675,15 @@ class LatticeFile:
                                in zip(picks, firsts, strict=True)]).astype(np.int64)
 
     def _with_nodes(self, recipe: Recipe, picks: list[tuple[np.ndarray, np.ndarray, int]]
-                    ) -> np.ndarray:
+                    ) -> np.ndarray | None:
         """The sorted flat ids of the texels `picks` chooses and of the places of the
-        nodes of those of them the file leaves out (`baking.fills.corner_ids`)."""
+        nodes of those of them the file leaves out (`baking.fills.corner_ids`); None
+        where it leaves none of them out."""
         ids = np.concatenate([p[0] for p in picks])
         positions = self._positions(picks)
         gone = marked(self._gone(recipe), positions)
+        if not gone.any():
+            return None
         return np.union1d(ids, corner_ids(ids[gone], self.shape,
                                           recipe.odd_filled(positions[gone])))
 
