@@ -1,11 +1,12 @@
 """A level's side probes in one compiled call per work item (`baking.sides`): each
 texel's point on its nearer level and its normal there, the probe origins of each side,
 the on-side and box-reach tests (`volumes.reach.may_open_at`), their rays, Embree called
-per ray (`embree_kernels.occluded_rays`), the open counts and the side rule — with no
+per ray (`embree_kernels.occluded_one`), the open counts and the side rule — with no
 Python, and so no wait for the GIL, between
-them. The same numbers as the array code `baking.sides` runs where a scene has no
+them. The same sides as the array code `baking.sides` runs where a scene has no
 compiled calls (`trace.EmbreeCalls`): `sides.open_rays`, `sides.side_rule`,
-`sides.parity`.
+`sides.parity`. A texel's rays stop once the rule's choice is settled (`enough_open`):
+its counts can then be lower than the array code's, never its side.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from isolume.baking.embree_kernels import occluded_rays
+from isolume.baking.embree_kernels import occluded_one, ray_buffer
 from isolume.baking.kernels import path_starts
 from isolume.baking.plan_kernels import landed_normal
 from isolume.volumes.field import JIT, normal_scratch, value_at_world
@@ -25,11 +26,14 @@ def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points:
                 normals: np.ndarray, offset: float, sign: float, which: np.ndarray,
                 cube: np.ndarray, origin: np.ndarray, spacing: np.ndarray,
                 level: float, scratch: np.ndarray, first: int, probes: int,
-                reach: tuple) -> np.ndarray:
+                reach: tuple, enough: np.ndarray, settle: bool) -> np.ndarray:
     """(N,) int64: how many of `probes` rays from each point where `which` (N,) bool meet
-    nothing; 0 elsewhere, where the probes' origin does not lie on their side, and where
-    `reach` proves that side closed (`volumes.reach.may_open_at`; ``reach[0]``: False for
-    no such test, then its arrays, direction and frame).
+    nothing, counted until `enough` (N,) of them have (later rays are not traced) or, with
+    `settle`, until some have and the rays left could not make it `enough`; 0 elsewhere,
+    where the probes' origin does not lie on their side, and where `reach` proves that
+    side closed (`volumes.reach.may_open_at`; ``reach[0]``: False for no such test, then
+    its arrays, direction and frame). With `enough` of `probes` and no `settle`, every
+    ray is counted.
 
     Args:
         calls: the level scene's `trace.EmbreeCalls`; key: the probes' seed key.
@@ -78,13 +82,41 @@ def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points:
         for s in range(probes):
             pos[r * probes + s] = r
             samples[r * probes + s] = first + s
-    _, ray_origins, _, ray_dirs = path_starts(key, picked, pos, samples, texels, starts, dirs)
-    blocked = occluded_rays(calls, ray_origins, ray_dirs)
+    _, o, _, d = path_starts(key, picked, pos, samples, texels, starts, dirs)
+    ray, bits, address = ray_buffer()
     for r in range(m):
-        hit = 0
+        need = enough[rows[r]]
+        count = 0
         for s in range(probes):
-            hit += blocked[r * probes + s]
-        out[rows[r]] = probes - hit
+            if count >= need or (settle and count > 0 and count + probes - s < need):
+                break
+            j = r * probes + s
+            count += not occluded_one(calls, ray, bits, address, o[0, j], o[1, j], o[2, j],
+                                      d[0, j], d[1, j], d[2, j])
+        out[rows[r]] = count
+    return out
+
+
+@numba.njit(**JIT)
+def enough_other(probes: int, clearly_more: float) -> int:
+    """Open rays of a texel's other side that settle its side (`sides.side_rule`): past
+    `probes` / `clearly_more`, no count of the default side's rays lights it alone."""
+    return int(probes // clearly_more) + 1 if clearly_more > 0 else 1
+
+
+@numba.njit(**JIT)
+def enough_open(other: np.ndarray, probes: int, rays: int, clearly_more: float) -> np.ndarray:
+    """(N,) int64: the open rays of its default side that settle a texel's side, given the
+    (N,) open `other` rays of its other side and `rays` on the default side
+    (`sides.side_rule`): the fewest m ≥ 1 with m · `probes` ≥ `clearly_more` · other ·
+    `rays` (lit on the default side alone), `rays` + 1 where no count reaches that (one
+    open ray settles it: both sides lit)."""
+    out = np.empty(len(other), np.int64)
+    for i in range(len(other)):
+        m = 1
+        while m <= rays and m * probes < clearly_more * other[i] * rays:
+            m += 1
+        out[i] = m
     return out
 
 
@@ -100,7 +132,8 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
     (T,), else its lower one; `plan_kernels.NearerLandings`), its normal there (stencil
     weights `w`: `volumes.normals_at`), the open probe rays of the side other than the
     `default` one, then of the default side where that one is open, and `confirm` more
-    where none of those left (`open_counts`), and the rule with the texel's checkerboard
+    where none of those left (`open_counts`; each side's rays only until its count settles
+    the rule: `enough_other`, `enough_open`), and the rule with the texel's checkerboard
     parity.
 
     Args:
@@ -127,15 +160,18 @@ def probe_sides(calls: tuple[int, ...], key: np.uint32, lattice: tuple, ids: np.
         for a in range(3):
             normals[r, a] = np.float64(unit[a])
     other_sign = 1.0 if default else -1.0  # the low side's normal is +normals
+    settled = np.full(n, enough_other(probes, clearly_more), np.int64)
     other = open_counts(calls, key, picked, points, normals, offset, other_sign,
                         np.ones(n, np.bool_), cube, origin, spacing, level, scratch, 0, probes,
-                        reach)
+                        reach, settled, False)
     untested = (False, reach[1], reach[2], reach[3], reach[4])
     mine = open_counts(calls, key, picked, points, normals, offset, -other_sign, other > 0,
-                       cube, origin, spacing, level, scratch, 0, probes, untested)
+                       cube, origin, spacing, level, scratch, 0, probes, untested,
+                       enough_open(other, probes, probes, clearly_more), True)
     confirmed = (other > 0) & (mine == 0)
     mine += open_counts(calls, key, picked, points, normals, offset, -other_sign, confirmed,
-                        cube, origin, spacing, level, scratch, probes, confirm, untested)
+                        cube, origin, spacing, level, scratch, probes, confirm, untested,
+                        enough_open(other, probes, probes + confirm, clearly_more), True)
     shape = lattice[0]
     for r in range(n):
         flat = picked[r]

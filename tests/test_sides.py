@@ -17,7 +17,7 @@ from test_seen_side import _cut_open_slab, _pictures
 from isolume import volumes
 from isolume.baking import BakeConfig, bake
 from isolume.baking.plan import make_plan
-from isolume.baking.sides import PROBES, side_rule
+from isolume.baking.sides import CLEARLY_MORE, CONFIRM_PROBES, PROBES, side_rule
 from isolume.volumes import Volume, load
 from isolume.volumes.reach import BoxReach
 
@@ -58,6 +58,61 @@ def test_the_rule_lights_the_open_side_and_the_normals_side_alone_only_where_cle
     np.testing.assert_array_equal(side_rule(low, high, odd, True),
                                   [True, True, False, True, True, True, True, True, True])
 
+
+
+@pytest.mark.parametrize("clearly_more", [CLEARLY_MORE, 3.0, 0.0])
+def test_counts_cut_short_where_the_side_is_settled_give_the_rules_side(clearly_more):
+    """`side_kernels.probe_sides` stops counting a side's open rays once the rule's choice
+    is settled: the other side at `enough_other`, the default side at `enough_open` (or
+    at its first open ray where that cannot be reached). For every pair of exact counts,
+    of 16 rays and of 16 + 48 confirmed, with the open rays first or last, the cut
+    counts give the exact counts' side."""
+    from isolume.baking.side_kernels import enough_open, enough_other
+
+    cap = enough_other(PROBES, clearly_more)
+
+    def cut(count: int, rays: int, need: int, settle: bool, first_open: int) -> int:
+        """Open rays counted when the `count` open ones of `rays` come from `first_open`
+        on (the earliest stop) or at the end (the latest)."""
+        opened = 0
+        for s in range(rays):
+            if opened >= need or (settle and opened > 0 and opened + rays - s < need):
+                break
+            opened += first_open <= s < first_open + count
+        return opened
+
+    for other in range(PROBES + 1):
+        for mine, rays in [(m, PROBES) for m in range(1, PROBES + 1)] + [
+                (m, PROBES + CONFIRM_PROBES) for m in range(CONFIRM_PROBES + 1)]:
+            own = mine if rays == PROBES else 0
+            extra = mine if rays > PROBES else 0
+            want = _rule(own + extra, other, rays, clearly_more)
+            for place in ("first", "last"):
+                got_other = cut(other, PROBES, cap, False,
+                                0 if place == "first" else PROBES - other)
+                assert (got_other == 0) == (other == 0)
+                if got_other == 0:  # the other side closed: the default side, unprobed
+                    assert want == "default"
+                    continue
+                need = enough_open(np.array([got_other]), PROBES, PROBES, clearly_more)[0]
+                got = cut(own, PROBES, need, True, 0 if place == "first" else PROBES - own)
+                if got == 0:
+                    more = PROBES + CONFIRM_PROBES
+                    need = enough_open(np.array([got_other]), PROBES, more, clearly_more)[0]
+                    got = cut(extra, CONFIRM_PROBES, need, True,
+                              0 if place == "first" else CONFIRM_PROBES - extra)
+                    rays_seen = more
+                else:
+                    rays_seen = PROBES
+                assert _rule(got, got_other, rays_seen, clearly_more) == want, (
+                    other, mine, rays, place)
+
+
+def _rule(mine: int, other: int, rays: int, clearly_more: float) -> str:
+    """`side_kernels.probe_sides`'s choice from its counts: "default", "other" or "both"."""
+    if mine > 0 and other > 0:
+        return "default" if mine * PROBES >= clearly_more * other * rays else "both"
+    return "other" if other > 0 else "default"
 
 def test_a_closed_ball_is_lit_on_its_outside():
     plan, lattice = _plan(_ball())
@@ -174,7 +229,8 @@ def test_compiled_probes_count_what_the_array_code_counts(dtype):
         tested = (reach is not None, *(reach or reaches[False]).arrays(vol))
         return open_counts(scene.calls, np.uint32(seed_key(config.seed ^ SALT)),
                            ids.astype(np.int64), points, normals, probe_offset(vol, config),
-                           sign, which, *fixed, first, probes, tested)
+                           sign, which, *fixed, first, probes, tested,
+                           np.full(len(points), probes), False)
 
     compiled = []
     for default in (False, True):
