@@ -685,6 +685,7 @@ def _finish_meta(lattice: Lattice | PlanLattice, plan: Plan, high_texels: int, s
         "scene_seconds": float(previous.get("scene_seconds", 0.0)) + stats.scene_seconds,
         "paths": int(previous.get("paths", 0)) + stats.paths,
     }
+    moves = plan.moves.figures()
     lattice.meta["plan"] = {
         "active_texels": len(plan.ids),
         "unreachable_texels": plan.unreachable,
@@ -693,7 +694,7 @@ def _finish_meta(lattice: Lattice | PlanLattice, plan: Plan, high_texels: int, s
         "levels": [float(v) for v in plan.levels],
         "iso_range": [float(v) for v in plan.iso_range],
         "move_limit_voxels": plan.move_limit,
-        "move_voxels_p50": plan.moves[0],
-        "move_voxels_p90": plan.moves[1],
-        "move_voxels_max": plan.moves[2],
+        "move_voxels_p50": moves[0],
+        "move_voxels_p90": moves[1],
+        "move_voxels_max": moves[2],
     }
