@@ -17,7 +17,7 @@ import numpy as np
 from isolume.baking.embree_kernels import occluded_one, ray_buffer
 from isolume.baking.kernels import path_starts
 from isolume.baking.plan_kernels import landed_normal
-from isolume.volumes.field import JIT, normal_scratch, value_at_world
+from isolume.volumes.field import JIT, PART, normal_scratch, value_at_world
 from isolume.volumes.reach import may_open_at
 
 
@@ -88,13 +88,21 @@ def open_counts(calls: tuple[int, ...], key: np.uint32, ids: np.ndarray, points:
         need = enough[rows[r]]
         count = 0
         for s in range(probes):
-            if count >= need or (settle and count > 0 and count + probes - s < need):
+            if settled_count(count, probes - s, need, settle):
                 break
             j = r * probes + s
             count += not occluded_one(calls, ray, bits, address, o[0, j], o[1, j], o[2, j],
                                       d[0, j], d[1, j], d[2, j])
         out[rows[r]] = count
     return out
+
+
+@numba.njit(**PART)
+def settled_count(opened: int, left: int, enough: int, settle: bool) -> bool:
+    """Whether a side's count of `opened` rays, `left` more to trace, is settled (`open_counts`):
+    `enough` of them open, or, with `settle`, some open and the rays left could not make it
+    `enough`."""
+    return opened >= enough or (settle and opened > 0 and opened + left < enough)
 
 
 @numba.njit(**JIT)

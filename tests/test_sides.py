@@ -59,7 +59,6 @@ def test_the_rule_lights_the_open_side_and_the_normals_side_alone_only_where_cle
                                   [True, True, False, True, True, True, True, True, True])
 
 
-
 @pytest.mark.parametrize("clearly_more", [CLEARLY_MORE, 3.0, 0.0])
 def test_counts_cut_short_where_the_side_is_settled_give_the_rules_side(clearly_more):
     """`side_kernels.probe_sides` stops counting a side's open rays once the rule's choice
@@ -67,16 +66,16 @@ def test_counts_cut_short_where_the_side_is_settled_give_the_rules_side(clearly_
     at its first open ray where that cannot be reached). For every pair of exact counts,
     of 16 rays and of 16 + 48 confirmed, with the open rays first or last, the cut
     counts give the exact counts' side."""
-    from isolume.baking.side_kernels import enough_open, enough_other
+    from isolume.baking.side_kernels import enough_open, enough_other, settled_count
 
     cap = enough_other(PROBES, clearly_more)
 
     def cut(count: int, rays: int, need: int, settle: bool, first_open: int) -> int:
-        """Open rays counted when the `count` open ones of `rays` come from `first_open`
-        on (the earliest stop) or at the end (the latest)."""
+        """Open rays counted, as `open_counts` counts them, when the `count` open ones of
+        `rays` come from `first_open` on."""
         opened = 0
         for s in range(rays):
-            if opened >= need or (settle and opened > 0 and opened + rays - s < need):
+            if settled_count(opened, rays - s, need, settle):
                 break
             opened += first_open <= s < first_open + count
         return opened
@@ -113,6 +112,7 @@ def _rule(mine: int, other: int, rays: int, clearly_more: float) -> str:
     if mine > 0 and other > 0:
         return "default" if mine * PROBES >= clearly_more * other * rays else "both"
     return "other" if other > 0 else "default"
+
 
 def test_a_closed_ball_is_lit_on_its_outside():
     plan, lattice = _plan(_ball())
