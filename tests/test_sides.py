@@ -60,13 +60,17 @@ def test_the_rule_lights_the_open_side_and_the_normals_side_alone_only_where_cle
 
 
 @pytest.mark.parametrize("clearly_more", [CLEARLY_MORE, 3.0, 0.0])
-def test_counts_cut_short_where_the_side_is_settled_give_the_rules_side(clearly_more):
+def test_counts_cut_short_where_the_side_is_settled_give_the_rules_side(clearly_more,
+                                                                       monkeypatch):
     """`side_kernels.probe_sides` stops counting a side's open rays once the rule's choice
     is settled: the other side at `enough_other`, the default side at `enough_open` (or
     at its first open ray where that cannot be reached). For every pair of exact counts,
     of 16 rays and of 16 + 48 confirmed, with the open rays first or last, the cut
-    counts give the exact counts' side."""
+    counts give the sides `side_rule` gives the exact counts."""
+    from isolume.baking import sides
     from isolume.baking.side_kernels import enough_open, enough_other, settled_count
+
+    monkeypatch.setattr(sides, "CLEARLY_MORE", clearly_more)
 
     cap = enough_other(PROBES, clearly_more)
 
@@ -85,13 +89,13 @@ def test_counts_cut_short_where_the_side_is_settled_give_the_rules_side(clearly_
                 (m, PROBES + CONFIRM_PROBES) for m in range(CONFIRM_PROBES + 1)]:
             own = mine if rays == PROBES else 0
             extra = mine if rays > PROBES else 0
-            want = _rule(own + extra, other, rays, clearly_more)
+            want = _sides(own + extra, other, rays)
             for place in ("first", "last"):
                 got_other = cut(other, PROBES, cap, False,
                                 0 if place == "first" else PROBES - other)
                 assert (got_other == 0) == (other == 0)
                 if got_other == 0:  # the other side closed: the default side, unprobed
-                    assert want == "default"
+                    assert want == (False, False)
                     continue
                 need = enough_open(np.array([got_other]), PROBES, PROBES, clearly_more)[0]
                 got = cut(own, PROBES, need, True, 0 if place == "first" else PROBES - own)
@@ -103,15 +107,16 @@ def test_counts_cut_short_where_the_side_is_settled_give_the_rules_side(clearly_
                     rays_seen = more
                 else:
                     rays_seen = PROBES
-                assert _rule(got, got_other, rays_seen, clearly_more) == want, (
+                assert _sides(got, got_other, rays_seen) == want, (
                     other, mine, rays, place)
 
 
-def _rule(mine: int, other: int, rays: int, clearly_more: float) -> str:
-    """`side_kernels.probe_sides`'s choice from its counts: "default", "other" or "both"."""
-    if mine > 0 and other > 0:
-        return "default" if mine * PROBES >= clearly_more * other * rays else "both"
-    return "other" if other > 0 else "default"
+def _sides(mine: int, other: int, rays: int) -> tuple[bool, bool]:
+    """`side_rule`'s high sides (the default side low) of an even and an odd texel whose
+    default side has `mine` open rays of `rays` and whose other side `other` of
+    `PROBES`."""
+    return tuple(bool(side_rule(np.array([mine]), np.array([other]), np.array([odd]),
+                                False, rays)[0]) for odd in (False, True))
 
 
 def test_a_closed_ball_is_lit_on_its_outside():
