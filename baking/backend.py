@@ -16,7 +16,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+from concurrent.futures import Executor, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
@@ -222,7 +222,7 @@ class TracingBackend(Protocol):
 
 
 class _Beside(NamedTuple):
-    """Work submitted to a `ThreadBackend`'s helper thread, waited for later: its `future`
+    """Work submitted to a `ThreadBackend`'s helper threads, waited for later: its `future`
     and its `batch` in a timeline (`volumes.cores.beside_call`)."""
 
     future: Future
@@ -288,6 +288,12 @@ def warm_up(volume: volumes.Volume) -> None:
     volume.data_hash()
 
 
+def _helper_thread(workers: int) -> Executor:
+    """One thread beside a bake's `workers` tracing threads, or (one worker) the caller's
+    own, in turn with the tracing (`cores.Inline`)."""
+    return ThreadPoolExecutor(max_workers=1) if workers > 1 else cores.Inline()
+
+
 class ThreadBackend:
     """Traces on worker threads of this process, one level at a time and a batch of
     texels at a time on it (`pass_steps`): its paths in chunks of whole texels on a
@@ -314,8 +320,10 @@ class ThreadBackend:
         self.job: BakeJob | None = None
         self._pool = cores.executor(self.workers, "isolume-trace")
         # the next step and scenes ahead: on one thread of their own beside the pool, or in
-        # turn with the tracing when the bake has one thread
-        self._helper = ThreadPoolExecutor(max_workers=1) if self.workers > 1 else cores.Inline()
+        # turn with the tracing when the bake has one thread; the compiled code's loading on
+        # another, so that the first scenes ahead do not queue behind it
+        self._helper = _helper_thread(self.workers)
+        self._warmer = _helper_thread(self.workers)
         self._scenes: OrderedDict[int, Scene] = OrderedDict()
         self._scene_cache = max(1, scene_cache)
         self._scene_memory = scene_memory
@@ -333,10 +341,11 @@ class ThreadBackend:
     def begin(self, volume: volumes.Volume, config: BakeConfig,
               kept: np.ndarray | None, stats: BakeStats) -> None:
         """Load the compiled code, and hash the volume for the lattice's metadata
-        (`volumes.Volume.data_hash`: 0.5 s at 512³), on the helper thread while the plan
-        is made."""
+        (`volumes.Volume.data_hash`: 0.5 s at 512³), on a thread of its own while the plan
+        is made (not the helper's: the scenes built ahead would wait for it where the plan
+        is quick, on many cores)."""
         self._volume, self._config, self._stats = volume, config, stats
-        self._warm = self._beside("warm up", warm_up, volume)
+        self._warm = self._beside("warm up", warm_up, volume, on=self._warmer)
 
     def levels_known(self, levels: np.ndarray) -> None:
         """Build the scenes of the highest `ahead` levels, where the plan's side probes
@@ -351,12 +360,13 @@ class ThreadBackend:
             self._pending[level] = self._beside("scene", level_scene, self._volume,
                                                 float(levels[level]), self._config)
 
-    def _beside(self, kind: str, function, *args) -> _Beside:
-        """`function(*args)` submitted to the helper thread, an item of `kind` done beside
-        (`cores.beside_call`)."""
+    def _beside(self, kind: str, function, *args, on: Executor | None = None) -> _Beside:
+        """`function(*args)` submitted to the helper thread (or `on`), an item of `kind`
+        done beside (`cores.beside_call`)."""
         batch = cores.new_batch()
-        return _Beside(self._helper.submit(cores.beside_call, kind, function, *args,
-                                           batch=batch), batch)
+        helper = on if on is not None else self._helper
+        return _Beside(helper.submit(cores.beside_call, kind, function, *args, batch=batch),
+                       batch)
 
     def plan_scene(self, level: int) -> Scene:
         """The scene of level `level`, from the cache (`_scene`): the plan's side probes
@@ -453,6 +463,7 @@ class ThreadBackend:
         scene ahead is left to end on its thread."""
         self._pool.shutdown(wait=wait, cancel_futures=True)
         self._helper.shutdown(wait=wait, cancel_futures=True)
+        self._warmer.shutdown(wait=wait, cancel_futures=True)
         self._scenes.clear()
         self._kept.clear()
         self._pending.clear()

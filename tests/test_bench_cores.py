@@ -154,6 +154,30 @@ def test_work_waited_for_by_name_runs_on_a_lane_of_its_own_until_then():
     assert aggregate(one)["tracing"]["items"] == 16  # the mark is no work item
 
 
+def test_a_scene_built_ahead_does_not_wait_for_the_warm_up_on_its_lane():
+    """The compiled code loads beside (6 s, on a thread of its own) from the start; two
+    scenes are built ahead (2 s each, beside, on the helper thread) once the levels are
+    known, the first waited for by the side probes, the second by the tracing. On eight
+    threads the first is issued at 0.75 s and done at 2.75 s — not after the warm-up, at
+    8 s — the second after it; the tracing still waits for the warm-up (6 s)."""
+    one = _timeline([
+        _stage("load", 0, 6, [(9, 1, "warm up", 0, 6, 1)]),
+        _stage("levels", 6, 12, [*_batch(1, "levels", 6, [1] * 8),
+                                 (12, 1, "scene", 14, 16, 1), (13, 1, "scene", 16, 18, 1)]),
+        _stage("seen sides", 18, 8, [(12, 1, "wait", 18, 18),
+                                     *_batch(2, "side probes", 18, [1] * 8)]),
+        _stage("tracing", 26, 8, [(9, 1, "wait", 26, 26), (13, 1, "wait", 26, 26),
+                                  *_batch(3, "trace", 26, [1] * 8)]),
+    ])
+    assert replay(one, 1)["whole"] == pytest.approx(34)
+    at8 = replay(one, 8)
+    assert at8["load"] == pytest.approx(0.75)
+    assert at8["levels"] == pytest.approx(1 + 2 * 2 / 8)  # the scenes' share of the cores
+    assert at8["seen sides"] == pytest.approx(2.75 - 2.25 + 1)
+    assert at8["tracing"] == pytest.approx(6 - 3.75 + 1)
+    assert at8["whole"] == pytest.approx(7)  # on one lane with the warm-up: 11
+
+
 def test_work_done_beside_a_unit_is_issued_where_that_unit_began():
     """A level's next step laid out (1 s, beside, on the calling thread) while the workers
     trace this one (a batch of 16 items of 1 s); the command waits for it after queueing

@@ -11,9 +11,10 @@ one-thread item is cut in the same shares (that cut is the one any thread count 
 unless it reached `cores.ITEMS_PER_CALL`: then more threads would cut finer, and the
 replay is pessimistic). Gaps of at most `ITEM_GAP_S` between a unit's items are the
 items' own overhead. Work done beside the critical path (`volumes.cores.beside`) runs
-beside it: on a lane of its own until the command waits for it by name — from where the
-unit of work it was recorded beside began (the next step laid out while this one
-traces), else from where it comes in order — else sharing the next unit's threads.
+beside it: on a lane until the command waits for it by name — from where the unit of
+work it was recorded beside began (the next step laid out while this one traces), else
+from where it comes in order — else sharing the next unit's threads. A lane is one
+helper thread (`LANES`): work on it runs in turn.
 Items parallel inside (`INNER_PARALLEL`) are shortened as they scaled when measured, and
 checkpoints, made every `baking.saves.CHECKPOINT_S` seconds, come as often as the
 predicted wall time allows.
@@ -35,6 +36,10 @@ llvmpipe threads): the replay shortens them by Amdahl's law, with the
 serial fraction fitted to how much faster the items of the kind named here ran with the
 most threads measured (`inner_factors`; a checkpoint is the same save as the last one,
 which shares no core with tracing)."""
+LANES = {"warm up": "warm up"}
+"""The lane of each kind of work done beside that the command waits for by name (the
+thread it runs on: a `baking.backend.ThreadBackend` loads its compiled code on a thread of
+its own); other kinds share the helper's ("helper")."""
 ITEM_GAP_S = 0.005
 """Gaps up to this long between consecutive items of one unit of work (`work_units`) are
 the items' own overhead — handing an item out, a progress update after it — done by the
@@ -110,10 +115,10 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
     a batch's items (placed at its first item; key ``("batch", id)``), a run of
     consecutive single items of one kind (``("single", kind)``), or a single item that
     `split(kind)` cuts into shares (its own unit, ``("split", id)``); ``("lane", batch,
-    seconds, beside)``, work done beside that the command waits for later (its batch in
-    `laned`: a "wait" item marks where), `beside` the index of the unit whose recorded
-    items ran while it began (the latest such; None: none); ``("wait", batch)``, that
-    mark.
+    seconds, beside, kind)``, work of `kind` done beside that the command waits for later
+    (its batch in `laned`: a "wait" item marks where), `beside` the index of the unit whose
+    recorded items ran while it began (the latest such; None: none); ``("wait", batch)``,
+    that mark.
 
     An item that follows its unit's last item within `ITEM_GAP_S` takes the gap into its
     seconds. Other items done beside (`is_beside`: a batch committed while the next is
@@ -154,7 +159,7 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
             recorded.append(duration(item))
         if is_beside(item):
             if batch in laned:
-                events.append(("lane", batch, seconds, item[3]))
+                events.append(("lane", batch, seconds, item[3], kind))
             elif ended:  # a unit so far in this visit: the last one begun
                 events[max(ended)][1].append(seconds)
             else:
@@ -184,12 +189,12 @@ def work_events(items: list[list[Any]], sizes: Counter[int] | None = None,
 
 def _beside_unit(lane: tuple, index: int, began: dict[int, float],
                  ended: dict[int, float]) -> tuple:
-    """`lane` (``("lane", batch, seconds, start)``, the `index`-th event) with `start`
+    """`lane` (``("lane", batch, seconds, start, kind)``, the `index`-th event) with `start`
     replaced by the index of the latest unit before it whose recorded items span that
     start (`began`, `ended`: by unit index), or None."""
     start = lane[3]
     inside = [unit for unit in began if unit < index and began[unit] <= start <= ended[unit]]
-    return (*lane[:3], max(inside) if inside else None)
+    return (*lane[:3], max(inside) if inside else None, *lane[4:])
 
 
 def split_hints(timeline: dict[str, Any]) -> dict[tuple[str, str], list[list[float]]]:
@@ -234,12 +239,13 @@ def _on_threads(n: int, inner: dict[str, float] | None) -> Callable[[list[Any]],
 
 
 class _Play:
-    """Where a replay is: the simulated clock (seconds), when the lane of work done beside
-    is free, when each laned batch is done, the beside work not yet placed."""
+    """Where a replay is: the simulated clock (seconds), when each lane of work done beside
+    is free (by `LANES` name), when each laned batch is done, the beside work not yet
+    placed."""
 
     def __init__(self) -> None:
         self.clock = 0.0
-        self.lane = 0.0
+        self.lanes: dict[str, float] = {}
         self.ready: dict[int, float] = {}
         self.carried: list[float] = []
 
@@ -250,10 +256,10 @@ def replay_stage(stage: dict[str, Any], n: int, sizes: Counter[int] | None = Non
                  laned: frozenset[int] = frozenset()) -> float:
     """Predicted seconds of one stage visit (of a one-thread run) on `n` threads: its glue
     (wall less its items' seconds as recorded, at least 0), then its `work_events` in
-    order — a unit's makespan; work on the lane (one more thread) from when it is issued
-    or the lane is free, its share of the `n` cores (seconds / n) added to the clock; a
-    wait until the lane has done that batch. `play` carries the clock and the lane from
-    visit to visit; `inner` as `replay` takes it. Work for the lane recorded while a
+    order — a unit's makespan; work on its lane (one more thread, `LANES`) from when it is
+    issued or the lane is free, its share of the `n` cores (seconds / n) added to the
+    clock; a wait until the lane has done that batch. `play` carries the clock and the
+    lanes from visit to visit; `inner` as `replay` takes it. Work for a lane recorded while a
     unit's items ran is issued where that unit began."""
     play = play if play is not None else _Play()
     began = play.clock
@@ -268,8 +274,9 @@ def replay_stage(stage: dict[str, Any], n: int, sizes: Counter[int] | None = Non
             play.clock += makespan(event[1], n)
         elif event[0] == "lane":
             issued = started.get(event[3], play.clock) if event[3] is not None else play.clock
-            play.lane = max(issued, play.lane) + event[2]
-            play.ready[event[1]] = play.lane
+            lane = LANES.get(event[4], "helper")
+            play.lanes[lane] = max(issued, play.lanes.get(lane, 0.0)) + event[2]
+            play.ready[event[1]] = play.lanes[lane]
             play.clock += event[2] / n
         else:
             play.clock = max(play.clock, play.ready.get(event[1], play.clock))
