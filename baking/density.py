@@ -132,7 +132,7 @@ def texel_bricks(coords: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
     def part(block: slice) -> None:
         bricks[block] = brick_of(coords[block], grid)
 
-    cores.for_blocks(part, len(coords), BLOCK, "texels")
+    cores.for_blocks(part, len(coords), BLOCK, "texels", least=cores.GLUE_BLOCK)
     return bricks
 
 
@@ -146,7 +146,7 @@ def mixing_mask(nodes: Nodes, coords: np.ndarray, at: np.ndarray) -> np.ndarray:
         rows, weights = nodes.corners(coords[at[block]])
         used[rows[weights > 0]] = True
 
-    cores.for_blocks(mark, len(at), BLOCK, "texels")
+    cores.for_blocks(mark, len(at), BLOCK, "texels", least=cores.GLUE_BLOCK)
     return used
 
 
@@ -223,7 +223,7 @@ def fine_bricks(lattices: list[Nodes], bricks: np.ndarray, light: NodeLight,
             own = noise_free_rms(square, noise, noise_squares, 1.0 * (pairs > 0))
             edges[at[part]] = EDGE_SHARE * own > EDGE_NODE * light.allowed
 
-        cores.for_blocks(judge, len(at), BLOCK, "texels")
+        cores.for_blocks(judge, len(at), BLOCK, "texels", least=cores.GLUE_BLOCK)
         sums += [np.bincount(bricks[at], v, count) for v in per_node]
     every = np.bincount(bricks, minlength=count) > 0
     rough = EDGE_SHARE * noise_free_rms(*sums) > light.allowed
@@ -254,7 +254,7 @@ def facing_away(nodes: Nodes, at: np.ndarray, coords: np.ndarray, facing: np.nda
             away[part] |= drift_error(nodes, here, rows, w, sides, facing,
                                       facing[at[part]], light, SIDE_FLOOR) > light.allowed
 
-    cores.for_blocks(look, len(at), BLOCK, "texels")
+    cores.for_blocks(look, len(at), BLOCK, "texels", least=cores.GLUE_BLOCK)
     return away
 
 
@@ -460,7 +460,7 @@ def traced_light(baker: Any, total: int, level_at: np.ndarray, trapped_at: int
         variance[block] = path_variance(luminance[block], second[block],
                                         samples[block]) / np.maximum(samples[block], 1)
 
-    cores.for_blocks(part, total, BLOCK, "texels")
+    cores.for_blocks(part, total, BLOCK, "texels", least=cores.GLUE_BLOCK)
     return NodeLight(luminance, variance,
                      shown_texels(luminance, samples, trapped_at),
                      baker.config.texel_error * light_level(luminance[level_at]))

@@ -230,7 +230,7 @@ def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray
             at = seen[part]
             residual[at] = residuals(nodes, coords, at, facing, light.luminance, light.shown)
 
-        cores.for_blocks(measure, len(seen), BLOCK, "texels")
+        cores.for_blocks(measure, len(seen), BLOCK, "texels", least=cores.GLUE_BLOCK)
         out = np.zeros(len(filled), bool)
 
         def judge(part: slice, filled: np.ndarray = filled, residual: np.ndarray = residual,
@@ -246,7 +246,7 @@ def stray_fills(lattices: list[Any], fills: list[np.ndarray], coords: np.ndarray
             beyond = np.abs(mean) - SURE * np.sqrt(noise)
             out[part] = (count > 0) & (beyond > STRAY * light.allowed)
 
-        cores.for_blocks(judge, len(filled), BLOCK, "texels")
+        cores.for_blocks(judge, len(filled), BLOCK, "texels", least=cores.GLUE_BLOCK)
         stray.append(filled[out])
     return np.sort(np.concatenate(stray)) if stray else np.zeros(0, np.int64)
 

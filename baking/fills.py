@@ -62,7 +62,7 @@ def texel_luminance(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     def part(block: slice) -> None:
         weighted_sums(values[block], weights, luminance[block])
 
-    cores.for_blocks(part, len(values), BLOCK, "texels")
+    cores.for_blocks(part, len(values), BLOCK, "texels", least=cores.GLUE_BLOCK)
     return luminance
 
 
@@ -185,7 +185,7 @@ def fill(lattice: Any, nodes: Nodes, coords: np.ndarray, filled: np.ndarray,
         at = filled[part]
         values[at], second[at] = node_light(nodes, coords, at, shown, facing, values, second)
 
-    cores.for_blocks(mix, len(filled), BLOCK, "texels")
+    cores.for_blocks(mix, len(filled), BLOCK, "texels", least=cores.GLUE_BLOCK)
     lattice.samples.reshape(-1)[filled] = samples
 
 
@@ -308,7 +308,7 @@ class Recipe:
             weighted_sums(np.ascontiguousarray(values[block]), weights, luminance)
             shown[block] = shown_texels(luminance, samples[block], self.trapped_at)
 
-        cores.for_blocks(part, len(samples), BLOCK, "texels")
+        cores.for_blocks(part, len(samples), BLOCK, "texels", least=cores.GLUE_BLOCK)
         return shown
 
 
@@ -338,7 +338,7 @@ def _mix_half(nodes: Nodes | SparseNodes, coords: np.ndarray, part: np.ndarray,
                                      arrays["values"], arrays.get("second"))
         take(part[rows], values, moments)
 
-    cores.for_blocks(block, len(part), BLOCK, "texels")
+    cores.for_blocks(block, len(part), BLOCK, "texels", least=cores.GLUE_BLOCK)
 
 
 def mask_of(total: int, *positions: np.ndarray) -> np.ndarray:

@@ -119,7 +119,7 @@ def commit_sums(lattice: Lattice | PlanLattice, ids: np.ndarray, acc: PassSums,
             lattice.samples.reshape(-1), lattice.second.reshape(-1), acc.sum, acc.second,
             acc.n)
 
-    cores.for_blocks(merge, len(slots), COMMIT_BLOCK, "commit")
+    cores.for_blocks(merge, len(slots), COMMIT_BLOCK, "commit", least=cores.GLUE_BLOCK)
     return sum(fresh.values())
 
 
@@ -172,7 +172,7 @@ def commit_facing(lattice: Lattice | PlanLattice, volume: volumes.Volume,
         codes[flat[block]] = landing_facing(volume, lattice.geometry, config, plan.reach,
                                             records.of(positions[block]))
 
-    cores.for_blocks(facings, len(todo), FACING_BLOCK, "commit")
+    cores.for_blocks(facings, len(todo), FACING_BLOCK, "commit", least=cores.GLUE_BLOCK)
 
 
 FACING_BLOCK = 1 << 17

@@ -171,6 +171,23 @@ def test_ranges_cover_the_work_in_small_items(count, cost):
         assert sizes.min() * cost >= cores.MIN_COST or len(bounds) == 1
 
 
+@pytest.mark.parametrize("count,least", [(100, cores.MIN_BLOCK), (300_000, cores.MIN_BLOCK),
+                                         (300_000, cores.GLUE_BLOCK),
+                                         (5_000_000, cores.GLUE_BLOCK)])
+def test_blocks_cover_the_elements_between_their_least_and_largest_sizes(count, least):
+    """`blocks` cuts [0, count) in order into `BLOCKS` slices where each then holds at
+    least `least` elements and at most `largest`, else into fewer of `least` each."""
+    largest = 1 << 16
+    parts = cores.blocks(count, largest, least)
+    assert parts[0].start == 0 and parts[-1].stop == count
+    assert all(a.stop == b.start for a, b in itertools.pairwise(parts))
+    sizes = np.array([p.stop - p.start for p in parts])
+    assert sizes.max() <= largest and (sizes[:-1] >= min(least, count)).all()
+    assert len(parts) <= cores.BLOCKS or sizes.max() == largest
+    if count == 300_000:  # 256 blocks of 1172, or 37 of the glue's 8192
+        assert len(parts) == (cores.BLOCKS if least == cores.MIN_BLOCK else 37)
+
+
 def test_for_ranges_gives_the_same_result_on_any_thread_count():
     data = np.random.default_rng(3).random(300_000)
     outs = []
