@@ -73,9 +73,13 @@ STAGES = (
 """The named stages a timeline records, in the order a bake (load … save) and a render
 (load, surface … tracing, draw) pass through them; a stage may be skipped or visited
 again (each visit is recorded on its own)."""
-MIN_COST = 1 << 14
+MIN_COST = 1 << 11
 """Least work of one item of `for_ranges`, in units of its ``cost_per_item`` (a point of
-a compiled kernel: about a microsecond)."""
+a compiled kernel: about a microsecond): a few milliseconds, against ~0.1 ms of handing
+an item out, so that a short call — a level's marching cubes on the tooth CT, 30 ms —
+still has an item for each of 16 threads. (At 16 k the tooth's marching cubes went in two
+items, and the replay of its bake on 16 threads gave ×10.3; at 2 k ×11.6, the two-thread
+walls the same within their noise, the same bits.)"""
 ITEMS_PER_CALL = 64
 """Items a large `for_ranges` call is cut into, at least (and 8 per thread): no item is
 more than 1/64 of the call, so the last one holds up no thread for long."""
