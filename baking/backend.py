@@ -288,10 +288,11 @@ def warm_up(volume: volumes.Volume) -> None:
     volume.data_hash()
 
 
-def _helper_thread(workers: int) -> Executor:
-    """One thread beside a bake's `workers` tracing threads, or (one worker) the caller's
-    own, in turn with the tracing (`cores.Inline`)."""
-    return ThreadPoolExecutor(max_workers=1) if workers > 1 else cores.Inline()
+def _helper_thread(workers: int, name: str) -> Executor:
+    """One thread beside a bake's `workers` tracing threads, named `name` (in a timeline),
+    or (one worker) the caller's own, in turn with the tracing (`cores.Inline`)."""
+    return (ThreadPoolExecutor(max_workers=1, thread_name_prefix=name) if workers > 1
+            else cores.Inline())
 
 
 class ThreadBackend:
@@ -322,8 +323,8 @@ class ThreadBackend:
         # the next step and scenes ahead: on one thread of their own beside the pool, or in
         # turn with the tracing when the bake has one thread; the compiled code's loading on
         # another, so that the first scenes ahead do not queue behind it
-        self._helper = _helper_thread(self.workers)
-        self._warmer = _helper_thread(self.workers)
+        self._helper = _helper_thread(self.workers, "isolume-helper")
+        self._warmer = _helper_thread(self.workers, "isolume-warm-up")
         self._scenes: OrderedDict[int, Scene] = OrderedDict()
         self._scene_cache = max(1, scene_cache)
         self._scene_memory = scene_memory
