@@ -221,18 +221,6 @@ class TracingBackend(Protocol):
         (a Ctrl-C), work still running on a thread is left to end there."""
 
 
-class _Beside(NamedTuple):
-    """Work submitted to a `ThreadBackend`'s helper threads, waited for later: its `future`
-    and its `batch` in a timeline (`volumes.cores.beside_call`)."""
-
-    future: Future
-    batch: int
-
-    def wait(self):
-        """The work's result (`cores.waited`: the timeline marks where it was needed)."""
-        return cores.waited(self.future, self.batch)
-
-
 class PassStep(NamedTuple):
     """One step of a pass (`pass_steps`): `texels` (N,) sorted plan positions traced on
     `level`, their upper level if `upper`, from position `first` of their group on."""
@@ -331,9 +319,9 @@ class ThreadBackend:
         self._kept: dict[int, Scene] = {}  # scenes kept for good, within `scene_memory`
         self._largest = 0  # bytes of the largest scene built
         self._scene_lock = threading.Lock()
-        self._pending: dict[int, _Beside] = {}  # scenes being built ahead
+        self._pending: dict[int, cores.Beside] = {}  # scenes being built ahead
         self._ahead = ahead
-        self._warm: _Beside | None = None
+        self._warm: cores.Beside | None = None
         self._volume: volumes.Volume | None = None
         self._config: BakeConfig | None = None
         self._levels: np.ndarray | None = None
@@ -361,13 +349,12 @@ class ThreadBackend:
             self._pending[level] = self._beside("scene", level_scene, self._volume,
                                                 float(levels[level]), self._config)
 
-    def _beside(self, kind: str, function, *args, on: Executor | None = None) -> _Beside:
+    def _beside(self, kind: str, function, *args, on: Executor | None = None
+                ) -> cores.Beside:
         """`function(*args)` submitted to the helper thread (or `on`), an item of `kind`
-        done beside (`cores.beside_call`)."""
-        batch = cores.new_batch()
-        helper = on if on is not None else self._helper
-        return _Beside(helper.submit(cores.beside_call, kind, function, *args, batch=batch),
-                       batch)
+        done beside (`cores.submit_beside`)."""
+        return cores.submit_beside(on if on is not None else self._helper, kind, function,
+                                   *args)
 
     def plan_scene(self, level: int) -> Scene:
         """The scene of level `level`, from the cache (`_scene`): the plan's side probes

@@ -59,6 +59,7 @@ from isolume.baking.passes import (
     stratifies,
     trace_texels,
 )
+from isolume.volumes import cores
 
 if TYPE_CHECKING:  # Dask is an optional dependency, imported when a cluster is used
     from distributed import Client, LocalCluster
@@ -451,8 +452,9 @@ class ClusterBackend:
         self.job: BakeJob | None = None
         self.token: str = ""
         self._scattered = None  # the future of the `_Job` scattered to the workers
-        self._helper = ThreadPoolExecutor(max_workers=1)  # loads compiled code beside the plan
-        self._warm = None
+        # loads the compiled code beside the plan
+        self._helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isolume-warm-up")
+        self._warm: cores.Beside | None = None
         self._worker_list: list[str] = []
         self._workers_asked = -np.inf
         self._threads = 1
@@ -462,7 +464,7 @@ class ClusterBackend:
               kept: np.ndarray | None, stats: BakeStats) -> None:
         """Load the compiled code (for the commits) and hash the volume while the plan is
         made (`backend.warm_up`); the workers build the level scenes."""
-        self._warm = self._helper.submit(warm_up, volume)
+        self._warm = cores.submit_beside(self._helper, "warm up", warm_up, volume)
 
     def levels_known(self, levels: np.ndarray) -> None:
         """Nothing: the workers build the level scenes."""
@@ -478,7 +480,7 @@ class ClusterBackend:
             BakeError: no worker joined within `CONNECT_TIMEOUT_S`.
         """
         if self._warm is not None:
-            self._warm.result()
+            self._warm.wait()
         self._drop_job()
         t = job.tracing
         shared = _Job(uuid.uuid4().hex, fingerprint(), replace(job.volume),  # no caches

@@ -402,19 +402,13 @@ class MoveFigures:
     foot's 41 M texels), or at once with one thread or inside the pool."""
 
     def __init__(self, move: np.ndarray) -> None:
-        self._batch = cores.new_batch()
-        self._figures: tuple[float, float, float] | None = None
-        self._future = None
-        if cores.threads() > 1 and not cores.in_pool():
-            self._future = cores.pool().submit(cores.beside_call, "move figures",
-                                               _move_figures, move, batch=self._batch)
-        else:
-            self._figures = _move_figures(move)
+        self._ahead = cores.ahead("move figures", _move_figures, move)
+        self._figures = _move_figures(move) if self._ahead is None else None
 
     def figures(self) -> tuple[float, float, float]:
-        """(p50, p90, largest), voxels (waited for, `cores.waited`)."""
+        """(p50, p90, largest), voxels (waited for where found beside)."""
         if self._figures is None:
-            self._figures = cores.waited(self._future, self._batch)
+            self._figures = self._ahead.wait()
         return self._figures
 
     def __eq__(self, other: object) -> bool:

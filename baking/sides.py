@@ -138,31 +138,28 @@ class BoxReachAhead:
         self._volume, self._up = volume, not bool(config.flip_normals)
         self._probed = config.sides == "seen"
         self._stop = threading.Event()
-        self._batch = cores.new_batch()
-        self._future = None
+        self._ahead: cores.Beside | None = None
 
     def begin(self) -> None:
         """Start the flood on a pool thread, where the sides are probed and the pool has
-        a thread to spare for it."""
-        if self._probed and cores.threads() > 1 and not cores.in_pool():
-            self._future = cores.pool().submit(cores.beside_call, "box reach", BoxReach.of,
-                                               self._volume, self._up, self._stop,
-                                               batch=self._batch)
+        a thread to spare for it (`cores.ahead`)."""
+        if self._probed:
+            self._ahead = cores.ahead("box reach", BoxReach.of, self._volume, self._up,
+                                      self._stop)
 
     def get(self) -> BoxReach:
-        """The flood: the pool thread's (waited for, `cores.waited`), or made now where
-        none began it."""
-        if self._future is None or self._future.cancel():
+        """The flood: the pool thread's (waited for), or made now where none began it."""
+        if self._ahead is None or self._ahead.future.cancel():
             return BoxReach.of(self._volume, self._up)
-        return cores.waited(self._future, self._batch)
+        return self._ahead.wait()
 
     def __enter__(self) -> BoxReachAhead:
         return self
 
     def __exit__(self, *_exc: object) -> None:
         self._stop.set()
-        if self._future is not None:
-            self._future.cancel()
+        if self._ahead is not None:
+            self._ahead.future.cancel()
 
 
 def _fraction(progress: Callable[[float], None] | None, probed: int, total: int):

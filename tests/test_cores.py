@@ -233,6 +233,27 @@ def test_a_timeline_records_stages_cpu_and_items(tmp_path, three_threads):
         cores.Timeline().stage("nowhere")
 
 
+def test_an_item_begun_between_two_stages_belongs_to_the_next():
+    """A stage's counters are read as it ends and the next begins; work a helper thread
+    starts in between (a flood beside the plan) belongs to the stage after, and work
+    begun before the first stage to the first: no item is lost from the timeline."""
+    timeline = cores.Timeline()
+    try:
+        timeline.stage("load")
+        timeline.stage("texel values")
+        gap_from = timeline.stages[0]["end_s"]
+        timeline._open["start_s"] = gap_from + 0.010  # a gap of 10 ms, as reading can take
+        timeline.item(7, "box reach", timeline.began + gap_from + 0.005,
+                      timeline.began + gap_from + 0.5, beside=True)
+        timeline.item(8, "warm up", timeline.began - 0.001, timeline.began + 0.1, beside=True)
+        time.sleep(0.05)  # the second stage ends after its item began
+    finally:
+        record = timeline.finish()
+    load, values = record["stages"]
+    assert [item[0] for item in load["items"]] == [8]
+    assert [item[0] for item in values["items"]] == [7]
+
+
 def test_a_timeline_marks_work_done_beside_and_records_memory(tmp_path, three_threads):
     """Items of `beside()` work — its own and its `for_items` calls' on other threads —
     carry the mark; the others do not; each stage holds the highest resident memory

@@ -41,10 +41,10 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 from isolume.volumes import usage
 from isolume.volumes.errors import IsolumeError, interrupted_by
@@ -512,14 +512,18 @@ class Timeline:
         beside), the sampled busy cores, the threads' names, the process's peak resident
         memory (MiB)."""
         busy = _busy_cores(self.samples, self._own)
-        for stage in self.stages:
+        # an item belongs to the stage it began in, or, begun between two stages (a
+        # stage's counters are read as it ends and the next begins: ~10 ms in which a
+        # helper thread may start work), to the one after
+        ends = [-math.inf] + [stage["end_s"] for stage in self.stages]
+        for k, stage in enumerate(self.stages):
             inside = [(t, dt, cores) for t, dt, cores in busy
                       if stage["start_s"] < t <= stage["end_s"]]
             stage["serial_s"] = min(stage["wall_s"], sum(dt for _, dt, c in inside
                                                          if c <= SERIAL_CORES))
             stage["items"] = [[b, tid, kind, round(s, 6), round(e, 6), *([1] if side else [])]
                               for b, tid, kind, s, e, side in self.items
-                              if stage["start_s"] <= s < stage["end_s"]]
+                              if ends[k] <= s < ends[k + 1]]
         return {
             "threads": threads(), "available_cores": available(),
             "load_average": list(os.getloadavg()),
@@ -619,6 +623,35 @@ def waited(future: Future[_T], batch: int) -> _T:
         now = time.perf_counter()
         _TIMELINE.item(batch, "wait", now, now)
     return result
+
+
+class Beside(NamedTuple):
+    """Work submitted beside the critical path (`submit_beside`), waited for later: its
+    `future` and its `batch` in a timeline."""
+
+    future: Future
+    batch: int
+
+    def wait(self) -> Any:
+        """The work's result (`waited`: the timeline marks where it was needed)."""
+        return waited(self.future, self.batch)
+
+
+def submit_beside(executor: Executor, kind: str, function: Callable[..., Any], /,
+                  *args: Any) -> Beside:
+    """`function(*args)` submitted to `executor` as `beside_call`, an item of `kind`."""
+    batch = new_batch()
+    return Beside(executor.submit(beside_call, kind, function, *args, batch=batch), batch)
+
+
+def ahead(kind: str, function: Callable[..., Any], /, *args: Any) -> Beside | None:
+    """`submit_beside` to the pool where a thread can be spared for work that the caller
+    needs later: with more than one thread, called from outside the pool (whose threads
+    may all be busy with the caller's own items). None elsewhere: do the work when it is
+    needed."""
+    if threads() > 1 and not in_pool():
+        return submit_beside(pool(), kind, function, *args)
+    return None
 
 
 @contextmanager
