@@ -146,9 +146,9 @@ def test_the_flood_begun_ahead_is_the_flood_and_leaving_it_early_stops_it(thread
         with BoxReachAhead(big, BakeConfig()) as ahead:
             ahead.begin()
         if threads > 1:
-            assert ahead._future is not None
-            if not ahead._future.cancelled():
+            assert ahead._ahead is not None
+            if not ahead._ahead.future.cancelled():
                 with pytest.raises(reach.FloodStopped):
-                    ahead._future.result(timeout=60)
+                    ahead._ahead.future.result(timeout=60)
     finally:
         cores.use(None)
