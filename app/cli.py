@@ -20,7 +20,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 
-from isolume.app import blas  # noqa: F401  (first: before numpy loads its BLAS)
+from isolume.app import blas  # first: before numpy loads its BLAS
 from isolume.app.allocator import tune_malloc
 from isolume.app.commands import cmd_bake, cmd_info, cmd_render
 from isolume.app.options import (
@@ -179,9 +179,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     with numba's objects in it that took ~0.2 s of every command's exit; and after a
     Ctrl-C it ends the process without waiting for pool threads (`_leave`); a Ctrl-C that
     comes while C code calls back into Python is raised after the callback
-    (`volumes.interrupts`)."""
+    (`volumes.interrupts`); numba's array maths loads without importing SciPy's linear
+    algebra (`blas.numba_without_blas_probe`)."""
     if argv is None:
         interrupts.install()
+        blas.numba_without_blas_probe()
     status = _run(argv)
     if argv is None:
         gc.freeze()
