@@ -31,7 +31,7 @@ def numba_without_blas_probe() -> None:
     multiply inside compiled code (BLAS or a loop); no kernel of isolume calls them, and
     ``np.dot`` or ``np.linalg`` in compiled code still import SciPy's BLAS as they are
     compiled. Call it while no other thread imports (it hides the module for the
-    import's ~10 ms): the command line does, first thing, as the console script."""
+    import's ~10 ms): the console script does, before a command that runs kernels starts."""
     if _PROBED in sys.modules or "numba.np.arraymath" in sys.modules:
         return
     sys.modules[_PROBED] = None  # an import of it raises ImportError

@@ -179,11 +179,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     with numba's objects in it that took ~0.2 s of every command's exit; and after a
     Ctrl-C it ends the process without waiting for pool threads (`_leave`); a Ctrl-C that
     comes while C code calls back into Python is raised after the callback
-    (`volumes.interrupts`); numba's array maths loads without importing SciPy's linear
-    algebra (`blas.numba_without_blas_probe`)."""
+    (`volumes.interrupts`)."""
     if argv is None:
         interrupts.install()
-        blas.numba_without_blas_probe()
     status = _run(argv)
     if argv is None:
         gc.freeze()
@@ -277,6 +275,7 @@ def _run(argv: Sequence[str] | None) -> int:
             check_output_folder(args.timeline)
         cores.use(workers_of(args))
         if argv is None and args.command != "info":  # the console script's kernels
+            blas.numba_without_blas_probe()  # before any other thread imports
             _say_first_compile()
         with cores.recording(getattr(args, "timeline", None), command=words):
             return command(args)
