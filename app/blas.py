@@ -4,8 +4,8 @@ not set them), and keeps it: isolume's own work runs on its pool, not in BLAS
 (`volumes.cores.use` holds a BLAS to at most ``--workers`` threads and never grows one).
 A BLAS loaded with more threads starts them at once, and each spins for ~0.1 s as it
 starts — on cores that a ``--workers 1`` command does not hold, and on 16 cores 1.9 s of
-CPU in the first stage of a bake. A BLAS loaded later (SciPy's, for the suggested
-isovalues) keeps its one thread too.
+CPU in the first stage of a bake. A BLAS loaded later (SciPy's, where a command loads
+it) keeps its one thread too.
 
 numba's array maths, loaded as it readies its first kernel, asks SciPy whether a BLAS is
 there by importing ``scipy.linalg`` (0.12 s and 30 MB of every command's start, where

@@ -42,8 +42,7 @@ def multi_otsu(values: np.ndarray, classes: int, bins: int = 256) -> np.ndarray:
     """(classes - 1,) field units: the multi-Otsu thresholds of the (N,) float32 `values`
     over `bins` bins, the same bits as ``skimage.filters.threshold_multiotsu`` (its
     histogram and its compiled search, called without that module, whose import of SciPy's
-    ndimage adds 0.08 s to the serial start of every command that suggests an isovalue,
-    beside the SciPy that numba imports).
+    ndimage adds 0.08 s to the serial start of every command that suggests an isovalue).
 
     Raises:
         ValueError: fewer than `classes` bins hold values.
