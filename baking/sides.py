@@ -149,7 +149,7 @@ class BoxReachAhead:
 
     def get(self) -> BoxReach:
         """The flood: the pool thread's (waited for), or made now where none began it."""
-        if self._ahead is None or self._ahead.future.cancel():
+        if self._ahead is None or self._ahead.cancel():
             return BoxReach.of(self._volume, self._up)
         return self._ahead.wait()
 
@@ -159,7 +159,7 @@ class BoxReachAhead:
     def __exit__(self, *_exc: object) -> None:
         self._stop.set()
         if self._ahead is not None:
-            self._ahead.future.cancel()
+            self._ahead.cancel()
 
 
 def _fraction(progress: Callable[[float], None] | None, probed: int, total: int):

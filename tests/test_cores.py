@@ -439,7 +439,8 @@ def test_the_command_line_loads_blas_with_one_thread_and_use_never_grows_it():
 
 def test_numba_loads_its_array_maths_without_scipy_and_dot_still_compiles():
     """The console script's start (`app.blas.numba_without_blas_probe`) leaves SciPy's
-    linear algebra unloaded as numba readies a kernel (0.12 s and 30 MB of every command),
+    linear algebra unloaded as numba readies a kernel (0.12 s and 30–50 MB of a command's
+    start),
     leaves no hidden module behind, and compiled ``np.dot`` still loads SciPy's BLAS and
     gives the product; a process that has SciPy's BLAS already keeps numba's answer."""
     script = ("import sys, json, numba, numpy as np; from isolume.app import blas; "

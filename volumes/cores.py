@@ -77,9 +77,9 @@ MIN_COST = 1 << 11
 """Least work of one item of `for_ranges`, in units of its ``cost_per_item`` (a point of
 a compiled kernel: about a microsecond): a few milliseconds, against ~0.1 ms of handing
 an item out, so that a short call — a level's marching cubes on the tooth CT, 30 ms —
-still has an item for each of 16 threads. (At 16 k the tooth's marching cubes went in two
-items, and the replay of its bake on 16 threads gave ×10.3; at 2 k ×11.6, the two-thread
-walls the same within their noise, the same bits.)"""
+still has an item for each of 16 threads (with 16 k it has two, and the replay of the
+tooth's bake on 16 threads gives ×10.3 against ×11.6; two-thread walls alike within their
+noise)."""
 ITEMS_PER_CALL = 64
 """Items a large `for_ranges` call is cut into, at least (and 8 per thread): no item is
 more than 1/64 of the call, so the last one holds up no thread for long."""
@@ -93,10 +93,9 @@ GLUE_BLOCK = 8192
 """Fewest elements of a block of a call whose work is mostly numpy on (N, 8)-sized rows (a
 bake's fills, judgements and commits): its calls hold the GIL between array operations
 that release it, and blocks of fewer rows hand the GIL from thread to thread (a context
-switch each) for little work: on the tooth CT's default bake, 8192 in place of 1024
-takes its voluntary context switches from 24–26 k to 9–11 k on two threads, its wall
-−2.3 % there and −1.6 % on one (medians of paired runs), the same bits, its peak
-memory +4 %."""
+switch each) for little work: the tooth CT's default bake makes 9–11 k voluntary context
+switches on two threads with blocks of 8192, 24–26 k with 1024, and its wall is 2.3 %
+shorter there and 1.6 % on one (medians of paired runs), for 4 % more peak memory."""
 SAMPLE_S = 0.05
 """Seconds between a timeline's readings of every thread's CPU time."""
 STOP_WAIT_S = 0.5
@@ -635,6 +634,10 @@ class Beside(NamedTuple):
     def wait(self) -> Any:
         """The work's result (`waited`: the timeline marks where it was needed)."""
         return waited(self.future, self.batch)
+
+    def cancel(self) -> bool:
+        """Drop the work if no thread has begun it; whether it was dropped."""
+        return self.future.cancel()
 
 
 def submit_beside(executor: Executor, kind: str, function: Callable[..., Any], /,
